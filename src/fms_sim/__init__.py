@@ -1,0 +1,12 @@
+"""fms_sim: instances, the coloured-timed Petri net engine, the shop net, schedules and their validator."""
+
+from .instance import Instance, InstanceError, Operation
+from .schedule import AgvTrip, OperationRecord, Schedule, ScheduleError, ToolTrip
+from .validate import ScheduleInvalid, check, validate
+
+__all__ = [
+    "Instance", "InstanceError", "Operation",
+    "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
+    "validate", "check", "ScheduleInvalid",
+]
+__version__ = "0.1.0"

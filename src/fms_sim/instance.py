@@ -1,0 +1,277 @@
+"""The validated data model of an FMS instance.
+
+Everything else in the project (the Petri net, the validator, the solvers, the nodes) reads this model;
+nothing else defines what an instance is.
+
+Numbering (the project's contract):
+
+* location 0 is the load/unload station (L/U) and the tool magazine; machine ``k`` is location ``k``;
+* machines and tools are numbered from 1;
+* jobs, operations, AGVs and tool transporters are numbered from 0.
+
+Modes follow from the data:
+
+* AGVs are modelled iff ``agv_travel`` is given (then ``n_agvs >= 1``);
+* tools are modelled iff ``tool_travel`` is given (then ``n_tool_transporters >= 1``); an operation whose
+  ``tool`` is ``None`` needs no tool.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+__all__ = ["Operation", "Instance", "InstanceError"]
+
+Matrix = tuple[tuple[int, ...], ...]
+
+
+class InstanceError(ValueError):
+    """An instance (or instance file) that breaks the data model; the message says what and where."""
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+@dataclass(frozen=True, slots=True)
+class Operation:
+    """One operation: processed on ``machine`` (1-based) for ``duration`` time units, needing ``tool``."""
+
+    machine: int
+    tool: int | None
+    duration: int
+
+    def __post_init__(self) -> None:
+        if not _is_int(self.machine) or self.machine < 1:
+            raise InstanceError(f"machine must be an integer >= 1, got {self.machine!r}")
+        if self.tool is not None and (not _is_int(self.tool) or self.tool < 1):
+            raise InstanceError(f"tool must be null or an integer >= 1, got {self.tool!r}")
+        if not _is_int(self.duration) or self.duration < 0:
+            raise InstanceError(f"duration must be a non-negative integer, got {self.duration!r}")
+
+
+def _matrix(name: str, rows: Any, size: int) -> Matrix:
+    if not isinstance(rows, (list, tuple)) or len(rows) != size:
+        got = len(rows) if isinstance(rows, (list, tuple)) else type(rows).__name__
+        raise InstanceError(f"{name} must be a {size}x{size} matrix (L/U + {size - 1} machines), got {got} rows")
+    out = []
+    for i, row in enumerate(rows):
+        if not isinstance(row, (list, tuple)) or len(row) != size:
+            got = len(row) if isinstance(row, (list, tuple)) else type(row).__name__
+            raise InstanceError(f"{name} row {i} must have {size} entries, got {got}")
+        for j, x in enumerate(row):
+            if not _is_int(x):
+                raise InstanceError(f"{name}[{i}][{j}] must be an integer, got {x!r}")
+            if x < 0:
+                raise InstanceError(f"{name}[{i}][{j}] is negative ({x}); travel times must be >= 0")
+        out.append(tuple(row))
+    for i in range(size):
+        if out[i][i] != 0:
+            raise InstanceError(f"{name}[{i}][{i}] must be 0 (no travel within a location), got {out[i][i]}")
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class Instance:
+    """A flexible-manufacturing job shop with AGVs and shared tools.
+
+    ``jobs[j][k]`` is operation ``k`` of job ``j``. ``agv_travel[a][b]`` and ``tool_travel[a][b]`` are
+    travel times from location ``a`` to ``b`` ((m+1)x(m+1), index 0 = L/U / tool magazine); loaded and empty
+    trips use the same matrix. ``n_machines`` is derived from the matrices (or from the operations of a plain
+    job shop) unless given; ``n_tools`` likewise from the operations.
+    """
+
+    name: str
+    jobs: tuple[tuple[Operation, ...], ...]
+    agv_travel: Matrix | None = None
+    tool_travel: Matrix | None = None
+    n_agvs: int = 0
+    n_tool_transporters: int = 0
+    n_machines: int = 0
+    n_tools: int = 0
+    meta: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        if not isinstance(self.name, str) or not self.name:
+            raise InstanceError("instance name must be a non-empty string")
+        jobs = tuple(tuple(_op(j, k, op) for k, op in enumerate(ops)) for j, ops in enumerate(_seq(self.jobs, "jobs")))
+        if not jobs:
+            raise InstanceError("instance has no jobs")
+        for j, ops in enumerate(jobs):
+            if not ops:
+                raise InstanceError(f"job {j} has no operations")
+        set_(self, "jobs", jobs)
+        used_m = max(op.machine for ops in jobs for op in ops)
+        used_t = max((op.tool for ops in jobs for op in ops if op.tool is not None), default=0)
+        m = self.n_machines
+        if not _is_int(m) or m < 0:
+            raise InstanceError(f"n_machines must be a non-negative integer, got {m!r}")
+        for name in ("agv_travel", "tool_travel"):
+            rows = getattr(self, name)
+            if rows is not None and not m:
+                if not isinstance(rows, (list, tuple)) or len(rows) < 2:
+                    raise InstanceError(f"{name} must be an (m+1)x(m+1) matrix")
+                m = len(rows) - 1
+        m = m or used_m
+        if used_m > m:
+            raise InstanceError(f"an operation uses machine {used_m} but the instance has only {m} machines")
+        set_(self, "n_machines", m)
+        for name in ("agv_travel", "tool_travel"):
+            rows = getattr(self, name)
+            if rows is not None:
+                set_(self, name, _matrix(name, rows, m + 1))
+        t = self.n_tools
+        if not _is_int(t) or t < 0:
+            raise InstanceError(f"n_tools must be a non-negative integer, got {t!r}")
+        if used_t > t:
+            t = used_t
+        set_(self, "n_tools", t)
+        for name in ("n_agvs", "n_tool_transporters"):
+            v = getattr(self, name)
+            if not _is_int(v) or v < 0:
+                raise InstanceError(f"{name} must be a non-negative integer, got {v!r}")
+        if self.agv_travel is not None and self.n_agvs < 1:
+            raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs = 0); use --no-agvs")
+        if self.agv_travel is None and self.n_agvs:
+            set_(self, "n_agvs", 0)
+        if self.tool_travel is not None and self.n_tool_transporters < 1:
+            raise InstanceError(
+                "the instance has a tool travel matrix but no tool transporters; use --no-tools"
+            )
+        if self.tool_travel is None:
+            if used_t:
+                raise InstanceError("operations need tools but tool_travel is null (use --no-tools to drop tools)")
+            if self.n_tool_transporters:
+                set_(self, "n_tool_transporters", 0)
+
+    # ------------------------------------------------------------------ derived facts
+    @property
+    def n_jobs(self) -> int:
+        return len(self.jobs)
+
+    @property
+    def n_operations(self) -> int:
+        return sum(len(ops) for ops in self.jobs)
+
+    @property
+    def has_agvs(self) -> bool:
+        return self.agv_travel is not None
+
+    @property
+    def has_tools(self) -> bool:
+        return self.tool_travel is not None
+
+    @property
+    def mode(self) -> str:
+        """``"jobshop"``, ``"agvs"``, ``"tools"`` (tools, parts move instantly) or ``"agvs+tools"``."""
+        if self.has_agvs:
+            return "agvs+tools" if self.has_tools else "agvs"
+        return "tools" if self.has_tools else "jobshop"
+
+    def describe(self) -> str:
+        fleet = []
+        if self.has_agvs:
+            fleet.append(f"{self.n_agvs} AGVs")
+        if self.has_tools:
+            fleet.append(f"{self.n_tools} tools, {self.n_tool_transporters} tool transporters")
+        return (
+            f"{self.name}: {self.n_jobs} jobs x {self.n_machines} machines, {self.n_operations} operations"
+            + (f", {', '.join(fleet)}" if fleet else ", plain job shop")
+        )
+
+    # ------------------------------------------------------------------ variants
+    def with_fleet(self, n_agvs: int | None = None, n_tool_transporters: int | None = None) -> "Instance":
+        """The same instance with other fleet sizes (``None`` keeps the current one)."""
+        return replace(
+            self,
+            n_agvs=self.n_agvs if n_agvs is None else n_agvs,
+            n_tool_transporters=self.n_tool_transporters if n_tool_transporters is None else n_tool_transporters,
+        )
+
+    def without_tools(self) -> "Instance":
+        """Drop tools: no tool needs, no tool transport."""
+        jobs = tuple(tuple(Operation(op.machine, None, op.duration) for op in ops) for ops in self.jobs)
+        return replace(self, jobs=jobs, tool_travel=None, n_tool_transporters=0, n_tools=0)
+
+    def without_agvs(self) -> "Instance":
+        """Drop AGVs: parts move instantly (a plain job shop if there are no tools either)."""
+        return replace(self, agv_travel=None, n_agvs=0)
+
+    # ------------------------------------------------------------------ JSON
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "jobs": [[{"machine": o.machine, "tool": o.tool, "duration": o.duration} for o in ops] for ops in self.jobs],
+            "agv_travel": [list(r) for r in self.agv_travel] if self.agv_travel is not None else None,
+            "tool_travel": [list(r) for r in self.tool_travel] if self.tool_travel is not None else None,
+            "n_agvs": self.n_agvs,
+            "n_tool_transporters": self.n_tool_transporters,
+            "n_machines": self.n_machines,
+            "n_tools": self.n_tools,
+        }
+
+    def to_json(self, indent: int | None = None) -> str:
+        return json.dumps(self.to_dict(), indent=indent)
+
+    @classmethod
+    def from_dict(cls, data: Any) -> "Instance":
+        if not isinstance(data, dict):
+            raise InstanceError("an instance must be a JSON object")
+        for key in ("name", "jobs"):
+            if key not in data:
+                raise InstanceError(f"instance is missing the field {key!r}")
+        return cls(
+            name=data["name"],
+            jobs=data["jobs"],
+            agv_travel=data.get("agv_travel"),
+            tool_travel=data.get("tool_travel"),
+            n_agvs=data.get("n_agvs", 0),
+            n_tool_transporters=data.get("n_tool_transporters", 0),
+            n_machines=data.get("n_machines", 0) or 0,
+            n_tools=data.get("n_tools", 0) or 0,
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> "Instance":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InstanceError(f"malformed JSON: {exc}") from None
+        return cls.from_dict(data)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(self.to_json(indent=1) + "\n")
+
+
+def _seq(x: Any, what: str) -> Sequence[Any]:
+    if not isinstance(x, (list, tuple)):
+        raise InstanceError(f"{what} must be a list")
+    return x
+
+
+def _op(j: int, k: int, op: Any) -> Operation:
+    if isinstance(op, Operation):
+        return op
+    try:
+        if isinstance(op, dict):
+            missing = [f for f in ("machine", "duration") if f not in op]
+            if missing:
+                raise InstanceError(f"missing field {missing[0]!r}")
+            return Operation(op["machine"], op.get("tool"), op["duration"])
+        if isinstance(op, (list, tuple)) and len(op) in (2, 3):
+            # [machine, duration] or [machine, tool, duration]
+            if len(op) == 2:
+                return Operation(op[0], None, op[1])
+            return Operation(op[0], op[1], op[2])
+        raise InstanceError(f"expected an object {{machine, tool, duration}}, got {op!r}")
+    except InstanceError as exc:
+        raise InstanceError(f"job {j} operation {k}: {exc}") from None
+
+
+def jobs_from_rows(rows: Iterable[Iterable[tuple[int, int | None, int]]]) -> tuple[tuple[Operation, ...], ...]:
+    """Build the jobs tuple from ``(machine, tool, duration)`` triples."""
+    return tuple(tuple(Operation(m, t, d) for m, t, d in ops) for ops in rows)

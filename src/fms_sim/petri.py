@@ -1,0 +1,439 @@
+"""A general coloured-timed Petri net (CTPN) engine.
+
+Concepts
+--------
+* :class:`Place` holds coloured tokens. A place may be *keyed*: tokens are bucketed by ``key(colour)`` so arcs
+  can look up the tokens of one colour class (one job, one machine, one tool) in O(1).
+* :class:`Token` carries a colour (any immutable value: a tuple, a dataclass) and is stored in arrival order.
+* :class:`Arc` connects a place to a transition. ``kind`` is ``"in"`` (the token is consumed), ``"test"`` (a read
+  arc: a token must be present, it stays) or ``"inhibit"`` (no matching token may be present). ``key`` restricts
+  the candidate tokens to a bucket: a constant, or a function of the binding built so far (a colour join).
+  ``first=True`` offers only the oldest candidate (FIFO queues).
+* :class:`Transition` has arcs (evaluated in order, building a *binding* ``{var: colour}``), an optional
+  ``guard(binding) -> bool``, outputs ``(place, expr(binding) -> colour | list | None, delay)`` and an optional
+  ``on_fire(binding, now)`` hook. A non-zero ``delay`` makes the transition *timed*: its output tokens must
+  sojourn ``delay`` time units before they are available. Transitions are *controllable* (fired by an agent;
+  these are the actions) or *autonomous* (fired by the engine as soon as they are enabled).
+* ``priority``: among autonomous transitions the lowest number fires first; among controllable ones only the
+  lowest-numbered level that has an enabled transition is offered (a prioritised net: e.g. "choose the AGV for
+  the job just selected" before "choose another job").
+
+Time is event-driven: :meth:`Net.advance` fires autonomous transitions until none is enabled; if no
+controllable transition is enabled either, it jumps straight to the next time a sojourning token becomes
+available. It never ticks unit by unit.
+
+Speed: every place knows which transitions read it, per key bucket where the arc key is a constant. A change
+marks only those transitions dirty; test/inhibitor arcs that only count tokens (``count_only=True``) are woken
+only when their bucket turns empty or non-empty. Masks are cached and only dirty transitions are re-evaluated.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
+
+__all__ = ["Token", "Place", "Arc", "Output", "Transition", "Net", "InvalidAction", "Deadlock", "ANY"]
+
+Binding = dict[str, Any]
+
+
+class InvalidAction(ValueError):
+    """A controllable transition was fired while not enabled (its guard or arcs do not allow it)."""
+
+
+class Deadlock(RuntimeError):
+    """Nothing is enabled and nothing is in flight, but the net is not in a final marking."""
+
+
+class _Any:
+    def __repr__(self) -> str:
+        return "ANY"
+
+
+ANY: Any = _Any()
+"""Arc key meaning: every token of the place is a candidate."""
+
+
+class Token:
+    __slots__ = ("colour", "key", "ready")
+
+    def __init__(self, colour: Any, key: Hashable, ready: int):
+        self.colour = colour
+        self.key = key
+        self.ready = ready
+
+    def __repr__(self) -> str:
+        return f"Token({self.colour!r}, ready={self.ready})"
+
+
+class Place:
+    """A place; ``key`` (colour -> hashable) buckets its tokens for O(1) coloured lookups."""
+
+    __slots__ = ("name", "key_fn", "buckets", "count", "in_flight", "index",
+                 "_all_listeners", "_key_listeners", "_count_listeners", "_count_key_listeners")
+
+    def __init__(self, name: str, key: Callable[[Any], Hashable] | None = None):
+        self.name = name
+        self.key_fn = key
+        self.buckets: dict[Hashable, list[Token]] = {}
+        self.count = 0
+        self.in_flight = 0  # tokens produced by timed transitions, still sojourning
+        self.index = -1
+        self._all_listeners: list[Transition] = []
+        self._key_listeners: dict[Hashable, list[Transition]] = {}
+        self._count_listeners: list[Transition] = []
+        self._count_key_listeners: dict[Hashable, list[Transition]] = {}
+
+    def tokens(self, key: Hashable = ANY) -> Sequence[Token]:
+        if key is ANY:
+            if len(self.buckets) == 1:
+                return next(iter(self.buckets.values()))
+            return [t for b in self.buckets.values() for t in b]
+        return self.buckets.get(key, ())
+
+    def colours(self, key: Hashable = ANY) -> list[Any]:
+        return [t.colour for t in self.tokens(key)]
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __repr__(self) -> str:
+        return f"Place({self.name!r}, {self.count} tokens)"
+
+
+@dataclass(frozen=True)
+class Arc:
+    """Place -> transition arc. ``kind``: ``"in"`` consumes, ``"test"`` reads, ``"inhibit"`` forbids."""
+
+    place: Place
+    var: str | None = None
+    kind: str = "in"
+    key: Any = ANY
+    first: bool = False
+    order: Callable[[Any], Any] | None = None
+    """Sort candidates by ``order(colour)`` (e.g. a dispatch stamp) before trying them."""
+    count_only: bool = False
+    """For test/inhibit arcs whose token the guard never reads: wake the transition only on empty<->non-empty."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("in", "test", "inhibit"):
+            raise ValueError(f"arc kind must be in/test/inhibit, got {self.kind!r}")
+        if self.kind == "in" and self.var is None:
+            raise ValueError("an input arc needs a variable name")
+
+
+@dataclass(frozen=True)
+class Output:
+    """Transition -> place arc: ``expr(binding)`` gives a colour, a list of colours, or None (no token)."""
+
+    place: Place
+    expr: Callable[[Binding], Any]
+    delay: int | Callable[[Binding], int] = 0
+
+
+@dataclass(eq=False)
+class Transition:
+    name: str
+    arcs: Sequence[Arc]
+    outputs: Sequence[Output] = ()
+    guard: Callable[[Binding], bool] | None = None
+    controllable: bool = False
+    priority: int = 0
+    on_fire: Callable[[Binding, int], None] | None = None
+    label: str = ""
+    index: int = -1
+    action: int = -1
+    """Position among the controllable transitions (the action index), -1 for autonomous ones."""
+
+    def __hash__(self) -> int:
+        return id(self)
+
+
+@dataclass
+class _Level:
+    transitions: list[Transition] = field(default_factory=list)
+
+
+class Net:
+    """The net: places, transitions, a clock and the marking; fires transitions and advances time."""
+
+    def __init__(self) -> None:
+        self.places: list[Place] = []
+        self.transitions: list[Transition] = []
+        self.controllable: list[Transition] = []
+        self.now = 0
+        self._pending: list[tuple[int, int, Place, Token]] = []  # (ready, seq, place, token)
+        self._seq = 0
+        self._dirty_auto: list[tuple[int, int, Transition]] = []  # heap (priority, index, t)
+        self._auto_marked: set[int] = set()
+        self._enabled: dict[int, Binding | None] = {}  # controllable index -> binding (cache)
+        self._dirty_ctrl: set[int] = set()
+        self.fired = 0
+
+    # ------------------------------------------------------------------ construction
+    def add_place(self, name: str, key: Callable[[Any], Hashable] | None = None) -> Place:
+        p = Place(name, key)
+        p.index = len(self.places)
+        self.places.append(p)
+        return p
+
+    def add_transition(self, t: Transition) -> Transition:
+        t.index = len(self.transitions)
+        self.transitions.append(t)
+        if t.controllable:
+            t.action = len(self.controllable)
+            self.controllable.append(t)
+            self._dirty_ctrl.add(t.action)
+        else:
+            self._mark_auto(t)
+        for a in t.arcs:
+            p = a.place
+            if a.count_only and a.kind != "in":
+                if a.key is ANY:
+                    p._count_listeners.append(t)
+                elif callable(a.key):
+                    p._all_listeners.append(t)
+                else:
+                    p._count_key_listeners.setdefault(a.key, []).append(t)
+            elif a.key is ANY or callable(a.key):
+                p._all_listeners.append(t)
+            else:
+                p._key_listeners.setdefault(a.key, []).append(t)
+        return t
+
+    # ------------------------------------------------------------------ marking changes
+    def put(self, place: Place, colour: Any, delay: int = 0) -> None:
+        """Add a token now, or after ``delay`` time units of sojourn."""
+        key = place.key_fn(colour) if place.key_fn is not None else None
+        if delay:
+            tok = Token(colour, key, self.now + delay)
+            self._seq += 1
+            heapq.heappush(self._pending, (tok.ready, self._seq, place, tok))
+            place.in_flight += 1
+        else:
+            self._insert(place, Token(colour, key, self.now))
+
+    def _insert(self, place: Place, tok: Token) -> None:
+        bucket = place.buckets.get(tok.key)
+        if bucket is None:
+            bucket = place.buckets[tok.key] = []
+        bucket.append(tok)
+        place.count += 1
+        self._touch(place, tok.key, len(bucket) == 1, place.count == 1)
+
+    def _remove(self, place: Place, tok: Token) -> None:
+        bucket = place.buckets[tok.key]
+        if bucket[0] is tok:
+            del bucket[0]
+        else:
+            bucket.remove(tok)
+        if not bucket:
+            del place.buckets[tok.key]
+        place.count -= 1
+        self._touch(place, tok.key, not bucket, place.count == 0)
+
+    def _touch(self, place: Place, key: Hashable, bucket_flip: bool, place_flip: bool) -> None:
+        for t in place._all_listeners:
+            self._mark(t)
+        ls = place._key_listeners.get(key)
+        if ls:
+            for t in ls:
+                self._mark(t)
+        if place_flip:
+            for t in place._count_listeners:
+                self._mark(t)
+        if bucket_flip:
+            ls = place._count_key_listeners.get(key)
+            if ls:
+                for t in ls:
+                    self._mark(t)
+
+    def _mark(self, t: Transition) -> None:
+        if t.action >= 0:
+            self._dirty_ctrl.add(t.action)
+        else:
+            self._mark_auto(t)
+
+    def _mark_auto(self, t: Transition) -> None:
+        if t.index not in self._auto_marked:
+            self._auto_marked.add(t.index)
+            heapq.heappush(self._dirty_auto, (t.priority, t.index, t))
+
+    # ------------------------------------------------------------------ enabling
+    def binding(self, t: Transition) -> Binding | None:
+        """The first binding (in arc order, tokens oldest first) that enables ``t`` now, or None."""
+        return self._bind(t, 0, {}, [])
+
+    def _bind(self, t: Transition, i: int, b: Binding, toks: list[Token]) -> Binding | None:
+        arcs = t.arcs
+        if i == len(arcs):
+            if t.guard is None or t.guard(b):
+                b["__tokens__"] = list(toks)
+                return b
+            return None
+        a = arcs[i]
+        key = a.key
+        if key is not ANY and callable(key):
+            key = key(b)
+        cands = a.place.tokens(key)
+        if a.kind == "inhibit":
+            return self._bind(t, i + 1, b, toks) if not cands else None
+        if not cands:
+            return None
+        if a.kind == "test" and a.var is None:
+            return self._bind(t, i + 1, b, toks)
+        if a.order is not None and len(cands) > 1:
+            o = a.order
+            cands = sorted(cands, key=lambda tk: o(tk.colour))
+        if a.first:
+            cands = cands[:1]
+        for tok in cands:
+            if a.var is not None:
+                b[a.var] = tok.colour
+            if a.kind == "in":
+                if tok in toks:  # a token cannot be consumed twice by one firing
+                    continue
+                toks.append(tok)
+                (toks_place := b.setdefault("__places__", [])).append(a.place)
+                r = self._bind(t, i + 1, b, toks)
+                if r is not None:
+                    return r
+                toks.pop()
+                toks_place.pop()
+            else:
+                r = self._bind(t, i + 1, b, toks)
+                if r is not None:
+                    return r
+        return None
+
+    def is_enabled(self, t: Transition) -> bool:
+        return self.binding(t) is not None
+
+    def _refresh_ctrl(self) -> None:
+        if self._dirty_ctrl:
+            ctrl = self.controllable
+            enabled = self._enabled
+            for i in self._dirty_ctrl:
+                enabled[i] = self.binding(ctrl[i])
+            self._dirty_ctrl.clear()
+
+    def enabled_actions(self) -> list[int]:
+        """Indices of the controllable transitions offered now (only the most urgent priority level)."""
+        self._refresh_ctrl()
+        best = None
+        out: list[int] = []
+        for i, b in self._enabled.items():
+            if b is None:
+                continue
+            p = self.controllable[i].priority
+            if best is None or p < best:
+                best, out = p, [i]
+            elif p == best:
+                out.append(i)
+        out.sort()
+        return out
+
+    def mask(self) -> list[bool]:
+        m = [False] * len(self.controllable)
+        for i in self.enabled_actions():
+            m[i] = True
+        return m
+
+    # ------------------------------------------------------------------ firing
+    def fire(self, t: Transition, binding: Binding | None = None) -> Binding:
+        """Fire ``t`` with ``binding`` (found if None); raises :class:`InvalidAction` if not enabled."""
+        if binding is None:
+            binding = self.binding(t)
+            if binding is None:
+                raise InvalidAction(f"transition {t.name!r} is not enabled at time {self.now}")
+        toks = binding.pop("__tokens__")
+        places = binding.pop("__places__", [])
+        for p, tok in zip(places, toks):
+            self._remove(p, tok)
+        now = self.now
+        for o in t.outputs:
+            val = o.expr(binding)
+            if val is None:
+                continue
+            d = o.delay
+            if callable(d):
+                d = d(binding)
+            if isinstance(val, list):
+                for c in val:
+                    self.put(o.place, c, d)
+            else:
+                self.put(o.place, val, d)
+        self.fired += 1
+        if t.on_fire is not None:
+            t.on_fire(binding, now)
+        return binding
+
+    def act(self, action: int) -> Binding:
+        """Fire the controllable transition with this action index (must be offered now)."""
+        if not (0 <= action < len(self.controllable)):
+            raise InvalidAction(f"action {action} is out of range (0..{len(self.controllable) - 1})")
+        self._refresh_ctrl()
+        t = self.controllable[action]
+        b = self._enabled.get(action)
+        if b is None:
+            raise InvalidAction(f"action {action} ({t.label or t.name}) is not enabled at time {self.now}")
+        offered = self.enabled_actions()
+        if action not in offered:
+            raise InvalidAction(f"action {action} ({t.label or t.name}) is enabled but a more urgent decision "
+                                f"is due at time {self.now}")
+        self._dirty_ctrl.add(action)
+        # the cached binding is consumed; copy so that the cache never aliases a fired binding
+        return self.fire(t, dict(b, __tokens__=list(b["__tokens__"]), __places__=list(b.get("__places__", []))))
+
+    def run_autonomous(self) -> int:
+        """Fire enabled autonomous transitions (by priority) until none is enabled; returns how many fired."""
+        n = 0
+        heap = self._dirty_auto
+        marked = self._auto_marked
+        while heap:
+            _, idx, t = heapq.heappop(heap)
+            marked.discard(idx)
+            b = self.binding(t)
+            if b is not None:
+                self.fire(t, b)
+                self._mark_auto(t)  # it may be enabled again with other tokens
+                n += 1
+        return n
+
+    def next_event_time(self) -> int | None:
+        return self._pending[0][0] if self._pending else None
+
+    def release_until(self, time: int) -> None:
+        """Move the clock to ``time`` and make available every token whose sojourn ends by then."""
+        self.now = time
+        pend = self._pending
+        while pend and pend[0][0] <= time:
+            _, _, place, tok = heapq.heappop(pend)
+            place.in_flight -= 1
+            self._insert(place, tok)
+
+    def advance(self) -> bool:
+        """Run until a controllable decision is due (True) or nothing more can happen (False)."""
+        while True:
+            self.run_autonomous()
+            if self.enabled_actions():
+                return True
+            t = self.next_event_time()
+            if t is None:
+                return False
+            self.release_until(t)
+
+    def marking(self) -> dict[str, int]:
+        """Token counts per place (sojourning tokens counted under ``name + "~"``)."""
+        out = {p.name: p.count for p in self.places}
+        for p in self.places:
+            if p.in_flight:
+                out[p.name + "~"] = p.in_flight
+        return out
+
+    def iter_tokens(self) -> Iterator[tuple[Place, Token]]:
+        for p in self.places:
+            for b in p.buckets.values():
+                for tok in b:
+                    yield p, tok

@@ -1,0 +1,434 @@
+"""The shop as a coloured-timed Petri net, built from modules over :mod:`fms_sim.petri`.
+
+Modules (switching them gives the plain job shop, AGVs only, tools only, or AGVs + tools; the others do not
+change):
+
+* **jobs block** — place ``parts`` (colour ``(job, op, location)``: the part of ``job`` waits at ``location`` for
+  operation ``op``) and one controllable *job-selection* transition per job. Firing it stamps the operation with
+  the next dispatch number and emits a transport request ``(job, op, pickup, machine, stamp)``; with tools it
+  also emits a tool request. The transport module adds its gate arcs to these transitions.
+* **AGV block** (transport module) — ``agv_idle`` ``(agv, location)``; the job selection needs an idle AGV
+  (read arc). The request waits in ``awaiting_agv`` for one controllable *AGV-selection* transition per AGV
+  (offered before any other job is selected: a higher priority level). The AGV then makes a timed empty trip
+  to the pickup and a timed loaded trip to the machine, and drops the part in the machine's buffer.
+* **direct transfer** (transport module without AGVs) — the part moves instantly; a job is selectable only when
+  its machine is idle with an empty buffer (classical non-delay dispatching of a job shop).
+* **machines block** — ``buffer`` (keyed by machine), ``machine_idle``, ``busy``; an autonomous start per machine
+  takes the buffered operation with the smallest dispatch stamp whose part is there (and, with tools, whose tool
+  is at the machine), a timed transition holds it for its duration, the end returns the part to ``parts`` for
+  its next operation at this machine's location (or to ``done``) and the tool to ``tool_free``.
+* **tools block** — ``tool_requests`` (FIFO per tool by dispatch stamp), ``tool_free`` ``(tool, location)``; the
+  head request of a free tool is served in place if the tool is at the machine, else it waits in
+  ``awaiting_transporter`` for a controllable *tool-transporter selection*; the transporter makes a timed empty
+  trip to the tool and a timed loaded trip to the machine, then the tool is ``tool_ready`` for that operation.
+
+All resources serve operations in dispatch-stamp order (tools strictly, machines among ready operations), so
+the net cannot deadlock. Action indices: jobs ``0..n-1``, then AGVs, then tool transporters; labels
+``"job:J"``, ``"agv:V"``, ``"tt:R"``.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from .instance import Instance
+from .petri import ANY, Arc, Deadlock, InvalidAction, Net, Output, Place, Transition
+from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+
+__all__ = ["Shop", "ActionKind"]
+
+# priority levels: autonomous completions first, then allocation, then starts; decisions: vehicles before jobs
+_P_DONE, _P_ALLOC, _P_START = 0, 1, 2
+_P_VEHICLE, _P_JOB = 5, 10
+
+
+class ActionKind:
+    JOB = "job"
+    AGV = "agv"
+    TT = "tt"
+
+
+@dataclass
+class _Records:
+    ops: list[OperationRecord] = field(default_factory=list)
+    agv: list[AgvTrip] = field(default_factory=list)
+    tt: list[ToolTrip] = field(default_factory=list)
+
+
+class Shop:
+    """A runnable shop net for one instance: decisions via :meth:`act`, time via the net's events.
+
+    Typical loop::
+
+        shop = Shop(instance)
+        while not shop.done:
+            shop.act(policy(shop.action_mask()))
+        schedule = shop.schedule()
+    """
+
+    def __init__(self, instance: Instance):
+        self.instance = instance
+        self.net = Net()
+        self._stamp = 0
+        self.rec = _Records()
+        self.n_jobs = instance.n_jobs
+        self.n_agvs = instance.n_agvs if instance.has_agvs else 0
+        self.n_tts = instance.n_tool_transporters if instance.has_tools else 0
+        # statistics that rules and observations read
+        self.job_started_ops = [0] * self.n_jobs          # operations dispatched per job
+        self.job_done_ops = [0] * self.n_jobs             # operations finished per job
+        self.job_ready_since = [0] * self.n_jobs          # time the job's part became ready
+        self.job_entry = list(range(self.n_jobs))         # FIFO key: order of entry
+        self.agv_work = [0] * self.n_agvs                 # cumulative busy time per AGV
+        self.tt_work = [0] * self.n_tts
+        self.agv_loc = [0] * self.n_agvs                  # last known / destination location per vehicle
+        self.tt_loc = [0] * self.n_tts
+        self.agv_free_at = [0] * self.n_agvs
+        self.tt_free_at = [0] * self.n_tts
+        self.machine_busy_until = [0] * (instance.n_machines + 1)
+        self.tool_loc = [0] * (instance.n_tools + 1)
+        self.pending_job: int | None = None               # job selected, waiting for its AGV
+        self.makespan = 0
+        self._build()
+        self.net.advance()
+        self._check_progress()
+
+    # ------------------------------------------------------------------ building
+    def _build(self) -> None:
+        inst, net = self.instance, self.net
+        self.p_parts = net.add_place("parts", key=lambda c: c[0])
+        self.p_done = net.add_place("done")
+        self.p_buffer = net.add_place("buffer", key=lambda c: c[2])
+        self.p_machine_idle = net.add_place("machine_idle", key=lambda c: c[0])
+        self.p_busy = net.add_place("busy", key=lambda c: c[2])
+        for j in range(inst.n_jobs):
+            net.put(self.p_parts, (j, 0, 0))
+        for m in range(1, inst.n_machines + 1):
+            net.put(self.p_machine_idle, (m,))
+        tool_arcs, tool_outputs = self._tools_block() if inst.has_tools else ([], [])
+        gate_arcs, transport_out = self._agv_block() if inst.has_agvs else self._direct_block()
+        self._jobs_block(gate_arcs, transport_out + tool_outputs)
+        self._machines_block(tool_arcs)
+
+    def _next_stamp(self, b: dict) -> int:
+        return self._stamp
+
+    def _jobs_block(self, gate_arcs: list[Arc], outputs: list[Output]) -> None:
+        jobs = self.instance.jobs
+        for j in range(self.instance.n_jobs):
+            self.net.add_transition(Transition(
+                name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
+                arcs=[Arc(self.p_parts, "p", key=j)] + gate_arcs,
+                outputs=outputs, on_fire=self._on_select_job,
+            ))
+        self._jobs = jobs
+
+    def _on_select_job(self, b: dict, now: int) -> None:
+        j, k, _ = b["p"]
+        self._stamp += 1
+        self.job_started_ops[j] += 1
+        if self.instance.has_agvs:
+            self.pending_job = j
+
+    # transport modules ------------------------------------------------
+    def _request(self, b: dict) -> tuple:
+        j, k, loc = b["p"]
+        return (j, k, loc, self._jobs[j][k].machine, self._stamp)
+
+    def _direct_block(self) -> tuple[list[Arc], list[Output]]:
+        jobs = self._jobs = self.instance.jobs
+
+        def machine_of(b: dict) -> int:
+            j, k, _ = b["p"]
+            return jobs[j][k].machine
+
+        gate = [Arc(self.p_machine_idle, kind="test", key=machine_of, count_only=True),
+                Arc(self.p_buffer, kind="inhibit", key=machine_of, count_only=True)]
+        out = [Output(self.p_buffer, lambda b: (b["p"][0], b["p"][1], machine_of(b), self._stamp))]
+        return gate, out
+
+    def _agv_block(self) -> tuple[list[Arc], list[Output]]:
+        net, inst = self.net, self.instance
+        T = inst.agv_travel
+        self._jobs = inst.jobs
+        self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
+        self.p_awaiting_agv = net.add_place("awaiting_agv")
+        self.p_agv_empty = net.add_place("agv_empty_trip", key=lambda c: c[0])
+        self.p_agv_loaded = net.add_place("agv_loaded_trip", key=lambda c: c[0])
+        for v in range(inst.n_agvs):
+            net.put(self.p_agv_idle, (v, 0))
+        # a part already at its machine needs no AGV
+        net.add_transition(Transition(
+            name="stay", priority=_P_ALLOC, arcs=[Arc(self.p_awaiting_agv, "r")],
+            guard=lambda b: b["r"][2] == b["r"][3],
+            outputs=[Output(self.p_buffer, lambda b: (b["r"][0], b["r"][1], b["r"][3], b["r"][4]))],
+            on_fire=self._on_stay,
+        ))
+        for v in range(inst.n_agvs):
+            net.add_transition(Transition(
+                name=f"select_agv[{v}]", label=f"agv:{v}", controllable=True, priority=_P_VEHICLE,
+                arcs=[Arc(self.p_awaiting_agv, "r", first=True), Arc(self.p_agv_idle, "a", key=v)],
+                guard=lambda b: b["r"][2] != b["r"][3],
+                outputs=[Output(self.p_agv_empty, lambda b: (b["a"][0],) + b["r"],
+                                delay=lambda b: T[b["a"][1]][b["r"][2]])],
+                on_fire=self._on_select_agv,
+            ))
+            net.add_transition(Transition(
+                name=f"agv_load[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_empty, "e", key=v)],
+                outputs=[Output(self.p_agv_loaded, lambda b: b["e"], delay=lambda b: T[b["e"][3]][b["e"][4]])],
+            ))
+            net.add_transition(Transition(
+                name=f"agv_unload[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_loaded, "l", key=v)],
+                outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4], b["l"][5])),
+                         Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
+            ))
+        gate = [Arc(self.p_agv_idle, kind="test", count_only=True)]
+        return gate, [Output(self.p_awaiting_agv, self._request)]
+
+    def _on_stay(self, b: dict, now: int) -> None:
+        self.pending_job = None
+
+    def _on_select_agv(self, b: dict, now: int) -> None:
+        v, here = b["a"]
+        j, k, pickup, drop, _ = b["r"]
+        T = self.instance.agv_travel
+        t_empty, t_loaded = T[here][pickup], T[pickup][drop]
+        if here != pickup:
+            self.rec.agv.append(AgvTrip(v, None, None, here, pickup, now, now + t_empty, False))
+        self.rec.agv.append(AgvTrip(v, j, k, pickup, drop, now + t_empty, now + t_empty + t_loaded, True))
+        self.agv_work[v] += t_empty + t_loaded
+        self.agv_loc[v] = drop
+        self.agv_free_at[v] = now + t_empty + t_loaded
+        self.pending_job = None
+
+    # machines -----------------------------------------------------------
+    def _machines_block(self, tool_arcs: list[Arc]) -> None:
+        net, inst = self.net, self.instance
+        jobs = inst.jobs
+        has_tools = inst.has_tools
+        for m in range(1, inst.n_machines + 1):
+            net.add_transition(Transition(
+                name=f"start[{m}]", priority=_P_START,
+                arcs=[Arc(self.p_machine_idle, "mi", key=m), Arc(self.p_buffer, "q", key=m, order=lambda c: c[3])]
+                + tool_arcs,
+                outputs=[Output(self.p_busy, lambda b: (b["q"][0], b["q"][1], b["q"][2],
+                                                        jobs[b["q"][0]][b["q"][1]].tool if has_tools else None),
+                                delay=lambda b: jobs[b["q"][0]][b["q"][1]].duration)],
+                on_fire=self._on_start,
+            ))
+            net.add_transition(Transition(
+                name=f"end[{m}]", priority=_P_DONE, arcs=[Arc(self.p_busy, "x", key=m)],
+                outputs=[Output(self.p_machine_idle, lambda b: (b["x"][2],)),
+                         Output(self.p_parts, lambda b: (b["x"][0], b["x"][1] + 1, b["x"][2])
+                                if b["x"][1] + 1 < len(jobs[b["x"][0]]) else None),
+                         Output(self.p_done, lambda b: b["x"][0] if b["x"][1] + 1 == len(jobs[b["x"][0]]) else None)]
+                + ([Output(self.p_tool_free, lambda b: (b["x"][3], b["x"][2]) if b["x"][3] is not None else None)]
+                   if has_tools else []),
+                on_fire=self._on_end,
+            ))
+
+    def _on_start(self, b: dict, now: int) -> None:
+        j, k, m, _ = b["q"]
+        op = self.instance.jobs[j][k]
+        tool = op.tool if self.instance.has_tools else None
+        self.rec.ops.append(OperationRecord(j, k, m, tool, now, now + op.duration))
+        self.machine_busy_until[m] = now + op.duration
+
+    def _on_end(self, b: dict, now: int) -> None:
+        j, k, m, _ = b["x"]
+        self.job_done_ops[j] = k + 1
+        self.job_ready_since[j] = now
+        if now > self.makespan:
+            self.makespan = now
+
+    # tools --------------------------------------------------------------
+    def _tools_block(self) -> tuple[list[Arc], list[Output]]:
+        net, inst = self.net, self.instance
+        TT = inst.tool_travel
+        jobs = inst.jobs
+        self.p_tool_requests = net.add_place("tool_requests", key=lambda c: c[0])
+        self.p_tool_free = net.add_place("tool_free", key=lambda c: c[0])
+        self.p_awaiting_tt = net.add_place("awaiting_transporter")
+        self.p_tt_idle = net.add_place("tt_idle", key=lambda c: c[0])
+        self.p_tt_empty = net.add_place("tt_empty_trip", key=lambda c: c[0])
+        self.p_tt_loaded = net.add_place("tt_loaded_trip", key=lambda c: c[0])
+        self.p_tool_ready = net.add_place("tool_ready", key=lambda c: (c[1], c[2]))
+        for t in range(1, inst.n_tools + 1):
+            net.put(self.p_tool_free, (t, 0))
+        for r in range(inst.n_tool_transporters):
+            net.put(self.p_tt_idle, (r, 0))
+        for t in range(1, inst.n_tools + 1):
+            net.add_transition(Transition(
+                name=f"tool_here[{t}]", priority=_P_ALLOC,
+                arcs=[Arc(self.p_tool_free, "f", key=t), Arc(self.p_tool_requests, "q", key=t, first=True)],
+                guard=lambda b: b["f"][1] == b["q"][3],
+                outputs=[Output(self.p_tool_ready, lambda b: b["q"][:4])],
+            ))
+            net.add_transition(Transition(
+                name=f"tool_away[{t}]", priority=_P_ALLOC,
+                arcs=[Arc(self.p_tool_free, "f", key=t), Arc(self.p_tool_requests, "q", key=t, first=True)],
+                guard=lambda b: b["f"][1] != b["q"][3],
+                outputs=[Output(self.p_awaiting_tt, lambda b: (b["f"][0], b["f"][1]) + b["q"][1:])],
+            ))
+        for r in range(inst.n_tool_transporters):
+            net.add_transition(Transition(
+                name=f"select_tt[{r}]", label=f"tt:{r}", controllable=True, priority=_P_VEHICLE,
+                arcs=[Arc(self.p_awaiting_tt, "w", first=True), Arc(self.p_tt_idle, "a", key=r)],
+                outputs=[Output(self.p_tt_empty, lambda b: (b["a"][0],) + b["w"],
+                                delay=lambda b: TT[b["a"][1]][b["w"][1]])],
+                on_fire=self._on_select_tt,
+            ))
+            # colour of trip tokens: (tt, tool, tool_loc, job, op, machine, stamp)
+            net.add_transition(Transition(
+                name=f"tt_load[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_empty, "e", key=r)],
+                outputs=[Output(self.p_tt_loaded, lambda b: b["e"], delay=lambda b: TT[b["e"][2]][b["e"][5]])],
+            ))
+            net.add_transition(Transition(
+                name=f"tt_unload[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_loaded, "l", key=r)],
+                outputs=[Output(self.p_tool_ready, lambda b: (b["l"][1], b["l"][3], b["l"][4], b["l"][5])),
+                         Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))],
+            ))
+
+        def tool_request(b: dict) -> tuple:
+            j, k, _ = b["p"]
+            op = jobs[j][k]
+            return (op.tool, j, k, op.machine, self._stamp) if op.tool is not None else None
+
+        def no_tool(b: dict) -> tuple | None:
+            j, k, _ = b["p"]
+            op = jobs[j][k]
+            return (None, j, k, op.machine) if op.tool is None else None
+
+        outputs = [Output(self.p_tool_requests, tool_request), Output(self.p_tool_ready, no_tool)]
+        arcs = [Arc(self.p_tool_ready, "tl", key=lambda b: (b["q"][0], b["q"][1]))]
+        return arcs, outputs
+
+    def _on_select_tt(self, b: dict, now: int) -> None:
+        r, here = b["a"]
+        tool, tloc, j, k, m, _ = b["w"]
+        TT = self.instance.tool_travel
+        t_empty, t_loaded = TT[here][tloc], TT[tloc][m]
+        if here != tloc:
+            self.rec.tt.append(ToolTrip(r, None, None, None, here, tloc, now, now + t_empty, False))
+        self.rec.tt.append(ToolTrip(r, tool, j, k, tloc, m, now + t_empty, now + t_empty + t_loaded, True))
+        self.tt_work[r] += t_empty + t_loaded
+        self.tt_loc[r] = m
+        self.tt_free_at[r] = now + t_empty + t_loaded
+        self.tool_loc[tool] = m
+
+    # ------------------------------------------------------------------ running
+    @property
+    def now(self) -> int:
+        return self.net.now
+
+    @property
+    def n_actions(self) -> int:
+        return len(self.net.controllable)
+
+    @property
+    def done(self) -> bool:
+        return self.p_done.count == self.n_jobs
+
+    def action_labels(self) -> list[str]:
+        return [t.label for t in self.net.controllable]
+
+    def action_kind(self, action: int) -> tuple[str, int]:
+        """``("job", j)``, ``("agv", v)`` or ``("tt", r)`` for an action index."""
+        if action < self.n_jobs:
+            return ActionKind.JOB, action
+        if action < self.n_jobs + self.n_agvs:
+            return ActionKind.AGV, action - self.n_jobs
+        return ActionKind.TT, action - self.n_jobs - self.n_agvs
+
+    def action_index(self, label: str) -> int:
+        """Inverse of the labels: ``"job:3"`` -> 3, ``"agv:1"`` -> n_jobs + 1, ..."""
+        try:
+            kind, num = label.split(":")
+            i = int(num)
+        except ValueError:
+            raise InvalidAction(f"malformed action label {label!r} (expected job:J, agv:V or tt:R)") from None
+        base, size = {"job": (0, self.n_jobs), "agv": (self.n_jobs, self.n_agvs),
+                      "tt": (self.n_jobs + self.n_agvs, self.n_tts)}.get(kind, (0, -1))
+        if not 0 <= i < size:
+            raise InvalidAction(f"unknown action label {label!r}")
+        return base + i
+
+    def legal_actions(self) -> list[int]:
+        return self.net.enabled_actions()
+
+    def action_mask(self) -> list[bool]:
+        return self.net.mask()
+
+    def act(self, action: int) -> None:
+        """Fire the controllable transition ``action`` and run the net to the next decision (or the end)."""
+        if self.done:
+            raise InvalidAction("the run is complete; no action is enabled")
+        self.net.act(action)
+        self.net.advance()
+        self._check_progress()
+
+    def _check_progress(self) -> None:
+        if not self.done and not self.net.enabled_actions() and self.net.next_event_time() is None:
+            raise Deadlock(f"the shop net is stuck at time {self.now} with {self.p_done.count}/{self.n_jobs} jobs done")
+
+    def decision_kind(self) -> str | None:
+        """What the next decision chooses: ``"job"``, ``"agv"``, ``"tt"`` or a mix ``"agv|tt"``."""
+        kinds = sorted({self.action_kind(a)[0] for a in self.legal_actions()})
+        return "|".join(kinds) if kinds else None
+
+    def copy(self) -> "Shop":
+        """An independent twin (for lookahead): same marking, clock and records."""
+        return copy.deepcopy(self)
+
+    # ------------------------------------------------------------------ introspection for rules / observations
+    def next_op(self, job: int) -> int:
+        """Index of the next operation to dispatch for ``job`` (== number of ops if finished)."""
+        return self.job_started_ops[job]
+
+    def part_location(self, job: int) -> int | None:
+        toks = self.p_parts.tokens(job)
+        return toks[0].colour[2] if toks else None
+
+    def idle_agvs(self) -> list[tuple[int, int]]:
+        return [t.colour for t in self.p_agv_idle.tokens()] if self.n_agvs else []
+
+    def idle_transporters(self) -> list[tuple[int, int]]:
+        return [t.colour for t in self.p_tt_idle.tokens()] if self.n_tts else []
+
+    def awaiting_agv(self) -> tuple | None:
+        """The request ``(job, op, pickup, machine, stamp)`` that the next AGV choice serves, if any."""
+        if not self.n_agvs:
+            return None
+        toks = self.p_awaiting_agv.tokens()
+        return toks[0].colour if toks else None
+
+    def awaiting_transporter(self) -> tuple | None:
+        """The tool transport ``(tool, tool_location, job, op, machine, stamp)`` a transporter choice serves."""
+        if not self.n_tts:
+            return None
+        toks = self.p_awaiting_tt.tokens()
+        return toks[0].colour if toks else None
+
+    def idle_machines(self) -> int:
+        return self.p_machine_idle.count
+
+    # ------------------------------------------------------------------ result
+    def schedule(self) -> Schedule:
+        if not self.done:
+            raise RuntimeError(f"the run is not complete ({self.p_done.count}/{self.n_jobs} jobs done)")
+        inst = self.instance
+        return Schedule(
+            instance=inst.name, makespan=self.makespan,
+            n_agvs=self.n_agvs, n_tool_transporters=self.n_tts,
+            operations=list(self.rec.ops), agv_trips=list(self.rec.agv), tool_trips=list(self.rec.tt),
+        )
+
+
+def run_policy(instance: Instance, choose: Callable[[Shop, list[int]], int]) -> Schedule:
+    """Run the shop to completion, asking ``choose(shop, legal_actions)`` at every decision."""
+    shop = Shop(instance)
+    while not shop.done:
+        shop.act(choose(shop, shop.legal_actions()))
+    return shop.schedule()

@@ -1,0 +1,230 @@
+"""Independent schedule validator.
+
+It checks a :class:`~fms_sim.schedule.Schedule` against its :class:`~fms_sim.instance.Instance` by the
+project's semantic contract, without using the Petri net, and reports *every* violation it finds:
+
+* every operation appears once, on its machine, with its tool and its exact duration;
+* a machine runs one operation at a time;
+* without AGVs, operation (j,k) starts after (j,k-1) ends (and at >= 0);
+* with AGVs, operation (j,k) is preceded by one loaded trip of job j from its pickup location (L/U for k = 0,
+  else the machine of (j,k-1)) to its machine, starting no earlier than the part is ready and ending no later
+  than the operation starts (omitted only if pickup == machine: the part then waits in place);
+* every AGV starts at L/U at time 0, carries one load at a time, and its trips form a continuous route whose
+  legs last exactly ``agv_travel[from][to]`` (empty trips for deadheading);
+* every tool starts in the magazine, is at the machine of each operation that uses it from start to end,
+  moves only on loaded tool-transporter trips that start after its previous use ended, and each transporter
+  route is continuous with exact ``tool_travel`` legs;
+* ``makespan`` equals the latest operation end.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Iterable
+
+from .instance import Instance
+from .schedule import Schedule
+
+__all__ = ["validate", "check", "ScheduleInvalid"]
+
+
+class ScheduleInvalid(ValueError):
+    """Raised by :func:`check` when a schedule breaks the contract; ``violations`` lists every problem."""
+
+    def __init__(self, violations: list[str]):
+        self.violations = violations
+        head = "; ".join(violations[:5])
+        more = f" (+{len(violations) - 5} more)" if len(violations) > 5 else ""
+        super().__init__(f"{len(violations)} violation(s): {head}{more}")
+
+
+def check(instance: Instance, schedule: Schedule) -> None:
+    """Raise :class:`ScheduleInvalid` unless ``schedule`` is feasible for ``instance``."""
+    v = validate(instance, schedule)
+    if v:
+        raise ScheduleInvalid(v)
+
+
+def validate(instance: Instance, schedule: Schedule) -> list[str]:
+    """Every violation of the contract, as human-readable lines; an empty list means feasible."""
+    errs: list[str] = []
+    ops = _check_operations(instance, schedule, errs)
+    if ops is None:
+        return errs
+    _check_machines(schedule, errs)
+    if instance.has_agvs:
+        _check_parts_with_agvs(instance, schedule, ops, errs)
+        _check_routes("AGV", "agv", instance.agv_travel, schedule.n_agvs, instance.n_agvs,
+                      [(t.agv, t.from_, t.to, t.start, t.end) for t in schedule.agv_trips], errs)
+    else:
+        if schedule.agv_trips:
+            errs.append("schedule has AGV trips but the instance has no AGVs")
+        for j, job in enumerate(instance.jobs):
+            for k in range(len(job)):
+                prev_end = ops[j, k - 1][1] if k else 0
+                if ops[j, k][0] < prev_end:
+                    errs.append(f"op ({j},{k}) starts at {ops[j, k][0]} before its part is ready at {prev_end}")
+    if instance.has_tools:
+        _check_tools(instance, schedule, ops, errs)
+        _check_routes("tool transporter", "transporter", instance.tool_travel, schedule.n_tool_transporters,
+                      instance.n_tool_transporters,
+                      [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs)
+    elif schedule.tool_trips:
+        errs.append("schedule has tool trips but the instance has no tools")
+    ends = [e for (_, e) in ops.values()]
+    true_ms = max(ends) if ends else 0
+    if schedule.makespan != true_ms:
+        errs.append(f"makespan is {schedule.makespan} but the latest operation ends at {true_ms}")
+    return errs
+
+
+def _check_operations(instance: Instance, schedule: Schedule, errs: list[str]) -> dict[tuple[int, int], tuple[int, int]] | None:
+    ops: dict[tuple[int, int], tuple[int, int]] = {}
+    for r in schedule.operations:
+        key = (r.job, r.op)
+        if not (0 <= r.job < instance.n_jobs and 0 <= r.op < len(instance.jobs[r.job])):
+            errs.append(f"op ({r.job},{r.op}) does not exist in the instance")
+            continue
+        if key in ops:
+            errs.append(f"op ({r.job},{r.op}) is scheduled more than once")
+            continue
+        spec = instance.jobs[r.job][r.op]
+        if r.machine != spec.machine:
+            errs.append(f"op ({r.job},{r.op}) runs on machine {r.machine}, needs machine {spec.machine}")
+        want_tool = spec.tool if instance.has_tools else None
+        if instance.has_tools and r.tool != want_tool:
+            errs.append(f"op ({r.job},{r.op}) uses tool {r.tool}, needs tool {want_tool}")
+        if r.end - r.start != spec.duration:
+            errs.append(f"op ({r.job},{r.op}) lasts {r.end - r.start}, its duration is {spec.duration}")
+        if r.start < 0:
+            errs.append(f"op ({r.job},{r.op}) starts before time 0")
+        ops[key] = (r.start, r.end)
+    missing = [(j, k) for j, job in enumerate(instance.jobs) for k in range(len(job)) if (j, k) not in ops]
+    for j, k in missing:
+        errs.append(f"op ({j},{k}) is missing from the schedule")
+    return None if missing else ops
+
+
+def _check_machines(schedule: Schedule, errs: list[str]) -> None:
+    by_machine: dict[int, list] = defaultdict(list)
+    for r in schedule.operations:
+        by_machine[r.machine].append(r)
+    for m, rs in by_machine.items():
+        rs.sort(key=lambda r: (r.start, r.end))
+        for a, b in zip(rs, rs[1:]):
+            if b.start < a.end:
+                errs.append(f"machine {m}: op ({a.job},{a.op}) [{a.start},{a.end}) overlaps op ({b.job},{b.op}) "
+                            f"[{b.start},{b.end})")
+
+
+def _check_parts_with_agvs(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
+    loaded: dict[tuple[int, int], list] = defaultdict(list)
+    for t in schedule.agv_trips:
+        if t.loaded:
+            if t.job is None or t.op is None:
+                errs.append(f"loaded AGV trip of AGV {t.agv} at {t.start} names no operation")
+                continue
+            loaded[t.job, t.op].append(t)
+        elif t.job is not None or t.op is not None:
+            errs.append(f"empty AGV trip of AGV {t.agv} at {t.start} names an operation")
+    for key in loaded:
+        if key not in ops:
+            errs.append(f"loaded AGV trip for nonexistent op {key}")
+    for j, job in enumerate(instance.jobs):
+        for k, spec in enumerate(job):
+            ready = ops[j, k - 1][1] if k else 0
+            pickup = job[k - 1].machine if k else 0
+            trips = loaded.get((j, k), [])
+            if len(trips) > 1:
+                errs.append(f"op ({j},{k}): the part is moved {len(trips)} times (one loaded trip expected)")
+                continue
+            if not trips:
+                if pickup != spec.machine:
+                    errs.append(f"op ({j},{k}): no AGV trip brings the part from {pickup} to machine {spec.machine}")
+                elif ops[j, k][0] < ready:
+                    errs.append(f"op ({j},{k}) starts at {ops[j, k][0]} before its part is ready at {ready}")
+                continue
+            t = trips[0]
+            if t.from_ != pickup or t.to != spec.machine:
+                errs.append(f"op ({j},{k}): the part travels {t.from_}->{t.to}, must go {pickup}->{spec.machine}")
+            if t.start < ready:
+                errs.append(f"op ({j},{k}): loaded trip starts at {t.start} before the part is ready at {ready}")
+            if t.end > ops[j, k][0]:
+                errs.append(f"op ({j},{k}) starts at {ops[j, k][0]} before its part arrives at {t.end}")
+
+
+def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
+                  trips: Iterable[tuple[int, int, int, int, int]], errs: list[str]) -> None:
+    if n_declared != n_fleet:
+        errs.append(f"schedule declares {n_declared} {what}s, the instance has {n_fleet}")
+    size = len(travel)
+    routes: dict[int, list] = defaultdict(list)
+    for v, a, b, s, e in trips:
+        if not (0 <= v < n_fleet):
+            errs.append(f"{what} {v} does not exist (fleet of {n_fleet})")
+            continue
+        if not (0 <= a < size and 0 <= b < size):
+            errs.append(f"{what} {v}: trip {a}->{b} at {s} names an unknown location")
+            continue
+        routes[v].append((s, e, a, b))
+    for v, legs in routes.items():
+        legs.sort()
+        here, free = 0, 0
+        for s, e, a, b in legs:
+            if s < free:
+                errs.append(f"{what} {v}: trip {a}->{b} at {s} starts before its previous trip ends at {free}")
+            if a != here:
+                errs.append(f"{what} {v}: trip {a}->{b} at {s} starts at {a} but the vehicle is at {here}")
+            if e - s != travel[a][b]:
+                errs.append(f"{what} {v}: trip {a}->{b} at {s} lasts {e - s}, travel time is {travel[a][b]}")
+            here, free = b, max(free, e)
+
+
+def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
+    uses: dict[int, list] = defaultdict(list)
+    for j, job in enumerate(instance.jobs):
+        for k, spec in enumerate(job):
+            if spec.tool is not None:
+                s, e = ops[j, k]
+                uses[spec.tool].append((s, e, j, k, spec.machine))
+    moves: dict[int, list] = defaultdict(list)
+    for t in schedule.tool_trips:
+        if t.loaded:
+            if t.tool is None or t.job is None or t.op is None:
+                errs.append(f"loaded trip of transporter {t.transporter} at {t.start} names no tool/operation")
+                continue
+            moves[t.tool].append(t)
+        elif t.tool is not None or t.job is not None:
+            errs.append(f"empty trip of transporter {t.transporter} at {t.start} names a tool or operation")
+    for tool in set(moves) - set(uses):
+        errs.append(f"tool {tool} is moved but no operation uses it")
+    for tool, us in uses.items():
+        us.sort()
+        trips = {(t.job, t.op): [] for t in moves.get(tool, [])}
+        for t in moves.get(tool, []):
+            trips[t.job, t.op].append(t)
+        used_keys = {(j, k) for (_, _, j, k, _) in us}
+        for key in trips:
+            if key not in used_keys:
+                errs.append(f"tool {tool} is carried for op {key}, which does not use it")
+        loc, free = 0, 0
+        for s, e, j, k, machine in us:
+            ts = trips.get((j, k), [])
+            if len(ts) > 1:
+                errs.append(f"tool {tool} is carried {len(ts)} times for op ({j},{k})")
+            elif ts:
+                t = ts[0]
+                if t.from_ != loc:
+                    errs.append(f"tool {tool} for op ({j},{k}): trip starts at {t.from_} but the tool is at {loc}")
+                if t.to != machine:
+                    errs.append(f"tool {tool} for op ({j},{k}): trip goes to {t.to}, the op is on machine {machine}")
+                if t.start < free:
+                    errs.append(f"tool {tool} for op ({j},{k}): moved at {t.start} while busy until {free}")
+                if t.end > s:
+                    errs.append(f"op ({j},{k}) starts at {s} before tool {tool} arrives at {t.end}")
+                loc = t.to
+            elif loc != machine:
+                errs.append(f"op ({j},{k}) on machine {machine} at {s}: tool {tool} is at location {loc}")
+            if s < free:
+                errs.append(f"tool {tool} is used by op ({j},{k}) from {s} while busy until {free} (two places at once)")
+            loc, free = machine, max(free, e)

@@ -1,0 +1,237 @@
+"""Tests of the Gantt chart renderer (fms_sim.gantt): rows, lanes, labels, files, errors, speed."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PolyCollection
+
+from fms_sim.gantt import plot_gantt, save_gantt
+from fms_sim.instance import Instance, jobs_from_rows
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.validate import validate
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def hand_instance() -> Instance:
+    """2 jobs x 2 machines, 1 AGV, 2 tools, 1 tool transporter."""
+    return Instance(
+        name="hand",
+        jobs=jobs_from_rows([[(1, 1, 4), (2, 2, 3)], [(2, None, 5), (1, 1, 2)]]),
+        agv_travel=((0, 2, 3), (2, 0, 2), (3, 2, 0)),
+        tool_travel=((0, 1, 2), (1, 0, 1), (2, 1, 0)),
+        n_agvs=1,
+        n_tool_transporters=1,
+    )
+
+
+def hand_schedule() -> Schedule:
+    """A feasible schedule of :func:`hand_instance` worked out by hand (makespan 16)."""
+    return Schedule(
+        instance="hand", makespan=16, n_agvs=1, n_tool_transporters=1,
+        operations=[
+            OperationRecord(0, 0, 1, 1, 2, 6),
+            OperationRecord(1, 0, 2, None, 7, 12),
+            OperationRecord(0, 1, 2, 2, 12, 15),
+            OperationRecord(1, 1, 1, 1, 14, 16),
+        ],
+        agv_trips=[
+            AgvTrip(0, 0, 0, 0, 1, 0, 2, True),
+            AgvTrip(0, None, None, 1, 0, 2, 4, False),
+            AgvTrip(0, 1, 0, 0, 2, 4, 7, True),
+            AgvTrip(0, None, None, 2, 1, 7, 9, False),
+            AgvTrip(0, 0, 1, 1, 2, 9, 11, True),
+            AgvTrip(0, 1, 1, 2, 1, 12, 14, True),
+        ],
+        tool_trips=[
+            ToolTrip(0, 1, 0, 0, 0, 1, 0, 1, True),
+            ToolTrip(0, None, None, None, 1, 0, 1, 2, False),
+            ToolTrip(0, 2, 0, 1, 0, 2, 2, 4, True),
+        ],
+    )
+
+
+def greedy_schedule(inst: Instance) -> Schedule:
+    """A simple feasible schedule (operations in round-robin order, earliest vehicle) for test instances."""
+    m_free = [0] * (inst.n_machines + 1)
+    part_loc = [0] * inst.n_jobs
+    part_ready = [0] * inst.n_jobs
+    agvs = [[0, 0] for _ in range(inst.n_agvs)]  # [location, free at]
+    tts = [[0, 0] for _ in range(inst.n_tool_transporters)]
+    tool_loc = [0] * (inst.n_tools + 1)
+    tool_free = [0] * (inst.n_tools + 1)
+    ops, agv_trips, tool_trips = [], [], []
+    for k in range(max(len(job) for job in inst.jobs)):
+        for j, job in enumerate(inst.jobs):
+            if k >= len(job):
+                continue
+            spec = job[k]
+            m = spec.machine
+            arrive = part_ready[j]
+            if inst.has_agvs and part_loc[j] != m:
+                src, tr = part_loc[j], inst.agv_travel
+                a = min(range(inst.n_agvs), key=lambda i: agvs[i][1] + tr[agvs[i][0]][src])
+                loc, free = agvs[a]
+                if loc != src:
+                    agv_trips.append(AgvTrip(a, None, None, loc, src, free, free + tr[loc][src], False))
+                    free += tr[loc][src]
+                s = max(free, part_ready[j])
+                agv_trips.append(AgvTrip(a, j, k, src, m, s, s + tr[src][m], True))
+                arrive = s + tr[src][m]
+                agvs[a] = [m, arrive]
+            tool_ready = 0
+            if spec.tool is not None:
+                t = spec.tool
+                tool_ready = tool_free[t]
+                if tool_loc[t] != m:
+                    src, tr = tool_loc[t], inst.tool_travel
+                    v = min(range(inst.n_tool_transporters), key=lambda i: tts[i][1] + tr[tts[i][0]][src])
+                    loc, free = tts[v]
+                    if loc != src:
+                        tool_trips.append(ToolTrip(v, None, None, None, loc, src, free, free + tr[loc][src], False))
+                        free += tr[loc][src]
+                    s = max(free, tool_free[t])
+                    tool_trips.append(ToolTrip(v, t, j, k, src, m, s, s + tr[src][m], True))
+                    tool_ready = s + tr[src][m]
+                    tts[v] = [m, tool_ready]
+            start = max(arrive, m_free[m], tool_ready)
+            end = start + spec.duration
+            ops.append(OperationRecord(j, k, m, spec.tool, start, end))
+            m_free[m] = end
+            part_loc[j], part_ready[j] = m, end
+            if spec.tool is not None:
+                tool_loc[spec.tool], tool_free[spec.tool] = m, end
+    return Schedule(inst.name, max(o.end for o in ops), inst.n_agvs, inst.n_tool_transporters, ops, agv_trips,
+                    tool_trips)
+
+
+def large_instance(n_jobs: int = 100, n_machines: int = 20, n_agvs: int = 10, n_tt: int = 4) -> Instance:
+    rng = np.random.default_rng(7)
+    jobs = []
+    for _ in range(n_jobs):
+        order = rng.permutation(n_machines) + 1
+        jobs.append([(int(mc), int(rng.integers(1, 9)), int(rng.integers(2, 20))) for mc in order])
+    pos = rng.uniform(0, 10, size=(n_machines + 1, 2))
+    dist = np.rint(np.abs(pos[:, None, :] - pos[None, :, :]).sum(-1)).astype(int) + 1
+    np.fill_diagonal(dist, 0)
+    travel = tuple(tuple(int(x) for x in row) for row in dist)
+    return Instance(name="big", jobs=jobs_from_rows(jobs), agv_travel=travel, tool_travel=travel,
+                    n_agvs=n_agvs, n_tool_transporters=n_tt)
+
+
+def tick_labels(fig) -> list[str]:
+    return [t.get_text() for t in fig.axes[0].get_yticklabels()]
+
+
+def test_hand_schedule_is_valid() -> None:
+    assert validate(hand_instance(), hand_schedule()) == []
+
+
+def test_renders_png_with_expected_rows(tmp_path: Path) -> None:
+    out = tmp_path / "sub" / "hand.png"
+    fig = plot_gantt(hand_schedule(), hand_instance(), out)
+    assert isinstance(fig.canvas, FigureCanvasAgg)
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    assert out.stat().st_size > 10_000
+    assert tick_labels(fig) == ["M1", "M2", "AGV0", "TT0"]
+    texts = {t.get_text() for t in fig.axes[0].texts}
+    # machine bars labelled j.k, tool trips labelled by tool, sections named, makespan value shown
+    assert {"0.0", "1.0", "0.1", "1.1", "T1", "T2", "Machines"} <= texts
+    assert "makespan 16 " in texts
+    assert any(t.startswith("AGVs") for t in texts) and any(t.startswith("Tool transporters") for t in texts)
+    assert [t.get_text() for t in fig.texts] == ["hand — makespan 16"]
+    assert fig.axes[0].get_xlabel() == "time"
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert legend == ["operation / loaded trip (colour = job)", "empty trip (deadheading)", "makespan"]
+
+
+def test_empty_trips_drawn_apart(tmp_path: Path) -> None:
+    fig = plot_gantt(hand_schedule(), hand_instance())
+    colls = [c for c in fig.axes[0].collections if isinstance(c, PolyCollection)]
+    hatched = [c for c in colls if c.get_hatch()]
+    solid = [c for c in colls if not c.get_hatch()]
+    assert len(hatched) == 1
+    assert len(hatched[0].get_paths()) == 3  # 2 empty AGV trips + 1 empty tool trip
+    assert sorted(len(c.get_paths()) for c in solid) == [4, 6]  # 4 operations, 4 + 2 loaded trips
+    # empty trips are thinner than loaded ones and sit on their own lane
+    h_empty = np.ptp(hatched[0].get_paths()[0].vertices[:, 1])
+    loaded = max(solid, key=lambda c: len(c.get_paths()))
+    h_loaded = np.ptp(loaded.get_paths()[0].vertices[:, 1])
+    assert h_empty < h_loaded / 2
+    e_ys = hatched[0].get_paths()[0].vertices[:, 1]
+    l_ys = loaded.get_paths()[0].vertices[:, 1]
+    assert e_ys.min() > l_ys.max()
+
+
+def test_custom_title_and_save_gantt_writes_png(tmp_path: Path) -> None:
+    out = save_gantt(hand_schedule(), tmp_path / "chart.pdf", title="My chart")  # PNG whatever the suffix
+    assert out == tmp_path / "chart.pdf"
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    fig = plot_gantt(hand_schedule(), title="My chart")
+    assert [t.get_text() for t in fig.texts] == ["My chart"]
+
+
+def test_job_shop_only_rows_and_instance_widens(tmp_path: Path) -> None:
+    inst = Instance(name="js", jobs=jobs_from_rows([[(1, None, 3), (2, None, 2)], [(2, None, 4)]]), n_machines=3)
+    sched = Schedule("js", 6, operations=[OperationRecord(0, 0, 1, None, 0, 3), OperationRecord(1, 0, 2, None, 0, 4),
+                                          OperationRecord(0, 1, 2, None, 4, 6)])
+    assert validate(inst, sched) == []
+    assert tick_labels(plot_gantt(sched)) == ["M1", "M2"]
+    fig = plot_gantt(sched, inst, tmp_path / "js.png")
+    assert tick_labels(fig) == ["M1", "M2", "M3"]
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert legend == ["operation (colour = job)", "makespan"]
+    assert (tmp_path / "js.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_empty_schedule_raises() -> None:
+    with pytest.raises(ValueError, match="^empty schedule$"):
+        plot_gantt(Schedule("x", 0))
+    with pytest.raises(ValueError, match="^empty schedule$"):
+        save_gantt(Schedule("x", 0), "never-written.png")
+    assert not Path("never-written.png").exists()
+
+
+def test_impossible_rows_raise() -> None:
+    sched = hand_schedule()
+    sched.agv_trips.append(AgvTrip(-1, None, None, 1, 0, 20, 22, False))
+    with pytest.raises(ValueError, match="names AGV -1, which does not exist"):
+        plot_gantt(sched)
+
+
+def test_large_schedule_renders_fast(tmp_path: Path) -> None:
+    inst = large_instance()
+    sched = greedy_schedule(inst)
+    assert validate(inst, sched) == []
+    assert len(sched.operations) == 2000 and len(sched.agv_trips) > 2500
+    out = tmp_path / "big.png"
+    t0 = time.perf_counter()
+    save_gantt(sched, out, inst)
+    elapsed = time.perf_counter() - t0
+    assert elapsed < 10.0, f"rendering took {elapsed:.1f}s"
+    fig = plot_gantt(sched, inst)
+    labels = tick_labels(fig)
+    assert labels == [f"M{i}" for i in range(1, 21)] + [f"AGV{i}" for i in range(10)] + [f"TT{i}" for i in range(4)]
+    assert out.read_bytes()[:8] == PNG_MAGIC and out.stat().st_size > 50_000
+    # readable: the figure grows with the rows but stays within sensible bounds
+    w, h = fig.get_size_inches()
+    assert 11 <= w <= 22 and 8 <= h <= 20
+
+
+def test_does_not_touch_pyplot() -> None:
+    code = (
+        "import sys\n"
+        "from fms_sim.gantt import plot_gantt\n"
+        "from fms_sim.schedule import Schedule, OperationRecord\n"
+        "plot_gantt(Schedule('s', 3, operations=[OperationRecord(0, 0, 1, None, 0, 3)]))\n"
+        "assert 'matplotlib.pyplot' not in sys.modules\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
