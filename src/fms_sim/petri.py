@@ -47,7 +47,18 @@ class Deadlock(RuntimeError):
 
 
 class _Any:
+    """Singleton sentinel; stays the same object through copy, deepcopy and pickle (twins of a net)."""
+
     def __repr__(self) -> str:
+        return "ANY"
+
+    def __copy__(self) -> "_Any":
+        return self
+
+    def __deepcopy__(self, memo: dict) -> "_Any":
+        return self
+
+    def __reduce__(self) -> str:
         return "ANY"
 
 
@@ -201,6 +212,16 @@ class Net:
             else:
                 p._key_listeners.setdefault(a.key, []).append(t)
         return t
+
+    def set_action_order(self, order: Sequence[Transition]) -> None:
+        """Renumber the actions: ``order`` must list every controllable transition exactly once."""
+        if sorted(t.index for t in order) != sorted(t.index for t in self.controllable):
+            raise ValueError("set_action_order needs every controllable transition exactly once")
+        self.controllable = list(order)
+        for i, t in enumerate(self.controllable):
+            t.action = i
+        self._enabled = {}
+        self._dirty_ctrl = set(range(len(self.controllable)))
 
     # ------------------------------------------------------------------ marking changes
     def put(self, place: Place, colour: Any, delay: int = 0) -> None:

@@ -111,9 +111,9 @@ class Shop:
         gate_arcs, transport_out = self._agv_block() if inst.has_agvs else self._direct_block()
         self._jobs_block(gate_arcs, transport_out + tool_outputs)
         self._machines_block(tool_arcs)
-
-    def _next_stamp(self, b: dict) -> int:
-        return self._stamp
+        kinds = {"job": 0, "agv": 1, "tt": 2}
+        net.set_action_order(sorted(net.controllable, key=lambda t: (kinds[t.label.split(":")[0]],
+                                                                     int(t.label.split(":")[1]))))
 
     def _jobs_block(self, gate_arcs: list[Arc], outputs: list[Output]) -> None:
         jobs = self.instance.jobs
@@ -146,8 +146,11 @@ class Shop:
 
         gate = [Arc(self.p_machine_idle, kind="test", key=machine_of, count_only=True),
                 Arc(self.p_buffer, kind="inhibit", key=machine_of, count_only=True)]
-        out = [Output(self.p_buffer, lambda b: (b["p"][0], b["p"][1], machine_of(b), self._stamp))]
-        return gate, out
+        return gate, [Output(self.p_buffer, self._direct_to_buffer)]
+
+    def _direct_to_buffer(self, b: dict) -> tuple:
+        j, k, _ = b["p"]
+        return (j, k, self._jobs[j][k].machine, self._stamp)
 
     def _agv_block(self) -> tuple[list[Arc], list[Output]]:
         net, inst = self.net, self.instance
@@ -291,19 +294,20 @@ class Shop:
                          Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))],
             ))
 
-        def tool_request(b: dict) -> tuple:
-            j, k, _ = b["p"]
-            op = jobs[j][k]
-            return (op.tool, j, k, op.machine, self._stamp) if op.tool is not None else None
-
         def no_tool(b: dict) -> tuple | None:
             j, k, _ = b["p"]
             op = jobs[j][k]
             return (None, j, k, op.machine) if op.tool is None else None
 
-        outputs = [Output(self.p_tool_requests, tool_request), Output(self.p_tool_ready, no_tool)]
+        outputs = [Output(self.p_tool_requests, self._tool_request), Output(self.p_tool_ready, no_tool)]
         arcs = [Arc(self.p_tool_ready, "tl", key=lambda b: (b["q"][0], b["q"][1]))]
         return arcs, outputs
+
+    def _tool_request(self, b: dict) -> tuple | None:
+        # a method, not a closure: a deep-copied twin must read its own dispatch stamp
+        j, k, _ = b["p"]
+        op = self._jobs[j][k]
+        return (op.tool, j, k, op.machine, self._stamp) if op.tool is not None else None
 
     def _on_select_tt(self, b: dict, now: int) -> None:
         r, here = b["a"]

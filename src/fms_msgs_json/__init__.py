@@ -1,0 +1,35 @@
+"""fms_msgs_json: versioned JSON message schemas shared by every fms ROS 2 node.
+
+Nodes exchange ``std_msgs/String`` messages whose ``data`` is one JSON object with ``"schema":
+"fms/<kind>/v1"``. This package builds, encodes, decodes and strictly validates those objects without
+importing rclpy, so every rule is testable without ROS. Kinds: ``state``, ``command``, ``event``,
+``schedule``, ``order``, ``error``, ``replay_request``; topics and examples are in ``docs/ros.md``.
+
+Typical use::
+
+    text = encode(make_command(run_id, state_seq=12, action="job:0"))  # publisher
+    msg = decode(text, expect="command")  # subscriber; raises MessageError (with .code) if bad
+"""
+
+from .builders import (
+    error_reply, make_command, make_error, make_event, make_order, make_replay_request, make_schedule,
+    make_state,
+)
+from .schemas import (
+    ERROR_CODES, EVENT_KINDS, KINDS, RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_ERROR, SCHEMA_EVENT,
+    SCHEMA_ORDER, SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, SCHEMA_VERSION, SCHEMAS, TOPIC_COMMAND,
+    TOPIC_ERRORS, TOPIC_EVENTS, TOPIC_ORDERS, TOPIC_REPLAY, TOPIC_SCHEDULE, TOPIC_STATE, TOPICS, MessageError,
+    decode, encode, kind_of, schema_id, validate,
+)
+
+__all__ = [
+    "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
+    "SCHEMA_STATE", "SCHEMA_COMMAND", "SCHEMA_EVENT", "SCHEMA_SCHEDULE", "SCHEMA_ORDER", "SCHEMA_ERROR",
+    "SCHEMA_REPLAY_REQUEST",
+    "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
+    "TOPIC_REPLAY", "TOPICS",
+    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS",
+    "MessageError", "validate", "kind_of", "encode", "decode",
+    "make_state", "make_command", "make_event", "make_schedule", "make_order", "make_error", "error_reply",
+    "make_replay_request",
+]

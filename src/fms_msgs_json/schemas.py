@@ -1,0 +1,343 @@
+"""The versioned message kinds, their field tables, and strict ``encode``/``decode``.
+
+Every message is one JSON object carried in the ``data`` of a ``std_msgs/String``; its ``"schema"`` field
+names its kind and version, ``"fms/<kind>/v<version>"``. This module knows nothing of ROS: it works on ``str``
+and ``dict`` so that every rule can be tested without rclpy.
+
+Rules shared by all kinds:
+
+* ``decode`` is strict about the fields it knows: required keys present, exact JSON types (``true`` is not an
+  integer, ``1.0`` is not an integer), ranges, enumerations; it rejects unknown kinds and other versions.
+* Keys it does not know are allowed and kept (forward compatibility: a newer sender may add fields; an older
+  receiver ignores them). A newer *version* of a kind is a different schema id and is rejected.
+* An optional field may be absent or ``null``.
+
+Failures raise :class:`MessageError` whose ``code`` is one of :data:`ERROR_CODES` (``"malformed_json"`` for text
+that is not JSON, ``"bad_schema"`` for everything else found here) and whose message is one line naming the
+field, so a node can answer with an ``fms/error/v1`` message directly.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterable
+from typing import Any, Callable
+
+from fms_sim.schedule import Schedule, ScheduleError
+
+from .fields import Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, OneOf, Str, check_object, show
+
+__all__ = [
+    "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
+    "SCHEMA_STATE", "SCHEMA_COMMAND", "SCHEMA_EVENT", "SCHEMA_SCHEDULE", "SCHEMA_ORDER", "SCHEMA_ERROR",
+    "SCHEMA_REPLAY_REQUEST",
+    "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
+    "TOPIC_REPLAY", "TOPICS",
+    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS",
+    "MessageError", "validate", "kind_of", "encode", "decode",
+]
+
+SCHEMA_VERSION = 1
+"""The one version of every kind this build reads and writes."""
+
+KINDS: tuple[str, ...] = ("state", "command", "event", "schedule", "order", "error", "replay_request")
+
+
+def schema_id(kind: str) -> str:
+    """The schema id of ``kind`` at the current version, e.g. ``schema_id("state") == "fms/state/v1"``."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown message kind {kind!r}; known kinds: {', '.join(KINDS)}")
+    return f"fms/{kind}/v{SCHEMA_VERSION}"
+
+
+SCHEMAS: dict[str, str] = {k: schema_id(k) for k in KINDS}
+"""Kind name → schema id."""
+
+SCHEMA_STATE = SCHEMAS["state"]
+SCHEMA_COMMAND = SCHEMAS["command"]
+SCHEMA_EVENT = SCHEMAS["event"]
+SCHEMA_SCHEDULE = SCHEMAS["schedule"]
+SCHEMA_ORDER = SCHEMAS["order"]
+SCHEMA_ERROR = SCHEMAS["error"]
+SCHEMA_REPLAY_REQUEST = SCHEMAS["replay_request"]
+
+TOPIC_STATE = "fms/state"
+TOPIC_COMMAND = "fms/command"
+TOPIC_EVENTS = "fms/events"
+TOPIC_SCHEDULE = "fms/schedule"
+TOPIC_ORDERS = "fms/orders"
+TOPIC_ERRORS = "fms/errors"
+TOPIC_REPLAY = "fms/replay_request"
+
+TOPICS: dict[str, str] = {
+    "state": TOPIC_STATE, "command": TOPIC_COMMAND, "event": TOPIC_EVENTS, "schedule": TOPIC_SCHEDULE,
+    "order": TOPIC_ORDERS, "error": TOPIC_ERRORS, "replay_request": TOPIC_REPLAY,
+}
+"""Kind name → the topic that carries it."""
+
+EVENT_KINDS: tuple[str, ...] = (
+    "op_start", "op_end", "agv_trip_start", "agv_trip_end", "tool_trip_start", "tool_trip_end",
+    "order_accepted", "run_start", "run_end",
+)
+
+ERROR_CODES: tuple[str, ...] = (
+    "malformed_json", "bad_schema", "stale_state", "unknown_run", "forbidden_action", "bad_order", "internal",
+)
+
+RECEIVED_MAX_CHARS = 1000
+"""An error message quotes at most this many characters of the offending text."""
+
+_SCHEMA_RE = re.compile(r"fms/([a-z][a-z0-9_]*)/v([0-9]+)")
+
+
+class MessageError(ValueError):
+    """A message that cannot be accepted. ``code`` is one of :data:`ERROR_CODES`; ``field`` the offending
+    field's path when one is to blame (else ``None``); ``str(exc)`` is a one-line explanation."""
+
+    def __init__(self, code: str, message: str, field: str | None = None) -> None:
+        if code not in ERROR_CODES:
+            raise ValueError(f"unknown error code {code!r}; known codes: {', '.join(ERROR_CODES)}")
+        super().__init__(message)
+        self.code = code
+        self.field = field
+
+
+# ---------------------------------------------------------------------------------------------- field tables
+_RUN_ID = Field("run_id", Str())
+_OPTIONAL_STR = Nullable(Str(nonempty=False))
+
+_STATE = (
+    _RUN_ID,
+    Field("seq", Int(0)),
+    Field("time", Int(0)),
+    Field("marking", MapOf(Int(0))),
+    Field("actions", ListOf(Str(what="an action label"), unique=True)),
+    Field("mask", ListOf(Bool())),
+    Field("done", Bool()),
+    Field("instance", _OPTIONAL_STR, required=False),
+    Field("makespan", Nullable(Int(0)), required=False),
+)
+
+_COMMAND = (
+    _RUN_ID,
+    Field("state_seq", Int(0)),
+    Field("action", Str(what="an action label, not an index")),
+    Field("agent", _OPTIONAL_STR, required=False),
+)
+
+_EVENT_DATA = (  # all optional: which ones are present depends on the event kind (see docs/ros.md)
+    Field("job", Nullable(Int(0)), required=False),
+    Field("op", Nullable(Int(0)), required=False),
+    Field("machine", Int(1), required=False),
+    Field("tool", Nullable(Int(1)), required=False),
+    Field("agv", Int(0), required=False),
+    Field("transporter", Int(0), required=False),
+    Field("from", Int(0), required=False),
+    Field("to", Int(0), required=False),
+    Field("loaded", Bool(), required=False),
+    Field("order_id", Str(), required=False),
+    Field("jobs", ListOf(Int(0)), required=False),
+    Field("instance", Str(nonempty=False), required=False),
+    Field("makespan", Nullable(Int(0)), required=False),
+)
+
+_EVENT = (
+    _RUN_ID,
+    Field("seq", Int(0)),
+    Field("time", Int(0)),
+    Field("kind", OneOf(EVENT_KINDS)),
+    Field("data", Obj(_EVENT_DATA)),
+)
+
+# The Schedule JSON of fms_sim.schedule.Schedule.to_dict(), field by field (precise messages); the parse with
+# Schedule.from_dict afterwards stays the authority on the format.
+_SCHEDULE_OP = Obj((
+    Field("job", Int(0)), Field("op", Int(0)), Field("machine", Int(1)),
+    Field("tool", Nullable(Int(1)), required=False), Field("start", Int(0)), Field("end", Int(0)),
+))
+_AGV_TRIP = Obj((
+    Field("agv", Int(0)), Field("job", Nullable(Int(0)), required=False), Field("op", Nullable(Int(0)), required=False),
+    Field("from", Int(0)), Field("to", Int(0)), Field("start", Int(0)), Field("end", Int(0)), Field("loaded", Bool()),
+))
+_TOOL_TRIP = Obj((
+    Field("transporter", Int(0)), Field("tool", Nullable(Int(1)), required=False),
+    Field("job", Nullable(Int(0)), required=False), Field("op", Nullable(Int(0)), required=False),
+    Field("from", Int(0)), Field("to", Int(0)), Field("start", Int(0)), Field("end", Int(0)), Field("loaded", Bool()),
+))
+_SCHEDULE_BODY = (
+    Field("instance", Str(nonempty=False)),
+    Field("makespan", Int(0)),
+    Field("n_agvs", Int(0), required=False),
+    Field("n_tool_transporters", Int(0), required=False),
+    Field("operations", ListOf(_SCHEDULE_OP)),
+    Field("agv_trips", ListOf(_AGV_TRIP), required=False),
+    Field("tool_trips", ListOf(_TOOL_TRIP), required=False),
+    Field("meta", Obj(()), required=False),
+)
+
+
+class _ScheduleDict:
+    """A dict in the Schedule JSON format: checked by the table above, then parsed by ``Schedule.from_dict``."""
+
+    expected = "a schedule object (fms_sim Schedule JSON)"
+
+    def __call__(self, value: Any, path: str) -> None:
+        check_object(value, _SCHEDULE_BODY, path)
+        try:
+            Schedule.from_dict(value)
+        except ScheduleError as exc:
+            raise FieldError(path, f"field {path!r} is not a valid schedule: {exc}") from None
+
+
+_SCHEDULE = (_RUN_ID, Field("schedule", _ScheduleDict()))
+
+_ORDER_OP = Obj((
+    Field("machine", Int(1)),
+    Field("tool", Nullable(Int(1)), required=False),
+    Field("duration", Int(0)),
+), expected="an operation object {machine, tool, duration}")
+
+_ORDER = (
+    Field("order_id", Str()),
+    Field("jobs", ListOf(ListOf(_ORDER_OP, nonempty=True), nonempty=True)),
+    Field("run_id", _OPTIONAL_STR, required=False),
+)
+
+_ERROR = (
+    Field("source", Str(what="the reporting node's name")),
+    Field("code", OneOf(ERROR_CODES)),
+    Field("message", Str()),
+    Field("run_id", _OPTIONAL_STR, required=False),
+    Field("received", Nullable(Str(nonempty=False, max_len=RECEIVED_MAX_CHARS)), required=False),
+)
+
+_REPLAY_REQUEST = (
+    Field("run_id", Str(what='a run id, or "*" for the current run')),
+    Field("from_seq", Int(0)),
+    Field("requester", Str()),
+)
+
+
+def _mask_matches_actions(msg: dict[str, Any], path: str) -> None:
+    """A state's ``mask`` has one entry per action label."""
+    if len(msg["mask"]) != len(msg["actions"]):
+        raise FieldError("mask", f"field 'mask' has {len(msg['mask'])} entries but 'actions' has "
+                                 f"{len(msg['actions'])}; they must have the same length")
+
+
+_Extra = Callable[[dict[str, Any], str], None] | None
+_SPECS: dict[str, tuple[tuple[Field, ...], _Extra]] = {
+    "state": (_STATE, _mask_matches_actions),
+    "command": (_COMMAND, None),
+    "event": (_EVENT, None),
+    "schedule": (_SCHEDULE, None),
+    "order": (_ORDER, None),
+    "error": (_ERROR, None),
+    "replay_request": (_REPLAY_REQUEST, None),
+}
+assert set(_SPECS) == set(KINDS)
+
+
+# ---------------------------------------------------------------------------------------------- API
+def kind_of(msg: Any) -> str:
+    """The kind name (``"state"``, ``"command"``, ...) of a message dict, from its ``schema`` field only.
+
+    Raises :class:`MessageError` (``bad_schema``) if ``schema`` is missing, not a known kind, or another version.
+    """
+    if not isinstance(msg, dict):
+        raise MessageError("bad_schema", f"a message must be a JSON object, got {show(msg)}")
+    if "schema" not in msg:
+        raise MessageError("bad_schema", "message has no 'schema' field (expected e.g. 'fms/state/v1')", "schema")
+    sid = msg["schema"]
+    if not isinstance(sid, str):
+        raise MessageError("bad_schema", f"field 'schema' must be a string like 'fms/state/v1', got {show(sid)}",
+                           "schema")
+    m = _SCHEMA_RE.fullmatch(sid)
+    if m is None:
+        raise MessageError("bad_schema", f"unknown schema {sid[:60]!r}; expected 'fms/<kind>/v<version>'", "schema")
+    kind, version = m.group(1), int(m.group(2))
+    if kind not in KINDS:
+        raise MessageError("bad_schema", f"unknown message kind {kind!r} in schema {sid!r}; known kinds: "
+                                         f"{', '.join(KINDS)}", "schema")
+    if version != SCHEMA_VERSION:
+        raise MessageError("bad_schema", f"unsupported schema version {sid!r}; this build reads "
+                                         f"{schema_id(kind)!r}", "schema")
+    return kind
+
+
+def validate(msg: Any) -> str:
+    """Check a message dict strictly against its kind's field table; return its kind name.
+
+    Raises :class:`MessageError` (``bad_schema``) naming the first offending field.
+    """
+    kind = kind_of(msg)
+    fields, extra = _SPECS[kind]
+    try:
+        check_object(msg, fields, "", extra)
+    except FieldError as exc:
+        raise MessageError("bad_schema", f"{msg['schema']}: {exc}", exc.path or None) from None
+    return kind
+
+
+def encode(msg: dict[str, Any]) -> str:
+    """Validate ``msg`` and return its compact JSON text (the ``data`` of a ``std_msgs/String``)."""
+    validate(msg)
+    try:
+        return json.dumps(msg, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+    except (TypeError, ValueError) as exc:  # only possible in extra (unknown) fields
+        raise MessageError("bad_schema", f"{msg['schema']}: message is not JSON-serialisable: {exc}") from None
+
+
+def _normalise_expect(expect: str | Iterable[str]) -> set[str]:
+    names = {expect} if isinstance(expect, str) else set(expect)
+    kinds: set[str] = set()
+    for name in names:
+        if name in SCHEMAS:
+            kinds.add(name)
+        else:
+            match = [k for k, sid in SCHEMAS.items() if sid == name]
+            if not match:
+                raise ValueError(f"expect: unknown kind or schema {name!r}; known kinds: {', '.join(KINDS)}")
+            kinds.add(match[0])
+    if not kinds:
+        raise ValueError("expect: an empty set of kinds accepts nothing")
+    return kinds
+
+
+def _pairs_without_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise MessageError("malformed_json", f"malformed JSON: duplicate key {key[:60]!r} in an object")
+        out[key] = value
+    return out
+
+
+def _reject_constant(name: str) -> Any:
+    raise MessageError("malformed_json", f"malformed JSON: {name} is not a JSON number")
+
+
+def decode(text: str, expect: str | Iterable[str] | None = None) -> dict[str, Any]:
+    """Parse and strictly validate one message; return it as a dict.
+
+    ``expect`` (a kind name such as ``"command"`` or a schema id such as ``"fms/command/v1"``, or a set of
+    them) rejects every other kind. Raises :class:`MessageError`: ``malformed_json`` if ``text`` is not one
+    JSON value (NaN/Infinity and duplicate keys included), ``bad_schema`` otherwise.
+    """
+    kinds = _normalise_expect(expect) if expect is not None else None
+    if not isinstance(text, str):
+        raise MessageError("malformed_json", f"expected the message text as a str, got {type(text).__name__}")
+    try:
+        msg = json.loads(text, object_pairs_hook=_pairs_without_duplicates, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise MessageError("malformed_json", f"malformed JSON at line {exc.lineno} column {exc.colno}: "
+                                             f"{exc.msg}") from None
+    except RecursionError:
+        raise MessageError("malformed_json", "malformed JSON: nested too deeply") from None
+    kind = kind_of(msg)
+    if kinds is not None and kind not in kinds:  # before the field checks: the mismatch is the real problem
+        wanted = " or ".join(sorted(SCHEMAS[k] for k in kinds))
+        raise MessageError("bad_schema", f"expected a {wanted} message, got {msg['schema']}", "schema")
+    validate(msg)
+    return msg

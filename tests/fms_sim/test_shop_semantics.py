@@ -1,0 +1,183 @@
+"""Each semantic rule of the shop net, on a hand-built instance whose schedule is checked to the time unit."""
+
+import pytest
+
+from fms_sim import AgvTrip, Instance, OperationRecord, ToolTrip, validate
+from fms_sim.petri import InvalidAction
+from fms_sim.shop import Shop
+
+from .conftest import run_first
+
+
+def ops(s):
+    return {(o.job, o.op): (o.machine, o.start, o.end) for o in s.operations}
+
+
+def test_plain_job_shop_non_delay_dispatch():
+    # J0: M1(3) M2(2); J1: M2(4) M1(1). Both start at 0; at 4 M2 frees: J0 -> M2 [4,6], J1 -> M1 [4,5].
+    inst = Instance("js", [[(1, 3), (2, 2)], [(2, 4), (1, 1)]])
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 0, 3), (1, 0): (2, 0, 4), (0, 1): (2, 4, 6), (1, 1): (1, 4, 5)}
+    assert s.makespan == 6 and s.agv_trips == [] and s.tool_trips == []
+
+
+def test_job_selectable_only_when_machine_free_without_agvs():
+    inst = Instance("js", [[(1, 3)], [(1, 2)]])
+    shop = Shop(inst)
+    assert shop.legal_actions() == [0, 1]
+    shop.act(1)                              # J1 takes M1 at 0
+    assert shop.now == 2 and shop.legal_actions() == [0]   # J0 waits until M1 frees
+    shop.act(0)
+    s = shop.schedule()
+    assert ops(s) == {(1, 0): (1, 0, 2), (0, 0): (1, 2, 5)} and validate(inst, s) == []
+
+
+T3 = [[0, 2, 6], [5, 0, 3], [4, 7, 0]]     # asymmetric: T[from][to]
+
+
+def test_agv_loaded_trips_and_deadheading():
+    # J0: M1(4); J1: M2(1); one AGV at L/U.
+    # t=0 J0: AGV 0->1 loaded [0,2], op [2,6]. AGV idle at M1 from 2.
+    # t=2 J1: AGV empty 1->0 [2,7] (T[1][0]=5), loaded 0->2 [7,13] (T[0][2]=6), op [13,14].
+    inst = Instance("agv", [[(1, 4)], [(2, 1)]], agv_travel=T3, n_agvs=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 2, 6), (1, 0): (2, 13, 14)}
+    assert sorted(s.agv_trips, key=lambda t: t.start) == [
+        AgvTrip(0, 0, 0, 0, 1, 0, 2, True),
+        AgvTrip(0, None, None, 1, 0, 2, 7, False),
+        AgvTrip(0, 1, 0, 0, 2, 7, 13, True),
+    ]
+    assert s.makespan == 14
+
+
+def test_part_travels_from_previous_machine_after_it_ends():
+    # J0: M2(5) then M1(3): loaded 0->2 [0,6], op [6,11]; AGV waits at M2; loaded 2->1 [11,18], op [18,21].
+    inst = Instance("agv", [[(2, 5), (1, 3)]], agv_travel=T3, n_agvs=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (2, 6, 11), (0, 1): (1, 18, 21)}
+    assert [(t.from_, t.to, t.start, t.end, t.loaded) for t in s.agv_trips] == [(0, 2, 0, 6, True), (2, 1, 11, 18, True)]
+
+
+def test_two_agvs_choice_and_machine_one_at_a_time():
+    # Both jobs on M1 (dur 4 and 2); two AGVs. t=0: J0 with AGV0 (0->1 [0,2]); J1 with AGV1 (0->1 [0,2]).
+    # Both arrive at 2; M1 takes the earlier dispatch (J0) [2,6], then J1 [6,8].
+    inst = Instance("agv2", [[(1, 4)], [(1, 2)]], agv_travel=T3, n_agvs=2)
+    shop = Shop(inst)
+    assert shop.decision_kind() == "job"
+    shop.act(shop.action_index("job:0"))
+    assert shop.decision_kind() == "agv" and shop.legal_actions() == [2, 3]
+    shop.act(shop.action_index("agv:0"))
+    shop.act(shop.action_index("job:1"))
+    shop.act(shop.action_index("agv:1"))
+    s = shop.schedule()
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 2, 6), (1, 0): (1, 6, 8)}
+    assert {t.agv for t in s.agv_trips} == {0, 1}
+
+
+def test_no_job_selectable_while_all_agvs_busy():
+    inst = Instance("agv", [[(1, 4)], [(2, 1)]], agv_travel=T3, n_agvs=1)
+    shop = Shop(inst)
+    shop.act(0)
+    shop.act(shop.action_index("agv:0"))
+    assert shop.now == 2                    # time jumped to the AGV's arrival
+    assert shop.legal_actions() == [1]
+
+
+TT3 = [[0, 1, 2], [1, 0, 4], [2, 3, 0]]
+
+
+def test_tool_moves_between_machines_with_transporter():
+    # No AGVs. J0: M1 tool1 (3); J1: M2 tool1 (2); one transporter.
+    # t=0 J0 dispatched; tool 1 in magazine -> transporter 0->1 loaded [0,1]; op (0,0) [1,4].
+    # J1 dispatched at 0 (M2 idle) but tool 1 is busy; at 4 the transporter (at M1) carries it 1->2 [4,8];
+    # op (1,0) [8,10].
+    inst = Instance("tools", [[(1, 1, 3)], [(2, 1, 2)]], tool_travel=TT3, n_tool_transporters=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 1, 4), (1, 0): (2, 8, 10)}
+    assert sorted(s.tool_trips, key=lambda t: t.start) == [
+        ToolTrip(0, 1, 0, 0, 0, 1, 0, 1, True), ToolTrip(0, 1, 1, 0, 1, 2, 4, 8, True)]
+    assert s.makespan == 10
+
+
+def test_tool_already_at_machine_needs_no_trip():
+    inst = Instance("tools", [[(1, 1, 3)], [(1, 1, 2)]], tool_travel=TT3, n_tool_transporters=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 1, 4), (1, 0): (1, 4, 6)}
+    assert len(s.tool_trips) == 1
+
+
+def test_transporter_deadheads_to_the_tool():
+    # tools 1 and 2; J0: M1 tool1 (3); J1: M2 tool2 (1). Transporter: 0->1 with tool1 [0,1];
+    # then tool 2 is in the magazine: empty 1->0 [1,2], loaded 0->2 [2,4]; op (1,0) [4,5].
+    inst = Instance("tools", [[(1, 1, 3)], [(2, 2, 1)]], tool_travel=TT3, n_tool_transporters=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 1, 4), (1, 0): (2, 4, 5)}
+    assert ToolTrip(0, None, None, None, 1, 0, 1, 2, False) in s.tool_trips
+
+
+def test_agvs_and_tools_op_waits_for_both():
+    # J0: M1 tool1 (3). AGV 0->1 takes 2, transporter 0->1 takes 5: op starts at max(2,5)=5.
+    T = [[0, 2], [2, 0]]
+    TT = [[0, 5], [5, 0]]
+    inst = Instance("both", [[(1, 1, 3)]], agv_travel=T, tool_travel=TT, n_agvs=1, n_tool_transporters=1)
+    shop = Shop(inst)
+    shop.act(0)
+    assert shop.decision_kind() == "agv|tt"
+    shop.act(shop.action_index("agv:0"))
+    shop.act(shop.action_index("tt:0"))
+    s = shop.schedule()
+    assert validate(inst, s) == []
+    assert ops(s) == {(0, 0): (1, 5, 8)} and s.makespan == 8
+
+
+def test_invalid_actions_raise_and_leave_state_unchanged():
+    inst = Instance("agv", [[(1, 4)], [(2, 1)]], agv_travel=T3, n_agvs=1)
+    shop = Shop(inst)
+    with pytest.raises(InvalidAction):
+        shop.act(shop.action_index("agv:0"))   # no job selected yet
+    assert shop.legal_actions() == [0, 1] and shop.now == 0
+    with pytest.raises(InvalidAction):
+        shop.action_index("robot:1")
+    with pytest.raises(InvalidAction):
+        shop.action_index("agv:5")
+
+
+def test_twin_copy_is_independent():
+    inst = Instance("agv", [[(1, 4), (2, 2)], [(2, 1)]], agv_travel=T3, n_agvs=1)
+    shop = Shop(inst)
+    shop.act(0)
+    twin = shop.copy()
+    while not twin.done:
+        twin.act(twin.legal_actions()[0])
+    assert not shop.done and shop.decision_kind() == "agv"
+    while not shop.done:
+        shop.act(shop.legal_actions()[0])
+    assert validate(inst, shop.schedule()) == [] and shop.schedule().makespan == twin.schedule().makespan
+
+
+@pytest.mark.parametrize("mode", ["jobshop", "tools", "agvs+tools"])
+def test_twin_reads_its_own_state_in_every_mode(mode):
+    T = [[0, 2, 3], [2, 0, 2], [3, 2, 0]]
+    jobs = [[(1, 1, 3), (2, 2, 2)], [(2, 1, 2), (1, 2, 1)], [(1, 2, 2)]]
+    kw = {"tool_travel": T, "n_tool_transporters": 1} if mode != "jobshop" else {}
+    if mode == "agvs+tools":
+        kw.update(agv_travel=T, n_agvs=1)
+    if mode == "jobshop":
+        jobs = [[(m, d) for m, _, d in ops] for ops in jobs]
+    inst = Instance("twin", jobs, **kw)
+    shop = Shop(inst)
+    shop.act(shop.legal_actions()[-1])
+    twin = shop.copy()
+    for s in (twin, shop):
+        while not s.done:
+            s.act(s.legal_actions()[-1])
+    a, b = shop.schedule(), twin.schedule()
+    assert validate(inst, a) == [] and validate(inst, b) == []
+    assert a.to_dict() == b.to_dict()
