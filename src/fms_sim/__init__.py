@@ -10,3 +10,14 @@ __all__ = [
     "validate", "check", "ScheduleInvalid",
 ]
 __version__ = "0.1.0"
+
+
+def _register() -> None:
+    # cheap: only the entry-point string is registered; the env module loads on gym.make("fms/Shop-v0", ...)
+    import gymnasium
+
+    if "fms/Shop-v0" not in gymnasium.registry:
+        gymnasium.register(id="fms/Shop-v0", entry_point="fms_sim.env:ShopEnv")
+
+
+_register()

@@ -154,6 +154,7 @@ class Transition:
     on_fire: Callable[[Binding, int], None] | None = None
     label: str = ""
     index: int = -1
+    _compiled: tuple = ()
     action: int = -1
     """Position among the controllable transitions (the action index), -1 for autonomous ones."""
 
@@ -180,6 +181,7 @@ class Net:
         self._auto_marked: set[int] = set()
         self._enabled: dict[int, Binding | None] = {}  # controllable index -> binding (cache)
         self._dirty_ctrl: set[int] = set()
+        self._offered: list[int] | None = None
         self.fired = 0
 
     # ------------------------------------------------------------------ construction
@@ -190,12 +192,18 @@ class Net:
         return p
 
     def add_transition(self, t: Transition) -> Transition:
+        kinds = {"in": 0, "test": 1, "inhibit": 2}
+        t._compiled = tuple(
+            (a.place, None if (a.kind != "in" and a.var is None) else a.var, kinds[a.kind], a.key,
+             a.key is not ANY and callable(a.key), a.first, a.order)
+            for a in t.arcs)
         t.index = len(self.transitions)
         self.transitions.append(t)
         if t.controllable:
             t.action = len(self.controllable)
             self.controllable.append(t)
             self._dirty_ctrl.add(t.action)
+            self._offered = None
         else:
             self._mark_auto(t)
         for a in t.arcs:
@@ -222,6 +230,7 @@ class Net:
             t.action = i
         self._enabled = {}
         self._dirty_ctrl = set(range(len(self.controllable)))
+        self._offered = None
 
     # ------------------------------------------------------------------ marking changes
     def put(self, place: Place, colour: Any, delay: int = 0) -> None:
@@ -273,6 +282,7 @@ class Net:
     def _mark(self, t: Transition) -> None:
         if t.action >= 0:
             self._dirty_ctrl.add(t.action)
+            self._offered = None
         else:
             self._mark_auto(t)
 
@@ -284,49 +294,70 @@ class Net:
     # ------------------------------------------------------------------ enabling
     def binding(self, t: Transition) -> Binding | None:
         """The first binding (in arc order, tokens oldest first) that enables ``t`` now, or None."""
-        return self._bind(t, 0, {}, [])
-
-    def _bind(self, t: Transition, i: int, b: Binding, toks: list[Token]) -> Binding | None:
-        arcs = t.arcs
-        if i == len(arcs):
-            if t.guard is None or t.guard(b):
-                b["__tokens__"] = list(toks)
-                return b
-            return None
-        a = arcs[i]
-        key = a.key
-        if key is not ANY and callable(key):
-            key = key(b)
-        cands = a.place.tokens(key)
-        if a.kind == "inhibit":
-            return self._bind(t, i + 1, b, toks) if not cands else None
-        if not cands:
-            return None
-        if a.kind == "test" and a.var is None:
-            return self._bind(t, i + 1, b, toks)
-        if a.order is not None and len(cands) > 1:
-            o = a.order
-            cands = sorted(cands, key=lambda tk: o(tk.colour))
-        if a.first:
-            cands = cands[:1]
-        for tok in cands:
-            if a.var is not None:
-                b[a.var] = tok.colour
-            if a.kind == "in":
-                if tok in toks:  # a token cannot be consumed twice by one firing
-                    continue
-                toks.append(tok)
-                (toks_place := b.setdefault("__places__", [])).append(a.place)
-                r = self._bind(t, i + 1, b, toks)
-                if r is not None:
-                    return r
-                toks.pop()
-                toks_place.pop()
-            else:
-                r = self._bind(t, i + 1, b, toks)
-                if r is not None:
-                    return r
+        toks: list[Token] = []
+        places: list[Place] = []
+        b: Binding = {}
+        if self._bind(t._compiled, 0, t.guard, b, toks, places):
+            b["__tokens__"] = toks
+            b["__places__"] = places
+            return b
         return None
+
+    def _bind(self, arcs: tuple, i: int, guard: Callable[[Binding], bool] | None, b: Binding,
+              toks: list[Token], places: list[Place]) -> bool:
+        # hot path: arcs are pre-compiled tuples (place, var, kind, key, key_is_fn, first, order)
+        n = len(arcs)
+        while i < n:
+            place, var, kind, key, key_fn, first, order = arcs[i]
+            buckets = place.buckets
+            if key_fn:
+                cands = buckets.get(key(b), ())
+            elif key is ANY:
+                if not buckets:
+                    cands = ()
+                elif len(buckets) == 1:
+                    cands = next(iter(buckets.values()))
+                else:
+                    cands = [tk for bk in buckets.values() for tk in bk]
+            else:
+                cands = buckets.get(key, ())
+            if kind == 2:  # inhibitor
+                if cands:
+                    return False
+                i += 1
+                continue
+            if not cands:
+                return False
+            if var is None:  # read arc that only needs presence
+                i += 1
+                continue
+            if order is not None and len(cands) > 1:
+                cands = sorted(cands, key=lambda tk: order(tk.colour))
+            if first or len(cands) == 1:
+                tok = cands[0]
+                if kind == 0:
+                    if tok in toks:
+                        return False
+                    toks.append(tok)
+                    places.append(place)
+                b[var] = tok.colour
+                i += 1
+                continue
+            # several candidates: backtrack over them
+            for tok in cands:
+                if kind == 0:
+                    if tok in toks:
+                        continue
+                    toks.append(tok)
+                    places.append(place)
+                b[var] = tok.colour
+                if self._bind(arcs, i + 1, guard, b, toks, places):
+                    return True
+                if kind == 0:
+                    toks.pop()
+                    places.pop()
+            return False
+        return guard is None or guard(b)
 
     def is_enabled(self, t: Transition) -> bool:
         return self.binding(t) is not None
@@ -341,6 +372,8 @@ class Net:
 
     def enabled_actions(self) -> list[int]:
         """Indices of the controllable transitions offered now (only the most urgent priority level)."""
+        if self._offered is not None:
+            return list(self._offered)
         self._refresh_ctrl()
         best = None
         out: list[int] = []
@@ -353,7 +386,8 @@ class Net:
             elif p == best:
                 out.append(i)
         out.sort()
-        return out
+        self._offered = out
+        return list(out)
 
     def mask(self) -> list[bool]:
         m = [False] * len(self.controllable)
@@ -404,6 +438,7 @@ class Net:
             raise InvalidAction(f"action {action} ({t.label or t.name}) is enabled but a more urgent decision "
                                 f"is due at time {self.now}")
         self._dirty_ctrl.add(action)
+        self._offered = None
         # the cached binding is consumed; copy so that the cache never aliases a fired binding
         return self.fire(t, dict(b, __tokens__=list(b["__tokens__"]), __places__=list(b.get("__places__", []))))
 

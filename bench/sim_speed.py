@@ -1,0 +1,78 @@
+"""Simulation speed: random masked episodes through the shop net (and through the Gymnasium env).
+
+Prints decisions per second and seconds per episode for EX12, ra01 (+tools) and sl70 (100x20x20, 10 AGVs,
+5 tool transporters), with and without tools. Goals (2-core machine): >= 20,000 decisions/s on EX12 and a
+full random sl70 episode with tools in <= 1 s. Usage: python bench/sim_speed.py [--quick] [--env]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import random
+import time
+
+import numpy as np
+
+from fms_sim.benchmarks import builtin
+from fms_sim.shop import Shop
+from fms_sim.validate import validate
+
+
+def net_episodes(inst, seconds: float, min_episodes: int, seed: int = 0):
+    rng = random.Random(seed)
+    n_dec = n_ep = 0
+    t0 = time.perf_counter()
+    while n_ep < min_episodes or time.perf_counter() - t0 < seconds:
+        shop = Shop(inst)
+        while not shop.done:
+            shop.act(rng.choice(shop.legal_actions()))
+            n_dec += 1
+        n_ep += 1
+    dt = time.perf_counter() - t0
+    assert validate(inst, shop.schedule()) == []  # the last schedule of each run is checked
+    return n_dec / dt, dt / n_ep, n_dec / n_ep
+
+
+def env_episodes(inst, seconds: float, min_episodes: int, seed: int = 0):
+    from fms_sim.env import ShopEnv
+
+    env = ShopEnv(inst, reward="shaped")
+    rng = np.random.default_rng(seed)
+    n_dec = n_ep = 0
+    t0 = time.perf_counter()
+    while n_ep < min_episodes or time.perf_counter() - t0 < seconds:
+        env.reset(seed=n_ep)
+        done = False
+        while not done:
+            a = int(rng.choice(np.flatnonzero(env.action_masks())))
+            _, _, done, _, _ = env.step(a)
+            n_dec += 1
+        n_ep += 1
+    dt = time.perf_counter() - t0
+    return n_dec / dt, dt / n_ep, n_dec / n_ep
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true", help="short runs (for smoke tests)")
+    ap.add_argument("--env", action="store_true", help="also measure through the Gymnasium env (observations)")
+    a = ap.parse_args()
+    secs = 0.3 if a.quick else 3.0
+    cases = [("EX12", builtin("EX12")), ("ra01", builtin("ra01")),
+             ("sl70 AGVs only", builtin("sl70").without_tools()), ("sl70 AGVs+tools", builtin("sl70"))]
+    print(f"# {platform.processor() or platform.machine()}, Python {platform.python_version()}")
+    print("| instance | decisions/episode | net: decisions/s | net: s/episode |"
+          + (" env: decisions/s | env: s/episode |" if a.env else ""))
+    print("|---|---|---|---|" + ("---|---|" if a.env else ""))
+    for name, inst in cases:
+        dps, spe, dpe = net_episodes(inst, secs, 1 if a.quick else 3)
+        row = f"| {name} | {dpe:.0f} | {dps:,.0f} | {spe:.4f} |"
+        if a.env:
+            edps, espe, _ = env_episodes(inst, secs, 1)
+            row += f" {edps:,.0f} | {espe:.4f} |"
+        print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,177 @@
+"""The ``fms`` command-line tool: one entry point, subcommands for humans.
+
+Every bad input (unknown instance, malformed file, wrong matrix size, negative times, unknown solver) ends
+with a one-line ``fms: error: ...`` on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from fms_sim.instance import Instance, InstanceError
+from fms_sim.schedule import Schedule, ScheduleError
+
+EXIT_BAD_INPUT = 2
+EXIT_INFEASIBLE = 1
+
+
+class CliError(Exception):
+    """A user error: printed as one line, exit code 2."""
+
+
+def _add_instance_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("instance", help="built-in name (see `fms instances`) or an instance file (JSON, OR-Library, Taillard)")
+    p.add_argument("--layout", type=int, help="layout 1-4 for the ra instances (default 2)")
+    p.add_argument("--agvs", type=int, metavar="N", help="override the number of AGVs")
+    p.add_argument("--tool-transporters", type=int, metavar="N", help="override the number of tool transporters")
+    p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
+    p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly; plain job shop without tools)")
+
+
+def load_from_args(a: argparse.Namespace) -> Instance:
+    from fms_sim.formats import load_instance
+
+    return load_instance(a.instance, layout=a.layout, agvs=a.agvs, tool_transporters=a.tool_transporters,
+                         no_tools=a.no_tools, no_agvs=a.no_agvs)
+
+
+def cmd_instances(a: argparse.Namespace) -> int:
+    from fms_sim.benchmarks import builtin, builtin_names
+
+    for name in builtin_names():
+        print(builtin(name).describe() if a.details else name)
+    return 0
+
+
+def cmd_solve(a: argparse.Namespace) -> int:
+    from fms_sim.validate import validate
+
+    from .solvers import solve
+
+    inst = load_from_args(a)
+    opts: dict = {"seed": a.seed}
+    if a.time_limit is not None:
+        if a.time_limit <= 0:
+            raise CliError("--time-limit must be positive")
+        opts["time_limit"] = a.time_limit
+    if not a.quiet:
+        print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
+        opts["progress"] = True
+    sched = solve(inst, a.solver, **opts)
+    problems = validate(inst, sched)
+    if problems:  # a solver bug: never hand out an infeasible schedule silently
+        print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
+        return EXIT_INFEASIBLE
+    print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s, valid)")
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        sched.save(a.out)
+        print(f"schedule: {a.out}")
+    if a.gantt:
+        from fms_sim.gantt import save_gantt
+
+        print(f"gantt:    {save_gantt(sched, a.gantt, instance=inst)}")
+    return 0
+
+
+def cmd_validate(a: argparse.Namespace) -> int:
+    from fms_sim.validate import validate
+
+    inst = load_from_args(a)
+    try:
+        sched = Schedule.load(a.schedule)
+    except OSError as exc:
+        raise CliError(f"cannot read schedule {a.schedule}: {exc.strerror}") from None
+    if sched.instance != inst.name:
+        print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
+    problems = validate(inst, sched)
+    if problems:
+        print(f"INVALID: {len(problems)} violation(s)")
+        for p in problems:
+            print(f"  - {p}")
+        return EXIT_INFEASIBLE
+    print(f"valid: {inst.name}, makespan {sched.makespan}")
+    return 0
+
+
+def cmd_generate(a: argparse.Namespace) -> int:
+    from fms_sim import generate as g
+
+    insts = g.generate_instances(
+        a.jobs, a.machines, a.tools, a.count, time_seed=a.time_seed, route_seed=a.route_seed,
+        tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed, n_agvs=a.agvs,
+        n_tool_transporters=a.tool_transporters, tools=not a.no_tools, agvs=not a.no_agvs, name_prefix=a.prefix)
+    out = Path(a.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for inst in insts:
+        path = out / f"{inst.name}.json"
+        inst.save(path)
+        print(f"{path}: {inst.describe()}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fms", description="FMS intralogistics dispatcher (AGVs, shared tools, CTPN).")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("instances", help="list the built-in instance names")
+    s.add_argument("--details", action="store_true", help="print sizes and fleets too")
+    s.set_defaults(fn=cmd_instances)
+
+    s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
+    _add_instance_args(s)
+    s.add_argument("--solver", default="first",
+                   help="first | random | rule:<JOB>+<first|least-work|nearest> | sos | cpsat (default: first)")
+    s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", help="write the schedule JSON here")
+    s.add_argument("--gantt", help="write a Gantt chart PNG here")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    s.set_defaults(fn=cmd_solve)
+
+    s = sub.add_parser("validate", help="check a schedule file against an instance (exit 1 if infeasible)")
+    _add_instance_args(s)
+    s.add_argument("schedule", help="schedule JSON file")
+    s.set_defaults(fn=cmd_validate)
+
+    s = sub.add_parser("generate", help="write random instances with Taillard's LCG family")
+    s.add_argument("--jobs", type=int, required=True)
+    s.add_argument("--machines", type=int, required=True)
+    s.add_argument("--tools", type=int, default=None, help="number of tools (default: = machines)")
+    s.add_argument("--count", type=int, default=1)
+    s.add_argument("--agvs", type=int, default=10)
+    s.add_argument("--tool-transporters", type=int, default=5)
+    s.add_argument("--no-tools", action="store_true")
+    s.add_argument("--no-agvs", action="store_true")
+    s.add_argument("--time-seed", type=int, default=840612802)
+    s.add_argument("--route-seed", type=int, default=398197754)
+    s.add_argument("--tool-seed", type=int, default=170719940)
+    s.add_argument("--agv-seed", type=int, default=180119550)
+    s.add_argument("--tool-travel-seed", type=int, default=280219920)
+    s.add_argument("--prefix", default="gen", help="instance name prefix (names: PREFIX00, PREFIX01, ...)")
+    s.add_argument("--out-dir", default="instances", help="folder for the JSON files")
+    s.set_defaults(fn=cmd_generate)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    a = parser.parse_args(argv)
+    if getattr(a, "tools", 0) is None:
+        a.tools = a.machines
+    try:
+        return a.fn(a)
+    except (CliError, InstanceError, ScheduleError, ValueError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"fms: error: {msg}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("fms: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,96 @@
+"""One solver signature for every method: ``solver(instance, **options) -> Schedule``, selected by name.
+
+Names: ``first`` (baseline: always the lowest enabled action), ``random`` (uniform among legal actions,
+seeded), ``rule:<JOB>+<first|least-work|nearest>`` (see :mod:`fms_dispatch.rules`), ``sos`` (symbiotic
+organisms search) and ``cpsat`` (exact model), each honouring ``time_limit`` where it searches. Every schedule
+leaves here with ``meta["solver"]`` and ``meta["wall_time"]`` filled in.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from typing import Any, Callable
+
+from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
+from fms_sim.shop import Shop
+
+from .rules import parse_rule_name
+
+__all__ = ["solve", "get_solver", "solver_names", "UnknownSolver"]
+
+Solver = Callable[..., Schedule]
+
+
+class UnknownSolver(ValueError):
+    pass
+
+
+def _run(instance: Instance, choose: Callable[[Shop], int]) -> Schedule:
+    shop = Shop(instance)
+    while not shop.done:
+        shop.act(choose(shop))
+    return shop.schedule()
+
+
+def _first(instance: Instance, **_: Any) -> Schedule:
+    return _run(instance, lambda shop: shop.legal_actions()[0])
+
+
+def _random(instance: Instance, seed: int = 0, **_: Any) -> Schedule:
+    rng = random.Random(seed)
+    return _run(instance, lambda shop: rng.choice(shop.legal_actions()))
+
+
+def _sos(instance: Instance, **kw: Any) -> Schedule:
+    from .sos import solve_sos
+
+    return solve_sos(instance, **kw)
+
+
+def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2, progress: bool = False,
+           **_: Any) -> Schedule:
+    from .exact import cpsat
+
+    kw: dict[str, Any] = {"workers": workers}
+    if time_limit is not None:
+        kw["time_limit"] = time_limit
+    if progress:
+        kw["progress"] = lambda obj, bound, secs: print(f"  cpsat: makespan {obj}, bound {bound}, {secs:.1f} s",
+                                                        flush=True)
+    return cpsat(instance, **kw)
+
+
+def solver_names() -> list[str]:
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat"]
+
+
+def get_solver(name: str) -> Solver:
+    """The solver function for a name; raises :class:`UnknownSolver` with the list of names."""
+    low = name.lower()
+    if low == "first":
+        return _first
+    if low == "random":
+        return _random
+    if low.startswith("rule:"):
+        try:
+            policy = parse_rule_name(name)
+        except ValueError as exc:
+            raise UnknownSolver(str(exc)) from None
+        return lambda inst, **_: _run(inst, policy)
+    if low == "sos":
+        return _sos
+    if low == "cpsat":
+        return _cpsat
+    raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
+
+
+def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
+    """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through."""
+    fn = get_solver(solver)
+    t0 = time.perf_counter()
+    s = fn(instance, **options)
+    s.meta.setdefault("solver", solver)
+    s.meta["wall_time"] = round(time.perf_counter() - t0, 4)
+    return s

@@ -1,0 +1,267 @@
+"""Gymnasium environment over the shop net: ``fms/Shop-v0``.
+
+Actions are the net's controllable transitions, laid out in padded blocks so that one policy can serve every
+instance up to a maximum size::
+
+    [ job 0 .. job max_jobs-1 | AGV 0 .. AGV max_agvs-1 | transporter 0 .. max_tts-1 ]
+
+``action_masks()`` (the sb3-contrib MaskablePPO hook, also ``info["action_mask"]``) is True exactly where the
+net's guard enables the transition; padded slots are always False. An action the mask forbids is never
+ignored: by default (``invalid_action="penalty"``, so that any action of the space can be stepped, as
+Gymnasium requires) it ends the episode with ``invalid_penalty`` and ``info["invalid_action"] = True``; with
+``invalid_action="raise"`` it raises :class:`~fms_sim.petri.InvalidAction` (the engine always raises).
+
+Observation (float32, fixed size, zero-padded): global features, then one row per job, machine, tool, AGV and
+transporter slot (see :data:`JOB_FEATURES` etc.). Times are divided by a per-instance scale (total work / number
+of machines, a makespan lower bound), so instances of different sizes look alike.
+
+Rewards (``reward=``):
+
+* ``"idle"`` — the paper's: ``-(idle machines / machines)`` after every decision;
+* ``"makespan"`` — sparse: ``-makespan / scale`` at the end, 0 before;
+* ``"shaped"`` — ours: potential-based on a makespan lower bound ``LB`` (max over machines of busy-until plus
+  work still to come on it, max over jobs of the time their part is free plus remaining work, and the clock):
+  reward ``-(LB_after - LB_before) / scale``. The episode sum is ``-(makespan - LB_0) / scale``, so it ranks
+  schedules exactly as the makespan does while giving a signal at every step.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .instance import Instance
+from .petri import InvalidAction
+from .shop import Shop
+
+__all__ = ["ShopEnv", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
+           "AGV_FEATURES", "TT_FEATURES", "REWARDS"]
+
+REWARDS = ("idle", "makespan", "shaped")
+OBS_HIGH = 1000.0  # features are normalised; clipped here so the box is finite
+GLOBAL_FEATURES = ("time", "ops_done", "phase_job", "phase_agv", "phase_tt", "n_jobs", "n_machines")
+JOB_FEATURES = ("present", "legal", "ready", "next_machine", "next_duration", "remaining_work",
+                "remaining_ops", "location", "waiting", "next_tool", "awaiting_agv")
+MACHINE_FEATURES = ("present", "busy", "busy_for", "buffer", "queued_work")
+TOOL_FEATURES = ("present", "location", "free")
+AGV_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_pickup")
+TT_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_tool")
+
+
+class ShopEnv(gym.Env):
+    """Dispatching environment; see the module docstring for spaces and rewards.
+
+    ``instances``: one :class:`Instance`, a sequence (one drawn at random per episode — training on sets), or a
+    callable ``rng -> Instance``. ``max_*``: padding sizes (default: the largest among the given instances).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, instances: Instance | Sequence[Instance] | Callable[[np.random.Generator], Instance],
+                 *, reward: str = "shaped", max_jobs: int | None = None, max_machines: int | None = None,
+                 max_tools: int | None = None, max_agvs: int | None = None, max_tts: int | None = None,
+                 invalid_action: str = "penalty", invalid_penalty: float = -10.0):
+        if reward not in REWARDS:
+            raise ValueError(f"unknown reward {reward!r}; choose from {', '.join(REWARDS)}")
+        if invalid_action not in ("raise", "penalty"):
+            raise ValueError("invalid_action must be 'raise' or 'penalty'")
+        if isinstance(instances, Instance):
+            instances = [instances]
+        if callable(instances):
+            self._sample = instances
+            known: list[Instance] = []
+        else:
+            known = list(instances)
+            if not known:
+                raise ValueError("ShopEnv needs at least one instance")
+            self._sample = lambda rng: known[int(rng.integers(len(known)))]
+        if not known and None in (max_jobs, max_machines, max_tools, max_agvs, max_tts):
+            raise ValueError("with an instance sampler, give every max_* size")
+        self.max_jobs = max_jobs or max(i.n_jobs for i in known)
+        self.max_machines = max_machines or max(i.n_machines for i in known)
+        self.max_tools = max_tools if max_tools is not None else max(i.n_tools for i in known)
+        self.max_agvs = max_agvs if max_agvs is not None else max(i.n_agvs for i in known)
+        self.max_tts = max_tts if max_tts is not None else max(i.n_tool_transporters for i in known)
+        for i in known:
+            self._check_fits(i)
+        self.reward_mode = reward
+        self.invalid_action = invalid_action
+        self.invalid_penalty = float(invalid_penalty)
+        self.n_actions = self.max_jobs + self.max_agvs + self.max_tts
+        self.action_space = spaces.Discrete(self.n_actions)
+        size = (len(GLOBAL_FEATURES) + self.max_jobs * len(JOB_FEATURES) + self.max_machines * len(MACHINE_FEATURES)
+                + self.max_tools * len(TOOL_FEATURES) + self.max_agvs * len(AGV_FEATURES)
+                + self.max_tts * len(TT_FEATURES))
+        self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
+        self.shop: Shop | None = None
+        self.instance: Instance | None = None
+
+    def _check_fits(self, inst: Instance) -> None:
+        limits = [("jobs", inst.n_jobs, self.max_jobs), ("machines", inst.n_machines, self.max_machines),
+                  ("tools", inst.n_tools if inst.has_tools else 0, self.max_tools),
+                  ("AGVs", inst.n_agvs, self.max_agvs), ("tool transporters", inst.n_tool_transporters, self.max_tts)]
+        for what, n, cap in limits:
+            if n > cap:
+                raise ValueError(f"instance {inst.name} has {n} {what}, more than this env's maximum {cap}")
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        inst = (options or {}).get("instance") or self._sample(self.np_random)
+        self._check_fits(inst)
+        self.instance = inst
+        self.shop = Shop(inst)
+        self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
+        self._total_ops = inst.n_operations
+        self._lb = self._lower_bound()
+        self._lb0 = self._lb
+        return self._obs(), self._info()
+
+    def step(self, action: int):
+        shop = self.shop
+        if shop is None:
+            raise RuntimeError("call reset() before step()")
+        a = int(action)
+        net_action = self._to_net(a)
+        if net_action is None or not self._mask_net()[net_action]:
+            if self.invalid_action == "raise":
+                legal = [self._from_net(x) for x in shop.legal_actions()]
+                raise InvalidAction(f"action {a} is not allowed now (legal: {legal})")
+            return self._obs(), self.invalid_penalty, True, False, self._info(invalid=True)
+        shop.act(net_action)
+        terminated = shop.done
+        if self.reward_mode == "idle":
+            reward = -shop.idle_machines() / self.instance.n_machines if not terminated else 0.0
+        elif self.reward_mode == "makespan":
+            reward = -shop.makespan / self._scale if terminated else 0.0
+        else:
+            lb = shop.makespan if terminated else self._lower_bound()
+            reward = -(lb - self._lb) / self._scale
+            self._lb = lb
+        info = self._info()
+        if terminated:
+            info["makespan"] = shop.makespan
+        return self._obs(), float(reward), terminated, False, info
+
+    def action_masks(self) -> np.ndarray:
+        m = np.zeros(self.n_actions, dtype=bool)
+        if self.shop is None or self.shop.done:
+            return m
+        for a in self.shop.legal_actions():
+            m[self._from_net(a)] = True
+        return m
+
+    # ------------------------------------------------------------------ action mapping
+    def _to_net(self, a: int) -> int | None:
+        s = self.shop
+        if 0 <= a < self.max_jobs:
+            return a if a < s.n_jobs else None
+        a -= self.max_jobs
+        if 0 <= a < self.max_agvs:
+            return s.n_jobs + a if a < s.n_agvs else None
+        a -= self.max_agvs
+        if 0 <= a < self.max_tts:
+            return s.n_jobs + s.n_agvs + a if a < s.n_tts else None
+        return None
+
+    def _from_net(self, a: int) -> int:
+        s = self.shop
+        if a < s.n_jobs:
+            return a
+        if a < s.n_jobs + s.n_agvs:
+            return self.max_jobs + a - s.n_jobs
+        return self.max_jobs + self.max_agvs + a - s.n_jobs - s.n_agvs
+
+    def _mask_net(self) -> list[bool]:
+        return self.shop.action_mask()
+
+    def _info(self, invalid: bool = False) -> dict[str, Any]:
+        info = {"action_mask": self.action_masks(), "time": self.shop.now}
+        if invalid:
+            info["invalid_action"] = True
+        return info
+
+    # ------------------------------------------------------------------ features
+    def _lower_bound(self) -> int:
+        s, inst = self.shop, self.instance
+        now = s.now
+        lb = max(now, s.makespan)
+        machine_load = [0] * (inst.n_machines + 1)
+        for j, ops in enumerate(inst.jobs):
+            k = s.next_op(j)
+            rem = 0
+            for op in ops[k:]:
+                machine_load[op.machine] += op.duration
+                rem += op.duration
+            if rem:
+                lb = max(lb, now + rem)
+        for m in range(1, inst.n_machines + 1):
+            lb = max(lb, max(now, s.machine_busy_until[m]) + machine_load[m])
+        return lb
+
+    def _obs(self) -> np.ndarray:
+        s, inst = self.shop, self.instance
+        sc = self._scale
+        now = s.now
+        jobs_ops = inst.jobs
+        g = np.zeros(len(GLOBAL_FEATURES), dtype=np.float32)
+        kinds = s.decision_kind() or ""
+        g[:] = (now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds, "tt" in kinds,
+                inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines)
+        legal = set(s.legal_actions())
+        req = s.awaiting_agv()
+        mm = self.max_machines
+        J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float32)
+        for j, ops in enumerate(jobs_ops):
+            k = s.next_op(j)
+            loc = s.part_location(j)
+            row = J[j]
+            row[0] = 1.0
+            row[1] = j in legal
+            row[2] = loc is not None
+            if k < len(ops):
+                op = ops[k]
+                row[3] = op.machine / mm
+                row[4] = op.duration / sc
+                row[9] = (op.tool or 0) / max(1, self.max_tools)
+            row[5] = sum(o.duration for o in ops[k:]) / sc
+            row[6] = (len(ops) - k) / max(1, len(ops))
+            row[7] = (loc if loc is not None else -1) / mm
+            row[8] = (now - s.job_ready_since[j]) / sc if loc is not None else 0.0
+            row[10] = req is not None and req[0] == j
+        M = np.zeros((mm, len(MACHINE_FEATURES)), dtype=np.float32)
+        buffers = s.p_buffer
+        for m in range(1, inst.n_machines + 1):
+            row = M[m - 1]
+            row[0] = 1.0
+            until = s.machine_busy_until[m]
+            row[1] = until > now
+            row[2] = max(0, until - now) / sc
+            q = buffers.tokens(m)
+            row[3] = len(q) / inst.n_jobs
+            row[4] = sum(jobs_ops[c.colour[0]][c.colour[1]].duration for c in q) / sc
+        T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float32)
+        if inst.has_tools:
+            free = {c.colour[0] for c in s.p_tool_free.tokens()}
+            for t in range(1, inst.n_tools + 1):
+                T[t - 1] = (1.0, s.tool_loc[t] / mm, t in free)
+        A = self._vehicles(self.max_agvs, s.n_agvs, s.agv_loc, s.agv_free_at, s.agv_work,
+                           {c[0] for c in s.idle_agvs()}, inst.agv_travel, req[2] if req else None, now, sc, mm)
+        treq = s.awaiting_transporter()
+        R = self._vehicles(self.max_tts, s.n_tts, s.tt_loc, s.tt_free_at, s.tt_work,
+                           {c[0] for c in s.idle_transporters()}, inst.tool_travel, treq[1] if treq else None,
+                           now, sc, mm)
+        obs = np.concatenate([g, J.ravel(), M.ravel(), T.ravel(), A.ravel(), R.ravel()])
+        return np.clip(obs, -1.0, OBS_HIGH, out=obs)
+
+    @staticmethod
+    def _vehicles(cap: int, n: int, loc: list[int], free_at: list[int], work: list[int], idle: set[int],
+                  travel, target: int | None, now: int, sc: float, mm: int) -> np.ndarray:
+        V = np.zeros((cap, len(AGV_FEATURES)), dtype=np.float32)
+        for v in range(n):
+            V[v] = (1.0, v in idle, loc[v] / mm, max(0, free_at[v] - now) / sc, work[v] / sc,
+                    travel[loc[v]][target] / sc if target is not None else 0.0)
+        return V
