@@ -30,14 +30,18 @@ the net cannot deadlock. Action indices: jobs ``0..n-1``, then AGVs, then tool t
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Sequence
 
-from .instance import Instance
+from .instance import Instance, InstanceError, Operation
 from .petri import ANY, Arc, Deadlock, InvalidAction, Net, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 
-__all__ = ["Shop", "ActionKind"]
+__all__ = ["Shop", "ActionKind", "run_policy"]
+
+
+def _stamp_of(colour: tuple) -> int:
+    return colour[3]
 
 # priority levels: autonomous completions first, then allocation, then starts; decisions: vehicles before jobs
 _P_DONE, _P_ALLOC, _P_START = 0, 1, 2
@@ -91,6 +95,7 @@ class Shop:
         self.tool_loc = [0] * (instance.n_tools + 1)
         self.pending_job: int | None = None               # job selected, waiting for its AGV
         self.makespan = 0
+        self._jobs = instance.jobs
         self._build()
         self.net.advance()
         self._check_progress()
@@ -111,19 +116,24 @@ class Shop:
         gate_arcs, transport_out = self._agv_block() if inst.has_agvs else self._direct_block()
         self._jobs_block(gate_arcs, transport_out + tool_outputs)
         self._machines_block(tool_arcs)
-        kinds = {"job": 0, "agv": 1, "tt": 2}
-        net.set_action_order(sorted(net.controllable, key=lambda t: (kinds[t.label.split(":")[0]],
-                                                                     int(t.label.split(":")[1]))))
+        self._order_actions()
 
     def _jobs_block(self, gate_arcs: list[Arc], outputs: list[Output]) -> None:
-        jobs = self.instance.jobs
+        self._job_gate, self._job_outputs = gate_arcs, outputs
         for j in range(self.instance.n_jobs):
-            self.net.add_transition(Transition(
-                name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
-                arcs=[Arc(self.p_parts, "p", key=j)] + gate_arcs,
-                outputs=outputs, on_fire=self._on_select_job,
-            ))
-        self._jobs = jobs
+            self._add_job_transition(j)
+
+    def _add_job_transition(self, j: int) -> None:
+        self.net.add_transition(Transition(
+            name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
+            arcs=[Arc(self.p_parts, "p", key=j)] + self._job_gate,
+            outputs=self._job_outputs, on_fire=self._on_select_job,
+        ))
+
+    def _order_actions(self) -> None:
+        kinds = {"job": 0, "agv": 1, "tt": 2}
+        self.net.set_action_order(sorted(self.net.controllable, key=lambda t: (kinds[t.label.split(":")[0]],
+                                                                                int(t.label.split(":")[1]))))
 
     def _on_select_job(self, b: dict, now: int) -> None:
         j, k, _ = b["p"]
@@ -138,15 +148,13 @@ class Shop:
         return (j, k, loc, self._jobs[j][k].machine, self._stamp)
 
     def _direct_block(self) -> tuple[list[Arc], list[Output]]:
-        jobs = self._jobs = self.instance.jobs
-
-        def machine_of(b: dict) -> int:
-            j, k, _ = b["p"]
-            return jobs[j][k].machine
-
-        gate = [Arc(self.p_machine_idle, kind="test", key=machine_of, count_only=True),
-                Arc(self.p_buffer, kind="inhibit", key=machine_of, count_only=True)]
+        gate = [Arc(self.p_machine_idle, kind="test", key=self._machine_of, count_only=True),
+                Arc(self.p_buffer, kind="inhibit", key=self._machine_of, count_only=True)]
         return gate, [Output(self.p_buffer, self._direct_to_buffer)]
+
+    def _machine_of(self, b: dict) -> int:
+        j, k, _ = b["p"]
+        return self._jobs[j][k].machine
 
     def _direct_to_buffer(self, b: dict) -> tuple:
         j, k, _ = b["p"]
@@ -187,8 +195,32 @@ class Shop:
                 outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4], b["l"][5])),
                          Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
             ))
+        # pre-positioning (lookahead): an order (agv, location) sends an idle AGV empty to a location
+        self.p_agv_orders = net.add_place("agv_orders", key=lambda c: c[0])
+        self.p_agv_moving = net.add_place("agv_repositioning", key=lambda c: c[0])
+        for v in range(inst.n_agvs):
+            net.add_transition(Transition(
+                name=f"agv_reposition[{v}]", priority=_P_ALLOC,
+                arcs=[Arc(self.p_agv_orders, "o", key=v), Arc(self.p_agv_idle, "a", key=v)],
+                outputs=[Output(self.p_agv_moving, lambda b: b["o"], delay=lambda b: T[b["a"][1]][b["o"][1]])],
+                on_fire=self._on_agv_reposition,
+            ))
+            net.add_transition(Transition(
+                name=f"agv_arrive[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_moving, "o", key=v)],
+                outputs=[Output(self.p_agv_idle, lambda b: b["o"])],
+            ))
         gate = [Arc(self.p_agv_idle, kind="test", count_only=True)]
         return gate, [Output(self.p_awaiting_agv, self._request)]
+
+    def _on_agv_reposition(self, b: dict, now: int) -> None:
+        v, here = b["a"]
+        dest = b["o"][1]
+        t = self.instance.agv_travel[here][dest]
+        if here != dest:
+            self.rec.agv.append(AgvTrip(v, None, None, here, dest, now, now + t, False))
+        self.agv_work[v] += t
+        self.agv_loc[v] = dest
+        self.agv_free_at[v] = now + t
 
     def _on_stay(self, b: dict, now: int) -> None:
         self.pending_job = None
@@ -209,28 +241,43 @@ class Shop:
     # machines -----------------------------------------------------------
     def _machines_block(self, tool_arcs: list[Arc]) -> None:
         net, inst = self.net, self.instance
-        jobs = inst.jobs
-        has_tools = inst.has_tools
+        tool_out = [Output(self.p_tool_free, self._released_tool)] if inst.has_tools else []
         for m in range(1, inst.n_machines + 1):
             net.add_transition(Transition(
                 name=f"start[{m}]", priority=_P_START,
-                arcs=[Arc(self.p_machine_idle, "mi", key=m), Arc(self.p_buffer, "q", key=m, order=lambda c: c[3])]
+                arcs=[Arc(self.p_machine_idle, "mi", key=m), Arc(self.p_buffer, "q", key=m, order=_stamp_of)]
                 + tool_arcs,
-                outputs=[Output(self.p_busy, lambda b: (b["q"][0], b["q"][1], b["q"][2],
-                                                        jobs[b["q"][0]][b["q"][1]].tool if has_tools else None),
-                                delay=lambda b: jobs[b["q"][0]][b["q"][1]].duration)],
+                outputs=[Output(self.p_busy, self._busy_token, delay=self._duration)],
                 on_fire=self._on_start,
             ))
             net.add_transition(Transition(
                 name=f"end[{m}]", priority=_P_DONE, arcs=[Arc(self.p_busy, "x", key=m)],
                 outputs=[Output(self.p_machine_idle, lambda b: (b["x"][2],)),
-                         Output(self.p_parts, lambda b: (b["x"][0], b["x"][1] + 1, b["x"][2])
-                                if b["x"][1] + 1 < len(jobs[b["x"][0]]) else None),
-                         Output(self.p_done, lambda b: b["x"][0] if b["x"][1] + 1 == len(jobs[b["x"][0]]) else None)]
-                + ([Output(self.p_tool_free, lambda b: (b["x"][3], b["x"][2]) if b["x"][3] is not None else None)]
-                   if has_tools else []),
+                         Output(self.p_parts, self._next_part),
+                         Output(self.p_done, self._finished_part)] + tool_out,
                 on_fire=self._on_end,
             ))
+
+    # output expressions read self._jobs (not a captured tuple): jobs may be added at run time and twins
+    # made by deepcopy must read their own table
+    def _busy_token(self, b: dict) -> tuple:
+        j, k, m, _ = b["q"]
+        return (j, k, m, self._jobs[j][k].tool if self.instance.has_tools else None)
+
+    def _duration(self, b: dict) -> int:
+        return self._jobs[b["q"][0]][b["q"][1]].duration
+
+    def _next_part(self, b: dict) -> tuple | None:
+        j, k, m, _ = b["x"]
+        return (j, k + 1, m) if k + 1 < len(self._jobs[j]) else None
+
+    def _finished_part(self, b: dict) -> int | None:
+        j, k, _, _ = b["x"]
+        return j if k + 1 == len(self._jobs[j]) else None
+
+    @staticmethod
+    def _released_tool(b: dict) -> tuple | None:
+        return (b["x"][3], b["x"][2]) if b["x"][3] is not None else None
 
     def _on_start(self, b: dict, now: int) -> None:
         j, k, m, _ = b["q"]
@@ -294,14 +341,37 @@ class Shop:
                          Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))],
             ))
 
-        def no_tool(b: dict) -> tuple | None:
-            j, k, _ = b["p"]
-            op = jobs[j][k]
-            return (None, j, k, op.machine) if op.tool is None else None
-
-        outputs = [Output(self.p_tool_requests, self._tool_request), Output(self.p_tool_ready, no_tool)]
+        self.p_tt_orders = net.add_place("tt_orders", key=lambda c: c[0])
+        self.p_tt_moving = net.add_place("tt_repositioning", key=lambda c: c[0])
+        for r in range(inst.n_tool_transporters):
+            net.add_transition(Transition(
+                name=f"tt_reposition[{r}]", priority=_P_ALLOC,
+                arcs=[Arc(self.p_tt_orders, "o", key=r), Arc(self.p_tt_idle, "a", key=r)],
+                outputs=[Output(self.p_tt_moving, lambda b: b["o"], delay=lambda b: TT[b["a"][1]][b["o"][1]])],
+                on_fire=self._on_tt_reposition,
+            ))
+            net.add_transition(Transition(
+                name=f"tt_arrive[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_moving, "o", key=r)],
+                outputs=[Output(self.p_tt_idle, lambda b: b["o"])],
+            ))
+        outputs = [Output(self.p_tool_requests, self._tool_request), Output(self.p_tool_ready, self._no_tool)]
         arcs = [Arc(self.p_tool_ready, "tl", key=lambda b: (b["q"][0], b["q"][1]))]
         return arcs, outputs
+
+    def _on_tt_reposition(self, b: dict, now: int) -> None:
+        r, here = b["a"]
+        dest = b["o"][1]
+        t = self.instance.tool_travel[here][dest]
+        if here != dest:
+            self.rec.tt.append(ToolTrip(r, None, None, None, here, dest, now, now + t, False))
+        self.tt_work[r] += t
+        self.tt_loc[r] = dest
+        self.tt_free_at[r] = now + t
+
+    def _no_tool(self, b: dict) -> tuple | None:
+        j, k, _ = b["p"]
+        op = self._jobs[j][k]
+        return (None, j, k, op.machine) if op.tool is None else None
 
     def _tool_request(self, b: dict) -> tuple | None:
         # a method, not a closure: a deep-copied twin must read its own dispatch stamp
@@ -376,6 +446,76 @@ class Shop:
     def _check_progress(self) -> None:
         if not self.done and not self.net.enabled_actions() and self.net.next_event_time() is None:
             raise Deadlock(f"the shop net is stuck at time {self.now} with {self.p_done.count}/{self.n_jobs} jobs done")
+
+    def reposition_agv(self, agv: int, location: int) -> None:
+        """Send idle AGV ``agv`` empty to ``location`` now (pre-positioning); it is busy until it arrives.
+
+        Raises :class:`InvalidAction` if the AGV is not idle or the location does not exist. The net then
+        runs on to the next decision, as after :meth:`act`.
+        """
+        self._reposition("AGV", agv, location, self.n_agvs, getattr(self, "p_agv_idle", None),
+                         getattr(self, "p_agv_orders", None))
+
+    def reposition_transporter(self, transporter: int, location: int) -> None:
+        """Send idle tool transporter ``transporter`` empty to ``location`` now (see :meth:`reposition_agv`)."""
+        self._reposition("tool transporter", transporter, location, self.n_tts, getattr(self, "p_tt_idle", None),
+                         getattr(self, "p_tt_orders", None))
+
+    def _reposition(self, what: str, v: int, loc: int, n: int, idle: Place | None, orders: Place | None) -> None:
+        if self.done:
+            raise InvalidAction("the run is complete; no vehicle can be repositioned")
+        if not 0 <= v < n or idle is None or orders is None:
+            raise InvalidAction(f"{what} {v} does not exist")
+        if not 0 <= loc <= self.instance.n_machines:
+            raise InvalidAction(f"location {loc} does not exist (0..{self.instance.n_machines})")
+        if not idle.tokens(v):
+            raise InvalidAction(f"{what} {v} is not idle at time {self.now}")
+        self.net.put(orders, (v, loc))
+        self.net.advance()
+        self._check_progress()
+
+    def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:
+        """Add new jobs now (a live order): their parts enter at L/U at the current time.
+
+        The operations are validated against this shop (machines and tools must exist). Returns the new job
+        indices; the instance (``self.instance``) grows accordingly, so the final schedule validates against it.
+        """
+        if self.done:
+            raise InvalidAction("the run is complete; start a new run for new jobs")
+        inst = self.instance
+        new = []
+        for i, ops in enumerate(jobs):
+            if not ops:
+                raise InstanceError(f"new job {i} has no operations")
+            row = []
+            for k, op in enumerate(ops):
+                if not isinstance(op, Operation):
+                    raise InstanceError(f"new job {i} operation {k}: expected an Operation")
+                if op.machine > inst.n_machines:
+                    raise InstanceError(f"new job {i} operation {k}: machine {op.machine} does not exist "
+                                        f"(1..{inst.n_machines})")
+                if op.tool is not None and (not inst.has_tools or op.tool > inst.n_tools):
+                    raise InstanceError(f"new job {i} operation {k}: tool {op.tool} does not exist in this shop")
+                row.append(op)
+            new.append(tuple(row))
+        if not new:
+            return []
+        first = inst.n_jobs
+        self.instance = inst = replace(inst, jobs=inst.jobs + tuple(new))
+        self._jobs = inst.jobs
+        ids = list(range(first, inst.n_jobs))
+        for j in ids:
+            self.job_started_ops.append(0)
+            self.job_done_ops.append(0)
+            self.job_ready_since.append(self.now)
+            self.job_entry.append(j)
+            self._add_job_transition(j)
+            self.net.put(self.p_parts, (j, 0, 0))
+        self.n_jobs = inst.n_jobs
+        self._order_actions()
+        self.net.advance()
+        self._check_progress()
+        return ids
 
     def decision_kind(self) -> str | None:
         """What the next decision chooses: ``"job"``, ``"agv"``, ``"tt"`` or a mix ``"agv|tt"``."""

@@ -181,3 +181,70 @@ def test_twin_reads_its_own_state_in_every_mode(mode):
     a, b = shop.schedule(), twin.schedule()
     assert validate(inst, a) == [] and validate(inst, b) == []
     assert a.to_dict() == b.to_dict()
+
+
+def test_reposition_sends_idle_agv_empty_and_keeps_it_busy():
+    # J0: M1(4); J1: M2(1). t=0 J0 with AGV (0->1 [0,2]). At t=2 the AGV is idle at M1; pre-position it to
+    # L/U: empty 1->0 [2,7]. At 7 J1 is selectable: loaded 0->2 [7,13], op [13,14].
+    inst = Instance("agv", [[(1, 4)], [(2, 1)]], agv_travel=T3, n_agvs=1)
+    shop = Shop(inst)
+    shop.act(0)
+    shop.act(shop.action_index("agv:0"))
+    assert shop.now == 2 and shop.legal_actions() == [1]
+    with pytest.raises(InvalidAction, match="location 9"):
+        shop.reposition_agv(0, 9)
+    shop.reposition_agv(0, 0)
+    assert shop.now == 7 and shop.legal_actions() == [1]
+    with pytest.raises(InvalidAction, match="does not exist"):
+        shop.reposition_transporter(0, 1)
+    shop.act(1)
+    shop.act(shop.action_index("agv:0"))   # the last operation: the run completes
+    with pytest.raises(InvalidAction, match="complete"):
+        shop.reposition_agv(0, 1)
+    s = shop.schedule()
+    assert validate(inst, s) == []
+    assert ops(s)[(1, 0)] == (2, 13, 14)
+    assert AgvTrip(0, None, None, 1, 0, 2, 7, False) in s.agv_trips
+    assert AgvTrip(0, 1, 0, 0, 2, 7, 13, True) in s.agv_trips
+
+
+def test_reposition_transporter_to_tool():
+    TT = [[0, 1, 2], [1, 0, 4], [2, 3, 0]]
+    inst = Instance("tools", [[(1, 1, 3)], [(2, 2, 1)]], tool_travel=TT, n_tool_transporters=1)
+    shop = Shop(inst)
+    shop.act(0)                       # J0 dispatched, tool 1 must come from the magazine
+    shop.act(shop.action_index("tt:0"))
+    # t=0, J1 is selectable; transporter busy until 1
+    with pytest.raises(InvalidAction, match="not idle"):
+        shop.reposition_transporter(0, 2)
+    while not shop.done:
+        shop.act(shop.legal_actions()[0])
+    assert validate(inst, shop.schedule()) == []
+
+
+def test_add_jobs_mid_run_joins_the_net():
+    from fms_sim import Operation
+    from fms_sim.benchmarks import builtin
+
+    inst = builtin("ra01")
+    shop = Shop(inst)
+    for _ in range(10):
+        shop.act(shop.legal_actions()[0])
+    t_order = shop.now
+    ids = shop.add_jobs([[Operation(2, 1, 5), Operation(4, 3, 7)], [Operation(1, None, 3)]])
+    assert ids == [inst.n_jobs, inst.n_jobs + 1] and shop.n_jobs == inst.n_jobs + 2
+    assert "job:5" in shop.action_labels()
+    with pytest.raises(Exception, match="machine 9 does not exist"):
+        shop.add_jobs([[Operation(9, None, 1)]])
+    with pytest.raises(Exception, match="tool 7 does not exist"):
+        shop.add_jobs([[Operation(1, 7, 1)]])
+    while not shop.done:
+        shop.act(shop.legal_actions()[-1])
+    s = shop.schedule()
+    assert validate(shop.instance, s) == []
+    first_new = min(o.start for o in s.operations if o.job in ids)
+    assert first_new >= t_order
+    loaded = [t for t in s.agv_trips if t.loaded and t.job in ids and t.op == 0]
+    assert len(loaded) == 2 and min(t.start for t in loaded) >= t_order
+    with pytest.raises(InvalidAction, match="complete"):
+        shop.add_jobs([[Operation(1, None, 1)]])
