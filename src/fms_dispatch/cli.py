@@ -49,8 +49,9 @@ def cmd_instances(a: argparse.Namespace) -> int:
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
-    from .solvers import solve
+    from .solvers import get_solver, solve
 
+    get_solver(a.solver)  # unknown names fail before any work or output
     inst = load_from_args(a)
     opts: dict = {"seed": a.seed}
     if a.time_limit is not None:

@@ -99,22 +99,29 @@ class Schedule:
 
     @classmethod
     def from_dict(cls, d: Any) -> "Schedule":
+        """Parse the JSON form strictly: integers must be integers (not strings, floats or booleans)."""
+        if not isinstance(d, dict):
+            raise ScheduleError("a schedule must be a JSON object")
         try:
-            return cls(
-                instance=d["instance"],
-                makespan=int(d["makespan"]),
-                n_agvs=int(d.get("n_agvs", 0)),
-                n_tool_transporters=int(d.get("n_tool_transporters", 0)),
-                operations=[OperationRecord(o["job"], o["op"], o["machine"], o.get("tool"), o["start"], o["end"])
-                            for o in d["operations"]],
-                agv_trips=[AgvTrip(t["agv"], t.get("job"), t.get("op"), t["from"], t["to"], t["start"], t["end"],
-                                   bool(t["loaded"])) for t in d.get("agv_trips", [])],
-                tool_trips=[ToolTrip(t["transporter"], t.get("tool"), t.get("job"), t.get("op"), t["from"], t["to"],
-                                     t["start"], t["end"], bool(t["loaded"])) for t in d.get("tool_trips", [])],
-                meta=dict(d.get("meta", {})),
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ScheduleError(f"malformed schedule: {type(exc).__name__}: {exc}") from None
+            ops = [OperationRecord(_int(o, "job"), _int(o, "op"), _int(o, "machine"), _int(o, "tool", True),
+                                   _int(o, "start"), _int(o, "end")) for o in _list(d, "operations")]
+            agv = [AgvTrip(_int(t, "agv"), _int(t, "job", True), _int(t, "op", True), _int(t, "from"),
+                           _int(t, "to"), _int(t, "start"), _int(t, "end"), _bool(t, "loaded"))
+                   for t in _list(d, "agv_trips", optional=True)]
+            tt = [ToolTrip(_int(t, "transporter"), _int(t, "tool", True), _int(t, "job", True),
+                           _int(t, "op", True), _int(t, "from"), _int(t, "to"), _int(t, "start"), _int(t, "end"),
+                           _bool(t, "loaded")) for t in _list(d, "tool_trips", optional=True)]
+            name = d.get("instance")
+            if not isinstance(name, str):
+                raise ScheduleError("field 'instance' must be a string")
+            meta = d.get("meta", {})
+            if not isinstance(meta, dict):
+                raise ScheduleError("field 'meta' must be an object")
+            return cls(instance=name, makespan=_int(d, "makespan"), n_agvs=_int(d, "n_agvs", default=0),
+                       n_tool_transporters=_int(d, "n_tool_transporters", default=0),
+                       operations=ops, agv_trips=agv, tool_trips=tt, meta=dict(meta))
+        except (TypeError, AttributeError) as exc:
+            raise ScheduleError(f"malformed schedule: {exc}") from None
 
     @classmethod
     def from_json(cls, text: str) -> "Schedule":
@@ -126,3 +133,43 @@ class Schedule:
     @classmethod
     def load(cls, path: str | Path) -> "Schedule":
         return cls.from_json(Path(path).read_text())
+
+
+def _list(d: dict, key: str, optional: bool = False) -> list:
+    if key not in d and optional:
+        return []
+    v = d.get(key)
+    if not isinstance(v, list):
+        raise ScheduleError(f"field {key!r} must be a list")
+    for i, x in enumerate(v):
+        if not isinstance(x, dict):
+            raise ScheduleError(f"{key}[{i}] must be an object")
+    return v
+
+
+_MISSING = object()
+
+
+def _int(d: dict, key: str, nullable: bool = False, default: Any = _MISSING) -> Any:
+    if key not in d:
+        if default is not _MISSING:
+            return default
+        raise ScheduleError(f"missing field {key!r} in {_short(d)}")
+    v = d[key]
+    if v is None and nullable:
+        return None
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise ScheduleError(f"field {key!r} must be an integer{' or null' if nullable else ''}, got {v!r}")
+    return v
+
+
+def _bool(d: dict, key: str) -> bool:
+    v = d.get(key)
+    if not isinstance(v, bool):
+        raise ScheduleError(f"field {key!r} must be true or false, got {v!r}")
+    return v
+
+
+def _short(d: dict) -> str:
+    text = json.dumps(d)
+    return text if len(text) <= 80 else text[:77] + "..."

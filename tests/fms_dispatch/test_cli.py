@@ -1,0 +1,106 @@
+"""The fms command line: happy paths and one-line errors with exit code 2."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from fms_dispatch.cli import main
+from fms_sim import Schedule, validate
+from fms_sim.benchmarks import builtin
+
+
+def run(args, capsys):
+    code = main(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_solve_writes_valid_schedule_and_gantt(tmp_path, capsys):
+    out, png = tmp_path / "s.json", tmp_path / "g.png"
+    code, stdout, _ = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--out", str(out),
+                           "--gantt", str(png), "-q"], capsys)
+    assert code == 0 and "makespan" in stdout
+    s = Schedule.load(out)
+    assert validate(builtin("EX12"), s) == []
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert run(["validate", "EX12", str(out)], capsys)[0] == 0
+
+
+def test_fleet_and_mode_overrides(tmp_path, capsys):
+    out = tmp_path / "s.json"
+    assert run(["solve", "sl00", "--agvs", "3", "--tool-transporters", "2", "--solver", "rule:LPT+nearest",
+                "--out", str(out), "-q"], capsys)[0] == 0
+    d = json.loads(out.read_text())
+    assert d["n_agvs"] == 3 and d["n_tool_transporters"] == 2
+    assert {t["agv"] for t in d["agv_trips"]} <= {0, 1, 2}
+    assert run(["validate", "sl00", str(out), "--agvs", "3", "--tool-transporters", "2"], capsys)[0] == 0
+    # validated against the default fleet it is wrong, and says why
+    code, stdout, _ = run(["validate", "sl00", str(out)], capsys)
+    assert code == 1 and "declares 3 AGVs, the instance has 10" in stdout
+    assert run(["solve", "ra01", "--layout", "3", "--no-tools", "-q", "--out", str(out)], capsys)[0] == 0
+    assert json.loads(out.read_text())["tool_trips"] == []
+    assert run(["solve", "EX12", "--no-agvs", "-q", "--out", str(out)], capsys)[0] == 0
+    assert json.loads(out.read_text())["agv_trips"] == []
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["solve", "EX99"], "unknown built-in instance"),
+    (["solve", "nosuchfile.json"], "no built-in instance or file"),
+    (["solve", "EX12", "--solver", "magic"], "unknown solver"),
+    (["solve", "EX12", "--solver", "rule:FOO"], "unknown job rule"),
+    (["solve", "EX12", "--time-limit", "-1"], "time-limit"),
+    (["solve", "EX12", "--agvs", "0"], ""),
+])
+def test_bad_input_one_line_exit_2(args, msg, capsys):
+    code, _, err = run(args, capsys)
+    assert code == 2
+    assert err.startswith("fms: error:") and msg in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("content, msg", [
+    ("{broken", "malformed"),
+    ('{"name": "x", "jobs": [[{"machine": 1, "tool": null, "duration": -3}]]}', "non-negative"),
+    ('{"name": "x", "jobs": [[{"machine": 1, "tool": null, "duration": 3}]], "agv_travel": [[0, 1], [1, 0], [1, 1]],'
+     ' "n_agvs": 1}', "agv_travel row 0 must have 3 entries"),
+    ('{"name": "x", "jobs": [[{"machine": 3, "tool": null, "duration": 3}]], "agv_travel": [[0, 1], [1, 0]],'
+     ' "n_agvs": 1}', "machine 3"),
+])
+def test_bad_instance_files(tmp_path, content, msg, capsys):
+    f = tmp_path / "bad.json"
+    f.write_text(content)
+    code, _, err = run(["solve", str(f), "-q"], capsys)
+    assert code == 2 and msg in err and len(err.strip().splitlines()) == 1
+
+
+def test_validate_reports_violations_and_bad_files(tmp_path, capsys):
+    out = tmp_path / "s.json"
+    run(["solve", "EX12", "--out", str(out), "-q"], capsys)
+    d = json.loads(out.read_text())
+    d["operations"][0]["end"] += 5
+    out.write_text(json.dumps(d))
+    code, stdout, _ = run(["validate", "EX12", str(out)], capsys)
+    assert code == 1 and "INVALID" in stdout
+    out.write_text("[]")
+    assert run(["validate", "EX12", str(out)], capsys)[0] == 2
+    assert run(["validate", "EX12", str(tmp_path / "missing.json")], capsys)[0] == 2
+
+
+def test_instances_and_generate(tmp_path, capsys):
+    code, out, _ = run(["instances"], capsys)
+    names = out.split()
+    assert code == 0 and {"EX12", "EX104", "ra20", "sl79", "ta01"} <= set(names)
+    code, out, _ = run(["generate", "--jobs", "6", "--machines", "4", "--count", "2", "--out-dir", str(tmp_path),
+                        "--prefix", "t"], capsys)
+    assert code == 0
+    files = sorted(tmp_path.glob("t*.json"))
+    assert [f.name for f in files] == ["t00.json", "t01.json"]
+    assert run(["solve", str(files[1]), "--solver", "rule:SPT+nearest", "-q"], capsys)[0] == 0
+    assert run(["generate", "--jobs", "0", "--machines", "4", "--out-dir", str(tmp_path)], capsys)[0] == 2
+
+
+def test_console_script_runs_as_a_process():
+    r = subprocess.run([sys.executable, "-m", "fms_dispatch.cli", "solve", "EX99"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("fms: error:")

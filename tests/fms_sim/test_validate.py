@@ -1,0 +1,145 @@
+"""The independent validator accepts feasible schedules and rejects deliberately broken ones."""
+
+import json
+from dataclasses import replace
+
+import pytest
+
+from fms_sim import Instance, Schedule, ScheduleError, ScheduleInvalid, check, validate
+
+from .conftest import run_first
+
+T = [[0, 2, 3], [2, 0, 2], [3, 4, 0]]
+TT = [[0, 1, 2], [1, 0, 3], [2, 3, 0]]
+INST = Instance("both", [[(1, 1, 3), (2, 1, 2)], [(2, 2, 2)]], agv_travel=T, tool_travel=TT,
+                n_agvs=1, n_tool_transporters=1)
+
+
+@pytest.fixture
+def good():
+    s = run_first(INST)
+    assert validate(INST, s) == []
+    return s
+
+
+def op_index(s, j, k):
+    return next(i for i, o in enumerate(s.operations) if (o.job, o.op) == (j, k))
+
+
+def shifted_op(s, j, k, delta):
+    s = Schedule.from_dict(s.to_dict())
+    i = op_index(s, j, k)
+    o = s.operations[i]
+    s.operations[i] = replace(o, start=o.start + delta, end=o.end + delta)
+    s.makespan = max(x.end for x in s.operations)
+    return s
+
+
+def test_machine_overlap_rejected(good):
+    # put (1,0) on M2 right on top of (0,1)
+    s = Schedule.from_dict(good.to_dict())
+    a = s.operations[op_index(s, 0, 1)]
+    i = op_index(s, 1, 0)
+    s.operations[i] = replace(s.operations[i], start=a.start, end=a.start + 2)
+    v = validate(INST, s)
+    assert any("machine 2" in x and "overlaps" in x for x in v)
+
+
+def test_missing_agv_trip_rejected(good):
+    s = Schedule.from_dict(good.to_dict())
+    s.agv_trips = [t for t in s.agv_trips if not (t.loaded and t.job == 1)]
+    v = validate(INST, s)
+    assert any("no AGV trip brings the part" in x for x in v)
+
+
+def test_wrong_durations_rejected(good):
+    s = Schedule.from_dict(good.to_dict())
+    i = op_index(s, 0, 0)
+    s.operations[i] = replace(s.operations[i], end=s.operations[i].end + 1)
+    s.agv_trips[0] = replace(s.agv_trips[0], end=s.agv_trips[0].end + 1)
+    v = validate(INST, s)
+    assert any("lasts 4, its duration is 3" in x for x in v)
+    assert any("travel time is" in x for x in v)
+
+
+def test_tool_in_two_places_rejected(good):
+    # (0,0) and (0,1) both use tool 1: run (0,1) on M2 while (0,0) still holds the tool on M1
+    s = Schedule.from_dict(good.to_dict())
+    a = s.operations[op_index(s, 0, 0)]
+    i = op_index(s, 0, 1)
+    s.operations[i] = replace(s.operations[i], start=a.start + 1, end=a.start + 3)
+    s.makespan = max(o.end for o in s.operations)
+    v = validate(INST, s)
+    assert any("tool 1" in x for x in v)
+    assert any("before its part is ready" in x or "before its part arrives" in x for x in v)
+
+
+def test_missing_tool_trip_rejected(good):
+    s = Schedule.from_dict(good.to_dict())
+    s.tool_trips = [t for t in s.tool_trips if t.tool != 2]
+    v = validate(INST, s)
+    assert any("tool 2 is at location 0" in x for x in v)
+
+
+def test_vehicle_teleport_rejected(good):
+    s = Schedule.from_dict(good.to_dict())
+    s.agv_trips = [t for t in s.agv_trips if t.loaded]  # drop the empty (deadheading) legs
+    v = validate(INST, s)
+    assert any("but the vehicle is at" in x for x in v)
+
+
+def test_op_before_part_arrives_and_makespan_mismatch(good):
+    s = shifted_op(good, 1, 0, -1)
+    v = validate(INST, s)
+    assert any("before its part arrives" in x or "overlaps" in x for x in v)
+    s2 = Schedule.from_dict(good.to_dict())
+    s2.makespan += 1
+    assert any("makespan is" in x for x in validate(INST, s2))
+
+
+def test_missing_and_duplicate_ops_and_unknown_vehicle(good):
+    s = Schedule.from_dict(good.to_dict())
+    s.operations = s.operations[1:] + s.operations[-1:]
+    v = validate(INST, s)
+    assert any("missing from the schedule" in x for x in v)
+    s2 = Schedule.from_dict(good.to_dict())
+    s2.agv_trips[0] = replace(s2.agv_trips[0], agv=3)
+    assert any("AGV 3 does not exist" in x for x in validate(INST, s2))
+
+
+def test_plain_job_shop_precedence(good):
+    inst = Instance("js", [[(1, 3), (2, 2)]])
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    bad = shifted_op(s, 0, 1, -2)
+    assert any("before its part is ready" in x for x in validate(inst, bad))
+
+
+def test_check_raises_with_every_violation(good):
+    s = Schedule.from_dict(good.to_dict())
+    s.makespan = 0
+    s.tool_trips = []
+    with pytest.raises(ScheduleInvalid) as exc:
+        check(INST, s)
+    assert len(exc.value.violations) >= 3
+
+
+@pytest.mark.parametrize("mutate, msg", [
+    (lambda d: d.update(makespan="9"), "makespan"),
+    (lambda d: d["operations"][0].update(start=1.5), "start"),
+    (lambda d: d["agv_trips"][0].update(loaded=1), "loaded"),
+    (lambda d: d.pop("operations"), "operations"),
+    (lambda d: d["operations"][0].pop("job"), "job"),
+])
+def test_malformed_schedule_json(good, mutate, msg):
+    d = json.loads(good.to_json())
+    mutate(d)
+    with pytest.raises(ScheduleError, match=msg):
+        Schedule.from_dict(d)
+    with pytest.raises(ScheduleError, match="malformed JSON"):
+        Schedule.from_json("{not json")
+
+
+def test_json_round_trip(good):
+    again = Schedule.from_json(good.to_json())
+    assert again.to_dict() == good.to_dict() and validate(INST, again) == []
