@@ -1,7 +1,8 @@
 """Simulation speed: random masked episodes through the shop net (and through the Gymnasium env).
 
 Prints decisions per second and seconds per episode for EX12, ra01 (+tools) and sl70 (100x20x20, 10 AGVs,
-5 tool transporters), with and without tools. Goals (2-core machine): >= 20,000 decisions/s on EX12 and a
+5 tool transporters), with and without tools. Baseline, measured in the same run: the same engine with
+incremental enabling switched off (every transition re-evaluated at every step, ``Shop(incremental=False)``). Goals (2-core machine): >= 20,000 decisions/s on EX12 and a
 full random sl70 episode with tools in <= 1 s. Usage: python bench/sim_speed.py [--quick] [--env]
 """
 
@@ -19,12 +20,12 @@ from fms_sim.shop import Shop
 from fms_sim.validate import validate
 
 
-def net_episodes(inst, seconds: float, min_episodes: int, seed: int = 0):
+def net_episodes(inst, seconds: float, min_episodes: int, seed: int = 0, incremental: bool = True):
     rng = random.Random(seed)
     n_dec = n_ep = 0
     t0 = time.perf_counter()
     while n_ep < min_episodes or time.perf_counter() - t0 < seconds:
-        shop = Shop(inst)
+        shop = Shop(inst, incremental=incremental)
         while not shop.done:
             shop.act(rng.choice(shop.legal_actions()))
             n_dec += 1
@@ -62,12 +63,13 @@ def main() -> None:
     cases = [("EX12", builtin("EX12")), ("ra01", builtin("ra01")),
              ("sl70 AGVs only", builtin("sl70").without_tools()), ("sl70 AGVs+tools", builtin("sl70"))]
     print(f"# {platform.processor() or platform.machine()}, Python {platform.python_version()}")
-    print("| instance | decisions/episode | net: decisions/s | net: s/episode |"
+    print("| instance | decisions/episode | net: decisions/s | net: s/episode | baseline: decisions/s | speed-up |"
           + (" env: decisions/s | env: s/episode |" if a.env else ""))
-    print("|---|---|---|---|" + ("---|---|" if a.env else ""))
+    print("|---|---|---|---|---|---|" + ("---|---|" if a.env else ""))
     for name, inst in cases:
         dps, spe, dpe = net_episodes(inst, secs, 1 if a.quick else 3)
-        row = f"| {name} | {dpe:.0f} | {dps:,.0f} | {spe:.4f} |"
+        bdps, _, _ = net_episodes(inst, secs, 1, incremental=False)
+        row = f"| {name} | {dpe:.0f} | {dps:,.0f} | {spe:.4f} | {bdps:,.0f} | {dps / bdps:.1f}x |"
         if a.env:
             edps, espe, _ = env_episodes(inst, secs, 1)
             row += f" {edps:,.0f} | {espe:.4f} |"

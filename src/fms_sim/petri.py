@@ -170,7 +170,9 @@ class _Level:
 class Net:
     """The net: places, transitions, a clock and the marking; fires transitions and advances time."""
 
-    def __init__(self) -> None:
+    def __init__(self, incremental: bool = True) -> None:
+        self.incremental = incremental
+        """False re-evaluates every transition at every step (the naive engine; a benchmark baseline)."""
         self.places: list[Place] = []
         self.transitions: list[Transition] = []
         self.controllable: list[Transition] = []
@@ -372,6 +374,9 @@ class Net:
 
     def enabled_actions(self) -> list[int]:
         """Indices of the controllable transitions offered now (only the most urgent priority level)."""
+        if not self.incremental:
+            self._dirty_ctrl.update(range(len(self.controllable)))
+            self._offered = None
         if self._offered is not None:
             return list(self._offered)
         self._refresh_ctrl()
@@ -447,6 +452,10 @@ class Net:
         n = 0
         heap = self._dirty_auto
         marked = self._auto_marked
+        if not self.incremental:
+            for t in self.transitions:
+                if t.action < 0:
+                    self._mark_auto(t)
         while heap:
             _, idx, t = heapq.heappop(heap)
             marked.discard(idx)
@@ -455,6 +464,10 @@ class Net:
                 self.fire(t, b)
                 self._mark_auto(t)  # it may be enabled again with other tokens
                 n += 1
+                if not self.incremental:
+                    for u in self.transitions:
+                        if u.action < 0:
+                            self._mark_auto(u)
         return n
 
     def next_event_time(self) -> int | None:

@@ -72,9 +72,9 @@ class Shop:
         schedule = shop.schedule()
     """
 
-    def __init__(self, instance: Instance):
+    def __init__(self, instance: Instance, *, incremental: bool = True):
         self.instance = instance
-        self.net = Net()
+        self.net = Net(incremental=incremental)
         self._stamp = 0
         self.rec = _Records()
         self.n_jobs = instance.n_jobs
