@@ -155,13 +155,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--prefix", default="gen", help="instance name prefix (names: PREFIX00, PREFIX01, ...)")
     s.add_argument("--out-dir", default="instances", help="folder for the JSON files")
     s.set_defaults(fn=cmd_generate)
+
+    from .benchmark import add_bench_parser
+
+    add_bench_parser(sub)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     a = parser.parse_args(argv)
-    if getattr(a, "tools", 0) is None:
+    if a.cmd == "generate" and a.tools is None:
         a.tools = a.machines
     try:
         return a.fn(a)
@@ -172,6 +176,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("fms: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `fms bench bu | head`: the reader left; not an error of ours
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

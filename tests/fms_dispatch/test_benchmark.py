@@ -1,0 +1,284 @@
+"""``fms bench``: tables, outputs, validation of every schedule, resumable cache, parallel runs, bad input."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from fms_dispatch import benchmark as bm
+from fms_dispatch import solvers
+from fms_sim.benchmarks import builtin
+from fms_sim.validate import validate
+
+RULES = ["rule:FIFO+first", "rule:MTWR+nearest"]
+
+
+def run_cli(argv: list[str]) -> int:
+    """Parse ``argv`` with a parser holding only ``bench`` (as cli.build_parser adds it) and run it."""
+    p = argparse.ArgumentParser(prog="fms")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    bm.add_bench_parser(sub)
+    a = p.parse_args(argv)
+    return a.fn(a)
+
+
+def solved(name: str, method: str, no_tools: bool = False) -> int:
+    """The makespan of an independent solve, after checking the schedule with the validator."""
+    inst = builtin(name)
+    if no_tools:
+        inst = inst.without_tools()
+    s = solvers.solve(inst, method)
+    assert validate(inst, s) == []
+    return s.makespan
+
+
+def count_solves(monkeypatch: pytest.MonkeyPatch, fail_at: int | None = None) -> list[tuple[str, str, dict]]:
+    """Wrap ``solvers.solve`` (used by in-process runs) to record (instance, method, options) per call."""
+    calls: list[tuple[str, str, dict]] = []
+    real = solvers.solve
+
+    def spy(instance, name, **options):
+        calls.append((instance.name, name, options))
+        if fail_at is not None and len(calls) == fail_at:
+            raise KeyboardInterrupt
+        return real(instance, name, **options)
+
+    monkeypatch.setattr(solvers, "solve", spy)
+    return calls
+
+
+def cache_lines(d: Path) -> list[dict]:
+    path = d / bm.CACHE_NAME
+    return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
+
+
+# ------------------------------------------------------------------------------------------------ bu
+def test_bu_subset_writes_every_output_with_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = run_cli(["bench", "bu", "--methods", *RULES, "--instances", "1,2", "--jobs", "1", "-q",
+                  "--results-dir", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    stem = tmp_path / "bench_bu_L2"
+    for ext in ("csv", "json", "md", "png"):
+        assert Path(f"{stem}.{ext}").stat().st_size > 0
+    assert Path(f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    expected = {(i, m): solved(i, m) for i in ("EX12", "EX22") for m in RULES}
+    with open(f"{stem}.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["instance"], r["method"]) for r in rows] == list(expected)
+    for r in rows:
+        assert r["valid"] == "True" and r["error"] == "" and r["variant"] == "agvs" and r["time_limit"] == ""
+        assert int(r["makespan"]) == expected[r["instance"], r["method"]]
+    # gap by hand: EX12 (layout 2) has the known optimum 82, EX22 76
+    ex12 = next(r for r in rows if r["instance"] == "EX12" and r["method"] == "rule:FIFO+first")
+    assert int(ex12["optimum"]) == 82
+    assert float(ex12["gap_pct"]) == pytest.approx(round(100 * (expected["EX12", "rule:FIFO+first"] - 82) / 82, 3))
+    ex22 = next(r for r in rows if r["instance"] == "EX22" and r["method"] == "rule:FIFO+first")
+    assert int(ex22["optimum"]) == 76
+
+    doc = json.loads(Path(f"{stem}.json").read_text())
+    assert doc["benchmark"] == "bu" and doc["layout"] == 2 and doc["methods"] == RULES
+    gaps = ([100 * (expected["EX12", m] - 82) / 82 for m in RULES],
+            [100 * (expected["EX22", m] - 76) / 76 for m in RULES])
+    for k, m in enumerate(RULES):
+        avg = (gaps[0][k] + gaps[1][k]) / 2
+        assert doc["summary"][m]["mean_gap_pct"] == pytest.approx(avg, abs=1e-3)
+        assert doc["summary"][m]["mean_makespan"] == pytest.approx((expected["EX12", m] + expected["EX22", m]) / 2)
+        assert doc["summary"][m]["n_failed"] == 0
+    best12 = min(expected["EX12", m] for m in RULES)
+    assert doc["best_rule"]["EX12/agvs"]["makespan"] == best12
+    assert doc["best_rule"]["EX12/agvs"]["methods"] == [m for m in RULES if expected["EX12", m] == best12]
+
+    # the Markdown table: header, one row per instance, then average / gap / hits
+    md = Path(f"{stem}.md").read_text()
+    assert md.strip() in out
+    lines = [ln for ln in md.splitlines() if ln.startswith("|")]
+    cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines]
+    assert cells[0] == ["instance", "opt", "FIFO+first", "MTWR+nearest", "best rule"]
+    assert [c[0] for c in cells[2:7]] == ["EX12", "EX22", "average", "gap %", "at opt"]
+    assert cells[2][:4] == ["EX12", "82", str(expected["EX12", RULES[0]]), str(expected["EX12", RULES[1]])]
+    avg_gap = (gaps[0][0] + gaps[1][0]) / 2
+    assert cells[5][2] == f"{avg_gap:.2f}"
+    assert cells[6][1] == "2/2"
+    assert bm.bu_table(doc["rows"]) in md
+
+
+def test_resume_skips_cached_tasks_and_force_redoes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(RULES, sets=[1, 2])
+    first = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 4 and len(cache_lines(tmp_path)) == 4
+    again = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 4, "a second run must not solve again"
+    assert again == first and bm.bu_table(again) == bm.bu_table(first)
+    # the CLI resumes too (same cache), and --force re-solves everything
+    assert run_cli(["bench", "bu", "--methods", *RULES, "--instances", "1..2", "-q", "--jobs", "1",
+                    "--results-dir", str(tmp_path)]) == 0
+    assert len(calls) == 4
+    assert run_cli(["bench", "bu", "--methods", *RULES, "--instances", "1..2", "-q", "--jobs", "1", "--force",
+                    "--results-dir", str(tmp_path)]) == 0
+    assert len(calls) == 8 and len(cache_lines(tmp_path)) == 8
+
+
+def test_interrupted_run_loses_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tasks = bm.bu_tasks(RULES, sets=[1, 2])
+    calls = count_solves(monkeypatch, fail_at=3)
+    with pytest.raises(KeyboardInterrupt):
+        bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    done = cache_lines(tmp_path)
+    assert [(r["instance"], r["method"]) for r in done] == [("EX12", RULES[0]), ("EX12", RULES[1])]
+    # a run killed while writing leaves a partial line: it is ignored
+    with (tmp_path / bm.CACHE_NAME).open("a") as fh:
+        fh.write('{"benchmark": "bu", "inst')
+    calls.clear()
+    monkeypatch.undo()
+    calls = count_solves(monkeypatch)
+    rows = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert [(c[0], c[1]) for c in calls] == [("EX22", RULES[0]), ("EX22", RULES[1])]
+    assert [r["instance"] for r in rows] == ["EX12", "EX12", "EX22", "EX22"] and all(r["valid"] for r in rows)
+
+
+def test_parallel_run_gives_the_same_table(tmp_path: Path) -> None:
+    tasks = bm.bu_tasks(RULES, sets=[1, 2, 3])
+    serial = bm.run_bench(tasks, jobs=1, results_dir=tmp_path / "serial")
+    parallel = bm.run_bench(tasks, jobs=2, results_dir=tmp_path / "parallel")
+    assert all(r["valid"] for r in parallel)
+    assert [(r["instance"], r["method"]) for r in parallel] == [(r["instance"], r["method"]) for r in serial]
+    assert bm.bu_table(parallel) == bm.bu_table(serial)
+    assert len(cache_lines(tmp_path / "parallel")) == len(tasks)
+
+
+def test_time_limits_and_cpsat_workers_per_method(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[str, dict]] = []
+    real = solvers.solve
+
+    def fake(instance, name, **options):  # record options; answer with a quick, valid rule schedule
+        calls.append((name, options))
+        s = real(instance, "rule:FIFO+first")
+        s.meta["lower_bound"] = 50
+        return s
+
+    monkeypatch.setattr(solvers, "solve", fake)
+    tasks = bm.bu_tasks(["rule:LPT+first", "sos", "cpsat"], sets=[1], time_limit=3, cpsat_time_limit=7)
+    assert [t.time_limit for t in tasks] == [None, 3.0, 7.0]
+    rows = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    opts = dict(calls)
+    assert "time_limit" not in opts["rule:LPT+first"] and "workers" not in opts["rule:LPT+first"]
+    assert opts["sos"]["time_limit"] == 3.0 and "workers" not in opts["sos"]
+    assert opts["cpsat"]["time_limit"] == 7.0 and opts["cpsat"]["workers"] == bm.cpsat_threads(1)
+    assert rows[2]["workers"] == bm.cpsat_threads(1) and rows[2]["lower_bound"] == 50
+    # a different time limit is a different cache key: rules are reused, searching methods are not
+    calls.clear()
+    bm.run_bench(bm.bu_tasks(["rule:LPT+first", "sos", "cpsat"], sets=[1], time_limit=4, cpsat_time_limit=7),
+                 jobs=1, results_dir=tmp_path)
+    assert [c[0] for c in calls] == ["sos"]
+
+
+# ------------------------------------------------------------------------------------------------ failures
+def test_invalid_schedule_is_an_error_row_and_exit_1(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    real = solvers.solve
+
+    def broken(instance, name, **options):
+        if name == "rule:MTWR+nearest":
+            s = real(instance, name, **options)
+            s.makespan += 1  # a solver bug the validator must catch
+            return s
+        if name == "random":
+            raise RuntimeError("boom\nsecond line")
+        return real(instance, name, **options)
+
+    monkeypatch.setattr(solvers, "solve", broken)
+    rc = run_cli(["bench", "bu", "--methods", *RULES, "random", "--instances", "1", "-q", "--jobs", "1",
+                  "--results-dir", str(tmp_path)])
+    assert rc == bm.EXIT_FAILED
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "bench_bu_L2.json").read_text())
+    by_method = {r["method"]: r for r in doc["rows"]}
+    assert by_method[RULES[0]]["valid"] and by_method[RULES[0]]["gap_pct"] is not None
+    bad = by_method[RULES[1]]
+    assert not bad["valid"] and bad["error"].startswith("invalid schedule") and "makespan" in bad["error"]
+    assert bad["gap_pct"] is None
+    assert by_method["random"]["error"] == "RuntimeError: boom"
+    assert doc["summary"][RULES[1]]["n_failed"] == 1 and doc["summary"][RULES[1]]["mean_makespan"] is None
+    row = next(ln for ln in out.splitlines() if ln.startswith("| EX12"))
+    assert "INVALID" in row and "ERROR" in row
+    assert "### Failures" in out and "EX12 (agvs) rule:MTWR+nearest: invalid schedule" in out
+    # failed tasks are retried on the next run (valid ones are not)
+    calls = count_solves(monkeypatch)
+    bm.run_bench(bm.bu_tasks([*RULES, "random"], sets=[1]), jobs=1, results_dir=tmp_path)
+    assert sorted(c[1] for c in calls) == ["random", "rule:MTWR+nearest"]
+
+
+def test_unknown_method_fails_before_any_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = count_solves(monkeypatch)
+    for bad in (["rule:FIFO+first", "ppo-does-not-exist"], ["rule:NOPE+first"], ["rule:FIFO+sideways"]):
+        with pytest.raises(ValueError):
+            run_cli(["bench", "bu", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
+        with pytest.raises(ValueError):
+            run_cli(["bench", "sl", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
+    assert calls == [] and not (tmp_path / bm.CACHE_NAME).exists()
+    with pytest.raises(ValueError, match="time-limit must be positive"):
+        run_cli(["bench", "bu", "--time-limit", "0", "-q", "--results-dir", str(tmp_path)])
+
+
+@pytest.mark.parametrize("spec", ["8", "0..8", "3..1", "a", "0,,x", "", "-1", "1.5"])
+def test_bad_group_spec(spec: str, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="sl group"):
+        run_cli(["bench", "sl", "--group", spec, "--methods", "rule:FIFO+first", "-q",
+                 "--results-dir", str(tmp_path)])
+    assert not (tmp_path / bm.CACHE_NAME).exists()
+
+
+def test_index_spec_syntax() -> None:
+    assert bm.parse_index_spec("0", 0, 7) == [0]
+    assert bm.parse_index_spec("0..7", 0, 7) == list(range(8))
+    assert bm.parse_index_spec("0,3", 0, 7) == [0, 3]
+    assert bm.parse_index_spec("5-9", 0, 9) == [5, 6, 7, 8, 9]
+    assert bm.parse_index_spec("3, 1..2,3", 0, 9) == [1, 2, 3]
+    with pytest.raises(ValueError, match="BU job set"):
+        bm.parse_index_spec("0", 1, 10, "BU job set")
+
+
+# ------------------------------------------------------------------------------------------------ sl
+def test_sl_one_instance_both_tool_variants(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = run_cli(["bench", "sl", "--group", "0", "--instances", "0", "--methods", "rule:FIFO+first", "-q",
+                  "--jobs", "1", "--results-dir", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "bench_sl.json").read_text())
+    rows = doc["rows"]
+    assert [(r["instance"], r["variant"], r["method"]) for r in rows] == [
+        ("sl00", "agvs", "rule:FIFO+first"), ("sl00", "agvs+tools", "rule:FIFO+first")]
+    assert rows[0]["makespan"] == solved("sl00", "rule:FIFO+first", no_tools=True)
+    assert rows[1]["makespan"] == solved("sl00", "rule:FIFO+first")
+    assert all(r["valid"] and r["n_jobs"] == 15 and r["n_machines"] == 15 for r in rows)
+    assert rows[0]["wall_time"] >= 0 and rows[0]["optimum"] is None
+    assert "### AGVs only (agvs)" in out and "### AGVs + tools (agvs+tools)" in out
+    for ext in ("csv", "md", "png"):
+        assert (tmp_path / f"bench_sl.{ext}").stat().st_size > 0
+    # one variant only
+    assert run_cli(["bench", "sl", "--group", "0", "--instances", "0", "--methods", "rule:FIFO+first", "-q",
+                    "--tools", "yes", "--jobs", "1", "--results-dir", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "bench_sl.json").read_text())
+    assert [r["variant"] for r in doc["rows"]] == ["agvs+tools"]
+
+
+def test_sl_table_reports_the_lower_bound_and_gap() -> None:
+    rows = [
+        {"benchmark": "sl", "instance": "sl00", "variant": "agvs", "method": "rule:FIFO+first", "makespan": 120,
+         "valid": True, "lower_bound": None, "optimum": None, "wall_time": 0.1, "error": None},
+        {"benchmark": "sl", "instance": "sl00", "variant": "agvs", "method": "cpsat", "makespan": 110,
+         "valid": True, "lower_bound": 100, "optimum": None, "wall_time": 5.0, "error": None},
+    ]
+    table = bm.sl_table(rows)
+    lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in table.splitlines() if ln.startswith("|")]
+    assert lines[0] == ["instance", "LB", "FIFO+first", "cpsat", "best rule"]
+    assert lines[2] == ["sl00", "100", "120", "110", "FIFO+first (120)"]
+    assert lines[4] == ["gap %", "0.00", "20.00", "10.00", ""]
+    assert bm.summary(rows)["cpsat"]["mean_gap_pct"] == pytest.approx(10.0)
