@@ -1,1 +1,14 @@
-"""fms_dispatch: dispatching rules, metaheuristic, exact CP-SAT model, RL agent and lookahead."""
+"""fms_dispatch: dispatching rules, the SOS metaheuristic, the exact CP-SAT model, RL agent and lookahead.
+
+Every method shares one signature, ``solver(instance, **options) -> Schedule``, selected by name through
+:func:`solve` / :func:`get_solver` (``"first"``, ``"random"``, ``"rule:<JOB>+<vehicle>"``, ``"sos"``,
+``"cpsat"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
+"""
+
+from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, all_rule_pairs, parse_rule_name, solve_rule
+from .solvers import UnknownSolver, get_solver, solve, solver_names
+
+__all__ = [
+    "solve", "get_solver", "solver_names", "UnknownSolver",
+    "RulePolicy", "JOB_RULES", "VEHICLE_RULES", "all_rule_pairs", "parse_rule_name", "solve_rule",
+]

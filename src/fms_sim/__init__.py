@@ -1,11 +1,16 @@
 """fms_sim: instances, the coloured-timed Petri net engine, the shop net, schedules and their validator."""
 
+from .benchmarks import builtin, builtin_names
+from .formats import load_instance
 from .instance import Instance, InstanceError, Operation
+from .petri import Deadlock, InvalidAction, Net
 from .schedule import AgvTrip, OperationRecord, Schedule, ScheduleError, ToolTrip
+from .shop import Shop
 from .validate import ScheduleInvalid, check, validate
 
 __all__ = [
-    "Instance", "InstanceError", "Operation",
+    "Instance", "InstanceError", "Operation", "builtin", "builtin_names", "load_instance",
+    "Net", "Shop", "InvalidAction", "Deadlock",
     "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
     "validate", "check", "ScheduleInvalid",
 ]
