@@ -10,15 +10,16 @@ OUT    ?= out
 
 $(STAMP): setup.cfg pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PIP) install --quiet --upgrade pip
-	$(PIP) install --quiet -c constraints.txt -e '.[rl,dev]'
+	$(PIP) install --quiet -c constraints.txt -e '.[rl,ros,dev]'
 	touch $(STAMP)
 
 install: $(STAMP)
 
+# the shop, agent and recorder ROS 2 nodes as processes, on this machine only
 demo: $(STAMP)
 	mkdir -p $(OUT)
-	$(VENV)/bin/fms solve EX12 --out $(OUT)/EX12.schedule.json --gantt $(OUT)/EX12.gantt.png
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(VENV)/bin/fms up EX12 --solver best \
+		--out $(OUT)/EX12.schedule.json --db $(OUT)/fms.sqlite --gantt-dir $(OUT)
 	$(VENV)/bin/fms validate EX12 $(OUT)/EX12.schedule.json
 
 test: $(STAMP)

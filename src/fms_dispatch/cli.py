@@ -157,8 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_generate)
 
     from .benchmark import add_bench_parser
+    from .up import add_up_parser
 
     add_bench_parser(sub)
+    add_up_parser(sub)
     return p
 
 

@@ -25,8 +25,18 @@ __all__ = [
 ]
 
 
+_SCALARS = frozenset((int, bool, str, float, type(None)))
+
+
 def _plain(x: Any) -> Any:
     """``x`` as plain JSON values: numpy via ``tolist()``, mappings → dicts, other iterables → lists."""
+    t = type(x)
+    if t in _SCALARS:  # fast paths for what the nodes build: plain scalars, dicts and flat lists
+        return x
+    if t is dict:
+        return {k: _plain(v) for k, v in x.items()}
+    if t is list and set(map(type, x)) <= _SCALARS:
+        return list(x)
     if not isinstance(x, (str, bytes, int, float, type(None))) and hasattr(x, "tolist"):
         x = x.tolist()
     if isinstance(x, Mapping):
@@ -43,17 +53,20 @@ def _checked(msg: dict[str, Any]) -> dict[str, Any]:
 
 def make_state(run_id: str, seq: int, time: int, marking: Mapping[str, int], actions: Iterable[str],
                mask: Iterable[bool], done: bool, *, instance: str | None = None,
-               makespan: int | None = None) -> dict[str, Any]:
+               makespan: int | None = None, features: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """An ``fms/state/v1``: the shop's state number ``seq`` of run ``run_id`` at simulation ``time``.
 
     ``marking`` counts tokens per place name; ``actions[i]`` is the label of action index ``i`` and ``mask[i]``
-    says whether it is enabled now; ``makespan`` is set once the run is ``done``.
+    says whether it is enabled now; ``makespan`` is set once the run is ``done``. ``features`` (optional) are
+    the per-job and per-vehicle figures that dispatching rules read (see docs/ros.md); omitted when ``None``.
     """
     msg: dict[str, Any] = {"schema": SCHEMA_STATE, "run_id": run_id}
     if instance is not None:
         msg["instance"] = instance
     msg.update(seq=_plain(seq), time=_plain(time), marking=_plain(marking), actions=_plain(actions),
                mask=_plain(mask), done=_plain(done), makespan=_plain(makespan))
+    if features is not None:
+        msg["features"] = _plain(features)
     return _checked(msg)
 
 

@@ -190,14 +190,29 @@ class ListOf:
             raise _fail(path, "a non-empty array" if self.nonempty else "an array", value)
         if self.nonempty and not value:
             raise FieldError(path, f"field {path!r} must be a non-empty array, got an empty one")
-        for i, x in enumerate(value):
-            self.item(x, f"{path}[{i}]")
+        if not _all_plain(self.item, value):  # the fast path failed: find (and name) the offending item
+            for i, x in enumerate(value):
+                self.item(x, f"{path}[{i}]")
         if self.unique:
             seen: set[Any] = set()
             for i, x in enumerate(value):
                 if x in seen:
                     raise FieldError(f"{path}[{i}]", f"field {path}[{i}] repeats {show(x)}; items must be unique")
                 seen.add(x)
+
+
+def _all_plain(item: Check, value: list[Any]) -> bool:
+    """Fast path for long arrays of scalars (state masks, feature columns): True if every item certainly
+    passes ``item`` (exact ``int``/``bool``/``str`` items within the rule); False means "check one by one",
+    which also produces the precise error. It never accepts what the item rule rejects."""
+    kind = type(item)
+    if kind is Int:
+        return not value or (set(map(type, value)) == {int} and (item.minimum is None or min(value) >= item.minimum))
+    if kind is Bool:
+        return not value or set(map(type, value)) == {bool}
+    if kind is Str and item.max_len is None:
+        return not value or (set(map(type, value)) == {str} and (not item.nonempty or all(value)))
+    return False
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Iterable
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from fms_sim.schedule import Schedule, ScheduleError
 
@@ -34,7 +34,8 @@ __all__ = [
     "SCHEMA_REPLAY_REQUEST",
     "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
     "TOPIC_REPLAY", "TOPICS",
-    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS",
+    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "TOPIC_QOS", "TopicQos",
+    "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
     "MessageError", "validate", "kind_of", "encode", "decode",
 ]
 
@@ -76,6 +77,28 @@ TOPICS: dict[str, str] = {
 }
 """Kind name → the topic that carries it."""
 
+
+class TopicQos(NamedTuple):
+    """The quality of service every node uses on one topic, as plain data (the nodes turn it into an rclpy
+    ``QoSProfile``; this package stays free of ROS). All topics are reliable and keep the last ``depth``
+    messages; ``latched`` means TRANSIENT_LOCAL durability: a subscriber that joins late still receives the
+    last ``depth`` messages (a restarted agent gets the current state)."""
+
+    depth: int
+    latched: bool
+
+
+TOPIC_QOS: dict[str, TopicQos] = {
+    "state": TopicQos(1, True),          # only the newest state matters; a late or restarted agent gets it
+    "command": TopicQos(100, False),
+    "event": TopicQos(10000, False),     # bursts (replays); losses are repaired by replay requests
+    "schedule": TopicQos(1, True),       # a late or restarted recorder still gets the final schedule
+    "order": TopicQos(100, False),
+    "error": TopicQos(100, False),
+    "replay_request": TopicQos(10, False),
+}
+"""Kind name → the QoS of its topic (see docs/ros.md, "Quality of service")."""
+
 EVENT_KINDS: tuple[str, ...] = (
     "op_start", "op_end", "agv_trip_start", "agv_trip_end", "tool_trip_start", "tool_trip_end",
     "order_accepted", "run_start", "run_end",
@@ -107,6 +130,30 @@ class MessageError(ValueError):
 _RUN_ID = Field("run_id", Str())
 _OPTIONAL_STR = Nullable(Str(nonempty=False))
 
+# The optional "features" of a state: what dispatching rules read, so that an agent decides from the message
+# alone (no twin of the shop). Columns: entry i of every array of "jobs" is job i; of "agvs"/"transporters"
+# vehicle i. The requests describe the transport that the next AGV / transporter choice serves.
+FEATURE_JOB_COLUMNS = ("entry", "n_ops", "next_op", "next_duration", "remaining_work", "total_work", "ready_since")
+FEATURE_VEHICLE_COLUMNS = ("loc", "free_at", "work")
+_FEATURE_JOBS = Obj(tuple(Field(c, ListOf(Int(0))) for c in FEATURE_JOB_COLUMNS), expected="an object of job columns")
+_FEATURE_VEHICLES = Obj(tuple(Field(c, ListOf(Int(0))) for c in FEATURE_VEHICLE_COLUMNS),
+                        expected="an object of vehicle columns")
+_AGV_REQUEST = Obj((
+    Field("job", Int(0)), Field("op", Int(0)), Field("pickup", Int(0)), Field("to", Int(0)),
+    Field("empty_travel", ListOf(Int(0))),
+), expected="an AGV request object")
+_TT_REQUEST = Obj((
+    Field("tool", Int(1)), Field("job", Int(0)), Field("op", Int(0)), Field("pickup", Int(0)), Field("to", Int(0)),
+    Field("empty_travel", ListOf(Int(0))),
+), expected="a tool-transport request object")
+_FEATURES = Obj((
+    Field("jobs", _FEATURE_JOBS),
+    Field("agvs", _FEATURE_VEHICLES),
+    Field("transporters", _FEATURE_VEHICLES),
+    Field("agv_request", Nullable(_AGV_REQUEST), required=False),
+    Field("tt_request", Nullable(_TT_REQUEST), required=False),
+), expected="a features object")
+
 _STATE = (
     _RUN_ID,
     Field("seq", Int(0)),
@@ -117,6 +164,7 @@ _STATE = (
     Field("done", Bool()),
     Field("instance", _OPTIONAL_STR, required=False),
     Field("makespan", Nullable(Int(0)), required=False),
+    Field("features", Nullable(_FEATURES), required=False),
 )
 
 _COMMAND = (
@@ -140,6 +188,7 @@ _EVENT_DATA = (  # all optional: which ones are present depends on the event kin
     Field("jobs", ListOf(Int(0)), required=False),
     Field("instance", Str(nonempty=False), required=False),
     Field("makespan", Nullable(Int(0)), required=False),
+    Field("start", Int(0), required=False),
 )
 
 _EVENT = (
@@ -220,10 +269,35 @@ _REPLAY_REQUEST = (
 
 
 def _mask_matches_actions(msg: dict[str, Any], path: str) -> None:
-    """A state's ``mask`` has one entry per action label."""
+    """A state's ``mask`` has one entry per action label; its ``features`` (if any) are consistent."""
     if len(msg["mask"]) != len(msg["actions"]):
         raise FieldError("mask", f"field 'mask' has {len(msg['mask'])} entries but 'actions' has "
                                  f"{len(msg['actions'])}; they must have the same length")
+    features = msg.get("features")
+    if features is not None:
+        _features_consistent(features)
+
+
+def _same_length(group: dict[str, Any], columns: tuple[str, ...], path: str) -> int:
+    """All ``columns`` of ``group`` have one length; return it."""
+    n = len(group[columns[0]])
+    for c in columns[1:]:
+        if len(group[c]) != n:
+            raise FieldError(f"{path}.{c}", f"field '{path}.{c}' has {len(group[c])} entries but "
+                                            f"'{path}.{columns[0]}' has {n}; columns must have the same length")
+    return n
+
+
+def _features_consistent(features: dict[str, Any]) -> None:
+    """Columns of one group have the same length; a request lists one empty travel time per vehicle."""
+    _same_length(features["jobs"], FEATURE_JOB_COLUMNS, "features.jobs")
+    for group, req in (("agvs", "agv_request"), ("transporters", "tt_request")):
+        n = _same_length(features[group], FEATURE_VEHICLE_COLUMNS, f"features.{group}")
+        request = features.get(req)
+        if request is not None and len(request["empty_travel"]) != n:
+            raise FieldError(f"features.{req}.empty_travel",
+                             f"field 'features.{req}.empty_travel' has {len(request['empty_travel'])} entries "
+                             f"but there are {n} {group}; give one travel time per vehicle")
 
 
 _Extra = Callable[[dict[str, Any], str], None] | None
@@ -280,9 +354,14 @@ def validate(msg: Any) -> str:
     return kind
 
 
-def encode(msg: dict[str, Any]) -> str:
-    """Validate ``msg`` and return its compact JSON text (the ``data`` of a ``std_msgs/String``)."""
-    validate(msg)
+def encode(msg: dict[str, Any], *, check: bool = True) -> str:
+    """Validate ``msg`` and return its compact JSON text (the ``data`` of a ``std_msgs/String``).
+
+    ``check=False`` skips the validation, for a dict that a builder (``make_*``) has just returned and that
+    nobody changed since: a publisher's hot path need not validate the same message twice.
+    """
+    if check:
+        validate(msg)
     try:
         return json.dumps(msg, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     except (TypeError, ValueError) as exc:  # only possible in extra (unknown) fields

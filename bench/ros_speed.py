@@ -1,0 +1,106 @@
+"""ROS 2 speed: decisions per second over topics, and the wall time of ``fms up`` end to end.
+
+For each instance (default EX12 and sl00) the script runs ``python -m fms_dispatch.up INSTANCE --solver S``
+``--repeat`` times (shop, agent and recorder as separate processes, on a fresh random ROS domain each time)
+and reports medians (and the best run, the figure least disturbed by other load on the machine):
+
+* ``fms up`` wall time — process start, discovery, the whole run, recording, the Gantt chart and a clean
+  stop, measured around the command (goal for EX12: <= 5 s);
+* decisions/s over topics — decisions / ``decision_time``, where the shop measures ``decision_time`` from
+  the first command it applies to the end of the run (so the rate covers state -> agent -> command -> shop
+  round trips, events and recording, but not process start-up; goal: >= 500 decisions/s);
+* the in-process rate of the same shop/agent logic with the messages encoded and decoded but no ROS
+  (``ShopService`` + ``AgentLogic``), which bounds what the topics can reach.
+
+Every schedule is validated. Usage: ``python bench/ros_speed.py [--instances EX12 sl00] [--solver S]
+[--repeat 3]``; set ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (the launcher defaults to it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from fms_msgs_json import TOPIC_STATE, encode
+from fms_sim.benchmarks import builtin
+from fms_sim.schedule import Schedule
+from fms_sim.shop_service import ShopService
+from fms_sim.validate import validate
+from fms_dispatch.agent_logic import AgentLogic
+
+
+def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
+    """Decisions/s of ShopService + AgentLogic exchanging encoded messages in one process."""
+    inst = builtin(name)
+    n = 0
+    t0 = time.perf_counter()
+    while n == 0 or time.perf_counter() - t0 < seconds:
+        svc = ShopService(inst, run_id="bench")
+        agent = AgentLogic(solver)
+        out = svc.start()
+        while not svc.done:
+            state = [o.msg for o in out if o.topic == TOPIC_STATE][-1]
+            (cmd,) = agent.on_state(encode(state, check=False))
+            out = svc.handle_command(encode(cmd.msg, check=False))
+            for o in out:
+                encode(o.msg, check=False)
+            n += 1
+    return n / (time.perf_counter() - t0)
+
+
+def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedule]:
+    """One ``fms up`` run; returns its wall time and the schedule it wrote."""
+    out = work / f"{name}-{run}.schedule.json"
+    cmd = [sys.executable, "-m", "fms_dispatch.up", name, "--solver", solver, "--out", str(out),
+           "--db", str(work / "bench.sqlite"), "--quiet"]
+    env = dict(os.environ)
+    env.pop("ROS_DOMAIN_ID", None)  # a fresh random domain per run
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise SystemExit(f"fms up {name} failed ({res.returncode}):\n{res.stderr}")
+    sched = Schedule.load(out)
+    problems = validate(builtin(name), sched)
+    if problems:
+        raise SystemExit(f"fms up {name}: invalid schedule: {problems[0]}")
+    return wall, sched
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--instances", nargs="+", default=["EX12", "sl00"])
+    ap.add_argument("--solver", default="rule:SPTN+nearest", help="agent solver (default rule:SPTN+nearest)")
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# ros_speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
+          f"{platform.python_version()}, load average {load:.1f} at start; solver {a.solver}; "
+          f"median (best) of {a.repeat} runs")
+    print(f"{'instance':>9} {'decisions':>9} {'fms up wall s (best)':>20} {'decisions/s topics (best)':>25} "
+          f"{'decisions/s in-process':>22} {'makespan':>8}")
+    with tempfile.TemporaryDirectory(prefix="fms-ros-speed-") as tmp:
+        for name in a.instances:
+            walls, rates = [], []
+            sched = None
+            for run in range(a.repeat):
+                wall, sched = fms_up(name, a.solver, Path(tmp), run)
+                walls.append(wall)
+                rates.append(sched.meta["decisions"] / max(sched.meta["decision_time"], 1e-9))
+            assert sched is not None
+            wall_txt = f"{statistics.median(walls):.2f} ({min(walls):.2f})"
+            rate_txt = f"{statistics.median(rates):.0f} ({max(rates):.0f})"
+            print(f"{name:>9} {sched.meta['decisions']:>9} {wall_txt:>20} {rate_txt:>25} "
+                  f"{in_process_rate(name, a.solver):>22.0f} {sched.makespan:>8}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

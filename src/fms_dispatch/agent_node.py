@@ -1,0 +1,104 @@
+"""ROS 2 node ``fms_agent`` (``ros2 run fms_dispatch agent``, ``fms-agent``): the dispatcher on topics.
+
+A thin adapter around :class:`fms_dispatch.agent_logic.AgentLogic`: it subscribes to the latched
+``fms/state`` (so a late or restarted agent receives the current state at once), decides with the ``solver``
+parameter and publishes one ``fms/command`` per state. A command is sent as soon as the shop listens on
+``fms/command``; if no newer state has arrived ``resend_s`` seconds later it is sent again (the shop answers
+a duplicate with a ``stale_state`` error and ignores it). An unknown or unavailable solver stops the node at
+start with a one-line error and exit code 2.
+
+Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``; default
+``first``), ``seed`` (for ``random``), ``delay_s`` (think time before each command, for demos and tests),
+``resend_s`` (default 1.0).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Sequence
+
+from fms_msgs_json import TOPIC_COMMAND
+from fms_sim.shop_node import StartupError, TopicIO, param, rclpy, run_node
+from fms_sim.shop_service import Outgoing
+
+from .agent_logic import AgentLogic, UnavailableSolver
+
+__all__ = ["main", "AgentNode"]
+
+NODE_NAME = "fms_agent"
+
+
+class AgentNode:
+    """The dispatcher agent node (see the module docstring)."""
+
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        self.node = rclpy.create_node(node_name, start_parameter_services=False)
+        try:
+            self._setup()
+        except BaseException:
+            self.node.destroy_node()
+            raise
+
+    def _setup(self) -> None:
+        n = self.node
+        solver = param(n, "solver", "first")
+        seed = param(n, "seed", 0)
+        self.delay_s = float(param(n, "delay_s", 0.0))
+        self.resend_s = float(param(n, "resend_s", 1.0))
+        try:
+            self.logic = AgentLogic(solver, seed=seed)
+        except UnavailableSolver as exc:
+            raise StartupError(str(exc)) from None
+        if self.delay_s < 0 or self.resend_s <= 0:
+            raise StartupError("parameters 'delay_s' must be >= 0 and 'resend_s' > 0")
+        self.io = TopicIO(n, ["command", "error"])
+        self._pending: Outgoing | None = None     # a command waiting for the shop to listen
+        self._sent: Outgoing | None = None        # the last command sent, and when
+        self._sent_at = 0.0
+        self.io.subscribe("state", self._on_state)
+        self._timer = n.create_timer(0.02, self._tick)
+        n.get_logger().info(f"deciding with {self.logic.name}")
+
+    def _on_state(self, text: str) -> None:
+        out = self.logic.on_state(text)
+        for o in out:
+            if o.topic == TOPIC_COMMAND:
+                if self.delay_s:
+                    time.sleep(self.delay_s)
+                self._pending = o
+            else:
+                self.io.publish([o])
+        self._flush()
+
+    def _flush(self) -> None:
+        if self._pending is not None and self.io.matched(TOPIC_COMMAND) > 0:
+            self.io.publish([self._pending])
+            self._sent, self._pending = self._pending, None
+            self._sent_at = time.monotonic()
+
+    def _tick(self) -> None:
+        self._flush()
+        sent = self._sent
+        if sent is None or time.monotonic() - self._sent_at < self.resend_s:
+            return
+        if self.logic.waiting_for() == (sent.msg["run_id"], sent.msg["state_seq"]):
+            self.node.get_logger().warning(f"no new state {self.resend_s:.1f} s after answering state "
+                                           f"{sent.msg['state_seq']}; sending the command again")
+            self._sent_at = time.monotonic()  # the next try (and warning) is resend_s away, sent or not
+            self._pending = sent
+            self._flush()
+        else:
+            self._sent = None
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``fms-agent`` / ``ros2 run fms_dispatch agent`` / ``python -m fms_dispatch.agent_node``."""
+    return run_node("fms-agent", AgentNode, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

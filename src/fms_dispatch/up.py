@@ -1,0 +1,316 @@
+"""``fms up INSTANCE``: run the shop, the agent and the recorder as ROS 2 node processes, end to end.
+
+The launcher checks the instance and the solver first (bad input: one line, exit code 2), starts the three
+nodes (``python -m fms_sim.recorder_node``, ``fms_sim.shop_node``, ``fms_dispatch.agent_node``) in their own
+process groups, waits until the shop has written the final schedule and the recorder has stored the run and
+rendered its Gantt chart, validates the schedule against the final instance (including accepted orders),
+writes it to ``--out``, and stops the nodes with SIGINT (SIGKILL after a grace period). It imports no rclpy
+itself: the nodes do.
+
+``--solver best`` simulates every rule pair on the instance in-process first and runs the best one over the
+topics (the agent has no learned or lookahead policy yet). ROS settings: ``ROS_DOMAIN_ID`` is taken from the
+environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
+other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
+default a temporary folder, kept and printed only when something fails).
+
+Exit codes: 0 done and valid; 1 the run failed (a node died, timeout, invalid schedule); 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Sequence
+
+from fms_sim.instance import Instance, InstanceError
+from fms_sim.recorder_store import DEFAULT_DB, gantt_path
+from fms_sim.schedule import Schedule, ScheduleError
+from fms_sim.shop_service import new_run_id
+
+from .agent_logic import UnavailableSolver, make_decider
+
+__all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "NodeProcess", "node_command", "stop_all"]
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class UpError(ValueError):
+    """Bad input for ``fms up`` (exit code 2)."""
+
+
+def add_up_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``up`` subcommand to an ``argparse`` subparsers object; it sets ``fn=cmd_up``."""
+    p = subparsers.add_parser(
+        "up", help="run the shop, agent and recorder ROS 2 nodes on an instance and write the schedule",
+        description="Start the shop simulator, the dispatcher agent and the recorder as ROS 2 node processes, "
+                    "wait for the schedule, write it, and stop them.")
+    _add_arguments(p)
+    p.set_defaults(fn=cmd_up)
+    return p
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("instance", help="built-in name (see `fms instances`) or an instance file")
+    p.add_argument("--layout", type=int, help="layout 1-4 for the ra instances (default 2)")
+    p.add_argument("--agvs", type=int, metavar="N", help="override the number of AGVs")
+    p.add_argument("--tool-transporters", type=int, metavar="N", help="override the number of tool transporters")
+    p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
+    p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly)")
+    p.add_argument("--solver", default="first",
+                   help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | best "
+                        "(the best rule pair for this instance) (default: first)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random solver")
+    p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
+    p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
+    p.add_argument("--gantt-dir", help="folder for the Gantt PNG (default: the database's folder)")
+    p.add_argument("--run-id", help="run id (default: <instance>-<time>-<random>)")
+    p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the nodes (default: $ROS_DOMAIN_ID, "
+                                                 "else a random one in 1..101)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the run (default 120)")
+    p.add_argument("--log-dir", help="keep the node logs here (default: a temporary folder, kept on failure)")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only the result lines")
+
+
+def best_rule(instance: Instance) -> tuple[str, int]:
+    """The rule pair (``rule:JOB+veh``, including ``nearest``) with the smallest makespan on ``instance``,
+    found by simulating each in-process; ties go to the first in ``all_rule_pairs`` order."""
+    from .rules import all_rule_pairs, solve_rule
+
+    best: tuple[int, str] | None = None
+    for name in all_rule_pairs(include_nearest=True):
+        job, veh = name.split(":", 1)[1].split("+")
+        span = solve_rule(instance, job, veh).makespan
+        if best is None or span < best[0]:
+            best = (span, name)
+    assert best is not None
+    return best[1], best[0]
+
+
+def node_command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+    """The command line that starts the node in ``module`` with ROS parameters ``params``."""
+    cmd = [python or sys.executable, "-m", module, "--ros-args"]
+    for key, value in params.items():
+        if isinstance(value, bool):
+            value = "true" if value else "false"
+        cmd += ["-p", f"{key}:={value}"]
+    return cmd
+
+
+@dataclass
+class NodeProcess:
+    """A node started in its own process group, its output going to a log file."""
+
+    name: str
+    cmd: list[str]
+    log_path: Path
+    env: dict[str, str]
+    proc: subprocess.Popen | None = None
+    _log: IO[bytes] | None = field(default=None, repr=False)
+
+    def start(self) -> "NodeProcess":
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(self.cmd, stdout=self._log, stderr=subprocess.STDOUT, env=self.env,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        return self
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def interrupt(self) -> None:
+        """Ask the node to stop: SIGINT to its process group (rclpy shuts down cleanly, exit code 0)."""
+        if self.proc is not None and self.proc.poll() is None:
+            _signal_group(self.proc.pid, signal.SIGINT)
+
+    def stop(self, grace: float = 5.0) -> int | None:
+        """SIGINT the process group (if still running), wait up to ``grace`` s, then SIGKILL; returns the
+        exit code."""
+        if self.proc is None:
+            return None
+        self.interrupt()
+        try:
+            self.proc.wait(max(grace, 0.0))
+        except subprocess.TimeoutExpired:
+            _signal_group(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return self.proc.returncode
+
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(f"    {line}" for line in text[-lines:])
+
+
+def stop_all(nodes: Sequence[NodeProcess], grace: float = 5.0) -> dict[str, int | None]:
+    """Interrupt every node at once, then wait for each (SIGKILL after ``grace`` s in all)."""
+    for n in nodes:
+        n.interrupt()
+    deadline = time.monotonic() + grace
+    return {n.name: n.stop(deadline - time.monotonic()) for n in nodes}
+
+
+def _signal_group(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _load(a: argparse.Namespace) -> Instance:
+    from fms_sim.formats import load_instance
+
+    return load_instance(a.instance, layout=a.layout, agvs=a.agvs, tool_transporters=a.tool_transporters,
+                         no_tools=a.no_tools, no_agvs=a.no_agvs)
+
+
+def cmd_up(a: argparse.Namespace) -> int:
+    """Run ``fms up`` for parsed arguments (see the module docstring); returns the exit code."""
+    from fms_sim.validate import validate
+
+    say = (lambda *args: None) if a.quiet else (lambda *args: print(*args, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    if importlib.util.find_spec("rclpy") is None:
+        raise UpError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
+    inst = _load(a)
+    solver = a.solver
+    if solver.lower() == "best":
+        solver, span = best_rule(inst)
+        say(f"best rule pair on {inst.name}: {solver} (makespan {span} in simulation)")
+    try:
+        make_decider(solver, a.seed)
+    except UnavailableSolver as exc:
+        raise UpError(str(exc)) from None
+    if a.timeout <= 0:
+        raise UpError("--timeout must be positive")
+    domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
+    try:
+        domain = int(domain)
+    except ValueError:
+        raise UpError(f"ROS_DOMAIN_ID must be an integer, got {domain!r}") from None
+    if not 0 <= domain <= 232:
+        raise UpError(f"ROS domain id {domain} is out of range (0..232; 0..101 is safe everywhere)")
+
+    run_id = a.run_id or new_run_id(inst.name)
+    out = Path(a.out) if a.out else Path(f"{inst.name}.schedule.json")
+    db = Path(a.db)
+    gantt_dir = Path(a.gantt_dir) if a.gantt_dir else (db.parent if str(db.parent) else Path("."))
+    png = gantt_path(gantt_dir, run_id)
+    for path, what in ((out, "--out"), (db, "--db")):
+        if path.is_dir():
+            raise UpError(f"{what} {path} is a directory; give a file path")
+    if png.exists():
+        raise UpError(f"run id {run_id!r} was already recorded (its chart {png} exists); choose another --run-id")
+    keep_logs = a.log_dir is not None
+    log_dir = Path(a.log_dir) if keep_logs else Path(tempfile.mkdtemp(prefix="fms-up-"))
+    log_dir.mkdir(parents=True, exist_ok=True)
+    work = log_dir / f"{run_id}.work"
+    work.mkdir(parents=True, exist_ok=True)
+    inst_in, inst_final, sched_tmp = work / "instance.json", work / "final_instance.json", work / "schedule.json"
+    inst.save(inst_in)
+    for stale in (sched_tmp, inst_final):
+        stale.unlink(missing_ok=True)
+
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("ROS_LOG_DIR", str(log_dir / "ros"))
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    nodes = [
+        NodeProcess("recorder", node_command("fms_sim.recorder_node", {"db": str(db), "gantt_dir": str(gantt_dir)}),
+                    log_dir / "recorder.log", env),
+        NodeProcess("shop", node_command("fms_sim.shop_node", {
+            "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
+            "instance_out": str(inst_final)}), log_dir / "shop.log", env),
+        NodeProcess("agent", node_command("fms_dispatch.agent_node", {"solver": solver, "seed": a.seed}),
+                    log_dir / "agent.log", env),
+    ]
+    say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")
+    failure: str | None = None
+    try:
+        for node in nodes:
+            node.start()
+        deadline = time.monotonic() + a.timeout
+        while True:
+            if sched_tmp.exists() and inst_final.exists() and png.exists():
+                break
+            dead = [n for n in nodes if n.poll() is not None]
+            if dead:
+                failure = f"the {dead[0].name} node exited early with code {dead[0].poll()}"
+                break
+            if time.monotonic() > deadline:
+                missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
+                failure = f"timed out after {a.timeout:g} s waiting for {', '.join(missing)}"
+                break
+            time.sleep(0.02)
+    except KeyboardInterrupt:
+        failure = "interrupted"
+    finally:
+        codes = stop_all(list(reversed(nodes)))
+    wall = time.perf_counter() - t0
+    if failure is None:
+        bad = {k: c for k, c in codes.items() if c not in (0, None)}
+        if bad:
+            failure = "a node did not stop cleanly: " + ", ".join(f"{k} exit code {c}" for k, c in bad.items())
+    sched: Schedule | None = None
+    if failure is None:
+        try:
+            sched = Schedule.load(sched_tmp)
+            final = Instance.from_json(inst_final.read_text())
+        except (OSError, ScheduleError, InstanceError) as exc:
+            failure = f"cannot read the shop's output: {exc}"
+        else:
+            problems = validate(final, sched)
+            if problems:
+                failure = f"the schedule is infeasible: {problems[0]}"
+    if failure is not None or sched is None:
+        print(f"fms up: error: {failure}", file=sys.stderr)
+        for n in nodes:
+            print(f"  {n.name} log ({n.log_path}):\n{n.tail()}", file=sys.stderr)
+        return EXIT_FAILED
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        sched.save(out)
+    except OSError as exc:
+        print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILED
+    if not keep_logs:
+        shutil.rmtree(log_dir, ignore_errors=True)
+    meta = sched.meta
+    print(f"{inst.name}: makespan {sched.makespan} ({meta.get('solver', solver)} over ROS 2 topics, "
+          f"{meta.get('decisions', '?')} decisions, valid) in {wall:.2f} s")
+    print(f"schedule: {out}")
+    print(f"sqlite:   {db} (run {run_id})")
+    print(f"gantt:    {png}")
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m fms_dispatch.up INSTANCE ...``: the same as ``fms up`` without the ``fms`` CLI."""
+    p = argparse.ArgumentParser(prog="fms up", description=__doc__.splitlines()[0])
+    _add_arguments(p)
+    a = p.parse_args(argv)
+    try:
+        return cmd_up(a)
+    except (UpError, InstanceError, ScheduleError, ValueError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"fms up: error: {msg}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,420 @@
+"""The recorder node's logic, without ROS: a durable SQLite log of runs, events, schedules and errors.
+
+:class:`RecorderStore` is the database: SQLite in WAL mode (readers never block the writer; a killed recorder
+loses nothing it committed), one commit per stored message. Events are keyed by ``(run_id, seq)`` and inserted
+with ``INSERT OR IGNORE``, so replays and duplicates are stored exactly once; a schedule is stored once per
+run. :meth:`RecorderStore.schedule_from_events` rebuilds a run's schedule from its ``*_end`` events alone, so
+the log can be checked against the published schedule.
+
+:class:`Recorder` is what the node runs: it decodes messages, stores them, and notices what is missing: a gap
+in a run's event numbers, or a final schedule whose run has not all its events. It then asks the shop to
+replay the run from the first missing event (``fms/replay_request/v1``), again every ``retry_s`` seconds while
+something is missing. When a run is complete (schedule stored, events ``0..run_end`` all present) it renders
+the Gantt chart once (:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id>.gantt.png``.
+
+Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
+data, received)``, ``schedules(run_id, makespan, schedule, received)``, ``errors(id, source, code, message,
+run_id, received_text, at)``; ``data``/``schedule`` hold JSON text.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sqlite3
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from fms_msgs_json import (
+    TOPIC_ERRORS, TOPIC_REPLAY, MessageError, decode, error_reply, make_replay_request,
+)
+
+from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from .shop_service import Outgoing
+
+__all__ = ["RecorderStore", "Recorder", "gantt_path", "DEFAULT_DB"]
+
+SOURCE = "fms_recorder"
+DEFAULT_DB = "fms_recorder.sqlite"
+"""The recorder's database file when no path is given (relative to the working directory)."""
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    run_id TEXT PRIMARY KEY,
+    instance TEXT,
+    first_seen REAL NOT NULL,
+    end_seq INTEGER,
+    makespan INTEGER,
+    gantt TEXT
+);
+CREATE TABLE IF NOT EXISTS events (
+    run_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    time INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    data TEXT NOT NULL,
+    received REAL NOT NULL,
+    PRIMARY KEY (run_id, seq)
+);
+CREATE TABLE IF NOT EXISTS schedules (
+    run_id TEXT PRIMARY KEY,
+    makespan INTEGER NOT NULL,
+    schedule TEXT NOT NULL,
+    received REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS errors (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    source TEXT NOT NULL,
+    code TEXT NOT NULL,
+    message TEXT NOT NULL,
+    run_id TEXT,
+    received_text TEXT,
+    at REAL NOT NULL
+);
+"""
+
+
+def gantt_path(gantt_dir: str | Path, run_id: str) -> Path:
+    """Where the Gantt chart of ``run_id`` goes: ``<gantt_dir>/<run_id>.gantt.png`` (unsafe characters → ``_``)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", run_id).strip(".") or "run"
+    return Path(gantt_dir) / f"{safe}.gantt.png"
+
+
+class RecorderStore:
+    """The SQLite log (see the module docstring). Not thread-safe: one recorder, one thread."""
+
+    def __init__(self, path: str | Path = DEFAULT_DB) -> None:
+        self.path = Path(path)
+        if self.path.parent and not self.path.parent.exists():
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.db = sqlite3.connect(str(self.path), timeout=10.0)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            self.db.executescript(_SCHEMA)
+            self.db.commit()
+        except sqlite3.Error as exc:
+            raise ValueError(f"cannot open the recorder database {str(self.path)!r}: {exc}") from None
+
+    def close(self) -> None:
+        """Commit and close (a WAL checkpoint folds the log into the main file)."""
+        try:
+            self.db.commit()
+            self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        finally:
+            self.db.close()
+
+    # ------------------------------------------------------------------ writing
+    def _touch_run(self, run_id: str, now: float, instance: str | None = None) -> None:
+        self.db.execute("INSERT OR IGNORE INTO runs (run_id, first_seen) VALUES (?, ?)", (run_id, now))
+        if instance is not None:
+            self.db.execute("UPDATE runs SET instance = ? WHERE run_id = ?", (instance, run_id))
+
+    def commit(self) -> None:
+        """Make the writes so far durable (the ``add_*`` methods commit unless told not to)."""
+        self.db.commit()
+
+    def add_event(self, event: dict[str, Any], now: float | None = None, *, commit: bool = True) -> bool:
+        """Store a decoded ``fms/event/v1``; False if ``(run_id, seq)`` was already stored."""
+        now = time.time() if now is None else now
+        run_id, data = event["run_id"], event["data"]
+        self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
+        cur = self.db.execute(
+            "INSERT OR IGNORE INTO events (run_id, seq, time, kind, data, received) VALUES (?, ?, ?, ?, ?, ?)",
+            (run_id, event["seq"], event["time"], event["kind"], json.dumps(data, separators=(",", ":")), now))
+        new = cur.rowcount == 1
+        if new and event["kind"] == "run_end":
+            self.db.execute("UPDATE runs SET end_seq = ?, makespan = ? WHERE run_id = ?",
+                            (event["seq"], data.get("makespan"), run_id))
+        if commit:
+            self.db.commit()
+        return new
+
+    def add_schedule(self, run_id: str, schedule: dict[str, Any], now: float | None = None, *,
+                     commit: bool = True) -> bool:
+        """Store a run's final schedule (the Schedule JSON); False if the run already has one."""
+        now = time.time() if now is None else now
+        self._touch_run(run_id, now, schedule.get("instance"))
+        cur = self.db.execute("INSERT OR IGNORE INTO schedules (run_id, makespan, schedule, received) "
+                              "VALUES (?, ?, ?, ?)", (run_id, schedule["makespan"], json.dumps(schedule), now))
+        if commit:
+            self.db.commit()
+        return cur.rowcount == 1
+
+    def add_error(self, error: dict[str, Any], now: float | None = None, *, commit: bool = True) -> None:
+        """Store a decoded ``fms/error/v1`` (errors are not de-duplicated: each report is a fact)."""
+        self.db.execute("INSERT INTO errors (source, code, message, run_id, received_text, at) "
+                        "VALUES (?, ?, ?, ?, ?, ?)",
+                        (error["source"], error["code"], error["message"], error.get("run_id"),
+                         error.get("received"), time.time() if now is None else now))
+        if commit:
+            self.db.commit()
+
+    def set_gantt(self, run_id: str, path: str | Path) -> None:
+        self.db.execute("UPDATE runs SET gantt = ? WHERE run_id = ?", (str(path), run_id))
+        self.db.commit()
+
+    # ------------------------------------------------------------------ reading
+    def run_ids(self) -> list[str]:
+        return [r[0] for r in self.db.execute("SELECT run_id FROM runs ORDER BY first_seen, run_id")]
+
+    def event_seqs(self, run_id: str) -> list[int]:
+        return [r[0] for r in self.db.execute("SELECT seq FROM events WHERE run_id = ? ORDER BY seq", (run_id,))]
+
+    def events(self, run_id: str) -> list[dict[str, Any]]:
+        """The stored events of a run as ``{"seq", "time", "kind", "data"}`` dicts, by seq."""
+        rows = self.db.execute("SELECT seq, time, kind, data FROM events WHERE run_id = ? ORDER BY seq", (run_id,))
+        return [{"seq": s, "time": t, "kind": k, "data": json.loads(d)} for s, t, k, d in rows]
+
+    def end_seq(self, run_id: str) -> int | None:
+        """The seq of the run's ``run_end`` event, if stored."""
+        row = self.db.execute("SELECT end_seq FROM runs WHERE run_id = ?", (run_id,)).fetchone()
+        return None if row is None else row[0]
+
+    def first_missing(self, run_id: str) -> int:
+        """The smallest event seq of the run not stored (= the number stored if they are 0..n-1)."""
+        expect = 0
+        for seq in self.event_seqs(run_id):
+            if seq != expect:
+                return expect
+            expect += 1
+        return expect
+
+    def schedule(self, run_id: str) -> Schedule | None:
+        row = self.db.execute("SELECT schedule FROM schedules WHERE run_id = ?", (run_id,)).fetchone()
+        return None if row is None else Schedule.from_json(row[0])
+
+    def gantt(self, run_id: str) -> str | None:
+        row = self.db.execute("SELECT gantt FROM runs WHERE run_id = ?", (run_id,)).fetchone()
+        return None if row is None else row[0]
+
+    def errors(self, run_id: str | None = None) -> list[dict[str, Any]]:
+        sql = "SELECT source, code, message, run_id, received_text FROM errors"
+        rows = self.db.execute(sql + " WHERE run_id = ? ORDER BY id" if run_id else sql + " ORDER BY id",
+                               (run_id,) if run_id else ())
+        return [{"source": s, "code": c, "message": m, "run_id": r, "received": t} for s, c, m, r, t in rows]
+
+    def is_complete(self, run_id: str) -> bool:
+        """The run's schedule is stored and every event ``0..run_end`` is present."""
+        end = self.end_seq(run_id)
+        if end is None or self.schedule(run_id) is None:
+            return False
+        (count,) = self.db.execute("SELECT COUNT(*) FROM events WHERE run_id = ? AND seq <= ?", (run_id, end)).fetchone()
+        return count == end + 1
+
+    def schedule_from_events(self, run_id: str) -> Schedule:
+        """Rebuild the run's schedule from its stored ``*_end`` events (which carry ``start``).
+
+        The header (instance name, fleet sizes) comes from the stored schedule if there is one, else from the
+        ``run_start`` event and the vehicles seen. Raises ``ValueError`` if the run has no ``run_end`` event.
+        """
+        evs = self.events(run_id)
+        end = [e for e in evs if e["kind"] == "run_end"]
+        if not end:
+            raise ValueError(f"run {run_id!r} has no run_end event in the log; it is not complete")
+        ops, agv, tt = [], [], []
+        for e in evs:
+            d, k = e["data"], e["kind"]
+            if k == "op_end":
+                ops.append(OperationRecord(d["job"], d["op"], d["machine"], d.get("tool"), d["start"], e["time"]))
+            elif k == "agv_trip_end":
+                agv.append(AgvTrip(d["agv"], d.get("job"), d.get("op"), d["from"], d["to"], d["start"], e["time"],
+                                   d["loaded"]))
+            elif k == "tool_trip_end":
+                tt.append(ToolTrip(d["transporter"], d.get("tool"), d.get("job"), d.get("op"), d["from"], d["to"],
+                                   d["start"], e["time"], d["loaded"]))
+        stored = self.schedule(run_id)
+        start = [e for e in evs if e["kind"] == "run_start"]
+        name = stored.instance if stored else (start[0]["data"].get("instance", "") if start else "")
+        n_agvs = stored.n_agvs if stored else len({t.agv for t in agv})
+        n_tts = stored.n_tool_transporters if stored else len({t.transporter for t in tt})
+        makespan = end[-1]["data"].get("makespan")
+        if makespan is None:
+            makespan = max((o.end for o in ops), default=0)
+        return Schedule(instance=name, makespan=makespan, n_agvs=n_agvs, n_tool_transporters=n_tts,
+                        operations=ops, agv_trips=agv, tool_trips=tt)
+
+
+class Recorder:
+    """Decodes, stores, asks for what is missing, and renders a Gantt chart per completed run.
+
+    ``handle_*`` take the raw text of a received message and return the :class:`Outgoing` messages to publish
+    (replay requests, errors). The caller passes the current time (``now``, seconds, monotonic) so that the
+    retry rule is testable; :meth:`poll` repeats overdue requests.
+
+    ``commit_s`` groups writes: with 0 every message is committed at once; otherwise at most every
+    ``commit_s`` seconds (by the handlers or :meth:`poll`) and always before a run is finished. A crash then
+    loses at most the last ``commit_s`` seconds of messages, which the next start asks the shop to replay.
+    """
+
+    def __init__(self, store: RecorderStore, *, gantt_dir: str | Path | None = None, render: bool = True,
+                 source: str = SOURCE, retry_s: float = 1.0, commit_s: float = 0.0,
+                 renderer: Callable[[Schedule, Path], Any] | None = None) -> None:
+        self.store = store
+        self.gantt_dir = Path(gantt_dir) if gantt_dir is not None else (store.path.parent or Path("."))
+        self.render = render
+        self.source = source
+        self.retry_s = retry_s
+        self.commit_s = commit_s
+        self._dirty = False
+        self._committed_at = float("-inf")
+        self._renderer = renderer
+        self._next: dict[str, int] = {}        # run -> first missing seq (contiguous prefix), per run seen
+        self._above: dict[str, set[int]] = {}  # run -> seqs stored above the prefix
+        self._end: dict[str, int | None] = {}  # run -> seq of its run_end event, once stored
+        self._has_schedule: dict[str, bool] = {}
+        self._asked: dict[str, float] = {}     # run -> when a replay was last requested
+        self._finished: set[str] = set()
+        self.rendered: list[tuple[str, Path]] = []
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _seen(self, run_id: str) -> None:
+        if run_id not in self._next:  # first sight in this session: resume from what the database holds
+            seqs = self.store.event_seqs(run_id)
+            nxt = 0
+            for s in seqs:
+                if s != nxt:
+                    break
+                nxt += 1
+            self._next[run_id] = nxt
+            self._above[run_id] = {s for s in seqs if s > nxt}
+            self._end[run_id] = self.store.end_seq(run_id)
+            self._has_schedule[run_id] = self.store.schedule(run_id) is not None
+
+    def _advance(self, run_id: str, seq: int) -> None:
+        if seq == self._next[run_id]:
+            nxt, above = seq + 1, self._above[run_id]
+            while nxt in above:
+                above.discard(nxt)
+                nxt += 1
+            self._next[run_id] = nxt
+        elif seq > self._next[run_id]:
+            self._above[run_id].add(seq)
+
+    def missing_from(self, run_id: str) -> int | None:
+        """The first seq to ask for if the run is known to miss events (a gap, or events after a stored
+        schedule's run_end), else None."""
+        if run_id not in self._next:
+            return None
+        nxt = self._next[run_id]
+        if self._above[run_id]:
+            return nxt
+        end = self._end[run_id]
+        if end is not None:
+            return nxt if nxt <= end else None
+        if self._has_schedule[run_id]:  # the run is over but its run_end never arrived
+            return nxt
+        return None
+
+    def _ask(self, run_id: str, now: float, force: bool = False) -> list[Outgoing]:
+        start = self.missing_from(run_id)
+        if start is None:
+            return []
+        last = self._asked.get(run_id)
+        if not force and last is not None and now - last < self.retry_s:
+            return []
+        self._asked[run_id] = now
+        return [Outgoing(TOPIC_REPLAY, make_replay_request(run_id, start, self.source))]
+
+    def _wrote(self, now: float) -> None:
+        self._dirty = True
+        if now - self._committed_at >= self.commit_s:
+            self.flush(now)
+
+    def flush(self, now: float) -> None:
+        """Commit pending writes now."""
+        if self._dirty:
+            self.store.commit()
+            self._dirty = False
+        self._committed_at = now
+
+    # ------------------------------------------------------------------ entry points
+    def startup_request(self) -> Outgoing:
+        """Ask the shop to replay the current run from the start (sent once the shop is listening)."""
+        return Outgoing(TOPIC_REPLAY, make_replay_request("*", 0, self.source))
+
+    def handle_event(self, text: str, now: float) -> list[Outgoing]:
+        try:
+            ev = decode(text, expect="event")
+        except MessageError as exc:
+            return [self._error(exc, text)]
+        run_id = ev["run_id"]
+        self._seen(run_id)
+        self.store.add_event(ev, commit=False)
+        self._wrote(now)
+        if ev["kind"] == "run_end":
+            self._end[run_id] = ev["seq"]
+        self._advance(run_id, ev["seq"])
+        return self._ask(run_id, now)
+
+    def handle_schedule(self, text: str, now: float) -> list[Outgoing]:
+        try:
+            msg = decode(text, expect="schedule")
+        except MessageError as exc:
+            return [self._error(exc, text)]
+        run_id = msg["run_id"]
+        self._seen(run_id)
+        self.store.add_schedule(run_id, msg["schedule"], commit=False)
+        self._has_schedule[run_id] = True
+        self._wrote(now)
+        return self._ask(run_id, now)
+
+    def handle_error(self, text: str, now: float = 0.0) -> list[Outgoing]:
+        try:
+            err = decode(text, expect="error")
+        except MessageError as exc:
+            return [self._error(exc, text)]
+        self.store.add_error(err, commit=False)
+        self._wrote(now)
+        return []
+
+    def poll(self, now: float) -> list[Outgoing]:
+        """Commit what is due and repeat the replay request of every run seen in this session that still
+        misses events."""
+        if self._dirty and now - self._committed_at >= self.commit_s:
+            self.flush(now)
+        out: list[Outgoing] = []
+        for run_id in list(self._next):
+            out += self._ask(run_id, now)
+        return out
+
+    def finish_ready(self) -> list[tuple[str, Path | None]]:
+        """Mark complete runs (seen in this session) finished, rendering their Gantt charts; returns
+        ``(run_id, png path or None)`` for each run finished by this call."""
+        done = []
+        for run_id in list(self._next):
+            if run_id in self._finished or self.missing_from(run_id) is not None:
+                continue
+            if self._end[run_id] is None or not self._has_schedule[run_id] or not self.store.is_complete(run_id):
+                continue
+            if self._dirty:  # a finished run is durable before anyone is told
+                self.store.commit()
+                self._dirty = False
+            self._finished.add(run_id)
+            path = self._render(run_id) if self.render else None
+            done.append((run_id, path))
+        return done
+
+    def _render(self, run_id: str) -> Path:
+        existing = self.store.gantt(run_id)
+        target = gantt_path(self.gantt_dir, run_id)
+        if existing and Path(existing).exists():
+            return Path(existing)
+        schedule = self.store.schedule(run_id)
+        assert schedule is not None
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(target.name + ".tmp.png")
+        if self._renderer is not None:
+            self._renderer(schedule, tmp)
+        else:
+            from .gantt import save_gantt
+
+            save_gantt(schedule, tmp, title=f"{schedule.instance} — run {run_id} — makespan {schedule.makespan}")
+        tmp.replace(target)  # atomic: a watcher never sees a half-written chart
+        self.store.set_gantt(run_id, target)
+        self.rendered.append((run_id, target))
+        return target
+
+    def _error(self, exc: BaseException, text: str) -> Outgoing:
+        return Outgoing(TOPIC_ERRORS, error_reply(self.source, exc, received=text))

@@ -1,0 +1,246 @@
+"""ROS 2 node ``fms_shop`` (``ros2 run fms_sim shop``, ``fms-shop``): the shop simulator on topics.
+
+A thin adapter around :class:`fms_sim.shop_service.ShopService`: it loads the instance from its parameters,
+publishes the service's messages (``std_msgs/String`` carrying ``fms_msgs_json`` text) and feeds it what
+arrives on ``fms/command``, ``fms/orders`` and ``fms/replay_request``. States and the final schedule are
+latched (TRANSIENT_LOCAL), so an agent or recorder that starts late — or restarts — still gets them. Every
+rejected message is answered on ``fms/errors`` and logged; the node keeps running. After the run it stays up
+(to answer replay requests) until it is stopped (SIGINT/SIGTERM: exit 0).
+
+Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
+(0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
+carry the rule features), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
+schedule JSON and the final instance including accepted orders; '' = none).
+
+This module also holds the small rclpy helpers the other fms nodes share (:func:`qos_profile`,
+:func:`spin_until_shutdown`, :func:`ros_unavailable`). rclpy is imported only by node modules such as this
+one; without it, :func:`main` exits with code 2 and says how to install it.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+try:  # ROS 2 is optional for the rest of the package; the nodes need it
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+    _ROS_ERROR: BaseException | None = None
+except (ImportError, OSError) as _exc:  # pragma: no cover - exercised by a subprocess test
+    rclpy = None  # type: ignore[assignment]
+    _ROS_ERROR = _exc
+
+from fms_msgs_json import KINDS, TOPIC_QOS, TOPICS, encode
+
+from .instance import InstanceError
+from .shop_service import Outgoing, ShopService
+
+__all__ = ["main", "ShopNode", "qos_profile", "spin_until_shutdown", "ros_unavailable", "StartupError",
+           "TopicIO", "write_atomically"]
+
+NODE_NAME = "fms_shop"
+
+
+class StartupError(ValueError):
+    """A node cannot start (bad parameter, unknown instance or solver): one line, exit code 2."""
+
+
+def ros_unavailable(prog: str) -> str | None:
+    """The one-line error to print if rclpy cannot be imported, else None."""
+    if _ROS_ERROR is None:
+        return None
+    return (f"{prog}: error: ROS 2 (rclpy) is not available ({_ROS_ERROR}); install the extra "
+            f"`pip install 'fms[ros]'` (ros-rclpy[fastrtps], ros-std-msgs) or source a ROS 2 installation")
+
+
+def qos_profile(kind: str) -> "QoSProfile":
+    """The rclpy QoS profile for the topic of message ``kind`` (from ``fms_msgs_json.TOPIC_QOS``)."""
+    q = TOPIC_QOS[kind]
+    return QoSProfile(depth=q.depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if q.latched else DurabilityPolicy.VOLATILE)
+
+
+class TopicIO:
+    """Publishers for some message kinds and a ``publish(outgoing)`` that encodes, sends and logs errors."""
+
+    def __init__(self, node: Any, kinds: Iterable[str]) -> None:
+        self.node = node
+        self.pubs = {TOPICS[k]: node.create_publisher(String, TOPICS[k], qos_profile(k)) for k in kinds}
+
+    def subscribe(self, kind: str, callback: Callable[[str], None]) -> Any:
+        """Subscribe to the topic of ``kind`` with its QoS; ``callback`` gets the message text."""
+        assert kind in KINDS
+        return self.node.create_subscription(String, TOPICS[kind], lambda m: callback(m.data), qos_profile(kind))
+
+    def publish(self, out: Sequence[Outgoing]) -> None:
+        log = self.node.get_logger()
+        for topic, msg in out:
+            self.pubs[topic].publish(String(data=encode(msg, check=False)))  # built (and checked) by make_*
+            if msg["schema"] == "fms/error/v1":
+                log.error(f"[{msg['code']}] {msg['message']}")
+
+    def matched(self, topic: str) -> int:
+        """How many subscribers the publisher on ``topic`` is matched with."""
+        return self.pubs[topic].get_subscription_count()
+
+
+def param(node: Any, name: str, default: Any) -> Any:
+    """Declare a parameter and return its value; a value of the wrong type is a :class:`StartupError`."""
+    try:
+        return node.declare_parameter(name, default).value
+    except Exception as exc:  # rclpy raises several exception types for bad overrides
+        kind = {bool: "a boolean (true/false)", int: "an integer", float: "a number", str: "a string"}.get(
+            type(default), type(default).__name__)
+        raise StartupError(f"parameter {name!r} must be {kind}: {exc}") from None
+
+
+def write_atomically(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` via a temporary file and a rename (a watcher never sees half a file)."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", dir=str(out.parent))
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual permissions
+    os.replace(tmp, out)
+    return out
+
+
+class ShopNode:
+    """The shop simulator node (see the module docstring)."""
+
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        self.node = rclpy.create_node(node_name, start_parameter_services=False)
+        try:
+            self._setup()
+        except BaseException:
+            self.node.destroy_node()
+            raise
+
+    def _setup(self) -> None:
+        from .formats import load_instance
+
+        n = self.node
+        spec = param(n, "instance", "")
+        layout = param(n, "layout", 0)
+        agvs = param(n, "agvs", 0)
+        tts = param(n, "tool_transporters", 0)
+        no_tools = param(n, "no_tools", False)
+        no_agvs = param(n, "no_agvs", False)
+        run_id = param(n, "run_id", "")
+        features = param(n, "features", True)
+        self.schedule_out = param(n, "schedule_out", "")
+        self.instance_out = param(n, "instance_out", "")
+        if not spec:
+            raise StartupError("parameter 'instance' is required (a built-in name such as EX12, or a file): "
+                               "--ros-args -p instance:=EX12")
+        try:
+            inst = load_instance(spec, layout=layout or None, agvs=agvs or None, tool_transporters=tts or None,
+                                 no_tools=no_tools, no_agvs=no_agvs)
+        except (InstanceError, OSError) as exc:
+            raise StartupError(str(exc).splitlines()[0]) from None
+        self.service = ShopService(inst, run_id=run_id or None, features=features)
+        self.io = TopicIO(n, ["state", "event", "schedule", "error"])
+        self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
+        self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))
+        self.io.subscribe("replay_request", lambda t: self._handle(self.service.handle_replay, t))
+        self._written = False
+        n.get_logger().info(f"run {self.service.run_id}: {inst.describe()}")
+        self.io.publish(self.service.start())
+        self._after()
+
+    def _handle(self, fn: Callable[[str], list[Outgoing]], text: str) -> None:
+        try:
+            out = fn(text)
+        except Exception as exc:  # a bug must not take the shop down: report it and keep serving
+            out = self.service.handle_bad_text(text, exc)
+        self.io.publish(out)
+        self._after()
+
+    def _after(self) -> None:
+        svc = self.service
+        if not svc.done or self._written:
+            return
+        self._written = True
+        sched = svc.final_schedule
+        assert sched is not None
+        for path, text in ((self.instance_out, svc.instance.to_json(indent=1)), (self.schedule_out, sched.to_json())):
+            if path:
+                try:
+                    write_atomically(path, text + "\n")
+                except OSError as exc:  # the run is still served (replays); say why the file is missing
+                    self.node.get_logger().error(f"cannot write {path}: {exc}")
+        self.node.get_logger().info(
+            f"run {svc.run_id} complete: makespan {sched.makespan}, {svc.decisions} decisions, "
+            f"{len(svc.events)} events, {len(svc.orders)} orders, {svc.wall_time or 0:.3f} s")
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def _ignore_stop_signals() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
+    """Spin ``node`` until SIGINT/SIGTERM, then ``close()`` and shut rclpy down; returns exit code 0.
+
+    Two rclpy behaviours are absorbed here (both seen with Fast DDS when several nodes stop at once): a
+    message arriving while the context shuts down can make the executor raise (``RuntimeError`` in
+    ``take_message``), and the stop signal can be delivered a second time — during ``close()`` or while the
+    interpreter finalises, where it would kill a cleanly stopped node with -SIGINT. Once the node is
+    stopping, further stop signals are therefore ignored.
+    """
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+    finally:
+        _ignore_stop_signals()
+        try:
+            close()
+        finally:
+            rclpy.try_shutdown()
+            _ignore_stop_signals()  # try_shutdown may restore the handlers rclpy replaced
+    return 0
+
+
+def run_node(prog: str, factory: Callable[[], Any], argv: Sequence[str] | None) -> int:
+    """Shared ``main`` of the fms nodes: init rclpy with ``argv``, build the node object (a
+    :class:`StartupError` → one line on stderr, exit 2), spin until shutdown."""
+    problem = ros_unavailable(prog)
+    if problem:
+        print(problem, file=sys.stderr)
+        return 2
+    rclpy.init(args=list(sys.argv if argv is None else argv))
+    try:
+        obj = factory()
+    except StartupError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rclpy.try_shutdown()
+        return 0
+    return spin_until_shutdown(obj.node, obj.close)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``fms-shop`` / ``ros2 run fms_sim shop`` / ``python -m fms_sim.shop_node``."""
+    return run_node("fms-shop", ShopNode, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,357 @@
+"""The shop simulator node's logic, without ROS: decoded messages in, messages to publish out.
+
+:class:`ShopService` owns one run of the shop net (:class:`fms_sim.shop.Shop`). The ROS node
+(:mod:`fms_sim.shop_node`) only moves text between topics and this class, so every rule below is tested without
+rclpy:
+
+* **States.** After every step the service publishes an ``fms/state/v1`` numbered ``seq`` (0, 1, ...) with the
+  action labels, the mask and — unless disabled — the ``features`` that dispatching rules read (per job: entry,
+  operation counts, next duration, remaining and total work, ready time; per vehicle: location, free time,
+  work; the pending AGV / tool-transport request with every vehicle's empty travel to its pickup). An agent
+  therefore decides from the message alone and needs no twin of the shop.
+* **Commands.** A command is applied only if it names this run, answers the *current* state and picks an
+  action that state enables; anything else (malformed JSON, wrong schema, unknown run, stale or unknown state
+  number, unknown or masked action) is answered with an ``fms/error/v1`` and leaves the shop untouched.
+* **Events.** The shop's records (operations, AGV trips, tool trips) become ``*_start``/``*_end`` events in
+  time order; an event is published once the simulation clock has reached its time (all remaining ones when
+  the run ends). ``*_end`` events carry ``start`` too, so the recorder can rebuild the schedule from events
+  alone. Events are numbered per run and kept, so a replay request can re-publish them.
+* **Orders.** A valid order joins the running net as new jobs (:meth:`Shop.add_jobs`) at the current time,
+  is announced by an ``order_accepted`` event and a new state; an order id is accepted once. Invalid orders
+  (unknown machine or tool, bad duration, finished run) are rejected with a ``bad_order`` (or schema) error.
+* **End.** When the last job is done the service publishes the remaining events, ``run_end``, a final state
+  (``done``, ``makespan``) and the schedule (``fms/schedule/v1``) whose ``meta`` names the run, the agent,
+  the number of decisions, the accepted orders, ``wall_time`` (seconds from the first state to the end,
+  waiting for the agent included) and ``decision_time`` (from the first applied command to the end).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import re
+import time
+import uuid
+from typing import Any, Callable, NamedTuple
+
+from fms_msgs_json import (
+    TOPIC_ERRORS, TOPIC_EVENTS, TOPIC_SCHEDULE, TOPIC_STATE, MessageError, decode, error_reply, make_error,
+    make_event, make_schedule, make_state,
+)
+
+from .instance import Instance, InstanceError, Operation
+from .petri import InvalidAction
+from .schedule import Schedule
+from .shop import Shop
+
+__all__ = ["Outgoing", "ShopService", "shop_features", "new_run_id"]
+
+SOURCE = "fms_shop"
+
+
+class Outgoing(NamedTuple):
+    """One message to publish: the topic and the (already validated) message dict."""
+
+    topic: str
+    msg: dict[str, Any]
+
+
+def new_run_id(instance_name: str) -> str:
+    """A fresh run id: ``<instance>-<UTC time>-<6 hex digits>`` (unique enough for logs and databases)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", instance_name) or "run"
+    return f"{safe}-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}-{uuid.uuid4().hex[:6]}"
+
+
+class _JobTable:
+    """Per-job constants the features need (operation counts, total work, suffix sums), extended on orders."""
+
+    def __init__(self) -> None:
+        self.n_ops: list[int] = []
+        self.total: list[int] = []
+        self.suffix: list[list[int]] = []   # suffix[j][k] = sum of durations of operations k.. of job j
+
+    def sync(self, jobs: tuple[tuple[Operation, ...], ...]) -> None:
+        for ops in jobs[len(self.n_ops):]:
+            suffix = [0] * (len(ops) + 1)
+            for k in range(len(ops) - 1, -1, -1):
+                suffix[k] = suffix[k + 1] + ops[k].duration
+            self.n_ops.append(len(ops))
+            self.total.append(suffix[0])
+            self.suffix.append(suffix)
+
+
+def shop_features(shop: Shop, table: _JobTable | None = None) -> dict[str, Any]:
+    """The ``features`` object of a state message (see docs/ros.md): what dispatching rules read.
+
+    ``table`` caches per-job constants between calls (pass the same one for the same shop).
+    """
+    inst = shop.instance
+    if table is None:
+        table = _JobTable()
+    table.sync(inst.jobs)
+    jobs = inst.jobs
+    next_op = [shop.next_op(j) for j in range(shop.n_jobs)]
+    jobs_cols = {
+        "entry": list(shop.job_entry),
+        "n_ops": list(table.n_ops),
+        "next_op": next_op,
+        "next_duration": [jobs[j][k].duration if k < table.n_ops[j] else 0 for j, k in enumerate(next_op)],
+        "remaining_work": [table.suffix[j][k] for j, k in enumerate(next_op)],
+        "total_work": list(table.total),
+        "ready_since": list(shop.job_ready_since),
+    }
+    out: dict[str, Any] = {
+        "jobs": jobs_cols,
+        "agvs": {"loc": list(shop.agv_loc), "free_at": list(shop.agv_free_at), "work": list(shop.agv_work)},
+        "transporters": {"loc": list(shop.tt_loc), "free_at": list(shop.tt_free_at), "work": list(shop.tt_work)},
+        "agv_request": None,
+        "tt_request": None,
+    }
+    req = shop.awaiting_agv()
+    if req is not None:
+        j, k, pickup, machine, _ = req
+        travel = inst.agv_travel
+        out["agv_request"] = {"job": j, "op": k, "pickup": pickup, "to": machine,
+                              "empty_travel": [travel[loc][pickup] for loc in shop.agv_loc]}
+    treq = shop.awaiting_transporter()
+    if treq is not None:
+        tool, tloc, j, k, machine, _ = treq
+        travel = inst.tool_travel
+        out["tt_request"] = {"tool": tool, "job": j, "op": k, "pickup": tloc, "to": machine,
+                             "empty_travel": [travel[loc][tloc] for loc in shop.tt_loc]}
+    return out
+
+
+class _EventQueue:
+    """Turns the shop's growing records into time-ordered start/end events.
+
+    Records are appended by the shop when an operation starts or a vehicle is dispatched; their end (and for
+    a loaded trip after an empty one, their start) lies in the future. Events wait in a heap until the clock
+    reaches them. At one time, ends of earlier-started activities come first, then starts, then the ends of
+    zero-length activities (so every end follows its own start).
+    """
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[int, int, int, str, dict[str, Any]]] = []
+        self._count = itertools.count()
+        self._seen = [0, 0, 0]  # records of rec.ops, rec.agv, rec.tt already queued
+
+    def _push(self, start: int, end: int, kind: str, data: dict[str, Any]) -> None:
+        heapq.heappush(self._heap, (start, 1, next(self._count), f"{kind}_start", data))
+        heapq.heappush(self._heap, (end, 0 if end > start else 2, next(self._count), f"{kind}_end",
+                                    dict(data, start=start)))
+
+    def collect(self, shop: Shop) -> None:
+        """Queue the start and end events of every record the shop added since the last call."""
+        rec = shop.rec
+        for r in rec.ops[self._seen[0]:]:
+            self._push(r.start, r.end, "op", {"job": r.job, "op": r.op, "machine": r.machine, "tool": r.tool})
+        for t in rec.agv[self._seen[1]:]:
+            self._push(t.start, t.end, "agv_trip", {"agv": t.agv, "job": t.job, "op": t.op, "from": t.from_,
+                                                    "to": t.to, "loaded": t.loaded})
+        for t in rec.tt[self._seen[2]:]:
+            self._push(t.start, t.end, "tool_trip", {"transporter": t.transporter, "tool": t.tool, "job": t.job,
+                                                     "op": t.op, "from": t.from_, "to": t.to, "loaded": t.loaded})
+        self._seen = [len(rec.ops), len(rec.agv), len(rec.tt)]
+
+    def due(self, until: int | None) -> list[tuple[int, str, dict[str, Any]]]:
+        """Pop the events with time ``<= until`` (all of them if ``until`` is None), in order."""
+        out = []
+        heap = self._heap
+        while heap and (until is None or heap[0][0] <= until):
+            t, _, _, kind, data = heapq.heappop(heap)
+            out.append((t, kind, data))
+        return out
+
+
+class ShopService:
+    """One run of the shop simulator, driven by decoded messages (see the module docstring).
+
+    Every ``handle_*`` method takes the raw text of a received message and returns the :class:`Outgoing`
+    messages to publish, in order. Nothing here raises on bad input: failures become ``fms/error/v1``
+    messages on ``fms/errors``.
+    """
+
+    def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
+                 features: bool = True, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.shop = Shop(instance)
+        self.run_id = run_id or new_run_id(instance.name)
+        self.source = source
+        self.with_features = features
+        self._clock = clock
+        self._table = _JobTable()
+        self._queue = _EventQueue()
+        self.events: list[dict[str, Any]] = []          # every event of the run, by seq
+        self.state: dict[str, Any] | None = None         # the latest published state
+        self.state_seq = -1
+        self.decisions = 0
+        self.orders: dict[str, list[int]] = {}            # accepted order id -> its job numbers
+        self.agents: list[str] = []                       # agent names seen in applied commands, in order
+        self.final_schedule: Schedule | None = None
+        self._schedule_msg: dict[str, Any] | None = None
+        self._started_at: float | None = None
+        self._first_command_at: float | None = None
+        self.wall_time: float | None = None
+        self.decision_time: float | None = None
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def instance(self) -> Instance:
+        """The instance as it is now (it grows when orders are accepted)."""
+        return self.shop.instance
+
+    @property
+    def done(self) -> bool:
+        return self.shop.done
+
+    # ------------------------------------------------------------------ entry points
+    def start(self) -> list[Outgoing]:
+        """The opening messages of the run: ``run_start``, any events at time 0, and state 0."""
+        if self.state is not None:
+            raise RuntimeError("the run has already started")
+        self._started_at = self._clock()
+        out = [self._event(0, "run_start", {"instance": self.instance.name})]
+        return out + self._after_step()
+
+    def handle_command(self, text: str) -> list[Outgoing]:
+        """Apply a command if it answers the current state with an enabled action; else an error."""
+        try:
+            msg = decode(text, expect="command")
+        except MessageError as exc:
+            return [self._error_reply(exc, text)]
+        if msg["run_id"] != self.run_id:
+            return [self._error("unknown_run", f"command names run {msg['run_id']!r} but this shop runs "
+                                               f"{self.run_id!r}", text)]
+        seq, label = msg["state_seq"], msg["action"]
+        if self.done:
+            return [self._error("stale_state", f"command answers state {seq} but the run is complete (final "
+                                               f"state {self.state_seq}); no command is accepted", text)]
+        if seq < self.state_seq:
+            return [self._error("stale_state", f"command answers state {seq} but the current state is "
+                                               f"{self.state_seq}", text)]
+        if seq > self.state_seq:
+            return [self._error("stale_state", f"command answers state {seq}, which was never published "
+                                               f"(the current state is {self.state_seq})", text)]
+        assert self.state is not None
+        actions, mask = self.state["actions"], self.state["mask"]
+        try:
+            index = actions.index(label)
+        except ValueError:
+            return [self._error("forbidden_action", f"action {label!r} is not an action of state {seq} "
+                                                    f"(labels: {_short_list(actions)})", text)]
+        if not mask[index]:
+            enabled = [a for a, m in zip(actions, mask) if m]
+            return [self._error("forbidden_action", f"action {label!r} is not enabled in state {seq} "
+                                                    f"(enabled: {_short_list(enabled)})", text)]
+        if self._first_command_at is None:
+            self._first_command_at = self._clock()
+        try:
+            self.shop.act(index)
+        except InvalidAction as exc:  # the mask said yes: only a net bug can get here
+            return [self._error("internal", f"the shop refused enabled action {label!r}: {exc}", text)]
+        self.decisions += 1
+        agent = msg.get("agent")
+        if agent and (not self.agents or self.agents[-1] != agent):
+            self.agents.append(agent)
+        return self._after_step()
+
+    def handle_order(self, text: str) -> list[Outgoing]:
+        """Add an order's jobs to the running net now; reject invalid, duplicate or late orders."""
+        try:
+            msg = decode(text, expect="order")
+        except MessageError as exc:
+            return [self._error_reply(exc, text)]
+        oid = msg["order_id"]
+        target = msg.get("run_id")
+        if target is not None and target != self.run_id:
+            return [self._error("unknown_run", f"order {oid!r} is for run {target!r} but this shop runs "
+                                               f"{self.run_id!r}", text)]
+        if oid in self.orders:
+            return [self._error("bad_order", f"order {oid!r} was already accepted (jobs "
+                                             f"{_short_list(self.orders[oid])}); an order id is accepted once", text)]
+        if self.done:
+            return [self._error("bad_order", f"order {oid!r} arrived after run {self.run_id!r} completed; "
+                                             "start a new run for it", text)]
+        try:
+            jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops] for ops in msg["jobs"]]
+            ids = self.shop.add_jobs(jobs)
+        except (InstanceError, InvalidAction) as exc:
+            return [self._error("bad_order", f"order {oid!r} rejected: {exc}", text)]
+        self.orders[oid] = ids
+        out = [self._event(self.shop.now, "order_accepted", {"order_id": oid, "jobs": ids})]
+        return out + self._after_step()
+
+    def handle_replay(self, text: str) -> list[Outgoing]:
+        """Re-publish this run's events from ``from_seq`` on (and the schedule if the run is complete)."""
+        try:
+            msg = decode(text, expect="replay_request")
+        except MessageError as exc:
+            return [self._error_reply(exc, text)]
+        if msg["run_id"] not in ("*", self.run_id):
+            return [self._error("unknown_run", f"replay requested for run {msg['run_id']!r} but this shop runs "
+                                               f"{self.run_id!r}", text)]
+        out = [Outgoing(TOPIC_EVENTS, e) for e in self.events[msg["from_seq"]:]]
+        if self._schedule_msg is not None:
+            out.append(Outgoing(TOPIC_SCHEDULE, self._schedule_msg))
+        return out
+
+    def handle_bad_text(self, text: str, exc: BaseException) -> list[Outgoing]:
+        """An error for a failure outside the handlers (the node calls this if a handler crashed)."""
+        return [self._error_reply(exc, text)]
+
+    # ------------------------------------------------------------------ internals
+    def _event(self, t: int, kind: str, data: dict[str, Any]) -> Outgoing:
+        msg = make_event(self.run_id, len(self.events), t, kind, data)
+        self.events.append(msg)
+        return Outgoing(TOPIC_EVENTS, msg)
+
+    def _after_step(self) -> list[Outgoing]:
+        """The new state, then the events that became due (at the end: the final state, the remaining events,
+        run_end and the schedule). The state goes first: it is what the agent waits for, and DDS keeps no
+        order between topics anyway."""
+        shop = self.shop
+        self._queue.collect(shop)
+        done = shop.done
+        events = [self._event(t, kind, data) for t, kind, data in self._queue.due(None if done else shop.now)]
+        if done:
+            end_time = max(shop.makespan, self.events[-1]["time"])
+            events.append(self._event(end_time, "run_end", {"makespan": shop.makespan}))
+        out = [Outgoing(TOPIC_STATE, self._new_state())] + events
+        if done:
+            end = self._clock()
+            self.wall_time = end - (self._started_at or end)
+            self.decision_time = end - (self._first_command_at or end)
+            sched = shop.schedule()
+            sched.meta.update(run_id=self.run_id, decisions=self.decisions, orders=dict(self.orders),
+                              wall_time=round(self.wall_time, 4), decision_time=round(self.decision_time, 4))
+            if self.agents:
+                sched.meta["solver"] = self.agents[-1] if len(self.agents) == 1 else "+".join(self.agents)
+            self.final_schedule = sched
+            self._schedule_msg = make_schedule(self.run_id, sched)
+            out.append(Outgoing(TOPIC_SCHEDULE, self._schedule_msg))
+        return out
+
+    def _new_state(self) -> dict[str, Any]:
+        shop = self.shop
+        self.state_seq += 1
+        done = shop.done
+        features = shop_features(shop, self._table) if self.with_features and not done else None
+        self.state = make_state(self.run_id, self.state_seq, shop.now, shop.net.marking(), shop.action_labels(),
+                                shop.action_mask() if not done else [False] * shop.n_actions, done,
+                                instance=shop.instance.name, makespan=shop.makespan if done else None,
+                                features=features)
+        return self.state
+
+    def _error(self, code: str, message: str, received: str | None) -> Outgoing:
+        return Outgoing(TOPIC_ERRORS, make_error(self.source, code, message, run_id=self.run_id, received=received))
+
+    def _error_reply(self, exc: BaseException, received: str | None) -> Outgoing:
+        return Outgoing(TOPIC_ERRORS, error_reply(self.source, exc, received=received, run_id=self.run_id))
+
+
+def _short_list(items: list[Any], limit: int = 12) -> str:
+    """``a, b, c`` (at most ``limit`` items, then ``... (N in all)``) for one-line error messages."""
+    shown = ", ".join(str(x) for x in items[:limit])
+    if len(items) > limit:
+        shown += f", ... ({len(items)} in all)"
+    return shown or "none"

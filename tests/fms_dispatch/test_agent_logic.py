@@ -1,0 +1,154 @@
+"""AgentLogic (the agent node's logic, no ROS): rules on state features decide exactly like RulePolicy."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import fms_msgs_json as m
+from fms_msgs_json import decode, encode
+from fms_dispatch.agent_logic import (
+    FEATURE_JOB_KEYS, AgentLogic, DecisionError, UnavailableSolver, legal_labels, make_decider,
+)
+from fms_dispatch.rules import JOB_RULES, RulePolicy, all_rule_pairs
+from fms_dispatch.solvers import solve
+from fms_sim import validate
+from fms_sim.benchmarks import builtin
+from fms_sim.shop_service import ShopService
+
+
+def drive(instance_name: str, solver: str, seed: int = 0, check_policy: RulePolicy | None = None) -> ShopService:
+    """Run the shop service with the agent logic over encoded messages; optionally compare every decision
+    with ``check_policy`` on the live shop."""
+    svc = ShopService(builtin(instance_name), run_id="r")
+    agent = AgentLogic(solver, seed=seed)
+    out = svc.start()
+    while not svc.done:
+        (state,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
+        (cmd,) = agent.on_state(encode(state))
+        assert cmd.topic == m.TOPIC_COMMAND and cmd.msg["agent"] == agent.name
+        if check_policy is not None:
+            assert svc.shop.action_labels()[check_policy(svc.shop)] == cmd.msg["action"]
+        out = svc.handle_command(encode(cmd.msg))
+        assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+    assert agent.on_state(encode(svc.state)) == []            # the final state needs no answer
+    return svc
+
+
+@pytest.mark.parametrize("name", ["EX12", "ra01"])
+def test_every_rule_pair_matches_the_offline_rule_solver(name: str) -> None:
+    for rule in all_rule_pairs(include_nearest=True):
+        svc = drive(name, rule, check_policy=RulePolicy(*rule.split(":")[1].split("+")))
+        ref = solve(builtin(name), rule)
+        assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"], rule
+        assert svc.final_schedule.makespan == ref.makespan
+        assert validate(svc.instance, svc.final_schedule) == []
+
+
+@pytest.mark.parametrize("rule", ["rule:SPTN+nearest", "rule:LWT+least-work", "rule:MTWR+first"])
+def test_rules_on_a_large_instance(rule: str) -> None:
+    svc = drive("sl00", rule, check_policy=RulePolicy(*rule.split(":")[1].split("+")))
+    assert svc.final_schedule.makespan == solve(builtin("sl00"), rule).makespan
+
+
+def test_every_job_key_equals_the_rule_key_on_live_states() -> None:
+    assert set(FEATURE_JOB_KEYS) == set(JOB_RULES)
+    svc = ShopService(builtin("sl00"), run_id="r")
+    svc.start()
+    agent = AgentLogic("rule:LPSR+nearest")
+    steps = 0
+    while not svc.done:
+        cols, shop = svc.state["features"]["jobs"], svc.shop
+        if steps % 25 == 0:
+            for name, key in JOB_RULES.items():
+                for j in range(shop.n_jobs):
+                    if shop.next_op(j) < len(shop.instance.jobs[j]):
+                        assert FEATURE_JOB_KEYS[name](cols, j) == key(shop, j), (name, j)
+        (cmd,) = agent.on_state(encode(svc.state))
+        svc.handle_command(encode(cmd.msg))
+        steps += 1
+
+
+def test_first_and_random() -> None:
+    svc = drive("ra01", "first")
+    assert svc.final_schedule.to_dict()["operations"] == solve(builtin("ra01"), "first").to_dict()["operations"]
+    a, b = drive("EX12", "random", seed=3), drive("EX12", "random", seed=3)
+    assert a.final_schedule.to_dict()["operations"] == b.final_schedule.to_dict()["operations"]
+    assert a.final_schedule.to_dict()["agv_trips"] == b.final_schedule.to_dict()["agv_trips"]
+    assert validate(a.instance, a.final_schedule) == []
+
+
+@pytest.mark.parametrize("solver, needle", [
+    ("ppo", "solver 'ppo' is not available: the PPO agent is not part of this build"),
+    ("ppo:models/bu.zip", "solver 'ppo:models/bu.zip' is not available"),
+    ("lookahead", "the lookahead agent is not part of this build"),
+    ("cpsat", "plans a whole schedule offline"),
+    ("sos", "plans a whole schedule offline"),
+    ("magic", "unknown solver 'magic'; the agent node accepts first, random, rule:<JOB>+"),
+    ("rule:XYZ", "unknown job rule 'XYZ'"),
+    ("rule:FIFO+fastest", "unknown vehicle rule 'fastest'"),
+    ("  ", "a solver must be named"),
+])
+def test_unavailable_solvers(solver: str, needle: str) -> None:
+    with pytest.raises(UnavailableSolver) as info:
+        AgentLogic(solver)
+    assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+def test_names_are_canonical() -> None:
+    assert make_decider("rule:mtwr+NEAREST")[1] == "rule:MTWR+nearest"
+    assert make_decider("rule:SPT")[1] == "rule:SPT+first"
+    assert make_decider("FIRST")[1] == "first"
+
+
+def test_each_state_is_answered_once() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    agent = AgentLogic("first")
+    s0 = encode(svc.state)
+    assert agent.waiting_for() is None
+    (cmd,) = agent.on_state(s0)
+    assert cmd.msg == m.make_command("r", 0, "job:0", agent="first")
+    assert agent.waiting_for() == ("r", 0)
+    assert agent.on_state(s0) == []                           # a latched state delivered again
+    svc.handle_command(encode(cmd.msg))
+    s1 = encode(svc.state)
+    assert len(agent.on_state(s1)) == 1 and agent.on_state(s0) == []   # an older state is ignored
+    other = ShopService(builtin("EX12"), run_id="r2")          # a new run starts from seq 0 again
+    other.start()
+    assert len(agent.on_state(encode(other.state))) == 1 and agent.decisions == 3
+
+
+def test_undecidable_states_give_errors() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r", features=False)
+    svc.start()
+    agent = AgentLogic("rule:SPT+first")
+    (err,) = agent.on_state(encode(svc.state))
+    assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "bad_schema"
+    assert "state 0 has no 'features'; rule:SPT+first needs them" in err.msg["message"]
+    assert err.msg["run_id"] == "r" and agent.waiting_for() is None
+    assert len(AgentLogic("first").on_state(encode(svc.state))) == 1   # 'first' needs no features
+    state = json.loads(encode(svc.state))
+    state["mask"] = [False] * len(state["mask"])
+    (err,) = AgentLogic("first").on_state(json.dumps(state))
+    assert "state 0 enables no action" in err.msg["message"]
+    (err,) = agent.on_state("not json")
+    assert err.msg["code"] == "malformed_json" and err.msg["source"] == "fms_agent"
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    state = json.loads(encode(svc.state))
+    for col in state["features"]["jobs"].values():
+        col.pop()                                              # features cover 4 jobs, 5 are offered
+    (err,) = AgentLogic("rule:SPT+first").on_state(json.dumps(state))
+    assert "features and actions disagree" in err.msg["message"]
+
+
+def test_legal_labels() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    assert legal_labels(decode(encode(svc.state))) == ["job:0", "job:1", "job:2", "job:3", "job:4"]
+    bad = json.loads(encode(svc.state))
+    bad["actions"][0] = "crane:0"
+    with pytest.raises(DecisionError, match="'crane:0'"):
+        legal_labels(bad)

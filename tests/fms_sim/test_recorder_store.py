@@ -1,0 +1,198 @@
+"""RecorderStore and Recorder (the recorder node's logic, no ROS): dedup, gaps, replays, restart, Gantt."""
+
+from __future__ import annotations
+
+import random
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import fms_msgs_json as m
+from fms_msgs_json import decode, encode
+from fms_sim import validate
+from fms_sim.benchmarks import builtin
+from fms_sim.recorder_store import Recorder, RecorderStore, gantt_path
+from fms_sim.schedule import Schedule
+from fms_sim.shop_service import ShopService
+
+
+def finished_run(name: str = "ra01", run_id: str = "run-1") -> ShopService:
+    """A complete run of the shop service (lowest enabled action each time)."""
+    svc = ShopService(builtin(name), run_id=run_id)
+    svc.start()
+    while not svc.done:
+        label = next(a for a, ok in zip(svc.state["actions"], svc.state["mask"]) if ok)
+        svc.handle_command(encode(m.make_command(run_id, svc.state_seq, label)))
+    return svc
+
+
+def texts(svc: ShopService) -> tuple[list[str], str]:
+    assert svc.final_schedule is not None
+    return [encode(e) for e in svc.events], encode(m.make_schedule(svc.run_id, svc.final_schedule))
+
+
+def fake_renderer(calls: list) -> Any:
+    def render(schedule: Schedule, path: Path) -> None:
+        calls.append((schedule.makespan, path))
+        Path(path).write_bytes(b"png")
+    return render
+
+
+def same_schedule(a: Schedule, b: Schedule) -> bool:
+    da, db = a.to_dict(), b.to_dict()
+    return all(da[k] == db[k] for k in ("instance", "makespan", "n_agvs", "n_tool_transporters", "operations",
+                                        "agv_trips", "tool_trips"))
+
+
+# ------------------------------------------------------------------------------------------------ the store
+def test_store_dedups_events_and_schedules(tmp_path: Path) -> None:
+    svc = finished_run()
+    store = RecorderStore(tmp_path / "log.sqlite")
+    assert store.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    for e in svc.events + svc.events[::-1]:
+        store.add_event(e)
+    assert store.event_seqs("run-1") == list(range(len(svc.events)))
+    assert store.add_event(svc.events[3]) is False
+    assert store.add_schedule("run-1", svc.final_schedule.to_dict()) is True
+    assert store.add_schedule("run-1", svc.final_schedule.to_dict()) is False
+    assert store.end_seq("run-1") == len(svc.events) - 1 and store.is_complete("run-1")
+    stored = store.events("run-1")
+    assert [(e["seq"], e["time"], e["kind"], e["data"]) for e in stored] == \
+        [(e["seq"], e["time"], e["kind"], e["data"]) for e in svc.events]
+    assert store.run_ids() == ["run-1"]
+    assert same_schedule(store.schedule("run-1"), svc.final_schedule)
+    rebuilt = store.schedule_from_events("run-1")
+    assert same_schedule(rebuilt, svc.final_schedule) and validate(svc.instance, rebuilt) == []
+    store.close()
+    # durable: a new connection (a restarted recorder) sees everything, once
+    again = RecorderStore(tmp_path / "log.sqlite")
+    assert again.event_seqs("run-1") == list(range(len(svc.events))) and again.is_complete("run-1")
+    (n,) = sqlite3.connect(tmp_path / "log.sqlite").execute("SELECT COUNT(*) FROM events").fetchone()
+    assert n == len(svc.events)
+
+
+def test_store_incomplete_runs_and_errors(tmp_path: Path) -> None:
+    svc = finished_run("EX12")
+    store = RecorderStore(tmp_path / "sub" / "log.sqlite")      # the folder is created
+    for e in svc.events[:4] + svc.events[6:]:
+        store.add_event(e)
+    assert store.first_missing("run-1") == 4 and not store.is_complete("run-1")
+    store.add_schedule("run-1", svc.final_schedule.to_dict())
+    assert not store.is_complete("run-1")
+    with pytest.raises(ValueError, match="no run_end event"):
+        RecorderStore(tmp_path / "other.sqlite").schedule_from_events("run-1")
+    err = decode(encode(m.make_error("fms_shop", "bad_order", "order 'x' rejected", run_id="run-1",
+                                     received="{}")))
+    store.add_error(err)
+    store.add_error(err)
+    assert store.errors("run-1") == [{"source": "fms_shop", "code": "bad_order", "message": "order 'x' rejected",
+                                      "run_id": "run-1", "received": "{}"}] * 2
+    with pytest.raises(ValueError, match="cannot open the recorder database"):
+        RecorderStore(tmp_path)                                  # a folder, not a file
+
+
+def test_gantt_path_is_safe() -> None:
+    assert gantt_path("out", "EX12-2024-abc") == Path("out/EX12-2024-abc.gantt.png")
+    assert gantt_path("out", "../x y/z") == Path("out/_x_y_z.gantt.png")
+
+
+# ------------------------------------------------------------------------------------------------ the recorder
+def test_recorder_complete_run_renders_once(tmp_path: Path) -> None:
+    svc = finished_run()
+    events, schedule = texts(svc)
+    calls: list = []
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), renderer=fake_renderer(calls))
+    for t in events:
+        assert rec.handle_event(t, now=0.0) == []
+        assert rec.finish_ready() == []                          # no schedule yet
+    assert rec.handle_schedule(schedule, now=0.0) == []
+    png = tmp_path / "run-1.gantt.png"
+    assert rec.finish_ready() == [("run-1", png)]
+    assert calls == [(svc.final_schedule.makespan, tmp_path / "run-1.gantt.png.tmp.png")] and png.exists()
+    assert rec.store.gantt("run-1") == str(png)
+    assert rec.handle_schedule(schedule, now=1.0) == [] and rec.finish_ready() == [] and len(calls) == 1
+
+
+def test_recorder_asks_for_missing_events_and_retries(tmp_path: Path) -> None:
+    svc = finished_run()
+    events, schedule = texts(svc)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False, retry_s=1.0)
+    for t in events[:5]:
+        assert rec.handle_event(t, now=0.0) == []
+    out = rec.handle_event(events[8], now=0.1)                   # a gap: 5..7 missing
+    assert [(o.topic, o.msg) for o in out] == [(m.TOPIC_REPLAY, m.make_replay_request("run-1", 5, "fms_recorder"))]
+    assert rec.handle_event(events[9], now=0.2) == []            # asked recently: wait
+    assert rec.poll(now=0.5) == []
+    (again,) = rec.poll(now=1.2)                                 # still missing: ask again
+    assert again.msg["from_seq"] == 5
+    for t in events[5:8]:                                        # the replay arrives: duplicates are harmless
+        rec.handle_event(t, now=1.3)
+    for t in events[8:]:
+        rec.handle_event(t, now=1.4)
+    assert rec.missing_from("run-1") is None and rec.poll(now=9.0) == []
+    rec.handle_schedule(schedule, now=9.0)
+    assert rec.finish_ready() == [("run-1", None)]
+    assert rec.store.event_seqs("run-1") == list(range(len(events)))
+
+
+def test_recorder_schedule_before_the_last_events(tmp_path: Path) -> None:
+    svc = finished_run("EX12")
+    events, schedule = texts(svc)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    for t in events[:-3]:
+        rec.handle_event(t, now=0.0)
+    (ask,) = rec.handle_schedule(schedule, now=0.0)              # run over, run_end never seen
+    assert ask.msg == m.make_replay_request("run-1", len(events) - 3, "fms_recorder")
+    assert rec.finish_ready() == []
+    for t in events[-3:]:
+        rec.handle_event(t, now=0.1)
+    assert rec.finish_ready() == [("run-1", None)]
+
+
+def test_recorder_restart_resumes_from_the_database(tmp_path: Path) -> None:
+    svc = finished_run()
+    events, schedule = texts(svc)
+    db = tmp_path / "db.sqlite"
+    first = Recorder(RecorderStore(db), render=False)
+    for t in events[:10]:
+        first.handle_event(t, now=0.0)
+    first.store.close()                                          # killed: what it committed is kept
+    second = Recorder(RecorderStore(db), render=False)
+    assert second.startup_request().msg == m.make_replay_request("*", 0, "fms_recorder")
+    (ask,) = second.handle_event(events[15], now=0.0)            # joined mid-run: ask from the first missing
+    assert ask.msg["run_id"] == "run-1" and ask.msg["from_seq"] == 10
+    order = events[:] + [schedule]
+    random.Random(1).shuffle(order)
+    for t in order:                                              # the shop's replay, in any order, with repeats
+        (second.handle_schedule if '"fms/schedule/v1"' in t else second.handle_event)(t, now=5.0)
+    assert second.finish_ready() == [("run-1", None)]
+    store = second.store
+    assert store.event_seqs("run-1") == list(range(len(events)))
+    (n,) = store.db.execute("SELECT COUNT(*) FROM events WHERE run_id = 'run-1'").fetchone()
+    assert n == len(events)
+    assert same_schedule(store.schedule_from_events("run-1"), svc.final_schedule)
+
+
+def test_recorder_answers_bad_messages(tmp_path: Path) -> None:
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    (err,) = rec.handle_event("{oops", now=0.0)
+    assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "malformed_json" and err.msg["source"] == "fms_recorder"
+    (err,) = rec.handle_schedule('{"schema": "fms/schedule/v1", "run_id": "r", "schedule": {}}', now=0.0)
+    assert err.msg["code"] == "bad_schema"
+    (err,) = rec.handle_error('{"schema": "fms/event/v1"}')
+    assert err.msg["code"] == "bad_schema"
+    assert rec.store.run_ids() == []
+
+
+def test_recorder_renders_a_real_gantt_chart(tmp_path: Path) -> None:
+    svc = finished_run("EX12", run_id="EX12 run/1")
+    events, schedule = texts(svc)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), gantt_dir=tmp_path / "charts")
+    for t in events + [schedule]:
+        (rec.handle_schedule if '"fms/schedule/v1"' in t else rec.handle_event)(t, now=0.0)
+    ((run_id, png),) = rec.finish_ready()
+    assert run_id == "EX12 run/1" and png == tmp_path / "charts" / "EX12_run_1.gantt.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list((tmp_path / "charts").glob("*.tmp.png"))

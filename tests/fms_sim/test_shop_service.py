@@ -1,0 +1,374 @@
+"""ShopService (the shop node's logic, no ROS): states, commands, events, orders, replays and every rejection."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+import fms_msgs_json as m
+from fms_msgs_json import MessageError, decode, encode
+from fms_sim import Instance, Operation, validate
+from fms_sim.benchmarks import builtin
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.shop import Shop
+from fms_sim.shop_service import Outgoing, ShopService, new_run_id, shop_features
+
+T3 = [[0, 2, 6], [5, 0, 3], [4, 7, 0]]
+TT3 = [[0, 1, 2], [1, 0, 1], [2, 1, 0]]
+
+
+def by_topic(out: list[Outgoing], topic: str) -> list[dict[str, Any]]:
+    return [o.msg for o in out if o.topic == topic]
+
+
+def state_of(out: list[Outgoing]) -> dict[str, Any]:
+    (state,) = by_topic(out, m.TOPIC_STATE)
+    return state
+
+
+def first_label(state: dict[str, Any]) -> str:
+    return next(a for a, ok in zip(state["actions"], state["mask"]) if ok)
+
+
+def command(svc: ShopService, label: str | None = None, seq: int | None = None, run_id: str | None = None) -> str:
+    assert svc.state is not None
+    return encode(m.make_command(run_id or svc.run_id, svc.state_seq if seq is None else seq,
+                                 label or first_label(svc.state), agent="test"))
+
+
+def run_to_end(svc: ShopService) -> list[Outgoing]:
+    out: list[Outgoing] = []
+    while not svc.done:
+        step = svc.handle_command(command(svc))
+        assert not by_topic(step, m.TOPIC_ERRORS), step
+        out += step
+    return out
+
+
+def rebuild(events: list[dict[str, Any]], instance: str, n_agvs: int, n_tts: int) -> Schedule:
+    """A schedule from *_end events alone (the recorder's rule), to compare with the published one."""
+    ops, agv, tt = [], [], []
+    for e in events:
+        d = e["data"]
+        if e["kind"] == "op_end":
+            ops.append(OperationRecord(d["job"], d["op"], d["machine"], d["tool"], d["start"], e["time"]))
+        elif e["kind"] == "agv_trip_end":
+            agv.append(AgvTrip(d["agv"], d["job"], d["op"], d["from"], d["to"], d["start"], e["time"], d["loaded"]))
+        elif e["kind"] == "tool_trip_end":
+            tt.append(ToolTrip(d["transporter"], d["tool"], d["job"], d["op"], d["from"], d["to"], d["start"],
+                               e["time"], d["loaded"]))
+    return Schedule(instance, max(o.end for o in ops), n_agvs, n_tts, ops, agv, tt)
+
+
+# ------------------------------------------------------------------------------------------------ a full run
+@pytest.mark.parametrize("name", ["EX12", "ra01", "ta01"])
+def test_full_run_states_events_and_schedule(name: str) -> None:
+    inst = builtin(name)
+    svc = ShopService(inst, run_id="run-1")
+    out = svc.start()
+    events = by_topic(out, m.TOPIC_EVENTS)
+    assert events[0] == {"schema": "fms/event/v1", "run_id": "run-1", "seq": 0, "time": 0, "kind": "run_start",
+                         "data": {"instance": name}}
+    s0 = state_of(out)
+    assert (s0["seq"], s0["done"], s0["instance"], s0["makespan"]) == (0, False, name, None)
+    assert s0["actions"] == Shop(inst).action_labels() and s0["mask"] == Shop(inst).action_mask()
+    out += run_to_end(svc)
+    states = by_topic(out, m.TOPIC_STATE)
+    assert [s["seq"] for s in states] == list(range(len(states)))
+    assert len(states) == svc.decisions + 1
+    final = states[-1]
+    assert final["done"] and final["makespan"] == svc.shop.makespan and not any(final["mask"])
+    assert "features" not in final
+    (smsg,) = by_topic(out, m.TOPIC_SCHEDULE)
+    sched = Schedule.from_dict(decode(encode(smsg))["schedule"])
+    assert validate(inst, sched) == []
+    assert sched.makespan == final["makespan"]
+    assert sched.meta["run_id"] == "run-1" and sched.meta["decisions"] == svc.decisions
+    assert sched.meta["solver"] == "test" and sched.meta["orders"] == {}
+    # events: numbered 0.., in time order, every end after its start, and they rebuild the schedule exactly
+    events = by_topic(out, m.TOPIC_EVENTS)
+    assert events == svc.events
+    assert [e["seq"] for e in events] == list(range(len(events)))
+    assert [e["time"] for e in events] == sorted(e["time"] for e in events)
+    assert events[-1]["kind"] == "run_end" and events[-1]["data"] == {"makespan": sched.makespan}
+    n_ops = sum(len(j) for j in inst.jobs)
+    kinds = [e["kind"] for e in events]
+    assert kinds.count("op_start") == kinds.count("op_end") == n_ops
+    assert kinds.count("agv_trip_start") == kinds.count("agv_trip_end") == len(sched.agv_trips)
+    assert kinds.count("tool_trip_start") == kinds.count("tool_trip_end") == len(sched.tool_trips)
+    rebuilt = rebuild(events, name, sched.n_agvs, sched.n_tool_transporters)
+    assert rebuilt.to_dict()["operations"] == sched.to_dict()["operations"]
+    assert rebuilt.to_dict()["agv_trips"] == sched.to_dict()["agv_trips"]
+    assert rebuilt.to_dict()["tool_trips"] == sched.to_dict()["tool_trips"]
+    for e in events:
+        decode(encode(e))
+
+
+def test_events_are_published_when_the_clock_reaches_them() -> None:
+    # one AGV, J0: M1(4). State 0 at t=0: choose job 0 then AGV 0: loaded trip [0,2], op [2,6]
+    inst = Instance("agv", [[(1, 4)]], agv_travel=T3, n_agvs=1)
+    svc = ShopService(inst, run_id="r")
+    svc.start()
+    out = svc.handle_command(command(svc, "job:0"))
+    assert by_topic(out, m.TOPIC_EVENTS) == []          # nothing happened yet: the AGV decision is due at t=0
+    assert state_of(out)["mask"] == [False, True]
+    out = svc.handle_command(command(svc, "agv:0"))     # the run then completes: every event, in order
+    kinds = [(e["time"], e["kind"]) for e in by_topic(out, m.TOPIC_EVENTS)]
+    assert kinds == [(0, "agv_trip_start"), (2, "agv_trip_end"), (2, "op_start"), (6, "op_end"), (6, "run_end")]
+    trip_end = by_topic(out, m.TOPIC_EVENTS)[1]
+    assert trip_end["data"] == {"agv": 0, "job": 0, "op": 0, "from": 0, "to": 1, "loaded": True, "start": 0}
+
+
+def test_zero_length_operation_ends_after_it_starts() -> None:
+    inst = Instance("zero", [[(1, 0), (2, 3)], [(1, 2)]])
+    svc = ShopService(inst, run_id="r")
+    svc.start()
+    run_to_end(svc)
+    order = [(e["kind"], e["data"].get("job"), e["data"].get("op")) for e in svc.events]
+    assert order.index(("op_start", 0, 0)) < order.index(("op_end", 0, 0))
+    assert validate(inst, svc.final_schedule) == []
+
+
+def test_features_match_the_shop() -> None:
+    inst = Instance("both", [[(1, 1, 3), (2, None, 2)], [(2, 2, 4)]], agv_travel=T3, tool_travel=TT3, n_agvs=2,
+                    n_tool_transporters=1)
+    svc = ShopService(inst, run_id="r")
+    f = state_of(svc.start())["features"]
+    assert f["jobs"] == {"entry": [0, 1], "n_ops": [2, 1], "next_op": [0, 0], "next_duration": [3, 4],
+                         "remaining_work": [5, 4], "total_work": [5, 4], "ready_since": [0, 0]}
+    assert f["agvs"] == {"loc": [0, 0], "free_at": [0, 0], "work": [0, 0]}
+    assert f["transporters"] == {"loc": [0], "free_at": [0], "work": [0]}
+    assert f["agv_request"] is None and f["tt_request"] is None
+    f = state_of(svc.handle_command(command(svc, "job:0")))["features"]
+    assert f["jobs"]["next_op"] == [1, 0] and f["jobs"]["next_duration"] == [2, 4]
+    assert f["jobs"]["remaining_work"] == [2, 4]
+    assert f["agv_request"] == {"job": 0, "op": 0, "pickup": 0, "to": 1, "empty_travel": [0, 0]}
+    # the shop itself agrees at every decision of a whole run
+    svc = ShopService(builtin("ra01"), run_id="r")
+    svc.start()
+    while not svc.done:
+        f, shop = svc.state["features"], svc.shop
+        assert f == shop_features(shop)
+        for j in range(shop.n_jobs):
+            k = shop.next_op(j)
+            ops = shop.instance.jobs[j]
+            assert f["jobs"]["remaining_work"][j] == sum(o.duration for o in ops[k:])
+            assert f["jobs"]["next_duration"][j] == (ops[k].duration if k < len(ops) else 0)
+        if f["tt_request"] is not None:
+            tool, tloc, *_ = shop.awaiting_transporter()
+            assert (f["tt_request"]["tool"], f["tt_request"]["pickup"]) == (tool, tloc)
+            assert f["tt_request"]["empty_travel"] == [shop.instance.tool_travel[loc][tloc] for loc in shop.tt_loc]
+        svc.handle_command(command(svc))
+
+
+def test_features_can_be_switched_off() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r", features=False)
+    assert "features" not in state_of(svc.start())
+
+
+def test_features_schema_is_strict() -> None:
+    svc = ShopService(builtin("ra01"), run_id="r")
+    state = state_of(svc.start())
+    decode(encode(state))
+    bad = json.loads(encode(state))
+    bad["features"]["jobs"]["entry"].pop()
+    with pytest.raises(MessageError, match="'features.jobs.n_ops' has 5 entries but 'features.jobs.entry' has 4"):
+        decode(json.dumps(bad))
+    bad = json.loads(encode(state))
+    bad["features"]["agvs"]["work"] = [0, True]
+    with pytest.raises(MessageError, match=r"features.agvs.work\[1\]"):
+        decode(json.dumps(bad))
+    bad = json.loads(encode(state))
+    bad["features"]["agv_request"] = {"job": 0, "op": 0, "pickup": 0, "to": 1, "empty_travel": [0]}
+    with pytest.raises(MessageError, match="agv_request.empty_travel' has 1 entries but there are 2 agvs"):
+        decode(json.dumps(bad))
+    bad = json.loads(encode(state))
+    del bad["features"]["transporters"]
+    with pytest.raises(MessageError, match="missing required field 'features.transporters'"):
+        decode(json.dumps(bad))
+    bad = json.loads(encode(state))
+    bad["features"] = None                                   # optional: null is fine
+    decode(json.dumps(bad))
+
+
+# ------------------------------------------------------------------------------------------------ bad commands
+def snapshot(svc: ShopService) -> tuple:
+    return (svc.state_seq, svc.shop.now, svc.shop.net.marking(), len(svc.events), svc.decisions, svc.state)
+
+
+@pytest.mark.parametrize("text, code, needle", [
+    ("{not json", "malformed_json", "malformed JSON"),
+    ('{"schema": "fms/command/v2", "run_id": "r", "state_seq": 0, "action": "job:0"}', "bad_schema",
+     "unsupported schema version"),
+    ('{"schema": "fms/state/v1", "run_id": "r"}', "bad_schema", "expected"),
+    ('{"schema": "fms/command/v1", "run_id": "r", "state_seq": 0, "action": 0}', "bad_schema", "'action'"),
+    ('{"schema": "fms/command/v1", "run_id": "r", "state_seq": -1, "action": "job:0"}', "bad_schema", "state_seq"),
+    ('{"schema": "fms/command/v1", "run_id": "other", "state_seq": 0, "action": "job:0"}', "unknown_run",
+     "names run 'other'"),
+    ('{"schema": "fms/command/v1", "run_id": "r", "state_seq": 7, "action": "job:0"}', "stale_state",
+     "state 7, which was never published"),
+    ('{"schema": "fms/command/v1", "run_id": "r", "state_seq": 0, "action": "job:99"}', "forbidden_action",
+     "'job:99' is not an action of state 0"),
+    ('{"schema": "fms/command/v1", "run_id": "r", "state_seq": 0, "action": "agv:0"}', "forbidden_action",
+     "'agv:0' is not enabled in state 0 (enabled: job:0, job:1, job:2, job:3, job:4)"),
+])
+def test_bad_command_is_answered_and_changes_nothing(text: str, code: str, needle: str) -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    before = snapshot(svc)
+    out = svc.handle_command(text)
+    (err,) = by_topic(out, m.TOPIC_ERRORS)
+    assert len(out) == 1
+    assert err["code"] == code and needle in err["message"] and err["source"] == "fms_shop"
+    assert err["run_id"] == "r" and err["received"] == text[:1000]
+    decode(encode(err))
+    assert snapshot(svc) == before
+    out = svc.handle_command(command(svc))              # the shop keeps working
+    assert state_of(out)["seq"] == 1
+
+
+def test_stale_and_late_commands() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    first = command(svc, "job:0")
+    svc.handle_command(first)
+    (err,) = by_topic(svc.handle_command(first), m.TOPIC_ERRORS)   # the same command again: stale
+    assert err["code"] == "stale_state" and "answers state 0 but the current state is 1" in err["message"]
+    run_to_end(svc)
+    (err,) = by_topic(svc.handle_command(command(svc, "job:0")), m.TOPIC_ERRORS)
+    assert err["code"] == "stale_state" and "the run is complete" in err["message"]
+
+
+# ------------------------------------------------------------------------------------------------ orders
+def order(oid: str, jobs: list, run_id: str | None = None) -> str:
+    return encode(m.make_order(oid, jobs, run_id=run_id))
+
+
+def test_order_joins_the_running_net() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="r")
+    svc.start()
+    for _ in range(5):
+        svc.handle_command(command(svc))
+    now, seq, n_actions = svc.shop.now, svc.state_seq, len(svc.state["actions"])
+    out = svc.handle_order(order("o-1", [[(1, None, 3), (4, None, 2)], [(2, None, 5)]], run_id="r"))
+    assert not by_topic(out, m.TOPIC_ERRORS)
+    (ev,) = by_topic(out, m.TOPIC_EVENTS)
+    assert ev["kind"] == "order_accepted" and ev["data"] == {"order_id": "o-1", "jobs": [5, 6]}
+    assert ev["time"] == now
+    st = state_of(out)
+    assert st["seq"] == seq + 1 and len(st["actions"]) == n_actions + 2 and "job:6" in st["actions"]
+    assert st["features"]["jobs"]["entry"][5:] == [5, 6] and st["features"]["jobs"]["ready_since"][5:] == [now, now]
+    run_to_end(svc)
+    sched = svc.final_schedule
+    assert sched.meta["orders"] == {"o-1": [5, 6]}
+    assert svc.instance.n_jobs == 7 and svc.instance.jobs[5] == (Operation(1, None, 3), Operation(4, None, 2))
+    assert validate(svc.instance, sched) == []
+    new_ops = {(o.job, o.op): o for o in sched.operations if o.job >= 5}
+    assert set(new_ops) == {(5, 0), (5, 1), (6, 0)} and all(o.start >= now for o in new_ops.values())
+
+
+@pytest.mark.parametrize("jobs, code, needle", [
+    ([[{"machine": 9, "duration": 3}]], "bad_order", "machine 9 does not exist (1..4)"),
+    ([[{"machine": 1, "tool": 2, "duration": 3}]], "bad_order", "tool 2 does not exist in this shop"),
+    ([[{"machine": 1, "duration": -1}]], "bad_schema", "duration"),
+    ([[{"machine": 1, "duration": 1.5}]], "bad_schema", "duration"),
+    ([[{"machine": 0, "duration": 1}]], "bad_schema", "machine"),
+    ([[]], "bad_schema", "non-empty"),
+])
+def test_invalid_orders_are_rejected_and_change_nothing(jobs: list, code: str, needle: str) -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    before = snapshot(svc)
+    text = json.dumps({"schema": "fms/order/v1", "order_id": "bad", "jobs": jobs})
+    (err,) = by_topic(svc.handle_order(text), m.TOPIC_ERRORS)
+    assert err["code"] == code and needle in err["message"], err
+    assert snapshot(svc) == before and svc.instance.n_jobs == 5 and svc.orders == {}
+
+
+def test_duplicate_foreign_and_late_orders() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    assert not by_topic(svc.handle_order(order("o", [[(1, None, 1)]])), m.TOPIC_ERRORS)
+    (err,) = by_topic(svc.handle_order(order("o", [[(1, None, 1)]])), m.TOPIC_ERRORS)
+    assert err["code"] == "bad_order" and "already accepted (jobs 5)" in err["message"]
+    (err,) = by_topic(svc.handle_order(order("p", [[(1, None, 1)]], run_id="other")), m.TOPIC_ERRORS)
+    assert err["code"] == "unknown_run"
+    (err,) = by_topic(svc.handle_order("[1, 2]"), m.TOPIC_ERRORS)
+    assert err["code"] == "bad_schema"
+    run_to_end(svc)
+    (err,) = by_topic(svc.handle_order(order("q", [[(1, None, 1)]])), m.TOPIC_ERRORS)
+    assert err["code"] == "bad_order" and "after run 'r' completed" in err["message"]
+    assert svc.instance.n_jobs == 6 and validate(svc.instance, svc.final_schedule) == []
+
+
+def test_order_with_tools_in_a_tool_shop() -> None:
+    svc = ShopService(builtin("ra01"), run_id="r")
+    svc.start()
+    svc.handle_command(command(svc))
+    out = svc.handle_order(order("t", [[(2, 3, 4), (1, 1, 2)]]))
+    assert not by_topic(out, m.TOPIC_ERRORS)
+    run_to_end(svc)
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+# ------------------------------------------------------------------------------------------------ replays
+def test_replay_republishes_events_and_the_schedule() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    for _ in range(6):
+        svc.handle_command(command(svc))
+    replay = svc.handle_replay(encode(m.make_replay_request("*", 3, "rec")))
+    assert [o.msg for o in replay] == svc.events[3:] and all(o.topic == m.TOPIC_EVENTS for o in replay)
+    assert svc.handle_replay(encode(m.make_replay_request("r", 10**6, "rec"))) == []
+    (err,) = by_topic(svc.handle_replay(encode(m.make_replay_request("x", 0, "rec"))), m.TOPIC_ERRORS)
+    assert err["code"] == "unknown_run"
+    (err,) = by_topic(svc.handle_replay('{"schema": "fms/replay_request/v1"}'), m.TOPIC_ERRORS)
+    assert err["code"] == "bad_schema"
+    run_to_end(svc)
+    replay = svc.handle_replay(encode(m.make_replay_request("r", 0, "rec")))
+    assert [o.msg for o in replay[:-1]] == svc.events
+    assert replay[-1].topic == m.TOPIC_SCHEDULE and replay[-1].msg["schedule"]["makespan"] == svc.shop.makespan
+
+
+def test_start_twice_and_run_ids() -> None:
+    svc = ShopService(builtin("EX12"))
+    assert svc.run_id.startswith("EX12-") and len(svc.run_id) > 20
+    assert new_run_id("a b/c") .startswith("a_b_c-") and new_run_id("x") != new_run_id("x")
+    svc.start()
+    with pytest.raises(RuntimeError, match="already started"):
+        svc.start()
+
+
+# ------------------------------------------------------------------------------------------------ architecture
+def test_core_modules_do_not_import_rclpy() -> None:
+    from pathlib import Path
+
+    import fms_sim
+
+    node_modules = {"shop_node.py", "recorder_node.py"}
+    for path in Path(fms_sim.__file__).parent.glob("*.py"):
+        text = path.read_text()
+        if path.name not in node_modules:
+            assert "import rclpy" not in text and "from rclpy" not in text, path.name
+
+
+@pytest.mark.parametrize("module, prog", [("fms_sim.shop_node", "fms-shop"), ("fms_sim.recorder_node", "fms-recorder"),
+                                          ("fms_dispatch.agent_node", "fms-agent")])
+def test_nodes_without_rclpy_fail_clearly(module: str, prog: str) -> None:
+    code = ("import sys\n"
+            "class Block:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name.split('.')[0] in ('rclpy', 'std_msgs'):\n"
+            "            raise ImportError(f'No module named {name!r}')\n"
+            "sys.meta_path.insert(0, Block())\n"
+            f"import {module} as mod\n"
+            "sys.exit(mod.main(['x']))\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.startswith(f"{prog}: error: ROS 2 (rclpy) is not available")
+    assert "pip install 'fms[ros]'" in res.stderr and "Traceback" not in res.stderr

@@ -1,0 +1,255 @@
+"""Multi-process tests with the real nodes: a full run via ``fms up``, live orders, agent and recorder crashes,
+and every kind of bad input. Every schedule is validated and compared with the recorder's SQLite log."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+import fms_msgs_json as m  # noqa: E402
+from fms_msgs_json import encode  # noqa: E402
+from fms_sim import Instance, Operation, validate  # noqa: E402
+from fms_sim.benchmarks import builtin  # noqa: E402
+from fms_sim.recorder_store import RecorderStore, gantt_path  # noqa: E402
+from fms_sim.schedule import Schedule  # noqa: E402
+
+from .conftest import RUN_S, STARTUP_S, NodeProcs, Observer, wait_file  # noqa: E402
+
+SHOP, AGENT, RECORDER = "fms_sim.shop_node", "fms_dispatch.agent_node", "fms_sim.recorder_node"
+
+
+def check_log(db: Path, run_id: str, schedule: Schedule, instance: Instance) -> RecorderStore:
+    """The SQLite log holds every event of the run exactly once and agrees with the schedule."""
+    store = RecorderStore(db)
+    seqs = store.event_seqs(run_id)
+    end = store.end_seq(run_id)
+    assert end is not None and seqs == list(range(end + 1))
+    (rows,) = sqlite3.connect(db).execute("SELECT COUNT(*) FROM events WHERE run_id = ?", (run_id,)).fetchone()
+    assert rows == end + 1
+    assert store.is_complete(run_id)
+    rebuilt, stored = store.schedule_from_events(run_id), store.schedule(run_id)
+    for s in (rebuilt, stored):
+        assert validate(instance, s) == []
+        for key in ("makespan", "operations", "agv_trips", "tool_trips"):
+            assert s.to_dict()[key] == schedule.to_dict()[key], key
+    return store
+
+
+def stored_seqs(db: Path, run_id: str) -> list[int]:
+    """The event numbers in the database, read-only (the recorder may be writing)."""
+    if not db.exists():
+        return []
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10)
+    try:
+        return [r[0] for r in con.execute("SELECT seq FROM events WHERE run_id = ? ORDER BY seq", (run_id,))]
+    except sqlite3.OperationalError:  # the tables are not there yet
+        return []
+    finally:
+        con.close()
+
+
+def shop_seen(obs: Observer, run_id: str) -> dict[str, Any]:
+    """Wait until the observer has the shop's state (discovery done) before timing-sensitive steps."""
+    return obs.wait_for(lambda g: next((x for x in g["state"] if x["run_id"] == run_id), None), STARTUP_S,
+                        f"a state of {run_id}")
+
+
+def schedule_of(obs: Observer, run_id: str) -> Schedule:
+    msg = obs.wait_for(lambda g: next((s for s in g["schedule"] if s["run_id"] == run_id), None), RUN_S,
+                       f"the schedule of {run_id}")
+    return Schedule.from_dict(msg["schedule"])
+
+
+# ------------------------------------------------------------------------------------------------ fms up
+def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) -> None:
+    out, db = tmp_path / "out" / "EX12.schedule.json", tmp_path / "out" / "fms.sqlite"
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "best", "--out", str(out),
+                          "--db", str(db), "--run-id", "up-ex12", "--domain-id", ros_env["ROS_DOMAIN_ID"],
+                          "--log-dir", str(tmp_path / "logs")],
+                         env=ros_env, capture_output=True, text=True, timeout=120)
+    wall = time.perf_counter() - t0
+    assert res.returncode == 0, res.stderr + res.stdout
+    assert "best rule pair on EX12: rule:LPTN+nearest (makespan 86" in res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0].startswith("EX12: makespan 86 (rule:LPTN+nearest over ROS 2 topics, 26 decisions, valid)")
+    png = gantt_path(db.parent, "up-ex12")
+    assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex12)", f"gantt:    {png}"]
+    sched = Schedule.load(out)
+    inst = builtin("EX12")
+    assert validate(inst, sched) == [] and sched.makespan == 86
+    assert sched.meta["solver"] == "rule:LPTN+nearest" and sched.meta["decisions"] == 26
+    check_log(db, "up-ex12", sched, inst)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    for name in ("shop", "agent", "recorder"):                  # stopped cleanly, no tracebacks
+        assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
+    print(f"fms up EX12: {wall:.2f} s wall")
+
+
+def test_fms_up_bad_input_exits_2(ros_env: dict[str, str], tmp_path: Path) -> None:
+    for args, needle in ((["EX12", "--solver", "ppo"], "solver 'ppo' is not available"),
+                         (["NOPE"], "no built-in instance or file named 'NOPE'")):
+        res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", *args, "--db", str(tmp_path / "x.sqlite")],
+                             env=ros_env, capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and res.stderr.startswith("fms up: error: ") and needle in res.stderr
+
+
+# ------------------------------------------------------------------------------------------------ orders
+def test_orders_join_a_running_shop(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
+    db = tmp_path / "rec.sqlite"
+    nodes.start("recorder", RECORDER, db=db)
+    nodes.start("shop", SHOP, instance="EX12", run_id="orders")
+    shop_seen(observer, "orders")
+    nodes.start("agent", AGENT, solver="rule:SPT+least-work", delay_s=0.05)
+    observer.wait_for(lambda g: any(s["seq"] >= 6 for s in g["state"]), STARTUP_S + RUN_S, "state 6")
+    bad = [
+        ({"schema": "fms/order/v1", "order_id": "b1", "jobs": [[{"machine": 7, "duration": 2}]]}, "bad_order"),
+        ({"schema": "fms/order/v1", "order_id": "b2", "jobs": [[{"machine": 1, "duration": -3}]]}, "bad_schema"),
+        ({"schema": "fms/order/v1", "order_id": "b3", "jobs": [[{"machine": 1, "tool": 1, "duration": 3}]]},
+         "bad_order"),
+        ({"schema": "fms/order/v1", "order_id": "b4", "run_id": "another-run",
+          "jobs": [[{"machine": 1, "duration": 3}]]}, "unknown_run"),
+    ]
+    good = m.make_order("o-1", [[(2, None, 4), (3, None, 2)], [(1, None, 5)]], run_id="orders")
+    for msg, _ in bad[:2]:
+        observer.publish("order", msg)
+    observer.publish("order", encode(good))
+    for msg, _ in bad[2:]:
+        observer.publish("order", msg)
+    observer.publish("order", encode(good))                    # a duplicate: rejected, not added twice
+    sched = schedule_of(observer, "orders")
+    def order_errors(errs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        # a command in flight when an order changed the state is answered stale_state: not an order error
+        return [e for e in errs if e["source"] == "fms_shop" and '"fms/order/v1"' in (e.get("received") or "")]
+
+    errors = observer.wait_for(lambda g: order_errors(g["error"]) if len(order_errors(g["error"])) >= 5 else None,
+                               10, "5 order errors")
+    assert sorted(e["code"] for e in errors) == sorted([c for _, c in bad] + ["bad_order"])
+    assert any("already accepted" in e["message"] for e in errors)
+    accepted = [e for e in observer.snapshot("event") if e["kind"] == "order_accepted"]
+    assert [e["data"] for e in accepted][:1] == [{"order_id": "o-1", "jobs": [5, 6]}]
+    inst = builtin("EX12")
+    grown = Instance(inst.name, inst.jobs + ((Operation(2, None, 4), Operation(3, None, 2)), (Operation(1, None, 5),)),
+                     agv_travel=inst.agv_travel, n_agvs=inst.n_agvs)
+    assert validate(grown, sched) == [] and sched.meta["orders"] == {"o-1": [5, 6]}
+    assert {(o.job, o.op) for o in sched.operations if o.job >= 5} == {(5, 0), (5, 1), (6, 0)}
+    wait_file(gantt_path(tmp_path, "orders"), RUN_S, nodes)
+    store = check_log(db, "orders", sched, grown)
+    logged = [e["code"] for e in order_errors(store.errors("orders"))]
+    assert sorted(logged) == sorted([c for _, c in bad] + ["bad_order"])
+    assert "[bad_order]" in nodes.log("shop")                   # and in the node's own log
+
+
+# ------------------------------------------------------------------------------------------------ crashes
+def test_agent_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
+    db = tmp_path / "rec.sqlite"
+    nodes.start("recorder", RECORDER, db=db)
+    nodes.start("shop", SHOP, instance="ra01", run_id="agent-crash")
+    shop_seen(observer, "agent-crash")
+    first = nodes.start("agent1", AGENT, solver="rule:MTWR+nearest", delay_s=0.1)
+    observer.wait_for(lambda g: any(s["seq"] >= 5 for s in g["state"]), STARTUP_S + RUN_S, "state 5")
+    nodes.kill(first)
+    time.sleep(0.3)                                            # a command already on the wire may still land
+    stuck = observer.latest_state()["seq"]
+    time.sleep(0.7)
+    assert observer.latest_state()["seq"] == stuck and not observer.latest_state()["done"]   # no agent, no progress
+    nodes.start("agent2", AGENT, solver="rule:MTWR+nearest")   # gets the latched state and carries on
+    sched = schedule_of(observer, "agent-crash")
+    inst = builtin("ra01")
+    assert validate(inst, sched) == []
+    assert sched.meta["decisions"] == observer.latest_state()["seq"]
+    wait_file(gantt_path(tmp_path, "agent-crash"), RUN_S, nodes)
+    check_log(db, "agent-crash", sched, inst)
+
+
+def test_recorder_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
+    db = tmp_path / "rec.sqlite"
+    first = nodes.start("recorder1", RECORDER, db=db)
+    nodes.start("shop", SHOP, instance="EX12", run_id="rec-crash")
+    shop_seen(observer, "rec-crash")
+    nodes.start("agent", AGENT, solver="first", delay_s=0.08)
+    deadline = time.monotonic() + STARTUP_S + RUN_S
+    while len(stored_seqs(db, "rec-crash")) < 10:
+        assert time.monotonic() < deadline, "the first recorder stored no events"
+        time.sleep(0.05)
+    nodes.kill(first)
+    had = len(stored_seqs(db, "rec-crash"))
+    seq = observer.latest_state()["seq"]
+    observer.wait_for(lambda g: g["state"][-1]["seq"] >= seq + 4 or g["state"][-1]["done"], RUN_S, "progress")
+    nodes.start("recorder2", RECORDER, db=db)
+    sched = schedule_of(observer, "rec-crash")
+    wait_file(gantt_path(tmp_path, "rec-crash"), RUN_S, nodes)
+    inst = builtin("EX12")
+    assert validate(inst, sched) == []
+    store = check_log(db, "rec-crash", sched, inst)
+    events = {e["seq"]: e for e in observer.snapshot("event") if e["run_id"] == "rec-crash"}
+    stored = store.events("rec-crash")
+    assert len(stored) == len(events) > had
+    assert all((e["time"], e["kind"], e["data"]) == (events[e["seq"]]["time"], events[e["seq"]]["kind"],
+                                                     events[e["seq"]]["data"]) for e in stored)
+    assert "Traceback" not in nodes.log("recorder2")
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+def test_bad_commands_are_rejected_and_the_shop_keeps_running(nodes: NodeProcs, observer: Observer) -> None:
+    nodes.start("shop", SHOP, instance="EX12", run_id="bad")
+    s0 = observer.wait_for(lambda g: g["state"][0] if g["state"] else None, STARTUP_S, "state 0")
+    assert s0["seq"] == 0 and s0["features"]["jobs"]["n_ops"] == [3, 3, 3, 2, 2]
+
+    def cmd(seq: int, action: str, run_id: str = "bad") -> dict[str, Any]:
+        return {"schema": "fms/command/v1", "run_id": run_id, "state_seq": seq, "action": action}
+
+    cases = [
+        ("{this is not json", "malformed_json"),
+        (json.dumps({**cmd(0, "job:0"), "schema": "fms/command/v9"}), "bad_schema"),
+        (json.dumps({"schema": "fms/command/v1", "run_id": "bad", "action": "job:0"}), "bad_schema"),
+        (json.dumps(cmd(0, "job:0", run_id="someone-else")), "unknown_run"),
+        (json.dumps(cmd(3, "job:0")), "stale_state"),            # a state that was never published
+        (json.dumps(cmd(0, "agv:1")), "forbidden_action"),       # masked now
+        (json.dumps(cmd(0, "job:42")), "forbidden_action"),      # not an action at all
+    ]
+    for i, (text, code) in enumerate(cases):
+        observer.publish("command", text)
+        err = observer.wait_for(lambda g: g["error"][i] if len(g["error"]) > i else None, 10, f"error {i}")
+        assert (err["code"], err["source"], err["received"]) == (code, "fms_shop", text)
+    time.sleep(0.2)
+    assert [s["seq"] for s in observer.snapshot("state")] == [0]   # nothing changed
+    observer.publish("command", json.dumps(cmd(0, "job:1")))
+    observer.wait_for(lambda g: g["state"][-1]["seq"] == 1, 10, "state 1")
+    observer.publish("command", json.dumps(cmd(0, "job:2")))       # stale now
+    err = observer.wait_for(lambda g: g["error"][len(cases)] if len(g["error"]) > len(cases) else None, 10, "stale")
+    assert err["code"] == "stale_state" and "answers state 0 but the current state is 1" in err["message"]
+    while True:                                                    # the observer finishes the run as agent
+        st = observer.latest_state()
+        if st["done"]:
+            break
+        label = next(a for a, ok in zip(st["actions"], st["mask"]) if ok)
+        observer.publish("command", encode(m.make_command("bad", st["seq"], label)))
+        observer.wait_for(lambda g, s=st["seq"]: g["state"][-1]["seq"] > s, 10, f"state after {st['seq']}")
+    sched = schedule_of(observer, "bad")
+    assert validate(builtin("EX12"), sched) == []
+    log = nodes.log("shop")
+    for code in ("malformed_json", "bad_schema", "unknown_run", "stale_state", "forbidden_action"):
+        assert f"[{code}]" in log
+    assert nodes.stop(nodes.procs[0][1]) == 0
+
+
+def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
+    for module, args, needle in (
+        (AGENT, ["-p", "solver:=lookahead"], "fms-agent: error: solver 'lookahead' is not available"),
+        (SHOP, ["-p", "instance:=EX99"], "fms-shop: error: unknown built-in instance 'EX99'"),
+        (SHOP, [], "fms-shop: error: parameter 'instance' is required"),
+        (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
+    ):
+        res = subprocess.run([sys.executable, "-m", module, "--ros-args", *args], env=ros_env, capture_output=True,
+                             text=True, timeout=60)
+        assert res.returncode == 2 and needle in res.stderr and "Traceback" not in res.stderr, res.stderr
