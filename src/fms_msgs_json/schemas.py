@@ -93,7 +93,8 @@ TOPIC_QOS: dict[str, TopicQos] = {
     "command": TopicQos(100, False),
     "event": TopicQos(10000, False),     # bursts (replays); losses are repaired by replay requests
     "schedule": TopicQos(1, True),       # a late or restarted recorder still gets the final schedule
-    "order": TopicQos(100, False),
+    "order": TopicQos(100, True),        # an order sent before the shop subscribes is still delivered
+                                         # (order ids are accepted once, so re-delivery adds nothing)
     "error": TopicQos(100, False),
     "replay_request": TopicQos(10, False),
 }

@@ -162,6 +162,10 @@ class Observer:
             time.sleep(0.02)
         pub.publish(String(data=text if isinstance(text, str) else json.dumps(text)))
 
+    def publish_now(self, kind: str, text: str | dict) -> None:
+        """Publish at once, matched subscriber or not (latched topics deliver it later)."""
+        self.pubs[kind].publish(String(data=text if isinstance(text, str) else json.dumps(text)))
+
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()

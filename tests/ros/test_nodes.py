@@ -149,6 +149,20 @@ def test_orders_join_a_running_shop(nodes: NodeProcs, observer: Observer, tmp_pa
     assert "[bad_order]" in nodes.log("shop")                   # and in the node's own log
 
 
+def test_order_published_before_the_shop_starts_is_not_lost(nodes: NodeProcs, observer: Observer) -> None:
+    order = m.make_order("early-1", [[(3, None, 4), (1, None, 2)]], run_id="early")
+    observer.publish_now("order", encode(order))                # nobody listens yet
+    nodes.start("shop", SHOP, instance="EX12", run_id="early")
+    observer.wait_for(lambda g: any(e["kind"] == "order_accepted" and e["run_id"] == "early" for e in g["event"]),
+                      STARTUP_S, "the early order to be accepted")
+    nodes.start("agent", AGENT, solver="rule:FIFO+first")
+    sched = schedule_of(observer, "early")
+    inst = builtin("EX12")
+    grown = Instance(inst.name, inst.jobs + ((Operation(3, None, 4), Operation(1, None, 2)),),
+                     agv_travel=inst.agv_travel, n_agvs=inst.n_agvs)
+    assert sched.meta["orders"] == {"early-1": [5]} and validate(grown, sched) == []
+
+
 # ------------------------------------------------------------------------------------------------ crashes
 def test_agent_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
     db = tmp_path / "rec.sqlite"
