@@ -1,0 +1,1013 @@
+"""Exact CP-SAT model of the FMS scheduling problem, with a scalable fallback for large instances.
+
+The model follows the project's semantics contract (see :mod:`fms_sim.validate`) for all four modes: plain
+job shop, AGVs only, tools only and AGVs + tools. Every run starts from a feasible incumbent: the ``hint`` if
+given, else the best of a few greedy list schedules (:func:`greedy_schedule`) and randomised restarts of them.
+
+**Full model** (instances with at most :data:`FULL_MODEL_MAX_TASKS` transport tasks, i.e. loaded AGV tasks
+plus tool uses, and every plain job shop):
+
+* operations are fixed-size intervals with one ``NoOverlap`` per machine; heads and tails (own job's
+  processing and loaded travel) bound the start variables, the incumbent's makespan bounds the objective;
+* every operation whose pickup location differs from its machine is one *loaded AGV task* (fixed duration
+  ``agv_travel[pickup][machine]``) that starts after the part is ready and ends before the operation starts;
+* AGV routing is one multiple-circuit (vehicle-routing) constraint over all AGV tasks with a depot node
+  (location 0 at time 0): arc ``i -> j`` means that one AGV does ``j`` right after ``i`` and implies
+  ``end_i + gap(i, j) <= start_j`` (``gap`` = the empty trip ``agv_travel[drop_i][pickup_j]``, or for a
+  later task of the same job the job's own lag if longer); at most ``n_agvs`` routes leave the depot. The
+  AGVs are identical, so routes carry no vehicle index, which removes the vehicle symmetry altogether.
+  Two redundant constraints make the proofs fast: a *fleet workload* cut ``n_agvs * makespan >= loaded
+  time + gaps of the chosen arcs + the rest of each route's last job`` and a cumulative (capacity
+  ``n_agvs``) over the intervals ``[start - before, end + after)`` whose slacks form a dual-feasible
+  assignment of predecessors and successors (:func:`_agv_slacks`);
+* every tool's uses are ordered by one circuit (node 0 = the magazine); the predecessor of a use fixes the
+  origin of its *tool delivery* (none when the predecessor ran on the same machine: the delivery node then
+  takes a self-loop in the transporter routing); a delivery starts after the previous use ended and ends
+  before its use starts; transporters route deliveries with a second multiple-circuit constraint whose
+  empty legs depend on the (variable) origin of the next delivery; tool uses also get a ``NoOverlap`` and
+  deliveries a cumulative over the transporters.
+
+On 2 workers this proves the Bilge–Ulusoy layout-2 optima EX12..EX102 in about 0.1–10 s each (see
+``bench/cpsat_bu.py``), and the ra01..ra10 tools instances in seconds.
+
+**Fallback** (more transport tasks; e.g. the 2000-operation benchmarks, where routing would need millions of
+arc literals; measured on random 10–30-job instances, the full model's search stops paying off around 100
+tasks, and above ~250 tasks CP-SAT's presolve alone eats the time limit):
+
+* the lower bound comes from a *relaxation* solved by CP-SAT in 40 % of the remaining time: the job shop in
+  which each loaded AGV trip is a minimum time lag between consecutive operations, plus one ``NoOverlap``
+  per tool, release dates for tool uses (the tool must come from the magazine) and the AGV cumulative
+  above; its proven bound is combined with :func:`simple_lower_bound` (machine/job/tool/fleet bounds);
+* the schedule is the best of the incumbent, a list schedule guided by the relaxation's start times, and
+  randomised list-scheduling restarts until the time is up (:func:`_improve_by_priorities`);
+* the status is then ``"FEASIBLE"`` (or ``"OPTIMAL"`` when the schedule meets the bound).
+
+Whatever the path, the result is never worse than the hint, ``lower_bound`` is always a valid bound, and
+every schedule returned passes :func:`fms_sim.validate.validate`.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+from ortools.sat.python import cp_model
+
+from fms_sim.instance import Instance
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.validate import validate
+
+__all__ = [
+    "ExactResult",
+    "solve_exact",
+    "cpsat",
+    "greedy_schedule",
+    "simple_lower_bound",
+    "relaxation_bound",
+    "FULL_MODEL_MAX_TASKS",
+]
+
+FULL_MODEL_MAX_TASKS = 100
+"""Instances with at most this many transport tasks (AGV tasks + tool uses) get the full routing model."""
+
+Progress = Callable[[int, int, float], None]
+
+
+@dataclass
+class ExactResult:
+    """What :func:`solve_exact` found: the best schedule (``None`` only if none was found), a valid lower
+    bound on the optimal makespan, the status (``"OPTIMAL"``, ``"FEASIBLE"``, ``"INFEASIBLE"`` or
+    ``"UNKNOWN"``) and the wall time in seconds."""
+
+    schedule: Schedule | None
+    lower_bound: int
+    status: str
+    wall_time: float
+
+
+# ====================================================================================== instance facts
+@dataclass(frozen=True)
+class _Task:
+    """A loaded AGV task: move the part of operation (job, op) from ``pickup`` to ``drop`` (its machine)."""
+
+    job: int
+    op: int
+    pickup: int
+    drop: int
+    dur: int
+
+
+def _agv_tasks(inst: Instance) -> list[_Task]:
+    """Every loaded AGV task of an AGV instance (none when the pickup is the operation's own machine)."""
+    tasks: list[_Task] = []
+    if not inst.has_agvs:
+        return tasks
+    tr = inst.agv_travel
+    assert tr is not None
+    for j, job in enumerate(inst.jobs):
+        for k, op in enumerate(job):
+            pick = job[k - 1].machine if k else 0
+            if pick != op.machine:
+                tasks.append(_Task(j, k, pick, op.machine, tr[pick][op.machine]))
+    return tasks
+
+
+def _tool_uses(inst: Instance) -> dict[int, list[tuple[int, int]]]:
+    """``tool -> [(job, op), ...]`` for the operations that need a tool (empty without tools)."""
+    uses: dict[int, list[tuple[int, int]]] = {}
+    if not inst.has_tools:
+        return uses
+    for j, job in enumerate(inst.jobs):
+        for k, op in enumerate(job):
+            if op.tool is not None:
+                uses.setdefault(op.tool, []).append((j, k))
+    return uses
+
+
+def _shortest_paths(mat: Sequence[Sequence[int]]) -> list[list[int]]:
+    """All-pairs shortest travel times (Floyd–Warshall); matrices need not satisfy the triangle inequality."""
+    n = len(mat)
+    d = [list(r) for r in mat]
+    for k in range(n):
+        for i in range(n):
+            dik = d[i][k]
+            for j in range(n):
+                if dik + d[k][j] < d[i][j]:
+                    d[i][j] = dik + d[k][j]
+    return d
+
+
+def _loaded_time(inst: Instance, j: int, k: int) -> int:
+    """The loaded AGV travel that must precede operation (j, k) (0 without AGVs or without a move)."""
+    if not inst.has_agvs:
+        return 0
+    job = inst.jobs[j]
+    pick = job[k - 1].machine if k else 0
+    assert inst.agv_travel is not None
+    return inst.agv_travel[pick][job[k].machine]
+
+
+def _heads_tails(inst: Instance) -> tuple[dict[tuple[int, int], int], dict[tuple[int, int], int]]:
+    """Earliest start (head) of each operation and minimum time from its end to the makespan (tail),
+    counting processing and loaded travel of its own job only (plus the tool's trip from the magazine)."""
+    heads: dict[tuple[int, int], int] = {}
+    tails: dict[tuple[int, int], int] = {}
+    sp_tool = _shortest_paths(inst.tool_travel) if inst.has_tools else None
+    for j, job in enumerate(inst.jobs):
+        t = 0
+        for k, op in enumerate(job):
+            t += _loaded_time(inst, j, k)
+            if sp_tool is not None and op.tool is not None:
+                t = max(t, sp_tool[0][op.machine])
+            heads[j, k] = t
+            t += op.duration
+        t = 0
+        for k in range(len(job) - 1, -1, -1):
+            tails[j, k] = t
+            t += job[k].duration + _loaded_time(inst, j, k)
+    return heads, tails
+
+
+def simple_lower_bound(inst: Instance) -> int:
+    """A cheap valid lower bound on the makespan: the maximum of job bounds (processing plus loaded
+    travel), machine bounds (smallest head + total load + smallest tail), tool bounds (likewise over the
+    uses of a tool) and, with AGVs, a fleet bound (loaded plus minimum empty travel spread over the AGVs)."""
+    heads, tails = _heads_tails(inst)
+    lb = max(heads[j, len(job) - 1] + job[-1].duration for j, job in enumerate(inst.jobs))
+    groups: dict[tuple[str, int], list[tuple[int, int]]] = {}
+    for j, job in enumerate(inst.jobs):
+        for k, op in enumerate(job):
+            groups.setdefault(("m", op.machine), []).append((j, k))
+            if inst.has_tools and op.tool is not None:
+                groups.setdefault(("t", op.tool), []).append((j, k))
+    for keys in groups.values():
+        load = sum(inst.jobs[j][k].duration for j, k in keys)
+        lb = max(lb, min(heads[x] for x in keys) + load + min(tails[x] for x in keys))
+    tasks = _agv_tasks(inst)
+    if tasks:
+        before, after = _agv_slacks(inst, tasks, tails)
+        n = inst.n_agvs
+        total = sum(t.dur + x for t, x in zip(tasks, before))
+        tail_after = min(inst.jobs[t.job][t.op].duration + tails[t.job, t.op] for t in tasks)
+        lb = max(lb, -(-total // n) + tail_after, -(-(total + sum(after)) // n))
+    return lb
+
+
+def _same_job_lag(inst: Instance, a: _Task, b: _Task) -> int:
+    """Minimum time from the end of task ``a`` to the start of the later task ``b`` of the same job: the
+    operations from ``a.op`` to ``b.op - 1`` and the loaded trips between them must run in between."""
+    job = inst.jobs[a.job]
+    return sum(job[k].duration for k in range(a.op, b.op)) + sum(
+        _loaded_time(inst, a.job, k) for k in range(a.op + 1, b.op))
+
+
+def _agv_gap(inst: Instance, a: _Task, b: _Task) -> int:
+    """Minimum time between the end of ``a`` and the start of ``b`` when one AGV does ``b`` right after
+    ``a``: the empty trip, or (for a later task of the same job) the job's own lag if longer."""
+    assert inst.agv_travel is not None
+    gap = inst.agv_travel[a.drop][b.pickup]
+    if a.job == b.job and a.op < b.op:
+        gap = max(gap, _same_job_lag(inst, a, b))
+    return gap
+
+
+def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, int], int]) -> tuple[list[int], list[int]]:
+    """Per AGV task, ``before`` and ``after`` amounts such that one AGV's intervals
+    ``[start - before, end + after)`` never overlap, start at >= 0 and end at <= makespan.
+
+    They form a feasible dual of the assignment of each task to a predecessor (depot or task) and a
+    successor (task or the end): ``after_i + before_j <= gap(i, j)``, ``before_j <= travel(0, pickup_j)``
+    and ``after_i <= processing + tail after i``. Computed in O(tasks x locations), fine for 2000 tasks.
+    """
+    tr = inst.agv_travel
+    assert tr is not None
+    locs = range(len(tr))
+    by_job: dict[int, list[int]] = {}
+    drop_jobs: dict[int, set[int]] = {}
+    for i, t in enumerate(tasks):
+        by_job.setdefault(t.job, []).append(i)
+        drop_jobs.setdefault(t.drop, set()).add(t.job)
+    before = []
+    for i, t in enumerate(tasks):
+        best = tr[0][t.pickup]
+        for loc, js in drop_jobs.items():
+            if js - {t.job}:
+                best = min(best, tr[loc][t.pickup])
+        for i2 in by_job[t.job]:
+            if tasks[i2].op < t.op:
+                best = min(best, _agv_gap(inst, tasks[i2], t))
+        before.append(best)
+    # per pickup location: the two smallest `before` values from different jobs
+    INF = 1 << 60
+    best2: dict[int, list[tuple[int, int]]] = {}
+    for i, t in enumerate(tasks):
+        cur = best2.setdefault(t.pickup, [])
+        cur.append((before[i], t.job))
+        cur.sort()
+        if len(cur) > 2:
+            # keep the best and the best of another job
+            first = cur[0]
+            other = next((x for x in cur[1:] if x[1] != first[1]), None)
+            best2[t.pickup] = [first] + ([other] if other else [])
+    after = []
+    for i, t in enumerate(tasks):
+        best = inst.jobs[t.job][t.op].duration + tails[t.job, t.op]
+        for loc in locs:
+            cand = best2.get(loc, [])
+            bj = next((b for b, job in cand if job != t.job), INF)
+            if bj < INF:
+                best = min(best, tr[t.drop][loc] - bj)
+        for i2 in by_job[t.job]:
+            if tasks[i2].op > t.op:
+                best = min(best, _agv_gap(inst, t, tasks[i2]) - before[i2])
+        after.append(max(0, best))
+    return before, after
+
+
+# ====================================================================================== greedy
+def greedy_schedule(
+    inst: Instance,
+    *,
+    rule: str = "est",
+    rng: random.Random | None = None,
+    priority: dict[tuple[int, int], float] | None = None,
+    noise: dict[tuple[int, int], float] | None = None,
+) -> Schedule:
+    """A feasible schedule by list scheduling, appending every activity to the end of its resources.
+
+    At each step every job's next operation is planned: the AGV that delivers the part earliest, the
+    transporter that brings the tool earliest, the machine; then one is committed: the one with the
+    earliest start (``rule="est"``) or completion (``"ect"``), ties broken by the most remaining work (or
+    randomly when ``rng`` is given), or the smallest ``priority`` value (``rule="guided"``); ``noise`` adds a
+    per-operation offset to the start times compared by ``"est"`` (randomised restarts). Empty trips
+    start as soon as the vehicle is free; vehicles then wait for the part or tool. Always valid, never
+    optimal in general; it gives the solver its first upper bound and the fallback its schedule.
+    """
+    if rule not in ("est", "ect", "guided"):
+        raise ValueError(f"unknown greedy rule {rule!r}; use 'est', 'ect' or 'guided'")
+    if rule == "guided" and priority is None:
+        raise ValueError("greedy rule 'guided' needs a priority for every operation")
+    jobs = inst.jobs
+    nj = len(jobs)
+    atr, ttr = inst.agv_travel, inst.tool_travel
+    nxt = [0] * nj
+    ready = [0] * nj
+    remaining = [sum(op.duration for op in job) for job in jobs]
+    mach_free = [0] * (inst.n_machines + 1)
+    agv_loc = [0] * inst.n_agvs
+    agv_free = [0] * inst.n_agvs
+    tr_loc = [0] * inst.n_tool_transporters
+    tr_free = [0] * inst.n_tool_transporters
+    tool_loc = [0] * (inst.n_tools + 1)
+    tool_free = [0] * (inst.n_tools + 1)
+    ops: list[OperationRecord] = []
+    agv_trips: list[AgvTrip] = []
+    tool_trips: list[ToolTrip] = []
+
+    def plan(j: int) -> tuple[int, int, int, int, int, int]:
+        """(start, agv, loaded start, transporter, tool loaded start, end) for the next operation of j."""
+        k = nxt[j]
+        op = jobs[j][k]
+        m = op.machine
+        arrive, best_a, ls = ready[j], -1, 0
+        if atr is not None:
+            pick = jobs[j][k - 1].machine if k else 0
+            if pick != m:
+                d = atr[pick][m]
+                best = None
+                for a in range(len(agv_loc)):
+                    s = max(agv_free[a] + atr[agv_loc[a]][pick], ready[j])
+                    key = (s, atr[agv_loc[a]][pick])
+                    if best is None or key < best:
+                        best, best_a, ls = key, a, s
+                arrive = ls + d
+        tool_at, best_r, tls = 0, -1, 0
+        if ttr is not None and op.tool is not None:
+            t = op.tool
+            if tool_loc[t] == m:
+                tool_at = tool_free[t]
+            else:
+                src = tool_loc[t]
+                best = None
+                for r in range(len(tr_loc)):
+                    s = max(tr_free[r] + ttr[tr_loc[r]][src], tool_free[t])
+                    key = (s, ttr[tr_loc[r]][src])
+                    if best is None or key < best:
+                        best, best_r, tls = key, r, s
+                tool_at = tls + ttr[src][m]
+        start = max(mach_free[m], arrive, tool_at)
+        return start, best_a, ls, best_r, tls, start + op.duration
+
+    for _ in range(inst.n_operations):
+        best_key = None
+        best_j, best_plan = -1, None
+        for j in range(nj):
+            if nxt[j] >= len(jobs[j]):
+                continue
+            p = plan(j)
+            tie = rng.random() if rng is not None else -remaining[j]
+            if rule == "est":
+                key: tuple = (p[0] + noise[j, nxt[j]] if noise is not None else p[0], tie)
+            elif rule == "ect":
+                key = (p[5], tie)
+            else:
+                assert priority is not None
+                key = (priority[j, nxt[j]], p[0], tie)
+            if best_key is None or key < best_key:
+                best_key, best_j, best_plan = key, j, p
+        assert best_plan is not None
+        j, k = best_j, nxt[best_j]
+        op = jobs[j][k]
+        m = op.machine
+        start, a, ls, r, tls, end = best_plan
+        if a >= 0:
+            assert atr is not None
+            pick = jobs[j][k - 1].machine if k else 0
+            if agv_loc[a] != pick:
+                e0 = agv_free[a]
+                agv_trips.append(AgvTrip(a, None, None, agv_loc[a], pick, e0, e0 + atr[agv_loc[a]][pick], False))
+            agv_trips.append(AgvTrip(a, j, k, pick, m, ls, ls + atr[pick][m], True))
+            agv_loc[a], agv_free[a] = m, ls + atr[pick][m]
+        if r >= 0:
+            assert ttr is not None and op.tool is not None
+            src = tool_loc[op.tool]
+            if tr_loc[r] != src:
+                e0 = tr_free[r]
+                tool_trips.append(ToolTrip(r, None, None, None, tr_loc[r], src, e0, e0 + ttr[tr_loc[r]][src], False))
+            tool_trips.append(ToolTrip(r, op.tool, j, k, src, m, tls, tls + ttr[src][m], True))
+            tr_loc[r], tr_free[r] = m, tls + ttr[src][m]
+        if ttr is not None and op.tool is not None:
+            tool_loc[op.tool], tool_free[op.tool] = m, end
+        mach_free[m] = end
+        ready[j] = end
+        remaining[j] -= op.duration
+        nxt[j] += 1
+        ops.append(OperationRecord(j, k, m, op.tool if inst.has_tools else None, start, end))
+    return Schedule(
+        instance=inst.name,
+        makespan=max(o.end for o in ops),
+        n_agvs=inst.n_agvs,
+        n_tool_transporters=inst.n_tool_transporters,
+        operations=ops,
+        agv_trips=agv_trips,
+        tool_trips=tool_trips,
+        meta={"solver": "greedy", "rule": rule},
+    )
+
+
+def _best_greedy(inst: Instance, budget: float, seed: int, max_runs: int = 64) -> Schedule:
+    """The best of the deterministic greedy rules and randomised-tie restarts within ``budget`` seconds."""
+    t0 = time.monotonic()
+    best = greedy_schedule(inst, rule="est")
+    one_run = time.monotonic() - t0
+    rng = random.Random(seed)
+    candidates = [("ect", None)] + [("est", rng)] * max_runs
+    for rule, r in candidates:
+        if time.monotonic() - t0 + one_run > budget:
+            break
+        s = greedy_schedule(inst, rule=rule, rng=r)
+        if s.makespan < best.makespan:
+            best = s
+    return best
+
+
+# ====================================================================================== full model
+class _FullModel:
+    """The exact CP-SAT model (see the module docstring); ``extract`` turns a solution into a Schedule."""
+
+    def __init__(self, inst: Instance, lb: int, ub: int):
+        self.inst = inst
+        self.model = m = cp_model.CpModel()
+        self.ub = ub
+        jobs = inst.jobs
+        heads, tails = _heads_tails(inst)
+        self.heads, self.tails = heads, tails
+        # ---- operations
+        self.s: dict[tuple[int, int], cp_model.IntVar] = {}
+        self.itv: dict[tuple[int, int], cp_model.IntervalVar] = {}
+        by_machine: dict[int, list[cp_model.IntervalVar]] = {}
+        for j, job in enumerate(jobs):
+            for k, op in enumerate(job):
+                hi = ub - tails[j, k] - op.duration
+                s = m.new_int_var(heads[j, k], max(hi, heads[j, k]), f"s{j}_{k}")
+                self.s[j, k] = s
+                self.itv[j, k] = iv = m.new_fixed_size_interval_var(s, op.duration, f"op{j}_{k}")
+                by_machine.setdefault(op.machine, []).append(iv)
+        for ivs in by_machine.values():
+            if len(ivs) > 1:
+                m.add_no_overlap(ivs)
+        self.mk = m.new_int_var(lb, ub, "makespan")
+        for j, job in enumerate(jobs):
+            m.add(self.mk >= self.s[j, len(job) - 1] + job[-1].duration)
+        m.minimize(self.mk)
+        self._build_parts()
+        self._build_tools()
+
+    # ------------------------------------------------------------------ parts and AGVs
+    def _build_parts(self) -> None:
+        inst, m = self.inst, self.model
+        jobs = inst.jobs
+        self.tasks = _agv_tasks(inst)
+        self.ts: list[cp_model.IntVar] = []
+        self.agv_arcs: list[tuple[int, int, cp_model.IntVar]] = []
+        task_of = {(t.job, t.op): i for i, t in enumerate(self.tasks)}
+        for j, job in enumerate(jobs):
+            for k in range(len(job)):
+                ready = self.s[j, k - 1] + job[k - 1].duration if k else 0
+                if (j, k) not in task_of:
+                    if k:
+                        m.add(self.s[j, k] >= ready)
+                    continue
+                t = self.tasks[task_of[j, k]]
+                lo = self.heads[j, k - 1] + job[k - 1].duration if k else 0
+                hi = max(lo, self.ub - self.tails[j, k] - job[k].duration - t.dur)
+                ts = m.new_int_var(lo, hi, f"ts{j}_{k}")
+                self.ts.append(ts)
+                if k:
+                    m.add(ts >= ready)
+                m.add(self.s[j, k] >= ts + t.dur)
+        if not self.tasks:
+            return
+        tr = inst.agv_travel
+        assert tr is not None
+        tasks, ts = self.tasks, self.ts
+        out_of_depot = []
+        gap: dict[tuple[int, int], int] = {}
+        for i, t in enumerate(tasks):
+            gap[0, i + 1] = tr[0][t.pickup]
+            lit = m.new_bool_var(f"a0_{i}")
+            m.add(ts[i] >= tr[0][t.pickup]).only_enforce_if(lit)
+            self.agv_arcs.append((0, i + 1, lit))
+            out_of_depot.append(lit)
+            self.agv_arcs.append((i + 1, 0, m.new_bool_var(f"a{i}_0")))
+        for i, a in enumerate(tasks):
+            for jj, b in enumerate(tasks):
+                if i == jj or (a.job == b.job and b.op < a.op):
+                    continue  # a later task of the same job never comes first
+                lit = m.new_bool_var(f"a{i}_{jj}")
+                gap[i + 1, jj + 1] = g = _agv_gap(inst, a, b)
+                m.add(ts[jj] >= ts[i] + a.dur + g).only_enforce_if(lit)
+                self.agv_arcs.append((i + 1, jj + 1, lit))
+        m.add_multiple_circuit(self.agv_arcs)
+        m.add(sum(out_of_depot) <= inst.n_agvs)
+        # redundant "fleet workload" cut: each used AGV's last task ends after all its loaded and empty
+        # legs (or waits for its own part), and the makespan follows that task's operation and its job's
+        # tail, so summed over the AGVs:
+        # n_agvs * makespan >= sum(loaded) + sum(gaps of the arcs chosen) + sum(tail after each route's end).
+        work = []
+        for a, b, lit in self.agv_arcs:
+            if b:
+                if gap[a, b]:
+                    work.append(gap[a, b] * lit)
+            else:
+                ta = tasks[a - 1]
+                rest = inst.jobs[ta.job][ta.op].duration + self.tails[ta.job, ta.op]
+                if rest:
+                    work.append(rest * lit)
+        m.add(inst.n_agvs * self.mk >= sum(t.dur for t in tasks) + sum(work))
+        # redundant: one AGV's intervals [start - before, end + after) never overlap (see _agv_slacks)
+        before, after = _agv_slacks(inst, tasks, self.tails)
+        ivs = [m.new_interval_var(ts[i] - before[i], t.dur + before[i] + after[i], ts[i] + t.dur + after[i],
+                                  f"agv{i}") for i, t in enumerate(tasks)]
+        if inst.n_agvs == 1:
+            m.add_no_overlap(ivs)
+        else:
+            m.add_cumulative(ivs, [1] * len(ivs), inst.n_agvs)
+
+    # ------------------------------------------------------------------ tools and transporters
+    def _build_tools(self) -> None:
+        inst, m = self.inst, self.model
+        self.uses = _tool_uses(inst)
+        self.tool_arcs: dict[int, list[tuple[int, int, cp_model.IntVar]]] = {}
+        self.deliveries: list[tuple[int, int, int]] = []  # (tool, job, op)
+        self.tr_arcs: list[tuple[int, int, cp_model.IntVar]] = []
+        if not self.uses:
+            return
+        tt = inst.tool_travel
+        assert tt is not None
+        jobs = inst.jobs
+        # delivery variables per use: start, duration (a linear expression of the predecessor arcs), absent
+        self.dts: dict[tuple[int, int], cp_model.IntVar] = {}
+        self.dd_de: dict[tuple[int, int], tuple[cp_model.IntVar, cp_model.IntVar]] = {}  # duration, end
+        self.pred_arcs: dict[tuple[int, int], list[tuple[int, cp_model.IntVar]]] = {}  # use -> [(origin, lit)]
+        dur_expr: dict[tuple[int, int], cp_model.LinearExprT] = {}
+        absent: dict[tuple[int, int], cp_model.IntVar] = {}
+        for tool, us in sorted(self.uses.items()):
+            arcs: list[tuple[int, int, cp_model.IntVar]] = []
+            for w in us:
+                self.pred_arcs[w] = []
+                self.dts[w] = m.new_int_var(0, self.ub, f"dts{w[0]}_{w[1]}")
+            for wi, w in enumerate(us):
+                lit = m.new_bool_var(f"t{tool}_0_{wi}")
+                arcs.append((0, wi + 1, lit))
+                self.pred_arcs[w].append((0, lit))
+                arcs.append((wi + 1, 0, m.new_bool_var(f"t{tool}_{wi}_0")))
+            for ui, u in enumerate(us):
+                end_u = self.s[u] + jobs[u[0]][u[1]].duration
+                for wi, w in enumerate(us):
+                    if ui == wi or (u[0] == w[0] and w[1] < u[1]):
+                        continue  # a later operation of the same job never uses the tool first
+                    lit = m.new_bool_var(f"t{tool}_{ui}_{wi}")
+                    arcs.append((ui + 1, wi + 1, lit))
+                    self.pred_arcs[w].append((jobs[u[0]][u[1]].machine, lit))
+                    # the tool leaves u's machine (the delivery for w starts) only after u ended
+                    m.add(self.dts[w] >= end_u).only_enforce_if(lit)
+                    m.add(self.s[w] >= end_u).only_enforce_if(lit)
+            m.add_circuit(arcs)
+            self.tool_arcs[tool] = arcs
+            if len(us) > 1:
+                m.add_no_overlap([self.itv[u] for u in us])
+            for w in us:
+                mw = jobs[w[0]][w[1]].machine
+                preds = self.pred_arcs[w]
+                dur_expr[w] = sum(tt[o][mw] * lit for o, lit in preds)
+                ab = m.new_bool_var(f"absent{w[0]}_{w[1]}")
+                m.add(ab == sum(lit for o, lit in preds if o == mw))  # the tool is already there
+                absent[w] = ab
+                m.add(self.s[w] >= self.dts[w] + dur_expr[w])  # the delivery ends before w starts
+                self.deliveries.append((tool, w[0], w[1]))
+        # transporter routing over deliveries (absent deliveries take a self-loop)
+        n = len(self.deliveries)
+        starts = []
+        for i, (_, j, k) in enumerate(self.deliveries):
+            w = (j, k)
+            self.tr_arcs.append((i + 1, i + 1, absent[w]))
+            lit = m.new_bool_var(f"r0_{i}")
+            self.tr_arcs.append((0, i + 1, lit))
+            starts.append(lit)
+            m.add(self.dts[w] >= sum(tt[0][o] * p for o, p in self.pred_arcs[w])).only_enforce_if(lit)
+            self.tr_arcs.append((i + 1, 0, m.new_bool_var(f"r{i}_0")))
+        for vi, (_, jv, kv) in enumerate(self.deliveries):
+            mv = jobs[jv][kv].machine
+            v = (jv, kv)
+            for wi, (_, jw, kw) in enumerate(self.deliveries):
+                if vi == wi:
+                    continue
+                w = (jw, kw)
+                lit = m.new_bool_var(f"r{vi}_{wi}")
+                self.tr_arcs.append((vi + 1, wi + 1, lit))
+                empty = sum(tt[mv][o] * p for o, p in self.pred_arcs[w])
+                m.add(self.dts[w] >= self.dts[v] + dur_expr[v] + empty).only_enforce_if(lit)
+        m.add_multiple_circuit(self.tr_arcs)
+        m.add(sum(starts) <= inst.n_tool_transporters)
+        self._tool_workload_cuts(dur_expr)
+        # redundant: present deliveries share n_tool_transporters vehicles
+        ivs, demands = [], []
+        for i, (_, j, k) in enumerate(self.deliveries):
+            w = (j, k)
+            d = m.new_int_var(0, max(max(r) for r in tt), f"dd{j}_{k}")
+            m.add(d == dur_expr[w])
+            end = m.new_int_var(0, self.ub, f"de{j}_{k}")
+            m.add(end == self.dts[w] + d)
+            self.dd_de[w] = (d, end)
+            ivs.append(m.new_optional_interval_var(self.dts[w], d, end, ~absent[w], f"del{j}_{k}"))
+            demands.append(1)
+        if inst.n_tool_transporters == 1:
+            m.add_no_overlap(ivs)
+        elif n > inst.n_tool_transporters:
+            m.add_cumulative(ivs, demands, inst.n_tool_transporters)
+
+    def _tool_workload_cuts(self, dur_expr: dict[tuple[int, int], cp_model.LinearExprT]) -> None:
+        """Redundant linear cuts. Per tool: its deliveries and uses run one after the other, and the job of
+        its last use still has its tail to do. Over the transporters: each one's last delivery ends after
+        all its loaded legs and empty legs (at least the shortest approach to any possible origin), and the
+        delivered operation and its job's tail follow."""
+        inst, m, jobs = self.inst, self.model, self.inst.jobs
+        tt = inst.tool_travel
+        assert tt is not None
+        for tool, us in self.uses.items():
+            rest = [self.tails[us[a - 1]] * lit for (a, b, lit) in self.tool_arcs[tool] if b == 0 and a != 0]
+            m.add(self.mk >= sum(jobs[j][k].duration for j, k in us) + sum(dur_expr[w] for w in us) + sum(rest))
+        origins = {w: {o for o, _ in preds if o != jobs[w[0]][w[1]].machine} for w, preds in self.pred_arcs.items()}
+        work = [dur_expr[(j, k)] for _, j, k in self.deliveries]
+        for a, b, lit in self.tr_arcs:
+            if a == b:
+                continue
+            if b == 0:
+                j, k = self.deliveries[a - 1][1:]
+                work.append((jobs[j][k].duration + self.tails[j, k]) * lit)
+                continue
+            w = self.deliveries[b - 1][1:]
+            here = 0 if a == 0 else jobs[self.deliveries[a - 1][1]][self.deliveries[a - 1][2]].machine
+            if origins[w]:
+                empty = min(tt[here][o] for o in origins[w])
+                if empty:
+                    work.append(empty * lit)
+        m.add(inst.n_tool_transporters * self.mk >= sum(work))
+
+    # ------------------------------------------------------------------ hints
+    def add_hint(self, sch: Schedule) -> None:
+        """Hint every variable from a feasible schedule (complete hints let CP-SAT start from it)."""
+        m, inst = self.model, self.inst
+        start = {(o.job, o.op): o.start for o in sch.operations}
+        end = {(o.job, o.op): o.end for o in sch.operations}
+        for key, var in self.s.items():
+            m.add_hint(var, start[key])
+        m.add_hint(self.mk, sch.makespan)
+        if self.tasks:
+            loaded = {(t.job, t.op): t for t in sch.agv_trips if t.loaded}
+            for i, t in enumerate(self.tasks):
+                m.add_hint(self.ts[i], loaded[t.job, t.op].start)
+            idx = {(t.job, t.op): i + 1 for i, t in enumerate(self.tasks)}
+            seqs = []
+            for a in range(inst.n_agvs):
+                seq = sorted((t.start, idx[t.job, t.op]) for t in sch.agv_trips
+                             if t.agv == a and t.loaded and (t.job, t.op) in idx)
+                if seq:
+                    seqs.append([n for _, n in seq])
+            true_arcs = set()
+            for seq in seqs:
+                nodes = [0] + seq + [0]
+                true_arcs.update(zip(nodes, nodes[1:]))
+            for a, b, lit in self.agv_arcs:
+                m.add_hint(lit, (a, b) in true_arcs)
+        if self.uses:
+            tool_loaded = {(t.job, t.op): t for t in sch.tool_trips if t.loaded and t.from_ != t.to}
+            true_t = set()
+            prev_of: dict[tuple[int, int], tuple[int, int] | None] = {}
+            for tool, us in self.uses.items():
+                order = sorted(range(len(us)), key=lambda i: (start[us[i]], end[us[i]], us[i]))
+                nodes = [0] + [i + 1 for i in order] + [0]
+                true_t.update((tool, a, b) for a, b in zip(nodes, nodes[1:]))
+                prev: tuple[int, int] | None = None
+                for i in order:
+                    prev_of[us[i]] = prev
+                    prev = us[i]
+                for a, b, lit in self.tool_arcs[tool]:
+                    m.add_hint(lit, (tool, a, b) in true_t)
+            for w, var in self.dts.items():
+                if w in tool_loaded:
+                    st, dur = tool_loaded[w].start, tool_loaded[w].end - tool_loaded[w].start
+                else:
+                    p = prev_of[w]
+                    st, dur = (end[p] if p is not None else 0), 0
+                m.add_hint(var, st)
+                if w in self.dd_de:
+                    m.add_hint(self.dd_de[w][0], dur)
+                    m.add_hint(self.dd_de[w][1], st + dur)
+            didx = {(j, k): i + 1 for i, (_, j, k) in enumerate(self.deliveries)}
+            true_r = set()
+            for r in range(inst.n_tool_transporters):
+                seq = sorted((t.start, didx[t.job, t.op]) for t in sch.tool_trips
+                             if t.transporter == r and t.loaded and t.from_ != t.to)
+                nodes = [0] + [n for _, n in seq] + [0]
+                if len(nodes) > 2:
+                    true_r.update(zip(nodes, nodes[1:]))
+            present = {didx[w] for w in tool_loaded}
+            for a, b, lit in self.tr_arcs:
+                if a == b:
+                    m.add_hint(lit, a not in present)
+                else:
+                    m.add_hint(lit, (a, b) in true_r)
+
+    # ------------------------------------------------------------------ solution -> schedule
+    def extract(self, value: Callable[[cp_model.IntVar], int], bool_value: Callable[[cp_model.IntVar], bool]) -> Schedule:
+        """The schedule of a solution: operations, each route's loaded trips, and an empty trip from the
+        vehicle's previous drop to the next pickup, leaving as soon as the previous trip ended (the arc
+        constraints guarantee it arrives before the loaded trip starts)."""
+        inst = self.inst
+        jobs = inst.jobs
+        ops = [OperationRecord(j, k, op.machine, op.tool if inst.has_tools else None,
+                               value(self.s[j, k]), value(self.s[j, k]) + op.duration)
+               for j, job in enumerate(jobs) for k, op in enumerate(job)]
+        agv_trips: list[AgvTrip] = []
+        if self.tasks:
+            tr = inst.agv_travel
+            assert tr is not None
+            routes = _routes(self.agv_arcs, bool_value)
+            for a, route in enumerate(routes):
+                here, free = 0, 0
+                for node in route:
+                    t = self.tasks[node - 1]
+                    st = value(self.ts[node - 1])
+                    if here != t.pickup:
+                        agv_trips.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
+                    agv_trips.append(AgvTrip(a, t.job, t.op, t.pickup, t.drop, st, st + t.dur, True))
+                    here, free = t.drop, st + t.dur
+        tool_trips: list[ToolTrip] = []
+        if self.uses:
+            tt = inst.tool_travel
+            assert tt is not None
+            origin: dict[tuple[int, int], int] = {}
+            for w, preds in self.pred_arcs.items():
+                origin[w] = next(o for o, lit in preds if bool_value(lit))
+            routes = _routes([a for a in self.tr_arcs if a[0] != a[1]], bool_value)
+            for r, route in enumerate(routes):
+                here, free = 0, 0
+                for node in route:
+                    tool, j, k = self.deliveries[node - 1]
+                    src, dst = origin[j, k], jobs[j][k].machine
+                    st = value(self.dts[j, k])
+                    if here != src:
+                        tool_trips.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
+                    tool_trips.append(ToolTrip(r, tool, j, k, src, dst, st, st + tt[src][dst], True))
+                    here, free = dst, st + tt[src][dst]
+        return Schedule(instance=inst.name, makespan=max(o.end for o in ops), n_agvs=inst.n_agvs,
+                        n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=agv_trips,
+                        tool_trips=tool_trips)
+
+
+def _routes(arcs: Sequence[tuple[int, int, cp_model.IntVar]], bool_value: Callable[[cp_model.IntVar], bool]) -> list[list[int]]:
+    """The vehicle routes (lists of nodes, depot 0 excluded) of a solved multiple-circuit constraint."""
+    succ: dict[int, list[int]] = {}
+    for a, b, lit in arcs:
+        if a != b and bool_value(lit):
+            succ.setdefault(a, []).append(b)
+    routes = []
+    for first in succ.get(0, []):
+        route, node = [], first
+        while node != 0:
+            route.append(node)
+            node = succ[node][0]
+        routes.append(route)
+    return routes
+
+
+class _Callback(cp_model.CpSolverSolutionCallback):
+    """Keeps the latest (best) solution as a Schedule and reports progress."""
+
+    def __init__(self, fm: _FullModel, progress: Progress | None, t0: float):
+        super().__init__()
+        self.fm, self.progress, self.t0 = fm, progress, t0
+        self.best: Schedule | None = None
+
+    def on_solution_callback(self) -> None:
+        sch = self.fm.extract(self.value, self.boolean_value)
+        self.best = sch
+        if self.progress is not None:
+            self.progress(int(self.objective_value), int(self.best_objective_bound), time.monotonic() - self.t0)
+
+
+# ====================================================================================== relaxation
+def _relaxation_model(inst: Instance, ub: int) -> tuple[cp_model.CpModel, dict[tuple[int, int], cp_model.IntVar]]:
+    """Job shop with loaded-travel lags, tool no-overlaps, tool release dates and an AGV cumulative: every
+    feasible schedule satisfies it, so its optimum (or proven bound) bounds the true makespan from below."""
+    m = cp_model.CpModel()
+    heads, tails = _heads_tails(inst)
+    jobs = inst.jobs
+    s: dict[tuple[int, int], cp_model.IntVar] = {}
+    by_res: dict[tuple[str, int], list[cp_model.IntervalVar]] = {}
+    mk = m.new_int_var(0, ub, "makespan")
+    for j, job in enumerate(jobs):
+        for k, op in enumerate(job):
+            s[j, k] = v = m.new_int_var(heads[j, k], max(heads[j, k], ub - tails[j, k] - op.duration), f"s{j}_{k}")
+            iv = m.new_fixed_size_interval_var(v, op.duration, f"i{j}_{k}")
+            by_res.setdefault(("m", op.machine), []).append(iv)
+            if inst.has_tools and op.tool is not None:
+                by_res.setdefault(("t", op.tool), []).append(iv)
+            if k:
+                m.add(v >= s[j, k - 1] + job[k - 1].duration + _loaded_time(inst, j, k))
+        m.add(mk >= s[j, len(job) - 1] + job[-1].duration)
+    for ivs in by_res.values():
+        if len(ivs) > 1:
+            m.add_no_overlap(ivs)
+    tasks = _agv_tasks(inst)
+    if tasks and len(tasks) > inst.n_agvs:
+        before, after = _agv_slacks(inst, tasks, tails)
+        ivs = []
+        for i, t in enumerate(tasks):
+            ts = m.new_int_var(0, ub, f"ts{i}")
+            m.add(s[t.job, t.op] >= ts + t.dur)
+            if t.op:
+                m.add(ts >= s[t.job, t.op - 1] + inst.jobs[t.job][t.op - 1].duration)
+            ivs.append(m.new_interval_var(ts - before[i], t.dur + before[i] + after[i], ts + t.dur + after[i],
+                                          f"a{i}"))
+        if inst.n_agvs == 1:
+            m.add_no_overlap(ivs)
+        else:
+            m.add_cumulative(ivs, [1] * len(ivs), inst.n_agvs)
+    m.minimize(mk)
+    return m, s
+
+
+def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int = 2, seed: int = 0,
+                     ub: int | None = None) -> tuple[int, dict[tuple[int, int], int] | None]:
+    """A valid lower bound from the relaxation (see :func:`_relaxation_model`) solved within ``time_limit``
+    seconds, at least :func:`simple_lower_bound`; also the relaxed start times (``None`` if none found)."""
+    lb = simple_lower_bound(inst)
+    if ub is None:
+        ub = greedy_schedule(inst).makespan
+    if time_limit <= 0 or lb >= ub:
+        return lb, None
+    model, s = _relaxation_model(inst, ub)
+    solver = cp_model.CpSolver()
+    solver.parameters.max_time_in_seconds = time_limit
+    solver.parameters.num_workers = max(1, workers)
+    solver.parameters.random_seed = seed
+    status = solver.solve(model)
+    starts = None
+    if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
+        starts = {key: solver.value(v) for key, v in s.items()}
+        lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+    elif status == cp_model.INFEASIBLE:
+        lb = max(lb, ub)  # no relaxed schedule within ub: ub itself is a bound (ub is feasible)
+    else:
+        lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+    return min(lb, ub), starts
+
+
+# ====================================================================================== entry points
+def _n_transport_tasks(inst: Instance) -> int:
+    return len(_agv_tasks(inst)) + sum(len(u) for u in _tool_uses(inst).values())
+
+
+def solve_exact(
+    instance: Instance,
+    *,
+    time_limit: float = 60.0,
+    workers: int = 2,
+    seed: int = 0,
+    hint: Schedule | None = None,
+    log: bool = False,
+    progress: Progress | None = None,
+    model: str = "auto",
+    cp_params: Mapping[str, object] | None = None,
+) -> ExactResult:
+    """Minimise the makespan of ``instance`` with CP-SAT within ``time_limit`` seconds on ``workers`` threads.
+
+    ``hint`` (a feasible schedule) seeds the search and is the fallback incumbent; ``progress(objective,
+    bound, seconds)`` is called on each improved solution; ``model`` is ``"auto"`` (full model up to
+    :data:`FULL_MODEL_MAX_TASKS` transport tasks, plain job shops always), ``"full"`` or ``"relaxed"``;
+    ``cp_params`` sets extra CP-SAT parameters of the full model (e.g. ``{"use_objective_lb_search": True}``).
+    """
+    t0 = time.monotonic()
+    if time_limit <= 0:
+        raise ValueError(f"time_limit must be positive, got {time_limit}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if model not in ("auto", "full", "relaxed"):
+        raise ValueError(f"unknown model {model!r}; use 'auto', 'full' or 'relaxed'")
+    if hint is not None:
+        problems = validate(instance, hint)
+        if problems:
+            raise ValueError(f"the hint is not a feasible schedule for {instance.name}: {problems[0]}")
+    n_tasks = _n_transport_tasks(instance)
+    full = model == "full" or (model == "auto" and (n_tasks <= FULL_MODEL_MAX_TASKS or instance.mode == "jobshop"))
+    greedy_budget = min(2.0, 0.05 * time_limit) if full else min(10.0, 0.15 * time_limit)
+    incumbent = _best_greedy(instance, greedy_budget, seed)
+    if hint is not None and hint.makespan <= incumbent.makespan:
+        incumbent = _copy_schedule(hint)
+    lb = simple_lower_bound(instance)
+    if full:
+        incumbent = _improve_by_priorities(instance, incumbent, None, lb, t0 + 0.1 * time_limit, seed, None, t0,
+                                           max_stall=300)
+        return _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
+    return _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
+
+
+def _copy_schedule(s: Schedule) -> Schedule:
+    return Schedule(s.instance, s.makespan, s.n_agvs, s.n_tool_transporters, list(s.operations),
+                    list(s.agv_trips), list(s.tool_trips), dict(s.meta))
+
+
+def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_limit: float, workers: int,
+                seed: int, log: bool, progress: Progress | None,
+                cp_params: Mapping[str, object] | None) -> ExactResult:
+    ub = incumbent.makespan
+    if lb >= ub:
+        if progress is not None:
+            progress(ub, ub, time.monotonic() - t0)
+        return ExactResult(incumbent, ub, "OPTIMAL", time.monotonic() - t0)
+    fm = _FullModel(inst, lb, ub)
+    fm.add_hint(incumbent)
+    solver = cp_model.CpSolver()
+    p = solver.parameters
+    p.max_time_in_seconds = max(0.1, time_limit - (time.monotonic() - t0))
+    p.num_workers = workers
+    p.random_seed = seed
+    p.log_search_progress = log
+    for key, val in (cp_params or {}).items():
+        if not hasattr(p, key):
+            raise ValueError(f"unknown CP-SAT parameter {key!r}")
+        if isinstance(val, (list, tuple)):
+            getattr(p, key).extend(val)
+        else:
+            setattr(p, key, val)
+    cb = _Callback(fm, progress, t0)
+    status = solver.solve(fm.model, cb)
+    bound = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6))) if status != cp_model.INFEASIBLE else lb
+    best = incumbent
+    if cb.best is not None and cb.best.makespan <= best.makespan:
+        best = cb.best
+    wall = time.monotonic() - t0
+    if status == cp_model.OPTIMAL:
+        name = "OPTIMAL"
+        bound = best.makespan
+    elif status == cp_model.INFEASIBLE:
+        # cannot happen: the incumbent satisfies the model; keep it with the simple bound, but say so
+        warnings.warn(f"CP-SAT called the model of {inst.name} infeasible although the incumbent "
+                      f"(makespan {ub}) satisfies it; returning the incumbent", RuntimeWarning, stacklevel=3)
+        name = "FEASIBLE"
+    else:
+        name = "OPTIMAL" if bound >= best.makespan else "FEASIBLE"
+    bound = min(bound, best.makespan)
+    return ExactResult(best, bound, name, wall)
+
+
+def _solve_fallback(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_limit: float, workers: int,
+                    seed: int, progress: Progress | None) -> ExactResult:
+    """Relaxation bound, then iterated guided list scheduling until the time is up (see module docstring)."""
+    deadline = t0 + 0.97 * time_limit
+    left = deadline - time.monotonic()
+    bound, starts = relaxation_bound(inst, time_limit=0.4 * left, workers=workers, seed=seed,
+                                     ub=incumbent.makespan)
+    bound = max(bound, lb)
+    best = incumbent
+    if progress is not None:
+        progress(best.makespan, min(bound, best.makespan), time.monotonic() - t0)
+    best = _improve_by_priorities(inst, best, starts, bound, deadline, seed, progress, t0)
+    bound = min(bound, best.makespan)
+    status = "OPTIMAL" if bound >= best.makespan else "FEASIBLE"
+    return ExactResult(best, bound, status, time.monotonic() - t0)
+
+
+def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[int, int], int] | None, bound: int,
+                           deadline: float, seed: int, progress: Progress | None, t0: float,
+                           max_stall: int | None = None) -> Schedule:
+    """Randomised greedy restarts, keeping the best schedule, until ``deadline`` (or ``max_stall`` attempts
+    in a row without improvement): first a schedule guided by the relaxation's start times (if given), then
+    earliest-start list schedules whose start times are perturbed by random offsets (two in three attempts)
+    and schedules guided by the best schedule's start times plus noise."""
+    rng = random.Random(seed)
+    mean_p = max(1.0, sum(o.duration for job in inst.jobs for o in job) / inst.n_operations)
+    keys = [(j, k) for j, job in enumerate(inst.jobs) for k in range(len(job))]
+    it = stall = 0
+    while best.makespan > bound and (max_stall is None or stall < max_stall):
+        t1 = time.monotonic()
+        scale = mean_p * rng.choice((0.05, 0.2, 0.5))
+        if it == 0 and starts is not None:
+            cand = greedy_schedule(inst, rule="guided", priority=dict(starts))
+        elif rng.random() < 2 / 3:
+            cand = greedy_schedule(inst, rule="est", noise={key: scale * rng.random() for key in keys})
+        else:
+            prio = {(o.job, o.op): o.start + 4 * scale * rng.random() for o in best.operations}
+            cand = greedy_schedule(inst, rule="guided", priority=prio)
+        stall += 1
+        if cand.makespan < best.makespan:
+            best, stall = cand, 0
+            if progress is not None:
+                progress(best.makespan, bound, time.monotonic() - t0)
+        it += 1
+        now = time.monotonic()
+        if now + (now - t1) > deadline:
+            break
+    return best
+
+
+def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **kw: object) -> Schedule:
+    """The best schedule :func:`solve_exact` finds, with ``meta`` = solver, status, lower bound, wall time.
+
+    Raises ``RuntimeError`` if no feasible schedule was found within the time limit.
+    """
+    res = solve_exact(instance, time_limit=time_limit, workers=workers, **kw)  # type: ignore[arg-type]
+    if res.schedule is None:
+        raise RuntimeError(f"cpsat found no feasible schedule for {instance.name} within {time_limit:g} s "
+                           f"(status {res.status})")
+    sch = res.schedule
+    sch.meta = {"solver": "cpsat", "status": res.status, "lower_bound": res.lower_bound,
+                "wall_time": round(res.wall_time, 3)}
+    return sch
