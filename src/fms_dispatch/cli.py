@@ -58,6 +58,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if a.time_limit <= 0:
             raise CliError("--time-limit must be positive")
         opts["time_limit"] = a.time_limit
+    if a.lookahead:
+        if not a.solver.lower().startswith("ppo"):
+            raise CliError("--lookahead applies to the ppo solver only")
+        opts["lookahead"] = True
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
@@ -125,7 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
     _add_instance_args(s)
     s.add_argument("--solver", default="first",
-                   help="first | random | rule:<JOB>+<first|least-work|nearest> | sos | cpsat (default: first)")
+                   help="first | random | rule:<JOB>+<first|least-work|nearest> | sos | cpsat | ppo[:MODEL] "
+                        "(default: first)")
+    s.add_argument("--lookahead", action="store_true", help="ppo: pre-position idle vehicles (digital-twin lookahead)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", help="write the schedule JSON here")
@@ -157,10 +163,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_generate)
 
     from .benchmark import add_bench_parser
+    from .rl import add_train_parser
     from .up import add_up_parser
 
     add_bench_parser(sub)
     add_up_parser(sub)
+    add_train_parser(sub)
     return p
 
 

@@ -2,7 +2,8 @@
 
 Names: ``first`` (baseline: always the lowest enabled action), ``random`` (uniform among legal actions,
 seeded), ``rule:<JOB>+<first|least-work|nearest>`` (see :mod:`fms_dispatch.rules`), ``sos`` (symbiotic
-organisms search) and ``cpsat`` (exact model), each honouring ``time_limit`` where it searches. Every schedule
+organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
+option ``lookahead=True`` pre-positions idle vehicles), each honouring ``time_limit`` where it searches. Every schedule
 leaves here with ``meta["solver"]`` and ``meta["wall_time"]`` filled in.
 """
 
@@ -63,7 +64,7 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat"]
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat", "ppo[:MODEL]"]
 
 
 def get_solver(name: str) -> Solver:
@@ -83,6 +84,13 @@ def get_solver(name: str) -> Solver:
         return _sos
     if low == "cpsat":
         return _cpsat
+    if low == "ppo" or low.startswith("ppo:"):
+        from .rl import ppo_solver
+
+        try:
+            return ppo_solver(name)
+        except ValueError as exc:
+            raise UnknownSolver(str(exc)) from None
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 
 

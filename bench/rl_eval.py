@@ -1,0 +1,198 @@
+"""Measure the shipped PPO models against the dispatching rules (targets of the RL issue, not timed tests).
+
+* ``python bench/rl_eval.py bu [--model bu]`` — BU layout 2 (EX12..EX102, 2 AGVs): PPO makespan with and
+  without lookahead, seconds per instance, the best of the 24 rule pairs per instance, the optimum.
+  Targets: average <= 99 with lookahead, every instance <= best rule pair, <= 0.1 s per instance.
+* ``python bench/rl_eval.py sl [--model large] [--no-tools] [--per-group N]`` — the large benchmark (10 AGVs,
+  5 transporters): per size group the PPO mean (and with ``--lookahead`` the lookahead mean), the mean of the
+  best single rule pair of the group, and the mean of the per-instance best pair. Target: PPO better than the
+  best rule pair in every group; sl70 (100x20x20) in <= 5 s.
+
+Every schedule is validated. ``--json FILE`` writes the results; ``--write-metrics`` stores them under
+``"benchmark"`` in the model's ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+from fms_dispatch.rl.lookahead import run_agent
+from fms_dispatch.rl.models import load_agent, resolve_model
+from fms_dispatch.rules import all_rule_pairs, parse_rule_name
+from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, SL_GROUPS, builtin
+from fms_sim.shop import Shop
+from fms_sim.validate import validate
+
+
+CPU: dict[str, float] = {}  # CPU seconds of the last run_ppo call (wall time suffers on a shared machine)
+
+
+def run_ppo(agent, inst, lookahead: bool) -> tuple[int, float]:
+    t0, c0 = time.perf_counter(), time.process_time()
+    s = run_agent(Shop(inst), agent.act, lookahead=lookahead)
+    dt = time.perf_counter() - t0
+    CPU["last"] = time.process_time() - c0
+    problems = validate(inst, s)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name} (lookahead={lookahead}): {problems[0]}")
+    return s.makespan, dt
+
+
+RULE_CACHE: dict[str, dict[str, int]] = {}  # instance key -> rule pair -> makespan (see --rules-cache)
+
+
+def _key(inst) -> str:
+    return f"{inst.name}|tools={inst.has_tools}|agvs={inst.n_agvs}|tts={inst.n_tool_transporters}"
+
+
+def rule_makespans(inst) -> dict[str, int]:
+    if _key(inst) in RULE_CACHE:
+        return RULE_CACHE[_key(inst)]
+    out = {}
+    for name in all_rule_pairs():
+        pol = parse_rule_name(name)
+        shop = Shop(inst)
+        while not shop.done:
+            shop.act(pol(shop))
+        out[name] = shop.makespan
+    RULE_CACHE[_key(inst)] = out
+    return out
+
+
+def bench_bu(model: str) -> dict:
+    agent = load_agent(model)
+    rows = []
+    for s in range(1, 11):
+        inst = builtin(f"EX{s}2")
+        plain, t_plain = run_ppo(agent, inst, False)
+        c_plain = CPU["last"]
+        look, t_look = run_ppo(agent, inst, True)
+        c_look = CPU["last"]
+        rules = rule_makespans(inst)
+        best = min(rules.values())
+        rows.append(dict(instance=inst.name, ppo=plain, ppo_lookahead=look, best_rule=best,
+                         optimum=BU_OPTIMAL_MAKESPAN[(s, 2)], seconds=round(t_plain, 4),
+                         seconds_lookahead=round(t_look, 4), cpu_seconds=round(c_plain, 4),
+                         cpu_seconds_lookahead=round(c_look, 4)))
+        print(f"{inst.name:6s} ppo {plain:4d}  +lookahead {look:4d}  best rule {best:4d}  opt "
+              f"{BU_OPTIMAL_MAKESPAN[(s, 2)]:4d}  {t_plain:.3f} s / {t_look:.3f} s wall, "
+              f"{c_plain:.3f} / {c_look:.3f} s CPU", flush=True)
+    summary = dict(
+        mean_ppo=statistics.mean(r["ppo"] for r in rows),
+        mean_ppo_lookahead=statistics.mean(r["ppo_lookahead"] for r in rows),
+        mean_best_rule=statistics.mean(r["best_rule"] for r in rows),
+        mean_optimum=statistics.mean(r["optimum"] for r in rows),
+        max_seconds=max(r["seconds"] for r in rows),
+        max_seconds_lookahead=max(r["seconds_lookahead"] for r in rows),
+        max_cpu_seconds=max(r["cpu_seconds"] for r in rows),
+        max_cpu_seconds_lookahead=max(r["cpu_seconds_lookahead"] for r in rows),
+        instances_at_or_below_best_rule=sum(r["ppo_lookahead"] <= r["best_rule"] for r in rows),
+        instances_at_or_below_best_rule_plain=sum(r["ppo"] <= r["best_rule"] for r in rows),
+    )
+    print(json.dumps(summary, indent=1))
+    return {"set": "BU layout 2 (EX12-EX102)", "rows": rows, "summary": summary}
+
+
+def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups: list[int]) -> dict:
+    agent = load_agent(model)
+    out_groups = []
+    for g in groups:
+        insts = []
+        for k in range(per_group):
+            inst = builtin(f"sl{g}{k}")
+            insts.append(inst.without_tools() if no_tools else inst)
+        ppo, secs, cpus, look, rules = [], [], [], [], []
+        for inst in insts:
+            m, dt = run_ppo(agent, inst, False)
+            ppo.append(m)
+            secs.append(dt)
+            cpus.append(CPU["last"])
+            if lookahead:
+                look.append(run_ppo(agent, inst, True)[0])
+            rules.append(rule_makespans(inst))
+        pair_means = {p: statistics.mean(r[p] for r in rules) for p in rules[0]}
+        best_pair = min(pair_means, key=pair_means.get)
+        row = dict(group=g, size="x".join(map(str, SL_GROUPS[g])), instances=[i.name for i in insts],
+                   ppo=ppo, mean_ppo=statistics.mean(ppo), best_pair=best_pair,
+                   mean_best_pair=pair_means[best_pair],
+                   mean_instance_best=statistics.mean(min(r.values()) for r in rules),
+                   max_seconds=round(max(secs), 3), max_cpu_seconds=round(max(cpus), 3))
+        if lookahead:
+            row["ppo_lookahead"] = look
+            row["mean_ppo_lookahead"] = statistics.mean(look)
+        out_groups.append(row)
+        la = f"  +lookahead {row['mean_ppo_lookahead']:.1f}" if lookahead else ""
+        print(f"group {g} ({row['size']}): ppo {row['mean_ppo']:.1f}{la}  best pair {best_pair} "
+              f"{row['mean_best_pair']:.1f}  per-instance best {row['mean_instance_best']:.1f}  "
+              f"max {row['max_seconds']:.2f} s wall / {row['max_cpu_seconds']:.2f} s CPU", flush=True)
+    return {"set": f"large benchmark ({'AGVs only' if no_tools else 'AGVs + tools'}), {per_group} per group",
+            "groups": out_groups}
+
+
+def parse_groups(text: str) -> list[int]:
+    if "-" in text and "," not in text:
+        lo, hi = (int(x) for x in text.split("-"))
+        return list(range(lo, hi + 1))
+    return [int(x) for x in text.split(",")]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("which", choices=("bu", "sl"))
+    ap.add_argument("--model", help="model name/folder (default: bu for bu, large / large-agv for sl)")
+    ap.add_argument("--no-tools", action="store_true", help="sl without tools (AGV-only)")
+    ap.add_argument("--per-group", type=int, default=10, help="sl instances per group (1-10)")
+    ap.add_argument("--groups", default="0-7", help="sl groups, e.g. 0-7 or 0,3,7")
+    ap.add_argument("--lookahead", action="store_true", help="sl: also run with lookahead")
+    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--rules-cache", help="JSON file caching the rule pairs' makespans (read and updated)")
+    ap.add_argument("--rules-only", action="store_true", help="sl: only compute (and cache) the rule pairs")
+    ap.add_argument("--write-metrics", action="store_true", help="store results in the model's metrics.json")
+    a = ap.parse_args()
+    if a.rules_cache and Path(a.rules_cache).is_file():
+        RULE_CACHE.update(json.loads(Path(a.rules_cache).read_text()))
+    try:
+        run(a)
+    finally:
+        if a.rules_cache:
+            Path(a.rules_cache).write_text(json.dumps(RULE_CACHE) + "\n")
+
+
+def run(a: argparse.Namespace) -> None:
+    if a.rules_only:
+        for g in parse_groups(a.groups):
+            for k in range(a.per_group):
+                inst = builtin(f"sl{g}{k}")
+                rule_makespans(inst.without_tools() if a.no_tools else inst)
+            print(f"rules cached for group {g}", flush=True)
+        return
+    if a.which == "bu":
+        model = a.model or "bu"
+        res = bench_bu(model)
+        key = "bu_layout2"
+    else:
+        model = a.model or ("large-agv" if a.no_tools else "large")
+        groups = parse_groups(a.groups)
+        res = bench_sl(model, a.no_tools, a.per_group, a.lookahead, groups)
+        key = "sl_no_tools" if a.no_tools else "sl"
+        sl70 = builtin("sl70").without_tools() if a.no_tools else builtin("sl70")
+        m, dt = run_ppo(load_agent(model), sl70, False)
+        res["sl70"] = {"makespan": m, "seconds": round(dt, 3), "cpu_seconds": round(CPU["last"], 3)}
+        print(f"sl70: makespan {m}, {dt:.2f} s wall, {CPU['last']:.2f} s CPU")
+    if a.json:
+        Path(a.json).write_text(json.dumps(res, indent=1) + "\n")
+    if a.write_metrics:
+        ref = resolve_model(model)
+        path = ref.folder / "metrics.json"
+        metrics = json.loads(path.read_text()) if path.is_file() else {}
+        metrics.setdefault("benchmark", {})[key] = res
+        path.write_text(json.dumps(metrics, indent=1) + "\n")
+        print(f"metrics: {path}")
+
+
+if __name__ == "__main__":
+    main()

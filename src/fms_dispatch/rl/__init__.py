@@ -1,0 +1,54 @@
+"""Reinforcement-learning dispatcher: MaskablePPO agents on the shop net, with an optional lookahead twin.
+
+* :mod:`.envs` — the agent's environment (fast features, padding profiles);
+* :mod:`.policy` — the entity policy network and the deterministic :class:`~.policy.Agent`;
+* :mod:`.lookahead` — running an agent, with pre-positioning of idle vehicles;
+* :mod:`.models` — model folders, shipped models and the default choice per instance;
+* :mod:`.train` — ``fms train``.
+
+Solver entry point: :func:`ppo_solver` (``"ppo"`` or ``"ppo:MODEL"``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
+
+from .train import add_train_parser
+
+__all__ = ["ppo_solver", "add_train_parser"]
+
+
+def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
+    """Solver for ``"ppo"`` (the shipped model that fits the instance) or ``"ppo:MODEL"`` (name, folder, .zip).
+
+    The returned ``solve(instance, lookahead=False, **ignored)`` runs the deterministic masked policy
+    (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the twin.
+    """
+    low = spec.strip()
+    if low.lower() == "ppo":
+        model: str | None = None
+    elif low.lower().startswith("ppo:") and low[4:].strip():
+        model = low[4:].strip()
+    else:
+        raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
+
+    def solve(instance: Instance, lookahead: bool = False, **_: Any) -> Schedule:
+        from fms_sim.shop import Shop
+
+        from .lookahead import run_agent
+        from .models import default_model_name, load_agent
+
+        agent = load_agent(model or default_model_name(instance))
+        if not agent.fits(instance):
+            raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
+                             f"({agent.padding})")
+        sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead))
+        sched.meta["solver"] = f"ppo:{agent.name}" + ("+lookahead" if lookahead else "")
+        sched.meta["model"] = agent.name
+        sched.meta["lookahead"] = bool(lookahead)
+        return sched
+
+    return solve

@@ -1,0 +1,165 @@
+"""Warm start for PPO: demonstrations from search or rules, cloned into the policy before PPO fine-tuning.
+
+PPO from scratch learns slowly on two CPU cores; a policy that starts from good behaviour only has to improve
+it. Two experts make the demonstrations (action sequences through the shop net):
+
+* ``"search"`` — per training instance, a search over decision sequences: start from the best of the
+  24 rule pairs and of ``iters/4`` random runs, then repeatedly keep a prefix of the best sequence, change one decision at random and
+  complete the run by replaying the best sequence where it is still legal (else a random legal action);
+  keep the result when it is no worse. For small instances (BU) this finds sequences near the net's best.
+* ``"rules"`` — per training instance, the sequence of the best of the 24 rule pairs (large instances).
+
+:func:`clone` then trains the policy (cross-entropy on the masked logits) and the value head (return-to-go of
+the env's reward along the demonstration) on the recorded ``(observation, mask, action)`` triples. The
+result is an ordinary MaskablePPO model; PPO continues from it.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any, Sequence
+
+import numpy as np
+
+from fms_sim.instance import Instance
+from fms_sim.shop import Shop
+
+__all__ = ["rule_trajectory", "search_trajectory", "demonstrations", "clone"]
+
+
+def _run(inst: Instance, choose) -> tuple[int, list[int]]:
+    shop = Shop(inst)
+    acts: list[int] = []
+    while not shop.done:
+        a = choose(shop)
+        shop.act(a)
+        acts.append(a)
+    return shop.makespan, acts
+
+
+def rule_trajectory(inst: Instance) -> tuple[int, list[int]]:
+    """(makespan, actions) of the best of the 24 rule pairs (first pair on ties)."""
+    from fms_dispatch.rules import all_rule_pairs, parse_rule_name
+
+    best: tuple[int, list[int]] | None = None
+    for name in all_rule_pairs():
+        r = _run(inst, parse_rule_name(name))
+        if best is None or r[0] < best[0]:
+            best = r
+    assert best is not None
+    return best
+
+
+def search_trajectory(inst: Instance, iters: int = 2000, seed: int = 0, keep: float = 0.85) -> tuple[int, list[int]]:
+    """(makespan, actions) found by the local search described in the module docstring."""
+    rng = random.Random(seed)
+    best_ms, best = rule_trajectory(inst)
+    # a quarter of the budget on random runs (a broad start), the rest on local moves
+    for _ in range(iters // 4):
+        ms, acts = _run(inst, lambda shop: rng.choice(shop.legal_actions()))
+        if ms < best_ms:
+            best_ms, best = ms, acts
+    for _ in range(iters - iters // 4):
+        i = rng.randrange(len(best))
+        shop = Shop(inst)
+        acts: list[int] = []
+        for a in best[:i]:
+            shop.act(a)
+            acts.append(a)
+        t = i
+        first = True
+        while not shop.done:
+            legal = shop.legal_actions()
+            if first:
+                others = [a for a in legal if a != best[i]] or legal
+                a = rng.choice(others)
+                first = False
+            elif t < len(best) and best[t] in legal and rng.random() < keep:
+                a = best[t]
+            else:
+                a = rng.choice(legal)
+            shop.act(a)
+            acts.append(a)
+            t += 1
+        if shop.makespan <= best_ms:
+            best_ms, best = shop.makespan, acts
+    return best_ms, best
+
+
+def demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
+                   iters: int = 2000, seed: int = 0) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Replay each instance's expert sequence through the env; returns arrays and the expert makespans.
+
+    Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted).
+    Decisions with one legal action are replayed but not recorded (nothing to learn).
+    """
+    from .envs import FastShopEnv
+
+    obs, masks, actions, rets = [], [], [], []
+    makespans: dict[str, int] = {}
+    for n, inst in enumerate(instances):
+        if expert == "search":
+            ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
+        elif expert == "rules":
+            ms, seq = rule_trajectory(inst)
+        else:
+            raise ValueError(f"unknown expert {expert!r}; choose search or rules")
+        makespans[inst.name] = ms
+        env = FastShopEnv(inst, reward=reward, invalid_action="raise", **padding)
+        o, _ = env.reset(options={"instance": inst})
+        steps: list[tuple[int | None, float]] = []  # (recorded row or None, reward of the step)
+        for a in seq:
+            mask = env.action_masks()
+            pa = env.from_net_action(a)
+            row = None
+            if mask.sum() > 1:
+                obs.append(o)
+                masks.append(mask)
+                actions.append(pa)
+                row = len(obs) - 1
+            o, r, _, _, _ = env.step(pa)
+            steps.append((row, float(r)))
+        total = 0.0
+        rtg: dict[int, float] = {}
+        for row, r in reversed(steps):  # return-to-go: the rewards from that decision on
+            total += r
+            if row is not None:
+                rtg[row] = total
+        rets.extend(rtg[i] for i in sorted(rtg))
+        assert env.shop.done and env.shop.makespan == ms
+    return ({"obs": np.asarray(obs, dtype=np.float32), "mask": np.asarray(masks, dtype=bool),
+             "action": np.asarray(actions, dtype=np.int64), "ret": np.asarray(rets, dtype=np.float32)},
+            makespans)
+
+
+def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float = 1e-3, batch_size: int = 256,
+          seed: int = 0) -> dict[str, float]:
+    """Behaviour cloning of ``demos`` into ``model.policy`` (policy cross-entropy + value MSE)."""
+    import torch
+
+    policy = model.policy
+    policy.set_training_mode(True)
+    gen = torch.Generator().manual_seed(seed)
+    X = torch.as_tensor(demos["obs"])
+    M = torch.as_tensor(demos["mask"])
+    Y = torch.as_tensor(demos["action"])
+    R = torch.as_tensor(demos["ret"])
+    opt = torch.optim.Adam(policy.parameters(), lr=lr)
+    n = X.shape[0]
+    for _ in range(epochs):
+        perm = torch.randperm(n, generator=gen)
+        for i in range(0, n, batch_size):
+            idx = perm[i:i + batch_size]
+            values, log_prob, _ = policy.evaluate_actions(X[idx], Y[idx], action_masks=M[idx])
+            loss = -log_prob.mean() + 0.5 * ((values.squeeze(-1) - R[idx]) ** 2).mean()
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            opt.step()
+    policy.set_training_mode(False)
+    with torch.no_grad():
+        dist = policy.get_distribution(X, action_masks=M.numpy())
+        pred = dist.distribution.probs.argmax(dim=-1)
+        acc = float((pred == Y).float().mean())
+        values, log_prob, _ = policy.evaluate_actions(X, Y, action_masks=M)
+    return {"samples": int(n), "accuracy": round(acc, 4), "nll": round(float(-log_prob.mean()), 4)}

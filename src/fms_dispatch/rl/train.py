@@ -1,0 +1,336 @@
+"""Training: MaskablePPO on :class:`~fms_dispatch.rl.envs.FastShopEnv`, one model folder per run.
+
+``fms train INSTANCES... --steps N --reward {idle,makespan,shaped} --seed S --out models/NAME`` trains on a set
+of instances (one drawn at random per episode), evaluates the deterministic policy on held-out instances
+every ``eval_freq`` steps (``MaskableEvalCallback``, best weights to ``best_model.zip``), saves the latest
+weights to ``model.zip`` periodically and at the end (``--resume`` continues from there; the step count goes
+on), logs to TensorBoard (``runs/NAME`` by default) and shows a progress bar. Several environments run in
+parallel (``SubprocVecEnv``) when ``n_envs > 1`` and ``vec_env`` is ``subproc``; every process uses one torch
+thread. Hyper-parameters come from ``--config FILE`` (JSON) and the command line, and the merged config is
+written to ``config.json`` next to the model.
+
+Instance specs: built-in names or files (as ``fms solve`` takes them), shell patterns over built-in names
+(``'EX?2'``, ``'sl[0-2]?'``), and generated sets ``gen:JxMxT*COUNT@SEED`` (Taillard-LCG instances of that size
+from seeds derived from SEED, with the large benchmark's travel matrices and fleets: 10 AGVs, 5 transporters).
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import json
+import re
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fms_sim.instance import Instance
+
+from .models import CONFIG_FILE, METRICS_FILE
+
+__all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "add_train_parser", "cmd_train", "evaluate_model"]
+
+#: Defaults of every config key (a config file or the command line overrides them).
+DEFAULT_CONFIG: dict[str, Any] = {
+    "name": None,
+    "train": [],
+    "eval": [],
+    "fleet": {"agvs": None, "tool_transporters": None, "no_tools": False},
+    "padding": "auto",
+    "reward": "shaped",
+    "steps": 100_000,
+    "seed": 0,
+    "arch": "entity",
+    "hidden": 64,
+    "net_arch": [64, 64],
+    "n_envs": 2,
+    "vec_env": "subproc",
+    "eval_freq": 10_000,
+    "warm_start": {"expert": None, "instances": 100, "search_iters": 2000, "epochs": 300, "lr": 1e-3},
+    "save_freq": 10_000,
+    "ppo": {"learning_rate": 3e-4, "n_steps": 512, "batch_size": 256, "n_epochs": 5, "gamma": 1.0,
+            "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
+}
+
+_GEN_RE = re.compile(r"gen:(\d+)x(\d+)x(\d+)\*(\d+)@(\d+)", re.IGNORECASE)
+_M31 = 2**31 - 1
+
+
+def _derived_seed(seed: int, salt: int) -> int:
+    return (seed * 1_000_003 + salt * 7_919 + 12_345) % (_M31 - 1) + 1
+
+
+def expand_instances(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> list[Instance]:
+    """Load instance specs (see the module docstring), applying the fleet overrides to each."""
+    from fms_sim.benchmarks import builtin_names
+    from fms_sim.formats import load_instance
+    from fms_sim.generate import generate_instances
+
+    fleet = dict(DEFAULT_CONFIG["fleet"], **(fleet or {}))
+    out: list[Instance] = []
+    for spec in specs:
+        if m := _GEN_RE.fullmatch(spec.strip()):
+            j, mm, t, count, seed = (int(x) for x in m.groups())
+            insts = generate_instances(
+                j, mm, t, count, time_seed=_derived_seed(seed, 1), route_seed=_derived_seed(seed, 2),
+                tool_seed=_derived_seed(seed, 3), tools=not fleet["no_tools"],
+                n_agvs=fleet["agvs"] or 10, n_tool_transporters=fleet["tool_transporters"] or 5,
+                name_prefix=f"gen{j}x{mm}s{seed}_")
+            out.extend(insts)
+            continue
+        if any(c in spec for c in "*?["):
+            names = [n for n in builtin_names() if fnmatch.fnmatchcase(n.lower(), spec.lower())]
+            if not names:
+                raise ValueError(f"pattern {spec!r} matches no built-in instance")
+        else:
+            names = [spec]
+        for name in names:
+            out.append(load_instance(name, agvs=fleet["agvs"], tool_transporters=fleet["tool_transporters"],
+                                     no_tools=fleet["no_tools"]))
+    return out
+
+
+class _Cycle:
+    """Instance sampler that walks a list in order (evaluation: every held-out instance once per round)."""
+
+    def __init__(self, instances: Sequence[Instance]):
+        self.instances = list(instances)
+        self.i = -1
+
+    def __call__(self, rng: np.random.Generator) -> Instance:
+        self.i = (self.i + 1) % len(self.instances)
+        return self.instances[self.i]
+
+
+def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int):
+    def make():
+        import torch
+        from stable_baselines3.common.monitor import Monitor
+
+        from .envs import FastShopEnv
+
+        torch.set_num_threads(1)
+        env = FastShopEnv(instances, reward=reward, invalid_action="raise", **padding)
+        env.reset(seed=seed)
+        return Monitor(env)
+
+    return make
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequence[Instance],
+                   lookahead: bool = False) -> dict[str, int]:
+    """Makespan per instance of the deterministic policy (schedules validated)."""
+    from fms_sim.shop import Shop
+    from fms_sim.validate import validate
+
+    from .lookahead import run_agent
+    from .policy import Agent
+
+    agent = Agent(weights, padding)
+    out = {}
+    for inst in instances:
+        s = run_agent(Shop(inst), agent.act, lookahead=lookahead)
+        problems = validate(inst, s)
+        if problems:
+            raise RuntimeError(f"invalid schedule for {inst.name}: {problems[0]}")
+        out[inst.name] = s.makespan
+    return out
+
+
+def train(config: dict[str, Any], out: str | Path, resume: bool = False, progress: bool = True,
+          tensorboard: str | Path | None = None, verbose: int = 0) -> dict[str, Any]:
+    """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
+
+    With ``resume``, the config is read from ``out/config.json`` (``config`` may override ``steps``) and
+    training continues from ``out/model.zip`` for ``steps`` more steps.
+    """
+    import torch
+    from sb3_contrib import MaskablePPO
+    from sb3_contrib.common.maskable.callbacks import MaskableEvalCallback
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from .envs import obs_layout, padding_for
+
+    torch.set_num_threads(1)
+    out = Path(out)
+    if resume:
+        saved = json.loads((out / CONFIG_FILE).read_text()) if (out / CONFIG_FILE).is_file() else None
+        if saved is None or not (out / "model.zip").is_file():
+            raise ValueError(f"cannot resume: {out} has no {CONFIG_FILE} and model.zip from an earlier run")
+        cfg = _merge(saved, {"steps": config.get("steps")})
+    else:
+        cfg = _merge(DEFAULT_CONFIG, config)
+    cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
+    if not cfg["train"]:
+        raise ValueError("no training instances given")
+    if cfg["reward"] not in ("idle", "makespan", "shaped"):
+        raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
+    steps = int(cfg["steps"])
+    warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
+    if steps < 0 or (steps == 0 and (resume or not warm["expert"])):
+        raise ValueError("--steps must be positive")
+    train_set = expand_instances(cfg["train"], cfg["fleet"])
+    eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
+    padding = padding_for(cfg["padding"], train_set + eval_set)
+    if cfg["padding"] in (None, "auto"):
+        cfg["padding"] = padding
+    out.mkdir(parents=True, exist_ok=True)
+    tb = Path(tensorboard) if tensorboard else Path("runs") / cfg["name"]
+
+    n_envs = max(1, int(cfg["n_envs"]))
+    seed = int(cfg["seed"])
+    fns = [_make_env(train_set, padding, cfg["reward"], seed + i) for i in range(n_envs)]
+    venv = SubprocVecEnv(fns) if n_envs > 1 and cfg["vec_env"] == "subproc" else DummyVecEnv(fns)
+    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000)])
+
+    ppo = dict(cfg["ppo"])
+    if resume:
+        model = MaskablePPO.load(str(out / "model.zip"), env=venv, device="cpu", tensorboard_log=str(tb))
+    else:
+        if cfg["arch"] == "entity":
+            from .policy import EntityPolicy
+
+            policy: Any = EntityPolicy
+            pkw = {"layout": obs_layout(padding), "hidden": int(cfg["hidden"])}
+        elif cfg["arch"] == "mlp":
+            policy, pkw = "MlpPolicy", {"net_arch": list(cfg["net_arch"])}
+        else:
+            raise ValueError(f"unknown arch {cfg['arch']!r}; choose entity or mlp")
+        model = MaskablePPO(policy, venv, policy_kwargs=pkw, seed=seed, device="cpu", verbose=verbose,
+                            tensorboard_log=str(tb), **ppo)
+    (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
+
+    metrics_path = out / METRICS_FILE
+    old = json.loads(metrics_path.read_text()) if resume and metrics_path.is_file() else {}
+    eval_cb = MaskableEvalCallback(eval_env, n_eval_episodes=len(eval_set),
+                                   eval_freq=max(1, int(cfg["eval_freq"]) // n_envs),
+                                   best_model_save_path=str(out), log_path=None, deterministic=True, verbose=0)
+    if "best_mean_reward" in old.get("training", {}):
+        eval_cb.best_mean_reward = float(old["training"]["best_mean_reward"])
+
+    class _Saver(BaseCallback):
+        """Save ``model.zip`` every ``save_freq`` steps, so that an interrupted run can be resumed."""
+
+        def __init__(self, every: int):
+            super().__init__()
+            self.every, self.last = every, 0
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps - self.last >= self.every:
+                self.last = self.num_timesteps
+                self.model.save(str(out / "model.zip"))
+            return True
+
+    t0 = time.perf_counter()
+    warm_metrics = None
+    if not resume and warm["expert"]:
+        from sb3_contrib.common.maskable.evaluation import evaluate_policy
+
+        from .imitation import clone, demonstrations
+
+        demos, expert_ms = demonstrations(train_set[:int(warm["instances"])], padding, cfg["reward"],
+                                          warm["expert"], iters=int(warm["search_iters"]), seed=seed)
+        bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed)
+        mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
+        eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the cloned policy to replace it
+        model.save(str(out / "best_model.zip"))
+        model.save(str(out / "model.zip"))
+        warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, mean_reward=round(float(mean_r), 4),
+                            seconds=round(time.perf_counter() - t0, 1))
+        if verbose or progress:
+            print(f"warm start ({warm['expert']}): {bc}; eval mean reward {mean_r:.4f}", flush=True)
+    interrupted = False
+    if steps:
+        try:
+            model.learn(total_timesteps=steps, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
+                        reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
+        except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
+            interrupted = True
+    wall = time.perf_counter() - t0
+    model.save(str(out / "model.zip"))
+    venv.close()
+    eval_env.close()
+
+    weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
+    makespans = evaluate_model(weights, padding, eval_set)
+    prev = old.get("training", {})
+    metrics = dict(old)
+    if warm_metrics is not None:
+        metrics["warm_start"] = warm_metrics
+    metrics["training"] = {
+        "timesteps": int(model.num_timesteps),
+        "wall_seconds": round(prev.get("wall_seconds", 0.0) + wall, 1),
+        "best_mean_reward": float(eval_cb.best_mean_reward),
+        "weights": weights.name,
+        "eval_makespan": makespans,
+        "eval_mean_makespan": round(float(np.mean(list(makespans.values()))), 2),
+        "interrupted": interrupted,
+    }
+    metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+# ---------------------------------------------------------------------- CLI
+def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``fms train`` to the CLI's subparsers."""
+    s = subparsers.add_parser("train", help="train a MaskablePPO dispatching agent (sb3-contrib)")
+    s.add_argument("instances", nargs="*", help="training instances: names, files, patterns ('EX?2'), "
+                                                 "gen:JxMxT*COUNT@SEED")
+    s.add_argument("--eval", nargs="+", metavar="INSTANCE", help="held-out evaluation instances (default: the "
+                                                                 "first 10 training instances)")
+    s.add_argument("--steps", type=int, help="environment steps to train (more steps with --resume)")
+    s.add_argument("--reward", choices=("idle", "makespan", "shaped"), help="reward (default shaped)")
+    s.add_argument("--seed", type=int)
+    s.add_argument("--out", required=True, help="model folder (e.g. models/NAME)")
+    s.add_argument("--config", help="JSON file with hyper-parameters (see fms_dispatch.rl.train.DEFAULT_CONFIG)")
+    s.add_argument("--padding", help="auto | bu | large: the padded maximum layout")
+    s.add_argument("--arch", choices=("entity", "mlp"))
+    s.add_argument("--n-envs", type=int, help="parallel environments")
+    s.add_argument("--eval-freq", type=int, help="evaluate every N steps")
+    s.add_argument("--agvs", type=int, help="override the number of AGVs of every instance")
+    s.add_argument("--tool-transporters", type=int, help="override the number of tool transporters")
+    s.add_argument("--no-tools", action="store_true", help="drop tools (AGV-only model)")
+    s.add_argument("--resume", action="store_true", help="continue training the model in --out")
+    s.add_argument("--tensorboard", help="TensorBoard log folder (default runs/NAME)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_train)
+    return s
+
+
+def cmd_train(a: argparse.Namespace) -> int:
+    cfg: dict[str, Any] = {}
+    if a.config:
+        try:
+            cfg = json.loads(Path(a.config).read_text())
+        except OSError as exc:
+            raise ValueError(f"cannot read config {a.config}: {exc.strerror}") from None
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"config {a.config} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
+    over: dict[str, Any] = {"steps": a.steps, "reward": a.reward, "seed": a.seed, "padding": a.padding,
+                            "arch": a.arch, "n_envs": a.n_envs, "eval_freq": a.eval_freq,
+                            "train": a.instances or None, "eval": a.eval}
+    fleet = {"agvs": a.agvs, "tool_transporters": a.tool_transporters, "no_tools": True if a.no_tools else None}
+    over["fleet"] = {k: v for k, v in fleet.items() if v is not None} or None
+    cfg = _merge(cfg, over)
+    if not a.resume and not cfg.get("train"):
+        raise ValueError("give training instances (or --resume)")
+    m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard)
+    t = m["training"]
+    print(f"{a.out}: {t['timesteps']} steps, {t['wall_seconds']} s; eval mean makespan {t['eval_mean_makespan']} "
+          f"({t['weights']})")
+    return 0

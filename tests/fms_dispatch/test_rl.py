@@ -1,0 +1,173 @@
+"""The PPO dispatcher: fast features, training (tiny), resume, inference, shipped models, errors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("sb3_contrib")
+
+from fms_dispatch.rl import add_train_parser, ppo_solver  # noqa: E402
+from fms_dispatch.rl.envs import PADDING, FastShopEnv, padding_for  # noqa: E402
+from fms_dispatch.rl.models import SHIPPED, default_model_name, models_dir, resolve_model  # noqa: E402
+from fms_dispatch.rl.train import expand_instances, train  # noqa: E402
+from fms_sim.benchmarks import builtin  # noqa: E402
+from fms_sim.env import ShopEnv  # noqa: E402
+from fms_sim.validate import validate  # noqa: E402
+
+TINY = {"n_envs": 1, "vec_env": "dummy", "eval_freq": 128, "save_freq": 128, "hidden": 16,
+        "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 1}}
+
+
+@pytest.mark.parametrize("name,pad", [("EX12", {}), ("ra01", {}), ("ra01", PADDING["large"])])
+def test_fast_env_matches_shop_env(name, pad):
+    inst = builtin(name)
+    a, b = ShopEnv(inst, **pad), FastShopEnv(inst, **pad)
+    oa, _ = a.reset(seed=3)
+    ob, _ = b.reset(seed=3)
+    assert np.array_equal(oa, ob)
+    rng = np.random.default_rng(0)
+    done = False
+    steps = 0
+    while not done:
+        act = int(rng.choice(np.flatnonzero(a.action_masks())))
+        oa, ra, done, _, _ = a.step(act)
+        ob, rb, done_b, _, _ = b.step(act)
+        assert np.array_equal(oa, ob) and ra == rb and done == done_b
+        steps += 1
+    assert steps > 10
+
+
+def test_padding_profiles():
+    assert padding_for("large", []) == dict(max_jobs=100, max_machines=20, max_tools=20, max_agvs=10, max_tts=5)
+    assert padding_for("auto", [builtin("EX72")]) == dict(max_jobs=8, max_machines=4, max_tools=0, max_agvs=2,
+                                                          max_tts=0)
+    with pytest.raises(ValueError, match="unknown padding profile"):
+        padding_for("huge", [])
+
+
+def test_expand_instances():
+    names = [i.name for i in expand_instances(["EX?2", "EX102"])]
+    assert names == [f"EX{s}2" for s in range(1, 11)]
+    gen = expand_instances(["gen:5x3x3*2@7"])
+    assert [(i.n_jobs, i.n_machines, i.n_agvs, i.n_tool_transporters) for i in gen] == [(5, 3, 10, 5)] * 2
+    assert gen[0].jobs != gen[1].jobs
+    assert not expand_instances(["gen:5x3x3*1@7"], {"no_tools": True})[0].has_tools
+    assert [i.n_agvs for i in expand_instances(["EX12"], {"agvs": 3})] == [3]
+    with pytest.raises(ValueError, match="matches no built-in"):
+        expand_instances(["zz*"])
+
+
+def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
+    out = tmp_path / "tiny"
+    cfg = dict(TINY, train=["EX12"], steps=256, seed=5, padding="bu")
+    m = train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
+    assert m["training"]["timesteps"] == 256
+    for f in ("config.json", "model.zip", "best_model.zip", "metrics.json"):
+        assert (out / f).is_file(), f
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["train"] == ["EX12"] and saved["reward"] == "shaped" and saved["padding"] == "bu"
+    assert any((tmp_path / "tb").iterdir())  # TensorBoard logs written
+
+    inst = builtin("EX12")
+    solve = ppo_solver(f"ppo:{out}")
+    s1, s2 = solve(inst), solve(inst)
+    assert validate(inst, s1) == []
+    assert s1.to_dict() == s2.to_dict()  # deterministic
+    assert s1.makespan == m["training"]["eval_makespan"]["EX12"]
+    assert s1.meta["solver"] == "ppo:tiny" and s1.meta["lookahead"] is False
+
+    # the numpy actor used for inference computes the torch policy's logits
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.shop import Shop
+
+    agent = load_agent(str(out))
+    shop = Shop(builtin("EX42"))
+    while not shop.done:
+        fast, mask = agent.logits(shop, fast=True)
+        slow, _ = agent.logits(shop, fast=False)
+        assert np.array_equal(np.isfinite(fast), mask) and np.allclose(fast[mask], slow[mask], atol=1e-5)
+        shop.act(agent.act(shop))
+
+    m2 = train({"steps": 128}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
+    assert m2["training"]["timesteps"] == 384  # continued, not restarted
+
+
+def test_resume_without_model_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="cannot resume"):
+        train({"steps": 10}, tmp_path / "none", resume=True, progress=False)
+
+
+def test_train_refuses_bad_input(tmp_path):
+    with pytest.raises(ValueError, match="no training instances"):
+        train(dict(TINY, steps=10), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="unknown reward"):
+        train(dict(TINY, train=["EX12"], reward="speed", steps=10), tmp_path / "x", progress=False)
+
+
+def test_train_cli_parser():
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers(dest="cmd")
+    add_train_parser(sub)
+    a = p.parse_args(["train", "EX12", "EX22", "--steps", "100", "--reward", "idle", "--seed", "3", "--out", "m/x"])
+    assert a.instances == ["EX12", "EX22"] and a.steps == 100 and a.reward == "idle" and a.out == "m/x"
+    with pytest.raises(SystemExit):
+        p.parse_args(["train", "EX12", "--reward", "speed", "--out", "m"])
+    a = p.parse_args(["train", "--out", "m/x"])
+    with pytest.raises(ValueError, match="training instances"):
+        a.fn(a)
+
+
+def test_solver_spec_errors():
+    with pytest.raises(ValueError, match="ppo:MODEL"):
+        ppo_solver("ppo:")
+    with pytest.raises(ValueError, match="ppo:MODEL"):
+        ppo_solver("dqn")
+    with pytest.raises(ValueError, match="no model named"):
+        ppo_solver("ppo:no-such-model")(builtin("EX12"))
+
+
+def test_default_model_choice():
+    assert default_model_name(builtin("EX12")) == "bu"
+    assert default_model_name(builtin("ra01")) == "large"
+    assert default_model_name(builtin("sl00")) == "large"
+    assert default_model_name(builtin("sl00").without_tools()) == "large-agv"
+
+
+# ---------------------------------------------------------------------- shipped models
+def test_shipped_models_exist_and_are_small():
+    for name in SHIPPED:
+        ref = resolve_model(name)
+        assert ref.folder == models_dir() / name
+        for f in ref.folder.iterdir():
+            assert f.stat().st_size <= 10 * 2**20, f
+        assert (ref.folder / "config.json").is_file() and (ref.folder / "metrics.json").is_file()
+
+
+def test_shipped_bu_model_valid_on_ex12():
+    inst = builtin("EX12")
+    s = ppo_solver("ppo")(inst)
+    assert s.meta["model"] == "bu"
+    assert validate(inst, s) == []
+
+
+@pytest.mark.parametrize("name,no_tools", [("large", False), ("large-agv", True)])
+def test_shipped_large_models_valid_on_sl00(name, no_tools):
+    inst = builtin("sl00")
+    if no_tools:
+        inst = inst.without_tools()
+    solve = ppo_solver("ppo")
+    t0 = time.perf_counter()
+    s = solve(inst)
+    assert time.perf_counter() - t0 < 10.0
+    assert s.meta["model"] == name
+    assert validate(inst, s) == []
+
+
+def test_bu_model_refuses_too_large_instance():
+    with pytest.raises(ValueError, match="larger than model bu"):
+        ppo_solver("ppo:bu")(builtin("sl00"))
