@@ -168,7 +168,7 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
             continue
         routes[v].append((s, e, a, b))
     for v, legs in routes.items():
-        legs.sort()
+        legs.sort(key=lambda leg: (leg[0], leg[1]))  # stable: zero-length legs keep the schedule's order
         here, free = 0, 0
         for s, e, a, b in legs:
             if s < free:

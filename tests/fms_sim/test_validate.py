@@ -143,3 +143,14 @@ def test_malformed_schedule_json(good, mutate, msg):
 def test_json_round_trip(good):
     again = Schedule.from_json(good.to_json())
     assert again.to_dict() == good.to_dict() and validate(INST, again) == []
+
+
+def test_zero_length_legs_keep_their_order():
+    # travel 0 between L/U and M2: the AGV goes 0->2 and 2->0 at the same instant; the route is continuous
+    T0 = [[0, 2, 0], [2, 0, 2], [0, 2, 0]]
+    inst = Instance("zero", [[(2, 1)], [(1, 1)]], agv_travel=T0, n_agvs=1)
+    s = run_first(inst)
+    assert validate(inst, s) == []
+    d = s.to_dict()
+    again = Schedule.from_dict(d)
+    assert validate(inst, again) == []
