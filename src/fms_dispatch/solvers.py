@@ -64,7 +64,7 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat", "ppo[:MODEL]"]
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat", "ppo[:MODEL][+lookahead]"]
 
 
 def get_solver(name: str) -> Solver:
@@ -84,13 +84,19 @@ def get_solver(name: str) -> Solver:
         return _sos
     if low == "cpsat":
         return _cpsat
-    if low == "ppo" or low.startswith("ppo:"):
+    if low == "ppo" or low.startswith(("ppo:", "ppo+")):
         from .rl import ppo_solver
 
+        base, plus, flag = name.partition("+")
+        if plus and flag.lower() != "lookahead":
+            raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead)")
         try:
-            return ppo_solver(name)
+            fn = ppo_solver(base)
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
+        if plus:  # "ppo[:MODEL]+lookahead": a name for benches, same as the lookahead=True option
+            return lambda inst, **kw: fn(inst, **{**kw, "lookahead": True})
+        return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 
 

@@ -104,3 +104,15 @@ def test_instances_and_generate(tmp_path, capsys):
 def test_console_script_runs_as_a_process():
     r = subprocess.run([sys.executable, "-m", "fms_dispatch.cli", "solve", "EX99"], capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("fms: error:")
+
+
+def test_ppo_solver_names(capsys):
+    from fms_dispatch.solvers import UnknownSolver, get_solver, solve
+
+    inst = builtin("EX22")
+    plain, ahead = solve(inst, "ppo"), solve(inst, "ppo+lookahead")
+    assert validate(inst, plain) == [] and validate(inst, ahead) == []
+    assert ahead.makespan <= plain.makespan
+    with pytest.raises(UnknownSolver, match="only \\+lookahead"):
+        get_solver("ppo+magic")
+    assert run(["solve", "EX22", "--solver", "ppo", "--lookahead", "-q"], capsys)[0] == 0
