@@ -195,22 +195,28 @@ class Shop:
                 outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4], b["l"][5])),
                          Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
             ))
-        # pre-positioning (lookahead): an order (agv, location) sends an idle AGV empty to a location
-        self.p_agv_orders = net.add_place("agv_orders", key=lambda c: c[0])
-        self.p_agv_moving = net.add_place("agv_repositioning", key=lambda c: c[0])
-        for v in range(inst.n_agvs):
-            net.add_transition(Transition(
-                name=f"agv_reposition[{v}]", priority=_P_ALLOC,
-                arcs=[Arc(self.p_agv_orders, "o", key=v), Arc(self.p_agv_idle, "a", key=v)],
-                outputs=[Output(self.p_agv_moving, lambda b: b["o"], delay=lambda b: T[b["a"][1]][b["o"][1]])],
-                on_fire=self._on_agv_reposition,
-            ))
-            net.add_transition(Transition(
-                name=f"agv_arrive[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_moving, "o", key=v)],
-                outputs=[Output(self.p_agv_idle, lambda b: b["o"])],
-            ))
+        self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T, self._on_agv_reposition)
         gate = [Arc(self.p_agv_idle, kind="test", count_only=True)]
         return gate, [Output(self.p_awaiting_agv, self._request)]
+
+    def _reposition_block(self, kind: str, idle: Place, n: int, travel, on_fire) -> Place:
+        """Pre-positioning module for one fleet: an order ``(vehicle, location)`` in the returned place sends
+        that idle vehicle empty to the location (a timed trip); it is idle again on arrival."""
+        net = self.net
+        orders = net.add_place(f"{kind}_orders", key=lambda c: c[0])
+        moving = net.add_place(f"{kind}_repositioning", key=lambda c: c[0])
+        for v in range(n):
+            net.add_transition(Transition(
+                name=f"{kind}_reposition[{v}]", priority=_P_ALLOC,
+                arcs=[Arc(orders, "o", key=v), Arc(idle, "a", key=v)],
+                outputs=[Output(moving, lambda b: b["o"], delay=lambda b: travel[b["a"][1]][b["o"][1]])],
+                on_fire=on_fire,
+            ))
+            net.add_transition(Transition(
+                name=f"{kind}_arrive[{v}]", priority=_P_DONE, arcs=[Arc(moving, "o", key=v)],
+                outputs=[Output(idle, lambda b: b["o"])],
+            ))
+        return orders
 
     def _on_agv_reposition(self, b: dict, now: int) -> None:
         v, here = b["a"]
@@ -341,19 +347,8 @@ class Shop:
                          Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))],
             ))
 
-        self.p_tt_orders = net.add_place("tt_orders", key=lambda c: c[0])
-        self.p_tt_moving = net.add_place("tt_repositioning", key=lambda c: c[0])
-        for r in range(inst.n_tool_transporters):
-            net.add_transition(Transition(
-                name=f"tt_reposition[{r}]", priority=_P_ALLOC,
-                arcs=[Arc(self.p_tt_orders, "o", key=r), Arc(self.p_tt_idle, "a", key=r)],
-                outputs=[Output(self.p_tt_moving, lambda b: b["o"], delay=lambda b: TT[b["a"][1]][b["o"][1]])],
-                on_fire=self._on_tt_reposition,
-            ))
-            net.add_transition(Transition(
-                name=f"tt_arrive[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_moving, "o", key=r)],
-                outputs=[Output(self.p_tt_idle, lambda b: b["o"])],
-            ))
+        self.p_tt_orders = self._reposition_block("tt", self.p_tt_idle, inst.n_tool_transporters, TT,
+                                                  self._on_tt_reposition)
         outputs = [Output(self.p_tool_requests, self._tool_request), Output(self.p_tool_ready, self._no_tool)]
         arcs = [Arc(self.p_tool_ready, "tl", key=lambda b: (b["q"][0], b["q"][1]))]
         return arcs, outputs
