@@ -163,12 +163,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_generate)
 
     from .benchmark import add_bench_parser
+    from .experiments import add_experiment_parser
     from .rl import add_train_parser
     from .up import add_up_parser
 
     add_bench_parser(sub)
     add_up_parser(sub)
     add_train_parser(sub)
+    add_experiment_parser(sub)
     return p
 
 

@@ -1,0 +1,555 @@
+"""``fms experiment ablation|generalization|dynamic``: the studies of issue 4 §5.
+
+Each experiment writes ``<results>/experiment_<name>.csv`` (one row per measurement), ``.json`` (the rows plus
+the settings and a summary) and ``.png`` (drawn headless with a Figure + Agg canvas), and prints a Markdown
+summary. ``--quick`` shrinks every budget so that the tests can run each experiment in seconds; the quick
+figures show that the pipeline works, not what the methods are worth.
+
+* **ablation** — three switches, one at a time:
+
+  - *reward shaping*: two agents trained with the same budget and seed on sl40..sl44 (quick: sl40), one with
+    the dense ``shaped`` reward (lower-bound increments, on) and one with the sparse ``makespan`` reward (only
+    the final makespan, off); both evaluated (deterministic, validated) on sl40..sl49 (quick: sl40, sl41);
+  - *lookahead*: the shipped ``bu`` model with and without the twin's pre-positioning on EX12..EX102
+    (inference only; quick: EX12, EX22);
+  - *masking*: MaskablePPO on EX12..EX52 (quick: EX12) with action masks vs the same algorithm with masking
+    disabled, where an invalid action ends the episode with the env's penalty (-10); the curve is the mean
+    reward of the episodes that ended in each rollout.
+
+* **generalization** — per size group g of the large benchmark, the general shipped model (``large``, or
+  ``large-agv`` with ``--no-tools``) against a specialised agent trained only on generated instances of that
+  group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group 0, 256 steps),
+  evaluated on held-out instances sl{g}5..sl{g}9 (quick: sl{g}9). The general models were selected on
+  sl00/sl10/sl20/sl30, so those are avoided.
+
+* **dynamic** — an instance's jobs split into 10 partitions (job j in partition ``j*10//n``); partition p
+  arrives at ``p*Δ`` with ``Δ`` = the instance's simple lower bound (max of the largest machine load and the
+  longest job's processing time, transport ignored) / 10. The RL agent runs one live :class:`~fms_sim.shop.Shop`
+  and adds each partition with :meth:`~fms_sim.shop.Shop.add_jobs` at the first decision moment at or after its
+  arrival (``entered_at``; if the shop would otherwise finish first, the partition enters at that last decision,
+  early, flagged ``early``); after each arrival the projected makespan of all jobs so far is the run of a twin to
+  the end. SOS re-solves from scratch at each arrival the instance of all jobs arrived so far. The Instance
+  model has no release times, so SOS schedules those jobs **released at 0**: its makespans are an optimistic
+  bound, not a feasible plan under the arrivals. The RL time is the policy's decision time (cumulative; the
+  projections are timed separately), the SOS time its cumulative search time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from fms_sim.benchmarks import SL_GROUPS
+from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
+from fms_sim.validate import validate
+
+__all__ = ["run_ablation", "run_generalization", "run_dynamic", "add_experiment_parser", "lower_bound",
+           "partition_jobs", "ABLATION_STUDIES", "ABLATION_COLUMNS", "GENERALIZATION_COLUMNS", "DYNAMIC_COLUMNS"]
+
+ABLATION_COLUMNS = ("study", "variant", "instance", "makespan", "valid", "wall_time", "timesteps",
+                    "mean_episode_reward", "episodes", "invalid_episodes")
+ABLATION_STUDIES = ("reward_shaping", "lookahead", "masking")
+GENERALIZATION_COLUMNS = ("group", "size", "agent", "instance", "makespan", "valid", "wall_time", "train_steps")
+DYNAMIC_COLUMNS = ("partition", "arrival", "entered_at", "early", "jobs_so_far", "rl_makespan", "rl_time_cum",
+                   "rl_projection_time", "sos_makespan", "sos_time_cum", "sos_valid")
+
+
+# ---------------------------------------------------------------------- shared helpers
+def _checked(inst: Instance, sched: Schedule) -> bool:
+    """Validate ``sched``; an infeasible schedule is a bug, so it raises instead of being reported."""
+    problems = validate(inst, sched)
+    if problems:
+        raise RuntimeError(f"infeasible schedule for {inst.name}: {problems[0]}")
+    return True
+
+
+def _write(name: str, results_dir: str | Path, columns: Sequence[str], rows: list[dict[str, Any]],
+           meta: dict[str, Any], draw: Callable[[Path], None]) -> dict[str, Path]:
+    """Write ``experiment_<name>.csv/.json/.png`` under ``results_dir``; returns their paths."""
+    out = Path(results_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {ext: out / f"experiment_{name}.{ext}" for ext in ("csv", "json", "png")}
+    with paths["csv"].open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({c: ("" if r.get(c) is None else r.get(c)) for c in columns})
+    doc = _no_nan(dict(meta, rows=rows))  # strict JSON: a missing value (NaN) becomes null
+    paths["json"].write_text(json.dumps(doc, indent=2, default=_jsonable, allow_nan=False) + "\n")
+    draw(paths["png"])
+    return paths
+
+
+def _no_nan(x: Any) -> Any:
+    """``x`` with every NaN float (in nested dicts and lists) replaced by None."""
+    if isinstance(x, float) and math.isnan(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _no_nan(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_no_nan(v) for v in x]
+    return x
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.floating,)):
+        return float(x)
+    return str(x)
+
+
+def _figure(w: float, h: float, ncols: int = 1, nrows: int = 1) -> tuple[Any, Any]:
+    """A headless figure (no pyplot) and its axes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w, h), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    return fig, axes
+
+
+def _mean(xs: Sequence[float]) -> float:
+    xs = [x for x in xs if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return round(float(np.mean(xs)), 2) if xs else math.nan
+
+
+def _ppo_budget(steps: int) -> dict[str, int]:
+    """PPO rollout sizes that fit a (possibly tiny) budget: at least one full update per run."""
+    n_steps = max(16, min(512, steps))
+    return {"n_steps": n_steps, "batch_size": max(8, min(256, n_steps // 2))}
+
+
+def lower_bound(inst: Instance) -> int:
+    """Simple makespan lower bound: the largest machine load or the longest job (transport ignored)."""
+    load = [0] * (inst.n_machines + 1)
+    for ops in inst.jobs:
+        for op in ops:
+            load[op.machine] += op.duration
+    return max(max(load), max(sum(op.duration for op in ops) for ops in inst.jobs))
+
+
+def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed: int, reward: str,
+                 folder: Path, padding: str | dict[str, int] = "auto",
+                 fleet: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train one small agent with :func:`fms_dispatch.rl.train.train`; returns its metrics (with the
+    validated deterministic makespans on ``eval_specs``)."""
+    from .rl.train import train
+
+    cfg = {"train": train_specs, "eval": eval_specs, "steps": steps, "seed": seed, "reward": reward,
+           "padding": padding, "n_envs": 1, "vec_env": "dummy", "eval_freq": 10 * steps + 10_000,
+           "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {}}
+    return train(cfg, folder, progress=False, tensorboard=folder / "tb")
+
+
+# ---------------------------------------------------------------------- ablation
+def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, seed: int) -> list[dict[str, Any]]:
+    """Train MaskablePPO (entity policy, shaped reward) with or without masks; mean episode reward per rollout."""
+    import torch
+    from sb3_contrib import MaskablePPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from .rl.envs import FastShopEnv, obs_layout, padding_for
+    from .rl.policy import EntityPolicy
+
+    torch.set_num_threads(1)
+    padding = padding_for("auto", instances)
+
+    def make() -> Any:
+        env = FastShopEnv(instances, reward="shaped", invalid_action="penalty", **padding)
+        env.reset(seed=seed)
+        return Monitor(env)
+
+    venv = DummyVecEnv([make])
+    points: list[dict[str, Any]] = []
+
+    class Curve(BaseCallback):
+        """Collects finished episodes' rewards; one point per rollout."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.rewards: list[float] = []
+            self.invalid = 0
+
+        def _on_step(self) -> bool:
+            for info in self.locals.get("infos", []):
+                if "episode" in info:
+                    self.rewards.append(float(info["episode"]["r"]))
+                    self.invalid += bool(info.get("invalid_action"))
+            return True
+
+        def _on_rollout_end(self) -> None:
+            points.append({"timesteps": int(self.num_timesteps),
+                           "mean_episode_reward": round(float(np.mean(self.rewards)), 4) if self.rewards
+                           else math.nan,
+                           "episodes": len(self.rewards), "invalid_episodes": self.invalid})
+            self.rewards, self.invalid = [], 0
+
+    # about 8+ rollouts, so that even a tiny budget draws a curve
+    ppo = dict(learning_rate=3e-4, n_epochs=5, gamma=1.0, gae_lambda=0.95, ent_coef=0.01,
+               **_ppo_budget(max(16, steps // 8)))
+    model = MaskablePPO(EntityPolicy, venv, policy_kwargs={"layout": obs_layout(padding)}, seed=seed,
+                        device="cpu", verbose=0, **ppo)
+    model.learn(total_timesteps=steps, callback=Curve(), use_masking=use_masking)
+    venv.close()
+    return points
+
+
+def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
+                 steps: int | None = None, studies: Sequence[str] | None = None,
+                 echo: bool = True) -> dict[str, Any]:
+    """The ablations in ``studies`` (default all of :data:`ABLATION_STUDIES`; see the module docstring);
+    returns the JSON document written."""
+    from fms_sim.formats import load_instance
+    from fms_sim.shop import Shop
+
+    from .rl.lookahead import run_agent
+    from .rl.models import load_agent
+
+    rows: list[dict[str, Any]] = []
+    steps = int(steps) if steps else (128 if quick else 20_000)
+    if steps <= 0:
+        raise ValueError("--steps must be positive")
+    chosen = list(studies) if studies else list(ABLATION_STUDIES)
+    for st in chosen:
+        if st not in ABLATION_STUDIES:
+            raise ValueError(f"unknown ablation study {st!r}; choose from {', '.join(ABLATION_STUDIES)}")
+    # (1) reward shaping
+    train_sl = ["sl40"] if quick else [f"sl4{k}" for k in range(5)]
+    eval_sl = ["sl40", "sl41"] if quick else [f"sl4{k}" for k in range(10)]
+    shaping = (("shaped", "shaped"), ("sparse", "makespan")) if "reward_shaping" in chosen else ()
+    with tempfile.TemporaryDirectory(prefix="fms-ablation-") as tmp:
+        for variant, reward in shaping:
+            t0 = time.perf_counter()
+            m = _train_agent(train_sl, eval_sl, steps, seed, reward, Path(tmp) / variant)["training"]
+            for name, ms in m["eval_makespan"].items():
+                rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
+                             "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
+            if echo:
+                print(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
+    # (2) lookahead with the shipped bu model
+    agent = load_agent("bu")
+    look_sets = ([1, 2] if quick else list(range(1, 11))) if "lookahead" in chosen else []
+    for s in look_sets:
+        inst = load_instance(f"EX{s}2")
+        for variant, la in (("off", False), ("on", True)):
+            t0 = time.perf_counter()
+            sched = run_agent(Shop(inst), agent.act, lookahead=la)
+            wall = time.perf_counter() - t0
+            rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
+                         "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
+    # (3) masking
+    mask_insts = [load_instance(n) for n in (["EX12"] if quick else [f"EX{s}2" for s in range(1, 6)])]
+    masking = (("masked", True), ("unmasked", False)) if "masking" in chosen else ()
+    for variant, flag in masking:
+        t0 = time.perf_counter()
+        for p in _episode_curve(flag, mask_insts, steps, seed):
+            rows.append(dict(p, study="masking", variant=variant, wall_time=round(time.perf_counter() - t0, 2)))
+
+    summary: dict[str, Any] = {}
+    for study, variants in (("reward_shaping", ("shaped", "sparse")), ("lookahead", ("off", "on"))):
+        summary[study] = {v: _mean([r["makespan"] for r in rows if r["study"] == study and r["variant"] == v])
+                          for v in variants}
+    summary["masking"] = {v: {"final_mean_episode_reward": next(
+        (r["mean_episode_reward"] for r in reversed(rows) if r["study"] == "masking" and r["variant"] == v
+         and not math.isnan(r["mean_episode_reward"])), None),
+        "invalid_episodes": sum(r["invalid_episodes"] for r in rows if r["study"] == "masking"
+                                and r["variant"] == v)} for v in ("masked", "unmasked")}
+    summary = {k: v for k, v in summary.items() if k in chosen}
+    meta = {"experiment": "ablation", "quick": quick, "seed": seed, "steps": steps, "studies": chosen,
+            "reward_shaping": {"train": train_sl, "eval": eval_sl, "on": "shaped", "off": "makespan (sparse)"},
+            "lookahead": {"model": "bu"}, "masking": {"instances": [i.name for i in mask_insts],
+                                                      "invalid_penalty": -10.0}, "summary": summary}
+
+    def draw(path: Path) -> None:
+        fig, ax = _figure(15, 4.5, ncols=3)
+        a0, a1, a2 = ax[0]
+        rs = summary.get("reward_shaping", {})
+        a0.bar(["shaped", "sparse"], [rs.get("shaped", math.nan), rs.get("sparse", math.nan)],
+               color=["tab:blue", "tab:orange"])
+        a0.set_title(f"reward shaping ({steps} steps)")
+        a0.set_ylabel("mean makespan (sl40-49)")
+        la_names = sorted({r["instance"] for r in rows if r["study"] == "lookahead"},
+                          key=lambda n: int(n[2:-1]))
+        for v, c in (("off", "tab:gray"), ("on", "tab:green")):
+            cell = {r["instance"]: r["makespan"] for r in rows if r["study"] == "lookahead" and r["variant"] == v}
+            a1.plot(la_names, [cell[n] for n in la_names], marker="o", color=c, label=f"lookahead {v}")
+        a1.set_title("lookahead (bu model)")
+        a1.set_ylabel("makespan")
+        a1.tick_params(axis="x", labelrotation=60)
+        a1.legend()
+        for v, c in (("masked", "tab:blue"), ("unmasked", "tab:red")):
+            pts = [r for r in rows if r["study"] == "masking" and r["variant"] == v]
+            a2.plot([p["timesteps"] for p in pts], [p["mean_episode_reward"] for p in pts], marker=".", color=c,
+                    label=v)
+        a2.set_title("action masking: training curve")
+        a2.set_xlabel("timesteps")
+        a2.set_ylabel("mean episode reward")
+        a2.legend()
+        for a, study in ((a0, "reward_shaping"), (a1, "lookahead"), (a2, "masking")):
+            if study not in chosen:
+                a.clear()
+                a.axis("off")
+                a.text(0.5, 0.5, f"{study}: not run", ha="center", va="center", transform=a.transAxes)
+        fig.tight_layout()
+        fig.savefig(path)
+
+    paths = _write("ablation", results_dir, ABLATION_COLUMNS, rows, meta, draw)
+    if echo:
+        print("| study | variant | result |\n|---|---|---|")
+        for study in ("reward_shaping", "lookahead"):
+            for v, x in summary.get(study, {}).items():
+                print(f"| {study} | {v} | mean makespan {x} |")
+        for v, d in summary.get("masking", {}).items():
+            print(f"| masking | {v} | final mean episode reward {d['final_mean_episode_reward']}, "
+                  f"invalid episodes {d['invalid_episodes']} |")
+        print(f"\nwritten: {', '.join(str(p) for p in paths.values())}")
+    return dict(meta, rows=rows)
+
+
+# ---------------------------------------------------------------------- generalization
+def run_generalization(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
+                       steps: int | None = None, groups: Sequence[int] | None = None, no_tools: bool = False,
+                       echo: bool = True) -> dict[str, Any]:
+    """General shipped model vs an agent specialised per size group (see the module docstring)."""
+    from fms_sim.shop import Shop
+
+    from .rl.lookahead import run_agent
+    from .rl.models import load_agent
+    from .rl.train import expand_instances
+
+    steps = int(steps) if steps else (256 if quick else 20_000)
+    if steps <= 0:
+        raise ValueError("--steps must be positive")
+    groups = list(groups) if groups is not None else ([0] if quick else list(range(len(SL_GROUPS))))
+    for g in groups:
+        if not 0 <= g < len(SL_GROUPS):
+            raise ValueError(f"size group {g} does not exist (0-{len(SL_GROUPS) - 1})")
+    general = "large-agv" if no_tools else "large"
+    fleet = {"no_tools": no_tools}
+    agent = load_agent(general)
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="fms-general-") as tmp:
+        for g in groups:
+            j, m, t = SL_GROUPS[g]
+            size = f"{j}x{m}x{t}"
+            held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
+            for inst in expand_instances(held, fleet):
+                t0 = time.perf_counter()
+                sched = run_agent(Shop(inst), agent.act)
+                rows.append({"group": g, "size": size, "agent": f"general ({general})", "instance": inst.name,
+                             "makespan": sched.makespan, "valid": _checked(inst, sched),
+                             "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
+            train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
+            met = _train_agent(train_spec, held, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
+                               fleet=fleet)["training"]
+            for name, ms in met["eval_makespan"].items():  # validated by evaluate_model
+                rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
+                             "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
+            if echo:
+                print(f"group {g} ({size}) done", flush=True)
+    summary = {str(g): {a: _mean([r["makespan"] for r in rows if r["group"] == g and r["agent"] == a])
+                        for a in (f"general ({general})", "specialized")} for g in groups}
+    meta = {"experiment": "generalization", "quick": quick, "seed": seed, "steps": steps, "groups": groups,
+            "general_model": general, "no_tools": no_tools, "summary": summary}
+
+    def draw(path: Path) -> None:
+        fig, ax = _figure(max(5.0, 1.3 * len(groups) + 2), 4.5)
+        a = ax[0][0]
+        x = np.arange(len(groups))
+        for i, (agent_name, c) in enumerate(((f"general ({general})", "tab:blue"), ("specialized", "tab:orange"))):
+            a.bar(x + (i - 0.5) * 0.38, [summary[str(g)][agent_name] for g in groups], width=0.38, color=c,
+                  label=agent_name)
+        a.set_xticks(x)
+        a.set_xticklabels([f"{g}: {'x'.join(map(str, SL_GROUPS[g]))}" for g in groups], rotation=30)
+        a.set_xlabel("size group (jobs x machines x tools)")
+        a.set_ylabel("mean makespan (held-out)")
+        a.set_title(f"general vs specialized agents ({steps} training steps per group)")
+        a.legend()
+        fig.tight_layout()
+        fig.savefig(path)
+
+    paths = _write("generalization", results_dir, GENERALIZATION_COLUMNS, rows, meta, draw)
+    if echo:
+        print(f"| group | general ({general}) | specialized |\n|---|---|---|")
+        for g in groups:
+            s = summary[str(g)]
+            print(f"| {g} ({'x'.join(map(str, SL_GROUPS[g]))}) | {s[f'general ({general})']} | {s['specialized']} |")
+        print(f"\nwritten: {', '.join(str(p) for p in paths.values())}")
+    return dict(meta, rows=rows)
+
+
+# ---------------------------------------------------------------------- dynamic
+def partition_jobs(n_jobs: int, parts: int = 10) -> list[list[int]]:
+    """Job j goes to partition ``j*parts//n_jobs`` (contiguous blocks; empty ones when n_jobs < parts)."""
+    out: list[list[int]] = [[] for _ in range(parts)]
+    for j in range(n_jobs):
+        out[j * parts // n_jobs].append(j)
+    return out
+
+
+def _sub_instance(inst: Instance, jobs: Sequence[int], label: str) -> Instance:
+    return dataclasses.replace(inst, name=f"{inst.name}{label}", jobs=tuple(inst.jobs[j] for j in jobs))
+
+
+def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
+                instance: str | None = None, model: str | None = None, sos_time: float | None = None,
+                parts: int = 10, echo: bool = True) -> dict[str, Any]:
+    """Partitions arriving over time: RL continues on one live shop, SOS re-solves (see the module docstring)."""
+    from fms_sim.formats import load_instance
+    from fms_sim.shop import Shop
+
+    from .rl.lookahead import finish, run_agent
+    from .rl.models import default_model_name, load_agent
+    from .sos import solve_sos
+
+    inst = load_instance(instance or ("sl00" if quick else "sl30"))
+    sos_time = float(sos_time) if sos_time is not None else (0.2 if quick else 5.0)
+    if sos_time <= 0:
+        raise ValueError("--sos-time must be positive")
+    if parts < 2:
+        raise ValueError("need at least 2 partitions")
+    groups = [p for p in partition_jobs(inst.n_jobs, parts) if p]
+    lb = lower_bound(inst)
+    delta = lb / parts
+    arrival = [round(p * delta, 2) for p in range(len(groups))]
+    agent = load_agent(model or default_model_name(inst))
+    if not agent.fits(inst):
+        raise ValueError(f"instance {inst.name} does not fit model {agent.name} ({agent.padding})")
+
+    rows: list[dict[str, Any]] = []
+    shop = Shop(_sub_instance(inst, groups[0], "-dyn"))
+    decide = 0.0
+    nxt = 1
+
+    def arrive(p: int, early: bool) -> None:
+        """Record partition p (already in the shop): project the RL makespan, re-solve with SOS."""
+        t0 = time.perf_counter()
+        proj = finish(shop, agent.act) if not shop.done else shop.makespan
+        proj_t = time.perf_counter() - t0
+        so_far = [j for q in groups[:p + 1] for j in q]
+        sub = _sub_instance(inst, so_far, f"-p{p}")
+        t0 = time.perf_counter()
+        s = solve_sos(sub, time_limit=sos_time, seed=seed)
+        sos_t = time.perf_counter() - t0
+        prev = rows[-1]["sos_time_cum"] if rows else 0.0
+        rows.append({"partition": p, "arrival": arrival[p], "entered_at": shop.now, "early": early,
+                     "jobs_so_far": len(so_far), "rl_makespan": proj, "rl_time_cum": round(decide, 4),
+                     "rl_projection_time": round(proj_t, 4), "sos_makespan": s.makespan,
+                     "sos_time_cum": round(prev + sos_t, 3), "sos_valid": _checked(sub, s)})
+
+    arrive(0, False)
+    while True:
+        while nxt < len(groups) and shop.now >= arrival[nxt]:
+            shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
+            arrive(nxt, False)
+            nxt += 1
+        if shop.done:
+            break
+        t0 = time.perf_counter()
+        a = agent.act(shop)
+        decide += time.perf_counter() - t0
+        if nxt < len(groups) and shop.instance.n_operations - sum(shop.job_started_ops) <= 2:
+            twin = shop.copy()
+            twin.act(a)
+            if twin.done:  # the shop would run dry before the next arrival: the partition enters now (early)
+                shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
+                arrive(nxt, True)
+                nxt += 1
+                continue  # decide again with the new jobs in view
+        shop.act(a)
+    final = shop.schedule()
+    _checked(shop.instance, final)
+    static_ms = run_agent(Shop(inst), agent.act).makespan  # reference: every job released at 0
+    last = rows[-1]
+    summary = {"rl_final_makespan": final.makespan, "rl_decision_time": round(decide, 4),
+               "rl_static_makespan": static_ms, "sos_final_makespan": last["sos_makespan"],
+               "sos_total_time": last["sos_time_cum"], "early_partitions": sum(bool(r["early"]) for r in rows)}
+    meta = {"experiment": "dynamic", "quick": quick, "seed": seed, "instance": inst.name, "model": agent.name,
+            "partitions": len(groups), "lower_bound": lb, "delta": round(delta, 2), "sos_time_limit": sos_time,
+            "sos_release": "all arrived jobs released at 0 (optimistic for SOS)", "summary": summary}
+
+    def draw(path: Path) -> None:
+        fig, ax = _figure(11, 4.5, ncols=2)
+        a0, a1 = ax[0]
+        x = [r["partition"] for r in rows]
+        a0.plot(x, [r["rl_makespan"] for r in rows], marker="o", label=f"RL ({agent.name}), continuing")
+        a0.plot(x, [r["sos_makespan"] for r in rows], marker="s", label="SOS re-solve (released at 0)")
+        a0.set_xlabel("partitions arrived (index)")
+        a0.set_ylabel("makespan of the jobs so far")
+        a0.set_title(f"{inst.name}: {len(groups)} partitions, Δ = {delta:.0f}")
+        a0.legend()
+        a1.plot(x, [max(1e-4, r["rl_time_cum"]) for r in rows], marker="o", label="RL decisions")
+        a1.plot(x, [max(1e-4, r["sos_time_cum"]) for r in rows], marker="s", label="SOS searches")
+        a1.set_yscale("log")
+        a1.set_xlabel("partitions arrived (index)")
+        a1.set_ylabel("cumulative computation time [s]")
+        a1.legend()
+        fig.tight_layout()
+        fig.savefig(path)
+
+    paths = _write("dynamic", results_dir, DYNAMIC_COLUMNS, rows, meta, draw)
+    if echo:
+        print("| partition | arrival | entered | jobs | RL makespan | RL time [s] | SOS makespan | SOS time [s] |")
+        print("|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['partition']} | {r['arrival']} | {r['entered_at']}{' (early)' if r['early'] else ''} | "
+                  f"{r['jobs_so_far']} | {r['rl_makespan']} | {r['rl_time_cum']} | {r['sos_makespan']} | "
+                  f"{r['sos_time_cum']} |")
+        print(f"\nRL static (all jobs at 0): {static_ms}; written: {', '.join(str(p) for p in paths.values())}")
+    return dict(meta, rows=rows)
+
+
+# ---------------------------------------------------------------------- CLI
+def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``fms experiment ablation|generalization|dynamic`` to the CLI's subparsers."""
+    s = subparsers.add_parser("experiment", help="RL studies: ablation, generalization, dynamic arrivals")
+    sub = s.add_subparsers(dest="experiment", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--quick", action="store_true", help="tiny budgets (seconds; for tests)")
+        p.add_argument("--results-dir", default="results", help="output folder (default results)")
+        p.add_argument("--seed", type=int, default=0)
+
+    p = sub.add_parser("ablation", help="reward shaping, lookahead and action masking on/off")
+    common(p)
+    p.add_argument("--steps", type=int, help="training steps per agent (default 20000; quick 128)")
+    p.add_argument("--studies", nargs="+", choices=ABLATION_STUDIES, help="run only these (default all)")
+    p.set_defaults(fn=_cmd)
+    p = sub.add_parser("generalization", help="general vs specialized agents per size group")
+    common(p)
+    p.add_argument("--steps", type=int, help="training steps per specialized agent (default 20000; quick 256)")
+    p.add_argument("--groups", type=int, nargs="+", help="size groups 0-7 (default all; quick 0)")
+    p.add_argument("--no-tools", action="store_true", help="instances without tools, general model large-agv")
+    p.set_defaults(fn=_cmd)
+    p = sub.add_parser("dynamic", help="jobs arriving in 10 partitions: RL continues, SOS re-solves")
+    common(p)
+    p.add_argument("--instance", help="instance (default sl30; quick sl00)")
+    p.add_argument("--model", help="RL model (default: the shipped model for the instance)")
+    p.add_argument("--sos-time", type=float, help="SOS time limit per re-solve in s (default 5; quick 0.2)")
+    p.add_argument("--steps", type=int, help="unused (no training in this experiment)")
+    p.set_defaults(fn=_cmd)
+    return s
+
+
+def _cmd(a: argparse.Namespace) -> int:
+    if a.experiment == "ablation":
+        run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies)
+    elif a.experiment == "generalization":
+        run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools)
+    else:
+        run_dynamic(a.quick, a.results_dir, a.seed, a.instance, a.model, a.sos_time)
+    return 0

@@ -1,0 +1,134 @@
+"""``fms experiment``: each study in ``--quick`` mode writes its CSV/JSON/PNG with valid schedules."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from fms_dispatch.experiments import (ABLATION_COLUMNS, DYNAMIC_COLUMNS, GENERALIZATION_COLUMNS,
+                                      add_experiment_parser, lower_bound, partition_jobs, run_ablation,
+                                      run_dynamic, run_generalization)
+from fms_sim.benchmarks import builtin
+from fms_sim.instance import Instance, Operation
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _outputs(folder: Path, name: str, columns: tuple[str, ...]) -> tuple[list[dict[str, str]], dict]:
+    """Read the three files of an experiment and check their shape."""
+    paths = {ext: folder / f"experiment_{name}.{ext}" for ext in ("csv", "json", "png")}
+    for p in paths.values():
+        assert p.is_file() and p.stat().st_size > 0, p
+    assert paths["png"].read_bytes()[:8] == PNG_MAGIC
+    with paths["csv"].open() as fh:
+        reader = csv.DictReader(fh)
+        assert tuple(reader.fieldnames or ()) == columns
+        rows = list(reader)
+    doc = json.loads(paths["json"].read_text())
+    assert doc["experiment"] == name and doc["quick"] is True
+    assert len(doc["rows"]) == len(rows)
+    return rows, doc
+
+
+def test_partition_and_lower_bound() -> None:
+    assert partition_jobs(15) == [[0, 1], [2], [3, 4], [5], [6, 7], [8], [9, 10], [11], [12, 13], [14]]
+    assert partition_jobs(3, 4) == [[0], [1], [2], []]
+    inst = Instance(name="t", jobs=((Operation(1, None, 5), Operation(2, None, 4)), (Operation(1, None, 7),)),
+                    n_machines=2)
+    assert lower_bound(inst) == 12  # machine 1: 5 + 7
+    assert lower_bound(builtin("ta01")) == 977 <= builtin("ta01").meta["optimal_makespan"]
+
+
+def test_dynamic_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    doc = run_dynamic(quick=True, results_dir=tmp_path)
+    rows, saved = _outputs(tmp_path, "dynamic", DYNAMIC_COLUMNS)
+    assert saved["instance"] == "sl00" and saved["model"] == "large" and saved["partitions"] == 10
+    inst = builtin("sl00")
+    assert saved["lower_bound"] == lower_bound(inst)
+    assert [int(r["partition"]) for r in rows] == list(range(10))
+    assert [int(r["jobs_so_far"]) for r in rows] == [2, 3, 5, 6, 8, 9, 11, 12, 14, 15]
+    assert all(r["sos_valid"] == "True" for r in rows)
+    for r in rows:  # jobs never enter before their arrival unless flagged early
+        assert float(r["entered_at"]) >= float(r["arrival"]) or r["early"] == "True"
+    times = [float(r["sos_time_cum"]) for r in rows]
+    assert times == sorted(times) and times[-1] >= 10 * 0.2 * 0.9
+    rl = [float(r["rl_time_cum"]) for r in rows]
+    assert rl == sorted(rl)
+    s = doc["summary"]
+    assert s["rl_final_makespan"] == int(rows[-1]["rl_makespan"])  # the deterministic projection is exact
+    assert s["sos_final_makespan"] == int(rows[-1]["sos_makespan"])
+    assert "| partition |" in capsys.readouterr().out
+
+
+def test_ablation_quick(tmp_path: Path) -> None:
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=64, echo=False)
+    rows, _ = _outputs(tmp_path, "ablation", ABLATION_COLUMNS)
+    by = {(r["study"], r["variant"]) for r in rows}
+    assert by == {("reward_shaping", "shaped"), ("reward_shaping", "sparse"), ("lookahead", "off"),
+                  ("lookahead", "on"), ("masking", "masked"), ("masking", "unmasked")}
+    shaping = [r for r in rows if r["study"] == "reward_shaping"]
+    assert sorted(r["instance"] for r in shaping) == ["sl40", "sl40", "sl41", "sl41"]
+    assert all(r["valid"] == "True" and int(r["makespan"]) > 0 for r in shaping)
+    look = [r for r in rows if r["study"] == "lookahead"]
+    assert sorted(r["instance"] for r in look) == ["EX12", "EX12", "EX22", "EX22"]
+    assert all(r["valid"] == "True" for r in look)
+    off = {r["instance"]: int(r["makespan"]) for r in look if r["variant"] == "off"}
+    from fms_dispatch.rl import ppo_solver
+
+    assert off["EX12"] == ppo_solver("ppo:bu")(builtin("EX12")).makespan
+    curve = [r for r in rows if r["study"] == "masking"]
+    masked = [r for r in curve if r["variant"] == "masked"]
+    unmasked = [r for r in curve if r["variant"] == "unmasked"]
+    assert len(masked) >= 2 and len(unmasked) >= 2
+    assert all(int(r["invalid_episodes"]) == 0 for r in masked)  # masks never let an invalid action through
+    assert sum(int(r["invalid_episodes"]) for r in unmasked) > 0
+    steps = [int(r["timesteps"]) for r in masked]
+    assert steps == sorted(steps)
+    assert set(doc["summary"]) == {"reward_shaping", "lookahead", "masking"}
+
+
+def test_ablation_only_lookahead(tmp_path: Path) -> None:
+    doc = run_ablation(quick=True, results_dir=tmp_path, studies=["lookahead"], echo=False)
+    rows, _ = _outputs(tmp_path, "ablation", ABLATION_COLUMNS)
+    assert {r["study"] for r in rows} == {"lookahead"} and len(rows) == 4
+    assert list(doc["summary"]) == ["lookahead"] and doc["studies"] == ["lookahead"]
+    with pytest.raises(ValueError, match="unknown ablation study 'typo'"):
+        run_ablation(quick=True, results_dir=tmp_path, studies=["typo"], echo=False)
+
+
+def test_generalization_quick(tmp_path: Path) -> None:
+    doc = run_generalization(quick=True, results_dir=tmp_path, steps=32, echo=False)
+    rows, _ = _outputs(tmp_path, "generalization", GENERALIZATION_COLUMNS)
+    assert [(r["group"], r["agent"], r["instance"]) for r in rows] == [
+        ("0", "general (large)", "sl09"), ("0", "specialized", "sl09")]
+    assert all(r["valid"] == "True" and int(r["makespan"]) > 0 for r in rows)
+    from fms_dispatch.rl import ppo_solver
+
+    assert int(rows[0]["makespan"]) == ppo_solver("ppo:large")(builtin("sl09")).makespan
+    assert doc["summary"]["0"]["specialized"] == float(rows[1]["makespan"])
+
+
+def test_bad_options(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="size group 9"):
+        run_generalization(quick=True, results_dir=tmp_path, groups=[9], echo=False)
+    with pytest.raises(ValueError, match="--sos-time"):
+        run_dynamic(quick=True, results_dir=tmp_path, sos_time=0, echo=False)
+    with pytest.raises(ValueError, match="--steps"):
+        run_ablation(quick=True, results_dir=tmp_path, steps=-5, echo=False)
+
+
+def test_parser() -> None:
+    p = argparse.ArgumentParser()
+    add_experiment_parser(p.add_subparsers(dest="cmd"))
+    a = p.parse_args(["experiment", "dynamic", "--quick", "--results-dir", "r", "--seed", "3", "--sos-time", "0.5"])
+    assert (a.experiment, a.quick, a.results_dir, a.seed, a.sos_time) == ("dynamic", True, "r", 3, 0.5)
+    a = p.parse_args(["experiment", "generalization", "--groups", "0", "2", "--steps", "100"])
+    assert (a.groups, a.steps, a.quick, a.results_dir) == ([0, 2], 100, False, "results")
+    a = p.parse_args(["experiment", "ablation", "--studies", "lookahead", "masking"])
+    assert a.studies == ["lookahead", "masking"] and a.steps is None
+    with pytest.raises(SystemExit):
+        p.parse_args(["experiment", "nonsense"])
