@@ -1,7 +1,7 @@
 """The dispatcher agent node's logic, without ROS: a state message in, a command (or an error) out.
 
-The agent never sees the :class:`~fms_sim.shop.Shop`; it decides from the ``fms/state/v1`` message alone. For
-dispatching rules the shop includes the optional ``features`` object in every state (per job: entry, number
+For dispatching rules the agent never sees the :class:`~fms_sim.shop.Shop`; it decides from the ``fms/state/v1``
+message alone. For dispatching rules the shop includes the optional ``features`` object in every state (per job: entry, number
 of operations, next operation, its duration, remaining and total work, ready time; per vehicle: location,
 free time, work; the pending AGV / tool-transport request with every vehicle's empty travel to its pickup).
 :data:`FEATURE_JOB_KEYS` restates the twelve job rules of :mod:`fms_dispatch.rules` on those columns; the
@@ -12,26 +12,39 @@ Solvers (the ``solver`` parameter):
 * ``first`` — the lowest enabled action (like the offline ``first`` solver);
 * ``random`` — uniform among the enabled actions, from ``seed``;
 * ``rule:<JOB>+<first|least-work|nearest>`` — a dispatching rule pair;
-* ``ppo[:model]`` and ``lookahead`` are planned but not available yet; asking for them (or for an offline
-  solver such as ``cpsat``) raises :class:`UnavailableSolver`, which the node turns into exit code 2.
+* ``ppo`` / ``ppo:<model>`` — the trained PPO policy (:mod:`fms_dispatch.rl`; ``ppo`` picks the shipped model
+  that fits the instance). The policy reads the whole shop, not just rule features, so :class:`TwinDecider`
+  keeps a local twin :class:`~fms_sim.shop.Shop` of the same instance (the agent's own ``instance``) and
+  replays the state's ``history`` (applied action labels and accepted orders; the shop sends it when started
+  with ``history``) into it. The twin is cached between states, so a new state costs one replayed step; the
+  twin is checked against the state (time, action labels, mask) and rebuilt from scratch on a mismatch. If it
+  still disagrees, the agent publishes an ``internal`` error *and* the first enabled action, so the run goes
+  on. Nothing is kept across restarts: a restarted agent replays the latched state's history.
+* ``lookahead`` / ``ppo+lookahead`` (pre-positioning idle vehicles) is not available over topics: it acts at
+  idle moments between decisions, which the shop does not publish. Asking for it (or for an offline solver
+  such as ``cpsat``) raises :class:`UnavailableSolver`, which the node turns into exit code 2.
 """
 
 from __future__ import annotations
 
 import random
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from fms_msgs_json import TOPIC_COMMAND, TOPIC_ERRORS, MessageError, decode, error_reply, make_command, make_error
+from fms_sim.instance import Instance, InstanceError, Operation
+from fms_sim.petri import InvalidAction
 from fms_sim.shop_service import Outgoing
 
 from .rules import JOB_RULES, VEHICLE_RULES, parse_rule_name
 
-__all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FEATURE_JOB_KEYS", "make_decider",
-           "AGENT_SOLVERS", "Decider"]
+if TYPE_CHECKING:
+    from fms_sim.shop import Shop
+
+__all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision", "FEATURE_JOB_KEYS",
+           "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent"]
 
 SOURCE = "fms_agent"
-AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>")
-_PLANNED = {"ppo": "the PPO agent", "lookahead": "the lookahead agent"}
+AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]
@@ -44,6 +57,15 @@ class UnavailableSolver(ValueError):
 
 class DecisionError(ValueError):
     """A state the solver cannot decide on (no enabled action, missing or inconsistent features)."""
+
+
+class FallbackDecision(DecisionError):
+    """The solver could not decide properly but names a safe action anyway: ``label`` is sent as the command
+    and ``str(exc)`` is published as an ``internal`` error (e.g. the twin disagrees with the shop)."""
+
+    def __init__(self, message: str, label: str) -> None:
+        super().__init__(message)
+        self.label = label
 
 
 # Job keys on the feature columns (minimised; ties go to the lowest job number), one per rule of
@@ -123,8 +145,149 @@ class RuleDecider:
         return min(cands, key=lambda c: (empty[c[0]], cols["work"][c[0]], c[0]))[1]
 
 
-def make_decider(solver: str, seed: int = 0) -> tuple[Decider, str]:
-    """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`."""
+def load_ppo_agent(model: str | None, instance: Instance) -> Any:
+    """The trained :class:`fms_dispatch.rl.policy.Agent` for ``model`` (None: the shipped default for
+    ``instance``); raises :class:`UnavailableSolver` if it cannot be loaded or the instance does not fit it.
+
+    A thin adapter over :mod:`fms_dispatch.rl.models` (imported here: torch loads only for PPO agents)."""
+    try:
+        from .rl.models import default_model_name, load_agent
+    except ImportError as exc:
+        raise UnavailableSolver(f"the PPO agent needs torch and sb3-contrib ({exc}); install fms[rl]") from None
+    name = model or default_model_name(instance)
+    try:
+        agent = load_agent(name)
+    except (ValueError, OSError) as exc:
+        raise UnavailableSolver(f"solver 'ppo:{name}': {str(exc).splitlines()[0]}") from None
+    if not agent.fits(instance):
+        raise UnavailableSolver(f"instance {instance.name} is larger than model {agent.name} allows "
+                                f"({agent.padding})")
+    return agent
+
+
+class TwinDecider:
+    """A policy over a local twin :class:`~fms_sim.shop.Shop`, kept in step with the states' ``history``.
+
+    ``choose(shop) -> net action`` is the policy (e.g. ``Agent.act``). The twin is rebuilt from ``instance``
+    when a state belongs to another run or its history does not extend the one replayed so far; otherwise only
+    the new entries are replayed. See the module docstring for the checks and the fallback.
+    """
+
+    def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str) -> None:
+        self.instance = instance
+        self.choose = choose
+        self.name = name
+        self.twin: Shop | None = None
+        self._run_id: str | None = None
+        self._labels: list[str] = []           # labels replayed into the twin
+        self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
+        self.rebuilds = 0                       # twins built from scratch (for tests and logs)
+
+    def _reset(self, run_id: str) -> None:
+        from fms_sim.shop import Shop
+
+        self.twin = Shop(self.instance)
+        self._run_id, self._labels, self._orders = run_id, [], []
+        self.rebuilds += 1
+
+    def _replay(self, labels: list[str], orders: list[dict[str, Any]]) -> None:
+        """Apply the entries of the history beyond those already replayed (raises on an impossible step)."""
+        twin = self.twin
+        assert twin is not None
+        p, q = len(self._labels), len(self._orders)
+        while True:
+            while q < len(orders) and orders[q]["at"] == p:
+                jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops]
+                        for ops in orders[q]["jobs"]]
+                twin.add_jobs(jobs)
+                self._orders.append(orders[q])
+                q += 1
+            if p >= len(labels):
+                break
+            twin.act(twin.action_index(labels[p]))
+            self._labels.append(labels[p])
+            p += 1
+
+    def _agrees(self, state: dict[str, Any]) -> str | None:
+        """None if the twin matches the state (time, labels, mask); else what differs."""
+        twin = self.twin
+        assert twin is not None
+        if twin.now != state["time"]:
+            return f"twin time {twin.now} != state time {state['time']}"
+        if twin.action_labels() != state["actions"]:
+            return "the twin's action labels differ from the state's"
+        if list(twin.action_mask()) != state["mask"]:
+            return "the twin's mask differs from the state's"
+        return None
+
+    def sync(self, state: dict[str, Any]) -> None:
+        """Bring the twin to ``state``; raises :class:`DecisionError` (no history, other instance) or
+        :class:`FallbackDecision` (the replayed twin disagrees with the state even when rebuilt)."""
+        history = state.get("history")
+        if history is None:
+            raise DecisionError(f"state {state['seq']} has no 'history'; {self.name} replays it into a twin of "
+                                "the shop (start the shop with history:=true)")
+        name = state.get("instance")
+        if name is not None and name != self.instance.name:
+            raise DecisionError(f"state {state['seq']} is of instance {name!r} but this agent holds "
+                                f"{self.instance.name!r}; give the agent the shop's instance")
+        labels = history["actions"].split(" ") if history["actions"] else []
+        orders = history["orders"]
+        n, m = len(self._labels), len(self._orders)
+        fresh = (self.twin is None or self._run_id != state["run_id"] or len(labels) < n or len(orders) < m
+                 or labels[:n] != self._labels or orders[:m] != self._orders)
+        problem = None
+        for attempt in range(2):
+            if fresh or attempt:
+                self._reset(state["run_id"])
+            try:
+                self._replay(labels, orders)
+                problem = self._agrees(state)
+            except (InvalidAction, InstanceError) as exc:
+                problem = f"replaying the history failed: {exc}"
+            if problem is None:
+                return
+            if fresh:  # already rebuilt from scratch: no second try
+                break
+        self.twin = None  # start afresh next time
+        raise FallbackDecision(f"state {state['seq']}: the twin of the shop disagrees with the state ({problem}); "
+                               "sending the first enabled action", _legal(state)[0][2])
+
+    def __call__(self, state: dict[str, Any]) -> str:
+        legal = _legal(state)
+        self.sync(state)
+        twin = self.twin
+        assert twin is not None
+        if len(legal) == 1:
+            return legal[0][2]
+        try:
+            return twin.action_labels()[self.choose(twin)]
+        except (ValueError, RuntimeError, IndexError) as exc:
+            raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending the first enabled "
+                                   "action", legal[0][2]) from None
+
+
+def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
+    """``ppo`` / ``ppo:<model>`` over a twin of ``instance``."""
+    low = name.lower()
+    if low == "lookahead" or low.endswith("+lookahead"):
+        raise UnavailableSolver(f"solver {name!r} is not available in the agent node: the lookahead moves idle "
+                                "vehicles between decisions, which the shop does not publish; use ppo")
+    model = name[4:].strip() if low.startswith("ppo:") else None
+    if low.startswith("ppo:") and not model:
+        raise UnavailableSolver("solver 'ppo:' names no model; use ppo or ppo:<model>")
+    if instance is None:
+        raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it replays the "
+                                "shop into a twin; give the agent the parameter instance (the same as the shop's)")
+    agent = load_ppo_agent(model, instance)
+    canonical = f"ppo:{agent.name}"
+    return TwinDecider(instance, agent.act, canonical), canonical
+
+
+def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -> tuple[Decider, str]:
+    """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
+
+    ``instance`` (the shop's instance) is needed by ``ppo`` solvers only."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
@@ -141,10 +304,11 @@ def make_decider(solver: str, seed: int = 0) -> tuple[Decider, str]:
             raise UnavailableSolver(f"solver {name!r}: {exc}") from None
         decider = RuleDecider(policy.job_rule, policy.vehicle_rule)
         return decider, decider.name
+    if low == "lookahead":
+        return _ppo_decider(name, instance)
+    if low == "ppo" or low.startswith(("ppo:", "ppo+")):
+        return _ppo_decider(name, instance)
     base = low.split(":", 1)[0]
-    if base in _PLANNED:
-        raise UnavailableSolver(f"solver {name!r} is not available: {_PLANNED[base]} is not part of this build "
-                                f"yet; choose from {', '.join(AGENT_SOLVERS)}")
     if base in _OFFLINE:
         raise UnavailableSolver(f"solver {name!r} plans a whole schedule offline and cannot decide state by state "
                                 f"in the agent node; choose from {', '.join(AGENT_SOLVERS)}")
@@ -160,8 +324,9 @@ class AgentLogic:
     gives an ``fms/error/v1`` instead of a command.
     """
 
-    def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE) -> None:
-        self.decide, self.name = make_decider(solver, seed)
+    def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
+                 instance: Instance | None = None) -> None:
+        self.decide, self.name = make_decider(solver, seed, instance)
         self.source = source
         self.run_id: str | None = None
         self.last_seq = -1           # the newest state seq seen in run_id
@@ -182,14 +347,18 @@ class AgentLogic:
         self.last_seq = seq
         if state["done"]:
             return []
+        out: list[Outgoing] = []
         try:
             label = self.decide(state)
+        except FallbackDecision as exc:
+            out.append(Outgoing(TOPIC_ERRORS, make_error(self.source, "internal", str(exc), run_id=run_id)))
+            label = exc.label
         except DecisionError as exc:
             return [Outgoing(TOPIC_ERRORS, make_error(self.source, "bad_schema", str(exc), run_id=run_id,
                                                       received=text))]
         self.answered_seq = seq
         self.decisions += 1
-        return [Outgoing(TOPIC_COMMAND, make_command(run_id, seq, label, agent=self.name))]
+        return out + [Outgoing(TOPIC_COMMAND, make_command(run_id, seq, label, agent=self.name))]
 
     def waiting_for(self) -> tuple[str, int] | None:
         """``(run_id, seq)`` of the state last answered if no newer state has arrived since, else None."""

@@ -7,8 +7,11 @@ parameter and publishes one ``fms/command`` per state. A command is sent as soon
 a duplicate with a ``stale_state`` error and ignores it). An unknown or unavailable solver stops the node at
 start with a one-line error and exit code 2.
 
-Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``; default
-``first``), ``seed`` (for ``random``), ``delay_s`` (think time before each command, for demos and tests),
+Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``, ``ppo``,
+``ppo:<model>``; default ``first``), ``seed`` (for ``random``), ``instance`` with ``layout``, ``agvs``,
+``tool_transporters``, ``no_tools``, ``no_agvs`` (the shop's instance, the same values as the shop node's;
+needed by ``ppo``, which replays the states' ``history`` into a twin of the shop — start the shop with
+``history:=true``), ``delay_s`` (think time before each command, for demos and tests),
 ``resend_s`` (default 1.0).
 """
 
@@ -19,6 +22,7 @@ import time
 from typing import Sequence
 
 from fms_msgs_json import TOPIC_COMMAND
+from fms_sim.instance import Instance, InstanceError
 from fms_sim.shop_node import StartupError, TopicIO, param, rclpy, run_node
 from fms_sim.shop_service import Outgoing
 
@@ -46,8 +50,9 @@ class AgentNode:
         seed = param(n, "seed", 0)
         self.delay_s = float(param(n, "delay_s", 0.0))
         self.resend_s = float(param(n, "resend_s", 1.0))
+        inst = self._instance()
         try:
-            self.logic = AgentLogic(solver, seed=seed)
+            self.logic = AgentLogic(solver, seed=seed, instance=inst)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:
@@ -59,6 +64,22 @@ class AgentNode:
         self.io.subscribe("state", self._on_state)
         self._timer = n.create_timer(0.02, self._tick)
         n.get_logger().info(f"deciding with {self.logic.name}")
+
+    def _instance(self) -> Instance | None:
+        """The instance named by the parameters (as the shop node reads them), or None without ``instance``."""
+        from fms_sim.formats import load_instance
+
+        n = self.node
+        spec = param(n, "instance", "")
+        layout, agvs, tts = param(n, "layout", 0), param(n, "agvs", 0), param(n, "tool_transporters", 0)
+        no_tools, no_agvs = param(n, "no_tools", False), param(n, "no_agvs", False)
+        if not spec:
+            return None
+        try:
+            return load_instance(spec, layout=layout or None, agvs=agvs or None, tool_transporters=tts or None,
+                                 no_tools=no_tools, no_agvs=no_agvs)
+        except (InstanceError, OSError) as exc:
+            raise StartupError(str(exc).splitlines()[0]) from None
 
     def _on_state(self, text: str) -> None:
         out = self.logic.on_state(text)

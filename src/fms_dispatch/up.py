@@ -7,8 +7,10 @@ rendered its Gantt chart, validates the schedule against the final instance (inc
 writes it to ``--out``, and stops the nodes with SIGINT (SIGKILL after a grace period). It imports no rclpy
 itself: the nodes do.
 
-``--solver best`` simulates every rule pair on the instance in-process first and runs the best one over the
-topics (the agent has no learned or lookahead policy yet). ROS settings: ``ROS_DOMAIN_ID`` is taken from the
+``--solver best`` simulates every rule pair and the shipped PPO model on the instance in-process first and runs
+the winner over the topics: PPO if its makespan is strictly smaller than the best rule pair's, else that pair
+(:func:`best_solver`; it says which). A ``ppo`` solver makes the launcher start the shop with ``history:=true`` (and ``features:=false``)
+and give the agent the instance file, so that the agent can replay the run into its twin of the shop. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
 environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails).
@@ -39,7 +41,8 @@ from fms_sim.shop_service import new_run_id
 
 from .agent_logic import UnavailableSolver, make_decider
 
-__all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "NodeProcess", "node_command", "stop_all"]
+__all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "best_solver", "NodeProcess", "node_command",
+           "stop_all", "needs_twin"]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -67,8 +70,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
     p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly)")
     p.add_argument("--solver", default="first",
-                   help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | best "
-                        "(the best rule pair for this instance) (default: first)")
+                   help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
+                        "best (the shipped PPO model if it beats the best rule pair in simulation, else that "
+                        "pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -94,6 +98,34 @@ def best_rule(instance: Instance) -> tuple[str, int]:
             best = (span, name)
     assert best is not None
     return best[1], best[0]
+
+
+def best_solver(instance: Instance) -> tuple[str, int, str]:
+    """The solver ``fms up --solver best`` runs: ``(name, simulated makespan, one-line reason)``.
+
+    The shipped PPO model (the default one for the instance) is preferred when its simulated makespan is
+    strictly smaller than the best rule pair's; if it cannot run here (no torch, no fitting model), the best
+    rule pair is used and the reason says why."""
+    rule, rule_span = best_rule(instance)
+    try:
+        from .rl import ppo_solver
+
+        sched = ppo_solver("ppo")(instance)
+    except (ImportError, ValueError, OSError) as exc:
+        return rule, rule_span, (f"best rule pair on {instance.name}: {rule} (makespan {rule_span} in simulation; "
+                                 f"PPO not available: {str(exc).splitlines()[0]})")
+    ppo = f"ppo:{sched.meta.get('model', '')}" if sched.meta.get("model") else "ppo"
+    if sched.makespan < rule_span:
+        return ppo, sched.makespan, (f"best on {instance.name}: {ppo} (makespan {sched.makespan} in simulation; "
+                                     f"best rule pair {rule}: {rule_span})")
+    return rule, rule_span, (f"best on {instance.name}: {rule} (makespan {rule_span} in simulation; "
+                             f"{ppo}: {sched.makespan})")
+
+
+def needs_twin(solver: str) -> bool:
+    """Whether the agent replays the run into a twin (``ppo`` solvers): the shop must then send history."""
+    low = solver.strip().lower()
+    return low in ("ppo", "lookahead") or low.startswith(("ppo:", "ppo+"))
 
 
 def node_command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
@@ -189,10 +221,10 @@ def cmd_up(a: argparse.Namespace) -> int:
     inst = _load(a)
     solver = a.solver
     if solver.lower() == "best":
-        solver, span = best_rule(inst)
-        say(f"best rule pair on {inst.name}: {solver} (makespan {span} in simulation)")
+        solver, _, reason = best_solver(inst)
+        say(reason)
     try:
-        make_decider(solver, a.seed)
+        make_decider(solver, a.seed, inst)
     except UnavailableSolver as exc:
         raise UpError(str(exc)) from None
     if a.timeout <= 0:
@@ -225,6 +257,10 @@ def cmd_up(a: argparse.Namespace) -> int:
     for stale in (sched_tmp, inst_final):
         stale.unlink(missing_ok=True)
 
+    twin = needs_twin(solver)
+    agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
+    if twin:
+        agent_params["instance"] = str(inst_in)
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -235,9 +271,8 @@ def cmd_up(a: argparse.Namespace) -> int:
                     log_dir / "recorder.log", env),
         NodeProcess("shop", node_command("fms_sim.shop_node", {
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
-            "instance_out": str(inst_final)}), log_dir / "shop.log", env),
-        NodeProcess("agent", node_command("fms_dispatch.agent_node", {"solver": solver, "seed": a.seed}),
-                    log_dir / "agent.log", env),
+            "instance_out": str(inst_final), "history": twin, "features": not twin}), log_dir / "shop.log", env),
+        NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
     say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")
     failure: str | None = None

@@ -155,6 +155,23 @@ _FEATURES = Obj((
     Field("tt_request", Nullable(_TT_REQUEST), required=False),
 ), expected="a features object")
 
+# The optional "history" of a state: everything applied to the run since state 0, so that an agent holding
+# the same instance can replay it into a twin of the shop (the net is deterministic). "actions" is the
+# applied action labels in order, separated by single spaces (one string: cheap to send, check and split);
+# "orders" are the accepted orders' jobs, each with "at" = the number of actions applied before it.
+_HISTORY_ORDER = Obj((
+    Field("at", Int(0)),
+    Field("jobs", ListOf(ListOf(Obj((
+        Field("machine", Int(1)),
+        Field("tool", Nullable(Int(1)), required=False),
+        Field("duration", Int(0)),
+    ), expected="an operation object {machine, tool, duration}"), nonempty=True), nonempty=True)),
+), expected="an order object {at, jobs}")
+_HISTORY = Obj((
+    Field("actions", Str(nonempty=False, what="action labels separated by single spaces")),
+    Field("orders", ListOf(_HISTORY_ORDER)),
+), expected="a history object {actions, orders}")
+
 _STATE = (
     _RUN_ID,
     Field("seq", Int(0)),
@@ -166,6 +183,7 @@ _STATE = (
     Field("instance", _OPTIONAL_STR, required=False),
     Field("makespan", Nullable(Int(0)), required=False),
     Field("features", Nullable(_FEATURES), required=False),
+    Field("history", Nullable(_HISTORY), required=False),
 )
 
 _COMMAND = (
@@ -277,6 +295,28 @@ def _mask_matches_actions(msg: dict[str, Any], path: str) -> None:
     features = msg.get("features")
     if features is not None:
         _features_consistent(features)
+    history = msg.get("history")
+    if history is not None:
+        _history_consistent(history)
+
+
+def _history_consistent(history: dict[str, Any]) -> None:
+    """History labels are separated by single spaces; orders come in order and refer to applied actions."""
+    text = history["actions"]
+    n = 0
+    if text:
+        labels = text.split(" ")
+        if "" in labels:
+            raise FieldError("history.actions", "field 'history.actions' must separate action labels by single "
+                                                "spaces (no leading, trailing or double spaces)")
+        n = len(labels)
+    last = 0
+    for i, order in enumerate(history["orders"]):
+        if not last <= order["at"] <= n:
+            raise FieldError(f"history.orders[{i}].at", f"field 'history.orders[{i}].at' is {order['at']} but "
+                                                        f"must be between {last} (the previous order's) and {n} "
+                                                        "(the number of applied actions)")
+        last = order["at"]
 
 
 def _same_length(group: dict[str, Any], columns: tuple[str, ...], path: str) -> int:

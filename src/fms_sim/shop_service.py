@@ -9,6 +9,11 @@ rclpy:
   operation counts, next duration, remaining and total work, ready time; per vehicle: location, free time,
   work; the pending AGV / tool-transport request with every vehicle's empty travel to its pickup). An agent
   therefore decides from the message alone and needs no twin of the shop.
+* **History** (opt-in, ``history=True``). States then also carry ``history``: the applied action labels (one
+  space-separated string) and the accepted orders' jobs with the number of actions applied before each. An
+  agent that needs the whole shop (the PPO policy) replays it into its own twin of the shop, started from the
+  same instance; the net is deterministic, so the twin reaches the same state. The agent keeps no state of
+  its own across restarts: the latched state is all it needs.
 * **Commands.** A command is applied only if it names this run, answers the *current* state and picks an
   action that state enables; anything else (malformed JSON, wrong schema, unknown run, stale or unknown state
   number, unknown or masked action) is answered with an ``fms/error/v1`` and leaves the shop untouched.
@@ -173,11 +178,16 @@ class ShopService:
     """
 
     def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
-                 features: bool = True, clock: Callable[[], float] = time.perf_counter) -> None:
+                 features: bool = True, history: bool = False,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
         self.shop = Shop(instance)
         self.run_id = run_id or new_run_id(instance.name)
         self.source = source
         self.with_features = features
+        self.with_history = history
+        self._applied: list[str] = []                     # applied action labels, in order (for history)
+        self._applied_text = ""                           # the same, space-separated
+        self._order_history: list[dict[str, Any]] = []    # accepted orders: {"at": n actions before, "jobs"}
         self._clock = clock
         self._table = _JobTable()
         self._queue = _EventQueue()
@@ -250,6 +260,9 @@ class ShopService:
         except InvalidAction as exc:  # the mask said yes: only a net bug can get here
             return [self._error("internal", f"the shop refused enabled action {label!r}: {exc}", text)]
         self.decisions += 1
+        if self.with_history:
+            self._applied.append(label)
+            self._applied_text = f"{self._applied_text} {label}" if self._applied_text else label
         agent = msg.get("agent")
         if agent and (not self.agents or self.agents[-1] != agent):
             self.agents.append(agent)
@@ -278,6 +291,9 @@ class ShopService:
         except (InstanceError, InvalidAction) as exc:
             return [self._error("bad_order", f"order {oid!r} rejected: {exc}", text)]
         self.orders[oid] = ids
+        if self.with_history:
+            self._order_history.append({"at": len(self._applied), "jobs": [
+                [{"machine": o.machine, "tool": o.tool, "duration": o.duration} for o in ops] for ops in jobs]})
         out = [self._event(self.shop.now, "order_accepted", {"order_id": oid, "jobs": ids})]
         return out + self._after_step()
 
@@ -340,6 +356,8 @@ class ShopService:
                                 shop.action_mask() if not done else [False] * shop.n_actions, done,
                                 instance=shop.instance.name, makespan=shop.makespan if done else None,
                                 features=features)
+        if self.with_history and not done:  # added after make_state's check; the schema (history) allows it
+            self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
         return self.state
 
     def _error(self, code: str, message: str, received: str | None) -> Outgoing:

@@ -80,9 +80,11 @@ def test_first_and_random() -> None:
 
 
 @pytest.mark.parametrize("solver, needle", [
-    ("ppo", "solver 'ppo' is not available: the PPO agent is not part of this build"),
-    ("ppo:models/bu.zip", "solver 'ppo:models/bu.zip' is not available"),
-    ("lookahead", "the lookahead agent is not part of this build"),
+    ("ppo", "solver 'ppo' is not available without the shop's instance: it replays the shop into a twin"),
+    ("ppo:bu", "solver 'ppo:bu' is not available without the shop's instance"),
+    ("lookahead", "solver 'lookahead' is not available in the agent node: the lookahead moves idle vehicles"),
+    ("ppo+lookahead", "solver 'ppo+lookahead' is not available in the agent node"),
+    ("ppo:", "solver 'ppo:' names no model"),
     ("cpsat", "plans a whole schedule offline"),
     ("sos", "plans a whole schedule offline"),
     ("magic", "unknown solver 'magic'; the agent node accepts first, random, rule:<JOB>+"),
@@ -152,3 +154,103 @@ def test_legal_labels() -> None:
     bad["actions"][0] = "crane:0"
     with pytest.raises(DecisionError, match="'crane:0'"):
         legal_labels(bad)
+
+
+# ------------------------------------------------------------------------------------------------ ppo
+def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: int | None = None):
+    """Drive a history-carrying shop with a PPO agent; optionally replace the agent by a fresh one (a restart)
+    before state ``restart_at`` and send an order before state ``order_at``."""
+    svc = ShopService(inst, run_id="p", history=True)
+    agent = AgentLogic(solver, instance=inst)
+    agents = [agent]
+    out = svc.start()
+    while not svc.done:
+        if svc.state_seq == order_at:
+            out = svc.handle_order(encode(m.make_order("o1", [[(1, None, 3), (2, None, 4)]])))
+            assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+        if svc.state_seq == restart_at:
+            agent = AgentLogic(solver, instance=inst)
+            agents.append(agent)
+        (cmd,) = agent.on_state(encode(svc.state))
+        assert cmd.topic == m.TOPIC_COMMAND and cmd.msg["agent"] == agent.name
+        out = svc.handle_command(encode(cmd.msg))
+        assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+    return svc, agents
+
+
+@pytest.mark.parametrize("name, model", [("EX12", "bu"), ("ra01", "large")])
+def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, model: str) -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin(name)
+    ref = ppo_solver("ppo")(inst)
+    svc, (agent,) = ppo_run(inst)
+    assert agent.name == f"ppo:{model}" and svc.final_schedule.meta["solver"] == f"ppo:{model}"
+    assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"]
+    assert svc.final_schedule.makespan == ref.makespan
+    assert validate(inst, svc.final_schedule) == []
+    assert agent.decide.rebuilds == 1                         # one twin, one replayed step per state
+
+
+def test_ppo_agent_restarted_mid_run_replays_the_history() -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin("EX12")
+    svc, agents = ppo_run(inst, solver="ppo:bu", restart_at=11)
+    assert len(agents) == 2 and agents[1].decide.rebuilds == 1 and agents[1].decisions == svc.decisions - 11
+    assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst).makespan == 84
+    assert validate(inst, svc.final_schedule) == []
+
+
+def test_ppo_twin_follows_orders() -> None:
+    inst = builtin("EX12")
+    svc, (agent,) = ppo_run(inst, order_at=6)
+    assert svc.instance.n_jobs == 6 and agent.decide.twin.instance.n_jobs == 6
+    assert agent.decide.rebuilds == 1
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+def test_ppo_without_history_or_with_another_instance_is_an_error() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p")                      # no history
+    agent = AgentLogic("ppo", instance=inst)
+    svc.start()
+    (err,) = agent.on_state(encode(state := svc.state))
+    assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "bad_schema"
+    assert "has no 'history'" in err.msg["message"] and "history:=true" in err.msg["message"]
+    other = ShopService(builtin("EX11"), run_id="q", history=True)
+    other.start()
+    (err,) = agent.on_state(encode(other.state))
+    assert "is of instance 'EX11' but this agent holds 'EX12'" in err.msg["message"]
+    assert state["seq"] == 0
+
+
+def test_ppo_twin_mismatch_rebuilds_then_falls_back_to_the_first_action() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p", history=True)
+    agent = AgentLogic("ppo", instance=inst)
+    svc.start()
+    for _ in range(4):
+        (cmd,) = agent.on_state(encode(svc.state))
+        svc.handle_command(encode(cmd.msg))
+    assert agent.decide.rebuilds == 1
+    state = json.loads(encode(svc.state))
+    (cmd,) = agent.on_state(json.dumps(state))
+    assert agent.decide.rebuilds == 1
+    # a history that cannot lead to this state: an internal error, then the first enabled action
+    bad = dict(state, seq=state["seq"] + 1, history={"actions": "", "orders": []})
+    err, cmd = agent.on_state(json.dumps(bad))
+    assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "internal"
+    assert "the twin of the shop disagrees with the state" in err.msg["message"]
+    assert cmd.topic == m.TOPIC_COMMAND and cmd.msg["action"] == legal_labels(bad)[0]
+    # the next good state rebuilds the twin and decides with the policy again
+    good = dict(state, seq=state["seq"] + 2)
+    (cmd,) = agent.on_state(json.dumps(good))
+    assert cmd.topic == m.TOPIC_COMMAND and agent.decide.rebuilds == 3
+
+
+def test_unknown_ppo_model_and_oversized_instance() -> None:
+    with pytest.raises(UnavailableSolver, match="solver 'ppo:nope': no model named 'nope'"):
+        AgentLogic("ppo:nope", instance=builtin("EX12"))
+    with pytest.raises(UnavailableSolver, match="is larger than model bu allows"):
+        AgentLogic("ppo:bu", instance=builtin("sl00"))

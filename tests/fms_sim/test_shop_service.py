@@ -372,3 +372,61 @@ def test_nodes_without_rclpy_fail_clearly(module: str, prog: str) -> None:
     assert res.returncode == 2, res.stderr
     assert res.stderr.startswith(f"{prog}: error: ROS 2 (rclpy) is not available")
     assert "pip install 'fms[ros]'" in res.stderr and "Traceback" not in res.stderr
+
+
+# ------------------------------------------------------------------------------------------------ history
+def test_history_is_off_by_default() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r")
+    svc.start()
+    svc.handle_command(command(svc))
+    assert "history" not in svc.state
+
+
+def test_history_lists_applied_actions_and_orders_and_replays_to_the_same_state() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="r", history=True)
+    assert state_of(svc.start())["history"] == {"actions": "", "orders": []}
+    labels = []
+    for _ in range(3):
+        labels.append(first_label(svc.state))
+        svc.handle_command(command(svc, labels[-1]))
+    assert svc.state["history"] == {"actions": " ".join(labels), "orders": []}
+    svc.handle_order(order("o-1", [[(1, None, 3), (4, None, 2)]]))
+    for _ in range(2):
+        labels.append(first_label(svc.state))
+        svc.handle_command(command(svc, labels[-1]))
+    hist = decode(encode(svc.state))["history"]
+    assert hist["actions"] == " ".join(labels) == "job:0 agv:0 job:1 agv:1 job:2"
+    assert hist["orders"] == [{"at": 3, "jobs": [[{"machine": 1, "tool": None, "duration": 3},
+                                                  {"machine": 4, "tool": None, "duration": 2}]]}]
+    # replaying the history on a fresh shop reaches the same state
+    twin = Shop(inst)
+    for i, label in enumerate(hist["actions"].split(" ")):
+        if i == 3:
+            twin.add_jobs([[Operation(1, None, 3), Operation(4, None, 2)]])
+        twin.act(twin.action_index(label))
+    assert (twin.now, twin.action_labels(), twin.action_mask(), twin.net.marking()) == (
+        svc.shop.now, svc.state["actions"], svc.state["mask"], svc.state["marking"])
+    run_to_end(svc)
+    assert svc.state["done"] and "history" not in svc.state
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+def test_history_schema_is_strict() -> None:
+    svc = ShopService(builtin("EX12"), run_id="r", history=True)
+    svc.start()
+    svc.handle_command(command(svc))
+    state = json.loads(encode(svc.state))
+    for hist, needle in (
+        ({"actions": "job:0  agv:5", "orders": []}, "must separate action labels by single spaces"),
+        ({"actions": "job:0 ", "orders": []}, "must separate action labels by single spaces"),
+        ({"actions": "job:0", "orders": [{"at": 2, "jobs": [[{"machine": 1, "duration": 1}]]}]},
+         "'history.orders[0].at' is 2 but must be between 0"),
+        ({"actions": "job:0", "orders": [{"at": 0, "jobs": []}]}, "history.orders[0].jobs"),
+        ({"actions": ["job:0"], "orders": []}, "history.actions"),
+        ({"actions": ""}, "missing required field 'history.orders'"),
+    ):
+        with pytest.raises(MessageError) as info:
+            decode(json.dumps(dict(state, history=hist)))
+        assert needle in str(info.value), (hist, str(info.value))
+    decode(json.dumps(dict(state, history=None)))           # optional: null is fine

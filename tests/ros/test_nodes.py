@@ -79,15 +79,16 @@ def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) ->
                          env=ros_env, capture_output=True, text=True, timeout=120)
     wall = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr + res.stdout
-    assert "best rule pair on EX12: rule:LPTN+nearest (makespan 86" in res.stderr
+    # the shipped PPO model (84) beats the best rule pair (86) in simulation, so best runs it over the topics
+    assert "best on EX12: ppo:bu (makespan 84 in simulation; best rule pair rule:LPTN+nearest: 86)" in res.stderr
     lines = res.stdout.splitlines()
-    assert lines[0].startswith("EX12: makespan 86 (rule:LPTN+nearest over ROS 2 topics, 26 decisions, valid)")
+    assert lines[0].startswith("EX12: makespan 84 (ppo:bu over ROS 2 topics, 26 decisions, valid)")
     png = gantt_path(db.parent, "up-ex12")
     assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex12)", f"gantt:    {png}"]
     sched = Schedule.load(out)
     inst = builtin("EX12")
-    assert validate(inst, sched) == [] and sched.makespan == 86
-    assert sched.meta["solver"] == "rule:LPTN+nearest" and sched.meta["decisions"] == 26
+    assert validate(inst, sched) == [] and sched.makespan == 84
+    assert sched.meta["solver"] == "ppo:bu" and sched.meta["decisions"] == 26
     check_log(db, "up-ex12", sched, inst)
     assert png.read_bytes()[:4] == b"\x89PNG"
     for name in ("shop", "agent", "recorder"):                  # stopped cleanly, no tracebacks
@@ -95,8 +96,29 @@ def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) ->
     print(f"fms up EX12: {wall:.2f} s wall")
 
 
+def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    out, db = tmp_path / "ra01.json", tmp_path / "fms.sqlite"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--out", str(out),
+                          "--db", str(db), "--run-id", "up-ppo", "--domain-id", ros_env["ROS_DOMAIN_ID"],
+                          "--log-dir", str(tmp_path / "logs")],
+                         env=ros_env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr + res.stdout
+    inst = builtin("ra01")
+    ref = ppo_solver("ppo")(inst)
+    sched = Schedule.load(out)
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:large"
+    assert sched.to_dict()["operations"] == ref.to_dict()["operations"] and sched.makespan == ref.makespan
+    assert res.stdout.startswith(f"ra01: makespan {ref.makespan} (ppo:large over ROS 2 topics")
+    check_log(db, "up-ppo", sched, inst)
+    for name in ("shop", "agent"):
+        assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
+
+
 def test_fms_up_bad_input_exits_2(ros_env: dict[str, str], tmp_path: Path) -> None:
-    for args, needle in ((["EX12", "--solver", "ppo"], "solver 'ppo' is not available"),
+    for args, needle in ((["EX12", "--solver", "lookahead"], "solver 'lookahead' is not available"),
+                         (["EX12", "--solver", "ppo:nope"], "no model named 'nope'"),
                          (["NOPE"], "no built-in instance or file named 'NOPE'")):
         res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", *args, "--db", str(tmp_path / "x.sqlite")],
                              env=ros_env, capture_output=True, text=True, timeout=60)
@@ -183,6 +205,23 @@ def test_agent_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_pa
     assert sched.meta["decisions"] == observer.latest_state()["seq"]
     wait_file(gantt_path(tmp_path, "agent-crash"), RUN_S, nodes)
     check_log(db, "agent-crash", sched, inst)
+
+
+def test_ppo_agent_killed_and_restarted_replays_the_history(nodes: NodeProcs, observer: Observer) -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    nodes.start("shop", SHOP, instance="EX12", run_id="ppo-crash", history=True)
+    shop_seen(observer, "ppo-crash")
+    first = nodes.start("agent1", AGENT, solver="ppo", instance="EX12", delay_s=0.1)
+    observer.wait_for(lambda g: any(s["seq"] >= 8 for s in g["state"]), STARTUP_S + RUN_S, "state 8")
+    nodes.kill(first)
+    time.sleep(0.3)
+    nodes.start("agent2", AGENT, solver="ppo", instance="EX12")  # a fresh twin from the latched history
+    sched = schedule_of(observer, "ppo-crash")
+    inst = builtin("EX12")
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:bu"
+    assert sched.makespan == ppo_solver("ppo")(inst).makespan == 84
+    assert not [e for e in observer.snapshot("error") if e.get("run_id") == "ppo-crash" and e["code"] == "internal"]
 
 
 def test_recorder_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
