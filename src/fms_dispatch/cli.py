@@ -22,7 +22,8 @@ class CliError(Exception):
     """A user error: printed as one line, exit code 2."""
 
 
-def _add_instance_args(p: argparse.ArgumentParser) -> None:
+def add_instance_args(p: argparse.ArgumentParser) -> None:
+    """The instance argument and its overrides, shared by every subcommand that loads an instance."""
     p.add_argument("instance", help="built-in name (see `fms instances`) or an instance file (JSON, OR-Library, Taillard)")
     p.add_argument("--layout", type=int, help="layout 1-4 for the ra instances (default 2)")
     p.add_argument("--agvs", type=int, metavar="N", help="override the number of AGVs")
@@ -127,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_instances)
 
     s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
-    _add_instance_args(s)
+    add_instance_args(s)
     s.add_argument("--solver", default="first",
                    help="first | random | rule:<JOB>+<first|least-work|nearest> | sos | cpsat | ppo[:MODEL] "
                         "(default: first)")
@@ -140,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_solve)
 
     s = sub.add_parser("validate", help="check a schedule file against an instance (exit 1 if infeasible)")
-    _add_instance_args(s)
+    add_instance_args(s)
     s.add_argument("schedule", help="schedule JSON file")
     s.set_defaults(fn=cmd_validate)
 

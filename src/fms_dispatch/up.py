@@ -63,12 +63,9 @@ def add_up_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("instance", help="built-in name (see `fms instances`) or an instance file")
-    p.add_argument("--layout", type=int, help="layout 1-4 for the ra instances (default 2)")
-    p.add_argument("--agvs", type=int, metavar="N", help="override the number of AGVs")
-    p.add_argument("--tool-transporters", type=int, metavar="N", help="override the number of tool transporters")
-    p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
-    p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly)")
+    from .cli import add_instance_args  # late: cli imports this module when it builds its parser
+
+    add_instance_args(p)
     p.add_argument("--solver", default="first",
                    help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
                         "best (the shipped PPO model if it beats the best rule pair in simulation, else that "
