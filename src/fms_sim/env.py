@@ -13,7 +13,9 @@ Gymnasium requires) it ends the episode with ``invalid_penalty`` and ``info["inv
 
 Observation (float32, fixed size, zero-padded): global features, then one row per job, machine, tool, AGV and
 transporter slot (see :data:`JOB_FEATURES` etc.). Times are divided by a per-instance scale (total work / number
-of machines, a makespan lower bound), so instances of different sizes look alike.
+of machines, a makespan lower bound), so instances of different sizes look alike. Features and the lower bound
+are computed with numpy from per-instance tables (suffix sums per job, remaining load per machine), rebuilt
+only when the instance changes (live orders), so a 100x20 instance does not re-sum every job at every step.
 
 Rewards (``reward=``):
 
@@ -49,6 +51,33 @@ MACHINE_FEATURES = ("present", "busy", "busy_for", "buffer", "queued_work")
 TOOL_FEATURES = ("present", "location", "free")
 AGV_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_pickup")
 TT_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_tool")
+
+
+class _Tables:
+    """Per-instance constant arrays: operation machines/durations/tools and suffix sums per job."""
+
+    def __init__(self, inst: Instance):
+        n = inst.n_jobs
+        L = max(len(ops) for ops in inst.jobs)
+        m = inst.n_machines
+        self.instance = inst
+        self.n = n
+        self.nops = np.array([len(ops) for ops in inst.jobs], dtype=np.int64)
+        self.mach = np.zeros((n, L + 1), dtype=np.int64)
+        self.dur = np.zeros((n, L + 1), dtype=np.int64)
+        self.tool = np.zeros((n, L + 1), dtype=np.int64)
+        self.suffix = np.zeros((n, L + 1), dtype=np.int64)            # remaining work from op k on
+        self.load_suffix = np.zeros((n, L + 1, m + 1), dtype=np.int64)  # remaining work per machine from op k on
+        for j, ops in enumerate(inst.jobs):
+            for k, op in enumerate(ops):
+                self.mach[j, k] = op.machine
+                self.dur[j, k] = op.duration
+                self.tool[j, k] = op.tool or 0
+            for k in range(len(ops) - 1, -1, -1):
+                self.suffix[j, k] = self.suffix[j, k + 1] + ops[k].duration
+                self.load_suffix[j, k] = self.load_suffix[j, k + 1]
+                self.load_suffix[j, k, ops[k].machine] += ops[k].duration
+        self.rows = np.arange(n)
 
 
 class ShopEnv(gym.Env):
@@ -98,6 +127,8 @@ class ShopEnv(gym.Env):
         self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
         self.shop: Shop | None = None
         self.instance: Instance | None = None
+        self._tables: _Tables | None = None
+        self._tables_for: Instance | None = None
 
     def _check_fits(self, inst: Instance) -> None:
         limits = [("jobs", inst.n_jobs, self.max_jobs), ("machines", inst.n_machines, self.max_machines),
@@ -185,76 +216,99 @@ class ShopEnv(gym.Env):
         return info
 
     # ------------------------------------------------------------------ features
+    def _t(self) -> _Tables:
+        inst = self.shop.instance
+        if self._tables_for is not inst:
+            tb = self._tables
+            if tb is None or (tb.instance is not inst and tb.instance.jobs != inst.jobs):
+                tb = _Tables(inst)
+            self._tables, self._tables_for = tb, inst
+        return self._tables
+
     def _lower_bound(self) -> int:
         s, inst = self.shop, self.instance
+        tb = self._t()
         now = s.now
         lb = max(now, s.makespan)
-        machine_load = [0] * (inst.n_machines + 1)
-        for j, ops in enumerate(inst.jobs):
-            k = s.next_op(j)
-            rem = 0
-            for op in ops[k:]:
-                machine_load[op.machine] += op.duration
-                rem += op.duration
-            if rem:
-                lb = max(lb, now + rem)
-        for m in range(1, inst.n_machines + 1):
-            lb = max(lb, max(now, s.machine_busy_until[m]) + machine_load[m])
+        k = np.asarray(s.job_started_ops, dtype=np.int64)
+        rem = tb.suffix[tb.rows, k]
+        if rem.size and rem.max() > 0:
+            lb = max(lb, now + int(rem.max()))
+        load = tb.load_suffix[tb.rows, k].sum(axis=0)
+        busy = np.maximum(np.asarray(s.machine_busy_until, dtype=np.int64), now)
+        lb = max(lb, int((busy[1:] + load[1:]).max()))
         return lb
 
     def _obs(self) -> np.ndarray:
         s, inst = self.shop, self.instance
+        tb = self._t()
         sc = self._scale
         now = s.now
-        jobs_ops = inst.jobs
-        g = np.zeros(len(GLOBAL_FEATURES), dtype=np.float32)
-        kinds = s.decision_kind() or ""
-        g[:] = (now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds, "tt" in kinds,
-                inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines)
-        legal = set(s.legal_actions())
-        req = s.awaiting_agv()
+        n = tb.n
         mm = self.max_machines
-        J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float32)
-        for j, ops in enumerate(jobs_ops):
-            k = s.next_op(j)
-            loc = s.part_location(j)
-            row = J[j]
-            row[0] = 1.0
-            row[1] = j in legal
-            row[2] = loc is not None
-            if k < len(ops):
-                op = ops[k]
-                row[3] = op.machine / mm
-                row[4] = op.duration / sc
-                row[9] = (op.tool or 0) / max(1, self.max_tools)
-            row[5] = sum(o.duration for o in ops[k:]) / sc
-            row[6] = (len(ops) - k) / max(1, len(ops))
-            row[7] = (loc if loc is not None else -1) / mm
-            row[8] = (now - s.job_ready_since[j]) / sc if loc is not None else 0.0
-            row[10] = req is not None and req[0] == j
-        M = np.zeros((mm, len(MACHINE_FEATURES)), dtype=np.float32)
-        buffers = s.p_buffer
-        for m in range(1, inst.n_machines + 1):
-            row = M[m - 1]
-            row[0] = 1.0
-            until = s.machine_busy_until[m]
-            row[1] = until > now
-            row[2] = max(0, until - now) / sc
-            q = buffers.tokens(m)
-            row[3] = len(q) / inst.n_jobs
-            row[4] = sum(jobs_ops[c.colour[0]][c.colour[1]].duration for c in q) / sc
-        T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float32)
+        legal = s.legal_actions()
+        kinds = s.decision_kind() or ""
+        g = np.array((now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds,
+                      "tt" in kinds, inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines),
+                     dtype=np.float32)
+        req = s.awaiting_agv()
+
+        k = np.asarray(s.job_started_ops, dtype=np.int64)
+        loc = np.full(n, -1, dtype=np.int64)
+        for tok in s.p_parts.tokens():
+            c = tok.colour
+            loc[c[0]] = c[2]
+        present = loc >= 0
+        has_next = k < tb.nops
+        kk = np.minimum(k, tb.nops)  # tables are padded with zeros past the last operation
+        J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float64)
+        Jn = J[:n]
+        Jn[:, 0] = 1.0
+        legal_jobs = [a for a in legal if a < n]
+        Jn[legal_jobs, 1] = 1.0
+        Jn[:, 2] = present
+        Jn[:, 3] = np.where(has_next, tb.mach[tb.rows, kk] / mm, 0.0)
+        Jn[:, 4] = np.where(has_next, tb.dur[tb.rows, kk] / sc, 0.0)
+        Jn[:, 9] = np.where(has_next, tb.tool[tb.rows, kk] / max(1, self.max_tools), 0.0)
+        Jn[:, 5] = tb.suffix[tb.rows, kk] / sc
+        Jn[:, 6] = (tb.nops - k) / np.maximum(1, tb.nops)
+        Jn[:, 7] = loc / mm
+        ready = np.asarray(s.job_ready_since, dtype=np.int64)
+        Jn[:, 8] = np.where(present, (now - ready) / sc, 0.0)
+        if req is not None:
+            Jn[req[0], 10] = 1.0
+
+        M = np.zeros((mm, len(MACHINE_FEATURES)), dtype=np.float64)
+        nm = inst.n_machines
+        until = np.asarray(s.machine_busy_until[1:nm + 1], dtype=np.int64)
+        Mn = M[:nm]
+        Mn[:, 0] = 1.0
+        Mn[:, 1] = until > now
+        Mn[:, 2] = np.maximum(0, until - now) / sc
+        count = np.zeros(nm + 1, dtype=np.int64)
+        work = np.zeros(nm + 1, dtype=np.int64)
+        for tok in s.p_buffer.tokens():
+            j, kop, m, _ = tok.colour
+            count[m] += 1
+            work[m] += tb.dur[j, kop]
+        Mn[:, 3] = count[1:] / inst.n_jobs
+        Mn[:, 4] = work[1:] / sc
+
+        T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float64)
         if inst.has_tools:
-            free = {c.colour[0] for c in s.p_tool_free.tokens()}
-            for t in range(1, inst.n_tools + 1):
-                T[t - 1] = (1.0, s.tool_loc[t] / mm, t in free)
+            nt = inst.n_tools
+            T[:nt, 0] = 1.0
+            T[:nt, 1] = np.asarray(s.tool_loc[1:nt + 1], dtype=np.float64) / mm
+            for tok in s.p_tool_free.tokens():
+                T[tok.colour[0] - 1, 2] = 1.0
         A = self._vehicles(self.max_agvs, s.n_agvs, s.agv_loc, s.agv_free_at, s.agv_work,
                            {c[0] for c in s.idle_agvs()}, inst.agv_travel, req[2] if req else None, now, sc, mm)
         treq = s.awaiting_transporter()
         R = self._vehicles(self.max_tts, s.n_tts, s.tt_loc, s.tt_free_at, s.tt_work,
                            {c[0] for c in s.idle_transporters()}, inst.tool_travel, treq[1] if treq else None,
                            now, sc, mm)
-        obs = np.concatenate([g, J.ravel(), M.ravel(), T.ravel(), A.ravel(), R.ravel()])
+        obs = np.concatenate([g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(),
+                              T.astype(np.float32).ravel(), A.ravel(), R.ravel()])
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
 
     @staticmethod

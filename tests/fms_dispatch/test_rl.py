@@ -12,34 +12,14 @@ import pytest
 pytest.importorskip("sb3_contrib")
 
 from fms_dispatch.rl import add_train_parser, ppo_solver  # noqa: E402
-from fms_dispatch.rl.envs import PADDING, FastShopEnv, padding_for  # noqa: E402
+from fms_dispatch.rl.envs import padding_for  # noqa: E402
 from fms_dispatch.rl.models import SHIPPED, default_model_name, models_dir, resolve_model  # noqa: E402
 from fms_dispatch.rl.train import expand_instances, train  # noqa: E402
 from fms_sim.benchmarks import builtin  # noqa: E402
-from fms_sim.env import ShopEnv  # noqa: E402
 from fms_sim.validate import validate  # noqa: E402
 
 TINY = {"n_envs": 1, "vec_env": "dummy", "eval_freq": 128, "save_freq": 128, "hidden": 16,
         "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 1}}
-
-
-@pytest.mark.parametrize("name,pad", [("EX12", {}), ("ra01", {}), ("ra01", PADDING["large"])])
-def test_fast_env_matches_shop_env(name, pad):
-    inst = builtin(name)
-    a, b = ShopEnv(inst, **pad), FastShopEnv(inst, **pad)
-    oa, _ = a.reset(seed=3)
-    ob, _ = b.reset(seed=3)
-    assert np.array_equal(oa, ob)
-    rng = np.random.default_rng(0)
-    done = False
-    steps = 0
-    while not done:
-        act = int(rng.choice(np.flatnonzero(a.action_masks())))
-        oa, ra, done, _, _ = a.step(act)
-        ob, rb, done_b, _, _ = b.step(act)
-        assert np.array_equal(oa, ob) and ra == rb and done == done_b
-        steps += 1
-    assert steps > 10
 
 
 def test_padding_profiles():

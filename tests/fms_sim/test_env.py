@@ -113,3 +113,114 @@ def test_reset_seed_reproducible_instance_draw():
     names = [env.reset(seed=s)[1] and env.instance.name for s in range(5)]
     again = [env.reset(seed=s)[1] and env.instance.name for s in range(5)]
     assert names == again
+
+
+# ---------------------------------------------------------------------------------------------------------
+# A slow, obviously-correct reference for the table-driven features: per job and machine, straight from the
+# instance and the shop. The env's numpy version must give the same values bit for bit.
+from fms_sim.env import (AGV_FEATURES, GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH,  # noqa: E402
+                         TOOL_FEATURES)
+
+
+def reference_lower_bound(self) -> int:
+    s, inst = self.shop, self.instance
+    now = s.now
+    lb = max(now, s.makespan)
+    machine_load = [0] * (inst.n_machines + 1)
+    for j, ops in enumerate(inst.jobs):
+        k = s.next_op(j)
+        rem = 0
+        for op in ops[k:]:
+            machine_load[op.machine] += op.duration
+            rem += op.duration
+        if rem:
+            lb = max(lb, now + rem)
+    for m in range(1, inst.n_machines + 1):
+        lb = max(lb, max(now, s.machine_busy_until[m]) + machine_load[m])
+    return lb
+
+def reference_obs(self) -> np.ndarray:
+    s, inst = self.shop, self.instance
+    sc = self._scale
+    now = s.now
+    jobs_ops = inst.jobs
+    g = np.zeros(len(GLOBAL_FEATURES), dtype=np.float32)
+    kinds = s.decision_kind() or ""
+    g[:] = (now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds, "tt" in kinds,
+            inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines)
+    legal = set(s.legal_actions())
+    req = s.awaiting_agv()
+    mm = self.max_machines
+    J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float32)
+    for j, ops in enumerate(jobs_ops):
+        k = s.next_op(j)
+        loc = s.part_location(j)
+        row = J[j]
+        row[0] = 1.0
+        row[1] = j in legal
+        row[2] = loc is not None
+        if k < len(ops):
+            op = ops[k]
+            row[3] = op.machine / mm
+            row[4] = op.duration / sc
+            row[9] = (op.tool or 0) / max(1, self.max_tools)
+        row[5] = sum(o.duration for o in ops[k:]) / sc
+        row[6] = (len(ops) - k) / max(1, len(ops))
+        row[7] = (loc if loc is not None else -1) / mm
+        row[8] = (now - s.job_ready_since[j]) / sc if loc is not None else 0.0
+        row[10] = req is not None and req[0] == j
+    M = np.zeros((mm, len(MACHINE_FEATURES)), dtype=np.float32)
+    buffers = s.p_buffer
+    for m in range(1, inst.n_machines + 1):
+        row = M[m - 1]
+        row[0] = 1.0
+        until = s.machine_busy_until[m]
+        row[1] = until > now
+        row[2] = max(0, until - now) / sc
+        q = buffers.tokens(m)
+        row[3] = len(q) / inst.n_jobs
+        row[4] = sum(jobs_ops[c.colour[0]][c.colour[1]].duration for c in q) / sc
+    T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float32)
+    if inst.has_tools:
+        free = {c.colour[0] for c in s.p_tool_free.tokens()}
+        for t in range(1, inst.n_tools + 1):
+            T[t - 1] = (1.0, s.tool_loc[t] / mm, t in free)
+    A = self._vehicles(self.max_agvs, s.n_agvs, s.agv_loc, s.agv_free_at, s.agv_work,
+                       {c[0] for c in s.idle_agvs()}, inst.agv_travel, req[2] if req else None, now, sc, mm)
+    treq = s.awaiting_transporter()
+    R = self._vehicles(self.max_tts, s.n_tts, s.tt_loc, s.tt_free_at, s.tt_work,
+                       {c[0] for c in s.idle_transporters()}, inst.tool_travel, treq[1] if treq else None,
+                       now, sc, mm)
+    obs = np.concatenate([g, J.ravel(), M.ravel(), T.ravel(), A.ravel(), R.ravel()])
+    return np.clip(obs, -1.0, OBS_HIGH, out=obs)
+
+
+@pytest.mark.parametrize("name, pad", [("EX12", {}), ("ra01", {}),
+                                       ("ra01", dict(max_jobs=100, max_machines=20, max_tools=20, max_agvs=10,
+                                                     max_tts=5))])
+def test_table_features_match_the_reference(name, pad):
+    inst = builtin(name)
+    env = ShopEnv(inst, **pad)
+    obs, _ = env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    steps, done = 0, False
+    while not done:
+        assert np.array_equal(obs, reference_obs(env))
+        assert env._lower_bound() == reference_lower_bound(env)
+        obs, _, done, _, _ = env.step(int(rng.choice(np.flatnonzero(env.action_masks()))))
+        steps += 1
+    assert steps > 10
+
+
+def test_table_features_follow_live_orders():
+    from fms_sim import Operation
+
+    env = ShopEnv(builtin("ra01"), max_jobs=8)
+    env.reset(seed=0)
+    for _ in range(6):
+        env.step(int(np.flatnonzero(env.action_masks())[0]))
+    env.shop.add_jobs([[Operation(2, 1, 5), Operation(4, 3, 7)]])
+    env._total_ops = env.shop.instance.n_operations
+    env.instance = env.shop.instance
+    assert np.array_equal(env._obs(), reference_obs(env))
+    assert env._lower_bound() == reference_lower_bound(env)

@@ -1,12 +1,8 @@
 """The RL environment as the agent sees it: :class:`FastShopEnv` and the padding profiles.
 
-:class:`FastShopEnv` is :class:`fms_sim.env.ShopEnv` with the observation and the shaped reward's lower bound
-computed from per-instance tables (suffix sums per job, remaining load per machine) with numpy instead of
-re-summing every job's operations at every decision. The values are the same as the base class's (a test
-compares them bit for bit); what changes is the cost: a 100x20 instance no longer spends most of its time
-in feature sums, which keeps training and inference on the large benchmark (sl70 in a few seconds) feasible
-on two cores. It also offers :meth:`FastShopEnv.attach`, so that inference and lookahead can observe any live
-:class:`~fms_sim.shop.Shop` without stepping through the Gymnasium API.
+:class:`FastShopEnv` is :class:`fms_sim.env.ShopEnv` (whose features are table-driven, fast enough for sl70
+in a few seconds) plus :meth:`FastShopEnv.attach`, so that inference and lookahead can observe any live
+:class:`~fms_sim.shop.Shop` without stepping through the Gymnasium API and share instance tables with twins.
 
 Padding profiles (``PADDING``) name the maximum layouts of the shipped models: ``"large"`` (100 jobs x 20
 machines x 20 tools, 10 AGVs, 5 transporters: every large-benchmark instance) and ``"bu"`` (8 jobs x 4 machines,
@@ -15,12 +11,11 @@ machines x 20 tools, 10 AGVs, 5 transporters: every large-benchmark instance) an
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from fms_sim.env import (AGV_FEATURES, GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH, TOOL_FEATURES,
-                         ShopEnv)
+from fms_sim.env import AGV_FEATURES, GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, TOOL_FEATURES, ShopEnv
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
@@ -58,40 +53,8 @@ def obs_layout(padding: dict[str, int]) -> dict[str, int]:
                 tts=padding["max_tts"], tt_f=len(AGV_FEATURES))
 
 
-class _Tables:
-    """Per-instance constant arrays: operation machines/durations/tools and suffix sums per job."""
-
-    def __init__(self, inst: Instance):
-        n = inst.n_jobs
-        L = max(len(ops) for ops in inst.jobs)
-        m = inst.n_machines
-        self.instance = inst
-        self.n = n
-        self.nops = np.array([len(ops) for ops in inst.jobs], dtype=np.int64)
-        self.mach = np.zeros((n, L + 1), dtype=np.int64)
-        self.dur = np.zeros((n, L + 1), dtype=np.int64)
-        self.tool = np.zeros((n, L + 1), dtype=np.int64)
-        self.suffix = np.zeros((n, L + 1), dtype=np.int64)            # remaining work from op k on
-        self.load_suffix = np.zeros((n, L + 1, m + 1), dtype=np.int64)  # remaining work per machine from op k on
-        for j, ops in enumerate(inst.jobs):
-            for k, op in enumerate(ops):
-                self.mach[j, k] = op.machine
-                self.dur[j, k] = op.duration
-                self.tool[j, k] = op.tool or 0
-            for k in range(len(ops) - 1, -1, -1):
-                self.suffix[j, k] = self.suffix[j, k + 1] + ops[k].duration
-                self.load_suffix[j, k] = self.load_suffix[j, k + 1]
-                self.load_suffix[j, k, ops[k].machine] += ops[k].duration
-        self.rows = np.arange(n)
-
-
 class FastShopEnv(ShopEnv):
-    """:class:`ShopEnv` with table-driven features (same values, less time); see the module docstring."""
-
-    def __init__(self, *args: Any, **kwargs: Any):
-        super().__init__(*args, **kwargs)
-        self._tables: _Tables | None = None
-        self._tables_for: Instance | None = None
+    """:class:`ShopEnv` that can observe a live shop; see the module docstring."""
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:
@@ -119,99 +82,3 @@ class FastShopEnv(ShopEnv):
         """Reuse ``other``'s instance tables (a twin's shop has an equal copy of the instance)."""
         if other._tables is not None:
             self._tables, self._tables_for = other._tables, None
-
-    def _t(self) -> _Tables:
-        inst = self.shop.instance
-        if self._tables_for is not inst:
-            tb = self._tables
-            if tb is None or (tb.instance is not inst and tb.instance.jobs != inst.jobs):
-                tb = _Tables(inst)
-            self._tables, self._tables_for = tb, inst
-        return self._tables
-
-    # ------------------------------------------------------------------ features (same values as ShopEnv)
-    def _lower_bound(self) -> int:
-        s, inst = self.shop, self.instance
-        tb = self._t()
-        now = s.now
-        lb = max(now, s.makespan)
-        k = np.asarray(s.job_started_ops, dtype=np.int64)
-        rem = tb.suffix[tb.rows, k]
-        if rem.size and rem.max() > 0:
-            lb = max(lb, now + int(rem.max()))
-        load = tb.load_suffix[tb.rows, k].sum(axis=0)
-        busy = np.maximum(np.asarray(s.machine_busy_until, dtype=np.int64), now)
-        lb = max(lb, int((busy[1:] + load[1:]).max()))
-        return lb
-
-    def _obs(self) -> np.ndarray:
-        s, inst = self.shop, self.instance
-        tb = self._t()
-        sc = self._scale
-        now = s.now
-        n = tb.n
-        mm = self.max_machines
-        legal = s.legal_actions()
-        kinds = s.decision_kind() or ""
-        g = np.array((now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds,
-                      "tt" in kinds, inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines),
-                     dtype=np.float32)
-        req = s.awaiting_agv()
-
-        k = np.asarray(s.job_started_ops, dtype=np.int64)
-        loc = np.full(n, -1, dtype=np.int64)
-        for tok in s.p_parts.tokens():
-            c = tok.colour
-            loc[c[0]] = c[2]
-        present = loc >= 0
-        has_next = k < tb.nops
-        kk = np.minimum(k, tb.nops)  # tables are padded with zeros past the last operation
-        J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float64)
-        Jn = J[:n]
-        Jn[:, 0] = 1.0
-        legal_jobs = [a for a in legal if a < n]
-        Jn[legal_jobs, 1] = 1.0
-        Jn[:, 2] = present
-        Jn[:, 3] = np.where(has_next, tb.mach[tb.rows, kk] / mm, 0.0)
-        Jn[:, 4] = np.where(has_next, tb.dur[tb.rows, kk] / sc, 0.0)
-        Jn[:, 9] = np.where(has_next, tb.tool[tb.rows, kk] / max(1, self.max_tools), 0.0)
-        Jn[:, 5] = tb.suffix[tb.rows, kk] / sc
-        Jn[:, 6] = (tb.nops - k) / np.maximum(1, tb.nops)
-        Jn[:, 7] = loc / mm
-        ready = np.asarray(s.job_ready_since, dtype=np.int64)
-        Jn[:, 8] = np.where(present, (now - ready) / sc, 0.0)
-        if req is not None:
-            Jn[req[0], 10] = 1.0
-
-        M = np.zeros((mm, len(MACHINE_FEATURES)), dtype=np.float64)
-        nm = inst.n_machines
-        until = np.asarray(s.machine_busy_until[1:nm + 1], dtype=np.int64)
-        Mn = M[:nm]
-        Mn[:, 0] = 1.0
-        Mn[:, 1] = until > now
-        Mn[:, 2] = np.maximum(0, until - now) / sc
-        count = np.zeros(nm + 1, dtype=np.int64)
-        work = np.zeros(nm + 1, dtype=np.int64)
-        for tok in s.p_buffer.tokens():
-            j, kop, m, _ = tok.colour
-            count[m] += 1
-            work[m] += tb.dur[j, kop]
-        Mn[:, 3] = count[1:] / inst.n_jobs
-        Mn[:, 4] = work[1:] / sc
-
-        T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float64)
-        if inst.has_tools:
-            nt = inst.n_tools
-            T[:nt, 0] = 1.0
-            T[:nt, 1] = np.asarray(s.tool_loc[1:nt + 1], dtype=np.float64) / mm
-            for tok in s.p_tool_free.tokens():
-                T[tok.colour[0] - 1, 2] = 1.0
-        A = self._vehicles(self.max_agvs, s.n_agvs, s.agv_loc, s.agv_free_at, s.agv_work,
-                           {c[0] for c in s.idle_agvs()}, inst.agv_travel, req[2] if req else None, now, sc, mm)
-        treq = s.awaiting_transporter()
-        R = self._vehicles(self.max_tts, s.n_tts, s.tt_loc, s.tt_free_at, s.tt_work,
-                           {c[0] for c in s.idle_transporters()}, inst.tool_travel, treq[1] if treq else None,
-                           now, sc, mm)
-        obs = np.concatenate([g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(),
-                              T.astype(np.float32).ravel(), A.ravel(), R.ravel()])
-        return np.clip(obs, -1.0, OBS_HIGH, out=obs)
