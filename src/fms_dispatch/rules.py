@@ -28,7 +28,7 @@ from typing import Callable
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
-from fms_sim.shop import Shop
+from fms_sim.shop import Shop, run_policy
 
 __all__ = ["JOB_RULES", "VEHICLE_RULES", "RulePolicy", "solve_rule", "parse_rule_name", "all_rule_pairs"]
 
@@ -118,10 +118,7 @@ def parse_rule_name(name: str) -> RulePolicy:
 def solve_rule(instance: Instance, job_rule: str = "FIFO", vehicle_rule: str = "first") -> Schedule:
     """Run the shop net with one rule pair to completion."""
     policy = RulePolicy(job_rule, vehicle_rule)
-    shop = Shop(instance)
-    while not shop.done:
-        shop.act(policy(shop))
-    s = shop.schedule()
+    s = run_policy(instance, policy)
     s.meta["solver"] = policy.name
     return s
 

@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
-from fms_sim.shop import Shop
+from fms_sim.shop import run_policy
 
 from .rules import parse_rule_name
 
@@ -28,20 +28,13 @@ class UnknownSolver(ValueError):
     pass
 
 
-def _run(instance: Instance, choose: Callable[[Shop], int]) -> Schedule:
-    shop = Shop(instance)
-    while not shop.done:
-        shop.act(choose(shop))
-    return shop.schedule()
-
-
 def _first(instance: Instance, **_: Any) -> Schedule:
-    return _run(instance, lambda shop: shop.legal_actions()[0])
+    return run_policy(instance, lambda shop: shop.legal_actions()[0])
 
 
 def _random(instance: Instance, seed: int = 0, **_: Any) -> Schedule:
     rng = random.Random(seed)
-    return _run(instance, lambda shop: rng.choice(shop.legal_actions()))
+    return run_policy(instance, lambda shop: rng.choice(shop.legal_actions()))
 
 
 def _sos(instance: Instance, **kw: Any) -> Schedule:
@@ -79,7 +72,7 @@ def get_solver(name: str) -> Solver:
             policy = parse_rule_name(name)
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
-        return lambda inst, **_: _run(inst, policy)
+        return lambda inst, **_: run_policy(inst, policy)
     if low == "sos":
         return _sos
     if low == "cpsat":

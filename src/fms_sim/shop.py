@@ -163,7 +163,6 @@ class Shop:
     def _agv_block(self) -> tuple[list[Arc], list[Output]]:
         net, inst = self.net, self.instance
         T = inst.agv_travel
-        self._jobs = inst.jobs
         self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
         self.p_awaiting_agv = net.add_place("awaiting_agv")
         self.p_agv_empty = net.add_place("agv_empty_trip", key=lambda c: c[0])
@@ -303,7 +302,6 @@ class Shop:
     def _tools_block(self) -> tuple[list[Arc], list[Output]]:
         net, inst = self.net, self.instance
         TT = inst.tool_travel
-        jobs = inst.jobs
         self.p_tool_requests = net.add_place("tool_requests", key=lambda c: c[0])
         self.p_tool_free = net.add_place("tool_free", key=lambda c: c[0])
         self.p_awaiting_tt = net.add_place("awaiting_transporter")
@@ -565,9 +563,9 @@ class Shop:
         )
 
 
-def run_policy(instance: Instance, choose: Callable[[Shop, list[int]], int]) -> Schedule:
-    """Run the shop to completion, asking ``choose(shop, legal_actions)`` at every decision."""
+def run_policy(instance: Instance, choose: Callable[[Shop], int]) -> Schedule:
+    """Run the shop to completion, asking ``choose(shop)`` for the action at every decision."""
     shop = Shop(instance)
     while not shop.done:
-        shop.act(choose(shop, shop.legal_actions()))
+        shop.act(choose(shop))
     return shop.schedule()
