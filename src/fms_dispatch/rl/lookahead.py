@@ -2,16 +2,17 @@
 
 Without lookahead, :func:`run_agent` is the plain loop ``while not shop.done: shop.act(policy(shop))``.
 
-With lookahead, the net is advanced event by event (the same steps as :meth:`fms_sim.petri.Net.advance`) so
-that the moments when a vehicle stands idle with nothing assigned become visible: no decision is due, yet an
-AGV (or tool transporter) is idle. At each such moment, for each idle vehicle not looked at in this state, a
-twin of the shop (:meth:`~fms_sim.shop.Shop.copy`) is rolled forward with the same policy until a task lands
-on that vehicle (the policy picks it for a request); the request's pickup (the part's location, or the tool's
-location for a transporter) is read at that moment. If it differs from where the vehicle is, the real vehicle
-is sent there empty now (:meth:`~fms_sim.shop.Shop.reposition_agv` /
-:meth:`~fms_sim.shop.Shop.reposition_transporter`) instead of waiting for the request. Repositioning is a
-net transition like any other, so every schedule stays feasible by construction (tests validate it); it can
-cost time when another request arrives while the vehicle is on its way, which the benchmarks measure.
+With lookahead, the shop is run by a :class:`~fms_sim.stepping.Stepper` with idle stops, so that the moments
+when a vehicle stands idle with nothing assigned become visible: no decision is due, yet an AGV (or tool
+transporter) is idle and has not been looked at since the last decision. At each such stop, for each idle
+vehicle offered, a twin of the shop (:meth:`~fms_sim.shop.Shop.copy`) is rolled forward with the same policy
+until a task lands on that vehicle (the policy picks it for a request); the request's pickup (the part's
+location, or the tool's location for a transporter) is read at that moment. If it differs from where the vehicle
+is, the real vehicle is sent there empty now (:meth:`Stepper.move <fms_sim.stepping.Stepper.move>`) instead of
+waiting for the request. Repositioning is a net transition like any other, so every schedule stays feasible by
+construction (tests validate it); it can cost time when another request arrives while the vehicle is on its way,
+which the benchmarks measure. The same :class:`LookaheadPlanner` answers the shop node's idle states in the
+agent node (``ppo+lookahead``), so over ROS topics the run is the same as offline.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ from typing import Callable
 
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
+from fms_sim.stepping import Move, Stepper
 
-__all__ = ["run_agent", "run_with_lookahead", "predict_task"]
+__all__ = ["run_agent", "run_with_lookahead", "predict_task", "LookaheadPlanner", "finish"]
 
 Choose = Callable[[Shop], int]
 
@@ -72,77 +74,63 @@ def finish(shop: Shop, choose: Choose) -> int:
     return twin.makespan
 
 
-def _finish_after_moves(shop: Shop, choose: Choose, orders: list[tuple[str, int, int]]) -> int:
-    twin = shop.copy()
-    _place_orders(twin, orders)
-    while not twin.done:
-        twin.act(choose(twin))
-    return twin.makespan
+def _finish_after_moves(stepper: Stepper, choose: Choose, moves: list[Move]) -> int:
+    twin = stepper.copy()
+    twin.idle_stops = False  # the plain policy from here on: no further moves
+    twin.move(moves)
+    shop = twin.shop
+    while not shop.done:
+        shop.act(choose(shop))
+    return shop.makespan
 
 
-def _place_orders(shop: Shop, orders: list[tuple[str, int, int]]) -> None:
-    """Order every move at the current time; the last call runs the net on to the next decision."""
-    for kind, v, dest in orders[:-1]:
-        shop.net.put(shop.p_agv_orders if kind == "agv" else shop.p_tt_orders, (v, dest))
-    kind, v, dest = orders[-1]
-    if kind == "agv":
-        shop.reposition_agv(v, dest)
-    else:
-        shop.reposition_transporter(v, dest)
+class LookaheadPlanner:
+    """Answers the idle stops of a :class:`~fms_sim.stepping.Stepper` (see the module docstring).
 
+    :meth:`plan` returns the moves for the vehicles offered at an idle stop. With ``verify`` (default) a
+    proposed set of moves is checked in a twin: the run is completed with the moves and compared with the
+    completion without them (the plain policy from here); the moves are kept only if the completed makespan
+    is strictly smaller. The plain completion is cached: it stays exact while the real run follows the plain
+    policy, and becomes the completion with the moves once they are made. Call :meth:`reset` when the run
+    changes in a way the planner did not see (new jobs, a fresh twin).
+    """
 
-def _idle_vehicles(shop: Shop) -> list[tuple[str, int, int]]:
-    out = [("agv", v, loc) for v, loc in shop.idle_agvs()]
-    out += [("tt", r, loc) for r, loc in shop.idle_transporters()]
-    return sorted(out)
+    def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True) -> None:
+        self.choose = choose
+        self.horizon = horizon
+        self.verify = verify
+        self.expected: int | None = None  # makespan of the plain completion from the current state
+
+    def reset(self) -> None:
+        self.expected = None
+
+    def plan(self, stepper: Stepper) -> list[Move]:
+        shop, choose = stepper.shop, self.choose
+        moves = []
+        for kind, v, loc in stepper.idle:
+            dest = predict_task(shop, choose, kind, v, self.horizon)
+            if dest is not None and dest != loc:
+                moves.append(Move(kind, v, dest))
+        if moves and self.verify:
+            if self.expected is None:
+                self.expected = finish(shop, choose)
+            with_moves = _finish_after_moves(stepper, choose, moves)
+            if with_moves < self.expected:
+                self.expected = with_moves
+            else:
+                moves = []
+        return moves
 
 
 def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True) -> Schedule:
-    """The lookahead loop of :func:`run_agent` (see the module docstring).
-
-    With ``verify`` (default), each proposed set of moves is also checked in a twin: the run is completed
-    with the moves and compared with the completion without them (the plain policy from here); the moves are
-    made only if the completed makespan is strictly smaller. As the completion without moves is exactly what
-    the real run does if nothing more is moved, the final makespan is never worse than the plain policy's.
-    """
-    net = shop.net
-    # (kind, vehicle, decisions so far): a vehicle is looked at (and moved) at most once between two
-    # decisions, so repositioning cannot cycle even where travel times are 0
-    looked: set[tuple] = set()
-    decisions = 0
-    expected: int | None = None  # makespan of the plain completion from the current state (when verified)
-    while not shop.done:
-        # the body of Net.advance, one event time at a time
-        net.run_autonomous()
-        if net.enabled_actions():
-            # fire only: the loop itself advances, so that idle moments between decisions are seen
-            net.act(choose(shop))
-            decisions += 1
-            continue
-        if shop.done:
-            break
-        orders = []
-        for kind, v, loc in _idle_vehicles(shop):
-            key = (kind, v, decisions)
-            if key in looked:
-                continue
-            looked.add(key)
-            dest = predict_task(shop, choose, kind, v, horizon)
-            if dest is not None and dest != loc:
-                orders.append((kind, v, dest))
-        if orders and verify:
-            if expected is None:
-                expected = finish(shop, choose)
-            with_moves = _finish_after_moves(shop, choose, orders)
-            if with_moves < expected:
-                expected = with_moves
-            else:
-                orders = []
-        if orders:
-            _place_orders(shop, orders)
-            continue
-        t = net.next_event_time()
-        if t is None:
-            break
-        net.release_until(t)
+    """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
+    :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's)."""
+    stepper = Stepper(shop, idle_stops=True)
+    planner = LookaheadPlanner(choose, horizon, verify)
+    stop = stepper.advance()
+    while stop != "done":
+        if stop == "decision":
+            stop = stepper.decide(choose(shop))
+        else:
+            stop = stepper.move(planner.plan(stepper))
     return shop.schedule()

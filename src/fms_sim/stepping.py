@@ -1,0 +1,177 @@
+"""Running a shop from stop to stop: decisions and, optionally, idle-vehicle moments (for pre-positioning).
+
+:meth:`Shop.act <fms_sim.shop.Shop.act>` runs the net from one decision to the next. Pre-positioning (the
+lookahead of :mod:`fms_dispatch.rl.lookahead`) needs one more kind of stop: a moment when no decision is due
+but an AGV or tool transporter stands idle with nothing assigned, so that it can be sent empty somewhere now.
+:class:`Stepper` makes those moments explicit and deterministic, so that the offline lookahead, the shop node
+(which publishes a state at each stop) and an agent's twin of the shop (which replays the applied labels)
+all stop at exactly the same places:
+
+* a **decision** stop: a controllable transition is enabled; answered by firing an action
+  (:meth:`Stepper.decide`);
+* an **idle** stop (only with ``idle_stops=True``): no decision is due, the run is not over, and some idle
+  vehicle has not been *looked at* since the last decision; answered by a (possibly empty) list of moves
+  (:meth:`Stepper.move`), after which every vehicle idle at this stop counts as looked at until the next
+  decision. A vehicle is therefore offered at most once between two decisions, so stopping cannot cycle
+  even where travel times are 0;
+* **done**: every job is finished.
+
+Answers are written as labels, so they can travel in messages and histories: a decision is its action label
+(``job:3``, ``agv:1``, ``tt:0``), an idle stop's answer is ``wait`` (no move) or
+``reposition:agv:0:3,tt:1:5`` (AGV 0 to location 3 and transporter 1 to location 5, in that order).
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+from .petri import InvalidAction
+from .shop import Shop
+
+__all__ = ["Stepper", "Move", "StopKind", "WAIT", "REPOSITION", "moves_label", "parse_moves"]
+
+StopKind = Literal["decision", "idle", "done"]
+
+WAIT = "wait"
+REPOSITION = "reposition"
+_KINDS = ("agv", "tt")
+
+
+class Move(NamedTuple):
+    """Send idle vehicle ``vehicle`` of ``kind`` (``"agv"`` or ``"tt"``) empty to ``location``."""
+
+    kind: str
+    vehicle: int
+    location: int
+
+
+def moves_label(moves: list[Move] | list[tuple[str, int, int]]) -> str:
+    """The label answering an idle stop: ``wait`` or ``reposition:agv:0:3,tt:1:5``."""
+    if not moves:
+        return WAIT
+    return REPOSITION + ":" + ",".join(f"{k}:{v}:{loc}" for k, v, loc in moves)
+
+
+def parse_moves(label: str) -> list[Move]:
+    """Inverse of :func:`moves_label`; raises :class:`~fms_sim.petri.InvalidAction` on a malformed label."""
+    if label == WAIT:
+        return []
+    head, sep, body = label.partition(":")
+    if head != REPOSITION or not sep or not body:
+        raise InvalidAction(f"malformed idle answer {label!r} (expected 'wait' or "
+                            "'reposition:KIND:V:LOC[,KIND:V:LOC...]' with KIND agv or tt)")
+    out = []
+    for part in body.split(","):
+        bits = part.split(":")
+        try:
+            if len(bits) != 3 or bits[0] not in _KINDS:
+                raise ValueError
+            v, loc = int(bits[1]), int(bits[2])
+        except ValueError:
+            raise InvalidAction(f"malformed move {part!r} in {label!r} (expected KIND:V:LOC with KIND agv or "
+                                "tt)") from None
+        out.append(Move(bits[0], v, loc))
+    return out
+
+
+class Stepper:
+    """Drives ``shop`` from stop to stop (see the module docstring).
+
+    The shop must be fresh or at a decision (as :meth:`Shop.act` leaves it); call :meth:`advance` once to
+    reach the first stop. ``kind`` is the current stop and ``idle`` (at an idle stop) the vehicles offered:
+    ``(kind, vehicle, location)`` sorted, AGVs first.
+    """
+
+    def __init__(self, shop: Shop, idle_stops: bool = True) -> None:
+        self.shop = shop
+        self.idle_stops = idle_stops
+        self.looked: set[tuple[str, int]] = set()
+        self.kind: StopKind | None = None
+        self.idle: list[Move] = []
+
+    def copy(self) -> "Stepper":
+        """An independent twin at the same stop."""
+        twin = Stepper(self.shop.copy(), self.idle_stops)
+        twin.looked, twin.kind, twin.idle = set(self.looked), self.kind, list(self.idle)
+        return twin
+
+    def idle_vehicles(self) -> list[Move]:
+        shop = self.shop
+        out = [Move("agv", v, loc) for v, loc in shop.idle_agvs()]
+        out += [Move("tt", r, loc) for r, loc in shop.idle_transporters()]
+        return sorted(out)
+
+    def advance(self) -> StopKind:
+        """Run the net to the next stop and return its kind (the same steps as :meth:`Net.advance`, one event
+        time at a time when idle stops are on)."""
+        shop, net = self.shop, self.shop.net
+        self.idle = []
+        if not self.idle_stops:
+            net.advance()
+            shop._check_progress()
+            self.kind = "done" if shop.done else "decision"
+            return self.kind
+        while True:
+            net.run_autonomous()
+            if net.enabled_actions():
+                self.kind = "decision"
+                return self.kind
+            if shop.done:
+                self.kind = "done"
+                return self.kind
+            idle = [m for m in self.idle_vehicles() if (m.kind, m.vehicle) not in self.looked]
+            if idle:
+                self.idle, self.kind = idle, "idle"
+                return self.kind
+            t = net.next_event_time()
+            if t is None:
+                shop._check_progress()  # raises Deadlock
+                raise AssertionError("unreachable: a stuck net raises Deadlock")
+            net.release_until(t)
+
+    def decide(self, action: int) -> StopKind:
+        """Fire controllable ``action`` at a decision stop and run to the next stop."""
+        if self.kind != "decision":
+            raise InvalidAction(f"no decision is due at time {self.shop.now} ({self._where()})")
+        self.shop.net.act(action)
+        self.looked.clear()
+        return self.advance()
+
+    def move(self, moves: list[Move] | list[tuple[str, int, int]]) -> StopKind:
+        """Answer an idle stop: send each vehicle of ``moves`` (each one offered at this stop, at most once)
+        empty to its location, in order, and run to the next stop. ``[]`` is *wait*.
+
+        Raises :class:`InvalidAction` (and changes nothing) if this is not an idle stop, a vehicle is not
+        offered here, appears twice, or a location does not exist."""
+        shop = self.shop
+        if self.kind != "idle":
+            raise InvalidAction(f"no idle vehicle is offered at time {shop.now} ({self._where()})")
+        offered = {(m.kind, m.vehicle) for m in self.idle}
+        seen: set[tuple[str, int]] = set()
+        for kind, v, loc in moves:
+            name = "AGV" if kind == "agv" else "tool transporter"
+            if (kind, v) not in offered:
+                raise InvalidAction(f"{name} {v} is not an idle vehicle offered at time {shop.now} "
+                                    f"(offered: {moves_label(self.idle)[len(REPOSITION) + 1:] or 'none'})")
+            if (kind, v) in seen:
+                raise InvalidAction(f"{name} {v} is moved twice in one answer")
+            if not 0 <= loc <= shop.instance.n_machines:
+                raise InvalidAction(f"location {loc} does not exist (0..{shop.instance.n_machines})")
+            seen.add((kind, v))
+        for kind, v, loc in moves:
+            shop.net.put(shop.p_agv_orders if kind == "agv" else shop.p_tt_orders, (v, loc))
+        self.looked.update(offered)
+        return self.advance()
+
+    def apply(self, label: str) -> StopKind:
+        """Apply an answer given as a label (an action label at a decision, ``wait``/``reposition:...`` at an
+        idle stop) and run to the next stop; raises :class:`InvalidAction` if it does not fit the stop."""
+        if self.kind == "idle":
+            return self.move(parse_moves(label))
+        if label == WAIT or label.startswith(REPOSITION + ":"):
+            raise InvalidAction(f"{label!r} answers an idle stop, but {self._where()}")
+        return self.decide(self.shop.action_index(label))
+
+    def _where(self) -> str:
+        return {"decision": "a decision is due", "idle": "idle vehicles are offered", "done": "the run is complete",
+                None: "the stepper has not advanced yet"}[self.kind]

@@ -1,0 +1,151 @@
+"""Stop-to-stop stepping: decisions and idle-vehicle stops, answered by labels."""
+
+from __future__ import annotations
+
+import pytest
+
+from fms_dispatch.rules import RulePolicy
+from fms_sim.benchmarks import builtin
+from fms_sim.petri import InvalidAction
+from fms_sim.shop import Shop
+from fms_sim.stepping import Move, Stepper, moves_label, parse_moves
+from fms_sim.validate import validate
+
+
+def _plain(inst, pol):
+    shop = Shop(inst)
+    while not shop.done:
+        shop.act(pol(shop))
+    return shop.schedule().to_dict()
+
+
+@pytest.mark.parametrize("name", ["EX12", "EX52", "ra01"])
+def test_waiting_at_every_idle_stop_is_the_plain_run(name):
+    inst = builtin(name)
+    pol = RulePolicy("SPT", "nearest")
+    st = Stepper(Shop(inst))
+    stop, idle_stops = st.advance(), 0
+    while stop != "done":
+        if stop == "idle":
+            idle_stops += 1
+            stop = st.move([])
+        else:
+            stop = st.decide(pol(st.shop))
+    assert idle_stops > 0
+    assert st.shop.schedule().to_dict() == _plain(inst, pol)
+
+
+def test_without_idle_stops_only_decisions():
+    inst = builtin("EX22")
+    pol = RulePolicy("LPT", "first")
+    st = Stepper(Shop(inst), idle_stops=False)
+    stop = st.advance()
+    while stop != "done":
+        assert stop == "decision"
+        stop = st.decide(pol(st.shop))
+    assert st.shop.schedule().to_dict() == _plain(inst, pol)
+
+
+def test_idle_stops_offer_idle_vehicles_once_between_decisions():
+    inst = builtin("ra01")  # AGVs and tool transporters
+    pol = RulePolicy("FIFO", "first")
+    st = Stepper(Shop(inst))
+    stop = st.advance()
+    offered_since_decision: set[tuple[str, int]] = set()
+    kinds = set()
+    while stop != "done":
+        if stop == "idle":
+            idle_now = {("agv", v) for v, _ in st.shop.idle_agvs()} | {("tt", r) for r, _ in st.shop.idle_transporters()}
+            for m in st.idle:
+                assert (m.kind, m.vehicle) in idle_now
+                assert (m.kind, m.vehicle) not in offered_since_decision
+                offered_since_decision.add((m.kind, m.vehicle))
+                kinds.add(m.kind)
+            stop = st.move([])
+        else:
+            offered_since_decision.clear()
+            stop = st.decide(pol(st.shop))
+    assert kinds == {"agv", "tt"}
+
+
+def test_moves_send_vehicles_empty_and_stay_feasible():
+    inst = builtin("ra01")
+    pol = RulePolicy("SPT", "first")
+    st = Stepper(Shop(inst))
+    stop, moved = st.advance(), 0
+    while stop != "done":
+        if stop == "idle":
+            # send every offered vehicle to the location after its own (a deliberately arbitrary move)
+            moves = [Move(m.kind, m.vehicle, (m.location + 1) % (inst.n_machines + 1)) for m in st.idle]
+            moved += len(moves)
+            stop = st.move(moves)
+        else:
+            stop = st.decide(pol(st.shop))
+    s = st.shop.schedule()
+    assert moved > 0
+    assert validate(inst, s) == []
+    assert any(not t.loaded for t in s.agv_trips) and any(not t.loaded for t in s.tool_trips)
+
+
+def test_labels_replay_to_the_same_run():
+    inst = builtin("ra01")
+    pol = RulePolicy("MTWR", "nearest")
+    st = Stepper(Shop(inst))
+    labels, stop, i = [], st.advance(), 0
+    while stop != "done":
+        if stop == "idle":
+            moves = [Move(m.kind, m.vehicle, 0) for m in st.idle if m.location != 0][:1] if i % 2 else []
+            labels.append(moves_label(moves))
+            stop = st.move(moves)
+            i += 1
+        else:
+            a = pol(st.shop)
+            labels.append(st.shop.action_labels()[a])
+            stop = st.decide(a)
+    assert any(lab.startswith("reposition:") for lab in labels) and "wait" in labels
+    twin = Stepper(Shop(inst))
+    twin.advance()
+    for lab in labels:
+        twin.apply(lab)
+    assert twin.kind == "done"
+    assert twin.shop.schedule().to_dict() == st.shop.schedule().to_dict()
+
+
+def test_label_round_trip_and_malformed_labels():
+    moves = [Move("agv", 0, 3), Move("tt", 1, 5)]
+    assert moves_label(moves) == "reposition:agv:0:3,tt:1:5"
+    assert parse_moves(moves_label(moves)) == moves
+    assert parse_moves("wait") == [] and moves_label([]) == "wait"
+    for bad in ["reposition:", "reposition:agv:0", "reposition:car:0:1", "reposition:agv:x:1", "move:agv:0:1",
+                "reposition:agv:0:1,"]:
+        with pytest.raises(InvalidAction):
+            parse_moves(bad)
+
+
+def test_wrong_answers_are_refused_and_change_nothing():
+    inst = builtin("ra01")
+    st = Stepper(Shop(inst))
+    stop = st.advance()
+    assert stop == "decision"
+    with pytest.raises(InvalidAction, match="no idle vehicle"):
+        st.move([])
+    with pytest.raises(InvalidAction, match="answers an idle stop"):
+        st.apply("wait")
+    pol = RulePolicy("SPT", "first")
+    while stop != "idle":
+        stop = st.decide(pol(st.shop))
+    before = (st.shop.now, st.shop.net.marking(), list(st.idle))
+    m = st.idle[0]
+    name = "AGV" if m.kind == "agv" else "tool transporter"
+    with pytest.raises(InvalidAction, match="no decision is due"):
+        st.decide(0)
+    with pytest.raises(InvalidAction, match="not an idle vehicle offered"):
+        st.move([Move(m.kind, 9, 0)])
+    with pytest.raises(InvalidAction, match="moved twice"):
+        st.move([Move(m.kind, m.vehicle, 0), Move(m.kind, m.vehicle, 1)])
+    with pytest.raises(InvalidAction, match="location 99 does not exist"):
+        st.move([Move(m.kind, m.vehicle, 99)])
+    with pytest.raises(InvalidAction, match="malformed"):
+        st.apply("job:0")
+    assert (st.shop.now, st.shop.net.marking(), list(st.idle)) == before
+    assert name  # the offered vehicle's kind is a real fleet
