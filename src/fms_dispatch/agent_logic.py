@@ -20,9 +20,14 @@ Solvers (the ``solver`` parameter):
   twin is checked against the state (time, action labels, mask) and rebuilt from scratch on a mismatch. If it
   still disagrees, the agent publishes an ``internal`` error *and* the first enabled action, so the run goes
   on. Nothing is kept across restarts: a restarted agent replays the latched state's history.
-* ``lookahead`` / ``ppo+lookahead`` (pre-positioning idle vehicles) is not available over topics: it acts at
-  idle moments between decisions, which the shop does not publish. Asking for it (or for an offline solver
-  such as ``cpsat``) raises :class:`UnavailableSolver`, which the node turns into exit code 2.
+* ``lookahead`` / ``ppo+lookahead`` / ``ppo:<model>+lookahead`` — the PPO policy with pre-positioning of idle
+  vehicles (:mod:`fms_dispatch.rl.lookahead`). It needs a shop started with ``idle_stops`` (and ``history``):
+  such a shop also publishes a state when a vehicle stands idle between decisions (``idle`` lists the
+  vehicles offered), and the twin, stepped by the same :class:`~fms_sim.stepping.Stepper`, answers it with
+  :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s moves (``reposition:...``) or ``wait``. The run is
+  the one the offline ``ppo+lookahead`` solver makes. Every other solver answers idle states with ``wait``.
+
+Offline solvers (``sos``, ``cpsat``) raise :class:`UnavailableSolver`, which the node turns into exit code 2.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from fms_msgs_json import TOPIC_COMMAND, TOPIC_ERRORS, MessageError, decode, err
 from fms_sim.instance import Instance, InstanceError, Operation
 from fms_sim.petri import InvalidAction
 from fms_sim.shop_service import Outgoing
+from fms_sim.stepping import WAIT, Stepper, moves_label
 
 from .rules import JOB_RULES, VEHICLE_RULES, parse_rule_name
 
@@ -44,7 +50,8 @@ __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision
            "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent"]
 
 SOURCE = "fms_agent"
-AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>")
+AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
+                 "ppo[:<model>]+lookahead")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]
@@ -168,56 +175,76 @@ def load_ppo_agent(model: str | None, instance: Instance) -> Any:
 class TwinDecider:
     """A policy over a local twin :class:`~fms_sim.shop.Shop`, kept in step with the states' ``history``.
 
-    ``choose(shop) -> net action`` is the policy (e.g. ``Agent.act``). The twin is rebuilt from ``instance``
-    when a state belongs to another run or its history does not extend the one replayed so far; otherwise only
-    the new entries are replayed. See the module docstring for the checks and the fallback.
+    ``choose(shop) -> net action`` is the policy (e.g. ``Agent.act``); ``planner`` (optional, a
+    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`) answers idle stops, else they are answered ``wait``.
+    The twin is a :class:`~fms_sim.stepping.Stepper` with idle stops exactly when the states carry ``idle``.
+    It is rebuilt from ``instance`` when a state belongs to another run or its history does not extend the
+    one replayed so far; otherwise only the new entries are replayed. See the module docstring for the checks
+    and the fallback.
     """
 
-    def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str) -> None:
+    handles_idle = True
+
+    def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str, planner: Any = None) -> None:
         self.instance = instance
         self.choose = choose
         self.name = name
-        self.twin: Shop | None = None
+        self.planner = planner
+        self.stepper: Stepper | None = None
         self._run_id: str | None = None
+        self._idle_stops = False
         self._labels: list[str] = []           # labels replayed into the twin
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
 
-    def _reset(self, run_id: str) -> None:
+    @property
+    def twin(self) -> "Shop | None":
+        return None if self.stepper is None else self.stepper.shop
+
+    def _reset(self, run_id: str, idle_stops: bool) -> None:
         from fms_sim.shop import Shop
 
-        self.twin = Shop(self.instance)
-        self._run_id, self._labels, self._orders = run_id, [], []
+        self.stepper = Stepper(Shop(self.instance), idle_stops=idle_stops)
+        self.stepper.advance()
+        self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
         self.rebuilds += 1
 
-    def _replay(self, labels: list[str], orders: list[dict[str, Any]]) -> None:
-        """Apply the entries of the history beyond those already replayed (raises on an impossible step)."""
-        twin = self.twin
-        assert twin is not None
+    def _replay(self, labels: list[str], orders: list[dict[str, Any]]) -> int:
+        """Apply the entries of the history beyond those already replayed (raises on an impossible step);
+        returns how many were applied (labels and orders)."""
+        st = self.stepper
+        assert st is not None
         p, q = len(self._labels), len(self._orders)
+        applied = 0
         while True:
             while q < len(orders) and orders[q]["at"] == p:
                 jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops]
                         for ops in orders[q]["jobs"]]
-                twin.add_jobs(jobs)
+                st.add_jobs(jobs)
                 self._orders.append(orders[q])
                 q += 1
+                applied += 2  # an order changes the run: never "one step on" (see sync)
             if p >= len(labels):
-                break
-            twin.act(twin.action_index(labels[p]))
+                return applied
+            st.apply(labels[p])
             self._labels.append(labels[p])
             p += 1
+            applied += 1
 
     def _agrees(self, state: dict[str, Any]) -> str | None:
-        """None if the twin matches the state (time, labels, mask); else what differs."""
-        twin = self.twin
-        assert twin is not None
+        """None if the twin matches the state (time, labels, mask, idle vehicles); else what differs."""
+        st = self.stepper
+        assert st is not None
+        twin = st.shop
         if twin.now != state["time"]:
             return f"twin time {twin.now} != state time {state['time']}"
         if twin.action_labels() != state["actions"]:
             return "the twin's action labels differ from the state's"
         if list(twin.action_mask()) != state["mask"]:
             return "the twin's mask differs from the state's"
+        idle = state.get("idle")
+        if idle is not None and [(d["kind"], d["vehicle"], d["location"]) for d in idle] != list(map(tuple, st.idle)):
+            return "the twin's idle vehicles differ from the state's"
         return None
 
     def sync(self, state: dict[str, Any]) -> None:
@@ -231,57 +258,80 @@ class TwinDecider:
         if name is not None and name != self.instance.name:
             raise DecisionError(f"state {state['seq']} is of instance {name!r} but this agent holds "
                                 f"{self.instance.name!r}; give the agent the shop's instance")
+        idle_stops = state.get("idle") is not None
+        if self.planner is not None and not idle_stops:
+            raise DecisionError(f"state {state['seq']} has no 'idle' field; {self.name} pre-positions idle "
+                                "vehicles at the shop's idle stops (start the shop with idle_stops:=true)")
         labels = history["actions"].split(" ") if history["actions"] else []
         orders = history["orders"]
         n, m = len(self._labels), len(self._orders)
-        fresh = (self.twin is None or self._run_id != state["run_id"] or len(labels) < n or len(orders) < m
-                 or labels[:n] != self._labels or orders[:m] != self._orders)
+        fresh = (self.stepper is None or self._run_id != state["run_id"] or self._idle_stops != idle_stops
+                 or len(labels) < n or len(orders) < m or labels[:n] != self._labels or orders[:m] != self._orders)
         problem = None
         for attempt in range(2):
             if fresh or attempt:
-                self._reset(state["run_id"])
+                self._reset(state["run_id"], idle_stops)
             try:
-                self._replay(labels, orders)
+                applied = self._replay(labels, orders)
                 problem = self._agrees(state)
             except (InvalidAction, InstanceError) as exc:
                 problem = f"replaying the history failed: {exc}"
             if problem is None:
+                # the planner's cached completion holds while the run moves one answer at a time
+                if self.planner is not None and (fresh or attempt or applied != 1):
+                    self.planner.reset()
                 return
             if fresh:  # already rebuilt from scratch: no second try
                 break
-        self.twin = None  # start afresh next time
+        self.stepper = None  # start afresh next time
         raise FallbackDecision(f"state {state['seq']}: the twin of the shop disagrees with the state ({problem}); "
-                               "sending the first enabled action", _legal(state)[0][2])
+                               f"sending {_fallback(state)!r}", _fallback(state))
 
     def __call__(self, state: dict[str, Any]) -> str:
-        legal = _legal(state)
         self.sync(state)
-        twin = self.twin
-        assert twin is not None
-        if len(legal) == 1:
-            return legal[0][2]
+        st = self.stepper
+        assert st is not None
         try:
-            return twin.action_labels()[self.choose(twin)]
+            if st.kind == "idle":
+                return WAIT if self.planner is None else moves_label(self.planner.plan(st))
+            legal = _legal(state)
+            if len(legal) == 1:
+                return legal[0][2]
+            return st.shop.action_labels()[self.choose(st.shop)]
         except (ValueError, RuntimeError, IndexError) as exc:
-            raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending the first enabled "
-                                   "action", legal[0][2]) from None
+            raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending "
+                                   f"{_fallback(state)!r}", _fallback(state)) from None
+
+
+def _fallback(state: dict[str, Any]) -> str:
+    """The safe answer to a state: ``wait`` at an idle stop, else the first enabled action."""
+    return WAIT if state.get("idle") else _legal(state)[0][2]
 
 
 def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
-    """``ppo`` / ``ppo:<model>`` over a twin of ``instance``."""
+    """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead``; ``lookahead`` alone is ``ppo+lookahead``) over a
+    twin of ``instance``."""
     low = name.lower()
-    if low == "lookahead" or low.endswith("+lookahead"):
-        raise UnavailableSolver(f"solver {name!r} is not available in the agent node: the lookahead moves idle "
-                                "vehicles between decisions, which the shop does not publish; use ppo")
-    model = name[4:].strip() if low.startswith("ppo:") else None
-    if low.startswith("ppo:") and not model:
-        raise UnavailableSolver("solver 'ppo:' names no model; use ppo or ppo:<model>")
+    lookahead = low == "lookahead" or low.endswith("+lookahead")
+    base = "ppo" if low == "lookahead" else (name[:-len("+lookahead")] if lookahead else name).strip()
+    low_base = base.lower()
+    if low_base != "ppo" and not low_base.startswith("ppo:"):
+        raise UnavailableSolver(f"unknown solver {name!r}; the agent node accepts {', '.join(AGENT_SOLVERS)}")
+    model = base[4:].strip() if low_base.startswith("ppo:") else None
+    if low_base.startswith("ppo:") and not model:
+        raise UnavailableSolver(f"solver {name!r} names no model; use ppo or ppo:<model>")
     if instance is None:
         raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it replays the "
                                 "shop into a twin; give the agent the parameter instance (the same as the shop's)")
     agent = load_ppo_agent(model, instance)
     canonical = f"ppo:{agent.name}"
-    return TwinDecider(instance, agent.act, canonical), canonical
+    planner = None
+    if lookahead:
+        from .rl.lookahead import LookaheadPlanner
+
+        planner = LookaheadPlanner(agent.act)
+        canonical += "+lookahead"
+    return TwinDecider(instance, agent.act, canonical, planner), canonical
 
 
 def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -> tuple[Decider, str]:
@@ -349,7 +399,10 @@ class AgentLogic:
             return []
         out: list[Outgoing] = []
         try:
-            label = self.decide(state)
+            if state.get("idle") and not getattr(self.decide, "handles_idle", False):
+                label = WAIT  # an idle stop: only pre-positioning solvers move vehicles there
+            else:
+                label = self.decide(state)
         except FallbackDecision as exc:
             out.append(Outgoing(TOPIC_ERRORS, make_error(self.source, "internal", str(exc), run_id=run_id)))
             label = exc.label

@@ -7,10 +7,11 @@ rendered its Gantt chart, validates the schedule against the final instance (inc
 writes it to ``--out``, and stops the nodes with SIGINT (SIGKILL after a grace period). It imports no rclpy
 itself: the nodes do.
 
-``--solver best`` simulates every rule pair and the shipped PPO model on the instance in-process first and runs
-the winner over the topics: PPO if its makespan is strictly smaller than the best rule pair's, else that pair
-(:func:`best_solver`; it says which). A ``ppo`` solver makes the launcher start the shop with ``history:=true`` (and ``features:=false``)
-and give the agent the instance file, so that the agent can replay the run into its twin of the shop. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
+``--solver best`` simulates every rule pair and the shipped PPO model (with and without lookahead) on the
+instance in-process first and runs the winner over the topics: PPO if its makespan is strictly smaller than the
+best rule pair's, else that pair (:func:`best_solver`; it says which). A ``ppo`` solver makes the launcher
+start the shop with ``history:=true`` (and ``features:=false``) and give the agent the instance file, so that
+the agent can replay the run into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
 environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails).
@@ -42,7 +43,7 @@ from fms_sim.shop_service import new_run_id
 from .agent_logic import UnavailableSolver, make_decider
 
 __all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "best_solver", "NodeProcess", "node_command",
-           "stop_all", "needs_twin"]
+           "stop_all", "needs_twin", "needs_idle_stops"]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -68,8 +69,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     add_instance_args(p)
     p.add_argument("--solver", default="first",
                    help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
-                        "best (the shipped PPO model if it beats the best rule pair in simulation, else that "
-                        "pair) (default: first)")
+                        "ppo[:<model>]+lookahead | best (the shipped PPO model, with or without lookahead, if it "
+                        "beats the best rule pair in simulation, else that pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -107,11 +108,14 @@ def best_solver(instance: Instance) -> tuple[str, int, str]:
     try:
         from .rl import ppo_solver
 
-        sched = ppo_solver("ppo")(instance)
+        solve = ppo_solver("ppo")
+        plain = solve(instance)
+        ahead = solve(instance, lookahead=True)
     except (ImportError, ValueError, OSError) as exc:
         return rule, rule_span, (f"best rule pair on {instance.name}: {rule} (makespan {rule_span} in simulation; "
                                  f"PPO not available: {str(exc).splitlines()[0]})")
-    ppo = f"ppo:{sched.meta.get('model', '')}" if sched.meta.get("model") else "ppo"
+    sched = ahead if ahead.makespan < plain.makespan else plain
+    ppo = str(sched.meta["solver"])
     if sched.makespan < rule_span:
         return ppo, sched.makespan, (f"best on {instance.name}: {ppo} (makespan {sched.makespan} in simulation; "
                                      f"best rule pair {rule}: {rule_span})")
@@ -123,6 +127,12 @@ def needs_twin(solver: str) -> bool:
     """Whether the agent replays the run into a twin (``ppo`` solvers): the shop must then send history."""
     low = solver.strip().lower()
     return low in ("ppo", "lookahead") or low.startswith(("ppo:", "ppo+"))
+
+
+def needs_idle_stops(solver: str) -> bool:
+    """Whether the agent pre-positions idle vehicles (lookahead solvers): the shop must then stop for them."""
+    low = solver.strip().lower()
+    return low == "lookahead" or low.endswith("+lookahead")
 
 
 def node_command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
@@ -268,7 +278,8 @@ def cmd_up(a: argparse.Namespace) -> int:
                     log_dir / "recorder.log", env),
         NodeProcess("shop", node_command("fms_sim.shop_node", {
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
-            "instance_out": str(inst_final), "history": twin, "features": not twin}), log_dir / "shop.log", env),
+            "instance_out": str(inst_final), "history": twin, "features": not twin,
+            "idle_stops": needs_idle_stops(solver)}), log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
     say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")

@@ -53,12 +53,15 @@ def _checked(msg: dict[str, Any]) -> dict[str, Any]:
 
 def make_state(run_id: str, seq: int, time: int, marking: Mapping[str, int], actions: Iterable[str],
                mask: Iterable[bool], done: bool, *, instance: str | None = None,
-               makespan: int | None = None, features: Mapping[str, Any] | None = None) -> dict[str, Any]:
+               makespan: int | None = None, features: Mapping[str, Any] | None = None,
+               idle: Iterable[Mapping[str, Any]] | None = None) -> dict[str, Any]:
     """An ``fms/state/v1``: the shop's state number ``seq`` of run ``run_id`` at simulation ``time``.
 
     ``marking`` counts tokens per place name; ``actions[i]`` is the label of action index ``i`` and ``mask[i]``
     says whether it is enabled now; ``makespan`` is set once the run is ``done``. ``features`` (optional) are
     the per-job and per-vehicle figures that dispatching rules read (see docs/ros.md); omitted when ``None``.
+    ``idle`` (optional, from a shop with idle stops) lists the idle vehicles offered now as ``{kind, vehicle,
+    location}`` (``[]`` at a decision); omitted when ``None``.
     """
     msg: dict[str, Any] = {"schema": SCHEMA_STATE, "run_id": run_id}
     if instance is not None:
@@ -67,6 +70,8 @@ def make_state(run_id: str, seq: int, time: int, marking: Mapping[str, int], act
                mask=_plain(mask), done=_plain(done), makespan=_plain(makespan))
     if features is not None:
         msg["features"] = _plain(features)
+    if idle is not None:
+        msg["idle"] = _plain(list(idle))
     return _checked(msg)
 
 

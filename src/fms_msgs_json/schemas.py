@@ -172,6 +172,14 @@ _HISTORY = Obj((
     Field("orders", ListOf(_HISTORY_ORDER)),
 ), expected="a history object {actions, orders}")
 
+# The optional "idle" of a state, sent by a shop that stops at idle-vehicle moments (for pre-positioning; see
+# fms_sim.stepping): the vehicles offered now, or [] at a decision. Absent (or null) if the shop does not stop
+# there. At an idle stop no action is enabled; the answer is the command action "wait" or
+# "reposition:KIND:V:LOC[,KIND:V:LOC...]".
+_IDLE_VEHICLE = Obj((
+    Field("kind", OneOf(("agv", "tt"))), Field("vehicle", Int(0)), Field("location", Int(0)),
+), expected="an idle vehicle object {kind, vehicle, location}")
+
 _STATE = (
     _RUN_ID,
     Field("seq", Int(0)),
@@ -184,6 +192,7 @@ _STATE = (
     Field("makespan", Nullable(Int(0)), required=False),
     Field("features", Nullable(_FEATURES), required=False),
     Field("history", Nullable(_HISTORY), required=False),
+    Field("idle", Nullable(ListOf(_IDLE_VEHICLE)), required=False),
 )
 
 _COMMAND = (
@@ -298,6 +307,9 @@ def _mask_matches_actions(msg: dict[str, Any], path: str) -> None:
     history = msg.get("history")
     if history is not None:
         _history_consistent(history)
+    if msg.get("idle") and any(msg["mask"]):
+        raise FieldError("idle", "field 'idle' offers idle vehicles but 'mask' enables actions; a state is either "
+                                 "a decision or an idle stop")
 
 
 def _history_consistent(history: dict[str, Any]) -> None:

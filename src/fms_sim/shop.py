@@ -467,11 +467,13 @@ class Shop:
         self.net.advance()
         self._check_progress()
 
-    def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:
+    def add_jobs(self, jobs: Sequence[Sequence[Operation]], advance: bool = True) -> list[int]:
         """Add new jobs now (a live order): their parts enter at L/U at the current time.
 
         The operations are validated against this shop (machines and tools must exist). Returns the new job
         indices; the instance (``self.instance``) grows accordingly, so the final schedule validates against it.
+        The net then runs on to the next decision, unless ``advance`` is false (the caller steps it, as
+        :class:`fms_sim.stepping.Stepper` does).
         """
         if self.done:
             raise InvalidAction("the run is complete; start a new run for new jobs")
@@ -506,8 +508,9 @@ class Shop:
             self.net.put(self.p_parts, (j, 0, 0))
         self.n_jobs = inst.n_jobs
         self._order_actions()
-        self.net.advance()
-        self._check_progress()
+        if advance:
+            self.net.advance()
+            self._check_progress()
         return ids
 
     def decision_kind(self) -> str | None:

@@ -10,7 +10,8 @@ rejected message is answered on ``fms/errors`` and logged; the node keeps runnin
 Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
 (0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
 carry the rule features), ``history`` (true: states carry the replay history a PPO agent needs; default
-false), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
+false), ``idle_stops`` (true: the shop also stops, and publishes a state, when a vehicle is idle between
+decisions, so a ``ppo+lookahead`` agent can pre-position it; default false), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
 schedule JSON and the final instance including accepted orders; '' = none).
 
 This module also holds the small rclpy helpers the other fms nodes share (:func:`qos_profile`,
@@ -139,6 +140,7 @@ class ShopNode:
         run_id = param(n, "run_id", "")
         features = param(n, "features", True)
         history = param(n, "history", False)
+        idle_stops = param(n, "idle_stops", False)
         self.schedule_out = param(n, "schedule_out", "")
         self.instance_out = param(n, "instance_out", "")
         if not spec:
@@ -149,7 +151,8 @@ class ShopNode:
                                  no_tools=no_tools, no_agvs=no_agvs)
         except (InstanceError, OSError) as exc:
             raise StartupError(str(exc).splitlines()[0]) from None
-        self.service = ShopService(inst, run_id=run_id or None, features=features, history=history)
+        self.service = ShopService(inst, run_id=run_id or None, features=features, history=history,
+                                   idle_stops=idle_stops)
         self.io = TopicIO(n, ["state", "event", "schedule", "error"])
         self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
         self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))

@@ -14,6 +14,12 @@ rclpy:
   agent that needs the whole shop (the PPO policy) replays it into its own twin of the shop, started from the
   same instance; the net is deterministic, so the twin reaches the same state. The agent keeps no state of
   its own across restarts: the latched state is all it needs.
+* **Idle stops** (opt-in, ``idle_stops=True``, for an agent that pre-positions vehicles: ``ppo+lookahead``).
+  The run is driven by a :class:`~fms_sim.stepping.Stepper`, which also stops when no decision is due but an
+  idle AGV or tool transporter has not been offered since the last decision. Such a state enables no action
+  and lists the offered vehicles in ``idle``; it is answered with the command action ``wait`` or
+  ``reposition:KIND:V:LOC[,...]`` (send those vehicles empty to those locations now). Every state of such a
+  run carries ``idle`` (``[]`` at a decision); the answers are part of the history, so a twin replays them.
 * **Commands.** A command is applied only if it names this run, answers the *current* state and picks an
   action that state enables; anything else (malformed JSON, wrong schema, unknown run, stale or unknown state
   number, unknown or masked action) is answered with an ``fms/error/v1`` and leaves the shop untouched.
@@ -48,6 +54,7 @@ from .instance import Instance, InstanceError, Operation
 from .petri import InvalidAction
 from .schedule import Schedule
 from .shop import Shop
+from .stepping import Stepper, parse_moves
 
 __all__ = ["Outgoing", "ShopService", "shop_features", "new_run_id"]
 
@@ -178,9 +185,11 @@ class ShopService:
     """
 
     def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
-                 features: bool = True, history: bool = False,
+                 features: bool = True, history: bool = False, idle_stops: bool = False,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         self.shop = Shop(instance)
+        self.stepper = Stepper(self.shop, idle_stops=idle_stops)
+        self.stepper.advance()
         self.run_id = run_id or new_run_id(instance.name)
         self.source = source
         self.with_features = features
@@ -194,7 +203,8 @@ class ShopService:
         self.events: list[dict[str, Any]] = []          # every event of the run, by seq
         self.state: dict[str, Any] | None = None         # the latest published state
         self.state_seq = -1
-        self.decisions = 0
+        self.decisions = 0                                # applied decisions (actions of the net)
+        self.idle_answers = 0                             # applied answers to idle stops (wait / reposition)
         self.orders: dict[str, list[int]] = {}            # accepted order id -> its job numbers
         self.agents: list[str] = []                       # agent names seen in applied commands, in order
         self.final_schedule: Schedule | None = None
@@ -243,23 +253,19 @@ class ShopService:
             return [self._error("stale_state", f"command answers state {seq}, which was never published "
                                                f"(the current state is {self.state_seq})", text)]
         assert self.state is not None
-        actions, mask = self.state["actions"], self.state["mask"]
-        try:
-            index = actions.index(label)
-        except ValueError:
-            return [self._error("forbidden_action", f"action {label!r} is not an action of state {seq} "
-                                                    f"(labels: {_short_list(actions)})", text)]
-        if not mask[index]:
-            enabled = [a for a, m in zip(actions, mask) if m]
-            return [self._error("forbidden_action", f"action {label!r} is not enabled in state {seq} "
-                                                    f"(enabled: {_short_list(enabled)})", text)]
         if self._first_command_at is None:
             self._first_command_at = self._clock()
-        try:
-            self.shop.act(index)
-        except InvalidAction as exc:  # the mask said yes: only a net bug can get here
-            return [self._error("internal", f"the shop refused enabled action {label!r}: {exc}", text)]
-        self.decisions += 1
+        if self.stepper.kind == "idle":
+            try:
+                self.stepper.move(parse_moves(label))
+            except InvalidAction as exc:
+                return [self._error("forbidden_action", f"state {seq} is an idle stop: {exc}", text)]
+            self.idle_answers += 1
+        else:
+            problem = self._decide(seq, label)
+            if problem is not None:
+                return [self._error("forbidden_action", problem, text)]
+            self.decisions += 1
         if self.with_history:
             self._applied.append(label)
             self._applied_text = f"{self._applied_text} {label}" if self._applied_text else label
@@ -267,6 +273,20 @@ class ShopService:
         if agent and (not self.agents or self.agents[-1] != agent):
             self.agents.append(agent)
         return self._after_step()
+
+    def _decide(self, seq: int, label: str) -> str | None:
+        """Fire ``label`` at the current decision; None, or why it is refused (nothing changed then)."""
+        assert self.state is not None
+        actions, mask = self.state["actions"], self.state["mask"]
+        try:
+            index = actions.index(label)
+        except ValueError:
+            return f"action {label!r} is not an action of state {seq} (labels: {_short_list(actions)})"
+        if not mask[index]:
+            enabled = [a for a, m in zip(actions, mask) if m]
+            return f"action {label!r} is not enabled in state {seq} (enabled: {_short_list(enabled)})"
+        self.stepper.decide(index)  # enabled by the mask: cannot be refused
+        return None
 
     def handle_order(self, text: str) -> list[Outgoing]:
         """Add an order's jobs to the running net now; reject invalid, duplicate or late orders."""
@@ -287,7 +307,7 @@ class ShopService:
                                              "start a new run for it", text)]
         try:
             jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops] for ops in msg["jobs"]]
-            ids = self.shop.add_jobs(jobs)
+            ids = self.stepper.add_jobs(jobs)
         except (InstanceError, InvalidAction) as exc:
             return [self._error("bad_order", f"order {oid!r} rejected: {exc}", text)]
         self.orders[oid] = ids
@@ -340,6 +360,8 @@ class ShopService:
             sched = shop.schedule()
             sched.meta.update(run_id=self.run_id, decisions=self.decisions, orders=dict(self.orders),
                               wall_time=round(self.wall_time, 4), decision_time=round(self.decision_time, 4))
+            if self.stepper.idle_stops:
+                sched.meta["idle_answers"] = self.idle_answers
             if self.agents:
                 sched.meta["solver"] = self.agents[-1] if len(self.agents) == 1 else "+".join(self.agents)
             self.final_schedule = sched
@@ -355,10 +377,16 @@ class ShopService:
         self.state = make_state(self.run_id, self.state_seq, shop.now, shop.net.marking(), shop.action_labels(),
                                 shop.action_mask() if not done else [False] * shop.n_actions, done,
                                 instance=shop.instance.name, makespan=shop.makespan if done else None,
-                                features=features)
+                                features=features, idle=self._idle_offer())
         if self.with_history and not done:  # added after make_state's check; the schema (history) allows it
             self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
         return self.state
+
+    def _idle_offer(self) -> list[dict[str, Any]] | None:
+        """The state's ``idle`` field: None without idle stops, else the vehicles offered now."""
+        if not self.stepper.idle_stops or self.shop.done:
+            return None
+        return [{"kind": k, "vehicle": v, "location": loc} for k, v, loc in self.stepper.idle]
 
     def _error(self, code: str, message: str, received: str | None) -> Outgoing:
         return Outgoing(TOPIC_ERRORS, make_error(self.source, code, message, run_id=self.run_id, received=received))

@@ -23,8 +23,9 @@ Answers are written as labels, so they can travel in messages and histories: a d
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, Sequence
 
+from .instance import Operation
 from .petri import InvalidAction
 from .shop import Shop
 
@@ -162,6 +163,13 @@ class Stepper:
             shop.net.put(shop.p_agv_orders if kind == "agv" else shop.p_tt_orders, (v, loc))
         self.looked.update(offered)
         return self.advance()
+
+    def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:
+        """Add a live order's jobs now (:meth:`Shop.add_jobs`) and run to the next stop; returns the new job
+        numbers. Allowed at any stop before the end; the vehicles looked at so far stay looked at."""
+        ids = self.shop.add_jobs(jobs, advance=False)
+        self.advance()
+        return ids
 
     def apply(self, label: str) -> StopKind:
         """Apply an answer given as a label (an action label at a decision, ``wait``/``reposition:...`` at an

@@ -82,8 +82,9 @@ def test_first_and_random() -> None:
 @pytest.mark.parametrize("solver, needle", [
     ("ppo", "solver 'ppo' is not available without the shop's instance: it replays the shop into a twin"),
     ("ppo:bu", "solver 'ppo:bu' is not available without the shop's instance"),
-    ("lookahead", "solver 'lookahead' is not available in the agent node: the lookahead moves idle vehicles"),
-    ("ppo+lookahead", "solver 'ppo+lookahead' is not available in the agent node"),
+    ("lookahead", "solver 'lookahead' is not available without the shop's instance"),
+    ("ppo+lookahead", "solver 'ppo+lookahead' is not available without the shop's instance"),
+    ("ppo:+lookahead", "solver 'ppo:+lookahead' names no model"),
     ("ppo:", "solver 'ppo:' names no model"),
     ("cpsat", "plans a whole schedule offline"),
     ("sos", "plans a whole schedule offline"),
@@ -157,10 +158,11 @@ def test_legal_labels() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ ppo
-def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: int | None = None):
+def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: int | None = None,
+            idle_stops: bool = False):
     """Drive a history-carrying shop with a PPO agent; optionally replace the agent by a fresh one (a restart)
     before state ``restart_at`` and send an order before state ``order_at``."""
-    svc = ShopService(inst, run_id="p", history=True)
+    svc = ShopService(inst, run_id="p", history=True, idle_stops=idle_stops)
     agent = AgentLogic(solver, instance=inst)
     agents = [agent]
     out = svc.start()
@@ -254,3 +256,73 @@ def test_unknown_ppo_model_and_oversized_instance() -> None:
         AgentLogic("ppo:nope", instance=builtin("EX12"))
     with pytest.raises(UnavailableSolver, match="is larger than model bu allows"):
         AgentLogic("ppo:bu", instance=builtin("sl00"))
+
+
+# ------------------------------------------------------------------------------ lookahead over idle stops
+@pytest.mark.parametrize("name", ["EX12", "EX22", "EX52", "ra01"])
+def test_ppo_lookahead_over_messages_equals_the_offline_solver(name: str) -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin(name)
+    ref = ppo_solver("ppo")(inst, lookahead=True)
+    svc, (agent,) = ppo_run(inst, solver="ppo+lookahead", idle_stops=True)
+    model = ref.meta["model"]
+    assert agent.name == f"ppo:{model}+lookahead" == svc.final_schedule.meta["solver"]
+    got = svc.final_schedule.to_dict()
+    for key in ("operations", "agv_trips", "tool_trips", "makespan"):
+        assert got[key] == ref.to_dict()[key], key
+    assert validate(inst, svc.final_schedule) == []
+    assert svc.idle_answers > 0 and svc.final_schedule.meta["idle_answers"] == svc.idle_answers
+    assert agent.decide.rebuilds == 1
+
+
+def test_lookahead_moves_vehicles_over_messages_and_restarts() -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin("EX22")  # the lookahead improves EX22 (pre-positioning pays off)
+    plain = ppo_solver("ppo")(inst)
+    svc, agents = ppo_run(inst, solver="lookahead", idle_stops=True, restart_at=9)
+    assert any(lab.startswith("reposition:") for lab in svc._applied)  # the agent moved a vehicle
+    assert len(agents) == 2 and agents[1].decide.rebuilds == 1
+    assert svc.final_schedule.makespan < plain.makespan
+    assert svc.final_schedule.makespan == ppo_solver("ppo")(inst, lookahead=True).makespan
+    assert validate(inst, svc.final_schedule) == []
+
+
+def test_lookahead_twin_follows_orders_at_idle_stops() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p", history=True, idle_stops=True)
+    agent = AgentLogic("ppo+lookahead", instance=inst)
+    svc.start()
+    ordered = False
+    while not svc.done:
+        if not ordered and svc.state["idle"]:  # an order arriving at an idle stop
+            out = svc.handle_order(encode(m.make_order("o1", [[(1, None, 3), (2, None, 4)]])))
+            assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+            ordered = True
+        (cmd,) = agent.on_state(encode(svc.state))
+        out = svc.handle_command(encode(cmd.msg))
+        assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+    assert ordered and svc.instance.n_jobs == 6 and agent.decide.twin.instance.n_jobs == 6
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+@pytest.mark.parametrize("solver", ["rule:SPTN+nearest", "ppo"])
+def test_other_solvers_wait_at_idle_stops(solver: str) -> None:
+    inst = builtin("ra01")
+    svc, (agent,) = ppo_run(inst, solver=solver, idle_stops=True)
+    ref = solve(inst, solver)
+    idle_answers = [lab for lab in svc._applied if lab == "wait" or lab.startswith("reposition")]
+    assert svc.idle_answers == len(idle_answers) > 0 and set(idle_answers) == {"wait"}
+    assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"]
+    assert svc.final_schedule.makespan == ref.makespan
+
+
+def test_lookahead_needs_a_shop_with_idle_stops() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p", history=True)        # no idle stops
+    agent = AgentLogic("ppo+lookahead", instance=inst)
+    svc.start()
+    (err,) = agent.on_state(encode(svc.state))
+    assert err.topic == m.TOPIC_ERRORS and "has no 'idle' field" in err.msg["message"]
+    assert "idle_stops:=true" in err.msg["message"]

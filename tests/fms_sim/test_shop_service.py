@@ -430,3 +430,108 @@ def test_history_schema_is_strict() -> None:
             decode(json.dumps(dict(state, history=hist)))
         assert needle in str(info.value), (hist, str(info.value))
     decode(json.dumps(dict(state, history=None)))           # optional: null is fine
+
+
+# ------------------------------------------------------------------------------------------------ idle stops
+def answer(svc: ShopService) -> str:
+    """``wait`` at an idle stop, else the first enabled action."""
+    return command(svc, "wait") if svc.state["idle"] else command(svc)
+
+
+def test_idle_stops_are_off_by_default() -> None:
+    svc = ShopService(builtin("ra01"), run_id="r")
+    svc.start()
+    run_to_end(svc)
+    assert "idle" not in svc.state and svc.idle_answers == 0 and "idle_answers" not in svc.final_schedule.meta
+
+
+def test_idle_stops_offer_idle_vehicles_and_waiting_changes_nothing() -> None:
+    inst = builtin("ra01")
+    plain = ShopService(inst, run_id="a")
+    plain.start()
+    run_to_end(plain)
+    svc = ShopService(inst, run_id="b", history=True, idle_stops=True)
+    assert state_of(svc.start())["idle"] == []                   # state 0 is a decision
+    seen = set()
+    while not svc.done:
+        st = decode(encode(svc.state))                           # every state passes the schema
+        if st["idle"]:
+            assert not any(st["mask"])
+            seen |= {d["kind"] for d in st["idle"]}
+            idle_now = {("agv", v, loc) for v, loc in svc.shop.idle_agvs()} | {
+                ("tt", r, loc) for r, loc in svc.shop.idle_transporters()}
+            assert {(d["kind"], d["vehicle"], d["location"]) for d in st["idle"]} <= idle_now
+        out = svc.handle_command(answer(svc))
+        assert not by_topic(out, m.TOPIC_ERRORS)
+    assert seen == {"agv", "tt"} and svc.idle_answers > 0
+    assert svc.decisions == plain.decisions
+    assert svc.final_schedule.meta["idle_answers"] == svc.idle_answers
+    for key in ("operations", "agv_trips", "tool_trips"):
+        assert svc.final_schedule.to_dict()[key] == plain.final_schedule.to_dict()[key]
+
+
+def _to_idle_stop(svc: ShopService) -> None:
+    while not svc.state["idle"]:
+        svc.handle_command(command(svc))
+
+
+def test_reposition_command_moves_the_vehicle_and_is_in_the_history() -> None:
+    inst = builtin("ra01")
+    svc = ShopService(inst, run_id="r", history=True, idle_stops=True)
+    svc.start()
+    _to_idle_stop(svc)
+    v = svc.state["idle"][0]
+    dest = (v["location"] + 1) % (inst.n_machines + 1)
+    label = f"reposition:{v['kind']}:{v['vehicle']}:{dest}"
+    now = svc.shop.now
+    out = svc.handle_command(command(svc, label))
+    assert not by_topic(out, m.TOPIC_ERRORS)
+    assert svc.state["history"]["actions"].split(" ")[-1] == label
+    while not svc.done:
+        svc.handle_command(answer(svc))
+    trips = svc.final_schedule.agv_trips if v["kind"] == "agv" else svc.final_schedule.tool_trips
+    vehicle = (lambda t: t.agv) if v["kind"] == "agv" else (lambda t: t.transporter)
+    assert any(vehicle(t) == v["vehicle"] and t.start == now and t.to == dest and not t.loaded for t in trips)
+    assert validate(inst, svc.final_schedule) == []
+
+
+@pytest.mark.parametrize("label, needle", [
+    ("job:0", "state {seq} is an idle stop: malformed idle answer 'job:0'"),
+    ("reposition:agv:7:1", "AGV 7 is not an idle vehicle offered"),
+    ("reposition:agv:0:99", "location 99 does not exist"),
+    ("reposition:tt:0", "malformed"),
+])
+def test_bad_answers_to_an_idle_stop_change_nothing(label: str, needle: str) -> None:
+    svc = ShopService(builtin("ra01"), run_id="r", idle_stops=True)
+    svc.start()
+    _to_idle_stop(svc)
+    if "agv:0:99" in label:
+        v = svc.state["idle"][0]
+        label = f"reposition:{v['kind']}:{v['vehicle']}:99"
+    before = snapshot(svc)
+    (err,) = by_topic(svc.handle_command(command(svc, label)), m.TOPIC_ERRORS)
+    assert err["code"] == "forbidden_action" and needle.format(seq=svc.state_seq) in err["message"]
+    assert snapshot(svc) == before and svc.idle_answers == 0
+    assert not by_topic(svc.handle_command(command(svc, "wait")), m.TOPIC_ERRORS)
+
+
+def test_idle_answers_at_a_decision_are_refused() -> None:
+    svc = ShopService(builtin("ra01"), run_id="r", idle_stops=True)
+    svc.start()
+    before = snapshot(svc)
+    for label in ("wait", "reposition:agv:0:1"):
+        (err,) = by_topic(svc.handle_command(command(svc, label)), m.TOPIC_ERRORS)
+        assert err["code"] == "forbidden_action" and f"{label!r} is not an action of state 0" in err["message"]
+    assert snapshot(svc) == before
+
+
+def test_idle_schema_is_strict() -> None:
+    svc = ShopService(builtin("ra01"), run_id="r", idle_stops=True)
+    svc.start()
+    _to_idle_stop(svc)
+    st = json.loads(encode(svc.state))
+    for bad, needle in ((dict(st, idle=[{"kind": "car", "vehicle": 0, "location": 0}]), "kind"),
+                        (dict(st, idle=[{"kind": "agv", "vehicle": -1, "location": 0}]), "vehicle"),
+                        (dict(st, mask=[True] + st["mask"][1:]), "either a decision or an idle stop")):
+        with pytest.raises(MessageError, match=needle):
+            decode(json.dumps(bad))

@@ -79,16 +79,20 @@ def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) ->
                          env=ros_env, capture_output=True, text=True, timeout=120)
     wall = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr + res.stdout
-    # the shipped PPO model (84) beats the best rule pair (86) in simulation, so best runs it over the topics
-    assert "best on EX12: ppo:bu (makespan 84 in simulation; best rule pair rule:LPTN+nearest: 86)" in res.stderr
+    # the shipped PPO model with lookahead (83) beats the best rule pair (86) in simulation, so best runs it
+    # over the topics: the agent pre-positions AGVs at the shop's idle stops
+    assert ("best on EX12: ppo:bu+lookahead (makespan 83 in simulation; best rule pair rule:LPTN+nearest: 86)"
+            in res.stderr)
     lines = res.stdout.splitlines()
-    assert lines[0].startswith("EX12: makespan 84 (ppo:bu over ROS 2 topics, 26 decisions, valid)")
+    assert lines[0].startswith("EX12: makespan 83 (ppo:bu+lookahead over ROS 2 topics, 26 decisions, valid)")
     png = gantt_path(db.parent, "up-ex12")
     assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex12)", f"gantt:    {png}"]
     sched = Schedule.load(out)
     inst = builtin("EX12")
-    assert validate(inst, sched) == [] and sched.makespan == 84
-    assert sched.meta["solver"] == "ppo:bu" and sched.meta["decisions"] == 26
+    assert validate(inst, sched) == [] and sched.makespan == 83
+    assert sched.meta["solver"] == "ppo:bu+lookahead" and sched.meta["decisions"] == 26
+    assert sched.meta["idle_answers"] > 0
+    assert any(not t.loaded and t.job is None for t in sched.agv_trips)  # a pre-positioning trip
     check_log(db, "up-ex12", sched, inst)
     assert png.read_bytes()[:4] == b"\x89PNG"
     for name in ("shop", "agent", "recorder"):                  # stopped cleanly, no tracebacks
@@ -116,8 +120,29 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
 
 
+def test_fms_up_ppo_lookahead_equals_the_offline_solver(ros_env: dict[str, str], tmp_path: Path) -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    out, db = tmp_path / "EX22.json", tmp_path / "fms.sqlite"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX22", "--solver", "ppo+lookahead", "--out",
+                          str(out), "--db", str(db), "--run-id", "up-look", "--domain-id", ros_env["ROS_DOMAIN_ID"],
+                          "--log-dir", str(tmp_path / "logs")],
+                         env=ros_env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr + res.stdout
+    inst = builtin("EX22")
+    ref = ppo_solver("ppo")(inst, lookahead=True)
+    plain = ppo_solver("ppo")(inst)
+    sched = Schedule.load(out)
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:bu+lookahead"
+    assert sched.makespan == ref.makespan < plain.makespan      # pre-positioning pays off on EX22
+    assert sched.to_dict()["agv_trips"] == ref.to_dict()["agv_trips"]
+    check_log(db, "up-look", sched, inst)
+    for name in ("shop", "agent"):
+        assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
+
+
 def test_fms_up_bad_input_exits_2(ros_env: dict[str, str], tmp_path: Path) -> None:
-    for args, needle in ((["EX12", "--solver", "lookahead"], "solver 'lookahead' is not available"),
+    for args, needle in ((["EX12", "--solver", "cpsat"], "plans a whole schedule offline"),
                          (["EX12", "--solver", "ppo:nope"], "no model named 'nope'"),
                          (["NOPE"], "no built-in instance or file named 'NOPE'")):
         res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", *args, "--db", str(tmp_path / "x.sqlite")],
@@ -298,7 +323,8 @@ def test_bad_commands_are_rejected_and_the_shop_keeps_running(nodes: NodeProcs, 
 
 def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
     for module, args, needle in (
-        (AGENT, ["-p", "solver:=lookahead"], "fms-agent: error: solver 'lookahead' is not available"),
+        (AGENT, ["-p", "solver:=lookahead"], "fms-agent: error: solver 'lookahead' is not available without the "
+                                             "shop's instance"),
         (SHOP, ["-p", "instance:=EX99"], "fms-shop: error: unknown built-in instance 'EX99'"),
         (SHOP, [], "fms-shop: error: parameter 'instance' is required"),
         (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
