@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
@@ -196,12 +197,27 @@ def _ignore_stop_signals() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
+#: how long an executor error may precede the context's shutdown and still count as part of stopping
+SHUTDOWN_GRACE_S = 1.0
+
+
+def _shutting_down(grace_s: float) -> bool:
+    """Whether rclpy is shut down now or within ``grace_s`` seconds."""
+    deadline = time.monotonic() + grace_s
+    while rclpy.ok():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
 def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
     """Spin ``node`` until SIGINT/SIGTERM, then ``close()`` and shut rclpy down; returns exit code 0.
 
     Two rclpy behaviours are absorbed here (both seen with Fast DDS when several nodes stop at once): a
-    message arriving while the context shuts down can make the executor raise (``RuntimeError`` in
-    ``take_message``), and the stop signal can be delivered a second time — during ``close()`` or while the
+    message arriving while the context shuts down can make the executor raise (``RuntimeError``, or a
+    ``TypeError`` "Unable to convert call argument", in ``take_message``), possibly a moment before the context
+    reports the shutdown — such an error counts as stopping if rclpy is down within :data:`SHUTDOWN_GRACE_S`; and the stop signal can be delivered a second time — during ``close()`` or while the
     interpreter finalises, where it would kill a cleanly stopped node with -SIGINT. Once the node is
     stopping, further stop signals are therefore ignored.
     """
@@ -210,7 +226,9 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
-        if rclpy.ok():
+        # the stop signal may still be on its way to shutting the context down (the executor can fail in
+        # take_message a moment before): only an error while rclpy stays up is a real failure
+        if not _shutting_down(SHUTDOWN_GRACE_S):
             raise
     finally:
         _ignore_stop_signals()
