@@ -19,6 +19,7 @@ Every schedule is validated. Usage: ``python bench/ros_speed.py [--instances EX1
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import platform
 import statistics
@@ -34,16 +35,21 @@ from fms_sim.schedule import Schedule
 from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
 from fms_dispatch.agent_logic import AgentLogic
+from fms_dispatch.up import needs_idle_stops, needs_twin
 
 
 def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     """Decisions/s of ShopService + AgentLogic exchanging encoded messages in one process."""
     inst = builtin(name)
+    agent = AgentLogic(solver, instance=inst)  # loaded once (a PPO model takes seconds to load)
+    twin = needs_twin(solver)  # the same shop settings as fms up uses for this solver
     n = 0
     t0 = time.perf_counter()
-    while n == 0 or time.perf_counter() - t0 < seconds:
-        svc = ShopService(inst, run_id="bench")
-        agent = AgentLogic(solver)
+    for run in itertools.count():
+        if n and time.perf_counter() - t0 >= seconds:
+            break
+        svc = ShopService(inst, run_id=f"bench-{run}", history=twin, features=not twin,
+                          idle_stops=needs_idle_stops(solver))
         out = svc.start()
         while not svc.done:
             state = [o.msg for o in out if o.topic == TOPIC_STATE][-1]
@@ -51,7 +57,7 @@ def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
             out = svc.handle_command(encode(cmd.msg, check=False))
             for o in out:
                 encode(o.msg, check=False)
-            n += 1
+        n += svc.decisions
     return n / (time.perf_counter() - t0)
 
 

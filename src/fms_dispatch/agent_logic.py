@@ -153,7 +153,7 @@ class RuleDecider:
 
 
 def load_ppo_agent(model: str | None, instance: Instance) -> Any:
-    """The trained :class:`fms_dispatch.rl.policy.Agent` for ``model`` (None: the shipped default for
+    """The trained :class:`fms_dispatch.rl.agent.Agent` for ``model`` (None: the shipped default for
     ``instance``); raises :class:`UnavailableSolver` if it cannot be loaded or the instance does not fit it.
 
     A thin adapter over :mod:`fms_dispatch.rl.models` (imported here: torch loads only for PPO agents)."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -61,17 +63,24 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
     assert s1.makespan == m["training"]["eval_makespan"]["EX12"]
     assert s1.meta["solver"] == "ppo:tiny" and s1.meta["lookahead"] is False
 
-    # the numpy actor used for inference computes the torch policy's logits
+    # training exported the numpy actor; it computes the torch policy's logits
+    from fms_dispatch.rl.agent import Agent
     from fms_dispatch.rl.models import load_agent
     from fms_sim.shop import Shop
 
+    assert (out / "best_model.actor.npz").is_file() and (out / "model.actor.npz").is_file()
     agent = load_agent(str(out))
+    assert not agent.uses_torch
+    ref = Agent(agent.path, agent.padding, torch=True)
+    assert ref.uses_torch
     shop = Shop(builtin("EX42"))
     while not shop.done:
         fast, mask = agent.logits(shop, fast=True)
-        slow, _ = agent.logits(shop, fast=False)
+        slow, _ = ref.logits(shop, fast=False)
         assert np.array_equal(np.isfinite(fast), mask) and np.allclose(fast[mask], slow[mask], atol=1e-5)
         shop.act(agent.act(shop))
+    with pytest.raises(ValueError, match="loaded without torch"):
+        agent.logits(shop, fast=False)
 
     m2 = train({"steps": 128}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
     assert m2["training"]["timesteps"] == 384  # continued, not restarted
@@ -126,6 +135,52 @@ def test_shipped_models_exist_and_are_small():
         for f in ref.folder.iterdir():
             assert f.stat().st_size <= 10 * 2**20, f
         assert (ref.folder / "config.json").is_file() and (ref.folder / "metrics.json").is_file()
+
+
+def test_shipped_models_have_current_numpy_exports():
+    """Every shipped weights file has its actor export, and the export is of exactly those weights (a
+    retrained model without a new export would silently fall back to torch)."""
+    from fms_dispatch.rl.actors import actor_path, file_sha256, load_actor
+
+    for name in SHIPPED:
+        ref = resolve_model(name)
+        for weights in ref.folder.glob("*.zip"):
+            actor, sha = load_actor(actor_path(weights))
+            assert sha == file_sha256(weights), weights
+
+
+def test_solving_with_a_shipped_model_does_not_import_torch():
+    code = ("import sys; from fms_dispatch.rl import ppo_solver; from fms_sim.benchmarks import builtin; "
+            "s = ppo_solver('ppo')(builtin('EX12'), lookahead=True); "
+            "print(s.makespan, s.meta['model'], 'torch' in sys.modules, 'sb3_contrib' in sys.modules)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    makespan, model, torch_loaded, sb3_loaded = res.stdout.split()
+    assert model == "bu" and torch_loaded == "False" and sb3_loaded == "False"
+    assert int(makespan) == ppo_solver("ppo")(builtin("EX12"), lookahead=True).makespan
+
+
+def test_stale_or_broken_export_falls_back_to_torch(tmp_path):
+    import shutil
+
+    from fms_dispatch.rl.actors import actor_path
+    from fms_dispatch.rl.agent import Agent
+
+    ref = resolve_model("bu")
+    weights = tmp_path / "best_model.zip"
+    shutil.copy(ref.weights, weights)
+    shutil.copy(ref.folder / "config.json", tmp_path / "config.json")
+    shutil.copy(resolve_model("large").weights.with_name("best_model.actor.npz"), actor_path(weights))  # stale
+    agent = Agent(weights, ref.padding)
+    assert agent.uses_torch
+    actor_path(weights).write_bytes(b"not an npz")
+    assert Agent(weights, ref.padding).uses_torch
+    shutil.copy(ref.weights.with_name("best_model.actor.npz"), actor_path(weights))  # the right export
+    fast = Agent(weights, ref.padding)
+    assert not fast.uses_torch
+    inst = builtin("EX32")
+    assert (ppo_solver(f"ppo:{weights}")(inst).makespan
+            == ppo_solver("ppo:bu")(inst).makespan)
 
 
 def test_shipped_bu_model_valid_on_ex12():

@@ -1,7 +1,9 @@
 """Reinforcement-learning dispatcher: MaskablePPO agents on the shop net, with an optional lookahead twin.
 
 * :mod:`.envs` — the agent's environment (fast features, padding profiles);
-* :mod:`.policy` — the entity policy network and the deterministic :class:`~.policy.Agent`;
+* :mod:`.policy` — the entity policy network (torch);
+* :mod:`.actors` — its actor in numpy, and the ``.actor.npz`` export;
+* :mod:`.agent` — the deterministic :class:`~.agent.Agent` (numpy at inference; torch only without an export);
 * :mod:`.lookahead` — running an agent, with pre-positioning of idle vehicles;
 * :mod:`.models` — model folders, shipped models and the default choice per instance;
 * :mod:`.train` — ``fms train``.

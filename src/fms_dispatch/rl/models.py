@@ -7,7 +7,9 @@ A model folder (``models/NAME``) holds:
 * ``model.zip`` — the latest weights (what ``fms train --resume`` continues from);
 * ``best_model.zip`` — the best weights by periodic evaluation on held-out instances (used for solving when
   present);
-* ``metrics.json`` — training figures and benchmark results.
+* ``metrics.json`` — training figures and benchmark results;
+* ``best_model.actor.npz`` / ``model.actor.npz`` — the actor in numpy for inference without torch, with the
+  SHA-256 of the weights it was exported from (:mod:`fms_dispatch.rl.actors`; ignored when stale).
 
 Shipped models (in the repository's ``models/`` folder, or ``$FMS_MODELS_DIR``): ``bu`` (Bilge-Ulusoy, layout
 2, 2 AGVs, no tools), ``large`` (large benchmark with AGVs and tools) and ``large-agv`` (AGVs only).
@@ -92,13 +94,13 @@ def default_model_name(inst: Instance) -> str:
 
 @functools.lru_cache(maxsize=8)
 def _cached_agent(weights: str, mtime: float, padding: tuple, name: str) -> Any:
-    from .policy import Agent
+    from .agent import Agent
 
     return Agent(weights, dict(padding), name=name)
 
 
 def load_agent(spec: str) -> Any:
-    """A loaded :class:`~fms_dispatch.rl.policy.Agent` for ``spec`` (cached per weights file)."""
+    """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file)."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
                          ref.name)

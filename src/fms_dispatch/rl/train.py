@@ -7,7 +7,8 @@ weights to ``model.zip`` periodically and at the end (``--resume`` continues fro
 on), logs to TensorBoard (``runs/NAME`` by default) and shows a progress bar. Several environments run in
 parallel (``SubprocVecEnv``) when ``n_envs > 1`` and ``vec_env`` is ``subproc``; every process uses one torch
 thread. Hyper-parameters come from ``--config FILE`` (JSON) and the command line, and the merged config is
-written to ``config.json`` next to the model.
+written to ``config.json`` next to the model. At the end each saved ``X.zip`` gets its numpy actor export
+``X.actor.npz`` (:func:`fms_dispatch.rl.agent.export_actor`), so solving with the model needs no torch.
 
 Instance specs: built-in names or files (as ``fms solve`` takes them), shell patterns over built-in names
 (``'EX?2'``, ``'sl[0-2]?'``), and generated sets ``gen:JxMxT*COUNT@SEED`` (Taillard-LCG instances of that size
@@ -138,7 +139,7 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     from fms_sim.validate import validate
 
     from .lookahead import run_agent
-    from .policy import Agent
+    from .agent import Agent
 
     agent = Agent(weights, padding)
     out = {}
@@ -266,6 +267,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     venv.close()
     eval_env.close()
 
+    from .agent import export_actor
+
+    for saved in ("model.zip", "best_model.zip"):  # numpy exports: inference without torch
+        if (out / saved).is_file():
+            export_actor(out / saved)
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
     makespans = evaluate_model(weights, padding, eval_set)
     prev = old.get("training", {})

@@ -1,0 +1,142 @@
+"""A trained model ready to dispatch: ``Agent(weights, padding).act(shop) -> net action`` (deterministic).
+
+The agent chooses the arg-max of the masked logits of the model's actor (a single legal action is taken
+without a forward pass). It decides with the numpy actor (:mod:`fms_dispatch.rl.actors`): from the model's
+``.actor.npz`` export when one exists for exactly these weights (checked by SHA-256) — then torch is never
+imported, which saves seconds at start-up — else from the weights loaded with sb3-contrib and torch (CPU,
+one thread). :func:`export_actor` writes the export; ``fms train`` does so for every model it saves.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fms_sim.instance import Instance
+from fms_sim.shop import Shop
+
+from .actors import Actor, actor_path, file_sha256, load_actor, save_actor
+from .envs import FastShopEnv
+
+__all__ = ["Agent", "export_actor", "load_torch_policy"]
+
+
+def load_torch_policy(weights: str | Path) -> Any:
+    """The MaskablePPO policy of a weights file, on the CPU, in evaluation mode (imports torch)."""
+    import torch
+    from sb3_contrib import MaskablePPO
+
+    torch.set_num_threads(1)
+    policy = MaskablePPO.load(str(weights), device="cpu").policy
+    policy.set_training_mode(False)
+    return policy
+
+
+def export_actor(weights: str | Path) -> Path:
+    """Write the numpy actor of ``weights`` next to it (``X.zip`` → ``X.actor.npz``); returns its path."""
+    from .policy import actor_from_policy
+
+    actor = actor_from_policy(load_torch_policy(weights))
+    if actor is None:
+        raise ValueError(f"the policy in {weights} has layers the numpy actor does not support")
+    return save_actor(actor, actor_path(weights), file_sha256(weights))
+
+
+class Agent:
+    """A trained model ready to dispatch (see the module docstring).
+
+    ``torch=True`` forces loading the weights with torch (and keeps the torch policy for
+    :meth:`logits` with ``fast=False``, which tests compare with the numpy actor).
+    """
+
+    def __init__(self, model_path: str | Path, padding: dict[str, int], name: str = "", torch: bool = False):
+        path = Path(model_path)
+        if not path.is_file():
+            raise ValueError(f"model file {path} does not exist")
+        self.name = name or path.parent.name
+        self.path = path
+        self.padding = dict(padding)
+        self.policy: Any = None  # the torch policy, when loaded
+        self.actor: Actor | None = None if torch else self._exported_actor()
+        if self.actor is None:
+            from .policy import actor_from_policy
+
+            self.policy = load_torch_policy(path)
+            self.actor = actor_from_policy(self.policy)
+        self._envs: dict[int, FastShopEnv] = {}
+        self._last: FastShopEnv | None = None
+
+    @property
+    def uses_torch(self) -> bool:
+        return self.policy is not None
+
+    def _exported_actor(self) -> Actor | None:
+        npz = actor_path(self.path)
+        if not npz.is_file():
+            return None
+        try:
+            actor, sha = load_actor(npz)
+        except ValueError:
+            return None
+        return actor if sha == file_sha256(self.path) else None  # a stale export is never used
+
+    def fits(self, inst: Instance) -> bool:
+        """Whether ``inst`` fits this model's padded layout."""
+        p = self.padding
+        return (inst.n_jobs <= p["max_jobs"] and inst.n_machines <= p["max_machines"]
+                and (inst.n_tools if inst.has_tools else 0) <= p["max_tools"]
+                and (inst.n_agvs if inst.has_agvs else 0) <= p["max_agvs"]
+                and (inst.n_tool_transporters if inst.has_tools else 0) <= p["max_tts"])
+
+    def _env(self, shop: Shop) -> FastShopEnv:
+        env = self._envs.get(id(shop))
+        if env is None or env.shop is not shop:
+            if not self.fits(shop.instance):
+                raise ValueError(f"instance {shop.instance.name} does not fit model {self.name} "
+                                 f"(max {self.padding})")
+            env = FastShopEnv(shop.instance, **self.padding)
+            env.attach(shop)
+            if self._last is not None:
+                env.adopt_tables(self._last)  # twins share the real shop's instance tables
+            if len(self._envs) >= 4:  # the live shop and a twin or two; drop stale ones
+                self._envs.clear()
+            self._envs[id(shop)] = env
+        elif env.instance is not shop.instance:
+            env.attach(shop)
+        self._last = env
+        return env
+
+    def logits(self, shop: Shop, fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Masked-out logits are -inf; returns (logits over padded actions, mask).
+
+        ``fast`` uses the numpy actor; ``fast=False`` the torch policy (only if loaded with torch).
+        """
+        env = self._env(shop)
+        obs, mask = env.observe()
+        if fast and self.actor is not None:
+            return self.actor.logits(obs, mask), mask
+        if self.policy is None:
+            raise ValueError(f"model {self.name} was loaded without torch; use Agent(..., torch=True)")
+        import torch
+
+        with torch.no_grad():
+            x = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
+            feats = self.policy.extract_features(x, self.policy.pi_features_extractor)
+            latent = self.policy.mlp_extractor.forward_actor(feats)
+            out = self.policy.action_net(latent)[0].numpy().astype(np.float64)
+        out[~mask] = -np.inf
+        return out, mask
+
+    def act(self, shop: Shop) -> int:
+        """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
+        legal = shop.legal_actions()
+        if len(legal) == 1:
+            return legal[0]
+        env = self._env(shop)
+        logits, _ = self.logits(shop)
+        a = env.to_net_action(int(np.argmax(logits)))
+        if a is None or a not in legal:  # cannot happen with a correct mask; never hand out an illegal action
+            raise RuntimeError(f"policy chose a masked action at time {shop.now}")
+        return a
