@@ -44,6 +44,9 @@ class Operation:
     tool: int | None
     duration: int
 
+    def __deepcopy__(self, memo: dict) -> "Operation":
+        return self  # a value: twins share it
+
     def __post_init__(self) -> None:
         if not _is_int(self.machine) or self.machine < 1:
             raise InstanceError(f"machine must be an integer >= 1, got {self.machine!r}")
@@ -93,6 +96,10 @@ class Instance:
     n_machines: int = 0
     n_tools: int = 0
     meta: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+
+    def __deepcopy__(self, memo: dict) -> "Instance":
+        """An instance is a value (frozen, its tables tuples): twins of a shop share it."""
+        return self
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__

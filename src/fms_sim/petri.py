@@ -77,6 +77,10 @@ class Token:
     def __repr__(self) -> str:
         return f"Token({self.colour!r}, ready={self.ready})"
 
+    def __deepcopy__(self, memo: dict) -> "Token":
+        # colours and keys are immutable values (tuples of ints): a twin's token shares them (fast twins)
+        return Token(self.colour, self.key, self.ready)
+
 
 class Place:
     """A place; ``key`` (colour -> hashable) buckets its tokens for O(1) coloured lookups."""

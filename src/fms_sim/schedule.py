@@ -29,6 +29,9 @@ class OperationRecord:
     start: int
     end: int
 
+    def __deepcopy__(self, memo: dict) -> "OperationRecord":
+        return self  # a frozen record: twins of a shop share it
+
 
 @dataclass(frozen=True, slots=True)
 class AgvTrip:
@@ -40,6 +43,9 @@ class AgvTrip:
     start: int
     end: int
     loaded: bool
+
+    def __deepcopy__(self, memo: dict) -> "AgvTrip":
+        return self  # a frozen record: twins of a shop share it
 
     def to_dict(self) -> dict[str, Any]:
         return {"agv": self.agv, "job": self.job, "op": self.op, "from": self.from_, "to": self.to,
@@ -57,6 +63,9 @@ class ToolTrip:
     start: int
     end: int
     loaded: bool
+
+    def __deepcopy__(self, memo: dict) -> "ToolTrip":
+        return self  # a frozen record: twins of a shop share it
 
     def to_dict(self) -> dict[str, Any]:
         return {"transporter": self.transporter, "tool": self.tool, "job": self.job, "op": self.op,

@@ -23,7 +23,7 @@ from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 from fms_sim.stepping import Move, Stepper
 
-__all__ = ["run_agent", "run_with_lookahead", "predict_task", "LookaheadPlanner", "finish"]
+__all__ = ["run_agent", "run_with_lookahead", "predict_task", "predict_tasks", "LookaheadPlanner", "finish"]
 
 Choose = Callable[[Shop], int]
 
@@ -63,6 +63,31 @@ def predict_task(shop: Shop, choose: Choose, kind: str, vehicle: int, horizon: i
             return None if treq is None else treq[1]
         twin.act(a)
     return None
+
+
+def predict_tasks(shop: Shop, choose: Choose, vehicles: list[tuple[str, int]],
+                  horizon: int = DEFAULT_HORIZON) -> dict[tuple[str, int], int | None]:
+    """:func:`predict_task` for several vehicles with one twin: the plain policy's trajectory from here is
+    the same whichever vehicle is watched, so one rollout (until every vehicle has a task, the horizon or
+    the end) gives each vehicle's first pickup (None if none)."""
+    twin = shop.copy()
+    twin.net.advance()
+    targets = {(twin.n_jobs if kind == "agv" else twin.n_jobs + twin.n_agvs) + v: (kind, v) for kind, v in vehicles}
+    found: dict[tuple[str, int], int | None] = {}
+    for _ in range(horizon):
+        if twin.done or len(found) == len(targets):
+            break
+        a = choose(twin)
+        key = targets.get(a)
+        if key is not None and key not in found:
+            if key[0] == "agv":
+                req = twin.awaiting_agv()
+                found[key] = None if req is None else req[2]
+            else:
+                treq = twin.awaiting_transporter()
+                found[key] = None if treq is None else treq[1]
+        twin.act(a)
+    return {key: found.get(key) for key in vehicles}
 
 
 def finish(shop: Shop, choose: Choose) -> int:
@@ -106,11 +131,9 @@ class LookaheadPlanner:
 
     def plan(self, stepper: Stepper) -> list[Move]:
         shop, choose = stepper.shop, self.choose
-        moves = []
-        for kind, v, loc in stepper.idle:
-            dest = predict_task(shop, choose, kind, v, self.horizon)
-            if dest is not None and dest != loc:
-                moves.append(Move(kind, v, dest))
+        dests = predict_tasks(shop, choose, [(m.kind, m.vehicle) for m in stepper.idle], self.horizon)
+        moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
+                 if (dest := dests[(kind, v)]) is not None and dest != loc]
         if moves and self.verify:
             if self.expected is None:
                 self.expected = finish(shop, choose)
