@@ -71,3 +71,39 @@ def test_predict_task_reads_the_pickup_of_the_vehicle():
     # the twin is independent: the real shop has not moved
     assert shop.now == 0 and shop.rec.ops == [] and shop.rec.agv == []
     assert predict_task(shop, pol, "agv", 1, horizon=0) is None
+
+
+def test_one_rollout_predicts_every_idle_vehicle_like_separate_rollouts():
+    from fms_dispatch.rl.lookahead import predict_tasks
+    from fms_sim.stepping import Stepper
+
+    pol = RulePolicy("SPTN", "nearest")
+    for name in ("ra01", "EX42"):
+        st = Stepper(Shop(builtin(name)))
+        stop, checked = st.advance(), 0
+        while stop != "done":
+            if stop == "idle":
+                vehicles = [(m.kind, m.vehicle) for m in st.idle]
+                joint = predict_tasks(st.shop, pol, vehicles)
+                assert joint == {(k, v): predict_task(st.shop, pol, k, v) for k, v in vehicles}
+                checked += 1
+                stop = st.move([])
+            else:
+                stop = st.decide(pol(st.shop))
+        assert checked > 3
+
+
+def test_shop_copies_share_values_but_not_state():
+    inst = builtin("ra01")
+    shop = Shop(inst)
+    pol = RulePolicy("FIFO", "first")
+    for _ in range(10):
+        shop.act(pol(shop))
+    twin = shop.copy()
+    assert twin.instance is shop.instance and twin.net is not shop.net
+    while not twin.done:
+        twin.act(pol(twin))
+    assert not shop.done and shop.now < twin.now        # the original did not move
+    while not shop.done:
+        shop.act(pol(shop))
+    assert shop.schedule().to_dict() == twin.schedule().to_dict()
