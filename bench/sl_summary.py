@@ -1,0 +1,155 @@
+"""Per-size-group summary of a large-benchmark run (``fms bench sl ... --results-dir DIR``).
+
+``python bench/sl_summary.py results/sl_full/bench_sl.json`` prints, per mode (AGVs only, AGVs + tools), one
+Markdown table with a row per size group (group g = sl{g}0..sl{g}9, only the instances present in the run):
+
+* the mean CP-SAT lower bound (the best bound any method reported for the instance, i.e. CP-SAT's);
+* the mean makespan of CP-SAT, of PPO, of the best single rule pair of the group (the pair with the lowest
+  mean over the group's instances, named) and of the per-instance best rule pair;
+* the gaps of PPO and of the best single pair to the bound, ``(x - bound) / bound`` of the means;
+* whether PPO's mean is below the best single pair's (the RL issue's target: "better on average than the best
+  rule pair of the baselines in every size group");
+
+followed by PPO's wall time on the largest group present (target <= 5 s per instance on sl70..sl79).
+Instances where a method failed or has no valid schedule are left out of that method's mean and counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+MODES = (("agvs", "AGVs only"), ("agvs+tools", "AGVs + tools"))
+
+
+def _group(instance: str) -> int:
+    return int(instance[2:]) // 10
+
+
+def _mean(xs):
+    return statistics.fmean(xs) if xs else float("nan")
+
+
+def _gap(x: float, bound: float) -> str:
+    return f"{100.0 * (x - bound) / bound:+.1f} %"
+
+
+def summarize(rows: list[dict], variant: str) -> tuple[list[str], dict]:
+    """Markdown lines of one mode's table and the raw figures per group."""
+    by_inst: dict[str, dict[str, dict]] = defaultdict(dict)
+    for r in rows:
+        if r["variant"] == variant:
+            by_inst[r["instance"]][r["method"]] = r
+    groups: dict[int, list[str]] = defaultdict(list)
+    for inst in sorted(by_inst):
+        groups[_group(inst)].append(inst)
+
+    def ok(r):
+        return r is not None and r.get("valid") and r.get("makespan") is not None
+
+    lines = [
+        "| group | instances | CP-SAT bound | CP-SAT (10 s) | PPO (shipped) | best single rule pair | "
+        "per-instance best pair | PPO gap to bound | best pair gap to bound | PPO < best pair (mean)? | "
+        "instances PPO < best pair |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    figures = {}
+    for g in sorted(groups):
+        insts = groups[g]
+        bounds, cps, ppos, best_inst = [], [], [], []
+        missing = defaultdict(int)
+        pair_ms: dict[str, list[int]] = defaultdict(list)
+        for inst in insts:
+            ms = by_inst[inst]
+            cp = ms.get("cpsat")
+            bound = None
+            if ok(cp) and cp.get("lower_bound") is not None:
+                bound = cp["lower_bound"]
+            else:
+                bound = next((r.get("reference") for r in ms.values() if r.get("reference") is not None), None)
+            if bound is None:
+                missing["bound"] += 1
+            else:
+                bounds.append(bound)
+            if ok(cp):
+                cps.append(cp["makespan"])
+            else:
+                missing["cpsat"] += 1
+            pp = ms.get("ppo")
+            if ok(pp):
+                ppos.append(pp["makespan"])
+            else:
+                missing["ppo"] += 1
+            rule_ms = {m: r["makespan"] for m, r in ms.items() if m.startswith("rule:") and ok(r)}
+            for m, v in rule_ms.items():
+                pair_ms[m].append(v)
+            if rule_ms:
+                best_inst.append(min(rule_ms.values()))
+        # best single pair: lowest mean over the group's instances, among pairs valid on all of them
+        complete = {m: v for m, v in pair_ms.items() if len(v) == len(insts)}
+        best_pair = min(complete, key=lambda m: (_mean(complete[m]), m)) if complete else None
+        bp_mean = _mean(complete[best_pair]) if best_pair else float("nan")
+        ties = sum(1 for m in complete if m != best_pair and _mean(complete[m]) == bp_mean)
+        # instances where PPO beats the best single pair (same instance order: rows follow ``insts``)
+        wins = sum(1 for inst in insts if ok(by_inst[inst].get("ppo")) and best_pair
+                   and ok(by_inst[inst].get(best_pair))
+                   and by_inst[inst]["ppo"]["makespan"] < by_inst[inst][best_pair]["makespan"])
+        b, c, p, bi = _mean(bounds), _mean(cps), _mean(ppos), _mean(best_inst)
+        # gaps of the means, over instances where everything is present (normally all)
+        verdict = "yes" if p < bp_mean else "no"
+        figures[g] = {"n": len(insts), "bound": b, "cpsat": c, "ppo": p, "best_pair": best_pair,
+                      "best_pair_mean": bp_mean, "best_per_instance": bi, "ppo_better": p < bp_mean, "ppo_wins": wins, "ties": ties,
+                      "missing": dict(missing)}
+        first, last = insts[0], insts[-1]
+        tie = f", {ties + 1} tied" if ties else ""
+        note = "" if not missing else " (" + ", ".join(f"{k} missing on {v}" for k, v in missing.items()) + ")"
+        lines.append(
+            f"| {g} ({first}–{last}) | {len(insts)}{note} | {b:.1f} | {c:.1f} | {p:.1f} | "
+            f"{best_pair.removeprefix('rule:') if best_pair else '—'} ({bp_mean:.1f}{tie}) | {bi:.1f} | "
+            f"{_gap(p, b)} | {_gap(bp_mean, b)} | {verdict} ({100.0 * (p - bp_mean) / bp_mean:+.1f} %) | "
+            f"{wins}/{len(insts)} |")
+    return lines, figures
+
+
+def ppo_times(rows: list[dict]) -> list[str]:
+    groups = sorted({_group(r["instance"]) for r in rows})
+    if not groups:
+        return []
+    g = groups[-1]
+    lines = [f"PPO wall time per instance on group {g} (sl{g}0–sl{g}9; target ≤ 5 s on sl70–sl79):", "",
+             "| mode | instances | mean | max |", "|---|---|---|---|"]
+    for variant, label in MODES:
+        ts = [r["wall_time"] for r in rows if r["method"] == "ppo" and r["variant"] == variant
+              and _group(r["instance"]) == g and r.get("valid") and r.get("wall_time") is not None]
+        if ts:
+            lines.append(f"| {label} | {len(ts)} | {_mean(ts):.2f} s | {max(ts):.2f} s |")
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("json", nargs="?", default="results/sl_full/bench_sl.json", type=Path)
+    args = ap.parse_args(argv)
+    data = json.loads(args.json.read_text())
+    rows = data["rows"]
+    total_ok = {}
+    for variant, label in MODES:
+        if not any(r["variant"] == variant for r in rows):
+            continue
+        lines, figs = summarize(rows, variant)
+        total_ok[label] = sum(f["ppo_better"] for f in figs.values()), len(figs)
+        print(f"**{label}** (means over each group's instances)\n")
+        print("\n".join(lines))
+        print()
+    for label, (k, n) in total_ok.items():
+        print(f"- {label}: PPO better than the best single rule pair in {k} of {n} groups.")
+    print()
+    print("\n".join(ppo_times(rows)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
