@@ -107,3 +107,16 @@ def test_shop_copies_share_values_but_not_state():
     while not shop.done:
         shop.act(pol(shop))
     assert shop.schedule().to_dict() == twin.schedule().to_dict()
+
+
+def test_lookahead_reports_progress_without_changing_the_run():
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+
+    inst = builtin("ra01")
+    pol = RulePolicy("SPTN", "nearest")
+    lines: list[str] = []
+    s = run_with_lookahead(Shop(inst), pol, progress=lines.append, every_s=0.0)
+    assert s.to_dict() == run_agent(Shop(inst), pol, lookahead=True).to_dict()
+    total = sum(len(ops) for ops in inst.jobs)
+    assert lines and all(line.startswith("  lookahead: ") and f"/{total} operations done" in line for line in lines)
+    assert "idle stops" in lines[-1]

@@ -13,6 +13,7 @@ Solver entry point: :func:`ppo_solver` (``"ppo"`` or ``"ppo:MODEL"``).
 
 from __future__ import annotations
 
+import sys
 from typing import Any, Callable
 
 from fms_sim.instance import Instance
@@ -26,8 +27,9 @@ __all__ = ["ppo_solver", "add_train_parser"]
 def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     """Solver for ``"ppo"`` (the shipped model that fits the instance) or ``"ppo:MODEL"`` (name, folder, .zip).
 
-    The returned ``solve(instance, lookahead=False, **ignored)`` runs the deterministic masked policy
-    (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the twin.
+    The returned ``solve(instance, lookahead=False, progress=False, **ignored)`` runs the deterministic masked
+    policy (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the
+    twin, and ``progress`` then reports on stderr every 2 s (large instances take minutes).
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -37,7 +39,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     else:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
-    def solve(instance: Instance, lookahead: bool = False, **_: Any) -> Schedule:
+    def solve(instance: Instance, lookahead: bool = False, progress: bool = False, **_: Any) -> Schedule:
         from fms_sim.shop import Shop
 
         from .lookahead import run_agent
@@ -47,7 +49,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if not agent.fits(instance):
             raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
                              f"({agent.padding})")
-        sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead))
+        report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
+        sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead), progress=report)
         sched.meta["solver"] = f"ppo:{agent.name}" + ("+lookahead" if lookahead else "")
         sched.meta["model"] = agent.name
         sched.meta["lookahead"] = bool(lookahead)

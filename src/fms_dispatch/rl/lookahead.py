@@ -17,6 +17,7 @@ agent node (``ppo+lookahead``), so over ROS topics the run is the same as offlin
 
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 from fms_sim.schedule import Schedule
@@ -32,10 +33,11 @@ DEFAULT_HORIZON = 200
 
 
 def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int = DEFAULT_HORIZON,
-              verify: bool = True) -> Schedule:
-    """Run ``shop`` to completion with ``choose(shop) -> net action``; pre-position idle vehicles if asked."""
+              verify: bool = True, progress: Callable[[str], None] | None = None) -> Schedule:
+    """Run ``shop`` to completion with ``choose(shop) -> net action``; pre-position idle vehicles if asked
+    (``progress``: see :func:`run_with_lookahead`)."""
     if lookahead:
-        return run_with_lookahead(shop, choose, horizon, verify)
+        return run_with_lookahead(shop, choose, horizon, verify, progress)
     while not shop.done:
         shop.act(choose(shop))
     return shop.schedule()
@@ -145,15 +147,30 @@ class LookaheadPlanner:
         return moves
 
 
-def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True) -> Schedule:
+def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
+                       progress: Callable[[str], None] | None = None, every_s: float = 2.0) -> Schedule:
     """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
-    :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's)."""
+    :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's).
+
+    ``progress`` (e.g. ``print``) receives a one-line report at most every ``every_s`` seconds: on large
+    instances the lookahead takes minutes (see docs/benchmarks.md)."""
     stepper = Stepper(shop, idle_stops=True)
     planner = LookaheadPlanner(choose, horizon, verify)
+    t0 = last = time.perf_counter()
+    total = sum(len(ops) for ops in shop.instance.jobs)
+    stops = moved = 0
     stop = stepper.advance()
     while stop != "done":
         if stop == "decision":
             stop = stepper.decide(choose(shop))
         else:
-            stop = stepper.move(planner.plan(stepper))
+            moves = planner.plan(stepper)
+            stops += 1
+            moved += bool(moves)
+            stop = stepper.move(moves)
+        if progress is not None and time.perf_counter() - last >= every_s:
+            last = time.perf_counter()
+            done = sum(shop.job_done_ops)
+            progress(f"  lookahead: {done}/{total} operations done, time {shop.now}, {stops} idle stops, "
+                     f"{moved} with moves, {last - t0:.1f} s")
     return shop.schedule()
