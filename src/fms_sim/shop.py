@@ -446,26 +446,36 @@ class Shop:
         Raises :class:`InvalidAction` if the AGV is not idle or the location does not exist. The net then
         runs on to the next decision, as after :meth:`act`.
         """
-        self._reposition("AGV", agv, location, self.n_agvs, getattr(self, "p_agv_idle", None),
-                         getattr(self, "p_agv_orders", None))
+        self.reposition("agv", agv, location)
 
     def reposition_transporter(self, transporter: int, location: int) -> None:
         """Send idle tool transporter ``transporter`` empty to ``location`` now (see :meth:`reposition_agv`)."""
-        self._reposition("tool transporter", transporter, location, self.n_tts, getattr(self, "p_tt_idle", None),
-                         getattr(self, "p_tt_orders", None))
+        self.reposition("tt", transporter, location)
 
-    def _reposition(self, what: str, v: int, loc: int, n: int, idle: Place | None, orders: Place | None) -> None:
+    def reposition(self, kind: str, vehicle: int, location: int, advance: bool = True) -> None:
+        """Send idle vehicle ``vehicle`` of ``kind`` (``"agv"`` or ``"tt"``) empty to ``location`` now; the net
+        then runs on to the next decision unless ``advance`` is false (the caller steps it, as
+        :class:`fms_sim.stepping.Stepper` does). Raises :class:`InvalidAction` (see
+        :meth:`check_reposition`)."""
+        self.check_reposition(kind, vehicle, location)
+        self.net.put(self.p_agv_orders if kind == "agv" else self.p_tt_orders, (vehicle, location))
+        if advance:
+            self.net.advance()
+            self._check_progress()
+
+    def check_reposition(self, kind: str, vehicle: int, location: int) -> None:
+        """Raise :class:`InvalidAction` unless :meth:`reposition` may send this vehicle there now."""
+        agv = kind == "agv"
+        what, n = ("AGV", self.n_agvs) if agv else ("tool transporter", self.n_tts)
+        idle = getattr(self, "p_agv_idle" if agv else "p_tt_idle", None)
         if self.done:
             raise InvalidAction("the run is complete; no vehicle can be repositioned")
-        if not 0 <= v < n or idle is None or orders is None:
-            raise InvalidAction(f"{what} {v} does not exist")
-        if not 0 <= loc <= self.instance.n_machines:
-            raise InvalidAction(f"location {loc} does not exist (0..{self.instance.n_machines})")
-        if not idle.tokens(v):
-            raise InvalidAction(f"{what} {v} is not idle at time {self.now}")
-        self.net.put(orders, (v, loc))
-        self.net.advance()
-        self._check_progress()
+        if not 0 <= vehicle < n or idle is None:
+            raise InvalidAction(f"{what} {vehicle} does not exist")
+        if not 0 <= location <= self.instance.n_machines:
+            raise InvalidAction(f"location {location} does not exist (0..{self.instance.n_machines})")
+        if not idle.tokens(vehicle):
+            raise InvalidAction(f"{what} {vehicle} is not idle at time {self.now}")
 
     def add_jobs(self, jobs: Sequence[Sequence[Operation]], advance: bool = True) -> list[int]:
         """Add new jobs now (a live order): their parts enter at L/U at the current time.

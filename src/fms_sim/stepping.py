@@ -149,18 +149,17 @@ class Stepper:
             raise InvalidAction(f"no idle vehicle is offered at time {shop.now} ({self._where()})")
         offered = {(m.kind, m.vehicle) for m in self.idle}
         seen: set[tuple[str, int]] = set()
-        for kind, v, loc in moves:
+        for kind, v, loc in moves:  # every move is checked before any is made
             name = "AGV" if kind == "agv" else "tool transporter"
             if (kind, v) not in offered:
                 raise InvalidAction(f"{name} {v} is not an idle vehicle offered at time {shop.now} "
                                     f"(offered: {moves_label(self.idle)[len(REPOSITION) + 1:] or 'none'})")
             if (kind, v) in seen:
                 raise InvalidAction(f"{name} {v} is moved twice in one answer")
-            if not 0 <= loc <= shop.instance.n_machines:
-                raise InvalidAction(f"location {loc} does not exist (0..{shop.instance.n_machines})")
+            shop.check_reposition(kind, v, loc)
             seen.add((kind, v))
         for kind, v, loc in moves:
-            shop.net.put(shop.p_agv_orders if kind == "agv" else shop.p_tt_orders, (v, loc))
+            shop.reposition(kind, v, loc, advance=False)
         self.looked.update(offered)
         return self.advance()
 
