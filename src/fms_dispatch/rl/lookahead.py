@@ -49,22 +49,7 @@ def predict_task(shop: Shop, choose: Choose, kind: str, vehicle: int, horizon: i
     Returns the pickup location (AGV: the part's location; transporter: the tool's location), or None if no
     task lands on the vehicle within ``horizon`` decisions or before the run ends.
     """
-    twin = shop.copy()
-    twin.net.advance()
-    base = twin.n_jobs if kind == "agv" else twin.n_jobs + twin.n_agvs
-    target = base + vehicle
-    for _ in range(horizon):
-        if twin.done:
-            return None
-        a = choose(twin)
-        if a == target:
-            if kind == "agv":
-                req = twin.awaiting_agv()
-                return None if req is None else req[2]
-            treq = twin.awaiting_transporter()
-            return None if treq is None else treq[1]
-        twin.act(a)
-    return None
+    return predict_tasks(shop, choose, [(kind, vehicle)], horizon)[(kind, vehicle)]
 
 
 def predict_tasks(shop: Shop, choose: Choose, vehicles: list[tuple[str, int]],
