@@ -34,8 +34,7 @@ from fms_sim.benchmarks import builtin
 from fms_sim.schedule import Schedule
 from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
-from fms_dispatch.agent_logic import AgentLogic
-from fms_dispatch.up import needs_idle_stops, needs_twin
+from fms_dispatch.agent_logic import AgentLogic, needs_idle_stops, needs_twin
 
 
 def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:

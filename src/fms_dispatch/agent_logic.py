@@ -47,7 +47,8 @@ if TYPE_CHECKING:
     from fms_sim.shop import Shop
 
 __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision", "FEATURE_JOB_KEYS",
-           "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent"]
+           "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent", "needs_twin",
+           "needs_idle_stops"]
 
 SOURCE = "fms_agent"
 AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
@@ -308,11 +309,23 @@ def _fallback(state: dict[str, Any]) -> str:
     return WAIT if state.get("idle") else _legal(state)[0][2]
 
 
+def needs_twin(solver: str) -> bool:
+    """Whether ``solver`` is a PPO solver, which replays the run into a twin: the shop must send history."""
+    low = solver.strip().lower()
+    return low in ("ppo", "lookahead") or low.startswith(("ppo:", "ppo+"))
+
+
+def needs_idle_stops(solver: str) -> bool:
+    """Whether ``solver`` pre-positions idle vehicles (lookahead): the shop must stop for them."""
+    low = solver.strip().lower()
+    return low == "lookahead" or low.endswith("+lookahead")
+
+
 def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead``; ``lookahead`` alone is ``ppo+lookahead``) over a
     twin of ``instance``."""
     low = name.lower()
-    lookahead = low == "lookahead" or low.endswith("+lookahead")
+    lookahead = needs_idle_stops(name)
     base = "ppo" if low == "lookahead" else (name[:-len("+lookahead")] if lookahead else name).strip()
     low_base = base.lower()
     if low_base != "ppo" and not low_base.startswith("ppo:"):
@@ -354,9 +367,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -
             raise UnavailableSolver(f"solver {name!r}: {exc}") from None
         decider = RuleDecider(policy.job_rule, policy.vehicle_rule)
         return decider, decider.name
-    if low == "lookahead":
-        return _ppo_decider(name, instance)
-    if low == "ppo" or low.startswith(("ppo:", "ppo+")):
+    if needs_twin(name):
         return _ppo_decider(name, instance)
     base = low.split(":", 1)[0]
     if base in _OFFLINE:

@@ -40,10 +40,10 @@ from fms_sim.recorder_store import DEFAULT_DB, gantt_path
 from fms_sim.schedule import Schedule, ScheduleError
 from fms_sim.shop_service import new_run_id
 
-from .agent_logic import UnavailableSolver, make_decider
+from .agent_logic import UnavailableSolver, make_decider, needs_idle_stops, needs_twin
 
 __all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "best_solver", "NodeProcess", "node_command",
-           "stop_all", "needs_twin", "needs_idle_stops"]
+           "stop_all"]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -121,18 +121,6 @@ def best_solver(instance: Instance) -> tuple[str, int, str]:
                                      f"best rule pair {rule}: {rule_span})")
     return rule, rule_span, (f"best on {instance.name}: {rule} (makespan {rule_span} in simulation; "
                              f"{ppo}: {sched.makespan})")
-
-
-def needs_twin(solver: str) -> bool:
-    """Whether the agent replays the run into a twin (``ppo`` solvers): the shop must then send history."""
-    low = solver.strip().lower()
-    return low in ("ppo", "lookahead") or low.startswith(("ppo:", "ppo+"))
-
-
-def needs_idle_stops(solver: str) -> bool:
-    """Whether the agent pre-positions idle vehicles (lookahead solvers): the shop must then stop for them."""
-    low = solver.strip().lower()
-    return low == "lookahead" or low.endswith("+lookahead")
 
 
 def node_command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
