@@ -23,7 +23,7 @@ from typing import Sequence
 
 from fms_msgs_json import TOPIC_COMMAND
 from fms_sim.instance import Instance, InstanceError
-from fms_sim.shop_node import StartupError, TopicIO, param, rclpy, run_node
+from fms_sim.shop_node import FmsNode, StartupError, TopicIO, param, run_node
 from fms_sim.shop_service import Outgoing
 
 from .agent_logic import AgentLogic, UnavailableSolver
@@ -33,16 +33,10 @@ __all__ = ["main", "AgentNode"]
 NODE_NAME = "fms_agent"
 
 
-class AgentNode:
+class AgentNode(FmsNode):
     """The dispatcher agent node (see the module docstring)."""
 
-    def __init__(self, node_name: str = NODE_NAME) -> None:
-        self.node = rclpy.create_node(node_name, start_parameter_services=False)
-        try:
-            self._setup()
-        except BaseException:
-            self.node.destroy_node()
-            raise
+    default_name = NODE_NAME
 
     def _setup(self) -> None:
         n = self.node
@@ -111,10 +105,6 @@ class AgentNode:
             self._flush()
         else:
             self._sent = None
-
-    def close(self) -> None:
-        self.node.destroy_node()
-
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``fms-agent`` / ``ros2 run fms_dispatch agent`` / ``python -m fms_dispatch.agent_node``."""

@@ -24,7 +24,7 @@ from typing import Callable, Sequence
 from fms_msgs_json import TOPIC_ERRORS, TOPIC_REPLAY, error_reply
 
 from .recorder_store import DEFAULT_DB, Recorder, RecorderStore
-from .shop_node import StartupError, TopicIO, param, rclpy, run_node
+from .shop_node import FmsNode, StartupError, TopicIO, param, run_node
 from .shop_service import Outgoing
 
 __all__ = ["main", "RecorderNode"]
@@ -32,17 +32,11 @@ __all__ = ["main", "RecorderNode"]
 NODE_NAME = "fms_recorder"
 
 
-class RecorderNode:
+class RecorderNode(FmsNode):
     """The recorder node (see the module docstring)."""
 
-    def __init__(self, node_name: str = NODE_NAME) -> None:
-        self.node = rclpy.create_node(node_name, start_parameter_services=False)
-        self.store: RecorderStore | None = None
-        try:
-            self._setup()
-        except BaseException:
-            self.close()
-            raise
+    default_name = NODE_NAME
+    store: RecorderStore | None = None  # open once the setup has opened the database
 
     def _setup(self) -> None:
         n = self.node
@@ -103,7 +97,7 @@ class RecorderNode:
                 recorder.flush(time.monotonic())
             self.store.close()
             self.store = None
-        self.node.destroy_node()
+        super().close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -44,7 +44,7 @@ from fms_msgs_json import KINDS, TOPIC_QOS, TOPICS, encode
 from .instance import InstanceError
 from .shop_service import Outgoing, ShopService
 
-__all__ = ["main", "ShopNode", "qos_profile", "spin_until_shutdown", "ros_unavailable", "StartupError",
+__all__ = ["main", "ShopNode", "FmsNode", "qos_profile", "spin_until_shutdown", "ros_unavailable", "StartupError",
            "TopicIO", "write_atomically"]
 
 NODE_NAME = "fms_shop"
@@ -117,16 +117,31 @@ def write_atomically(path: str | Path, text: str) -> Path:
     return out
 
 
-class ShopNode:
-    """The shop simulator node (see the module docstring)."""
+class FmsNode:
+    """What every fms node shares: an rclpy node named ``node_name`` (default :attr:`default_name`) that
+    :meth:`_setup` fills in; if the setup fails, the node is closed before the error propagates."""
 
-    def __init__(self, node_name: str = NODE_NAME) -> None:
-        self.node = rclpy.create_node(node_name, start_parameter_services=False)
+    default_name = ""
+
+    def __init__(self, node_name: str | None = None) -> None:
+        self.node = rclpy.create_node(node_name or self.default_name, start_parameter_services=False)
         try:
             self._setup()
         except BaseException:
-            self.node.destroy_node()
+            self.close()
             raise
+
+    def _setup(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+class ShopNode(FmsNode):
+    """The shop simulator node (see the module docstring)."""
+
+    default_name = NODE_NAME
 
     def _setup(self) -> None:
         from .formats import load_instance
@@ -187,10 +202,6 @@ class ShopNode:
         self.node.get_logger().info(
             f"run {svc.run_id} complete: makespan {sched.makespan}, {svc.decisions} decisions, "
             f"{len(svc.events)} events, {len(svc.orders)} orders, {svc.wall_time or 0:.3f} s")
-
-    def close(self) -> None:
-        self.node.destroy_node()
-
 
 def _ignore_stop_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
