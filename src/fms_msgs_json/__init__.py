@@ -22,15 +22,6 @@ from .schemas import (
     TOPIC_SCHEDULE, TOPIC_STATE, TOPICS, MessageError, TopicQos, decode, encode, kind_of, schema_id, validate,
 )
 
-__all__ = [
-    "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
-    "SCHEMA_STATE", "SCHEMA_COMMAND", "SCHEMA_EVENT", "SCHEMA_SCHEDULE", "SCHEMA_ORDER", "SCHEMA_ERROR",
-    "SCHEMA_REPLAY_REQUEST",
-    "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
-    "TOPIC_REPLAY", "TOPICS",
-    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "TOPIC_QOS", "TopicQos",
-    "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
-    "MessageError", "validate", "kind_of", "encode", "decode",
-    "make_state", "make_command", "make_event", "make_schedule", "make_order", "make_error", "error_reply",
-    "make_replay_request",
-]
+from . import builders as _builders, schemas as _schemas
+
+__all__ = [*_schemas.__all__, *_builders.__all__]
