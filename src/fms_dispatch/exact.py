@@ -269,6 +269,20 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
 
 
 # ====================================================================================== greedy
+def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]], src: int,
+                      ready: int) -> tuple[int, int]:
+    """``(vehicle, start)``: the vehicle (AGV or transporter) that can start the loaded trip from ``src``
+    earliest, not before ``ready`` (ties: the shorter empty trip, then the lowest number); ``(-1, 0)`` if
+    there is none."""
+    best, best_v, start = None, -1, 0
+    for v in range(len(locs)):
+        s = max(free[v] + travel[locs[v]][src], ready)
+        key = (s, travel[locs[v]][src])
+        if best is None or key < best:
+            best, best_v, start = key, v, s
+    return best_v, start
+
+
 def greedy_schedule(
     inst: Instance,
     *,
@@ -317,14 +331,8 @@ def greedy_schedule(
         if atr is not None:
             pick = jobs[j][k - 1].machine if k else 0
             if pick != m:
-                d = atr[pick][m]
-                best = None
-                for a in range(len(agv_loc)):
-                    s = max(agv_free[a] + atr[agv_loc[a]][pick], ready[j])
-                    key = (s, atr[agv_loc[a]][pick])
-                    if best is None or key < best:
-                        best, best_a, ls = key, a, s
-                arrive = ls + d
+                best_a, ls = _earliest_vehicle(agv_loc, agv_free, atr, pick, ready[j])
+                arrive = ls + atr[pick][m]
         tool_at, best_r, tls = 0, -1, 0
         if ttr is not None and op.tool is not None:
             t = op.tool
@@ -332,12 +340,7 @@ def greedy_schedule(
                 tool_at = tool_free[t]
             else:
                 src = tool_loc[t]
-                best = None
-                for r in range(len(tr_loc)):
-                    s = max(tr_free[r] + ttr[tr_loc[r]][src], tool_free[t])
-                    key = (s, ttr[tr_loc[r]][src])
-                    if best is None or key < best:
-                        best, best_r, tls = key, r, s
+                best_r, tls = _earliest_vehicle(tr_loc, tr_free, ttr, src, tool_free[t])
                 tool_at = tls + ttr[src][m]
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration

@@ -368,6 +368,12 @@ def _iterate(search: _Search, cfg: SOSConfig, pop: list[np.ndarray], fit: list[i
     def best_vec() -> np.ndarray:
         return pop[min(range(n), key=lambda k: fit[k])]
 
+    def offer(k: int, x: np.ndarray) -> None:
+        """Evaluate ``x``; it replaces organism ``k`` if it is better."""
+        f = search.evaluate(x)
+        if better(f, fit[k]):
+            pop[k], fit[k] = x, f
+
     while iterations is None or search.iteration < iterations:
         for i in range(n):
             # mutualism
@@ -379,23 +385,17 @@ def _iterate(search: _Search, cfg: SOSConfig, pop: list[np.ndarray], fit: list[i
             bf1, bf2 = rng.choice(bfs, size=2)
             xi = np.clip(pop[i] + rng.random(dim) * (xb - mutual * bf1), 0.0, 1.0)
             xj = np.clip(pop[j] + rng.random(dim) * (xb - mutual * bf2), 0.0, 1.0)
-            f = search.evaluate(xi)
-            if better(f, fit[i]):
-                pop[i], fit[i] = xi, f
+            offer(i, xi)
             if search.out_of_time():
                 return "time_limit"
-            f = search.evaluate(xj)
-            if better(f, fit[j]):
-                pop[j], fit[j] = xj, f
+            offer(j, xj)
             # commensalism
             if search.out_of_time():
                 return "time_limit"
             j = partner(i)
             xb = best_vec()
             xi = np.clip(pop[i] + rng.uniform(-1.0, 1.0, dim) * (xb - pop[j]), 0.0, 1.0)
-            f = search.evaluate(xi)
-            if better(f, fit[i]):
-                pop[i], fit[i] = xi, f
+            offer(i, xi)
             # parasitism
             if search.out_of_time():
                 return "time_limit"
@@ -403,9 +403,7 @@ def _iterate(search: _Search, cfg: SOSConfig, pop: list[np.ndarray], fit: list[i
             parasite = pop[i].copy()
             dims = rng.choice(dim, size=int(rng.integers(1, max_par + 1)), replace=False)
             parasite[dims] = rng.random(len(dims))
-            f = search.evaluate(parasite)
-            if better(f, fit[j]):
-                pop[j], fit[j] = parasite, f
+            offer(j, parasite)
         search.iteration += 1
         search.report()
     return "iterations"
