@@ -96,6 +96,66 @@ def test_train_refuses_bad_input(tmp_path):
         train(dict(TINY, steps=10), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="unknown reward"):
         train(dict(TINY, train=["EX12"], reward="speed", steps=10), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="unknown warm-start expert 'oracle'"):
+        train(dict(TINY, train=["EX12"], steps=10, warm_start={"expert": "oracle"}), tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()  # refused before anything was written
+
+
+def _best_rule_makespan(inst, include_nearest):
+    from fms_dispatch.rules import all_rule_pairs, parse_rule_name
+    from fms_sim.shop import Shop
+
+    best = None
+    for name in all_rule_pairs(include_nearest):
+        policy, shop = parse_rule_name(name), Shop(inst)
+        while not shop.done:
+            shop.act(policy(shop))
+        best = shop.makespan if best is None else min(best, shop.makespan)
+    return best
+
+
+@pytest.mark.parametrize("expert,nearest", [("rules", False), ("rules+nearest", True)])
+def test_rule_experts_replay_the_best_pair(expert, nearest):
+    """The rule experts' demonstrations replay, through the env, the best pair of their set (24 or 36)."""
+    from fms_dispatch.rl.imitation import demonstrations, rule_trajectory
+
+    inst = expand_instances(["gen:6x4x3*1@5"])[0]
+    ms, seq = rule_trajectory(inst, include_nearest=nearest)
+    assert ms == _best_rule_makespan(inst, nearest)
+    pad = padding_for("auto", [inst])
+    demos, makespans = demonstrations([inst], pad, "shaped", expert)
+    assert makespans == {inst.name: ms}
+    n = len(demos["action"])
+    assert 0 < n <= len(seq) and demos["obs"].shape[0] == demos["mask"].shape[0] == demos["ret"].shape[0] == n
+    assert demos["mask"][np.arange(n), demos["action"]].all()  # every recorded action was legal
+    assert (demos["mask"].sum(axis=1) > 1).all()  # forced moves are not recorded
+    with pytest.raises(ValueError, match="unknown expert 'oracle'"):
+        demonstrations([inst], pad, "shaped", "oracle")
+
+
+def test_nearest_expert_sees_pairs_the_paper_set_does_not():
+    """On the large benchmark's layout the 36-pair expert is at least as good as the 24-pair one on every
+    instance and strictly better on some (the reason the large models are cloned from it)."""
+    from fms_dispatch.rl.imitation import rule_trajectory
+
+    insts = expand_instances(["gen:8x5x5*4@3"])
+    pairs = [(rule_trajectory(i)[0], rule_trajectory(i, include_nearest=True)[0]) for i in insts]
+    assert all(b <= a for a, b in pairs) and any(b < a for a, b in pairs), pairs
+
+
+def test_warm_start_only_training_clones_the_expert(tmp_path):
+    """steps=0 with an expert: the model is the cloned policy; metrics record the cloning figures."""
+    out = tmp_path / "clone"
+    cfg = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto",
+               warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 30})
+    m = train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
+    w = m["warm_start"]
+    assert w["expert"] == "rules+nearest" and w["samples"] > 0 and 0.0 <= w["accuracy"] <= 1.0
+    assert set(w["expert_makespan"]) == {i.name for i in expand_instances(["gen:6x4x3*2@5"])}
+    assert m["training"]["timesteps"] == 0 and (out / "best_model.zip").is_file()
+    inst = expand_instances(["gen:6x4x3*1@9"])[0]
+    s = ppo_solver(f"ppo:{out}")(inst)
+    assert validate(inst, s) == [] and s.makespan == m["training"]["eval_makespan"][inst.name]
 
 
 def test_train_cli_parser():

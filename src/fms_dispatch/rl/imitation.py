@@ -7,7 +7,11 @@ it. Two experts make the demonstrations (action sequences through the shop net):
   24 rule pairs and of ``iters/4`` random runs, then repeatedly keep a prefix of the best sequence, change one decision at random and
   complete the run by replaying the best sequence where it is still legal (else a random legal action);
   keep the result when it is no worse. For small instances (BU) this finds sequences near the net's best.
-* ``"rules"`` — per training instance, the sequence of the best of the 24 rule pairs (large instances).
+* ``"rules"`` — per training instance, the sequence of the best of the paper's 24 rule pairs;
+* ``"rules+nearest"`` — the same over all 36 pairs, i.e. also with the ``nearest`` vehicle rule. On the large
+  benchmark the best pairs nearly all send the nearest vehicle, and a policy cloned from the 24 pairs (which
+  never do) keeps choosing vehicles badly: replacing only its vehicle choices by ``nearest`` improves it by
+  5–10 % (docs/benchmarks.md §4).
 
 :func:`clone` then trains the policy (cross-entropy on the masked logits) and the value head (return-to-go of
 the env's reward along the demonstration) on the recorded ``(observation, mask, action)`` triples. The
@@ -24,7 +28,10 @@ import numpy as np
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["rule_trajectory", "search_trajectory", "demonstrations", "clone"]
+__all__ = ["EXPERTS", "rule_trajectory", "search_trajectory", "demonstrations", "clone"]
+
+#: the warm-start experts (``warm_start.expert`` of a training config)
+EXPERTS = ("search", "rules", "rules+nearest")
 
 
 def _run(inst: Instance, choose) -> tuple[int, list[int]]:
@@ -37,12 +44,12 @@ def _run(inst: Instance, choose) -> tuple[int, list[int]]:
     return shop.makespan, acts
 
 
-def rule_trajectory(inst: Instance) -> tuple[int, list[int]]:
-    """(makespan, actions) of the best of the 24 rule pairs (first pair on ties)."""
+def rule_trajectory(inst: Instance, include_nearest: bool = False) -> tuple[int, list[int]]:
+    """(makespan, actions) of the best of the 24 rule pairs (36 with ``include_nearest``; first pair on ties)."""
     from fms_dispatch.rules import all_rule_pairs, parse_rule_name
 
     best: tuple[int, list[int]] | None = None
-    for name in all_rule_pairs():
+    for name in all_rule_pairs(include_nearest):
         r = _run(inst, parse_rule_name(name))
         if best is None or r[0] < best[0]:
             best = r
@@ -100,10 +107,10 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     for n, inst in enumerate(instances):
         if expert == "search":
             ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
-        elif expert == "rules":
-            ms, seq = rule_trajectory(inst)
+        elif expert in ("rules", "rules+nearest"):
+            ms, seq = rule_trajectory(inst, include_nearest=expert == "rules+nearest")
         else:
-            raise ValueError(f"unknown expert {expert!r}; choose search or rules")
+            raise ValueError(f"unknown expert {expert!r}; choose from {', '.join(EXPERTS)}")
         makespans[inst.name] = ms
         env = FastShopEnv(inst, reward=reward, invalid_action="raise", **padding)
         o, _ = env.reset(options={"instance": inst})

@@ -183,6 +183,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
+    if warm["expert"] and not resume:
+        from .imitation import EXPERTS
+
+        if warm["expert"] not in EXPERTS:
+            raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)}")
     if steps < 0 or (steps == 0 and (resume or not warm["expert"])):
         raise ValueError("--steps must be positive")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
