@@ -143,12 +143,15 @@ def test_nearest_expert_sees_pairs_the_paper_set_does_not():
     assert all(b <= a for a, b in pairs) and any(b < a for a, b in pairs), pairs
 
 
-def test_warm_start_only_training_clones_the_expert(tmp_path):
-    """steps=0 with an expert: the model is the cloned policy; metrics record the cloning figures."""
+def test_warm_start_only_training_clones_the_expert(tmp_path, capsys):
+    """steps=0 with an expert: the model is the cloned policy; metrics record the cloning figures; the
+    demonstrations and the cloning report progress."""
     out = tmp_path / "clone"
     cfg = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto",
                warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 30})
-    m = train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
+    m = train(cfg, out, progress=True, tensorboard=tmp_path / "tb")
+    printed = capsys.readouterr().out
+    assert "demonstrations: 2/2 instances" in printed and "cloning: epoch 30/30" in printed
     w = m["warm_start"]
     assert w["expert"] == "rules+nearest" and w["samples"] > 0 and 0.0 <= w["accuracy"] <= 1.0
     assert set(w["expert_makespan"]) == {i.name for i in expand_instances(["gen:6x4x3*2@5"])}

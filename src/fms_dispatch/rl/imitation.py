@@ -21,7 +21,7 @@ result is an ordinary MaskablePPO model; PPO continues from it.
 from __future__ import annotations
 
 import random
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -94,8 +94,10 @@ def search_trajectory(inst: Instance, iters: int = 2000, seed: int = 0, keep: fl
 
 
 def demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
-                   iters: int = 2000, seed: int = 0) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                   iters: int = 2000, seed: int = 0,
+                   progress: Callable[[str], None] | None = None) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Replay each instance's expert sequence through the env; returns arrays and the expert makespans.
+    ``progress`` (e.g. ``print``) gets a line per instance: the experts take seconds to minutes each.
 
     Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted).
     Decisions with one legal action are replayed but not recorded (nothing to learn).
@@ -134,14 +136,18 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
                 rtg[row] = total
         rets.extend(rtg[i] for i in sorted(rtg))
         assert env.shop.done and env.shop.makespan == ms
+        if progress is not None:
+            progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan {ms}, "
+                     f"{len(obs)} decisions recorded)")
     return ({"obs": np.asarray(obs, dtype=np.float32), "mask": np.asarray(masks, dtype=bool),
              "action": np.asarray(actions, dtype=np.int64), "ret": np.asarray(rets, dtype=np.float32)},
             makespans)
 
 
 def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float = 1e-3, batch_size: int = 256,
-          seed: int = 0) -> dict[str, float]:
-    """Behaviour cloning of ``demos`` into ``model.policy`` (policy cross-entropy + value MSE)."""
+          seed: int = 0, progress: Callable[[str], None] | None = None) -> dict[str, float]:
+    """Behaviour cloning of ``demos`` into ``model.policy`` (policy cross-entropy + value MSE);
+    ``progress`` gets the mean loss about every 10 % of the epochs."""
     import torch
 
     policy = model.policy
@@ -153,8 +159,10 @@ def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float
     R = torch.as_tensor(demos["ret"])
     opt = torch.optim.Adam(policy.parameters(), lr=lr)
     n = X.shape[0]
-    for _ in range(epochs):
+    every = max(1, epochs // 10)
+    for epoch in range(epochs):
         perm = torch.randperm(n, generator=gen)
+        total = 0.0
         for i in range(0, n, batch_size):
             idx = perm[i:i + batch_size]
             values, log_prob, _ = policy.evaluate_actions(X[idx], Y[idx], action_masks=M[idx])
@@ -163,6 +171,9 @@ def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
             opt.step()
+            total += float(loss.detach()) * len(idx)
+        if progress is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
+            progress(f"  cloning: epoch {epoch + 1}/{epochs}, loss {total / max(1, n):.4f}")
     policy.set_training_mode(False)
     with torch.no_grad():
         dist = policy.get_distribution(X, action_masks=M.numpy())

@@ -249,9 +249,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
         from .imitation import clone, demonstrations
 
+        say = (lambda line: print(line, flush=True)) if (verbose or progress) else None
         demos, expert_ms = demonstrations(train_set[:int(warm["instances"])], padding, cfg["reward"],
-                                          warm["expert"], iters=int(warm["search_iters"]), seed=seed)
-        bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed)
+                                          warm["expert"], iters=int(warm["search_iters"]), seed=seed, progress=say)
+        bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
         eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the cloned policy to replace it
         model.save(str(out / "best_model.zip"))
