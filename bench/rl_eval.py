@@ -5,8 +5,10 @@
   Targets: average <= 99 with lookahead, every instance <= best rule pair, <= 0.1 s per instance.
 * ``python bench/rl_eval.py sl [--model large] [--no-tools] [--per-group N]`` — the large benchmark (10 AGVs,
   5 transporters): per size group the PPO mean (and with ``--lookahead`` the lookahead mean), the mean of the
-  best single rule pair of the group, and the mean of the per-instance best pair. Target: PPO better than the
-  best rule pair in every group; sl70 (100x20x20) in <= 5 s.
+  best single rule pair of the group, and the mean of the per-instance best pair (over the 36 pairs of the
+  baselines: 12 job rules x first / least-work / nearest). Target: PPO better than the best rule pair in every
+  group; sl70 (100x20x20) in <= 5 s. ``--vehicles RULE`` also runs a probe: the model's job choices with the
+  vehicle rule's AGV and transporter choices (which half of the policy is weaker).
 
 Every schedule is validated. ``--json FILE`` writes the results; ``--write-metrics`` stores them under
 ``"benchmark"`` in the model's ``metrics.json``.
@@ -31,9 +33,21 @@ from fms_sim.validate import validate
 CPU: dict[str, float] = {}  # CPU seconds of the last run_ppo call (wall time suffers on a shared machine)
 
 
-def run_ppo(agent, inst, lookahead: bool) -> tuple[int, float]:
+def with_vehicle_rule(agent, rule: str):
+    """A policy that takes the model's job choices and ``rule``'s vehicle choices (a diagnostic probe)."""
+    vehicles = parse_rule_name(f"FIFO+{rule}")
+
+    def choose(shop: Shop) -> int:
+        legal = shop.legal_actions()
+        return vehicles(shop) if any(a >= shop.n_jobs for a in legal) else agent.act(shop)
+
+    return choose
+
+
+def run_ppo(agent, inst, lookahead: bool, vehicles: str | None = None) -> tuple[int, float]:
     t0, c0 = time.perf_counter(), time.process_time()
-    s = run_agent(Shop(inst), agent.act, lookahead=lookahead)
+    choose = agent.act if vehicles is None else with_vehicle_rule(agent, vehicles)
+    s = run_agent(Shop(inst), choose, lookahead=lookahead)
     dt = time.perf_counter() - t0
     CPU["last"] = time.process_time() - c0
     problems = validate(inst, s)
@@ -49,17 +63,19 @@ def _key(inst) -> str:
     return f"{inst.name}|tools={inst.has_tools}|agvs={inst.n_agvs}|tts={inst.n_tool_transporters}"
 
 
-def rule_makespans(inst) -> dict[str, int]:
-    if _key(inst) in RULE_CACHE:
-        return RULE_CACHE[_key(inst)]
+def rule_makespans(inst, include_nearest: bool = False) -> dict[str, int]:
+    """Makespan of every rule pair: the paper's 24, or all 36 with ``include_nearest`` (cached)."""
+    key = _key(inst) + ("|36" if include_nearest else "")
+    if key in RULE_CACHE:
+        return RULE_CACHE[key]
     out = {}
-    for name in all_rule_pairs():
+    for name in all_rule_pairs(include_nearest):
         pol = parse_rule_name(name)
         shop = Shop(inst)
         while not shop.done:
             shop.act(pol(shop))
         out[name] = shop.makespan
-    RULE_CACHE[_key(inst)] = out
+    RULE_CACHE[key] = out
     return out
 
 
@@ -97,7 +113,8 @@ def bench_bu(model: str) -> dict:
     return {"set": "BU layout 2 (EX12-EX102)", "rows": rows, "summary": summary}
 
 
-def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups: list[int]) -> dict:
+def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups: list[int],
+             vehicles: str | None = None) -> dict:
     agent = load_agent(model)
     out_groups = []
     for g in groups:
@@ -105,7 +122,7 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups
         for k in range(per_group):
             inst = builtin(f"sl{g}{k}")
             insts.append(inst.without_tools() if no_tools else inst)
-        ppo, secs, cpus, look, rules = [], [], [], [], []
+        ppo, secs, cpus, look, rules, probe = [], [], [], [], [], []
         for inst in insts:
             m, dt = run_ppo(agent, inst, False)
             ppo.append(m)
@@ -113,7 +130,9 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups
             cpus.append(CPU["last"])
             if lookahead:
                 look.append(run_ppo(agent, inst, True)[0])
-            rules.append(rule_makespans(inst))
+            if vehicles:
+                probe.append(run_ppo(agent, inst, False, vehicles)[0])
+            rules.append(rule_makespans(inst, include_nearest=True))
         pair_means = {p: statistics.mean(r[p] for r in rules) for p in rules[0]}
         best_pair = min(pair_means, key=pair_means.get)
         row = dict(group=g, size="x".join(map(str, SL_GROUPS[g])), instances=[i.name for i in insts],
@@ -124,8 +143,13 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups
         if lookahead:
             row["ppo_lookahead"] = look
             row["mean_ppo_lookahead"] = statistics.mean(look)
+        if vehicles:
+            row[f"ppo_jobs_{vehicles}_vehicles"] = probe
+            row[f"mean_ppo_jobs_{vehicles}_vehicles"] = statistics.mean(probe)
         out_groups.append(row)
         la = f"  +lookahead {row['mean_ppo_lookahead']:.1f}" if lookahead else ""
+        if vehicles:
+            la += f"  (jobs ppo, vehicles {vehicles}: {statistics.mean(probe):.1f})"
         print(f"group {g} ({row['size']}): ppo {row['mean_ppo']:.1f}{la}  best pair {best_pair} "
               f"{row['mean_best_pair']:.1f}  per-instance best {row['mean_instance_best']:.1f}  "
               f"max {row['max_seconds']:.2f} s wall / {row['max_cpu_seconds']:.2f} s CPU", flush=True)
@@ -148,6 +172,8 @@ def main() -> None:
     ap.add_argument("--per-group", type=int, default=10, help="sl instances per group (1-10)")
     ap.add_argument("--groups", default="0-7", help="sl groups, e.g. 0-7 or 0,3,7")
     ap.add_argument("--lookahead", action="store_true", help="sl: also run with lookahead")
+    ap.add_argument("--vehicles", choices=("first", "least-work", "nearest"),
+                    help="sl: also run the model's job choices with this rule's vehicle choices (probe)")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--rules-cache", help="JSON file caching the rule pairs' makespans (read and updated)")
     ap.add_argument("--rules-only", action="store_true", help="sl: only compute (and cache) the rule pairs")
@@ -167,7 +193,7 @@ def run(a: argparse.Namespace) -> None:
         for g in parse_groups(a.groups):
             for k in range(a.per_group):
                 inst = builtin(f"sl{g}{k}")
-                rule_makespans(inst.without_tools() if a.no_tools else inst)
+                rule_makespans(inst.without_tools() if a.no_tools else inst, include_nearest=a.which == "sl")
             print(f"rules cached for group {g}", flush=True)
         return
     if a.which == "bu":
@@ -177,7 +203,7 @@ def run(a: argparse.Namespace) -> None:
     else:
         model = a.model or ("large-agv" if a.no_tools else "large")
         groups = parse_groups(a.groups)
-        res = bench_sl(model, a.no_tools, a.per_group, a.lookahead, groups)
+        res = bench_sl(model, a.no_tools, a.per_group, a.lookahead, groups, a.vehicles)
         key = "sl_no_tools" if a.no_tools else "sl"
         sl70 = builtin("sl70").without_tools() if a.no_tools else builtin("sl70")
         m, dt = run_ppo(load_agent(model), sl70, False)
