@@ -26,7 +26,7 @@ from fms_dispatch.rl.lookahead import run_agent
 from fms_dispatch.rl.models import load_agent, resolve_model
 from fms_dispatch.rules import all_rule_pairs, parse_rule_name
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, SL_GROUPS, builtin
-from fms_sim.shop import Shop
+from fms_sim.shop import Shop, run_policy
 from fms_sim.validate import validate
 
 
@@ -68,13 +68,7 @@ def rule_makespans(inst, include_nearest: bool = False) -> dict[str, int]:
     key = _key(inst) + ("|36" if include_nearest else "")
     if key in RULE_CACHE:
         return RULE_CACHE[key]
-    out = {}
-    for name in all_rule_pairs(include_nearest):
-        pol = parse_rule_name(name)
-        shop = Shop(inst)
-        while not shop.done:
-            shop.act(pol(shop))
-        out[name] = shop.makespan
+    out = {name: run_policy(inst, parse_rule_name(name)).makespan for name in all_rule_pairs(include_nearest)}
     RULE_CACHE[key] = out
     return out
 
@@ -149,7 +143,7 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups
         out_groups.append(row)
         la = f"  +lookahead {row['mean_ppo_lookahead']:.1f}" if lookahead else ""
         if vehicles:
-            la += f"  (jobs ppo, vehicles {vehicles}: {statistics.mean(probe):.1f})"
+            la += f"  (jobs ppo, vehicles {vehicles}: {row[f'mean_ppo_jobs_{vehicles}_vehicles']:.1f})"
         print(f"group {g} ({row['size']}): ppo {row['mean_ppo']:.1f}{la}  best pair {best_pair} "
               f"{row['mean_best_pair']:.1f}  per-instance best {row['mean_instance_best']:.1f}  "
               f"max {row['max_seconds']:.2f} s wall / {row['max_cpu_seconds']:.2f} s CPU", flush=True)

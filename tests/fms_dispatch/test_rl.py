@@ -103,15 +103,9 @@ def test_train_refuses_bad_input(tmp_path):
 
 def _best_rule_makespan(inst, include_nearest):
     from fms_dispatch.rules import all_rule_pairs, parse_rule_name
-    from fms_sim.shop import Shop
+    from fms_sim.shop import run_policy
 
-    best = None
-    for name in all_rule_pairs(include_nearest):
-        policy, shop = parse_rule_name(name), Shop(inst)
-        while not shop.done:
-            shop.act(policy(shop))
-        best = shop.makespan if best is None else min(best, shop.makespan)
-    return best
+    return min(run_policy(inst, parse_rule_name(name)).makespan for name in all_rule_pairs(include_nearest))
 
 
 @pytest.mark.parametrize("expert,nearest", [("rules", False), ("rules+nearest", True)])
