@@ -155,6 +155,73 @@ def test_warm_start_only_training_clones_the_expert(tmp_path, capsys):
     assert validate(inst, s) == [] and s.makespan == m["training"]["eval_makespan"][inst.name]
 
 
+def test_dagger_labels_the_policys_own_states_with_the_expert_pair(tmp_path):
+    """A DAgger round runs the policy itself (its makespans are those of solving with the saved model) and
+    labels each state it visits with the legal action of the instance's expert pair."""
+    from sb3_contrib import MaskablePPO
+
+    from fms_dispatch.rl.imitation import dagger_round, demonstrations
+    from fms_dispatch.rules import parse_rule_name
+
+    out = tmp_path / "m"
+    insts = expand_instances(["gen:6x4x3*2@5"])
+    train(dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*2@5"], steps=0, seed=1, padding="auto",
+               warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 2}), out, progress=False)
+    model = MaskablePPO.load(str(out / "best_model.zip"), device="cpu")
+    pad = padding_for("auto", insts)
+    pairs: dict[str, str] = {}
+    demonstrations(insts, pad, "shaped", "rules+nearest", pairs=pairs)
+    assert set(pairs) == {i.name for i in insts}
+    labelled, policy_ms = dagger_round(model, insts, pairs, pad, "shaped")
+    for inst in insts:
+        s = ppo_solver(f"ppo:{out}")(inst)
+        assert policy_ms[inst.name] == s.makespan
+    n = len(labelled["action"])
+    assert n > 0 and labelled["obs"].shape[0] == labelled["ret"].shape[0] == n
+    assert labelled["mask"][np.arange(n), labelled["action"]].all()
+    # the first state is the same for policy and expert: its label is the expert pair's first choice
+    from fms_sim.shop import Shop
+
+    first = insts[0]
+    expert_first = parse_rule_name(pairs[first.name])(Shop(first))
+    assert labelled["action"][0] == _padded(first, pad, expert_first)
+    with pytest.raises(ValueError, match="no expert rule pair"):
+        dagger_round(model, insts, {}, pad, "shaped")
+
+
+def _padded(inst, pad, net_action):
+    from fms_dispatch.rl.envs import FastShopEnv
+
+    env = FastShopEnv(inst, **pad)
+    env.reset(options={"instance": inst})
+    return env.from_net_action(net_action)
+
+
+def test_dagger_rounds_in_training_and_on_resume(tmp_path, capsys):
+    """warm_start.dagger rounds follow the cloning; ``--resume --dagger N`` adds rounds to a saved model and
+    counts them in its config and metrics; bad requests are refused."""
+    out = tmp_path / "dg"
+    cfg = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto",
+               warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3, "dagger": 1,
+                           "dagger_epochs": 2})
+    m = train(cfg, out, progress=True, tensorboard=tmp_path / "tb")
+    printed = capsys.readouterr().out
+    assert "dagger round 1/1" in printed and "dagger: 2/2 instances" in printed
+    rounds = m["warm_start"]["dagger_rounds"]
+    assert [r["round"] for r in rounds] == [1] and rounds[0]["policy_vs_expert"] > 0
+    assert rounds[0]["samples"] > m["warm_start"]["samples"]  # the policy's states were added
+    m2 = train({"steps": 0}, out, resume=True, progress=False, dagger=1)
+    assert len(m2["warm_start"]["dagger_rounds"]) == 2 and m2["warm_start"]["dagger"] == 2
+    assert json.loads((out / "config.json").read_text())["warm_start"]["dagger"] == 2
+    inst = expand_instances(["gen:6x4x3*1@9"])[0]
+    assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []
+    with pytest.raises(ValueError, match="--dagger N adds rounds"):
+        train(dict(cfg, warm_start={"expert": "rules"}), tmp_path / "y", progress=False, dagger=1)
+    with pytest.raises(ValueError, match="DAgger needs a rule-pair warm-start expert"):
+        train(dict(cfg, warm_start={"expert": "search", "dagger": 1}), tmp_path / "y", progress=False)
+    assert not (tmp_path / "y").exists()
+
+
 def test_train_cli_parser():
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd")

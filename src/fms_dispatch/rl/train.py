@@ -49,7 +49,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "n_envs": 2,
     "vec_env": "subproc",
     "eval_freq": 10_000,
-    "warm_start": {"expert": None, "instances": 100, "search_iters": 2000, "epochs": 300, "lr": 1e-3},
+    "warm_start": {"expert": None, "instances": 100, "search_iters": 2000, "epochs": 300, "lr": 1e-3,
+                   "dagger": 0, "dagger_epochs": 10},
     "save_freq": 10_000,
     "ppo": {"learning_rate": 3e-4, "n_steps": 512, "batch_size": 256, "n_epochs": 5, "gamma": 1.0,
             "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
@@ -153,11 +154,15 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
 
 
 def train(config: dict[str, Any], out: str | Path, resume: bool = False, progress: bool = True,
-          tensorboard: str | Path | None = None, verbose: int = 0) -> dict[str, Any]:
+          tensorboard: str | Path | None = None, verbose: int = 0, dagger: int = 0) -> dict[str, Any]:
     """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
 
+    A fresh run with a warm-start expert first clones the expert, then runs ``warm_start.dagger`` DAgger
+    rounds (rule experts only), then ``steps`` PPO steps.
+
     With ``resume``, the config is read from ``out/config.json`` (``config`` may override ``steps``) and
-    training continues from ``out/model.zip`` for ``steps`` more steps.
+    training continues from ``out/model.zip``: first ``dagger`` more DAgger rounds (rule experts only; the
+    expert demonstrations are made again to aggregate with), then ``steps`` more PPO steps.
     """
     import torch
     from sb3_contrib import MaskablePPO
@@ -188,7 +193,14 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
         if warm["expert"] not in EXPERTS:
             raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)}")
-    if steps < 0 or (steps == 0 and (resume or not warm["expert"])):
+    if dagger < 0 or (dagger and not resume):
+        raise ValueError("--dagger N adds rounds to a model being resumed; for a new model set "
+                         "warm_start.dagger in its config")
+    rounds = dagger if resume else int(warm["dagger"])
+    if rounds and warm["expert"] not in ("rules", "rules+nearest"):
+        raise ValueError(f"DAgger needs a rule-pair warm-start expert (rules or rules+nearest), not "
+                         f"{warm['expert']!r}: only a rule can label the policy's own states")
+    if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
         raise ValueError("--steps must be positive")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
@@ -244,23 +256,45 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     t0 = time.perf_counter()
     warm_metrics = None
-    if not resume and warm["expert"]:
+    if (not resume and warm["expert"]) or rounds:
         from sb3_contrib.common.maskable.evaluation import evaluate_policy
 
-        from .imitation import clone, demonstrations
+        from .imitation import clone, dagger as run_dagger, demonstrations
 
         say = (lambda line: print(line, flush=True)) if (verbose or progress) else None
-        demos, expert_ms = demonstrations(train_set[:int(warm["instances"])], padding, cfg["reward"],
-                                          warm["expert"], iters=int(warm["search_iters"]), seed=seed, progress=say)
-        bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
+        warm_set = train_set[:int(warm["instances"])]
+        pairs: dict[str, str] = {}
+        demos, expert_ms = demonstrations(warm_set, padding, cfg["reward"], warm["expert"],
+                                          iters=int(warm["search_iters"]), seed=seed, progress=say, pairs=pairs)
+        bc: dict[str, Any] = {}
+        if not resume:
+            bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
+        history: list[dict[str, Any]] = []
+        if rounds:
+            _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
+                                    epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]),
+                                    seed=seed + 100 * int(old.get("warm_start", {}).get("dagger", 0)),
+                                    progress=say)
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
-        eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the cloned policy to replace it
-        model.save(str(out / "best_model.zip"))
+        if not resume or float(mean_r) >= eval_cb.best_mean_reward:  # the best weights are kept
+            eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the warm-started policy to replace it
+            model.save(str(out / "best_model.zip"))
         model.save(str(out / "model.zip"))
-        warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, mean_reward=round(float(mean_r), 4),
-                            seconds=round(time.perf_counter() - t0, 1))
+        if resume:  # extend the record of the first warm start
+            warm_metrics = dict(old.get("warm_start", {}))
+            warm_metrics["dagger"] = int(warm_metrics.get("dagger", 0)) + rounds
+            warm_metrics["dagger_epochs"] = int(warm["dagger_epochs"])
+            cfg["warm_start"] = dict(cfg.get("warm_start") or {}, dagger=warm_metrics["dagger"],
+                                     dagger_epochs=int(warm["dagger_epochs"]))
+            (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
+        else:
+            warm_metrics = dict(warm, **bc, expert_makespan=expert_ms)
+        warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
+        warm_metrics.update(mean_reward=round(float(mean_r), 4),
+                            seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
         if verbose or progress:
-            print(f"warm start ({warm['expert']}): {bc}; eval mean reward {mean_r:.4f}", flush=True)
+            print(f"warm start ({warm['expert']}, {len(history)} DAgger rounds): {bc or history[-1]}; "
+                  f"eval mean reward {mean_r:.4f}", flush=True)
     interrupted = False
     if steps:
         try:
@@ -318,6 +352,9 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--tool-transporters", type=int, help="override the number of tool transporters")
     s.add_argument("--no-tools", action="store_true", help="drop tools (AGV-only model)")
     s.add_argument("--resume", action="store_true", help="continue training the model in --out")
+    s.add_argument("--dagger", type=int, default=0, metavar="N",
+                   help="with --resume: N more DAgger rounds (label the policy's own states with the rule-pair "
+                        "expert and clone again) before the PPO steps; --steps 0 runs DAgger only")
     s.add_argument("--tensorboard", help="TensorBoard log folder (default runs/NAME)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(fn=cmd_train)
@@ -341,7 +378,8 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg = _merge(cfg, over)
     if not a.resume and not cfg.get("train"):
         raise ValueError("give training instances (or --resume)")
-    m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard)
+    m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard,
+              dagger=a.dagger)
     t = m["training"]
     print(f"{a.out}: {t['timesteps']} steps, {t['wall_seconds']} s; eval mean makespan {t['eval_mean_makespan']} "
           f"({t['weights']})")
