@@ -273,9 +273,12 @@ def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float
         if progress is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
             progress(f"  cloning: epoch {epoch + 1}/{epochs}, loss {total / max(1, n):.4f}")
     policy.set_training_mode(False)
-    with torch.no_grad():
-        dist = policy.get_distribution(X, action_masks=M.numpy())
-        pred = dist.distribution.probs.argmax(dim=-1)
-        acc = float((pred == Y).float().mean())
-        values, log_prob, _ = policy.evaluate_actions(X, Y, action_masks=M)
-    return {"samples": int(n), "accuracy": round(acc, 4), "nll": round(float(-log_prob.mean()), 4)}
+    hits, nll = 0, 0.0
+    with torch.no_grad():  # in batches: the entity network over 100k+ padded states at once needs many GB
+        for i in range(0, n, 4096):
+            sl = slice(i, i + 4096)
+            _, log_prob, _ = policy.evaluate_actions(X[sl], Y[sl], action_masks=M[sl])
+            dist = policy.get_distribution(X[sl], action_masks=M[sl].numpy())
+            hits += int((dist.distribution.probs.argmax(dim=-1) == Y[sl]).sum())
+            nll -= float(log_prob.sum())
+    return {"samples": int(n), "accuracy": round(hits / max(1, n), 4), "nll": round(nll / max(1, n), 4)}
