@@ -28,11 +28,13 @@ import numpy as np
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory", "demonstrations", "clone",
+__all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory", "demonstrations", "clone",
            "dagger", "dagger_round", "concat_demos"]
 
 #: the warm-start experts (``warm_start.expert`` of a training config)
 EXPERTS = ("search", "rules", "rules+nearest")
+#: the experts that are rule pairs: they can label any state, which DAgger needs
+RULE_EXPERTS = ("rules", "rules+nearest")
 
 
 def _run(inst: Instance, choose) -> tuple[int, list[int]]:
@@ -119,7 +121,7 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     for n, inst in enumerate(instances):
         if expert == "search":
             ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
-        elif expert in ("rules", "rules+nearest"):
+        elif expert in RULE_EXPERTS:
             name, ms, seq = best_rule_pair(inst, include_nearest=expert == "rules+nearest")
             if pairs is not None:
                 pairs[inst.name] = name
@@ -145,9 +147,7 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
         if progress is not None:
             progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan {ms}, "
                      f"{len(obs)} decisions recorded)")
-    return ({"obs": np.asarray(obs, dtype=np.float32), "mask": np.asarray(masks, dtype=bool),
-             "action": np.asarray(actions, dtype=np.int64), "ret": np.asarray(rets, dtype=np.float32)},
-            makespans)
+    return _as_demos(obs, masks, actions, rets), makespans
 
 
 def _returns_to_go(steps: list[tuple[int | None, float]]) -> list[float]:
@@ -159,6 +159,12 @@ def _returns_to_go(steps: list[tuple[int | None, float]]) -> list[float]:
         if row is not None:
             rtg[row] = total
     return [rtg[i] for i in sorted(rtg)]
+
+
+def _as_demos(obs: list, masks: list, actions: list, rets: list) -> dict[str, np.ndarray]:
+    """The arrays of a demonstration set (see :func:`demonstrations`) from its rows."""
+    return {"obs": np.asarray(obs, dtype=np.float32), "mask": np.asarray(masks, dtype=bool),
+            "action": np.asarray(actions, dtype=np.int64), "ret": np.asarray(rets, dtype=np.float32)}
 
 
 def concat_demos(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -178,16 +184,12 @@ def dagger_round(model: Any, instances: Sequence[Instance], pairs: dict[str, str
     demonstration and its errors compound; the large models cloned from the best rule pair end 1-5 % above
     their expert. Labelling the policy's own states teaches it to recover.
     """
-    import torch
-
     from fms_dispatch.rules import parse_rule_name
 
     from .envs import FastShopEnv
 
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
-    policy = model.policy
-    policy.set_training_mode(False)
     for n, inst in enumerate(instances):
         if inst.name not in pairs:
             raise ValueError(f"no expert rule pair for {inst.name}")
@@ -204,9 +206,7 @@ def dagger_round(model: Any, instances: Sequence[Instance], pairs: dict[str, str
                 masks.append(mask)
                 actions.append(env.from_net_action(expert(env.shop)))
                 row = len(obs) - 1
-                with torch.no_grad():
-                    dist = policy.get_distribution(policy.obs_to_tensor(o)[0], action_masks=mask[None])
-                    a = int(dist.distribution.probs.argmax(dim=-1)[0])
+                a = int(model.predict(o, action_masks=mask, deterministic=True)[0])
             else:
                 a = int(np.flatnonzero(mask)[0])
             o, r, done, _, _ = env.step(a)
@@ -216,9 +216,7 @@ def dagger_round(model: Any, instances: Sequence[Instance], pairs: dict[str, str
         if progress is not None:
             progress(f"  dagger: {n + 1}/{len(instances)} instances ({inst.name}: policy makespan "
                      f"{env.shop.makespan}, {len(obs)} states labelled)")
-    return ({"obs": np.asarray(obs, dtype=np.float32), "mask": np.asarray(masks, dtype=bool),
-             "action": np.asarray(actions, dtype=np.int64), "ret": np.asarray(rets, dtype=np.float32)},
-            makespans)
+    return _as_demos(obs, masks, actions, rets), makespans
 
 
 def dagger(model: Any, demos: dict[str, np.ndarray], pairs: dict[str, str], expert_ms: dict[str, int],

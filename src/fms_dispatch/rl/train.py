@@ -188,16 +188,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
-    if warm["expert"] and not resume:
-        from .imitation import EXPERTS
+    from .imitation import EXPERTS, RULE_EXPERTS
 
-        if warm["expert"] not in EXPERTS:
-            raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)}")
+    if warm["expert"] and not resume and warm["expert"] not in EXPERTS:
+        raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)}")
     if dagger < 0 or (dagger and not resume):
         raise ValueError("--dagger N adds rounds to a model being resumed; for a new model set "
                          "warm_start.dagger in its config")
     rounds = dagger if resume else int(warm["dagger"])
-    if rounds and warm["expert"] not in ("rules", "rules+nearest"):
+    if rounds and warm["expert"] not in RULE_EXPERTS:
         raise ValueError(f"DAgger needs a rule-pair warm-start expert (rules or rules+nearest), not "
                          f"{warm['expert']!r}: only a rule can label the policy's own states")
     if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
