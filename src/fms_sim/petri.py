@@ -33,7 +33,7 @@ import heapq
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
 
-__all__ = ["Token", "Place", "Arc", "Output", "Transition", "Net", "InvalidAction", "Deadlock", "ANY"]
+__all__ = ["Token", "Place", "Arc", "Output", "Transition", "Net", "NetState", "InvalidAction", "Deadlock", "ANY"]
 
 Binding = dict[str, Any]
 
@@ -166,6 +166,25 @@ class Transition:
         return id(self)
 
 
+@dataclass(frozen=True)
+class NetState:
+    """A saved dynamic state of a :class:`Net` (see :meth:`Net.save_state`); opaque to callers."""
+
+    n_transitions: int
+    n_controllable: int
+    places: list[tuple[dict[Hashable, list[Token]], int, int]]
+    now: int
+    pending: list[tuple[int, int, Place, Token]]
+    seq: int
+    dirty_auto: list[tuple[int, int, Transition]]
+    auto_marked: set[int]
+    enabled: dict[int, Binding | None]
+    dirty_ctrl: set[int]
+    offered: list[int] | None
+    fired: int
+    acted: int
+
+
 @dataclass
 class _Level:
     transitions: list[Transition] = field(default_factory=list)
@@ -189,6 +208,8 @@ class Net:
         self._dirty_ctrl: set[int] = set()
         self._offered: list[int] | None = None
         self.fired = 0
+        self.acted = 0
+        """Controllable transitions fired so far (the number of decisions taken)."""
 
     # ------------------------------------------------------------------ construction
     def add_place(self, name: str, key: Callable[[Any], Hashable] | None = None) -> Place:
@@ -448,6 +469,7 @@ class Net:
                                 f"is due at time {self.now}")
         self._dirty_ctrl.add(action)
         self._offered = None
+        self.acted += 1
         # the cached binding is consumed; copy so that the cache never aliases a fired binding
         return self.fire(t, dict(b, __tokens__=list(b["__tokens__"]), __places__=list(b.get("__places__", []))))
 
@@ -496,6 +518,35 @@ class Net:
             if t is None:
                 return False
             self.release_until(t)
+
+    # ------------------------------------------------------------------ saving and restoring the marking
+    def save_state(self) -> "NetState":
+        """The dynamic state (marking, sojourning tokens, clock, caches), to be put back by
+        :meth:`restore_state`: a trial run on the net itself instead of on a deep copy (lookahead twins).
+
+        Tokens are never changed once made, so the state shares them; only the containers are copied.
+        The structure (places, transitions, action order) must not change in between (e.g. no new jobs).
+        """
+        return NetState(
+            len(self.transitions), len(self.controllable),
+            [({k: list(b) for k, b in p.buckets.items()}, p.count, p.in_flight) for p in self.places],
+            self.now, list(self._pending), self._seq, list(self._dirty_auto), set(self._auto_marked),
+            dict(self._enabled), set(self._dirty_ctrl), self._offered, self.fired, self.acted)
+
+    def restore_state(self, state: "NetState") -> None:
+        """Put back a state of :meth:`save_state` (raises ValueError if the net's structure changed since)."""
+        if (state.n_transitions, state.n_controllable) != (len(self.transitions), len(self.controllable)):
+            raise ValueError("the net's structure changed since the state was saved; it cannot be restored")
+        for p, (buckets, count, in_flight) in zip(self.places, state.places):
+            p.buckets = {k: list(b) for k, b in buckets.items()}
+            p.count, p.in_flight = count, in_flight
+        self.now, self._seq, self.fired, self.acted = state.now, state.seq, state.fired, state.acted
+        self._pending = list(state.pending)
+        self._dirty_auto = list(state.dirty_auto)
+        self._auto_marked = set(state.auto_marked)
+        self._enabled = dict(state.enabled)
+        self._dirty_ctrl = set(state.dirty_ctrl)
+        self._offered = state.offered
 
     def marking(self) -> dict[str, int]:
         """Token counts per place (sojourning tokens counted under ``name + "~"``)."""

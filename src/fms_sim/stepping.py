@@ -23,7 +23,8 @@ Answers are written as labels, so they can travel in messages and histories: a d
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple, Sequence
+from contextlib import contextmanager
+from typing import Iterator, Literal, NamedTuple, Sequence
 
 from .instance import Operation
 from .petri import InvalidAction
@@ -95,6 +96,18 @@ class Stepper:
         twin = Stepper(self.shop.copy(), self.idle_stops)
         twin.looked, twin.kind, twin.idle = set(self.looked), self.kind, list(self.idle)
         return twin
+
+    @contextmanager
+    def trial(self) -> Iterator["Stepper"]:
+        """``with stepper.trial(): ...`` runs anything on this stepper (and its shop) and then puts both back
+        as they were, even on errors (:meth:`Shop.trial <fms_sim.shop.Shop.trial>`): a twin without a copy."""
+        state = self.shop.save_state()
+        saved = (set(self.looked), self.kind, list(self.idle), self.idle_stops)
+        try:
+            yield self
+        finally:
+            self.shop.restore_state(state)
+            self.looked, self.kind, self.idle, self.idle_stops = saved
 
     def idle_vehicles(self) -> list[Move]:
         shop = self.shop

@@ -120,3 +120,59 @@ def test_lookahead_reports_progress_without_changing_the_run():
     total = sum(len(ops) for ops in inst.jobs)
     assert lines and all(line.startswith("  lookahead: ") and f"/{total} operations done" in line for line in lines)
     assert "idle stops" in lines[-1]
+
+
+@pytest.mark.parametrize("name", ["EX12", "EX22", "EX62", "ra01", "ra05"])
+@pytest.mark.parametrize("verify", [True, False])
+def test_trial_runs_and_the_cached_trajectory_plan_like_the_reference(name, verify):
+    # the planner's twins are trial runs on the shop itself and its next-task predictions come from the
+    # cached plain completion; the reference copies the shop and rolls out again at every idle stop
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+
+    inst = builtin(name)
+    pol = RulePolicy("SPTN", "nearest")
+    fast = run_with_lookahead(Shop(inst), pol, verify=verify)
+    ref = run_with_lookahead(Shop(inst), pol, verify=verify, reference=True)
+    assert validate(inst, fast) == []
+    assert fast.to_dict() == ref.to_dict()
+
+
+def test_shipped_bu_model_plans_like_the_reference():
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+    from fms_dispatch.rl.models import load_agent
+
+    agent = load_agent("bu")
+    moved = 0
+    for name in EX2:
+        inst = builtin(name)
+        fast = run_with_lookahead(Shop(inst), agent.act)
+        assert fast.to_dict() == run_with_lookahead(Shop(inst), agent.act, reference=True).to_dict(), name
+        moved += _repositioning_trips(fast) > 0
+    assert moved > 0  # the comparison covers runs where moves were made
+
+
+def test_the_trajectory_gives_the_predictions_of_a_rollout():
+    from fms_dispatch.rl.lookahead import plain_trajectory, predict_tasks
+    from fms_sim.stepping import Stepper
+
+    pol = RulePolicy("MTWR", "nearest")
+    st = Stepper(Shop(builtin("ra05")))
+    stop = st.advance()
+    traj = plain_trajectory(st.shop, pol)
+    checked = 0
+    while stop != "done":
+        if stop == "idle":
+            vehicles = [(m.kind, m.vehicle) for m in st.idle]
+            for horizon in (1, 5, 200):
+                assert traj.next_pickups(st.shop, vehicles, horizon) == predict_tasks(st.shop, pol, vehicles, horizon)
+            checked += 1
+            stop = st.move([])
+        else:
+            stop = st.decide(pol(st.shop))
+    assert checked > 3
+    assert traj.makespan == st.shop.makespan and len(traj.steps) == st.shop.net.acted - traj.start
+    later = Shop(builtin("ra05"))
+    for _ in range(5):
+        later.act(pol(later))
+    with pytest.raises(ValueError, match="not on this trajectory"):  # a shop before the trajectory starts
+        plain_trajectory(later, pol).next_pickups(Shop(builtin("ra05")), [("agv", 0)])

@@ -5,9 +5,12 @@ Without lookahead, :func:`run_agent` is the plain loop ``while not shop.done: sh
 With lookahead, the shop is run by a :class:`~fms_sim.stepping.Stepper` with idle stops, so that the moments
 when a vehicle stands idle with nothing assigned become visible: no decision is due, yet an AGV (or tool
 transporter) is idle and has not been looked at since the last decision. At each such stop, for each idle
-vehicle offered, a twin of the shop (:meth:`~fms_sim.shop.Shop.copy`) is rolled forward with the same policy
-until a task lands on that vehicle (the policy picks it for a request); the request's pickup (the part's
-location, or the tool's location for a transporter) is read at that moment. If it differs from where the vehicle
+vehicle offered, a twin of the shop is rolled forward with the same policy until a task lands on that vehicle
+(the policy picks it for a request); the request's pickup (the part's location, or the tool's location for a
+transporter) is read at that moment. Twins are trial runs on the shop itself
+(:meth:`Shop.trial <fms_sim.shop.Shop.trial>` saves its state and puts it back), not deep copies, and the
+planner reads the next tasks from its cached plain completion (:class:`Trajectory`) instead of rolling out
+again at every stop. If it differs from where the vehicle
 is, the real vehicle is sent there empty now (:meth:`Stepper.move <fms_sim.stepping.Stepper.move>`) instead of
 waiting for the request. Repositioning is a net transition like any other, so every schedule stays feasible by
 construction (tests validate it); it can cost time when another request arrives while the vehicle is on its way,
@@ -18,13 +21,15 @@ agent node (``ppo+lookahead``), so over ROS topics the run is the same as offlin
 from __future__ import annotations
 
 import time
-from typing import Callable
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator
 
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 from fms_sim.stepping import Move, Stepper
 
-__all__ = ["run_agent", "run_with_lookahead", "predict_task", "predict_tasks", "LookaheadPlanner", "finish"]
+__all__ = ["run_agent", "run_with_lookahead", "predict_task", "predict_tasks", "LookaheadPlanner", "Trajectory",
+           "finish", "plain_trajectory"]
 
 Choose = Callable[[Shop], int]
 
@@ -44,7 +49,8 @@ def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int 
 
 
 def predict_task(shop: Shop, choose: Choose, kind: str, vehicle: int, horizon: int = DEFAULT_HORIZON) -> int | None:
-    """Where the next task of ``vehicle`` (``kind`` "agv" or "tt") starts, by rolling ``choose`` on a twin.
+    """Where the next task of ``vehicle`` (``kind`` "agv" or "tt") starts, by rolling ``choose`` forward in a
+    trial run (``shop`` is put back as it was).
 
     Returns the pickup location (AGV: the part's location; transporter: the tool's location), or None if no
     task lands on the vehicle within ``horizon`` decisions or before the run ends.
@@ -53,94 +59,177 @@ def predict_task(shop: Shop, choose: Choose, kind: str, vehicle: int, horizon: i
 
 
 def predict_tasks(shop: Shop, choose: Choose, vehicles: list[tuple[str, int]],
-                  horizon: int = DEFAULT_HORIZON) -> dict[tuple[str, int], int | None]:
+                  horizon: int = DEFAULT_HORIZON, copies: bool = False) -> dict[tuple[str, int], int | None]:
     """:func:`predict_task` for several vehicles with one twin: the plain policy's trajectory from here is
     the same whichever vehicle is watched, so one rollout (until every vehicle has a task, the horizon or
-    the end) gives each vehicle's first pickup (None if none)."""
-    twin = shop.copy()
-    twin.net.advance()
-    targets = {(twin.n_jobs if kind == "agv" else twin.n_jobs + twin.n_agvs) + v: (kind, v) for kind, v in vehicles}
-    found: dict[tuple[str, int], int | None] = {}
-    for _ in range(horizon):
-        if twin.done or len(found) == len(targets):
-            break
-        a = choose(twin)
-        key = targets.get(a)
-        if key is not None and key not in found:
-            if key[0] == "agv":
-                req = twin.awaiting_agv()
-                found[key] = None if req is None else req[2]
-            else:
-                treq = twin.awaiting_transporter()
-                found[key] = None if treq is None else treq[1]
-        twin.act(a)
+    the end) gives each vehicle's first pickup (None if none). ``shop`` is left as it was (``copies``: the twin
+    is a deep copy instead of a trial run; slower, the reference)."""
+    with _twin(shop, copies) as twin:
+        twin.net.advance()
+        targets = _targets(twin, vehicles)
+        found: dict[tuple[str, int], int | None] = {}
+        for _ in range(horizon):
+            if twin.done or len(found) == len(targets):
+                break
+            a = choose(twin)
+            key = targets.get(a)
+            if key is not None and key not in found:
+                found[key] = _pickup(twin, a)
+            twin.act(a)
     return {key: found.get(key) for key in vehicles}
 
 
-def finish(shop: Shop, choose: Choose) -> int:
-    """Makespan of running a twin of ``shop`` (possibly between decisions) to the end with ``choose``."""
-    twin = shop.copy()
-    twin.net.advance()
-    while not twin.done:
-        twin.act(choose(twin))
-    return twin.makespan
+@contextmanager
+def _twin(obj: Any, copies: bool) -> Iterator[Any]:
+    """A twin of a :class:`Shop` or :class:`Stepper`: a trial run on ``obj`` itself, or a deep copy."""
+    if copies:
+        yield obj.copy()
+    else:
+        with obj.trial():
+            yield obj
 
 
-def _finish_after_moves(stepper: Stepper, choose: Choose, moves: list[Move]) -> int:
-    twin = stepper.copy()
-    twin.idle_stops = False  # the plain policy from here on: no further moves
-    twin.move(moves)
-    shop = twin.shop
+def _targets(shop: Shop, vehicles: list[tuple[str, int]]) -> dict[int, tuple[str, int]]:
+    """Net action -> (kind, vehicle) for the watched vehicles."""
+    return {(shop.n_jobs if kind == "agv" else shop.n_jobs + shop.n_agvs) + v: (kind, v) for kind, v in vehicles}
+
+
+def _pickup(shop: Shop, action: int) -> int | None:
+    """Where the task that vehicle ``action`` is chosen for now starts (None for a job choice)."""
+    if action < shop.n_jobs:
+        return None
+    if action < shop.n_jobs + shop.n_agvs:
+        req = shop.awaiting_agv()
+        return None if req is None else req[2]
+    treq = shop.awaiting_transporter()
+    return None if treq is None else treq[1]
+
+
+class Trajectory:
+    """The plain policy's decisions from one state to the end: ``steps[i]`` is the ``start + i``-th decision of
+    the run (counted by the net, :attr:`Net.acted <fms_sim.petri.Net.acted>`) as ``(action, pickup)``, the
+    pickup being where a chosen vehicle's task starts. As long as the real run follows the plain policy from
+    that state, its decisions are exactly these, so every idle vehicle's next task is read here instead of
+    being simulated again at every idle stop."""
+
+    def __init__(self, start: int, steps: list[tuple[int, int | None]], makespan: int):
+        self.start, self.steps, self.makespan = start, steps, makespan
+
+    def next_pickups(self, shop: Shop, vehicles: list[tuple[str, int]],
+                     horizon: int = DEFAULT_HORIZON) -> dict[tuple[str, int], int | None]:
+        """What :func:`predict_tasks` returns for ``shop`` (which must be on this trajectory, between decisions)."""
+        i = shop.net.acted - self.start
+        if not 0 <= i <= len(self.steps):
+            raise ValueError(f"the shop (decision {shop.net.acted}) is not on this trajectory "
+                             f"(decisions {self.start}..{self.start + len(self.steps)})")
+        targets = _targets(shop, vehicles)
+        found: dict[tuple[str, int], int | None] = {}
+        for a, pickup in self.steps[i:i + horizon]:
+            key = targets.get(a)
+            if key is not None and key not in found:
+                found[key] = pickup
+                if len(found) == len(targets):
+                    break
+        return {key: found.get(key) for key in vehicles}
+
+
+def _complete(shop: Shop, choose: Choose) -> Trajectory:
+    """Run ``shop`` (between decisions or at one) to the end with ``choose``, recording the trajectory."""
+    start = shop.net.acted
+    shop.net.advance()
+    steps = []
     while not shop.done:
-        shop.act(choose(shop))
-    return shop.makespan
+        a = choose(shop)
+        steps.append((a, _pickup(shop, a)))
+        shop.act(a)
+    return Trajectory(start, steps, shop.makespan)
+
+
+def finish(shop: Shop, choose: Choose) -> int:
+    """Makespan of completing ``shop`` (possibly between decisions) with ``choose``, in a trial run (``shop``
+    is put back as it was)."""
+    return plain_trajectory(shop, choose).makespan
+
+
+def plain_trajectory(shop: Shop, choose: Choose, copies: bool = False) -> Trajectory:
+    """The :class:`Trajectory` of completing ``shop`` with ``choose``, in a twin (see :func:`predict_tasks`)."""
+    with _twin(shop, copies) as twin:
+        return _complete(twin, choose)
+
+
+def _trajectory_after_moves(stepper: Stepper, choose: Choose, moves: list[Move], copies: bool) -> Trajectory:
+    with _twin(stepper, copies) as twin:
+        twin.idle_stops = False  # the plain policy from here on: no further moves
+        twin.move(moves)
+        return _complete(twin.shop, choose)
 
 
 class LookaheadPlanner:
     """Answers the idle stops of a :class:`~fms_sim.stepping.Stepper` (see the module docstring).
 
     :meth:`plan` returns the moves for the vehicles offered at an idle stop. With ``verify`` (default) a
-    proposed set of moves is checked in a twin: the run is completed with the moves and compared with the
-    completion without them (the plain policy from here); the moves are kept only if the completed makespan
-    is strictly smaller. The plain completion is cached: it stays exact while the real run follows the plain
-    policy, and becomes the completion with the moves once they are made. Call :meth:`reset` when the run
-    changes in a way the planner did not see (new jobs, a fresh twin).
+    proposed set of moves is checked in a trial run: the run is completed with the moves and compared with
+    the completion without them (the plain policy from here); the moves are kept only if the completed
+    makespan is strictly smaller. The plain completion is cached as a :class:`Trajectory`: it stays exact
+    while the real run follows the plain policy, and becomes the completion with the moves once they are
+    made, so it also gives every idle vehicle's next task without another rollout. Each idle stop therefore
+    costs one rollout only when it proposes moves. Call :meth:`reset` when the run changes in a way the
+    planner did not see (new jobs, a fresh twin, other answers than the planner's).
+
+    ``reference=True`` plans as the first implementation did, for benchmarks and tests: twins are deep copies
+    and every idle stop rolls the policy out again to predict the next tasks. Its moves are the same.
     """
 
-    def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True) -> None:
+    def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
+                 reference: bool = False) -> None:
         self.choose = choose
         self.horizon = horizon
         self.verify = verify
-        self.expected: int | None = None  # makespan of the plain completion from the current state
+        self.reference = reference
+        self.trajectory: Trajectory | None = None  # the plain completion from the current state
+
+    @property
+    def expected(self) -> int | None:
+        """Makespan of the plain completion from the current state (None until computed)."""
+        return None if self.trajectory is None else self.trajectory.makespan
 
     def reset(self) -> None:
-        self.expected = None
+        self.trajectory = None
 
     def plan(self, stepper: Stepper) -> list[Move]:
         shop, choose = stepper.shop, self.choose
-        dests = predict_tasks(shop, choose, [(m.kind, m.vehicle) for m in stepper.idle], self.horizon)
+        vehicles = [(m.kind, m.vehicle) for m in stepper.idle]
+        ref = self.reference
+        if self.verify and not ref:
+            if self.trajectory is None:
+                self.trajectory = plain_trajectory(shop, choose)
+            dests = self.trajectory.next_pickups(shop, vehicles, self.horizon)
+        else:
+            dests = predict_tasks(shop, choose, vehicles, self.horizon, copies=ref)
         moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
                  if (dest := dests[(kind, v)]) is not None and dest != loc]
         if moves and self.verify:
-            if self.expected is None:
-                self.expected = finish(shop, choose)
-            with_moves = _finish_after_moves(stepper, choose, moves)
-            if with_moves < self.expected:
-                self.expected = with_moves
+            if self.trajectory is None:
+                self.trajectory = plain_trajectory(shop, choose, copies=ref)
+            with_moves = _trajectory_after_moves(stepper, choose, moves, ref)
+            if with_moves.makespan < self.trajectory.makespan:
+                self.trajectory = with_moves
             else:
                 moves = []
         return moves
 
 
 def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
-                       progress: Callable[[str], None] | None = None, every_s: float = 2.0) -> Schedule:
+                       progress: Callable[[str], None] | None = None, every_s: float = 2.0,
+                       reference: bool = False) -> Schedule:
     """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
     :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's).
 
     ``progress`` (e.g. ``print``) receives a one-line report at most every ``every_s`` seconds: on large
-    instances the lookahead takes minutes (see docs/benchmarks.md)."""
+    instances the lookahead takes minutes (see docs/benchmarks.md). ``reference``: see
+    :class:`LookaheadPlanner`."""
     stepper = Stepper(shop, idle_stops=True)
-    planner = LookaheadPlanner(choose, horizon, verify)
+    planner = LookaheadPlanner(choose, horizon, verify, reference)
     t0 = last = time.perf_counter()
     total = sum(len(ops) for ops in shop.instance.jobs)
     stops = moved = 0

@@ -1,0 +1,69 @@
+"""Speed of the PPO lookahead: trial-run twins and the cached trajectory against the reference planner.
+
+``python bench/lookahead_speed.py [--instances EX12,...,sl00,sl00a] [--repeat N]``
+
+For each instance, runs PPO with lookahead twice in this process: with the reference planner
+(``LookaheadPlanner(reference=True)``: every twin a deep copy of the shop, a fresh prediction rollout at every
+idle stop — the first implementation) and with the default planner (twins are trial runs on the shop itself,
+predictions read from the cached plain completion). Both must give the same schedule (checked, and validated);
+prints the seconds of each (best of ``--repeat``) and the ratio. ``slNNa`` is slNN without tools (AGVs only).
+Models: ``bu`` for EX instances, ``large`` / ``large-agv`` for sl instances.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from fms_dispatch.rl.lookahead import run_with_lookahead
+from fms_dispatch.rl.models import load_agent
+from fms_sim.benchmarks import builtin
+from fms_sim.shop import Shop
+from fms_sim.validate import validate
+
+DEFAULT = ",".join([f"EX{s}2" for s in range(1, 11)] + ["sl00a", "sl10a", "sl00"])
+
+
+def instance_and_model(name: str):
+    if name.startswith("sl"):
+        agv_only = name.endswith("a")
+        inst = builtin(name.rstrip("a"))
+        return (inst.without_tools(), "large-agv") if agv_only else (inst, "large")
+    return builtin(name), "bu"
+
+
+def timed(inst, agent, reference: bool, repeat: int):
+    best, sched = float("inf"), None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        sched = run_with_lookahead(Shop(inst), agent.act, reference=reference)
+        best = min(best, time.perf_counter() - t0)
+    problems = validate(inst, sched)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name}: {problems[0]}")
+    return sched, best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--instances", default=DEFAULT)
+    ap.add_argument("--repeat", type=int, default=1, help="runs per planner (the best time counts)")
+    args = ap.parse_args()
+    agents: dict[str, object] = {}
+    tot_ref = tot_new = 0.0
+    print(f"{'instance':10} {'makespan':>8} {'reference s':>12} {'trial+cache s':>14} {'speed-up':>9}")
+    for name in args.instances.split(","):
+        inst, model = instance_and_model(name)
+        agent = agents.setdefault(model, load_agent(model))
+        ref, t_ref = timed(inst, agent, True, args.repeat)
+        new, t_new = timed(inst, agent, False, args.repeat)
+        if new.to_dict() != ref.to_dict():
+            raise SystemExit(f"{name}: the planners' schedules differ ({new.makespan} vs {ref.makespan})")
+        tot_ref += t_ref
+        tot_new += t_new
+        print(f"{name:10} {new.makespan:8d} {t_ref:12.3f} {t_new:14.3f} {t_ref / t_new:8.2f}x", flush=True)
+    print(f"{'total':10} {'':8} {tot_ref:12.3f} {tot_new:14.3f} {tot_ref / tot_new:8.2f}x")
+
+
+if __name__ == "__main__":
+    main()
