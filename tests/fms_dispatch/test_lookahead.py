@@ -122,7 +122,7 @@ def test_lookahead_reports_progress_without_changing_the_run():
     assert "idle stops" in lines[-1]
 
 
-@pytest.mark.parametrize("name", ["EX12", "EX22", "EX62", "ra01", "ra05"])
+@pytest.mark.parametrize("name", ["EX12", "EX22", "EX62", "ra01", "ra05", "ra08"])
 @pytest.mark.parametrize("verify", [True, False])
 def test_trial_runs_and_the_cached_trajectory_plan_like_the_reference(name, verify):
     # the planner's twins are trial runs on the shop itself and its next-task predictions come from the
@@ -176,3 +176,19 @@ def test_the_trajectory_gives_the_predictions_of_a_rollout():
         later.act(pol(later))
     with pytest.raises(ValueError, match="not on this trajectory"):  # a shop before the trajectory starts
         plain_trajectory(later, pol).next_pickups(Shop(builtin("ra05")), [("agv", 0)])
+
+
+def test_verifying_rollouts_that_rejoin_the_plain_run_stop_early_with_the_same_verdict():
+    from fms_dispatch.rl.lookahead import LookaheadPlanner, run_with_lookahead
+    from fms_sim.stepping import Stepper
+
+    inst = builtin("ra08")
+    pol = RulePolicy("SPTN", "nearest")
+    st = Stepper(Shop(inst))
+    planner = LookaheadPlanner(pol)
+    stop = st.advance()
+    while stop != "done":
+        stop = st.decide(pol(st.shop)) if stop == "decision" else st.move(planner.plan(st))
+    # some rollouts were cut short, some moves were kept, and the run is the reference's (which never stops early)
+    assert planner.rejoined > 0 and planner.accepted > 0 and planner.verified > planner.rejoined + planner.accepted
+    assert st.shop.schedule().to_dict() == run_with_lookahead(Shop(inst), pol, reference=True).to_dict()

@@ -126,3 +126,27 @@ def test_a_stepper_trial_puts_back_its_stop():
     while stop != "done":  # the real run goes on as if nothing had happened
         stop = st.decide(pol(st.shop)) if stop == "decision" else st.move([])
     assert st.shop.schedule().to_dict() == _plain(inst, pol)
+
+
+def test_state_keys_follow_the_state_not_the_object():
+    inst = builtin("ra01")
+    pol = RulePolicy("MTWR", "nearest")
+    shop = Shop(inst)
+    for _ in range(6):
+        shop.act(pol(shop))
+    key, quick = shop.state_key(), shop.state_key(quick=True)
+    twin = shop.copy()
+    assert twin.state_key() == key and twin.state_key(quick=True) == quick
+    with shop.trial():
+        shop.act(pol(shop))
+        assert shop.state_key() != key
+    assert shop.state_key() == key  # restored
+    # the same state reached with other records of the past has the same key
+    twin.rec.ops.clear()
+    assert twin.state_key() == key
+    # a vehicle sent elsewhere is a different state even at the same time
+    idle = twin.idle_agvs()
+    assert idle
+    v, loc = idle[0]
+    twin.reposition("agv", v, (loc + 1) % (inst.n_machines + 1), advance=False)
+    assert twin.state_key() != key

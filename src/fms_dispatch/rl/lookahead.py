@@ -110,10 +110,17 @@ class Trajectory:
     the run (counted by the net, :attr:`Net.acted <fms_sim.petri.Net.acted>`) as ``(action, pickup)``, the
     pickup being where a chosen vehicle's task starts. As long as the real run follows the plain policy from
     that state, its decisions are exactly these, so every idle vehicle's next task is read here instead of
-    being simulated again at every idle stop."""
+    being simulated again at every idle stop.
 
-    def __init__(self, start: int, steps: list[tuple[int, int | None]], makespan: int):
+    ``keys[i]`` (when recorded) are the shop's quick and full :meth:`state keys <fms_sim.shop.Shop.state_key>`
+    before decision ``i``: a verifying rollout that reaches one of these states has rejoined this run, and its
+    makespan is known without running on. ``rejoined`` marks such a rollout (its steps stop there).
+    """
+
+    def __init__(self, start: int, steps: list[tuple[int, int | None]], makespan: int,
+                 keys: list[tuple[int, int]] | None = None, rejoined: bool = False):
         self.start, self.steps, self.makespan = start, steps, makespan
+        self.keys, self.rejoined = keys, rejoined
 
     def next_pickups(self, shop: Shop, vehicles: list[tuple[str, int]],
                      horizon: int = DEFAULT_HORIZON) -> dict[tuple[str, int], int | None]:
@@ -133,16 +140,26 @@ class Trajectory:
         return {key: found.get(key) for key in vehicles}
 
 
-def _complete(shop: Shop, choose: Choose) -> Trajectory:
-    """Run ``shop`` (between decisions or at one) to the end with ``choose``, recording the trajectory."""
+def _complete(shop: Shop, choose: Choose, keys: bool = False, rejoin: Trajectory | None = None) -> Trajectory:
+    """Run ``shop`` (between decisions or at one) to the end with ``choose``, recording the trajectory (with
+    the state keys if ``keys``). With ``rejoin`` (a trajectory with keys), stop as soon as the run reaches
+    one of its states: from there it is that run, so its makespan is ``rejoin``'s."""
     start = shop.net.acted
     shop.net.advance()
-    steps = []
+    steps: list[tuple[int, int | None]] = []
+    marks: list[tuple[int, int]] | None = [] if keys else None
+    ref = rejoin.keys if rejoin is not None else None
     while not shop.done:
+        if marks is not None:
+            marks.append((shop.state_key(quick=True), shop.state_key()))
+        if ref is not None:
+            i = shop.net.acted - rejoin.start
+            if 0 <= i < len(ref) and ref[i][0] == shop.state_key(quick=True) and ref[i][1] == shop.state_key():
+                return Trajectory(start, steps, rejoin.makespan, rejoined=True)
         a = choose(shop)
         steps.append((a, _pickup(shop, a)))
         shop.act(a)
-    return Trajectory(start, steps, shop.makespan)
+    return Trajectory(start, steps, shop.makespan, marks)
 
 
 def finish(shop: Shop, choose: Choose) -> int:
@@ -151,17 +168,19 @@ def finish(shop: Shop, choose: Choose) -> int:
     return plain_trajectory(shop, choose).makespan
 
 
-def plain_trajectory(shop: Shop, choose: Choose, copies: bool = False) -> Trajectory:
-    """The :class:`Trajectory` of completing ``shop`` with ``choose``, in a twin (see :func:`predict_tasks`)."""
+def plain_trajectory(shop: Shop, choose: Choose, copies: bool = False, keys: bool = False) -> Trajectory:
+    """The :class:`Trajectory` of completing ``shop`` with ``choose``, in a twin (see :func:`predict_tasks`);
+    ``keys`` records the state keys too."""
     with _twin(shop, copies) as twin:
-        return _complete(twin, choose)
+        return _complete(twin, choose, keys)
 
 
-def _trajectory_after_moves(stepper: Stepper, choose: Choose, moves: list[Move], copies: bool) -> Trajectory:
+def _trajectory_after_moves(stepper: Stepper, choose: Choose, moves: list[Move], copies: bool,
+                            rejoin: Trajectory | None = None) -> Trajectory:
     with _twin(stepper, copies) as twin:
         twin.idle_stops = False  # the plain policy from here on: no further moves
         twin.move(moves)
-        return _complete(twin.shop, choose)
+        return _complete(twin.shop, choose, rejoin=rejoin)
 
 
 class LookaheadPlanner:
@@ -173,11 +192,15 @@ class LookaheadPlanner:
     makespan is strictly smaller. The plain completion is cached as a :class:`Trajectory`: it stays exact
     while the real run follows the plain policy, and becomes the completion with the moves once they are
     made, so it also gives every idle vehicle's next task without another rollout. Each idle stop therefore
-    costs one rollout only when it proposes moves. Call :meth:`reset` when the run changes in a way the
+    costs one rollout only when it proposes moves, and that rollout stops early if it reaches a state of the
+    plain completion (same :meth:`state key <fms_sim.shop.Shop.state_key>` at the same decision): the moves
+    then change nothing, and are rejected. Call :meth:`reset` when the run changes in a way the
     planner did not see (new jobs, a fresh twin, other answers than the planner's).
 
-    ``reference=True`` plans as the first implementation did, for benchmarks and tests: twins are deep copies
-    and every idle stop rolls the policy out again to predict the next tasks. Its moves are the same.
+    ``reference=True`` plans as the first implementation did, for benchmarks and tests: twins are deep copies,
+    every idle stop rolls the policy out again to predict the next tasks and verifying rollouts always run to
+    the end. Its moves are the same. ``verified``, ``accepted`` and ``rejoined`` count the verifying rollouts,
+    those whose moves were kept, and those stopped early.
     """
 
     def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
@@ -187,6 +210,7 @@ class LookaheadPlanner:
         self.verify = verify
         self.reference = reference
         self.trajectory: Trajectory | None = None  # the plain completion from the current state
+        self.verified = self.accepted = self.rejoined = 0
 
     @property
     def expected(self) -> int | None:
@@ -202,18 +226,22 @@ class LookaheadPlanner:
         ref = self.reference
         if self.verify and not ref:
             if self.trajectory is None:
-                self.trajectory = plain_trajectory(shop, choose)
+                self.trajectory = plain_trajectory(shop, choose, keys=True)
             dests = self.trajectory.next_pickups(shop, vehicles, self.horizon)
         else:
             dests = predict_tasks(shop, choose, vehicles, self.horizon, copies=ref)
         moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
                  if (dest := dests[(kind, v)]) is not None and dest != loc]
         if moves and self.verify:
-            if self.trajectory is None:
-                self.trajectory = plain_trajectory(shop, choose, copies=ref)
-            with_moves = _trajectory_after_moves(stepper, choose, moves, ref)
+            if self.trajectory is None or (self.trajectory.keys is None and not ref):
+                # after accepted moves the cache is their rollout, recorded without keys: record them now
+                self.trajectory = plain_trajectory(shop, choose, copies=ref, keys=not ref)
+            with_moves = _trajectory_after_moves(stepper, choose, moves, ref, None if ref else self.trajectory)
+            self.verified += 1
+            self.rejoined += with_moves.rejoined
             if with_moves.makespan < self.trajectory.makespan:
                 self.trajectory = with_moves
+                self.accepted += 1
             else:
                 moves = []
         return moves
@@ -246,5 +274,6 @@ def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZO
             last = time.perf_counter()
             done = sum(shop.job_done_ops)
             progress(f"  lookahead: {done}/{total} operations done, time {shop.now}, {stops} idle stops, "
-                     f"{moved} with moves, {last - t0:.1f} s")
+                     f"{moved} with moves, {planner.verified} verified ({planner.rejoined} stopped early), "
+                     f"{last - t0:.1f} s")
     return shop.schedule()
