@@ -166,6 +166,10 @@ class Transition:
         return id(self)
 
 
+def _release_order(entry: tuple) -> tuple[int, int]:
+    return entry[0], entry[1]  # (ready, sequence number) of a sojourning token: the order of release
+
+
 @dataclass(frozen=True)
 class NetState:
     """A saved dynamic state of a :class:`Net` (see :meth:`Net.save_state`); opaque to callers."""
@@ -547,6 +551,14 @@ class Net:
         self._enabled = dict(state.enabled)
         self._dirty_ctrl = set(state.dirty_ctrl)
         self._offered = state.offered
+
+    def state_key(self) -> int:
+        """A hash of the clock, the marking (each place's tokens by colour, in their order, which FIFO arcs
+        read) and the sojourning tokens in the order they will be released; not the structure, the token
+        ready times of the past or the counters. Equal keys: the net fires the same way from here."""
+        marking = tuple(tuple((k, tuple(t.colour for t in b)) for k, b in p.buckets.items()) for p in self.places)
+        pending = tuple((ready, p.index, t.colour) for ready, _, p, t in sorted(self._pending, key=_release_order))
+        return hash((self.now, marking, pending))
 
     def marking(self) -> dict[str, int]:
         """Token counts per place (sojourning tokens counted under ``name + "~"``)."""

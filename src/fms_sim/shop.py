@@ -61,10 +61,6 @@ _LIST_STATE = ("job_started_ops", "job_done_ops", "job_ready_since", "job_entry"
 _SCALAR_STATE = ("_stamp", "pending_job", "makespan")
 
 
-def _release_order(entry: tuple) -> tuple[int, int]:
-    return entry[0], entry[1]  # (ready, sequence number): the order in which sojourning tokens are released
-
-
 @dataclass(frozen=True)
 class ShopState:
     """A saved dynamic state of a :class:`Shop` (see :meth:`Shop.save_state`); opaque to callers."""
@@ -575,20 +571,17 @@ class Shop:
         del self.rec.ops[n_ops:], self.rec.agv[n_agv:], self.rec.tt[n_tt:]
 
     def state_key(self, quick: bool = False) -> int:
-        """A hash of everything that decides how the run goes on from here: the clock, the marking (tokens in
-        their order), the sojourning tokens in release order and the statistics (:data:`_LIST_STATE`, the
-        dispatch count, the makespan so far); not the records of the past. Two shops of one instance with equal
-        keys run on identically under the same deterministic policy. ``quick``: a cheap hash of the clock,
-        the dispatch count and the busy-until times only; equal full keys imply equal quick keys. The
-        lookahead uses these to stop a verifying rollout that has rejoined the plain run."""
+        """A hash of everything that decides how the run goes on from here: the net's
+        :meth:`~fms_sim.petri.Net.state_key` (clock, marking, sojourning tokens) and the statistics
+        (:data:`_LIST_STATE`, the dispatch count, the makespan so far); not the records of the past. Two shops
+        of one instance with equal keys run on identically under the same deterministic policy. ``quick``: a
+        cheap hash of the clock, the dispatch count and the busy-until times only; equal full keys imply equal
+        quick keys. The lookahead uses these to stop a verifying rollout that has rejoined the plain run."""
         if quick:
             return hash((self.net.now, self._stamp, tuple(self.machine_busy_until), tuple(self.agv_free_at),
                          tuple(self.tt_free_at)))
-        net = self.net
-        marking = tuple(tuple((k, tuple(t.colour for t in b)) for k, b in p.buckets.items()) for p in net.places)
-        pending = tuple((ready, p.index, t.colour) for ready, _, p, t in sorted(net._pending, key=_release_order))
         lists = tuple(tuple(getattr(self, name)) for name in _LIST_STATE)
-        return hash((net.now, marking, pending, lists, self._stamp, self.pending_job, self.makespan))
+        return hash((self.net.state_key(), lists, self._stamp, self.pending_job, self.makespan))
 
     @contextmanager
     def trial(self) -> Iterator["Shop"]:

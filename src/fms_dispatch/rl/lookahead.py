@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
@@ -66,16 +66,31 @@ def predict_tasks(shop: Shop, choose: Choose, vehicles: list[tuple[str, int]],
     is a deep copy instead of a trial run; slower, the reference)."""
     with _twin(shop, copies) as twin:
         twin.net.advance()
-        targets = _targets(twin, vehicles)
-        found: dict[tuple[str, int], int | None] = {}
-        for _ in range(horizon):
-            if twin.done or len(found) == len(targets):
-                break
-            a = choose(twin)
+        return _first_pickups(_rollout(twin, choose, horizon), _targets(twin, vehicles), vehicles)
+
+
+def _rollout(shop: Shop, choose: Choose, horizon: int) -> Iterator[tuple[int, int | None]]:
+    """Up to ``horizon`` decisions of ``choose`` on ``shop`` as ``(action, pickup)``, made as they are consumed."""
+    for _ in range(horizon):
+        if shop.done:
+            return
+        a = choose(shop)
+        yield a, _pickup(shop, a)
+        shop.act(a)
+
+
+def _first_pickups(steps: Iterable[tuple[int, int | None]], targets: dict[int, tuple[str, int]],
+                   vehicles: list[tuple[str, int]]) -> dict[tuple[str, int], int | None]:
+    """Each watched vehicle's first pickup among ``steps`` (None if it gets no task there); stops reading
+    ``steps`` once every vehicle has one."""
+    found: dict[tuple[str, int], int | None] = {}
+    if targets:
+        for a, pickup in steps:
             key = targets.get(a)
             if key is not None and key not in found:
-                found[key] = _pickup(twin, a)
-            twin.act(a)
+                found[key] = pickup
+                if len(found) == len(targets):
+                    break
     return {key: found.get(key) for key in vehicles}
 
 
@@ -129,15 +144,7 @@ class Trajectory:
         if not 0 <= i <= len(self.steps):
             raise ValueError(f"the shop (decision {shop.net.acted}) is not on this trajectory "
                              f"(decisions {self.start}..{self.start + len(self.steps)})")
-        targets = _targets(shop, vehicles)
-        found: dict[tuple[str, int], int | None] = {}
-        for a, pickup in self.steps[i:i + horizon]:
-            key = targets.get(a)
-            if key is not None and key not in found:
-                found[key] = pickup
-                if len(found) == len(targets):
-                    break
-        return {key: found.get(key) for key in vehicles}
+        return _first_pickups(self.steps[i:i + horizon], _targets(shop, vehicles), vehicles)
 
 
 def _complete(shop: Shop, choose: Choose, keys: bool = False, rejoin: Trajectory | None = None) -> Trajectory:
@@ -211,11 +218,6 @@ class LookaheadPlanner:
         self.reference = reference
         self.trajectory: Trajectory | None = None  # the plain completion from the current state
         self.verified = self.accepted = self.rejoined = 0
-
-    @property
-    def expected(self) -> int | None:
-        """Makespan of the plain completion from the current state (None until computed)."""
-        return None if self.trajectory is None else self.trajectory.makespan
 
     def reset(self) -> None:
         self.trajectory = None
