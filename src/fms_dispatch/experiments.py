@@ -463,9 +463,10 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         a = agent.act(shop)
         decide += time.perf_counter() - t0
         if nxt < len(groups) and shop.instance.n_operations - sum(shop.job_started_ops) <= 2:
-            twin = shop.copy()
-            twin.act(a)
-            if twin.done:  # the shop would run dry before the next arrival: the partition enters now (early)
+            with shop.trial():
+                shop.act(a)
+                runs_dry = shop.done
+            if runs_dry:  # the shop would run dry before the next arrival: the partition enters now (early)
                 shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
                 arrive(nxt, True)
                 nxt += 1
