@@ -28,8 +28,8 @@ import numpy as np
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory", "demonstrations", "clone",
-           "dagger", "dagger_round", "concat_demos"]
+__all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory", "demonstrations",
+           "clone", "dagger", "dagger_round", "concat_demos"]
 
 #: the warm-start experts (``warm_start.expert`` of a training config)
 EXPERTS = ("search", "rules", "rules+nearest")
@@ -275,8 +275,7 @@ def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float
     with torch.no_grad():  # in batches: the entity network over 100k+ padded states at once needs many GB
         for i in range(0, n, 4096):
             sl = slice(i, i + 4096)
-            _, log_prob, _ = policy.evaluate_actions(X[sl], Y[sl], action_masks=M[sl])
-            dist = policy.get_distribution(X[sl], action_masks=M[sl].numpy())
+            dist = policy.get_distribution(X[sl], action_masks=M[sl].numpy())  # one forward pass for both
             hits += int((dist.distribution.probs.argmax(dim=-1) == Y[sl]).sum())
-            nll -= float(log_prob.sum())
+            nll -= float(dist.log_prob(Y[sl]).sum())
     return {"samples": int(n), "accuracy": round(hits / max(1, n), 4), "nll": round(nll / max(1, n), 4)}
