@@ -137,6 +137,61 @@ def test_nearest_expert_sees_pairs_the_paper_set_does_not():
     assert all(b <= a for a, b in pairs) and any(b < a for a, b in pairs), pairs
 
 
+def test_sequence_policy_replays_its_sequence_and_falls_back_deterministically():
+    """A sequence policy replays a run exactly; where its entry is illegal it takes a hashed legal action,
+    the same on every run (so the lookahead's twins make the run's own choices)."""
+    from fms_dispatch.rl.imitation import SequencePolicy, rule_trajectory
+    from fms_sim.shop import run_policy
+
+    inst = builtin("EX22")
+    ms, seq = rule_trajectory(inst)
+    assert run_policy(inst, SequencePolicy(seq)).makespan == ms
+    holes = [a if t % 3 else -1 for t, a in enumerate(seq)]
+    runs = [run_policy(inst, SequencePolicy(holes, salt=s)) for s in (5, 5, 6)]
+    assert all(validate(inst, r) == [] for r in runs)
+    assert runs[0].to_dict() == runs[1].to_dict()
+
+
+def test_lookahead_search_judges_sequences_by_their_lookahead_runs():
+    """The lookahead search returns a policy whose lookahead run has the makespan it reports, valid, no worse
+    than the lookahead run of its start; its demonstration reproduces that run and labels legal actions."""
+    from fms_dispatch.rl.imitation import (SequencePolicy, lookahead_demonstration, lookahead_search,
+                                           search_trajectory)
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+    from fms_sim.shop import Shop
+
+    inst = builtin("EX22")
+    _, start = search_trajectory(inst, iters=100, seed=3)
+    start_ms = run_with_lookahead(Shop(inst), SequencePolicy(start)).makespan
+    ms, policy = lookahead_search(inst, iters=150, seed=3, start=start)
+    assert ms <= start_ms
+    decisions: list = []
+    sched = run_with_lookahead(Shop(inst), policy, decisions=decisions)
+    assert sched.makespan == ms and validate(inst, sched) == []
+    assert all(a in legal for legal, a in decisions)
+    pad = padding_for("bu", [inst])
+    demo_ms, demos, conflicts = lookahead_demonstration(inst, policy, pad)
+    assert demo_ms == ms and conflicts == 0
+    n = len(demos["action"])
+    assert n >= sum(len(legal) > 1 for legal, _ in decisions) > 0  # the twins' decisions come on top
+    assert demos["mask"][np.arange(n), demos["action"]].all() and np.isnan(demos["ret"]).all()
+
+
+def test_search_lookahead_expert_clones_into_a_policy_that_repeats_its_lookahead_run(tmp_path):
+    """Warm start from the search+lookahead expert: once every recorded decision is matched, solving with the
+    model and the lookahead reproduces the expert's makespan (the point of recording the twins' decisions)."""
+    out = tmp_path / "la"
+    cfg = dict(TINY, train=["gen:6x4x3*1@5"], eval=["gen:6x4x3*1@5"], steps=0, seed=2, padding="auto",
+               arch="mlp", net_arch=[64, 64], warm_start={"expert": "search+lookahead", "instances": 1,
+                                                          "search_iters": 60, "epochs": 300, "lr": 3e-3})
+    m = train(cfg, out, tensorboard=tmp_path / "tb")
+    w = m["warm_start"]
+    assert w["accuracy"] == 1.0 and w["samples"] > 0
+    inst = expand_instances(["gen:6x4x3*1@5"])[0]
+    s = ppo_solver(f"ppo:{out}")(inst, lookahead=True)
+    assert validate(inst, s) == [] and s.makespan == w["expert_makespan"][inst.name]
+
+
 def test_warm_start_only_training_clones_the_expert(tmp_path, capsys):
     """steps=0 with an expert: the model is the cloned policy; metrics record the cloning figures; the
     demonstrations and the cloning report progress."""

@@ -7,6 +7,12 @@ it. Two experts make the demonstrations (action sequences through the shop net):
   24 rule pairs and of ``iters/4`` random runs, then repeatedly keep a prefix of the best sequence, change one decision at random and
   complete the run by replaying the best sequence where it is still legal (else a random legal action);
   keep the result when it is no worse. For small instances (BU) this finds sequences near the net's best.
+* ``"search+lookahead"`` — the same search, then a second one whose runs are lookahead runs
+  (:func:`lookahead_search`): a decision sequence is judged by the makespan that the lookahead
+  (:mod:`~fms_dispatch.rl.lookahead`) reaches when it drives the run and its twins. The plain search optimises
+  the sequence the lookahead will then change; this one optimises what is actually shipped, policy and
+  lookahead together. Its demonstrations are every decision of the lookahead run, the twins' included, so a
+  policy that reproduces them reproduces the whole lookahead run.
 * ``"rules"`` — per training instance, the sequence of the best of the paper's 24 rule pairs;
 * ``"rules+nearest"`` — the same over all 36 pairs, i.e. also with the ``nearest`` vehicle rule. On the large
   benchmark the best pairs nearly all send the nearest vehicle, and a policy cloned from the 24 pairs (which
@@ -14,7 +20,8 @@ it. Two experts make the demonstrations (action sequences through the shop net):
   5–10 % (docs/benchmarks.md §4).
 
 :func:`clone` then trains the policy (cross-entropy on the masked logits) and the value head (return-to-go of
-the env's reward along the demonstration) on the recorded ``(observation, mask, action)`` triples. The
+the env's reward along the demonstration; none for ``search+lookahead``, whose twin states have no return in
+the env) on the recorded ``(observation, mask, action)`` triples. The
 result is an ordinary MaskablePPO model; PPO continues from it.
 """
 
@@ -28,11 +35,12 @@ import numpy as np
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory", "demonstrations",
-           "clone", "dagger", "dagger_round", "concat_demos"]
+__all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory",
+           "SequencePolicy", "lookahead_search", "lookahead_demonstration", "demonstrations", "clone", "dagger",
+           "dagger_round", "concat_demos"]
 
 #: the warm-start experts (``warm_start.expert`` of a training config)
-EXPERTS = ("search", "rules", "rules+nearest")
+EXPERTS = ("search", "search+lookahead", "rules", "rules+nearest")
 #: the experts that are rule pairs: they can label any state, which DAgger needs
 RULE_EXPERTS = ("rules", "rules+nearest")
 
@@ -103,6 +111,109 @@ def search_trajectory(inst: Instance, iters: int = 2000, seed: int = 0, keep: fl
     return best_ms, best
 
 
+class SequencePolicy:
+    """A decision sequence used as a policy (``policy(shop) -> net action``).
+
+    Decision ``t`` of a run (counted by the net: ``shop.net.acted``) takes ``actions[t]`` where it is legal;
+    otherwise the legal action picked by a fixed hash of ``(salt, t)``. The choice depends on the state only,
+    never on a random stream, so a twin of the lookahead that reaches a state makes the choice the run itself
+    would make there: a lookahead run of a sequence policy is reproducible, which the search and the
+    demonstrations rely on.
+    """
+
+    def __init__(self, actions: Sequence[int], salt: int = 0) -> None:
+        self.actions = [int(a) for a in actions]
+        self.salt = int(salt)
+
+    def __call__(self, shop: Shop) -> int:
+        t = shop.net.acted
+        legal = shop.legal_actions()
+        if t < len(self.actions) and self.actions[t] in legal:
+            return self.actions[t]
+        return legal[(self.salt * 1_000_003 + t * 7_919) % len(legal)]
+
+
+def _lookahead_run(inst: Instance, policy: Callable[[Shop], int]) -> tuple[int, list[tuple[list[int], int]]]:
+    """(makespan, the run's own decisions as (legal actions, action)) of a lookahead run of ``policy``."""
+    from .lookahead import run_with_lookahead
+
+    decisions: list[tuple[list[int], int]] = []
+    sched = run_with_lookahead(Shop(inst), policy, decisions=decisions)
+    return sched.makespan, decisions
+
+
+def lookahead_search(inst: Instance, iters: int = 2000, seed: int = 0, keep: float = 0.85, history: int = 50,
+                     start: Sequence[int] | None = None) -> tuple[int, SequencePolicy]:
+    """(lookahead makespan, policy): a late-acceptance local search over :class:`SequencePolicy`, each
+    candidate judged by a whole lookahead run (:func:`~fms_dispatch.rl.lookahead.run_with_lookahead`).
+
+    It starts from ``start`` (default: :func:`search_trajectory` with the same ``iters`` and ``seed``). A
+    candidate takes the current run's decisions, changes one (with two or more legal actions) to another legal
+    action and frees each later one with probability ``1 - keep`` (freed decisions fall to the policy's hashed
+    choice, with a new salt per candidate). Late acceptance (Burke & Bykov) keeps a candidate that is no worse
+    than the current run or than the current run ``history`` iterations ago: plain hill climbing stalls on the
+    plateaus of equal makespans that the lookahead's verification creates. The best candidate seen is returned.
+    """
+    rng = random.Random(seed)
+    if start is None:
+        _, start = search_trajectory(inst, iters=iters, seed=seed)
+    cur = best = SequencePolicy(start)
+    cur_ms, decisions = _lookahead_run(inst, cur)
+    best_ms = cur_ms
+    past = [cur_ms] * max(1, history)
+    for it in range(iters):
+        free = [t for t, (legal, _) in enumerate(decisions) if len(legal) > 1]
+        if not free:
+            break
+        i = rng.choice(free)
+        legal, chosen = decisions[i]
+        actions = [a for _, a in decisions]
+        actions[i] = rng.choice([a for a in legal if a != chosen])
+        for t in range(i + 1, len(actions)):
+            if rng.random() > keep:
+                actions[t] = -1
+        cand = SequencePolicy(actions, salt=rng.randrange(1 << 30))
+        ms, cand_decisions = _lookahead_run(inst, cand)
+        slot = it % len(past)
+        if ms <= cur_ms or ms <= past[slot]:
+            cur, cur_ms, decisions = cand, ms, cand_decisions
+            if ms < best_ms:
+                best, best_ms = cand, ms
+        past[slot] = cur_ms
+    return best_ms, best
+
+
+def lookahead_demonstration(inst: Instance, policy: Callable[[Shop], int], padding: dict[str, int],
+                            reward: str = "shaped") -> tuple[int, dict[str, np.ndarray], int]:
+    """(makespan, demonstrations, conflicts) of a lookahead run of ``policy``: one row per distinct observation
+    at which ``policy`` chose among two or more actions, in the run or in any of its twins. A policy that
+    matches every row makes the same lookahead run. ``conflicts`` counts observations seen again with another
+    action (the observation does not tell those states apart; 0 in practice). ``ret`` is NaN: twin states
+    have no return in the env."""
+    from .envs import FastShopEnv
+    from .lookahead import run_with_lookahead
+
+    env = FastShopEnv(inst, reward=reward, invalid_action="raise", **padding)
+    rows: dict[bytes, tuple[np.ndarray, np.ndarray, int]] = {}
+    conflicts = 0
+
+    def recording(shop: Shop) -> int:
+        nonlocal conflicts
+        a = policy(shop)
+        if env.shop is not shop:
+            env.attach(shop)
+        obs, mask = env.observe()
+        if mask.sum() > 1:
+            pa = env.from_net_action(a)
+            row = rows.setdefault(obs.tobytes(), (obs.copy(), mask.copy(), pa))
+            conflicts += row[2] != pa
+        return a
+
+    sched = run_with_lookahead(Shop(inst), recording)
+    obs, masks, actions = zip(*rows.values()) if rows else ((), (), ())
+    return sched.makespan, _as_demos(list(obs), list(masks), list(actions), [np.nan] * len(rows)), conflicts
+
+
 def demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
                    iters: int = 2000, seed: int = 0,
                    progress: Callable[[str], None] | None = None,
@@ -111,14 +222,28 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     ``progress`` (e.g. ``print``) gets a line per instance: the experts take seconds to minutes each.
     For the rule experts, ``pairs`` (if given) receives each instance's best pair (for :func:`dagger_round`).
 
-    Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted).
-    Decisions with one legal action are replayed but not recorded (nothing to learn).
+    Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted; NaN
+    where unknown). Decisions with one legal action are replayed but not recorded (nothing to learn). For
+    ``search+lookahead`` the makespans are the lookahead's and the rows come from
+    :func:`lookahead_demonstration`.
     """
     from .envs import FastShopEnv
 
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
+    parts: list[dict[str, np.ndarray]] = []
     for n, inst in enumerate(instances):
+        if expert == "search+lookahead":
+            ms, policy = lookahead_search(inst, iters=iters, seed=seed + n)
+            la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
+            assert la_ms == ms, (la_ms, ms)
+            parts.append(part)
+            makespans[inst.name] = ms
+            if progress is not None:
+                progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan "
+                         f"{ms} with lookahead, {sum(len(p['action']) for p in parts) + len(obs)} decisions "
+                         f"recorded, {conflicts} conflicting)")
+            continue
         if expert == "search":
             ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
         elif expert in RULE_EXPERTS:
@@ -147,7 +272,11 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
         if progress is not None:
             progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan {ms}, "
                      f"{len(obs)} decisions recorded)")
-    return _as_demos(obs, masks, actions, rets), makespans
+    demos = _as_demos(obs, masks, actions, rets) if obs or not parts else None
+    for part in parts:
+        if len(part["action"]):
+            demos = part if demos is None else concat_demos(demos, part)
+    return demos if demos is not None else _as_demos([], [], [], []), makespans
 
 
 def _returns_to_go(steps: list[tuple[int | None, float]]) -> list[float]:
@@ -262,7 +391,10 @@ def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float
         for i in range(0, n, batch_size):
             idx = perm[i:i + batch_size]
             values, log_prob, _ = policy.evaluate_actions(X[idx], Y[idx], action_masks=M[idx])
-            loss = -log_prob.mean() + 0.5 * ((values.squeeze(-1) - R[idx]) ** 2).mean()
+            known = ~torch.isnan(R[idx])  # rows without a return train the policy only
+            loss = -log_prob.mean()
+            if bool(known.any()):
+                loss = loss + 0.5 * ((values.squeeze(-1)[known] - R[idx][known]) ** 2).mean()
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)

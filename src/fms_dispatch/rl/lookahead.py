@@ -251,13 +251,14 @@ class LookaheadPlanner:
 
 def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
                        progress: Callable[[str], None] | None = None, every_s: float = 2.0,
-                       reference: bool = False) -> Schedule:
+                       reference: bool = False, decisions: list[tuple[list[int], int]] | None = None) -> Schedule:
     """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
     :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's).
 
     ``progress`` (e.g. ``print``) receives a one-line report at most every ``every_s`` seconds: on large
     instances the lookahead takes minutes (see docs/benchmarks.md). ``reference``: see
-    :class:`LookaheadPlanner`."""
+    :class:`LookaheadPlanner`. ``decisions`` (a list, if given) receives ``(legal actions, action)`` for each
+    decision of the run itself, not of its twins (the lookahead search mutates them)."""
     stepper = Stepper(shop, idle_stops=True)
     planner = LookaheadPlanner(choose, horizon, verify, reference)
     t0 = last = time.perf_counter()
@@ -266,7 +267,10 @@ def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZO
     stop = stepper.advance()
     while stop != "done":
         if stop == "decision":
-            stop = stepper.decide(choose(shop))
+            a = choose(shop)
+            if decisions is not None:
+                decisions.append((shop.legal_actions(), a))
+            stop = stepper.decide(a)
         else:
             moves = planner.plan(stepper)
             stops += 1
