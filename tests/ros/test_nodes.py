@@ -79,17 +79,17 @@ def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) ->
                          env=ros_env, capture_output=True, text=True, timeout=120)
     wall = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr + res.stdout
-    # the shipped PPO model with lookahead (83) beats the best rule pair (86) in simulation, so best runs it
+    # the shipped PPO model with lookahead (82) beats the best rule pair (86) in simulation, so best runs it
     # over the topics: the agent pre-positions AGVs at the shop's idle stops
-    assert ("best on EX12: ppo:bu+lookahead (makespan 83 in simulation; best rule pair rule:LPTN+nearest: 86)"
+    assert ("best on EX12: ppo:bu+lookahead (makespan 82 in simulation; best rule pair rule:LPTN+nearest: 86)"
             in res.stderr)
     lines = res.stdout.splitlines()
-    assert lines[0].startswith("EX12: makespan 83 (ppo:bu+lookahead over ROS 2 topics, 26 decisions, valid)")
+    assert lines[0].startswith("EX12: makespan 82 (ppo:bu+lookahead over ROS 2 topics, 26 decisions, valid)")
     png = gantt_path(db.parent, "up-ex12")
     assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex12)", f"gantt:    {png}"]
     sched = Schedule.load(out)
     inst = builtin("EX12")
-    assert validate(inst, sched) == [] and sched.makespan == 83
+    assert validate(inst, sched) == [] and sched.makespan == 82
     assert sched.meta["solver"] == "ppo:bu+lookahead" and sched.meta["decisions"] == 26
     assert sched.meta["idle_answers"] > 0
     assert any(not t.loaded and t.job is None for t in sched.agv_trips)  # a pre-positioning trip
@@ -245,7 +245,7 @@ def test_ppo_agent_killed_and_restarted_replays_the_history(nodes: NodeProcs, ob
     sched = schedule_of(observer, "ppo-crash")
     inst = builtin("EX12")
     assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:bu"
-    assert sched.makespan == ppo_solver("ppo")(inst).makespan == 84
+    assert sched.makespan == ppo_solver("ppo")(inst).makespan == 88
     assert not [e for e in observer.snapshot("error") if e.get("run_id") == "ppo-crash" and e["code"] == "internal"]
 
 
