@@ -157,8 +157,8 @@ def lookahead_search(inst: Instance, iters: int = 2000, seed: int = 0, keep: flo
     rng = random.Random(seed)
     if start is None:
         _, start = search_trajectory(inst, iters=iters, seed=seed)
-    cur = best = SequencePolicy(start)
-    cur_ms, decisions = _lookahead_run(inst, cur)
+    best = SequencePolicy(start)
+    cur_ms, decisions = _lookahead_run(inst, best)  # the current run: its makespan and decisions
     best_ms = cur_ms
     past = [cur_ms] * max(1, history)
     for it in range(iters):
@@ -176,7 +176,7 @@ def lookahead_search(inst: Instance, iters: int = 2000, seed: int = 0, keep: flo
         ms, cand_decisions = _lookahead_run(inst, cand)
         slot = it % len(past)
         if ms <= cur_ms or ms <= past[slot]:
-            cur, cur_ms, decisions = cand, ms, cand_decisions
+            cur_ms, decisions = ms, cand_decisions
             if ms < best_ms:
                 best, best_ms = cand, ms
         past[slot] = cur_ms
@@ -231,18 +231,17 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
 
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
-    parts: list[dict[str, np.ndarray]] = []
     for n, inst in enumerate(instances):
         if expert == "search+lookahead":
             ms, policy = lookahead_search(inst, iters=iters, seed=seed + n)
             la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
             assert la_ms == ms, (la_ms, ms)
-            parts.append(part)
+            for rows, key in ((obs, "obs"), (masks, "mask"), (actions, "action"), (rets, "ret")):
+                rows.extend(part[key])
             makespans[inst.name] = ms
             if progress is not None:
                 progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan "
-                         f"{ms} with lookahead, {sum(len(p['action']) for p in parts) + len(obs)} decisions "
-                         f"recorded, {conflicts} conflicting)")
+                         f"{ms} with lookahead, {len(obs)} decisions recorded, {conflicts} conflicting)")
             continue
         if expert == "search":
             ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
@@ -272,11 +271,7 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
         if progress is not None:
             progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan {ms}, "
                      f"{len(obs)} decisions recorded)")
-    demos = _as_demos(obs, masks, actions, rets) if obs or not parts else None
-    for part in parts:
-        if len(part["action"]):
-            demos = part if demos is None else concat_demos(demos, part)
-    return demos if demos is not None else _as_demos([], [], [], []), makespans
+    return _as_demos(obs, masks, actions, rets), makespans
 
 
 def _returns_to_go(steps: list[tuple[int | None, float]]) -> list[float]:
