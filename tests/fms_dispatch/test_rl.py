@@ -177,6 +177,52 @@ def test_lookahead_search_judges_sequences_by_their_lookahead_runs():
     assert demos["mask"][np.arange(n), demos["action"]].all() and np.isnan(demos["ret"]).all()
 
 
+def test_insertion_move_moves_a_later_decision_forward():
+    """The insertion move takes the first later occurrence out and puts it in front; nothing to move when
+    the action does not come later (the search then overwrites instead)."""
+    from fms_dispatch.rl.imitation import _inserted
+
+    assert _inserted([5, 1, 2, 3, 2], 1, 2) == [5, 2, 1, 3, 2]
+    assert _inserted([5, 1, 2, 3], 0, 3) == [3, 5, 1, 2]
+    assert _inserted([5, 1, 2, 3], 2, 1) is None and _inserted([5, 1, 2, 3], 3, 3) is None
+
+
+def test_lookahead_search_with_insertions_and_restarts_keeps_its_guarantees():
+    """With insertion moves and restarts the search still returns a reproducible policy whose valid lookahead
+    run has the reported makespan; a second restart only adds to the first (same random stream), so it is
+    never worse than one restart."""
+    from fms_dispatch.rl.imitation import lookahead_search, search_trajectory
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+    from fms_sim.shop import Shop
+
+    inst = builtin("EX42")
+    _, start = search_trajectory(inst, iters=100, seed=4)
+    one_ms, _ = lookahead_search(inst, iters=60, seed=4, start=start, insert=0.5)
+    two_ms, policy = lookahead_search(inst, iters=60, seed=4, start=start, insert=0.5, restarts=2)
+    assert two_ms <= one_ms
+    sched = run_with_lookahead(Shop(inst), policy)
+    assert sched.makespan == two_ms and validate(inst, sched) == []
+    again_ms, again = lookahead_search(inst, iters=60, seed=4, start=start, insert=0.5, restarts=2)
+    assert again_ms == two_ms and again.actions == policy.actions and again.salt == policy.salt
+
+
+def test_search_lookahead_demonstrations_do_not_depend_on_the_worker_count():
+    """workers=2 searches the instances in separate processes and gives the same arrays and makespans, in
+    instance order, as one process."""
+    from fms_dispatch.rl.imitation import demonstrations
+
+    insts = expand_instances(["gen:6x4x3*2@5"])
+    pad = padding_for("auto", insts)
+    kw = dict(iters=30, seed=1, insert=0.5, restarts=2)
+    one, one_ms = demonstrations(insts, pad, "shaped", "search+lookahead", workers=1, **kw)
+    lines: list[str] = []
+    two, two_ms = demonstrations(insts, pad, "shaped", "search+lookahead", workers=2, progress=lines.append,
+                                 **kw)
+    assert one_ms == two_ms and list(two_ms) == [i.name for i in insts]
+    assert set(one) == set(two) and all(np.array_equal(one[k], two[k], equal_nan=True) for k in one)
+    assert len(lines) == 2 and lines[-1].startswith("  demonstrations: 2/2 instances")
+
+
 def test_search_lookahead_expert_clones_into_a_policy_that_repeats_its_lookahead_run(tmp_path):
     """Warm start from the search+lookahead expert: once every recorded decision is matched, solving with the
     model and the lookahead reproduces the expert's makespan (the point of recording the twins' decisions)."""

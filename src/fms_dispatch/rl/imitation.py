@@ -142,44 +142,69 @@ def _lookahead_run(inst: Instance, policy: Callable[[Shop], int]) -> tuple[int, 
     return sched.makespan, decisions
 
 
+def _inserted(actions: Sequence[int], i: int, x: int) -> list[int] | None:
+    """``actions`` with the first later ``x`` (after position ``i``) taken out and put in at ``i``; None
+    where ``x`` does not come later (the insertion move of :func:`lookahead_search`)."""
+    later = next((t for t in range(i + 1, len(actions)) if actions[t] == x), None)
+    if later is None:
+        return None
+    out = list(actions)
+    out.insert(i, out.pop(later))
+    return out
+
+
 def lookahead_search(inst: Instance, iters: int = 2000, seed: int = 0, keep: float = 0.85, history: int = 50,
-                     start: Sequence[int] | None = None) -> tuple[int, SequencePolicy]:
+                     start: Sequence[int] | None = None, insert: float = 0.0,
+                     restarts: int = 1) -> tuple[int, SequencePolicy]:
     """(lookahead makespan, policy): a late-acceptance local search over :class:`SequencePolicy`, each
     candidate judged by a whole lookahead run (:func:`~fms_dispatch.rl.lookahead.run_with_lookahead`).
 
     It starts from ``start`` (default: :func:`search_trajectory` with the same ``iters`` and ``seed``). A
-    candidate takes the current run's decisions, changes one (with two or more legal actions) to another legal
-    action and frees each later one with probability ``1 - keep`` (freed decisions fall to the policy's hashed
-    choice, with a new salt per candidate). Late acceptance (Burke & Bykov) keeps a candidate that is no worse
-    than the current run or than the current run ``history`` iterations ago: plain hill climbing stalls on the
-    plateaus of equal makespans that the lookahead's verification creates. The best candidate seen is returned.
+    candidate takes the current run's decisions and moves one decision ``i`` (with two or more legal actions)
+    to another legal action ``x``, then frees each later decision with probability ``1 - keep`` (freed
+    decisions fall to the policy's hashed choice, with a new salt per candidate). The move is a *change*
+    (``x`` overwrites decision ``i``) or, with probability ``insert``, an *insertion*: when ``x`` is chosen
+    again later in the run, that later decision is taken out and ``x`` is put in front of decision ``i``, so
+    the job moved forward does not also displace the job it replaced. Late acceptance (Burke & Bykov) keeps a
+    candidate that is no worse than the current run or than the current run ``history`` iterations ago: plain
+    hill climbing stalls on the plateaus of equal makespans that the lookahead's verification creates.
+
+    ``restarts`` > 1 runs the search that many times (``iters`` each), every restart from the best run so far
+    with a fresh acceptance history: a late-acceptance walk drifts away from its best on long plateaus, and
+    restarting there spends the budget around the best run. The best candidate seen is returned.
     """
     rng = random.Random(seed)
     if start is None:
         _, start = search_trajectory(inst, iters=iters, seed=seed)
     best = SequencePolicy(start)
-    cur_ms, decisions = _lookahead_run(inst, best)  # the current run: its makespan and decisions
-    best_ms = cur_ms
-    past = [cur_ms] * max(1, history)
-    for it in range(iters):
-        free = [t for t, (legal, _) in enumerate(decisions) if len(legal) > 1]
-        if not free:
-            break
-        i = rng.choice(free)
-        legal, chosen = decisions[i]
-        actions = [a for _, a in decisions]
-        actions[i] = rng.choice([a for a in legal if a != chosen])
-        for t in range(i + 1, len(actions)):
-            if rng.random() > keep:
-                actions[t] = -1
-        cand = SequencePolicy(actions, salt=rng.randrange(1 << 30))
-        ms, cand_decisions = _lookahead_run(inst, cand)
-        slot = it % len(past)
-        if ms <= cur_ms or ms <= past[slot]:
-            cur_ms, decisions = ms, cand_decisions
-            if ms < best_ms:
-                best, best_ms = cand, ms
-        past[slot] = cur_ms
+    best_ms, best_decisions = _lookahead_run(inst, best)
+    for _ in range(max(1, restarts)):
+        cur_ms, decisions = best_ms, best_decisions  # the current run: its makespan and decisions
+        past = [cur_ms] * max(1, history)
+        for it in range(iters):
+            free = [t for t, (legal, _) in enumerate(decisions) if len(legal) > 1]
+            if not free:
+                break
+            i = rng.choice(free)
+            legal, chosen = decisions[i]
+            actions = [a for _, a in decisions]
+            x = rng.choice([a for a in legal if a != chosen])
+            moved = _inserted(actions, i, x) if insert > 0 and rng.random() < insert else None
+            if moved is None:
+                actions[i] = x
+            else:
+                actions = moved
+            for t in range(i + 1, len(actions)):
+                if rng.random() > keep:
+                    actions[t] = -1
+            cand = SequencePolicy(actions, salt=rng.randrange(1 << 30))
+            ms, cand_decisions = _lookahead_run(inst, cand)
+            slot = it % len(past)
+            if ms <= cur_ms or ms <= past[slot]:
+                cur_ms, decisions = ms, cand_decisions
+                if ms < best_ms:
+                    best, best_ms, best_decisions = cand, ms, cand_decisions
+            past[slot] = cur_ms
     return best_ms, best
 
 
@@ -214,35 +239,63 @@ def lookahead_demonstration(inst: Instance, policy: Callable[[Shop], int], paddi
     return sched.makespan, _as_demos(list(obs), list(masks), list(actions), [np.nan] * len(rows)), conflicts
 
 
+def _lookahead_expert(inst: Instance, padding: dict[str, int], reward: str, iters: int, seed: int,
+                      insert: float, restarts: int) -> tuple[int, dict[str, np.ndarray], int]:
+    """(makespan, demonstrations, conflicts) of the ``search+lookahead`` expert on one instance (a top-level
+    function so that a process pool can run it)."""
+    ms, policy = lookahead_search(inst, iters=iters, seed=seed, insert=insert, restarts=restarts)
+    la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
+    assert la_ms == ms, (la_ms, ms)
+    return ms, part, conflicts
+
+
 def demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
                    iters: int = 2000, seed: int = 0,
                    progress: Callable[[str], None] | None = None,
-                   pairs: dict[str, str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                   pairs: dict[str, str] | None = None, insert: float = 0.0, restarts: int = 1,
+                   workers: int = 1) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Replay each instance's expert sequence through the env; returns arrays and the expert makespans.
     ``progress`` (e.g. ``print``) gets a line per instance: the experts take seconds to minutes each.
     For the rule experts, ``pairs`` (if given) receives each instance's best pair (for :func:`dagger_round`).
 
     Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted; NaN
     where unknown). Decisions with one legal action are replayed but not recorded (nothing to learn). For
-    ``search+lookahead`` the makespans are the lookahead's and the rows come from
-    :func:`lookahead_demonstration`.
+    ``search+lookahead`` the makespans are the lookahead's, the rows come from
+    :func:`lookahead_demonstration`, ``insert`` and ``restarts`` go to :func:`lookahead_search`, and
+    ``workers`` > 1 searches that many instances at once in separate processes (the searches take minutes
+    each and are independent; the result does not depend on ``workers``).
     """
     from .envs import FastShopEnv
 
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
+    if expert == "search+lookahead":
+        args = [(inst, padding, reward, iters, seed + n, insert, restarts) for n, inst in enumerate(instances)]
+        if workers > 1 and len(instances) > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn, not fork: the parent may hold torch's thread pools, which do not survive a fork
+            pool = ProcessPoolExecutor(min(workers, len(instances)),
+                                       mp_context=multiprocessing.get_context("spawn"))
+            results = pool.map(_lookahead_expert, *zip(*args))
+        else:
+            pool = None
+            results = (_lookahead_expert(*a) for a in args)
+        try:
+            for n, (inst, (ms, part, conflicts)) in enumerate(zip(instances, results)):
+                for rows, key in ((obs, "obs"), (masks, "mask"), (actions, "action"), (rets, "ret")):
+                    rows.extend(part[key])
+                makespans[inst.name] = ms
+                if progress is not None:
+                    progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert "
+                             f"makespan {ms} with lookahead, {len(obs)} decisions recorded, {conflicts} "
+                             f"conflicting)")
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
+        return _as_demos(obs, masks, actions, rets), makespans
     for n, inst in enumerate(instances):
-        if expert == "search+lookahead":
-            ms, policy = lookahead_search(inst, iters=iters, seed=seed + n)
-            la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
-            assert la_ms == ms, (la_ms, ms)
-            for rows, key in ((obs, "obs"), (masks, "mask"), (actions, "action"), (rets, "ret")):
-                rows.extend(part[key])
-            makespans[inst.name] = ms
-            if progress is not None:
-                progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan "
-                         f"{ms} with lookahead, {len(obs)} decisions recorded, {conflicts} conflicting)")
-            continue
         if expert == "search":
             ms, seq = search_trajectory(inst, iters=iters, seed=seed + n)
         elif expert in RULE_EXPERTS:
