@@ -206,21 +206,24 @@ def test_lookahead_search_with_insertions_and_restarts_keeps_its_guarantees():
     assert again_ms == two_ms and again.actions == policy.actions and again.salt == policy.salt
 
 
-def test_search_lookahead_demonstrations_do_not_depend_on_the_worker_count():
-    """workers=2 searches the instances in separate processes and gives the same arrays and makespans, in
-    instance order, as one process."""
+def test_search_lookahead_demonstrations_keep_the_best_start_whatever_the_worker_count():
+    """Several independent starts per instance keep the best (never worse than the first start alone, which
+    is the single-start search); workers=2 runs the searches in separate processes and gives the same arrays
+    and makespans, in instance order, as one process."""
     from fms_dispatch.rl.imitation import demonstrations
 
     insts = expand_instances(["gen:6x4x3*2@5"])
     pad = padding_for("auto", insts)
     kw = dict(iters=30, seed=1, insert=0.5, restarts=2)
-    one, one_ms = demonstrations(insts, pad, "shaped", "search+lookahead", workers=1, **kw)
+    _, single_ms = demonstrations(insts, pad, "shaped", "search+lookahead", **kw)
+    one, one_ms = demonstrations(insts, pad, "shaped", "search+lookahead", starts=3, workers=1, **kw)
     lines: list[str] = []
-    two, two_ms = demonstrations(insts, pad, "shaped", "search+lookahead", workers=2, progress=lines.append,
-                                 **kw)
+    two, two_ms = demonstrations(insts, pad, "shaped", "search+lookahead", starts=3, workers=2,
+                                 progress=lines.append, **kw)
+    assert all(one_ms[k] <= single_ms[k] for k in single_ms)
     assert one_ms == two_ms and list(two_ms) == [i.name for i in insts]
     assert set(one) == set(two) and all(np.array_equal(one[k], two[k], equal_nan=True) for k in one)
-    assert len(lines) == 2 and lines[-1].startswith("  demonstrations: 2/2 instances")
+    assert len(lines) == 2 and lines[-1].startswith("  demonstrations: 2/2 instances") and "starts: " in lines[-1]
 
 
 def test_search_lookahead_expert_clones_into_a_policy_that_repeats_its_lookahead_run(tmp_path):

@@ -239,21 +239,17 @@ def lookahead_demonstration(inst: Instance, policy: Callable[[Shop], int], paddi
     return sched.makespan, _as_demos(list(obs), list(masks), list(actions), [np.nan] * len(rows)), conflicts
 
 
-def _lookahead_expert(inst: Instance, padding: dict[str, int], reward: str, iters: int, seed: int,
-                      insert: float, restarts: int) -> tuple[int, dict[str, np.ndarray], int]:
-    """(makespan, demonstrations, conflicts) of the ``search+lookahead`` expert on one instance (a top-level
-    function so that a process pool can run it)."""
-    ms, policy = lookahead_search(inst, iters=iters, seed=seed, insert=insert, restarts=restarts)
-    la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
-    assert la_ms == ms, (la_ms, ms)
-    return ms, part, conflicts
+def _lookahead_searched(inst: Instance, iters: int, seed: int, insert: float,
+                        restarts: int) -> tuple[int, SequencePolicy]:
+    """:func:`lookahead_search` with the start searched from ``seed`` (top-level, for a process pool)."""
+    return lookahead_search(inst, iters=iters, seed=seed, insert=insert, restarts=restarts)
 
 
 def demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
                    iters: int = 2000, seed: int = 0,
                    progress: Callable[[str], None] | None = None,
                    pairs: dict[str, str] | None = None, insert: float = 0.0, restarts: int = 1,
-                   workers: int = 1) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                   starts: int = 1, workers: int = 1) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Replay each instance's expert sequence through the env; returns arrays and the expert makespans.
     ``progress`` (e.g. ``print``) gets a line per instance: the experts take seconds to minutes each.
     For the rule experts, ``pairs`` (if given) receives each instance's best pair (for :func:`dagger_round`).
@@ -261,35 +257,43 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     Arrays: ``obs`` (N, D), ``mask`` (N, A), ``action`` (N,), ``ret`` (N,) return-to-go (undiscounted; NaN
     where unknown). Decisions with one legal action are replayed but not recorded (nothing to learn). For
     ``search+lookahead`` the makespans are the lookahead's, the rows come from
-    :func:`lookahead_demonstration`, ``insert`` and ``restarts`` go to :func:`lookahead_search`, and
-    ``workers`` > 1 searches that many instances at once in separate processes (the searches take minutes
-    each and are independent; the result does not depend on ``workers``).
+    :func:`lookahead_demonstration`, ``insert`` and ``restarts`` go to :func:`lookahead_search`, each
+    instance is searched ``starts`` times from independent starts (seeds) and the best run is kept (the
+    search's result varies by a few units from seed to seed), and ``workers`` > 1 runs that many searches at
+    once in separate processes (they take a minute or more each and are independent; the result does not
+    depend on ``workers``).
     """
     from .envs import FastShopEnv
 
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
     if expert == "search+lookahead":
-        args = [(inst, padding, reward, iters, seed + n, insert, restarts) for n, inst in enumerate(instances)]
-        if workers > 1 and len(instances) > 1:
+        # start k of instance n searches from seed + n + 1000 k (start 0: seed + n, as the other experts)
+        args = [(inst, iters, seed + n + 1000 * k, insert, restarts)
+                for n, inst in enumerate(instances) for k in range(max(1, starts))]
+        if workers > 1 and len(args) > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
             # spawn, not fork: the parent may hold torch's thread pools, which do not survive a fork
-            pool = ProcessPoolExecutor(min(workers, len(instances)),
-                                       mp_context=multiprocessing.get_context("spawn"))
-            results = pool.map(_lookahead_expert, *zip(*args))
+            pool = ProcessPoolExecutor(min(workers, len(args)), mp_context=multiprocessing.get_context("spawn"))
+            results = pool.map(_lookahead_searched, *zip(*args))
         else:
             pool = None
-            results = (_lookahead_expert(*a) for a in args)
+            results = (_lookahead_searched(*a) for a in args)
         try:
-            for n, (inst, (ms, part, conflicts)) in enumerate(zip(instances, results)):
+            for n, inst in enumerate(instances):
+                found = [next(results) for _ in range(max(1, starts))]
+                ms, policy = min(found, key=lambda r: r[0])  # the first of the best starts
+                la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
+                assert la_ms == ms, (la_ms, ms)
                 for rows, key in ((obs, "obs"), (masks, "mask"), (actions, "action"), (rets, "ret")):
                     rows.extend(part[key])
                 makespans[inst.name] = ms
                 if progress is not None:
+                    each = f" (starts: {', '.join(str(r[0]) for r in found)})" if len(found) > 1 else ""
                     progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert "
-                             f"makespan {ms} with lookahead, {len(obs)} decisions recorded, {conflicts} "
+                             f"makespan {ms} with lookahead{each}, {len(obs)} decisions recorded, {conflicts} "
                              f"conflicting)")
         finally:
             if pool is not None:

@@ -50,7 +50,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "vec_env": "subproc",
     "eval_freq": 10_000,
     "warm_start": {"expert": None, "instances": 100, "search_iters": 2000, "search_insert": 0.0,
-                   "search_restarts": 1, "workers": 1, "epochs": 300, "lr": 1e-3, "dagger": 0, "dagger_epochs": 10},
+                   "search_restarts": 1, "search_starts": 1, "workers": 1, "epochs": 300, "lr": 1e-3, "dagger": 0, "dagger_epochs": 10},
     "save_freq": 10_000,
     "ppo": {"learning_rate": 3e-4, "n_steps": 512, "batch_size": 256, "n_epochs": 5, "gamma": 1.0,
             "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
@@ -266,7 +266,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         demos, expert_ms = demonstrations(warm_set, padding, cfg["reward"], warm["expert"],
                                           iters=int(warm["search_iters"]), seed=seed, progress=say, pairs=pairs,
                                           insert=float(warm["search_insert"]),
-                                          restarts=int(warm["search_restarts"]), workers=int(warm["workers"]))
+                                          restarts=int(warm["search_restarts"]), starts=int(warm["search_starts"]),
+                                          workers=int(warm["workers"]))
         bc: dict[str, Any] = {}
         if not resume:
             bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
