@@ -200,7 +200,7 @@ def test_ppo_agent_restarted_mid_run_replays_the_history() -> None:
     inst = builtin("EX12")
     svc, agents = ppo_run(inst, solver="ppo:bu", restart_at=11)
     assert len(agents) == 2 and agents[1].decide.rebuilds == 1 and agents[1].decisions == svc.decisions - 11
-    assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst).makespan == 88
+    assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst).makespan == 96
     assert validate(inst, svc.final_schedule) == []
 
 
