@@ -7,7 +7,8 @@
   5 transporters): per size group the PPO mean (and with ``--lookahead`` the lookahead mean), the mean of the
   best single rule pair of the group, and the mean of the per-instance best pair (over the 36 pairs of the
   baselines: 12 job rules x first / least-work / nearest). Target: PPO better than the best rule pair in every
-  group; sl70 (100x20x20) in <= 5 s. ``--vehicles RULE`` also runs a probe: the model's job choices with the
+  group; sl70 (100x20x20) in <= 5 s. ``--jobs N`` measures N instances at once (a line per instance goes to
+  stderr as it finishes). ``--vehicles RULE`` also runs a probe: the model's job choices with the
   vehicle rule's AGV and transporter choices (which half of the policy is weaker).
 
 Every schedule is validated. ``--json FILE`` writes the results; ``--write-metrics`` stores them under
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -107,26 +109,53 @@ def bench_bu(model: str) -> dict:
     return {"set": "BU layout 2 (EX12-EX102)", "rows": rows, "summary": summary}
 
 
+_AGENTS: dict[str, object] = {}  # model -> loaded agent, one per process
+
+
+def instance_result(model: str, inst, lookahead: bool, vehicles: str | None) -> dict:
+    """Everything ``bench_sl`` measures on one instance (a top-level function, so a process pool can run it)."""
+    agent = _AGENTS.get(model) or _AGENTS.setdefault(model, load_agent(model))
+    t0 = time.perf_counter()
+    m, dt = run_ppo(agent, inst, False)
+    out = dict(ppo=m, seconds=dt, cpu=CPU["last"])
+    if lookahead:
+        out["lookahead"] = run_ppo(agent, inst, True)[0]
+    if vehicles:
+        out["probe"] = run_ppo(agent, inst, False, vehicles)[0]
+    out["rules"] = rule_makespans(inst, include_nearest=True)
+    out["total_seconds"] = time.perf_counter() - t0
+    return out
+
+
 def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups: list[int],
-             vehicles: str | None = None) -> dict:
-    agent = load_agent(model)
+             vehicles: str | None = None, jobs: int = 1) -> dict:
     out_groups = []
+    pool = None
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(jobs)
     for g in groups:
         insts = []
         for k in range(per_group):
             inst = builtin(f"sl{g}{k}")
             insts.append(inst.without_tools() if no_tools else inst)
         ppo, secs, cpus, look, rules, probe = [], [], [], [], [], []
-        for inst in insts:
-            m, dt = run_ppo(agent, inst, False)
-            ppo.append(m)
-            secs.append(dt)
-            cpus.append(CPU["last"])
+        args = [(model, inst, lookahead, vehicles) for inst in insts]
+        results = pool.map(instance_result, *zip(*args)) if pool else (instance_result(*x) for x in args)
+        for n, (inst, r) in enumerate(zip(insts, results)):
+            RULE_CACHE[_key(inst) + "|36"] = r["rules"]  # workers' caches do not come back by themselves
+            ppo.append(r["ppo"])
+            secs.append(r["seconds"])
+            cpus.append(r["cpu"])
             if lookahead:
-                look.append(run_ppo(agent, inst, True)[0])
+                look.append(r["lookahead"])
             if vehicles:
-                probe.append(run_ppo(agent, inst, False, vehicles)[0])
-            rules.append(rule_makespans(inst, include_nearest=True))
+                probe.append(r["probe"])
+            rules.append(r["rules"])
+            la = f", lookahead {r['lookahead']}" if lookahead else ""
+            print(f"  {inst.name} ({n + 1}/{len(insts)}): ppo {r['ppo']}{la}, best pair "
+                  f"{min(r['rules'].values())} ({r['total_seconds']:.0f} s)", file=sys.stderr, flush=True)
         pair_means = {p: statistics.mean(r[p] for r in rules) for p in rules[0]}
         best_pair = min(pair_means, key=pair_means.get)
         row = dict(group=g, size="x".join(map(str, SL_GROUPS[g])), instances=[i.name for i in insts],
@@ -147,6 +176,8 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool, groups
         print(f"group {g} ({row['size']}): ppo {row['mean_ppo']:.1f}{la}  best pair {best_pair} "
               f"{row['mean_best_pair']:.1f}  per-instance best {row['mean_instance_best']:.1f}  "
               f"max {row['max_seconds']:.2f} s wall / {row['max_cpu_seconds']:.2f} s CPU", flush=True)
+    if pool is not None:
+        pool.shutdown()
     return {"set": f"large benchmark ({'AGVs only' if no_tools else 'AGVs + tools'}), {per_group} per group",
             "groups": out_groups}
 
@@ -168,6 +199,9 @@ def main() -> None:
     ap.add_argument("--lookahead", action="store_true", help="sl: also run with lookahead")
     ap.add_argument("--vehicles", choices=("first", "least-work", "nearest"),
                     help="sl: also run the model's job choices with this rule's vehicle choices (probe)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="sl: instances measured at once in separate processes (default 1; the seconds columns "
+                         "are then measured on a busier machine)")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--rules-cache", help="JSON file caching the rule pairs' makespans (read and updated)")
     ap.add_argument("--rules-only", action="store_true", help="sl: only compute (and cache) the rule pairs")
@@ -197,7 +231,7 @@ def run(a: argparse.Namespace) -> None:
     else:
         model = a.model or ("large-agv" if a.no_tools else "large")
         groups = parse_groups(a.groups)
-        res = bench_sl(model, a.no_tools, a.per_group, a.lookahead, groups, a.vehicles)
+        res = bench_sl(model, a.no_tools, a.per_group, a.lookahead, groups, a.vehicles, a.jobs)
         key = "sl_no_tools" if a.no_tools else "sl"
         sl70 = builtin("sl70").without_tools() if a.no_tools else builtin("sl70")
         m, dt = run_ppo(load_agent(model), sl70, False)
