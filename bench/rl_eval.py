@@ -109,12 +109,9 @@ def bench_bu(model: str) -> dict:
     return {"set": "BU layout 2 (EX12-EX102)", "rows": rows, "summary": summary}
 
 
-_AGENTS: dict[str, object] = {}  # model -> loaded agent, one per process
-
-
 def instance_result(model: str, inst, lookahead: bool, vehicles: str | None) -> dict:
     """Everything ``bench_sl`` measures on one instance (a top-level function, so a process pool can run it)."""
-    agent = _AGENTS.get(model) or _AGENTS.setdefault(model, load_agent(model))
+    agent = load_agent(model)  # load_agent caches the agent per weights file, so once per process
     t0 = time.perf_counter()
     m, dt = run_ppo(agent, inst, False)
     out = dict(ppo=m, seconds=dt, cpu=CPU["last"])

@@ -268,22 +268,24 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
     if expert == "search+lookahead":
+        starts = max(1, starts)
         # start k of instance n searches from seed + n + 1000 k (start 0: seed + n, as the other experts)
         args = [(inst, iters, seed + n + 1000 * k, insert, restarts)
-                for n, inst in enumerate(instances) for k in range(max(1, starts))]
+                for n, inst in enumerate(instances) for k in range(starts)]
         if workers > 1 and len(args) > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
             # spawn, not fork: the parent may hold torch's thread pools, which do not survive a fork
-            pool = ProcessPoolExecutor(min(workers, len(args)), mp_context=multiprocessing.get_context("spawn"))
+            pool = ProcessPoolExecutor(min(workers, len(args)),
+                                       mp_context=multiprocessing.get_context("spawn"))
             results = pool.map(_lookahead_searched, *zip(*args))
         else:
             pool = None
             results = (_lookahead_searched(*a) for a in args)
         try:
             for n, inst in enumerate(instances):
-                found = [next(results) for _ in range(max(1, starts))]
+                found = [next(results) for _ in range(starts)]
                 ms, policy = min(found, key=lambda r: r[0])  # the first of the best starts
                 la_ms, part, conflicts = lookahead_demonstration(inst, policy, padding, reward)
                 assert la_ms == ms, (la_ms, ms)
