@@ -259,6 +259,57 @@ def test_warm_start_only_training_clones_the_expert(tmp_path, capsys):
     assert validate(inst, s) == [] and s.makespan == m["training"]["eval_makespan"][inst.name]
 
 
+def test_pair_demonstrations_replay_one_pair_on_every_instance():
+    """pair_demonstrations labels every instance with the same pair (not each instance's best)."""
+    from fms_dispatch.rl.imitation import pair_demonstrations
+    from fms_dispatch.rules import parse_rule_name
+    from fms_sim.shop import run_policy
+
+    insts = expand_instances(["gen:6x4x3*2@5"])
+    pad = padding_for("auto", insts)
+    demos, makespans = pair_demonstrations(insts, "MTWR+nearest", pad, "shaped")
+    assert makespans == {i.name: run_policy(i, parse_rule_name("MTWR+nearest")).makespan for i in insts}
+    n = len(demos["action"])
+    assert n > 0 and demos["obs"].shape[0] == demos["ret"].shape[0] == n
+    assert demos["mask"][np.arange(n), demos["action"]].all() and (demos["mask"].sum(axis=1) > 1).all()
+    other, _ = pair_demonstrations(insts, "LPT+first", pad, "shaped")
+    assert not (len(other["action"]) == n and (other["action"] == demos["action"]).all())  # the pair matters
+    with pytest.raises(ValueError, match="unknown job rule"):
+        pair_demonstrations(insts, "BEST+nearest", pad, "shaped")
+
+
+def test_refine_stage_clones_one_pair_after_the_warm_start(tmp_path):
+    """warm_start.refine: after cloning the expert, each stage clones one pair on its instances; the figures
+    are recorded and the weights differ from the run without the stage; bad stages are refused up front."""
+    from sb3_contrib import MaskablePPO
+
+    base = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto")
+    stage = {"train": ["gen:6x4x3*2@7"], "pair": "MTWR+nearest", "epochs": 3, "lr": 1e-3}
+    plain = train(dict(base, warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3}),
+                  tmp_path / "plain", progress=False)
+    m = train(dict(base, warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3, "refine": [stage]}),
+              tmp_path / "refined", progress=False)
+    assert not plain["warm_start"]["refine"]
+    (fig,) = m["warm_start"]["refine"]
+    assert fig["pair"] == "MTWR+nearest" and fig["instances"] == 2 and fig["epochs"] == 3 and fig["samples"] > 0
+    assert json.loads((tmp_path / "refined" / "config.json").read_text())["warm_start"]["refine"] == [stage]
+    w0 = MaskablePPO.load(str(tmp_path / "plain" / "best_model.zip"), device="cpu").policy.state_dict()
+    w1 = MaskablePPO.load(str(tmp_path / "refined" / "best_model.zip"), device="cpu").policy.state_dict()
+    assert any(not np.array_equal(w0[k].numpy(), w1[k].numpy()) for k in w0)
+    inst = expand_instances(["gen:6x4x3*1@9"])[0]
+    assert validate(inst, ppo_solver(f"ppo:{tmp_path / 'refined'}")(inst)) == []
+    for bad, why in (([dict(stage, pair="BEST+nearest")], "unknown job rule"),
+                     ([{"pair": "MTWR+nearest"}], r"refine\[0\] needs train"),
+                     ([dict(stage, epochs=0)], "epochs must be"),
+                     ({"train": ["EX12"]}, "must be a list")):
+        with pytest.raises(ValueError, match=why):
+            train(dict(base, warm_start={"expert": "rules+nearest", "refine": bad}), tmp_path / "bad",
+                  progress=False)
+    with pytest.raises(ValueError, match="set warm_start.expert"):
+        train(dict(base, steps=10, warm_start={"refine": [stage]}), tmp_path / "bad", progress=False)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_dagger_labels_the_policys_own_states_with_the_expert_pair(tmp_path):
     """A DAgger round runs the policy itself (its makespans are those of solving with the saved model) and
     labels each state it visits with the legal action of the instance's expert pair."""

@@ -36,8 +36,8 @@ from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
 __all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory",
-           "SequencePolicy", "lookahead_search", "lookahead_demonstration", "demonstrations", "clone", "dagger",
-           "dagger_round", "concat_demos"]
+           "SequencePolicy", "lookahead_search", "lookahead_demonstration", "demonstrations",
+           "pair_demonstrations", "clone", "dagger", "dagger_round", "concat_demos"]
 
 #: the warm-start experts (``warm_start.expert`` of a training config)
 EXPERTS = ("search", "search+lookahead", "rules", "rules+nearest")
@@ -263,8 +263,6 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
     once in separate processes (they take a minute or more each and are independent; the result does not
     depend on ``workers``).
     """
-    from .envs import FastShopEnv
-
     obs, masks, actions, rets = [], [], [], []
     makespans: dict[str, int] = {}
     if expert == "search+lookahead":
@@ -311,24 +309,63 @@ def demonstrations(instances: Sequence[Instance], padding: dict[str, int], rewar
         else:
             raise ValueError(f"unknown expert {expert!r}; choose from {', '.join(EXPERTS)}")
         makespans[inst.name] = ms
-        env = FastShopEnv(inst, reward=reward, invalid_action="raise", **padding)
-        o, _ = env.reset(options={"instance": inst})
-        steps: list[tuple[int | None, float]] = []  # (recorded row or None, reward of the step)
-        for a in seq:
-            mask = env.action_masks()
-            pa = env.from_net_action(a)
-            row = None
-            if mask.sum() > 1:
-                obs.append(o)
-                masks.append(mask)
-                actions.append(pa)
-                row = len(obs) - 1
-            o, r, _, _, _ = env.step(pa)
-            steps.append((row, float(r)))
-        rets.extend(_returns_to_go(steps))
-        assert env.shop.done and env.shop.makespan == ms
+        _replay(inst, seq, ms, padding, reward, (obs, masks, actions, rets))
         if progress is not None:
             progress(f"  demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: expert makespan {ms}, "
+                     f"{len(obs)} decisions recorded)")
+    return _as_demos(obs, masks, actions, rets), makespans
+
+
+def _replay(inst: Instance, seq: Sequence[int], makespan: int, padding: dict[str, int], reward: str,
+            rows: tuple[list, list, list, list]) -> None:
+    """Replay the net actions ``seq`` through the env and append the decisions with a choice to ``rows``
+    (observations, masks, env actions, returns-to-go); the run must end at ``makespan``."""
+    from .envs import FastShopEnv
+
+    obs, masks, actions, rets = rows
+    env = FastShopEnv(inst, reward=reward, invalid_action="raise", **padding)
+    o, _ = env.reset(options={"instance": inst})
+    steps: list[tuple[int | None, float]] = []  # (recorded row or None, reward of the step)
+    for a in seq:
+        mask = env.action_masks()
+        pa = env.from_net_action(a)
+        row = None
+        if mask.sum() > 1:
+            obs.append(o)
+            masks.append(mask)
+            actions.append(pa)
+            row = len(obs) - 1
+        o, r, _, _, _ = env.step(pa)
+        steps.append((row, float(r)))
+    rets.extend(_returns_to_go(steps))
+    assert env.shop.done and env.shop.makespan == makespan
+
+
+def pair_demonstrations(instances: Sequence[Instance], pair: str, padding: dict[str, int], reward: str,
+                        progress: Callable[[str], None] | None = None
+                        ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Demonstrations of one rule pair (e.g. ``"MTWR+nearest"``) on every instance, as :func:`demonstrations`
+    returns them.
+
+    Why: the ``rules`` experts label each instance with *its* best pair, chosen with a hindsight the policy
+    does not have. On 100-job shops the best pair changes from instance to instance while the states look
+    alike, so those labels contradict each other and the clone ends between the pairs, worse than any one
+    of them (docs/benchmarks.md §4). The labels of one pair are consistent.
+    """
+    from fms_dispatch.rules import parse_rule_name
+
+    choose = parse_rule_name(pair)
+    obs: list = []
+    masks: list = []
+    actions: list = []
+    rets: list = []
+    makespans: dict[str, int] = {}
+    for n, inst in enumerate(instances):
+        ms, seq = _run(inst, choose)
+        makespans[inst.name] = ms
+        _replay(inst, seq, ms, padding, reward, (obs, masks, actions, rets))
+        if progress is not None:
+            progress(f"  {pair} demonstrations: {n + 1}/{len(instances)} instances ({inst.name}: makespan {ms}, "
                      f"{len(obs)} decisions recorded)")
     return _as_demos(obs, masks, actions, rets), makespans
 

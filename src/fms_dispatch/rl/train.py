@@ -51,7 +51,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "eval_freq": 10_000,
     "warm_start": {"expert": None, "instances": 100, "search_iters": 2000, "search_insert": 0.0,
                    "search_restarts": 1, "search_starts": 1, "workers": 1, "epochs": 300, "lr": 1e-3,
-                   "dagger": 0, "dagger_epochs": 10},
+                   "dagger": 0, "dagger_epochs": 10, "refine": []},
     "save_freq": 10_000,
     "ppo": {"learning_rate": 3e-4, "n_steps": 512, "batch_size": 256, "n_epochs": 5, "gamma": 1.0,
             "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
@@ -154,6 +154,41 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     return out
 
 
+def _refine_stages(stages: Any, fleet: dict[str, Any]) -> list[tuple[str, list[Instance], int, float]]:
+    """The validated ``warm_start.refine`` stages as ``(pair, instances, epochs, lr)``."""
+    from fms_dispatch.rules import parse_rule_name
+
+    if not isinstance(stages, list):
+        raise ValueError("warm_start.refine must be a list of stages ({train, pair, epochs, lr})")
+    out = []
+    for k, st in enumerate(stages):
+        unknown = set(st) - {"train", "pair", "epochs", "lr"} if isinstance(st, dict) else {"?"}
+        if unknown or not st.get("train") or not st.get("pair"):
+            raise ValueError(f"warm_start.refine[{k}] needs train (instance specs) and pair (e.g. "
+                             f"'MTWR+nearest'), with optional epochs and lr, not {st!r}")
+        parse_rule_name(str(st["pair"]))  # unknown rules fail here, before any work
+        epochs, lr = int(st.get("epochs", 10)), float(st.get("lr", 3e-4))
+        if epochs < 1 or lr <= 0:
+            raise ValueError(f"warm_start.refine[{k}]: epochs must be ≥ 1 and lr > 0")
+        out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, lr))
+    return out
+
+
+def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float]], padding: dict[str, int],
+            reward: str, seed: int, say: Any) -> list[dict[str, Any]]:
+    """Run the refine stages after the warm-start cloning: stage ``k`` clones one rule pair's demonstrations
+    on its instances for a few epochs (seed ``seed + 1 + k``); returns each stage's figures."""
+    from .imitation import clone, pair_demonstrations
+
+    figures = []
+    for k, (pair, insts, epochs, lr) in enumerate(stages):
+        demos, ms = pair_demonstrations(insts, pair, padding, reward, progress=say)
+        bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed + 1 + k, progress=say)
+        figures.append(dict(pair=pair, instances=len(insts), epochs=epochs, lr=lr, **bc,
+                            mean_makespan=round(float(np.mean(list(ms.values()))), 1)))
+    return figures
+
+
 def train(config: dict[str, Any], out: str | Path, resume: bool = False, progress: bool = True,
           tensorboard: str | Path | None = None, verbose: int = 0, dagger: int = 0) -> dict[str, Any]:
     """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
@@ -202,6 +237,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                          f"{warm['expert']!r}: only a rule can label the policy's own states")
     if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
         raise ValueError("--steps must be positive")
+    refine = _refine_stages(warm["refine"], cfg["fleet"]) if not resume else []
+    if refine and not warm["expert"]:
+        raise ValueError("warm_start.refine follows the cloning of a warm-start expert: set warm_start.expert")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
     padding = padding_for(cfg["padding"], train_set + eval_set)
@@ -270,8 +308,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                           restarts=int(warm["search_restarts"]), starts=int(warm["search_starts"]),
                                           workers=int(warm["workers"]))
         bc: dict[str, Any] = {}
+        refined: list[dict[str, Any]] = []
         if not resume:
             bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
+            refined = _refine(model, refine, padding, cfg["reward"], seed, say)
         history: list[dict[str, Any]] = []
         if rounds:
             _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
@@ -291,7 +331,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                      dagger_epochs=int(warm["dagger_epochs"]))
             (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
         else:
-            warm_metrics = dict(warm, **bc, expert_makespan=expert_ms)
+            warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, refine=refined)  # stages with figures
         warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
                             seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
