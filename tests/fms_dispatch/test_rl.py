@@ -292,6 +292,7 @@ def test_refine_stage_clones_one_pair_after_the_warm_start(tmp_path):
     assert not plain["warm_start"]["refine"]
     (fig,) = m["warm_start"]["refine"]
     assert fig["pair"] == "MTWR+nearest" and fig["instances"] == 2 and fig["epochs"] == 3 and fig["samples"] > 0
+    assert fig["seed"] == 2  # seed + 1 + k by default
     assert json.loads((tmp_path / "refined" / "config.json").read_text())["warm_start"]["refine"] == [stage]
     w0 = MaskablePPO.load(str(tmp_path / "plain" / "best_model.zip"), device="cpu").policy.state_dict()
     w1 = MaskablePPO.load(str(tmp_path / "refined" / "best_model.zip"), device="cpu").policy.state_dict()

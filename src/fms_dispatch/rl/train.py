@@ -154,37 +154,40 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     return out
 
 
-def _refine_stages(stages: Any, fleet: dict[str, Any]) -> list[tuple[str, list[Instance], int, float]]:
-    """The validated ``warm_start.refine`` stages as ``(pair, instances, epochs, lr)``."""
+def _refine_stages(stages: Any, fleet: dict[str, Any], seed: int
+                   ) -> list[tuple[str, list[Instance], int, float, int]]:
+    """The validated ``warm_start.refine`` stages as ``(pair, instances, epochs, lr, seed)`` (stage ``k``'s
+    seed defaults to ``seed + 1 + k``)."""
     from fms_dispatch.rules import parse_rule_name
 
     if not isinstance(stages, list):
-        raise ValueError("warm_start.refine must be a list of stages ({train, pair, epochs, lr})")
+        raise ValueError("warm_start.refine must be a list of stages ({train, pair, epochs, lr, seed})")
     out = []
     for k, st in enumerate(stages):
-        unknown = set(st) - {"train", "pair", "epochs", "lr"} if isinstance(st, dict) else {"?"}
+        unknown = set(st) - {"train", "pair", "epochs", "lr", "seed"} if isinstance(st, dict) else {"?"}
         if unknown or not st.get("train") or not st.get("pair"):
             raise ValueError(f"warm_start.refine[{k}] needs train (instance specs) and pair (e.g. "
-                             f"'MTWR+nearest'), with optional epochs and lr, not {st!r}")
+                             f"'MTWR+nearest'), with optional epochs, lr and seed, not {st!r}")
         parse_rule_name(str(st["pair"]))  # unknown rules fail here, before any work
         epochs, lr = int(st.get("epochs", 10)), float(st.get("lr", 3e-4))
         if epochs < 1 or lr <= 0:
             raise ValueError(f"warm_start.refine[{k}]: epochs must be ≥ 1 and lr > 0")
-        out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, lr))
+        out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, lr,
+                    int(st.get("seed", seed + 1 + k))))
     return out
 
 
-def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float]], padding: dict[str, int],
-            reward: str, seed: int, say: Any) -> list[dict[str, Any]]:
-    """Run the refine stages after the warm-start cloning: stage ``k`` clones one rule pair's demonstrations
-    on its instances for a few epochs (seed ``seed + 1 + k``); returns each stage's figures."""
+def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float, int]], padding: dict[str, int],
+            reward: str, say: Any) -> list[dict[str, Any]]:
+    """Run the refine stages after the warm-start cloning: each clones one rule pair's demonstrations on its
+    instances for a few epochs; returns each stage's figures."""
     from .imitation import clone, pair_demonstrations
 
     figures = []
-    for k, (pair, insts, epochs, lr) in enumerate(stages):
+    for pair, insts, epochs, lr, seed in stages:
         demos, ms = pair_demonstrations(insts, pair, padding, reward, progress=say)
-        bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed + 1 + k, progress=say)
-        figures.append(dict(pair=pair, instances=len(insts), epochs=epochs, lr=lr, **bc,
+        bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed, progress=say)
+        figures.append(dict(pair=pair, instances=len(insts), epochs=epochs, lr=lr, seed=seed, **bc,
                             mean_makespan=round(float(np.mean(list(ms.values()))), 1)))
     return figures
 
@@ -237,7 +240,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                          f"{warm['expert']!r}: only a rule can label the policy's own states")
     if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
         raise ValueError("--steps must be positive")
-    refine = _refine_stages(warm["refine"], cfg["fleet"]) if not resume else []
+    refine = _refine_stages(warm["refine"], cfg["fleet"], int(cfg["seed"])) if not resume else []
     if refine and not warm["expert"]:
         raise ValueError("warm_start.refine follows the cloning of a warm-start expert: set warm_start.expert")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
@@ -311,7 +314,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         refined: list[dict[str, Any]] = []
         if not resume:
             bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
-            refined = _refine(model, refine, padding, cfg["reward"], seed, say)
+            refined = _refine(model, refine, padding, cfg["reward"], say)
         history: list[dict[str, Any]] = []
         if rounds:
             _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
