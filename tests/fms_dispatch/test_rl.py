@@ -284,7 +284,8 @@ def test_refine_stage_clones_one_pair_after_the_warm_start(tmp_path):
     from sb3_contrib import MaskablePPO
 
     base = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto")
-    stage = {"train": ["gen:6x4x3*2@7"], "pair": "MTWR+nearest", "epochs": 3, "lr": 1e-3}
+    # the stage's instances are larger than the expert's: the automatic padding must cover them
+    stage = {"train": ["gen:7x5x3*2@7"], "pair": "MTWR+nearest", "epochs": 3, "lr": 1e-3}
     plain = train(dict(base, warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3}),
                   tmp_path / "plain", progress=False)
     m = train(dict(base, warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3, "refine": [stage]}),

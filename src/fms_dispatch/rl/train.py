@@ -196,8 +196,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
           tensorboard: str | Path | None = None, verbose: int = 0, dagger: int = 0) -> dict[str, Any]:
     """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
 
-    A fresh run with a warm-start expert first clones the expert, then runs ``warm_start.dagger`` DAgger
-    rounds (rule experts only), then ``steps`` PPO steps.
+    A fresh run with a warm-start expert first clones the expert, then runs the ``warm_start.refine`` stages
+    (each clones one rule pair on its own instances), then ``warm_start.dagger`` DAgger rounds (rule experts
+    only), then ``steps`` PPO steps.
 
     With ``resume``, the config is read from ``out/config.json`` (``config`` may override ``steps``) and
     training continues from ``out/model.zip``: first ``dagger`` more DAgger rounds (rule experts only; the
@@ -245,7 +246,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError("warm_start.refine follows the cloning of a warm-start expert: set warm_start.expert")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
-    padding = padding_for(cfg["padding"], train_set + eval_set)
+    padding = padding_for(cfg["padding"], train_set + eval_set + [i for st in refine for i in st[1]])
     if cfg["padding"] in (None, "auto"):
         cfg["padding"] = padding
     out.mkdir(parents=True, exist_ok=True)
