@@ -25,7 +25,8 @@ Solvers (the ``solver`` parameter):
   such a shop also publishes a state when a vehicle stands idle between decisions (``idle`` lists the
   vehicles offered), and the twin, stepped by the same :class:`~fms_sim.stepping.Stepper`, answers it with
   :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s moves (``reposition:...``) or ``wait``. The run is
-  the one the offline ``ppo+lookahead`` solver makes. Every other solver answers idle states with ``wait``.
+  the one the offline ``ppo+lookahead`` solver makes. ``+lookahead-fast`` is the same without retries of
+  rejected moves (the offline ``ppo+lookahead-fast``). Every other solver answers idle states with ``wait``.
 
 Offline solvers (``sos``, ``cpsat``) raise :class:`UnavailableSolver`, which the node turns into exit code 2.
 """
@@ -52,7 +53,7 @@ __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision
 
 SOURCE = "fms_agent"
 AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
-                 "ppo[:<model>]+lookahead")
+                 "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]
@@ -318,15 +319,17 @@ def needs_twin(solver: str) -> bool:
 def needs_idle_stops(solver: str) -> bool:
     """Whether ``solver`` pre-positions idle vehicles (lookahead): the shop must stop for them."""
     low = solver.strip().lower()
-    return low == "lookahead" or low.endswith("+lookahead")
+    return low == "lookahead" or low.endswith(("+lookahead", "+lookahead-fast"))
 
 
 def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
-    """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead``; ``lookahead`` alone is ``ppo+lookahead``) over a
-    twin of ``instance``."""
+    """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
+    ``ppo+lookahead``) over a twin of ``instance``."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
-    base = "ppo" if low == "lookahead" else (name[:-len("+lookahead")] if lookahead else name).strip()
+    fast = low.endswith("+lookahead-fast")
+    suffix = "+lookahead-fast" if fast else "+lookahead"
+    base = "ppo" if low == "lookahead" else (name[:-len(suffix)] if lookahead else name).strip()
     low_base = base.lower()
     if low_base != "ppo" and not low_base.startswith("ppo:"):
         raise UnavailableSolver(f"unknown solver {name!r}; the agent node accepts {', '.join(AGENT_SOLVERS)}")
@@ -342,8 +345,8 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     if lookahead:
         from .rl.lookahead import LookaheadPlanner
 
-        planner = LookaheadPlanner(agent.act)
-        canonical += "+lookahead"
+        planner = LookaheadPlanner(agent.act, retry=not fast)
+        canonical += suffix
     return TwinDecider(instance, agent.act, canonical, planner), canonical
 
 

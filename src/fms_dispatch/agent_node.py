@@ -8,7 +8,8 @@ a duplicate with a ``stale_state`` error and ignores it). An unknown or unavaila
 start with a one-line error and exit code 2.
 
 Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``, ``ppo``,
-``ppo:<model>``, ``ppo[:<model>]+lookahead``; default ``first``), ``seed`` (for ``random``), ``instance`` with
+``ppo:<model>``, ``ppo[:<model>]+lookahead`` or ``+lookahead-fast``; default ``first``), ``seed`` (for
+``random``), ``instance`` with
 ``layout``, ``agvs``, ``tool_transporters``, ``no_tools``, ``no_agvs`` (the shop's instance, the same values
 as the shop node's; needed by ``ppo`` solvers, which replay the states' ``history`` into a twin of the shop —
 start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahead), ``delay_s`` (think time before each command, for demos and tests),

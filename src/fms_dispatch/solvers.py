@@ -3,8 +3,9 @@
 Names: ``first`` (baseline: always the lowest enabled action), ``random`` (uniform among legal actions,
 seeded), ``rule:<JOB>+<first|least-work|nearest>`` (see :mod:`fms_dispatch.rules`), ``sos`` (symbiotic
 organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
-option ``lookahead=True`` pre-positions idle vehicles), each honouring ``time_limit`` where it searches. Every schedule
-leaves here with ``meta["solver"]`` and ``meta["wall_time"]`` filled in.
+option ``lookahead=True`` pre-positions idle vehicles, ``lookahead="fast"`` does it without retries), each
+honouring ``time_limit`` where it searches. Every schedule leaves here with ``meta["solver"]`` and
+``meta["wall_time"]`` filled in.
 """
 
 from __future__ import annotations
@@ -57,7 +58,8 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat", "ppo[:MODEL][+lookahead]"]
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat",
+            "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
 
 def get_solver(name: str) -> Solver:
@@ -81,14 +83,15 @@ def get_solver(name: str) -> Solver:
         from .rl import ppo_solver
 
         base, plus, flag = name.partition("+")
-        if plus and flag.lower() != "lookahead":
-            raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead)")
+        if plus and flag.lower() not in ("lookahead", "lookahead-fast"):
+            raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead or +lookahead-fast)")
         try:
             fn = ppo_solver(base)
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
-        if plus:  # "ppo[:MODEL]+lookahead": a name for benches, same as the lookahead=True option
-            return lambda inst, **kw: fn(inst, **{**kw, "lookahead": True})
+        if plus:  # "ppo[:MODEL]+lookahead[-fast]": names for benches, same as the lookahead=True / "fast" option
+            mode: bool | str = "fast" if flag.lower() == "lookahead-fast" else True
+            return lambda inst, **kw: fn(inst, **{**kw, "lookahead": mode})
         return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 

@@ -259,15 +259,18 @@ def test_unknown_ppo_model_and_oversized_instance() -> None:
 
 
 # ------------------------------------------------------------------------------ lookahead over idle stops
-@pytest.mark.parametrize("name", ["EX12", "EX22", "EX52", "ra01"])
-def test_ppo_lookahead_over_messages_equals_the_offline_solver(name: str) -> None:
+@pytest.mark.parametrize("name, fast", [("EX12", False), ("EX22", False), ("EX52", False), ("ra01", False),
+                                        ("EX22", True), ("ra01", True)])
+def test_ppo_lookahead_over_messages_equals_the_offline_solver(name: str, fast: bool) -> None:
     from fms_dispatch.rl import ppo_solver
 
     inst = builtin(name)
-    ref = ppo_solver("ppo")(inst, lookahead=True)
-    svc, (agent,) = ppo_run(inst, solver="ppo+lookahead", idle_stops=True)
+    suffix = "+lookahead-fast" if fast else "+lookahead"
+    ref = ppo_solver("ppo")(inst, lookahead="fast" if fast else True)
+    svc, (agent,) = ppo_run(inst, solver="ppo" + suffix, idle_stops=True)
     model = ref.meta["model"]
-    assert agent.name == f"ppo:{model}+lookahead" == svc.final_schedule.meta["solver"]
+    assert agent.name == f"ppo:{model}{suffix}" == svc.final_schedule.meta["solver"] == ref.meta["solver"]
+    assert agent.decide.planner.retry is not fast
     got = svc.final_schedule.to_dict()
     for key in ("operations", "agv_trips", "tool_trips", "makespan"):
         assert got[key] == ref.to_dict()[key], key

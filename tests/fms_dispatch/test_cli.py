@@ -113,6 +113,16 @@ def test_ppo_solver_names(capsys):
     plain, ahead = solve(inst, "ppo"), solve(inst, "ppo+lookahead")
     assert validate(inst, plain) == [] and validate(inst, ahead) == []
     assert ahead.makespan <= plain.makespan
-    with pytest.raises(UnknownSolver, match="only \\+lookahead"):
+    with pytest.raises(UnknownSolver, match="only \\+lookahead or \\+lookahead-fast"):
         get_solver("ppo+magic")
     assert run(["solve", "EX22", "--solver", "ppo", "--lookahead", "-q"], capsys)[0] == 0
+    fast = solve(inst, "ppo+lookahead-fast")
+    assert validate(inst, fast) == [] and fast.makespan <= plain.makespan
+    assert fast.meta["lookahead_fast"] is True and ahead.meta["lookahead_fast"] is False
+    assert fast.meta["solver"].endswith("+lookahead-fast") and "lookahead_fast" not in plain.meta
+    code, out, _ = run(["solve", "EX22", "--solver", "ppo", "--lookahead-fast", "-q"], capsys)
+    assert code == 0 and f"makespan {fast.makespan} " in out
+    code, _, err = run(["solve", "EX22", "--solver", "first", "--lookahead-fast", "-q"], capsys)
+    assert code == 2 and "--lookahead and --lookahead-fast apply to the ppo solver only" in err
+    with pytest.raises(ValueError, match="lookahead must be False, True or 'fast'"):
+        solve(inst, "ppo", lookahead="quick")

@@ -192,3 +192,72 @@ def test_verifying_rollouts_that_rejoin_the_plain_run_stop_early_with_the_same_v
     # some rollouts were cut short, some moves were kept, and the run is the reference's (which never stops early)
     assert planner.rejoined > 0 and planner.accepted > 0 and planner.verified > planner.rejoined + planner.accepted
     assert st.shop.schedule().to_dict() == run_with_lookahead(Shop(inst), pol, reference=True).to_dict()
+
+
+def _planned_run(inst, pol, retry: bool):
+    """Run ``inst`` with a lookahead planner; returns the planner, the schedule and, per verification, the
+    moves proposed and whether they were kept (in run order)."""
+    import fms_dispatch.rl.lookahead as la
+    from fms_dispatch.rl.lookahead import LookaheadPlanner
+    from fms_sim.stepping import Stepper
+
+    st = Stepper(Shop(inst))
+    planner = LookaheadPlanner(pol, retry=retry)
+    proposed: list = []
+    real = la._trajectory_after_moves
+
+    def spy(stepper, choose, moves, *args, **kw):
+        proposed.append(list(moves))
+        return real(stepper, choose, moves, *args, **kw)
+
+    verdicts = []
+    la._trajectory_after_moves = spy
+    try:
+        stop = st.advance()
+        while stop != "done":
+            if stop == "decision":
+                stop = st.decide(pol(st.shop))
+                continue
+            n = len(proposed)
+            moves = planner.plan(st)
+            if len(proposed) > n:
+                verdicts.append((proposed[-1], bool(moves)))
+            stop = st.move(moves)
+    finally:
+        la._trajectory_after_moves = real
+    return planner, st.shop.schedule(), verdicts
+
+
+@pytest.mark.parametrize("name, rule", [("ra08", ("SPTN", "nearest")), ("ra05", ("MTWR", "nearest")),
+                                        ("EX22", ("LPT", "nearest")), ("ra03", ("FIFO", "first"))])
+def test_fast_lookahead_never_retries_a_rejected_move_until_moves_are_kept(name, rule):
+    inst, pol = builtin(name), RulePolicy(*rule)
+    planner, sched, verdicts = _planned_run(inst, pol, retry=False)
+    assert validate(inst, sched) == []
+    assert sched.makespan <= run_agent(Shop(inst), pol).makespan  # every kept move is still verified
+    rejected: set = set()
+    for moves, kept in verdicts:
+        assert not rejected & set(moves), "a rejected move was verified again before any move was kept"
+        rejected = set() if kept else rejected | set(moves)
+    assert planner.verified == len(verdicts) and planner.accepted == sum(k for _, k in verdicts)
+    # the default planner does retry those moves: more verifications, and the fast one skipped some
+    full, full_sched, full_verdicts = _planned_run(inst, pol, retry=True)
+    assert planner.skipped > 0 and full.verified > planner.verified and full.skipped == 0
+    assert full_sched.to_dict() == run_agent(Shop(inst), pol, lookahead=True).to_dict()
+    assert sched.to_dict() == run_agent(Shop(inst), pol, lookahead=True, retry=False).to_dict()
+    retried = 0
+    seen: set = set()
+    for moves, kept in full_verdicts:
+        retried += bool(seen & set(moves))
+        seen = set() if kept else seen | set(moves)
+    assert retried > 0  # the default really verifies some rejected moves again
+
+
+def test_fast_lookahead_with_ppo_on_a_large_instance_is_valid_and_no_worse():
+    from fms_dispatch.rl.models import load_agent
+
+    inst = builtin("sl00").without_tools()
+    agent = load_agent("large-agv")
+    plain = run_agent(Shop(inst), agent.act)
+    fast = run_agent(Shop(inst), agent.act, lookahead=True, retry=False)
+    assert validate(inst, fast) == [] and fast.makespan <= plain.makespan
