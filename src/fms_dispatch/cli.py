@@ -134,8 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: first)")
     s.add_argument("--lookahead", action="store_true", help="ppo: pre-position idle vehicles (digital-twin lookahead)")
     s.add_argument("--lookahead-fast", action="store_true",
-                   help="ppo: the lookahead without retrying rejected moves (about 2x faster on 50-100 jobs, other "
-                        "schedules; never worse than plain ppo either)")
+                   help="ppo: the lookahead without retrying rejected moves (several times faster on 50-100 "
+                        "jobs, other schedules; never worse than plain ppo either)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", help="write the schedule JSON here")

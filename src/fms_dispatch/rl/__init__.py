@@ -31,8 +31,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     policy (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the
     twin, and ``progress`` then reports on stderr every 2 s (large instances take minutes).
     ``lookahead="fast"`` is the lookahead without retries of rejected moves (``retry=False`` of
-    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`): about twice as fast on 50-100-job instances, other
-    schedules.
+    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`): 1.5-3.6 times faster on 15-20-job instances and
+    about 9 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -58,7 +58,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
                              f"({agent.padding})")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
         sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead), progress=report, retry=not fast)
-        sched.meta["solver"] = f"ppo:{agent.name}" + ("+lookahead-fast" if fast else "+lookahead" if lookahead else "")
+        suffix = "+lookahead-fast" if fast else "+lookahead" if lookahead else ""
+        sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["lookahead"] = bool(lookahead)
         if lookahead:
