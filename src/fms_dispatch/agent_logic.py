@@ -43,6 +43,7 @@ from fms_sim.shop_service import Outgoing
 from fms_sim.stepping import WAIT, Stepper, moves_label
 
 from .rules import JOB_RULES, VEHICLE_RULES, parse_rule_name
+from .solvers import LOOKAHEAD_SUFFIXES
 
 if TYPE_CHECKING:
     from fms_sim.shop import Shop
@@ -319,7 +320,7 @@ def needs_twin(solver: str) -> bool:
 def needs_idle_stops(solver: str) -> bool:
     """Whether ``solver`` pre-positions idle vehicles (lookahead): the shop must stop for them."""
     low = solver.strip().lower()
-    return low == "lookahead" or low.endswith(("+lookahead", "+lookahead-fast"))
+    return low == "lookahead" or low.endswith(tuple(LOOKAHEAD_SUFFIXES))
 
 
 def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
@@ -327,8 +328,7 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     ``ppo+lookahead``) over a twin of ``instance``."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
-    fast = low.endswith("+lookahead-fast")
-    suffix = "+lookahead-fast" if fast else "+lookahead"
+    suffix = next((s for s in LOOKAHEAD_SUFFIXES if low.endswith(s)), "+lookahead")
     base = "ppo" if low == "lookahead" else (name[:-len(suffix)] if lookahead else name).strip()
     low_base = base.lower()
     if low_base != "ppo" and not low_base.startswith("ppo:"):
@@ -345,7 +345,7 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     if lookahead:
         from .rl.lookahead import LookaheadPlanner
 
-        planner = LookaheadPlanner(agent.act, retry=not fast)
+        planner = LookaheadPlanner(agent.act, retry=LOOKAHEAD_SUFFIXES[suffix] != "fast")
         canonical += suffix
     return TwinDecider(instance, agent.act, canonical, planner), canonical
 

@@ -57,6 +57,20 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
     return cpsat(instance, **kw)
 
 
+#: solver-name suffixes of the PPO lookahead, each with the ``lookahead`` option it stands for (offline solvers
+#: here, the agent node in :mod:`fms_dispatch.agent_logic`, and the names that schedules carry)
+LOOKAHEAD_SUFFIXES: dict[str, bool | str] = {"+lookahead": True, "+lookahead-fast": "fast"}
+
+
+def lookahead_suffix(mode: bool | str) -> str:
+    """The solver-name suffix of a ``lookahead`` option: ``""`` for False, ``"+lookahead"`` for True,
+    ``"+lookahead-fast"`` for ``"fast"``; raises ValueError for anything else."""
+    for suffix, m in {"": False, **LOOKAHEAD_SUFFIXES}.items():
+        if mode == m:
+            return suffix
+    raise ValueError(f"lookahead must be False, True or 'fast', got {mode!r}")
+
+
 def solver_names() -> list[str]:
     return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
@@ -83,14 +97,14 @@ def get_solver(name: str) -> Solver:
         from .rl import ppo_solver
 
         base, plus, flag = name.partition("+")
-        if plus and flag.lower() not in ("lookahead", "lookahead-fast"):
+        mode = LOOKAHEAD_SUFFIXES.get(plus + flag.lower())
+        if plus and mode is None:
             raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead or +lookahead-fast)")
         try:
             fn = ppo_solver(base)
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
         if plus:  # "ppo[:MODEL]+lookahead[-fast]": names for benches, same as the lookahead=True / "fast" option
-            mode: bool | str = "fast" if flag.lower() == "lookahead-fast" else True
             return lambda inst, **kw: fn(inst, **{**kw, "lookahead": mode})
         return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")

@@ -194,7 +194,7 @@ def test_verifying_rollouts_that_rejoin_the_plain_run_stop_early_with_the_same_v
     assert st.shop.schedule().to_dict() == run_with_lookahead(Shop(inst), pol, reference=True).to_dict()
 
 
-def _planned_run(inst, pol, retry: bool):
+def _planned_run(inst, pol, retry: bool, monkeypatch):
     """Run ``inst`` with a lookahead planner; returns the planner, the schedule and, per verification, the
     moves proposed and whether they were kept (in run order)."""
     import fms_dispatch.rl.lookahead as la
@@ -211,8 +211,8 @@ def _planned_run(inst, pol, retry: bool):
         return real(stepper, choose, moves, *args, **kw)
 
     verdicts = []
-    la._trajectory_after_moves = spy
-    try:
+    with monkeypatch.context() as m:
+        m.setattr(la, "_trajectory_after_moves", spy)
         stop = st.advance()
         while stop != "done":
             if stop == "decision":
@@ -223,34 +223,34 @@ def _planned_run(inst, pol, retry: bool):
             if len(proposed) > n:
                 verdicts.append((proposed[-1], bool(moves)))
             stop = st.move(moves)
-    finally:
-        la._trajectory_after_moves = real
     return planner, st.shop.schedule(), verdicts
+
+
+def _retries(verdicts) -> int:
+    """Verifications that include a move rejected since the last kept moves."""
+    retried = 0
+    rejected: set = set()
+    for moves, kept in verdicts:
+        retried += bool(rejected & set(moves))
+        rejected = set() if kept else rejected | set(moves)
+    return retried
 
 
 @pytest.mark.parametrize("name, rule", [("ra08", ("SPTN", "nearest")), ("ra05", ("MTWR", "nearest")),
                                         ("EX22", ("LPT", "nearest")), ("ra03", ("FIFO", "first"))])
-def test_fast_lookahead_never_retries_a_rejected_move_until_moves_are_kept(name, rule):
+def test_fast_lookahead_never_retries_a_rejected_move_until_moves_are_kept(name, rule, monkeypatch):
     inst, pol = builtin(name), RulePolicy(*rule)
-    planner, sched, verdicts = _planned_run(inst, pol, retry=False)
+    planner, sched, verdicts = _planned_run(inst, pol, False, monkeypatch)
     assert validate(inst, sched) == []
     assert sched.makespan <= run_agent(Shop(inst), pol).makespan  # every kept move is still verified
-    rejected: set = set()
-    for moves, kept in verdicts:
-        assert not rejected & set(moves), "a rejected move was verified again before any move was kept"
-        rejected = set() if kept else rejected | set(moves)
+    assert _retries(verdicts) == 0, "a rejected move was verified again before any move was kept"
     assert planner.verified == len(verdicts) and planner.accepted == sum(k for _, k in verdicts)
     # the default planner does retry those moves: more verifications, and the fast one skipped some
-    full, full_sched, full_verdicts = _planned_run(inst, pol, retry=True)
+    full, full_sched, full_verdicts = _planned_run(inst, pol, True, monkeypatch)
     assert planner.skipped > 0 and full.verified > planner.verified and full.skipped == 0
     assert full_sched.to_dict() == run_agent(Shop(inst), pol, lookahead=True).to_dict()
     assert sched.to_dict() == run_agent(Shop(inst), pol, lookahead=True, retry=False).to_dict()
-    retried = 0
-    seen: set = set()
-    for moves, kept in full_verdicts:
-        retried += bool(seen & set(moves))
-        seen = set() if kept else seen | set(moves)
-    assert retried > 0  # the default really verifies some rejected moves again
+    assert _retries(full_verdicts) > 0  # the default really verifies some rejected moves again
 
 
 def test_fast_lookahead_with_ppo_on_a_large_instance_is_valid_and_no_worse():

@@ -45,12 +45,12 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, **_: Any) -> Schedule:
         from fms_sim.shop import Shop
 
-        if lookahead not in (False, True, "fast"):
-            raise ValueError(f"lookahead must be False, True or 'fast', got {lookahead!r}")
-        fast = lookahead == "fast"
-
+        from ..solvers import lookahead_suffix
         from .lookahead import run_agent
         from .models import default_model_name, load_agent
+
+        suffix = lookahead_suffix(lookahead)  # also rejects a bad value before any work
+        fast = lookahead == "fast"
 
         agent = load_agent(model or default_model_name(instance))
         if not agent.fits(instance):
@@ -58,7 +58,6 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
                              f"({agent.padding})")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
         sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead), progress=report, retry=not fast)
-        suffix = "+lookahead-fast" if fast else "+lookahead" if lookahead else ""
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["lookahead"] = bool(lookahead)
