@@ -97,7 +97,6 @@ class RecorderNode(FmsNode):
                 recorder.flush(time.monotonic())
             self.store.close()
             self.store = None
-        super().close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

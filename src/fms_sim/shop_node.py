@@ -21,6 +21,7 @@ one; without it, :func:`main` exits with code 2 and says how to install it.
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
@@ -128,14 +129,18 @@ class FmsNode:
         try:
             self._setup()
         except BaseException:
-            self.close()
+            try:
+                self.close()
+            finally:
+                self.node.destroy_node()
             raise
 
     def _setup(self) -> None:
         raise NotImplementedError
 
     def close(self) -> None:
-        self.node.destroy_node()
+        """Release what the node holds besides its rclpy node (flush and close files); called once when it
+        stops, before the rclpy node is destroyed. Nothing by default."""
 
 
 class ShopNode(FmsNode):
@@ -211,6 +216,21 @@ def _ignore_stop_signals() -> None:
 #: how long an executor error may precede the context's shutdown and still count as part of stopping
 SHUTDOWN_GRACE_S = 1.0
 
+#: seconds a stopping node may take (close, rclpy shutdown, interpreter exit) before the stall watchdog fires
+STOP_STALL_S = 5.0
+
+
+def _arm_stop_watchdog() -> None:
+    """Bound the stop: if the process is still alive :data:`STOP_STALL_S` seconds from now, dump the stacks of
+    all its threads on stderr (the node's log) and exit with code 1.
+
+    A normal stop takes well under a second. A teardown that blocks inside the middleware (a DDS participant
+    that never finishes deleting) would otherwise hang until the launcher's SIGKILL and leave no trace of
+    where; this way it ends on its own, with the place in the log. faulthandler's watchdog is a C thread that
+    needs no GIL, so it also fires when the main thread blocks in native code holding it, and it stays armed
+    through the interpreter's exit."""
+    faulthandler.dump_traceback_later(STOP_STALL_S, exit=True, file=sys.stderr)
+
 
 def _shutting_down(grace_s: float) -> bool:
     """Whether rclpy is shut down now or within ``grace_s`` seconds."""
@@ -223,14 +243,17 @@ def _shutting_down(grace_s: float) -> bool:
 
 
 def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
-    """Spin ``node`` until SIGINT/SIGTERM, then ``close()`` and shut rclpy down; returns exit code 0.
+    """Spin ``node`` until SIGINT/SIGTERM, then ``close()`` (the node's own data), destroy ``node`` and shut
+    rclpy down; returns exit code 0.
 
     Two rclpy behaviours are absorbed here (both seen with Fast DDS when several nodes stop at once): a
     message arriving while the context shuts down can make the executor raise (``RuntimeError``, or a
     ``TypeError`` "Unable to convert call argument", in ``take_message``), possibly a moment before the context
     reports the shutdown — such an error counts as stopping if rclpy is down within :data:`SHUTDOWN_GRACE_S`; and the stop signal can be delivered a second time — during ``close()`` or while the
     interpreter finalises, where it would kill a cleanly stopped node with -SIGINT. Once the node is
-    stopping, further stop signals are therefore ignored.
+    stopping, further stop signals are therefore ignored. ``close()`` runs unbounded (it saves data); the
+    middleware teardown after it is bounded by :func:`_arm_stop_watchdog` (stacks in the log and exit code 1
+    if it stalls).
     """
     try:
         rclpy.spin(node)
@@ -246,8 +269,12 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
         try:
             close()
         finally:
-            rclpy.try_shutdown()
-            _ignore_stop_signals()  # try_shutdown may restore the handlers rclpy replaced
+            _arm_stop_watchdog()  # what follows is middleware teardown only: the node's data are saved
+            try:
+                node.destroy_node()
+            finally:
+                rclpy.try_shutdown()
+                _ignore_stop_signals()  # try_shutdown may restore the handlers rclpy replaced
     return 0
 
 

@@ -1,12 +1,18 @@
-"""spin_until_shutdown: an executor error during the stop is not a crash; any other error still is.
+"""spin_until_shutdown: an executor error during the stop is not a crash; any other error still is; a
+middleware teardown that stalls ends the process with its stacks in the log.
 
-The race itself (a message taken while the context shuts down) cannot be provoked on demand, so these tests
-replace rclpy's spin / ok / try_shutdown in the node module by stand-ins that replay it.
+The race itself (a message taken while the context shuts down) and a stalled DDS teardown cannot be provoked
+on demand, so these tests replace rclpy's spin / ok / try_shutdown in the node module by stand-ins that replay
+them.
 """
 
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
+import textwrap
+import time
 from typing import Any
 
 import pytest
@@ -36,9 +42,18 @@ class FakeRclpy:
         self.shutdowns += 1
 
 
+class FakeNode:
+    def __init__(self) -> None:
+        self.destroyed = 0
+
+    def destroy_node(self) -> None:
+        self.destroyed += 1
+
+
 @pytest.fixture
 def fake(monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setattr(shop_node, "_ignore_stop_signals", lambda: None)  # keep the test process's handlers
+    monkeypatch.setattr(shop_node, "_arm_stop_watchdog", lambda: None)  # it would end the test process
     monkeypatch.setattr(shop_node, "SHUTDOWN_GRACE_S", 0.3)
 
     def install(exc: BaseException, ok_calls: int | None) -> FakeRclpy:
@@ -52,14 +67,57 @@ def fake(monkeypatch: pytest.MonkeyPatch):
                                  RuntimeError("Failed to take message")])
 def test_executor_error_just_before_the_shutdown_is_a_clean_stop(fake, exc: BaseException) -> None:
     f = fake(exc, ok_calls=3)              # the context reports the shutdown a moment after the error
-    closed = []
-    assert shop_node.spin_until_shutdown(object(), lambda: closed.append(1)) == 0
-    assert closed == [1] and f.shutdowns == 1
+    closed, node = [], FakeNode()
+    assert shop_node.spin_until_shutdown(node, lambda: closed.append(1)) == 0
+    assert closed == [1] and node.destroyed == 1 and f.shutdowns == 1
 
 
 def test_executor_error_while_rclpy_stays_up_is_raised(fake) -> None:
     f = fake(TypeError("a genuine bug"), ok_calls=None)
-    closed = []
+    closed, node = [], FakeNode()
     with pytest.raises(TypeError, match="a genuine bug"):
-        shop_node.spin_until_shutdown(object(), lambda: closed.append(1))
-    assert closed == [1] and f.shutdowns == 1  # still closed (the database is flushed) and shut down
+        shop_node.spin_until_shutdown(node, lambda: closed.append(1))
+    assert closed == [1] and node.destroyed == 1 and f.shutdowns == 1  # still closed (data flushed), shut down
+
+
+#: a node process whose stop is replayed: ``close()`` takes argv[1] s, the rclpy shutdown argv[2] s
+STALL_SCRIPT = textwrap.dedent('''
+    import sys, time
+    from fms_sim import shop_node
+
+    class Rclpy:
+        def spin(self, node): raise KeyboardInterrupt
+        def ok(self): return False
+        def try_shutdown(self): time.sleep(float(sys.argv[2]))
+
+    class Node:
+        def destroy_node(self): pass
+
+    shop_node.rclpy = Rclpy()
+    shop_node.STOP_STALL_S = 1.0
+    code = shop_node.spin_until_shutdown(Node(), lambda: time.sleep(float(sys.argv[1])))
+    print("saved", flush=True)
+    sys.exit(code)
+''')
+
+
+def _stop(close_s: float, shutdown_s: float) -> tuple[subprocess.CompletedProcess, float]:
+    t0 = time.monotonic()
+    res = subprocess.run([sys.executable, "-c", STALL_SCRIPT, str(close_s), str(shutdown_s)],
+                         capture_output=True, text=True, timeout=60)
+    return res, time.monotonic() - t0
+
+
+def test_a_stalled_middleware_teardown_ends_with_its_stacks_in_the_log() -> None:
+    res, wall = _stop(0.0, 50.0)
+    assert res.returncode == 1, res.stderr
+    assert wall < 30  # not the 50 s the stalled shutdown would take
+    assert "Timeout" in res.stderr and "try_shutdown" in res.stderr  # faulthandler names the blocked call
+    assert "saved" not in res.stdout
+
+
+def test_a_slow_close_is_not_cut_short() -> None:
+    # the node's own close (flushing its data) is not bounded: only the teardown after it is
+    res, _ = _stop(2.0, 0.0)
+    assert res.returncode == 0, res.stderr
+    assert "saved" in res.stdout and "Timeout" not in res.stderr

@@ -1,0 +1,123 @@
+"""``fms up``'s stop policy, with stand-in node processes (no DDS): the nodes deliver the run, then one of
+them will not stop. The real three-node runs are in ``tests/ros/test_nodes.py``."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")  # fms up refuses to start without it, even with stand-in nodes
+
+from fms_dispatch import up  # noqa: E402
+from fms_sim.formats import load_instance  # noqa: E402
+from fms_sim.schedule import Schedule  # noqa: E402
+from fms_sim.validate import validate  # noqa: E402
+
+#: a stand-in node: argv[1] is the node module, argv[2] its parameters as JSON. The shop writes a rule
+#: schedule (or, with ``bad_schedule``, one with an operation dropped) and the final instance, the recorder
+#: writes the chart file; a node named in ``stuck`` ignores SIGINT (so fms up must kill it), the others exit 0.
+FAKE_NODE = textwrap.dedent('''
+    import json, signal, sys, time
+    from pathlib import Path
+
+    module, params = sys.argv[1], json.loads(sys.argv[2])
+    role = module.rsplit(".", 1)[1].removesuffix("_node")
+    stopped = []
+
+    def stop(*_):  # like the real nodes: once stopping, a repeated SIGINT is ignored
+        stopped.append(1)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN if role == params["stuck"] else stop)
+    if role == "shop":
+        from fms_sim.instance import Instance
+        from fms_dispatch.rules import solve_rule
+        inst = Instance.from_json(Path(params["instance"]).read_text())
+        sched = solve_rule(inst, "SPT", "first")
+        if params["bad_schedule"]:
+            data = json.loads(sched.to_json())
+            data["operations"] = data["operations"][1:]
+            text = json.dumps(data)
+        else:
+            text = sched.to_json()
+        Path(params["instance_out"]).write_text(inst.to_json())
+        Path(params["schedule_out"]).write_text(text)
+    if role == "recorder":
+        Path(params["png"]).parent.mkdir(parents=True, exist_ok=True)
+        Path(params["png"]).write_bytes(b"png")
+    while not stopped:
+        time.sleep(0.02)
+''')
+
+
+@pytest.fixture
+def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    script = tmp_path / "fake_node.py"
+    script.write_text(FAKE_NODE)
+
+    def install(stuck: str = "", bad_schedule: bool = False) -> None:
+        def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+            extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png")}
+            return [sys.executable, str(script), module, json.dumps({**params, **extra})]
+        monkeypatch.setattr(up, "node_command", command)
+        monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
+    return install
+
+
+def _up(tmp_path: Path, *extra: str) -> int:
+    return up.main(["EX12", "--solver", "first", "--out", str(tmp_path / "out" / "s.json"), "--db",
+                    str(tmp_path / "out" / "fms.sqlite"), "--run-id", "t1", "--timeout", "60", *extra])
+
+
+def test_a_node_that_will_not_stop_after_a_delivered_run_is_a_warning(fake_nodes, tmp_path: Path, capsys) -> None:
+    fake_nodes(stuck="recorder")
+    assert _up(tmp_path) == up.EXIT_OK
+    err = capsys.readouterr().err
+    assert "warning: the run is complete and valid, but a node did not stop cleanly: recorder exit code -9" in err
+    # the log folder is a temporary one here: the warning names the log and keeps it
+    kept = [line for line in err.splitlines() if line.startswith("  recorder log (")]
+    assert kept and Path(kept[0].split("(", 1)[1].rstrip("):")).exists()
+    sched = Schedule.load(tmp_path / "out" / "s.json")
+    assert validate(load_instance("EX12"), sched) == []
+
+
+def test_clean_stops_give_no_warning(fake_nodes, tmp_path: Path, capsys) -> None:
+    fake_nodes()
+    assert _up(tmp_path) == up.EXIT_OK
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_an_invalid_schedule_still_fails_and_names_the_unclean_stop(fake_nodes, tmp_path: Path, capsys) -> None:
+    fake_nodes(stuck="agent", bad_schedule=True)
+    assert _up(tmp_path) == up.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "fms up: error: the schedule is infeasible" in err and "agent exit code -9" in err
+    assert not (tmp_path / "out" / "s.json").exists()
+
+
+
+def test_stop_all_sends_each_node_one_sigint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a second SIGINT could reach a node while its interpreter finalises and kill it with -SIGINT
+    sent: list[tuple[int, int]] = []
+    real = up._signal_group
+    monkeypatch.setattr(up, "_signal_group", lambda pid, sig: (sent.append((pid, sig)), real(pid, sig)))
+    script = ("import signal, sys, time; signal.signal(signal.SIGINT, lambda *_: sys.exit(0)); "
+              "print('ready', flush=True); time.sleep(60)")
+    nodes = [up.NodeProcess(f"n{i}", [sys.executable, "-c", script], tmp_path / f"n{i}.log", dict(os.environ))
+             for i in range(2)]
+    for n in nodes:
+        n.start()
+    for n in nodes:  # the handlers are installed
+        deadline = time.monotonic() + 30
+        while "ready" not in n.log_path.read_text() and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert up.stop_all(nodes, 10.0) == {"n0": 0, "n1": 0}
+    assert sorted(sent) == sorted((n.proc.pid, signal.SIGINT) for n in nodes)
