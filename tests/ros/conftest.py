@@ -71,13 +71,15 @@ class NodeProcs:
         proc.wait(10)
 
     @staticmethod
-    def stop(proc: subprocess.Popen, grace: float = 8.0) -> int:
-        """SIGINT the group and wait; SIGKILL if it does not stop; returns the exit code."""
+    def stop(proc: subprocess.Popen, grace: float = 8.0, interrupt: bool = True) -> int:
+        """SIGINT the group (unless ``interrupt`` is false: already sent) and wait; SIGKILL if it does not stop;
+        returns the exit code."""
         if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
+            if interrupt:
+                try:
+                    os.killpg(proc.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
             try:
                 proc.wait(grace)
             except subprocess.TimeoutExpired:
@@ -85,13 +87,14 @@ class NodeProcs:
         return proc.returncode
 
     def stop_all(self) -> dict[str, int]:
-        for _, p in self.procs:
-            if p.poll() is None:
-                try:
-                    os.killpg(p.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        return {name: self.stop(p) for name, p in self.procs}
+        """SIGINT every running node once, all at the same time, then wait for each."""
+        running = [p for _, p in self.procs if p.poll() is None]
+        for p in running:
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        return {name: self.stop(p, interrupt=False) for name, p in self.procs}
 
 
 class Observer:
