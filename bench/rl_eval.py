@@ -210,7 +210,14 @@ def main() -> None:
     ap.add_argument("--write-metrics", action="store_true", help="store results in the model's metrics.json")
     a = ap.parse_args()
     if a.rules_cache and Path(a.rules_cache).is_file():
-        RULE_CACHE.update(json.loads(Path(a.rules_cache).read_text()))
+        try:
+            cached = json.loads(Path(a.rules_cache).read_text())
+        except (OSError, ValueError) as exc:
+            ap.error(f"--rules-cache {a.rules_cache}: not a cache this script wrote ({exc})")
+        if not isinstance(cached, dict) or not all(isinstance(v, dict) for v in cached.values()):
+            ap.error(f"--rules-cache {a.rules_cache}: not a cache this script wrote (expected an object of "
+                     "instance -> rule pair -> makespan)")
+        RULE_CACHE.update(cached)
     try:
         run(a)
     finally:
