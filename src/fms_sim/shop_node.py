@@ -216,7 +216,8 @@ def _ignore_stop_signals() -> None:
 #: how long an executor error may precede the context's shutdown and still count as part of stopping
 SHUTDOWN_GRACE_S = 1.0
 
-#: seconds a stopping node may take (close, rclpy shutdown, interpreter exit) before the stall watchdog fires
+#: seconds a stopping node may take, once its data are saved (destroying the rclpy node, shutting rclpy down,
+#: the interpreter's exit), before the stall watchdog fires
 STOP_STALL_S = 5.0
 
 
