@@ -32,7 +32,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     twin, and ``progress`` then reports on stderr every 2 s (large instances take minutes).
     ``lookahead="fast"`` is the lookahead without retries of rejected moves (``retry=False`` of
     :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`): 1.5-3.6 times faster on 15-20-job instances and
-    about 9 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
+    6-8 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
     """
     low = spec.strip()
     if low.lower() == "ppo":
