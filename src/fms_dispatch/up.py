@@ -201,6 +201,12 @@ def stop_all(nodes: Sequence[NodeProcess], grace: float = 5.0) -> dict[str, int 
     return {n.name: n.stop(deadline - time.monotonic()) for n in nodes}
 
 
+def _print_logs(nodes: Sequence[NodeProcess]) -> None:
+    """The path and the last lines of each node's log, on stderr."""
+    for n in nodes:
+        print(f"  {n.name} log ({n.log_path}):\n{n.tail()}", file=sys.stderr)
+
+
 def _signal_group(pid: int, sig: int) -> None:
     try:
         os.killpg(pid, sig)
@@ -319,17 +325,14 @@ def cmd_up(a: argparse.Namespace) -> int:
                 failure = f"the schedule is infeasible: {problems[0]}"
     if failure is not None or sched is None:
         print(f"fms up: error: {failure}" + (f"; {stop_note}" if stop_note else ""), file=sys.stderr)
-        for n in nodes:
-            print(f"  {n.name} log ({n.log_path}):\n{n.tail()}", file=sys.stderr)
+        _print_logs(nodes)
         return EXIT_FAILED
     if stop_note:
         # the run was delivered (schedule, final instance and chart written, schedule valid): a node that then
         # fails to stop — e.g. a stalled DDS teardown — loses nothing, so it is reported, not a failed run
         keep_logs = True
         print(f"fms up: warning: the run is complete and valid, but {stop_note}", file=sys.stderr)
-        for n in nodes:
-            if n.name in unclean:
-                print(f"  {n.name} log ({n.log_path}):\n{n.tail()}", file=sys.stderr)
+        _print_logs([n for n in nodes if n.name in unclean])
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         sched.save(out)

@@ -22,6 +22,7 @@ from typing import Any, Callable, Iterator
 
 import pytest
 
+from fms_dispatch.up import _signal_group as signal_group
 from fms_msgs_json import TOPICS, decode
 
 try:  # the test modules skip themselves without rclpy; this file must still import
@@ -64,10 +65,7 @@ class NodeProcs:
     @staticmethod
     def kill(proc: subprocess.Popen) -> None:
         """SIGKILL the node's process group (a crash)."""
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        signal_group(proc.pid, signal.SIGKILL)
         proc.wait(10)
 
     @staticmethod
@@ -76,10 +74,7 @@ class NodeProcs:
         returns the exit code."""
         if proc.poll() is None:
             if interrupt:
-                try:
-                    os.killpg(proc.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
+                signal_group(proc.pid, signal.SIGINT)
             try:
                 proc.wait(grace)
             except subprocess.TimeoutExpired:
@@ -90,10 +85,7 @@ class NodeProcs:
         """SIGINT every running node once, all at the same time, then wait for each."""
         running = [p for _, p in self.procs if p.poll() is None]
         for p in running:
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
+            signal_group(p.pid, signal.SIGINT)
         return {name: self.stop(p, interrupt=False) for name, p in self.procs}
 
 
