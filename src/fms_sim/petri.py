@@ -183,6 +183,7 @@ class NetState:
     dirty_auto: list[tuple[int, int, Transition]]
     auto_marked: set[int]
     enabled: dict[int, Binding | None]
+    levels: dict[int, set[int]]
     dirty_ctrl: set[int]
     offered: list[int] | None
     fired: int
@@ -209,6 +210,7 @@ class Net:
         self._dirty_auto: list[tuple[int, int, Transition]] = []  # heap (priority, index, t)
         self._auto_marked: set[int] = set()
         self._enabled: dict[int, Binding | None] = {}  # controllable index -> binding (cache)
+        self._levels: dict[int, set[int]] = {}  # priority -> enabled controllable indices (kept with the cache)
         self._dirty_ctrl: set[int] = set()
         self._offered: list[int] | None = None
         self.fired = 0
@@ -260,6 +262,7 @@ class Net:
         for i, t in enumerate(self.controllable):
             t.action = i
         self._enabled = {}
+        self._levels = {}
         self._dirty_ctrl = set(range(len(self.controllable)))
         self._offered = None
 
@@ -310,6 +313,25 @@ class Net:
                 for t in ls:
                     self._mark(t)
 
+    def touch(self, t: Transition) -> None:
+        """Mark ``t`` for re-evaluation. Arcs wake their transitions by themselves; a module whose guards read
+        state kept outside the marking (counters, reservations) calls this when that state changes."""
+        self._mark(t)
+
+    def wake_on_count(self, place: Place, t: Transition) -> None:
+        """Wake ``t`` whenever ``place`` turns empty or non-empty (for a guard that reads only its count)."""
+        place._count_listeners.append(t)
+
+    def take(self, place: Place, key: Hashable) -> Any:
+        """Remove and return the colour of the oldest available token of ``place`` in bucket ``key`` (a
+        module's on_fire hook moving a token that no arc of the fired transition names); KeyError if none."""
+        bucket = place.buckets.get(key)
+        if not bucket:
+            raise KeyError(f"place {place.name!r} has no token with key {key!r}")
+        tok = bucket[0]
+        self._remove(place, tok)
+        return tok.colour
+
     def _mark(self, t: Transition) -> None:
         if t.action >= 0:
             self._dirty_ctrl.add(t.action)
@@ -325,6 +347,10 @@ class Net:
     # ------------------------------------------------------------------ enabling
     def binding(self, t: Transition) -> Binding | None:
         """The first binding (in arc order, tokens oldest first) that enables ``t`` now, or None."""
+        if not t._compiled:  # a pure guard (state kept by the module, woken by touch)
+            if t.guard is None or t.guard({}):
+                return {"__tokens__": [], "__places__": []}
+            return None
         toks: list[Token] = []
         places: list[Place] = []
         b: Binding = {}
@@ -397,8 +423,20 @@ class Net:
         if self._dirty_ctrl:
             ctrl = self.controllable
             enabled = self._enabled
+            levels = self._levels
             for i in self._dirty_ctrl:
-                enabled[i] = self.binding(ctrl[i])
+                t = ctrl[i]
+                b = self.binding(t)
+                was = enabled.get(i)
+                enabled[i] = b
+                if (b is None) != (was is None):
+                    level = levels.get(t.priority)
+                    if level is None:
+                        level = levels[t.priority] = set()
+                    if b is None:
+                        level.discard(i)
+                    else:
+                        level.add(i)
             self._dirty_ctrl.clear()
 
     def enabled_actions(self) -> list[int]:
@@ -409,17 +447,13 @@ class Net:
         if self._offered is not None:
             return list(self._offered)
         self._refresh_ctrl()
-        best = None
         out: list[int] = []
-        for i, b in self._enabled.items():
-            if b is None:
-                continue
-            p = self.controllable[i].priority
-            if best is None or p < best:
-                best, out = p, [i]
-            elif p == best:
-                out.append(i)
-        out.sort()
+        best = None
+        for p, level in self._levels.items():
+            if level and (best is None or p < best):
+                best = p
+        if best is not None:
+            out = sorted(self._levels[best])
         self._offered = out
         return list(out)
 
@@ -535,7 +569,8 @@ class Net:
             len(self.transitions), len(self.controllable),
             [({k: list(b) for k, b in p.buckets.items()}, p.count, p.in_flight) for p in self.places],
             self.now, list(self._pending), self._seq, list(self._dirty_auto), set(self._auto_marked),
-            dict(self._enabled), set(self._dirty_ctrl), self._offered, self.fired, self.acted)
+            dict(self._enabled), {p: set(v) for p, v in self._levels.items()}, set(self._dirty_ctrl), self._offered,
+            self.fired, self.acted)
 
     def restore_state(self, state: "NetState") -> None:
         """Put back a state of :meth:`save_state` (raises ValueError if the net's structure changed since)."""
@@ -549,6 +584,7 @@ class Net:
         self._dirty_auto = list(state.dirty_auto)
         self._auto_marked = set(state.auto_marked)
         self._enabled = dict(state.enabled)
+        self._levels = {p: set(v) for p, v in state.levels.items()}
         self._dirty_ctrl = set(state.dirty_ctrl)
         self._offered = state.offered
 

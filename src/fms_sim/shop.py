@@ -90,6 +90,9 @@ class Shop:
         schedule = shop.schedule()
     """
 
+    decisions = "paper"
+    """The decision space of this net (see :data:`fms_sim.full_shop.DECISIONS`)."""
+
     def __init__(self, instance: Instance, *, incremental: bool = True):
         self.instance = instance
         self.net = Net(incremental=incremental)
@@ -445,6 +448,10 @@ class Shop:
 
     def action_mask(self) -> list[bool]:
         return self.net.mask()
+
+    def fire_action(self, action: int) -> None:
+        """Fire one action without running on to the next decision (the caller steps the net)."""
+        self.net.act(action)
 
     def act(self, action: int) -> None:
         """Fire the controllable transition ``action`` and run the net to the next decision (or the end)."""

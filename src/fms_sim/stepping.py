@@ -147,7 +147,7 @@ class Stepper:
         """Fire controllable ``action`` at a decision stop and run to the next stop."""
         if self.kind != "decision":
             raise InvalidAction(f"no decision is due at time {self.shop.now} ({self._where()})")
-        self.shop.net.act(action)
+        self.shop.fire_action(action)
         self.looked.clear()
         return self.advance()
 

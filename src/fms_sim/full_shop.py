@@ -1,0 +1,559 @@
+"""The full-decision shop net: every valid schedule is reachable through its decisions.
+
+The paper's net (:class:`fms_sim.shop.Shop`, ``decisions="paper"``) decides only which job goes next and which
+vehicle carries it; tools serve their requests FIFO by dispatch stamp, machines start the smallest stamp, a job
+is dispatched only when its part is ready, and time passes only when nothing can be done. On tool-sharing shops
+that decision space is the limit of every method that decides through it. :class:`FullShop`
+(``decisions="full"``) keeps the same jobs, AGV, tools and machines blocks but makes the remaining choices
+controllable, each a transition whose guard gives its mask:
+
+* **dispatch ahead** — ``job:J`` hands job J's next transport to an AGV (``agv:V`` follows at once) as soon as
+  the operation before it has *started*; the AGV deadheads to the pickup and waits there for the part. A part
+  whose next machine is the one it is on goes to that machine's buffer by itself when it is ready;
+* **machine sequencing** — ``start:J`` starts job J's buffered operation when its machine is idle and (with
+  tools) its tool is at the machine. Nothing starts by itself, so a machine may be kept for a later part;
+* **tool-request selection** — ``tool:T`` takes up tool T, then ``use:J`` names the job whose next unserved
+  operation on T it serves (then ``tt:R`` the transporter when the tool must travel). T may be taken up when it
+  is free, or while a running operation uses it (the transporter then waits at the tool for that operation to
+  end). Requests exist from the start, so a tool can be brought before its part has arrived (pre-fetch);
+* **hold** — ``hold`` lets time pass to the next event instead of acting; offered only while something is in
+  flight and no vehicle choice is pending, so it can never stall the run.
+
+Deadlock: an AGV or transporter only ever waits for an operation that is running, so the only circular wait a
+decider could build is among tools reserved for operations whose jobs still need other reserved tools first.
+``use:J`` is masked out when serving that request would close such a cycle (a depth-first search over the
+reserved operations; nearly always a trivial check), so every reachable state can finish. Every valid schedule
+keeps its reservations acyclic, so none is excluded.
+
+Action layout (indices in this order): ``job:0..n-1 | agv:0..A-1 | tt:0..R-1 | start:0..n-1 | tool:1..T |
+use:0..n-1 | hold``; the first three blocks are the paper net's. Labels as shown.
+"""
+
+from __future__ import annotations
+
+import copy
+from functools import partial
+from typing import Sequence
+
+from .instance import Instance, Operation
+from .petri import Arc, InvalidAction, Output, Transition
+from .schedule import AgvTrip, OperationRecord, ToolTrip
+from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
+
+__all__ = ["FullShop", "DECISIONS", "make_shop", "HOLD"]
+
+#: the nets a decider can run on: the paper's (FIFO tools, ready-only dispatch, stamp-order starts) and ours
+DECISIONS = ("full", "paper")
+HOLD = "hold"
+_P_USE = 4  # after tool:T, the request it serves comes before anything else (then the transporter, at 5)
+_KIND_ORDER = {"job": 0, "agv": 1, "tt": 2, "start": 3, "tool": 4, "use": 5}
+
+#: state kept beside the marking (copied by save_state, hashed by state_key)
+_FULL_STATE = ("disp_next", "started", "m_idle", "buf_at", "tool_ready_for", "tool_user", "tool_running",
+               "tool_next", "treq", "tool_choice", "tt_waiting", "_use_cands")
+
+
+def make_shop(instance: Instance, decisions: str = "full") -> Shop:
+    """A runnable shop net for ``instance`` with the paper's decisions or the full ones (see :data:`DECISIONS`)."""
+    if decisions == "full":
+        return FullShop(instance)
+    if decisions == "paper":
+        return Shop(instance)
+    raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")
+
+
+class FullShop(Shop):
+    """The shop net with every decision controllable (module docstring); the API of :class:`Shop` plus the
+    ``hold`` action (the last index)."""
+
+    decisions = "full"
+
+    # ------------------------------------------------------------------ building
+    def _build(self) -> None:
+        inst, net = self.instance, self.net
+        n, M = inst.n_jobs, inst.n_machines
+        self.p_parts = net.add_place("parts", key=lambda c: c[0])
+        self.p_done = net.add_place("done")
+        self.p_buffer = net.add_place("buffer", key=lambda c: c[0])
+        self.p_busy = net.add_place("busy", key=lambda c: c[2])
+        for j in range(n):
+            net.put(self.p_parts, (j, 0, 0))
+        self.disp_next = [self._next_transport(j, 0) for j in range(n)]
+        self.started = [0] * n
+        self.m_idle = [True] * (M + 1)
+        self.buf_at: list[set[int]] = [set() for _ in range(M + 1)]
+        self.tool_ready_for: set[tuple[int, int]] = set()
+        nt = inst.n_tools + 1
+        self.tool_user: list[tuple[int, int] | None] = [None] * nt
+        self.tool_running = [False] * nt
+        self.tool_next: list[tuple[int, int] | None] = [None] * nt
+        self.treq: list[dict[int, list[int]]] = [{} for _ in range(nt)]
+        self.tool_choice: int | None = None
+        self.tt_waiting: list[int | None] = [None] * nt
+        self._use_cands: list[int] = []
+        self.t_job: list[Transition] = []
+        self.t_start: list[Transition] = []
+        self.t_use: list[Transition] = []
+        self.t_tool: list[Transition] = []
+        self.t_tt_load: list[Transition] = []
+        if inst.has_tools:
+            self._tools_block_full()
+        if inst.has_agvs:
+            self._agv_block_full()
+        for j in range(n):
+            self._add_job(j)
+        self._machines_block_full()
+        self._order_actions()
+
+    def _next_transport(self, j: int, k: int) -> int:
+        """The first operation index >= k of job j that needs an AGV (its part is elsewhere), or len(job)."""
+        ops = self._jobs[j]
+        if self.instance.has_agvs:
+            while k < len(ops) and k > 0 and ops[k - 1].machine == ops[k].machine:
+                k += 1
+        return k
+
+    def _add_job(self, j: int) -> None:
+        """Per-job transitions (dispatch, part flow, start, request selection) and the job's tool requests."""
+        net, inst = self.net, self.instance
+        for k, op in enumerate(self._jobs[j]):
+            if inst.has_tools and op.tool is not None:
+                self.treq[op.tool].setdefault(j, []).append(k)
+        if inst.has_agvs:
+            t = net.add_transition(Transition(
+                name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
+                arcs=[Arc(self.p_agv_idle, kind="test", count_only=True)],
+                guard=partial(self._job_ok, j), outputs=[Output(self.p_awaiting_agv, partial(self._request_of, j))],
+                on_fire=partial(self._on_job, j)))
+            self.t_job.append(t)
+            net.add_transition(Transition(
+                name=f"stay[{j}]", priority=_P_ALLOC, arcs=[Arc(self.p_parts, "p", key=j)],
+                guard=self._stays, outputs=[Output(self.p_buffer, self._to_buffer)], on_fire=self._on_buffered))
+        else:
+            net.add_transition(Transition(
+                name=f"direct[{j}]", priority=_P_ALLOC, arcs=[Arc(self.p_parts, "p", key=j)],
+                outputs=[Output(self.p_buffer, self._to_buffer)], on_fire=self._on_buffered))
+        self.t_start.append(net.add_transition(Transition(
+            name=f"start_job[{j}]", label=f"start:{j}", controllable=True, priority=_P_JOB,
+            arcs=[Arc(self.p_buffer, "q", key=j)], guard=self._start_ok,
+            outputs=[Output(self.p_busy, self._busy_token, delay=self._duration)], on_fire=self._on_start)))
+        if inst.has_tools:
+            self.t_use.append(net.add_transition(Transition(
+                name=f"use_job[{j}]", label=f"use:{j}", controllable=True, priority=_P_USE, arcs=[],
+                guard=partial(self._use_ok, j), on_fire=partial(self._on_use, j))))
+
+    def _order_actions(self) -> None:
+        def key(t: Transition) -> tuple[int, int]:
+            kind, num = t.label.split(":")
+            return _KIND_ORDER[kind], int(num)
+
+        self.net.set_action_order(sorted(self.net.controllable, key=key))
+        self._label_index = {t.label: i for i, t in enumerate(self.net.controllable)}
+        self._label_index[HOLD] = len(self.net.controllable)
+
+    # jobs and AGVs -------------------------------------------------------
+    def _agv_block_full(self) -> None:
+        net, inst = self.net, self.instance
+        T = inst.agv_travel
+        self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
+        self.p_awaiting_agv = net.add_place("awaiting_agv")
+        self.p_agv_pick = net.add_place("agv_to_pickup", key=lambda c: c[0])
+        self.p_agv_drop = net.add_place("agv_loaded_trip", key=lambda c: c[0])
+        for v in range(inst.n_agvs):
+            net.put(self.p_agv_idle, (v, 0))
+        for v in range(inst.n_agvs):
+            # colour of trip tokens: (agv, job, op, pickup, machine)
+            net.add_transition(Transition(
+                name=f"select_agv[{v}]", label=f"agv:{v}", controllable=True, priority=_P_VEHICLE,
+                arcs=[Arc(self.p_awaiting_agv, "r", first=True), Arc(self.p_agv_idle, "a", key=v)],
+                outputs=[Output(self.p_agv_pick, lambda b: (b["a"][0],) + b["r"],
+                                delay=lambda b: T[b["a"][1]][b["r"][2]])],
+                on_fire=self._on_select_agv_full))
+            net.add_transition(Transition(
+                name=f"agv_load[{v}]", priority=_P_DONE,
+                arcs=[Arc(self.p_agv_pick, "e", key=v), Arc(self.p_parts, "p", key=lambda b: b["e"][1])],
+                guard=lambda b: b["p"][1] == b["e"][2],
+                outputs=[Output(self.p_agv_drop, lambda b: b["e"], delay=lambda b: T[b["e"][3]][b["e"][4]])],
+                on_fire=self._on_agv_load))
+            net.add_transition(Transition(
+                name=f"agv_unload[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_drop, "l", key=v)],
+                outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4])),
+                         Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
+                on_fire=self._on_agv_unload))
+        self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T, self._on_agv_reposition)
+
+    def _job_ok(self, j: int, b: dict) -> bool:
+        k = self.disp_next[j]
+        return k < len(self._jobs[j]) and self.started[j] >= k
+
+    def _request_of(self, j: int, b: dict) -> tuple:
+        k = self.disp_next[j]
+        return (j, k, self._jobs[j][k - 1].machine if k else 0, self._jobs[j][k].machine)
+
+    def _on_job(self, j: int, b: dict, now: int) -> None:
+        k = self.disp_next[j]
+        self._stamp += 1
+        self.job_started_ops[j] = k + 1
+        self.disp_next[j] = self._next_transport(j, k + 1)
+        self.pending_job = j
+        self.net.touch(self.t_job[j])
+
+    def _on_select_agv_full(self, b: dict, now: int) -> None:
+        v, here = b["a"]
+        pickup = b["r"][2]
+        t = self.instance.agv_travel[here][pickup]
+        if here != pickup:
+            self.rec.agv.append(AgvTrip(v, None, None, here, pickup, now, now + t, False))
+        self.agv_work[v] += t
+        self.agv_loc[v] = pickup
+        self.agv_free_at[v] = now + t  # at the pickup; the loaded trip starts when the part is ready
+        self.pending_job = None
+
+    def _on_agv_load(self, b: dict, now: int) -> None:
+        v, j, k, pickup, m = b["e"]
+        t = self.instance.agv_travel[pickup][m]
+        self.rec.agv.append(AgvTrip(v, j, k, pickup, m, now, now + t, True))
+        self.agv_work[v] += t
+        self.agv_loc[v] = m
+        self.agv_free_at[v] = now + t
+
+    def _on_agv_unload(self, b: dict, now: int) -> None:
+        _, j, _, _, m = b["l"]
+        self._buffered(j, m)
+
+    def _stays(self, b: dict) -> bool:
+        j, k, loc = b["p"]
+        return k > 0 and self._jobs[j][k].machine == loc
+
+    def _to_buffer(self, b: dict) -> tuple:
+        j, k, _ = b["p"]
+        return (j, k, self._jobs[j][k].machine)
+
+    def _on_buffered(self, b: dict, now: int) -> None:
+        j, k, _ = b["p"]
+        if not self.instance.has_agvs:
+            self.job_started_ops[j] = k + 1
+        self._buffered(j, self._jobs[j][k].machine)
+
+    def _buffered(self, j: int, m: int) -> None:
+        self.buf_at[m].add(j)
+
+    # machines -----------------------------------------------------------
+    def _machines_block_full(self) -> None:
+        net, inst = self.net, self.instance
+        for m in range(1, inst.n_machines + 1):
+            net.add_transition(Transition(
+                name=f"end[{m}]", priority=_P_DONE, arcs=[Arc(self.p_busy, "x", key=m)],
+                outputs=[Output(self.p_parts, self._next_part), Output(self.p_done, self._finished_part)],
+                on_fire=self._on_end_full))
+
+    def _busy_token(self, b: dict) -> tuple:
+        j, k, m = b["q"]
+        return (j, k, m, self._jobs[j][k].tool if self.instance.has_tools else None)
+
+    def _start_ok(self, b: dict) -> bool:
+        j, k, m = b["q"]
+        if not self.m_idle[m]:
+            return False
+        return not self.instance.has_tools or self._jobs[j][k].tool is None or (j, k) in self.tool_ready_for
+
+    def _on_start(self, b: dict, now: int) -> None:
+        j, k, m = b["q"]
+        op = self._jobs[j][k]
+        tool = op.tool if self.instance.has_tools else None
+        self.rec.ops.append(OperationRecord(j, k, m, tool, now, now + op.duration))
+        self.machine_busy_until[m] = now + op.duration
+        self.m_idle[m] = False
+        self.buf_at[m].discard(j)
+        self._touch_starts(m)
+        self.started[j] = k + 1
+        if self.t_job:
+            self.net.touch(self.t_job[j])
+        if tool is not None:
+            self.tool_running[tool] = True
+            self.tool_ready_for.discard((j, k))
+            self._touch_tools()
+
+    def _on_end_full(self, b: dict, now: int) -> None:
+        j, k, m, tool = b["x"]
+        self.job_done_ops[j] = k + 1
+        self.job_ready_since[j] = now
+        if now > self.makespan:
+            self.makespan = now
+        self.m_idle[m] = True
+        self._touch_starts(m)
+        if tool is not None:
+            self.tool_running[tool] = False
+            nxt = self.tool_next[tool]
+            self.tool_user[tool], self.tool_next[tool] = nxt, None
+            if nxt is not None:
+                if self._jobs[nxt[0]][nxt[1]].machine == self.tool_loc[tool]:
+                    self._tool_ready(nxt)
+                elif self.tt_waiting[tool] is not None:
+                    self.net.touch(self.t_tt_load[self.tt_waiting[tool]])
+            self._touch_tools()
+
+    def _touch_starts(self, m: int) -> None:
+        t_start, touch = self.t_start, self.net.touch
+        for j in self.buf_at[m]:
+            touch(t_start[j])
+
+    # tools --------------------------------------------------------------
+    def _tools_block_full(self) -> None:
+        net, inst = self.net, self.instance
+        TT = inst.tool_travel
+        self.p_awaiting_tt = net.add_place("awaiting_transporter")
+        self.p_tt_idle = net.add_place("tt_idle", key=lambda c: c[0])
+        self.p_tt_pick = net.add_place("tt_to_tool", key=lambda c: c[0])
+        self.p_tt_drop = net.add_place("tt_loaded_trip", key=lambda c: c[0])
+        for r in range(inst.n_tool_transporters):
+            net.put(self.p_tt_idle, (r, 0))
+        for t in range(1, inst.n_tools + 1):
+            tr = net.add_transition(Transition(
+                name=f"take_tool[{t}]", label=f"tool:{t}", controllable=True, priority=_P_JOB, arcs=[],
+                guard=partial(self._tool_ok, t), on_fire=partial(self._on_tool, t)))
+            self.t_tool.append(tr)
+            net.wake_on_count(self.p_tt_idle, tr)  # requests that need a trip need an idle transporter
+        # colour of trip tokens: (transporter, tool, tool_location, job, op, machine)
+        for r in range(inst.n_tool_transporters):
+            net.add_transition(Transition(
+                name=f"select_tt[{r}]", label=f"tt:{r}", controllable=True, priority=_P_VEHICLE,
+                arcs=[Arc(self.p_awaiting_tt, "w", first=True), Arc(self.p_tt_idle, "a", key=r)],
+                outputs=[Output(self.p_tt_pick, lambda b: (b["a"][0],) + b["w"],
+                                delay=lambda b: TT[b["a"][1]][b["w"][1]])],
+                on_fire=self._on_select_tt_full))
+            self.t_tt_load.append(net.add_transition(Transition(
+                name=f"tt_load[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_pick, "e", key=r)],
+                guard=self._tt_load_ok,
+                outputs=[Output(self.p_tt_drop, lambda b: b["e"], delay=lambda b: TT[b["e"][2]][b["e"][5]])],
+                on_fire=self._on_tt_load)))
+            net.add_transition(Transition(
+                name=f"tt_unload[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_drop, "l", key=r)],
+                outputs=[Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))], on_fire=self._on_tt_unload))
+        self.p_tt_orders = self._reposition_block("tt", self.p_tt_idle, inst.n_tool_transporters, TT,
+                                                  self._on_tt_reposition)
+
+    def _servable(self, t: int) -> bool:
+        """Tool t may take up a new request: it is free, or in use by a running operation with none queued."""
+        user = self.tool_user[t]
+        return user is None or (self.tool_running[t] and self.tool_next[t] is None)
+
+    def _candidate(self, t: int, j: int) -> bool:
+        """Job j's next unserved operation on tool t may be served now (a transporter is idle when the tool must
+        travel, and the reservation closes no circular wait)."""
+        ks = self.treq[t].get(j)
+        if not ks:
+            return False
+        k = ks[0]
+        if self.tool_loc[t] != self._jobs[j][k].machine and not self.p_tt_idle.count:
+            return False
+        return self._safe(t, (j, k))
+
+    def _tool_ok(self, t: int, b: dict) -> bool:
+        if self.tool_choice is not None or not self.treq[t] or not self._servable(t):
+            return False
+        return any(self._candidate(t, j) for j in self.treq[t])
+
+    def _use_ok(self, j: int, b: dict) -> bool:
+        t = self.tool_choice
+        return t is not None and self._candidate(t, j)
+
+    def _waiter(self, t: int) -> tuple[int, int] | None:
+        """The operation that an unserved request on tool t would have to wait for (None: the tool is free, or
+        only busy with a running operation that will end by itself)."""
+        return self.tool_next[t] if self.tool_running[t] else self.tool_user[t]
+
+    def _safe(self, tool: int, op: tuple[int, int]) -> bool:
+        """Would reserving ``tool`` for ``op`` keep the wait-for graph of reserved operations acyclic?
+
+        A reserved operation (i, z) waits for every operation that holds the next reservation of a tool needed
+        by an earlier, unstarted operation (i, y < z) of its job; reservations before this one are acyclic, so a
+        new cycle must return to ``op``."""
+        jobs, started, waiter = self._jobs, self.started, self._waiter
+        has_tools = self.instance.has_tools
+        stack, seen = [op], {op}
+        while stack:
+            i, z = stack.pop()
+            for y in range(started[i], z):
+                need = jobs[i][y].tool if has_tools else None
+                if need is None:
+                    continue
+                w = op if need == tool else waiter(need)
+                if w is None or w == (i, y):
+                    continue
+                if w == op:
+                    return False
+                if w not in seen:
+                    seen.add(w)
+                    stack.append(w)
+        return True
+
+    def _touch_tools(self) -> None:
+        touch = self.net.touch
+        for tr in self.t_tool:
+            touch(tr)
+
+    def _on_tool(self, t: int, b: dict, now: int) -> None:
+        self.tool_choice = t
+        self._use_cands = list(self.treq[t])
+        for j in self._use_cands:
+            self.net.touch(self.t_use[j])
+        self._touch_tools()
+
+    def _on_use(self, j: int, b: dict, now: int) -> None:
+        t = self.tool_choice
+        assert t is not None
+        ks = self.treq[t][j]
+        k = ks.pop(0)
+        if not ks:
+            del self.treq[t][j]
+        op = (j, k)
+        m = self._jobs[j][k].machine
+        if self.tool_user[t] is None:
+            self.tool_user[t] = op
+            if self.tool_loc[t] == m:
+                self._tool_ready(op)
+        else:
+            self.tool_next[t] = op
+        if self.tool_loc[t] != m:
+            self.net.put(self.p_awaiting_tt, (t, self.tool_loc[t], j, k, m))
+        self.tool_choice = None
+        for i in self._use_cands:
+            self.net.touch(self.t_use[i])
+        self._use_cands = []
+        self._touch_tools()
+
+    def _tool_ready(self, op: tuple[int, int]) -> None:
+        self.tool_ready_for.add(op)
+        self.net.touch(self.t_start[op[0]])
+
+    def _on_select_tt_full(self, b: dict, now: int) -> None:
+        r, here = b["a"]
+        tool, tloc, _, _, _ = b["w"]
+        t = self.instance.tool_travel[here][tloc]
+        if here != tloc:
+            self.rec.tt.append(ToolTrip(r, None, None, None, here, tloc, now, now + t, False))
+        self.tt_work[r] += t
+        self.tt_loc[r] = tloc
+        self.tt_free_at[r] = now + t
+        self.tt_waiting[tool] = r
+
+    def _tt_load_ok(self, b: dict) -> bool:
+        _, tool, _, j, k, _ = b["e"]
+        return self.tool_user[tool] == (j, k) and not self.tool_running[tool]
+
+    def _on_tt_load(self, b: dict, now: int) -> None:
+        r, tool, src, j, k, m = b["e"]
+        t = self.instance.tool_travel[src][m]
+        self.rec.tt.append(ToolTrip(r, tool, j, k, src, m, now, now + t, True))
+        self.tt_work[r] += t
+        self.tt_loc[r] = m
+        self.tt_free_at[r] = now + t
+        self.tt_waiting[tool] = None
+
+    def _on_tt_unload(self, b: dict, now: int) -> None:
+        _, tool, _, j, k, m = b["l"]
+        self.tool_loc[tool] = m
+        self._tool_ready((j, k))
+
+    # ------------------------------------------------------------------ running
+    @property
+    def n_actions(self) -> int:
+        return len(self.net.controllable) + 1
+
+    @property
+    def hold_action(self) -> int:
+        return len(self.net.controllable)
+
+    def action_labels(self) -> list[str]:
+        return [t.label for t in self.net.controllable] + [HOLD]
+
+    def action_kind(self, action: int) -> tuple[str, int]:
+        """``(kind, number)`` for an action index: kinds job, agv, tt, start, tool, use; ``("hold", 0)``."""
+        if action == self.hold_action:
+            return HOLD, 0
+        kind, num = self.net.controllable[action].label.split(":")
+        return kind, int(num)
+
+    def action_index(self, label: str) -> int:
+        try:
+            return self._label_index[label]
+        except KeyError:
+            raise InvalidAction(f"unknown action label {label!r} (full net: job:J, agv:V, tt:R, start:J, tool:T, "
+                                "use:J or hold)") from None
+
+    def hold_allowed(self) -> bool:
+        """Hold is offered at a decision among the base choices while some event is still to come."""
+        net = self.net
+        offered = net.enabled_actions()
+        return bool(offered) and net.controllable[offered[0]].priority == _P_JOB and net.next_event_time() is not None
+
+    def legal_actions(self) -> list[int]:
+        out = self.net.enabled_actions()
+        if out and self.net.controllable[out[0]].priority == _P_JOB and self.net.next_event_time() is not None:
+            out.append(len(self.net.controllable))
+        return out
+
+    def action_mask(self) -> list[bool]:
+        m = self.net.mask()
+        m.append(self.hold_allowed())
+        return m
+
+    def fire_action(self, action: int) -> None:
+        """Fire one action without running on (``hold`` moves the clock to the next event)."""
+        if action == self.hold_action:
+            if not self.hold_allowed():
+                raise InvalidAction(f"hold is not allowed at time {self.now} (a vehicle choice is due or nothing "
+                                    "is in flight)")
+            self.net.release_until(self.net.next_event_time())
+            self.net.acted += 1
+        else:
+            self.net.act(action)
+
+    def act(self, action: int) -> None:
+        if self.done:
+            raise InvalidAction("the run is complete; no action is enabled")
+        self.fire_action(action)
+        self.net.advance()
+        self._check_progress()
+
+    def add_jobs(self, jobs: Sequence[Sequence[Operation]], advance: bool = True) -> list[int]:
+        raise NotImplementedError("live orders are not supported by the full-decision net yet; use decisions='paper'")
+
+    # ------------------------------------------------------------------ introspection
+    def next_op(self, job: int) -> int:
+        """Index of the next operation of ``job`` that needs a dispatch decision (== number of ops if none)."""
+        return self.disp_next[job]
+
+    def buffered_op(self, job: int) -> tuple[int, int] | None:
+        """``(op, machine)`` of the job's part waiting in a machine buffer, if any."""
+        toks = self.p_buffer.tokens(job)
+        return (toks[0].colour[1], toks[0].colour[2]) if toks else None
+
+    def request_of(self, tool: int, job: int) -> int | None:
+        """The operation of ``job`` that ``use:job`` would serve with ``tool`` (its next unserved one)."""
+        ks = self.treq[tool].get(job)
+        return ks[0] if ks else None
+
+    # ------------------------------------------------------------------ saving
+    def save_state(self) -> ShopState:
+        base = super().save_state()
+        extra = copy.deepcopy({name: getattr(self, name) for name in _FULL_STATE})
+        return ShopState(base.net, base.lists, {**base.scalars, "__full__": extra}, base.records, base.instance)
+
+    def restore_state(self, state: ShopState) -> None:
+        scalars = dict(state.scalars)
+        extra = scalars.pop("__full__")
+        super().restore_state(ShopState(state.net, state.lists, scalars, state.records, state.instance))
+        for name, value in copy.deepcopy(extra).items():
+            setattr(self, name, value)
+
+    def state_key(self, quick: bool = False) -> int:
+        base = super().state_key(quick)
+        if quick:
+            return base
+        extra = (tuple(self.disp_next), tuple(self.started), tuple(sorted(self.tool_ready_for)),
+                 tuple(self.tool_user), tuple(self.tool_running), tuple(self.tool_next), self.tool_choice,
+                 tuple(tuple(sorted((j, tuple(ks)) for j, ks in d.items())) for d in self.treq))
+        return hash((base, extra))
+

@@ -1,0 +1,193 @@
+"""Replay: drive the full-decision net with the orders of a given valid schedule.
+
+A schedule fixes, for every resource, the order in which it serves: the trips of each AGV and each tool
+transporter (empty ones included), the operations of each machine, the uses of each tool. :class:`PlanPolicy`
+reads those orders and, at every moment the net stops, does the next thing of each resource as soon as the
+net's guards allow it: empty trips become pre-positioning orders when the vehicle turns idle, loaded trips
+become ``job:J`` + ``agv:V`` or ``tool:T`` + ``use:J`` + ``tt:R``, machine orders become ``start:J``; when
+nothing planned is enabled, time passes to the next event (hold).
+
+Every event then happens no later than in the given schedule (each one waits only for its predecessors on
+the same resources and in the same job, which happened no later by induction), so the replayed makespan is at
+most the given one, and equal on proven optima. :func:`replay` refuses a schedule that is not valid for the
+instance with the validator's first errors, and checks the schedule it returns.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict, deque
+from typing import Deque
+
+from .full_shop import FullShop
+from .instance import Instance
+from .petri import InvalidAction
+from .schedule import Schedule
+from .validate import validate
+
+__all__ = ["replay", "ReplayError", "PlanPolicy"]
+
+
+class ReplayError(ValueError):
+    """The schedule cannot be replayed: it is not valid for the instance (``violations`` lists the
+    validator's findings), or the net refused its orders (a bug: valid schedules always replay)."""
+
+    def __init__(self, message: str, violations: list[str] | None = None):
+        super().__init__(message)
+        self.violations = violations or []
+
+
+class PlanPolicy:
+    """The orders of ``schedule`` per resource, answered through a :class:`~fms_sim.full_shop.FullShop`.
+
+    ``step(shop)`` issues the pre-positioning orders that are due and returns the action to fire now, or None
+    when nothing planned can be done at this moment (the caller lets time pass)."""
+
+    def __init__(self, instance: Instance, schedule: Schedule):
+        self.instance = instance
+        # vehicle routes: ("move", destination) or ("carry", job, op); legs from a place to itself carry nothing
+        self.agv: dict[int, Deque[tuple]] = defaultdict(deque)
+        for t in sorted(schedule.agv_trips, key=lambda t: (t.start, t.end)):
+            if t.from_ != t.to:
+                self.agv[t.agv].append(("carry", t.job, t.op) if t.loaded else ("move", t.to))
+        self.tt: dict[int, Deque[tuple]] = defaultdict(deque)
+        self.tool_carrier: dict[tuple[int, int], int] = {}
+        for t in sorted(schedule.tool_trips, key=lambda t: (t.start, t.end)):
+            if t.from_ != t.to:
+                self.tt[t.transporter].append(("carry", t.job, t.op) if t.loaded else ("move", t.to))
+                if t.loaded:
+                    self.tool_carrier[t.job, t.op] = t.transporter
+        self.part_carrier = {(t.job, t.op): t.agv for t in schedule.agv_trips if t.loaded and t.from_ != t.to}
+        ops = sorted(schedule.operations, key=lambda r: (r.start, r.end))
+        self.machine: dict[int, Deque[tuple[int, int]]] = defaultdict(deque)
+        self.tool: dict[int, Deque[tuple[int, int]]] = defaultdict(deque)
+        for r in ops:
+            self.machine[r.machine].append((r.job, r.op))
+            tool = instance.jobs[r.job][r.op].tool if instance.has_tools else None
+            if tool is not None:
+                self.tool[tool].append((r.job, r.op))
+
+    # ------------------------------------------------------------------ idle vehicles
+    def reposition(self, shop: FullShop) -> bool:
+        """Send every idle vehicle whose next leg is an empty one on its way; True if any was sent."""
+        sent = False
+        for kind, idle, plans in (("agv", shop.idle_agvs(), self.agv), ("tt", shop.idle_transporters(), self.tt)):
+            for v, here in idle:
+                plan = plans.get(v)
+                if plan and plan[0][0] == "move":
+                    dest = plan.popleft()[1]
+                    if dest != here:
+                        shop.reposition(kind, v, dest, advance=False)
+                        sent = True
+        return sent
+
+    # ------------------------------------------------------------------ decisions
+    def step(self, shop: FullShop) -> int | None:
+        offered = shop.net.enabled_actions()
+        if not offered:
+            return None
+        kind, _ = shop.action_kind(offered[0])
+        if kind == "agv":  # the AGV for the job just dispatched; its route moves on only now
+            j, k = shop.awaiting_agv()[:2]
+            v = self.part_carrier[j, k]
+            self.agv[v].popleft()
+            return shop.action_index(f"agv:{v}")
+        if kind == "tt":
+            _, _, j, k, _ = shop.awaiting_transporter()
+            r = self.tool_carrier[j, k]
+            self.tt[r].popleft()
+            return shop.action_index(f"tt:{r}")
+        if kind == "use":
+            t = shop.tool_choice
+            j, _ = self.tool[t][0]
+            self.tool[t].popleft()
+            return shop.action_index(f"use:{j}")
+        legal = set(offered)
+        for choose in (self._dispatch, self._tool, self._start):  # one at a time: each pops what it fires
+            a = choose(shop, legal)
+            if a is not None:
+                return a
+        return None
+
+    def _dispatch(self, shop: FullShop, legal: set[int]) -> int | None:
+        idle = dict(shop.idle_agvs())
+        for v in idle:
+            plan = self.agv.get(v)
+            if not plan or plan[0][0] != "carry":
+                continue
+            _, j, k = plan[0]
+            a = shop.action_index(f"job:{j}")
+            if a in legal and shop.next_op(j) == k:
+                return a
+        return None
+
+    def _tool(self, shop: FullShop, legal: set[int]) -> int | None:
+        for t, uses in self.tool.items():
+            if not uses:
+                continue
+            j, k = uses[0]
+            a = shop.action_index(f"tool:{t}")
+            if a not in legal or shop.request_of(t, j) != k or not shop._servable(t):
+                continue
+            r = self.tool_carrier.get((j, k))
+            if r is not None:
+                plan = self.tt.get(r)
+                if not plan or plan[0] != ("carry", j, k) or r not in dict(shop.idle_transporters()):
+                    continue
+            elif shop.tool_loc[t] != shop.instance.jobs[j][k].machine:
+                continue
+            if not shop._candidate(t, j):
+                continue
+            return a
+        return None
+
+    def _start(self, shop: FullShop, legal: set[int]) -> int | None:
+        for m, queue in self.machine.items():
+            if not queue:
+                continue
+            j, k = queue[0]
+            a = shop.action_index(f"start:{j}")
+            if a in legal and shop.buffered_op(j) == (k, m):
+                queue.popleft()
+                return a
+        return None
+
+
+def replay(instance: Instance, schedule: Schedule, *, check: bool = True) -> Schedule:
+    """Run ``schedule``'s orders through the full-decision net and return the schedule the net makes.
+
+    Raises :class:`ReplayError` if ``schedule`` is not valid for ``instance`` (with the validator's first
+    errors; nothing is run) or, with ``check``, if the replayed schedule were not valid (never for a valid input;
+    the check is the independent validator's)."""
+    problems = validate(instance, schedule)
+    if problems:
+        head = "; ".join(problems[:5]) + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else "")
+        raise ReplayError(f"the schedule is not valid for {instance.name}: {head}", problems)
+    shop = FullShop(instance)
+    policy = PlanPolicy(instance, schedule)
+    net = shop.net
+    while True:
+        net.run_autonomous()
+        if shop.done:
+            break
+        if policy.reposition(shop):
+            continue
+        action = policy.step(shop)
+        if action is not None:
+            try:
+                shop.fire_action(action)
+            except InvalidAction as exc:  # pragma: no cover - a bug: the policy only fires offered actions
+                raise ReplayError(f"replay of {instance.name} failed at time {shop.now}: {exc}") from exc
+            continue
+        t = net.next_event_time()
+        if t is None:
+            raise ReplayError(f"replay of {instance.name} is stuck at time {shop.now}: no planned order can be "
+                              f"carried out and nothing is in flight")
+        net.release_until(t)
+    out = shop.schedule()
+    out.meta.update({"solver": "replay", "replayed": schedule.meta.get("solver", "?"),
+                     "given_makespan": schedule.makespan})
+    if check:
+        problems = validate(instance, out)
+        if problems:  # pragma: no cover - the net keeps the contract
+            raise ReplayError(f"replayed schedule of {instance.name} is invalid: {'; '.join(problems[:5])}", problems)
+    return out
