@@ -126,3 +126,24 @@ def test_ppo_solver_names(capsys):
     assert code == 2 and "--lookahead and --lookahead-fast apply to the ppo solver only" in err
     with pytest.raises(ValueError, match="lookahead must be False, True or 'fast'"):
         solve(inst, "ppo", lookahead="quick")
+
+
+def test_replay_writes_a_schedule_no_later_than_the_given_one(tmp_path, capsys):
+    given, out, png = tmp_path / "given.json", tmp_path / "out.json", tmp_path / "r.png"
+    assert run(["solve", "ra01", "--solver", "rule:MTWR+nearest", "--out", str(given), "-q"], capsys)[0] == 0
+    code, stdout, _ = run(["replay", "ra01", str(given), "--out", str(out), "--gantt", str(png)], capsys)
+    assert code == 0 and "replayed makespan" in stdout
+    s, g = Schedule.load(out), Schedule.load(given)
+    assert validate(builtin("ra01"), s) == [] and s.makespan <= g.makespan
+    assert s.meta["solver"] == "replay" and s.meta["given_makespan"] == g.makespan
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_replay_refuses_an_invalid_schedule_and_writes_nothing(tmp_path, capsys):
+    given, out = tmp_path / "given.json", tmp_path / "out.json"
+    assert run(["solve", "EX12", "--solver", "rule:FIFO+first", "--out", str(given), "-q"], capsys)[0] == 0
+    code, stdout, err = run(["replay", "EX13", str(given), "--out", str(out)], capsys)  # other travel times
+    assert code == 2 and "not a valid schedule for EX13" in err and "travel time is" in err
+    assert not out.exists()
+    code, _, err = run(["replay", "EX12", str(tmp_path / "missing.json")], capsys)
+    assert code == 2 and "cannot read schedule" in err
