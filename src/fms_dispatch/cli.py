@@ -59,6 +59,13 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if a.time_limit <= 0:
             raise CliError("--time-limit must be positive")
         opts["time_limit"] = a.time_limit
+    from .solvers import DECISION_SOLVERS
+
+    if a.solver.lower().startswith(DECISION_SOLVERS):
+        opts["decisions"] = a.decisions or "full"
+    elif a.decisions:
+        raise CliError(f"--decisions applies to the first, random and rule: solvers, not {a.solver} "
+                       "(list and rules always use the full net; sos and ppo the paper's)")
     if a.lookahead or a.lookahead_fast:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead and --lookahead-fast apply to the ppo solver only")
@@ -160,8 +167,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
     add_instance_args(s)
     s.add_argument("--solver", default="first",
-                   help="first | random | rule:<JOB>+<first|least-work|nearest> | sos | cpsat | ppo[:MODEL] "
-                        "(default: first)")
+                   help="first | random | rule:<JOB>+<first|least-work|nearest>[+<fifo|same-machine-first|"
+                        "nearest|earliest-start>] | list | rules | sos | cpsat | ppo[:MODEL] (default: first)")
+    s.add_argument("--decisions", choices=("full", "paper"),
+                   help="the net that first, random and rule: decide through: full (default; every valid "
+                        "schedule reachable) or paper (the paper's FIFO-tool, ready-only net)")
     s.add_argument("--lookahead", action="store_true", help="ppo: pre-position idle vehicles (digital-twin lookahead)")
     s.add_argument("--lookahead-fast", action="store_true",
                    help="ppo: the lookahead without retrying rejected moves (several times faster on 50-100 "

@@ -1,7 +1,11 @@
 """One solver signature for every method: ``solver(instance, **options) -> Schedule``, selected by name.
 
 Names: ``first`` (baseline: always the lowest enabled action), ``random`` (uniform among legal actions,
-seeded), ``rule:<JOB>+<first|least-work|nearest>`` (see :mod:`fms_dispatch.rules`), ``sos`` (symbiotic
+seeded), ``rule:<JOB>+<first|least-work|nearest>[+<TOOL>]`` (see :mod:`fms_dispatch.rules`; a tool rule only
+on the full net, :mod:`fms_dispatch.full_rules`) — these three take ``decisions="paper"`` (the default here,
+which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the default of ``fms solve``) —,
+``list`` (the earliest-start list schedule executed through the full net), ``rules`` (the best full-net rule
+combination or ``list``), ``sos`` (symbiotic
 organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
 option ``lookahead=True`` pre-positions idle vehicles, ``lookahead="fast"`` does it without retries), each
 honouring ``time_limit`` where it searches. Every schedule leaves here with ``meta["solver"]`` and
@@ -29,13 +33,49 @@ class UnknownSolver(ValueError):
     pass
 
 
-def _first(instance: Instance, **_: Any) -> Schedule:
-    return run_policy(instance, lambda shop: shop.legal_actions()[0])
+def _run(instance: Instance, choose: Callable[[Any], int], decisions: str) -> Schedule:
+    """Run ``choose`` through the paper's net or the full-decision one (:data:`fms_sim.full_shop.DECISIONS`)."""
+    if decisions == "paper":
+        return run_policy(instance, choose)
+    if decisions == "full":
+        from .full_rules import run_full
+
+        return run_full(instance, choose)
+    raise UnknownSolver(f"unknown decisions {decisions!r}; choose from full, paper")
 
 
-def _random(instance: Instance, seed: int = 0, **_: Any) -> Schedule:
+def _first(instance: Instance, decisions: str = "paper", **_: Any) -> Schedule:
+    return _run(instance, lambda shop: shop.legal_actions()[0], decisions)
+
+
+def _random(instance: Instance, seed: int = 0, decisions: str = "paper", **_: Any) -> Schedule:
     rng = random.Random(seed)
-    return run_policy(instance, lambda shop: rng.choice(shop.legal_actions()))
+    return _run(instance, lambda shop: rng.choice(shop.legal_actions()), decisions)
+
+
+def _rule(name: str) -> Solver:
+    """``rule:JOB+VEHICLE[+TOOL]``: through the paper's net (two parts only) or the full one."""
+    from .full_rules import parse_full_rule
+
+    try:
+        full = parse_full_rule(name)
+        paper = parse_rule_name(name) if name.count("+") < 2 else None
+    except ValueError as exc:
+        raise UnknownSolver(str(exc)) from None
+
+    def solver(instance: Instance, decisions: str = "paper", **_: Any) -> Schedule:
+        if decisions == "paper" and paper is None:
+            raise UnknownSolver(f"{name!r} names a tool rule, which only the full-decision net has "
+                                "(decisions='full')")
+        s = _run(instance, paper if decisions == "paper" else full, decisions)
+        s.meta["solver"] = name
+        return s
+
+    return solver
+
+
+#: solvers that decide through a net chosen by the ``decisions`` option
+DECISION_SOLVERS = ("first", "random", "rule:")
 
 
 def _sos(instance: Instance, **kw: Any) -> Schedule:
@@ -72,7 +112,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>", "sos", "cpsat",
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list", "rules", "sos", "cpsat",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
 
@@ -84,11 +124,15 @@ def get_solver(name: str) -> Solver:
     if low == "random":
         return _random
     if low.startswith("rule:"):
-        try:
-            policy = parse_rule_name(name)
-        except ValueError as exc:
-            raise UnknownSolver(str(exc)) from None
-        return lambda inst, **_: run_policy(inst, policy)
+        return _rule(name)
+    if low == "list":
+        from .full_rules import solve_list
+
+        return solve_list
+    if low == "rules":
+        from .full_rules import solve_best_rules
+
+        return solve_best_rules
     if low == "sos":
         return _sos
     if low == "cpsat":

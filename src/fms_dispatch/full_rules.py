@@ -1,0 +1,264 @@
+"""Rules for the full-decision net (:class:`fms_sim.full_shop.FullShop`), and the solvers built on them.
+
+A full-net rule is ``JOB+VEHICLE+TOOL``: the paper's 12 job rules (:data:`fms_dispatch.rules.JOB_RULES`) order
+the machine starts and the dispatches, the vehicle rules (``first``, ``least-work``, ``nearest``) choose AGVs
+and transporters, and a tool rule chooses which waiting request a tool serves next:
+
+==================  ==========================================================================
+fifo                the request whose part was dispatched first (the paper's order), then job
+same-machine-first  a request on the machine where the tool already is (no trip), then fifo
+nearest             the request whose machine is the fewest tool-travel units away, then fifo
+earliest-start      the request whose operation could start first (part, tool and machine)
+==================  ==========================================================================
+
+The policy is non-delay with look-ahead of one operation: at each decision it starts what can start, takes
+up each free tool for the *current* operation of a job (pre-fetching it while the part is still on its way or
+the previous operation runs), dispatches ready parts and sends an AGV ahead for a part whose operation ends
+before the AGV could get there; when nothing of that is left it holds.
+
+Solvers: ``rule:JOB+VEHICLE[+TOOL]`` with ``decisions="full"``; ``list`` — the earliest-start list schedule
+(:func:`fms_dispatch.exact.greedy_schedule`) executed through the full net by replay, a strong baseline that
+decides through the net; ``rules`` — the best of every rule combination and ``list`` on the instance.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Callable
+
+from fms_sim.full_shop import FullShop
+from fms_sim.instance import Instance
+from fms_sim.replay import replay
+from fms_sim.schedule import Schedule
+
+from .rules import JOB_RULES, VEHICLE_RULES
+
+__all__ = ["TOOL_RULES", "FullRulePolicy", "run_full", "full_rule_names", "solve_list", "solve_best_rules"]
+
+TOOL_RULES = ("fifo", "same-machine-first", "nearest", "earliest-start")
+_INF = float("inf")
+
+
+class _OpView:
+    """The shop as a job rule reads it, with the operation the decision is about as each job's next one."""
+
+    def __init__(self, shop: FullShop, ops: dict[int, int]):
+        self.instance = shop.instance
+        self.job_entry = shop.job_entry
+        self.job_ready_since = shop.job_ready_since
+        self._ops = ops
+
+    def next_op(self, job: int) -> int:
+        return self._ops[job]
+
+
+def run_full(instance: Instance, choose: Callable[[FullShop], int]) -> Schedule:
+    """Run the full-decision net to completion, asking ``choose(shop)`` at every decision."""
+    shop = FullShop(instance)
+    while not shop.done:
+        shop.act(choose(shop))
+    return shop.schedule()
+
+
+class FullRulePolicy:
+    """A job rule, a vehicle rule and a tool rule acting through the full net's masks (module docstring)."""
+
+    def __init__(self, job_rule: str = "FIFO", vehicle_rule: str = "first", tool_rule: str = "fifo"):
+        job_rule, vehicle_rule, tool_rule = job_rule.upper(), vehicle_rule.lower(), tool_rule.lower()
+        if job_rule not in JOB_RULES:
+            raise ValueError(f"unknown job rule {job_rule!r}; choose from {', '.join(JOB_RULES)}")
+        if vehicle_rule not in VEHICLE_RULES:
+            raise ValueError(f"unknown vehicle rule {vehicle_rule!r}; choose from {', '.join(VEHICLE_RULES)}")
+        if tool_rule not in TOOL_RULES:
+            raise ValueError(f"unknown tool rule {tool_rule!r}; choose from {', '.join(TOOL_RULES)}")
+        self.job_rule, self.vehicle_rule, self.tool_rule = job_rule, vehicle_rule, tool_rule
+        self._key = JOB_RULES[job_rule]
+
+    @property
+    def name(self) -> str:
+        return f"rule:{self.job_rule}+{self.vehicle_rule}+{self.tool_rule}"
+
+    # ------------------------------------------------------------------ the decision
+    def __call__(self, shop: FullShop) -> int:
+        legal = shop.legal_actions()
+        kind = shop.action_kind(legal[0])[0]
+        if kind == "agv":
+            req = shop.awaiting_agv()
+            return self._vehicle(shop, "agv", legal, req[2])
+        if kind == "tt":
+            req = shop.awaiting_transporter()
+            return self._vehicle(shop, "tt", legal, req[1])
+        if kind == "use":
+            return self._use(shop, legal)
+        by_kind: dict[str, list[int]] = {}
+        for a in legal:
+            k, num = shop.action_kind(a)
+            by_kind.setdefault(k, []).append(num)
+        for choose in (self._start, self._tool, self._dispatch):
+            a = choose(shop, by_kind)
+            if a is not None:
+                return a
+        return shop.hold_action if shop.hold_action in legal else legal[0]
+
+    def _best_job(self, shop: FullShop, ops: dict[int, int]) -> int:
+        view, key = _OpView(shop, ops), self._key
+        return min(ops, key=lambda j: (key(view, j), j))
+
+    def _start(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
+        jobs = by_kind.get("start")
+        if not jobs:
+            return None
+        ops = {j: shop.buffered_op(j)[0] for j in jobs}
+        return shop.action_index(f"start:{self._best_job(shop, ops)}")
+
+    def _current(self, shop: FullShop, tool: int) -> list[int]:
+        """Jobs whose request on ``tool`` is for their next operation, due soon, and may be served now."""
+        return [j for j in shop.treq[tool] if self._due(shop, j, shop.request_of(tool, j)) and shop._candidate(tool, j)]
+
+    @staticmethod
+    def _due(shop: FullShop, j: int, k: int | None) -> bool:
+        """Operation (j, k) is the job's next to start and its part is on its way: buffered, carried (dispatched),
+        or finishing the previous operation where no AGV is needed."""
+        if k is None or k != shop.started[j]:
+            return False
+        buffered = shop.buffered_op(j)
+        if buffered is not None:
+            return True
+        inst = shop.instance
+        if inst.has_agvs:
+            if shop.job_started_ops[j] > k:
+                return True
+            return k > 0 and inst.jobs[j][k - 1].machine == inst.jobs[j][k].machine
+        return k > 0 or shop.p_parts.tokens(j) != ()
+
+    def _tool(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
+        for t in by_kind.get("tool", ()):
+            if self._current(shop, t):
+                return shop.action_index(f"tool:{t}")
+        return None
+
+    def _dispatch(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
+        jobs = by_kind.get("job")
+        if not jobs:
+            return None
+        inst = shop.instance
+        T = inst.agv_travel
+        idle = shop.idle_agvs()
+        ops: dict[int, int] = {}
+        for j in jobs:
+            k = shop.next_op(j)
+            if shop.job_done_ops[j] >= k:  # the part is ready
+                ops[j] = k
+                continue
+            pickup = inst.jobs[j][k - 1].machine
+            reach = min(T[loc][pickup] for _, loc in idle)
+            if shop.machine_busy_until[pickup] - shop.now <= reach:  # ahead: the AGV would not wait
+                ops[j] = k
+        if not ops:
+            return None
+        return shop.action_index(f"job:{self._best_job(shop, ops)}")
+
+    def _use(self, shop: FullShop, legal: list[int]) -> int:
+        t = shop.tool_choice
+        assert t is not None
+        cands = [shop.action_kind(a)[1] for a in legal]
+        current = [j for j in cands if self._due(shop, j, shop.request_of(t, j))]
+        cands = current or cands
+        inst = shop.instance
+        TT = inst.tool_travel
+        here = shop.tool_loc[t]
+
+        def stamp(j: int) -> float:
+            k = shop.request_of(t, j)
+            return shop.job_started_ops[j] if shop.job_started_ops[j] > k else _INF
+
+        rule = self.tool_rule
+        if rule == "fifo":
+            key: Callable[[int], Any] = lambda j: (stamp(j), j)
+        elif rule == "same-machine-first":
+            key = lambda j: (inst.jobs[j][shop.request_of(t, j)].machine != here, stamp(j), j)
+        elif rule == "nearest":
+            key = lambda j: (TT[here][inst.jobs[j][shop.request_of(t, j)].machine], stamp(j), j)
+        else:
+            key = lambda j: (self._start_estimate(shop, t, j), j)
+        return shop.action_index(f"use:{min(cands, key=key)}")
+
+    @staticmethod
+    def _start_estimate(shop: FullShop, tool: int, j: int) -> int:
+        """When the operation that ``use:j`` serves could start: its machine, its part and the tool."""
+        inst = shop.instance
+        k = shop.request_of(tool, j)
+        m = inst.jobs[j][k].machine
+        part = shop.now if shop.job_done_ops[j] >= k else shop.machine_busy_until[inst.jobs[j][k - 1].machine]
+        if inst.has_agvs and k and inst.jobs[j][k - 1].machine != m and shop.buffered_op(j) is None:
+            part += inst.agv_travel[inst.jobs[j][k - 1].machine][m]
+        elif inst.has_agvs and not k and shop.buffered_op(j) is None:
+            part += inst.agv_travel[0][m]
+        here = shop.tool_loc[tool]
+        free = shop.machine_busy_until[here] if shop.tool_running[tool] else shop.now
+        arrive = free + (inst.tool_travel[here][m] if here != m else 0)
+        return max(part, arrive, shop.machine_busy_until[m])
+
+    def _vehicle(self, shop: FullShop, kind: str, legal: list[int], target: int) -> int:
+        agv = kind == "agv"
+        cands = [shop.action_kind(a)[1] for a in legal]
+        free_at, work, loc = ((shop.agv_free_at, shop.agv_work, shop.agv_loc) if agv
+                              else (shop.tt_free_at, shop.tt_work, shop.tt_loc))
+        travel = shop.instance.agv_travel if agv else shop.instance.tool_travel
+        rule = self.vehicle_rule
+        if rule == "first":
+            v = min(cands, key=lambda v: (free_at[v], v))
+        elif rule == "least-work":
+            v = min(cands, key=lambda v: (work[v], v))
+        else:
+            v = min(cands, key=lambda v: (travel[loc[v]][target], work[v], v))
+        return shop.action_index(f"{kind}:{v}")
+
+
+def full_rule_names(instance: Instance | None = None) -> list[str]:
+    """Every ``rule:JOB+VEHICLE+TOOL`` name (one tool rule when ``instance`` has no tools: they do not act)."""
+    tools = TOOL_RULES if instance is None or instance.has_tools else TOOL_RULES[:1]
+    return [f"rule:{j}+{v}+{t}" for j in JOB_RULES for v in VEHICLE_RULES for t in tools]
+
+
+def parse_full_rule(name: str) -> FullRulePolicy:
+    """``"rule:MTWR+nearest+same-machine-first"`` (vehicle rule defaults to first, tool rule to fifo)."""
+    body = name.split(":", 1)[1] if name.lower().startswith("rule:") else name
+    parts = body.split("+")
+    if len(parts) > 3:
+        raise ValueError(f"rule name {name!r} has more than three parts (JOB+VEHICLE+TOOL)")
+    job, vehicle, tool = (parts + ["", "", ""])[:3]
+    return FullRulePolicy(job or "FIFO", vehicle or "first", tool or "fifo")
+
+
+def solve_list(instance: Instance, **_: Any) -> Schedule:
+    """The earliest-start list schedule, executed through the full-decision net (replay)."""
+    from .exact import greedy_schedule
+
+    s = replay(instance, greedy_schedule(instance, rule="est"))
+    s.meta["solver"] = "list"
+    return s
+
+
+def solve_best_rules(instance: Instance, *, progress: bool = False, **_: Any) -> Schedule:
+    """The best schedule of every full-net rule combination and the list policy (ties: the first listed).
+    ``meta["rule"]`` names the winner; with ``progress`` a line goes to stderr every 10 s."""
+    best: Schedule | None = None
+    names = full_rule_names(instance) + ["list"]
+    t0 = last = time.perf_counter()
+    for i, name in enumerate(names):
+        s = solve_list(instance) if name == "list" else run_full(instance, parse_full_rule(name))
+        if best is None or s.makespan < best.makespan:
+            best = s
+            best.meta["rule"] = name
+        now = time.perf_counter()
+        if progress and now - last >= 10:
+            print(f"  rules: {i + 1}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
+                  f"{now - t0:.0f} s", file=sys.stderr, flush=True)
+            last = now
+    assert best is not None
+    best.meta["solver"] = "rules"
+    best.meta["combinations"] = len(names)
+    return best
+
