@@ -60,7 +60,8 @@ def ros_unavailable(prog: str) -> str | None:
     if _ROS_ERROR is None:
         return None
     return (f"{prog}: error: ROS 2 (rclpy) is not available ({_ROS_ERROR}); install the extra "
-            f"`pip install 'fms[ros]'` (ros-rclpy[fastrtps], ros-std-msgs) or source a ROS 2 installation")
+            f"`pip install 'fms[ros]'` (ROS 2 Jazzy: ros-jazzy-rclpy[fastrtps], ros-jazzy-common-interfaces) "
+            "or source a ROS 2 Jazzy installation")
 
 
 def qos_profile(kind: str) -> "QoSProfile":

@@ -4,11 +4,13 @@ own process groups (always stopped), and an in-process observer node that sees e
 Isolation: each test gets a random ``ROS_DOMAIN_ID`` (1..101), ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``,
 ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` (no shared-memory segments left behind by killed nodes) and a temporary
 ``ROS_LOG_DIR``. Each test module starts with ``pytest.importorskip("rclpy")``, so the folder is skipped when
-rclpy is not installed.
+rclpy is not installed; an rclpy of another ROS 2 distribution than Jazzy fails every test that uses
+``ros_env``.
 """
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
 import random
@@ -168,10 +170,21 @@ class Observer:
         self._thread.join(5)
 
 
+def ros_distro() -> str | None:
+    """The ROS 2 distribution of the rclpy in use: ``jazzy`` for the PyPI wheels of the ros extra
+    (``ros-jazzy-rclpy``), else ``$ROS_DISTRO`` (set by a sourced ROS installation)."""
+    try:
+        importlib.metadata.distribution("ros-jazzy-rclpy")
+        return "jazzy"
+    except importlib.metadata.PackageNotFoundError:
+        return os.environ.get("ROS_DISTRO")
+
+
 @pytest.fixture
 def ros_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     """Environment for node processes (and the observer): isolated domain, localhost, UDP, temp logs."""
     pytest.importorskip("rclpy")
+    assert ros_distro() == "jazzy", f"the ROS tests run on ROS 2 Jazzy (pip install '.[ros]'), not {ros_distro()}"
     domain = random.randint(1, 101)
     values = {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
               "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4", "ROS_LOG_DIR": str(tmp_path / "roslog"),
