@@ -199,6 +199,7 @@ class TwinDecider:
         self._labels: list[str] = []           # labels replayed into the twin
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
+        self.model_path: Any = None              # the weights file the policy was loaded from (logged)
 
     @property
     def twin(self) -> "Shop | None":
@@ -347,7 +348,9 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
 
         planner = LookaheadPlanner(agent.act, retry=LOOKAHEAD_SUFFIXES[suffix] != "fast")
         canonical += suffix
-    return TwinDecider(instance, agent.act, canonical, planner), canonical
+    decider = TwinDecider(instance, agent.act, canonical, planner)
+    decider.model_path = agent.path
+    return decider, canonical
 
 
 def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -> tuple[Decider, str]:

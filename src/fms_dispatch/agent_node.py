@@ -58,7 +58,8 @@ class AgentNode(FmsNode):
         self._sent_at = 0.0
         self.io.subscribe("state", self._on_state)
         self._timer = n.create_timer(0.02, self._tick)
-        n.get_logger().info(f"deciding with {self.logic.name}")
+        model = getattr(self.logic.decide, "model_path", None)
+        n.get_logger().info(f"deciding with {self.logic.name}" + (f" (model {model})" if model else ""))
 
     def _instance(self) -> Instance | None:
         """The instance named by the parameters (as the shop node reads them), or None without ``instance``."""

@@ -108,8 +108,12 @@ def best_solver(instance: Instance) -> tuple[str, int, str]:
     """The solver ``fms up --solver best`` runs: ``(name, simulated makespan, one-line reason)``.
 
     The shipped PPO model (the default one for the instance) is preferred when its simulated makespan is
-    strictly smaller than the best rule pair's; if it cannot run here (no torch, no fitting model), the best
-    rule pair is used and the reason says why."""
+    strictly smaller than the best rule pair's; if it cannot run on this instance (larger than the model
+    allows) or here (its dependencies are missing), the best rule pair is used and the reason says why. A
+    shipped model that is not installed is an error (:class:`UpError`, naming the places searched), never a
+    quiet fall-back to a rule."""
+    from .rl.models import ModelNotFoundError  # numpy only: importable without the rl extra
+
     rule, rule_span = best_rule(instance)
     try:
         from .rl import ppo_solver
@@ -117,6 +121,8 @@ def best_solver(instance: Instance) -> tuple[str, int, str]:
         solve = ppo_solver("ppo")
         plain = solve(instance)
         ahead = solve(instance, lookahead=True)
+    except ModelNotFoundError as exc:
+        raise UpError(f"--solver best needs the shipped PPO models: {exc}") from None
     except (ImportError, ValueError, OSError) as exc:
         return rule, rule_span, (f"best rule pair on {instance.name}: {rule} (makespan {rule_span} in simulation; "
                                  f"PPO not available: {str(exc).splitlines()[0]})")

@@ -1,9 +1,12 @@
-"""``ros2 run`` support: a non-editable install puts the ament index markers and the node wrappers under its
-prefix; ros2run's lookup (``ament_index_python``) finds them and a node starts from the found path."""
+"""``ros2 run`` support and the shipped models in a non-editable install: pip puts the ament index markers, the
+node wrappers and the models (``share/fms_dispatch/models``) under its prefix; ros2run's lookup
+(``ament_index_python``) finds the wrappers, a node starts from the found path, ``fms up --solver best`` runs
+the installed PPO model, and without the models every PPO solver is an error naming the places searched."""
 
 from __future__ import annotations
 
 import importlib.metadata
+import json
 import os
 import shutil
 import subprocess
@@ -25,11 +28,11 @@ def _copy_sources(dest: Path) -> Path:
     """The files a build needs, copied so that the build never writes into the working tree."""
     src = dest / "fms-src"
     src.mkdir()
-    for name in ("setup.cfg", "pyproject.toml", "README.md", "package.xml"):
+    for name in ("setup.cfg", "pyproject.toml", "README.md"):
         shutil.copy2(REPO / name, src / name)
     ignore = shutil.ignore_patterns("__pycache__", "*.egg-info", "*.pyc")
-    shutil.copytree(REPO / "src", src / "src", ignore=ignore)
-    shutil.copytree(REPO / "resource", src / "resource", ignore=ignore)
+    for name in ("src", "resource", "models"):
+        shutil.copytree(REPO / name, src / name, ignore=ignore)
     return src
 
 
@@ -79,6 +82,10 @@ def test_ament_index_finds_the_packages_and_executables(prefix: Path, monkeypatc
             assert text.startswith("#!/bin/sh\n") and str(prefix) not in text and "-m fms_" in text
     for script in ("fms", "fms-shop", "fms-agent", "fms-recorder"):
         assert (prefix / "bin" / script).is_file()
+    models = prefix / "share" / "fms_dispatch" / "models"   # what solving needs; model.zip stays in the repo
+    for name in ("bu", "large", "large-agv"):
+        assert {p.name for p in (models / name).iterdir()} == {"config.json", "metrics.json", "best_model.zip",
+                                                               "best_model.actor.npz"}
     with pytest.raises(ament.PackageNotFoundError):
         ament.get_package_prefix("fms_nothing")
 
@@ -93,15 +100,60 @@ def test_node_starts_from_the_found_path(prefix: Path, ros_env: dict[str, str], 
     where = subprocess.run([sys.executable, "-c", "import fms_sim.shop_node as m; print(m.__file__)"], env=env,
                            capture_output=True, text=True, timeout=60)
     assert where.stdout.strip().startswith(str(prefix)), where
-    res = subprocess.run([str(agent), "--ros-args", "-p", "solver:=ppo"], env=env, capture_output=True, text=True,
-                         timeout=60)
-    assert res.returncode == 2 and "fms-agent: error: solver 'ppo' is not available" in res.stderr
     procs = NodeProcs(env, tmp_path)
     try:
-        proc = procs.start("shop", [str(shop), "--ros-args", "-p", "instance:=EX12", "-p", "run_id:=installed"])
+        proc = procs.start("shop", [str(shop), "--ros-args", "-p", "instance:=EX12", "-p", "run_id:=installed",
+                                    "-p", "history:=true"])  # the PPO agent replays the history
         state = observer.wait_for(lambda g: next((s for s in g["state"] if s["run_id"] == "installed"), None),
                                   STARTUP_S, "the installed shop's first state")
         assert state["seq"] == 0 and state["instance"] == "EX12" and state["actions"][0] == "job:0"
-        assert procs.stop(proc) == 0
+        # the agent finds the installed model (the prefix's share/fms_dispatch/models, not the repository's)
+        ppo = procs.start("agent", [str(agent), "--ros-args", "-p", "solver:=ppo", "-p", "instance:=EX12"])
+        model = prefix / "share" / "fms_dispatch" / "models" / "bu" / "best_model.zip"
+        observer.wait_for(lambda g: [s for s in g["state"] if s["run_id"] == "installed" and s["seq"] >= 3],
+                          STARTUP_S, "the installed agent's commands")
+        assert f"deciding with ppo:bu (model {model})" in procs.log("agent")
+        assert procs.stop(ppo) == 0 and procs.stop(proc) == 0
     finally:
         procs.stop_all()
+
+
+def _installed_env(prefix: Path, ros_env: dict[str, str]) -> dict[str, str]:
+    """Python with the prefix's copy of fms first on its path, no model folder override."""
+    env = {k: v for k, v in ros_env.items() if k not in ("FMS_MODELS_DIR", "AMENT_PREFIX_PATH")}
+    return dict(env, FMS_PYTHON=sys.executable, PYTHONPATH=str(_site_packages(prefix)))
+
+
+def test_fms_up_best_runs_the_installed_model(prefix: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The issue's case: after a non-editable install ``fms up EX12 --solver best`` runs the shipped PPO model
+    with lookahead (82), not silently the best rule pair (86)."""
+    out = tmp_path / "EX12.json"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "best", "--out", str(out),
+                          "--db", str(tmp_path / "fms.sqlite"), "--log-dir", str(tmp_path / "logs")],
+                         env=_installed_env(prefix, ros_env), capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr
+    assert ("best on EX12: ppo:bu+lookahead (makespan 82 in simulation; best rule pair rule:LPTN+nearest: 86)"
+            in res.stderr)
+    assert str(prefix) in (tmp_path / "logs" / "agent.log").read_text()    # the installed model was used
+    assert json.loads(out.read_text())["makespan"] == 82
+
+
+def test_missing_models_are_an_error_naming_the_places(prefix: Path, ros_env: dict[str, str]) -> None:
+    models = prefix / "share" / "fms_dispatch" / "models"
+    hidden = models.with_name("models.hidden")
+    models.rename(hidden)
+    try:
+        env = _installed_env(prefix, ros_env)
+        best = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "best"], env=env,
+                              capture_output=True, text=True, timeout=120)
+        agent = prefix / "lib" / "fms_dispatch" / "agent"
+        ppo = subprocess.run([str(agent), "--ros-args", "-p", "solver:=ppo", "-p", "instance:=EX12"], env=env,
+                             capture_output=True, text=True, timeout=60)
+    finally:
+        hidden.rename(models)
+    assert best.returncode == 2 and best.stderr.startswith("fms up: error: --solver best needs the shipped PPO models")
+    assert ppo.returncode == 2 and "fms-agent: error: solver 'ppo:bu': no model named 'bu'" in ppo.stderr
+    for res in (best, ppo):
+        assert f"searched {models}" in res.stderr and str(Path(sys.prefix, "share", "fms_dispatch", "models")) \
+            in res.stderr
+        assert res.stderr.count("\n") == 1                                  # one line

@@ -11,8 +11,20 @@ A model folder (``models/NAME``) holds:
 * ``best_model.actor.npz`` / ``model.actor.npz`` — the actor in numpy for inference without torch, with the
   SHA-256 of the weights it was exported from (:mod:`fms_dispatch.rl.actors`; ignored when stale).
 
-Shipped models (in the repository's ``models/`` folder, or ``$FMS_MODELS_DIR``): ``bu`` (Bilge-Ulusoy, layout
-2, 2 AGVs, no tools), ``large`` (large benchmark with AGVs and tools) and ``large-agv`` (AGVs only).
+Shipped models: ``bu`` (Bilge-Ulusoy, layout 2, 2 AGVs, no tools), ``large`` (large benchmark with AGVs and
+tools) and ``large-agv`` (AGVs only). A model name is looked up in :func:`model_dirs`, one list of places
+for every caller (``fms solve``, ``fms up``, the agent node):
+
+* ``$FMS_MODELS_DIR`` when it is set (then nothing else);
+* the repository's ``models/`` folder when the package runs from a source checkout (editable install,
+  ``colcon build --symlink-install``);
+* ``<prefix>/share/fms_dispatch/models`` for the prefix the package is installed under (a non-editable pip
+  install into a venv or ``--prefix``, a colcon install space), for ``sys.prefix`` and for every prefix in
+  ``$AMENT_PREFIX_PATH``: both pip (setup.cfg ``data_files``) and colcon (``ros/fms_dispatch``) install the
+  shipped models there, with the files solving needs (``config.json``, ``metrics.json``, ``best_model.zip``,
+  ``best_model.actor.npz``).
+
+A name found in none of them raises :class:`ModelNotFoundError`, which names every place searched.
 """
 
 from __future__ import annotations
@@ -20,26 +32,63 @@ from __future__ import annotations
 import functools
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
 from fms_sim.instance import Instance
 
-__all__ = ["ModelRef", "models_dir", "resolve_model", "default_model_name", "load_config", "SHIPPED",
-           "load_agent"]
+__all__ = ["ModelRef", "ModelNotFoundError", "model_dirs", "models_dir", "resolve_model", "default_model_name",
+           "load_config", "SHIPPED", "SHARE_SUBDIR", "load_agent"]
 
 SHIPPED = ("bu", "large", "large-agv")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 
 
-def models_dir() -> Path:
-    """``$FMS_MODELS_DIR``, else the ``models`` folder of the source checkout, else ``./models``."""
+#: where an install puts the shipped models, relative to its prefix
+SHARE_SUBDIR = Path("share", "fms_dispatch", "models")
+
+
+class ModelNotFoundError(ValueError):
+    """A model name that is in none of the places :func:`model_dirs` lists (the message names them)."""
+
+
+def _candidates() -> list[Path]:
     env = os.environ.get("FMS_MODELS_DIR")
     if env:
-        return Path(env)
-    repo = Path(__file__).resolve().parents[3] / "models"
-    return repo if repo.is_dir() else Path("models")
+        return [Path(env)]
+    here = Path(__file__).resolve()          # <root>/src/fms_dispatch/rl/models.py in a checkout,
+    places = []                              # <prefix>/lib/pythonX.Y/site-packages/fms_dispatch/rl/... installed
+    if here.parents[2].name == "src":
+        places.append(here.parents[3] / "models")
+    if here.parents[2].name in ("site-packages", "dist-packages") and here.parents[4].name.startswith("lib"):
+        places.append(here.parents[5] / SHARE_SUBDIR)
+    places.append(Path(sys.prefix) / SHARE_SUBDIR)
+    places += [Path(p) / SHARE_SUBDIR for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    return list(dict.fromkeys(places))
+
+
+def model_dirs() -> list[Path]:
+    """The folders searched for a model given by name, in order (see the module docstring): those of the
+    places that exist, without repeats."""
+    found: list[Path] = []
+    for place in _candidates():
+        if place.is_dir() and not any(place.samefile(f) for f in found):
+            found.append(place)
+    return found
+
+
+def _searched() -> str:
+    return "searched " + ", ".join(str(p) for p in _candidates()) + " (FMS_MODELS_DIR sets the folder)"
+
+
+def models_dir() -> Path:
+    """The first folder of :func:`model_dirs` that holds every shipped model."""
+    for place in model_dirs():
+        if all((place / name).is_dir() for name in SHIPPED):
+            return place
+    raise ModelNotFoundError(f"the shipped models ({', '.join(SHIPPED)}) are not installed; {_searched()}")
 
 
 def load_config(folder: str | Path) -> dict[str, Any]:
@@ -73,10 +122,14 @@ def resolve_model(spec: str) -> ModelRef:
     p = Path(spec)
     if p.is_file() and p.suffix == ".zip":
         return ModelRef(p.parent, p)
-    folder = p if p.is_dir() else models_dir() / spec
-    if not folder.is_dir():
-        names = ", ".join(SHIPPED)
-        raise ValueError(f"no model named {spec!r} (shipped models: {names}; or give a model folder or .zip)")
+    if p.is_dir():
+        folder = p
+    else:
+        folder = next((d / spec for d in model_dirs() if (d / spec).is_dir()), p)
+        if not folder.is_dir():
+            names = ", ".join(SHIPPED)
+            raise ModelNotFoundError(f"no model named {spec!r} (shipped models: {names}; or give a model folder or "
+                                     f".zip); {_searched()}")
     for fname in ("best_model.zip", "model.zip"):
         if (folder / fname).is_file():
             return ModelRef(folder, folder / fname)

@@ -1,0 +1,68 @@
+"""Where models are looked up (fms_dispatch.rl.models.model_dirs): one list of places for fms solve, fms up and
+the agent node; a model found nowhere is an error naming every place searched. The installed cases (pip
+prefix, colcon install space) run in tests/ros/test_install.py and test_colcon.py."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from fms_dispatch.rl.models import SHARE_SUBDIR, ModelNotFoundError, model_dirs, models_dir, resolve_model
+from fms_dispatch.up import UpError, best_solver
+from fms_sim.benchmarks import builtin
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(autouse=True)
+def _no_override(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("FMS_MODELS_DIR", raising=False)
+    monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
+
+
+def test_a_checkout_uses_its_models_folder() -> None:
+    assert model_dirs()[0] == REPO / "models" == models_dir()
+    assert resolve_model("bu").folder == REPO / "models" / "bu"
+
+
+def test_ament_prefixes_are_searched(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    shutil.copytree(REPO / "models" / "bu", tmp_path / SHARE_SUBDIR / "mine")
+    with pytest.raises(ModelNotFoundError):
+        resolve_model("mine")
+    monkeypatch.setenv("AMENT_PREFIX_PATH", f"{tmp_path / 'other'}:{tmp_path}")
+    ref = resolve_model("mine")
+    assert ref.folder == tmp_path / SHARE_SUBDIR / "mine" and ref.weights.name == "best_model.zip"
+    assert model_dirs() == [REPO / "models", tmp_path / SHARE_SUBDIR]     # only the places that exist
+
+
+def test_a_missing_model_names_every_place_searched(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "ros"))
+    with pytest.raises(ModelNotFoundError) as err:
+        resolve_model("nope")
+    text = str(err.value)
+    assert text.startswith("no model named 'nope' (shipped models: bu, large, large-agv")
+    for place in (REPO / "models", tmp_path / "ros" / SHARE_SUBDIR):
+        assert str(place) in text
+    assert "\n" not in text
+
+
+def test_fms_models_dir_replaces_the_search(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path))
+    assert model_dirs() == [tmp_path]
+    with pytest.raises(ModelNotFoundError, match=f"searched {tmp_path} "):
+        resolve_model("bu")
+    with pytest.raises(ModelNotFoundError, match="the shipped models .* are not installed"):
+        models_dir()
+    shutil.copytree(REPO / "models" / "bu", tmp_path / "bu")
+    assert resolve_model("bu").folder == tmp_path / "bu"
+
+
+def test_best_refuses_to_fall_back_when_the_models_are_missing(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    inst = builtin("EX12")
+    assert best_solver(inst)[:2] == ("ppo:bu+lookahead", 82)
+    monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path))
+    with pytest.raises(UpError, match=f"--solver best needs the shipped PPO models: no model named 'bu'.*{tmp_path}"):
+        best_solver(inst)
