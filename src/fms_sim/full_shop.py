@@ -91,6 +91,8 @@ class FullShop(Shop):
         self.tool_choice: int | None = None
         self.tt_waiting: list[int | None] = [None] * nt
         self._use_cands: list[int] = []
+        self._tool_ops: list[list[tuple[int, int]]] = []
+        self._danger_cache: dict[int, set[tuple[int, int]]] = {}  # per job: (op, tool) of its operations with a tool
         self.t_job: list[Transition] = []
         self.t_start: list[Transition] = []
         self.t_use: list[Transition] = []
@@ -116,9 +118,11 @@ class FullShop(Shop):
     def _add_job(self, j: int) -> None:
         """Per-job transitions (dispatch, part flow, start, request selection) and the job's tool requests."""
         net, inst = self.net, self.instance
+        self._tool_ops.append([])
         for k, op in enumerate(self._jobs[j]):
             if inst.has_tools and op.tool is not None:
                 self.treq[op.tool].setdefault(j, []).append(k)
+                self._tool_ops[j].append((k, op.tool))
         if inst.has_agvs:
             t = net.add_transition(Transition(
                 name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
@@ -366,29 +370,69 @@ class FullShop(Shop):
     def _safe(self, tool: int, op: tuple[int, int]) -> bool:
         """Would reserving ``tool`` for ``op`` keep the wait-for graph of reserved operations acyclic?
 
-        A reserved operation (i, z) waits for every operation that holds the next reservation of a tool needed
-        by an earlier, unstarted operation (i, y < z) of its job; reservations before this one are acyclic, so a
-        new cycle must return to ``op``."""
-        jobs, started, waiter = self._jobs, self.started, self._waiter
-        has_tools = self.instance.has_tools
-        stack, seen = [op], {op}
-        while stack:
-            i, z = stack.pop()
-            for y in range(started[i], z):
-                need = jobs[i][y].tool if has_tools else None
-                if need is None:
-                    continue
-                w = op if need == tool else waiter(need)
-                if w is None or w == (i, y):
-                    continue
-                if w == op:
-                    return False
-                if w not in seen:
-                    seen.add(w)
-                    stack.append(w)
+        A reserved operation (i, z) waits for the operation that holds the next reservation of each tool needed by
+        an earlier, unstarted operation (i, y < z) of its job. ``op`` would wait for the holders of the tools its
+        own earlier operations need; a cycle closes if one of them leads back, through reserved operations, to
+        one that needs ``tool`` before its own turn (see :meth:`_danger`)."""
+        j, z = op
+        s = self.started[j]
+        if z == s:
+            return True  # nothing of the job comes before it: it waits for no reservation
+        running, nxt, user = self.tool_running, self.tool_next, self.tool_user
+        danger = None
+        for y, need in self._tool_ops[j]:
+            if y >= z:
+                break
+            if y < s:
+                continue
+            if need == tool:
+                return False  # the job needs the tool for an earlier operation first
+            w = nxt[need] if running[need] else user[need]
+            if w is None or w == (j, y):
+                continue
+            if danger is None:
+                danger = self._danger(tool)
+            if w in danger:
+                return False
         return True
 
+    def _danger(self, tool: int) -> set[tuple[int, int]]:
+        """Reserved operations from which the wait-for graph reaches one whose job needs ``tool`` for an earlier,
+        unstarted operation (cached until reservations or starts change)."""
+        cached = self._danger_cache.get(tool)
+        if cached is not None:
+            return cached
+        running, nxt, user, started = self.tool_running, self.tool_next, self.tool_user, self.started
+        nodes = {w for w in (nxt[t] if running[t] else user[t] for t in range(1, len(user))) if w is not None}
+        into: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        frontier = []
+        for node in nodes:
+            i, z = node
+            hit = False
+            for y, need in self._tool_ops[i]:
+                if y >= z:
+                    break
+                if y < started[i]:
+                    continue
+                if need == tool:
+                    hit = True
+                    continue
+                w = nxt[need] if running[need] else user[need]
+                if w is not None and w != (i, y):
+                    into.setdefault(w, []).append(node)
+            if hit:
+                frontier.append(node)
+        danger = set(frontier)
+        while frontier:
+            for prev in into.get(frontier.pop(), ()):
+                if prev not in danger:
+                    danger.add(prev)
+                    frontier.append(prev)
+        self._danger_cache[tool] = danger
+        return danger
+
     def _touch_tools(self) -> None:
+        self._danger_cache.clear()
         touch = self.net.touch
         for tr in self.t_tool:
             touch(tr)
@@ -547,6 +591,7 @@ class FullShop(Shop):
         super().restore_state(ShopState(state.net, state.lists, scalars, state.records, state.instance))
         for name, value in copy.deepcopy(extra).items():
             setattr(self, name, value)
+        self._danger_cache = {}
 
     def state_key(self, quick: bool = False) -> int:
         base = super().state_key(quick)
