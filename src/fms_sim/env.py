@@ -35,12 +35,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from .full_shop import DECISIONS, FullShop, make_shop
 from .instance import Instance
 from .petri import InvalidAction
 from .shop import Shop
 
 __all__ = ["ShopEnv", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
-           "AGV_FEATURES", "TT_FEATURES", "REWARDS"]
+           "AGV_FEATURES", "TT_FEATURES", "REWARDS", "FULL_GLOBAL_FEATURES", "FULL_JOB_FEATURES",
+           "FULL_TOOL_FEATURES", "FULL_BLOCKS"]
 
 REWARDS = ("idle", "makespan", "shaped")
 OBS_HIGH = 1000.0  # features are normalised; clipped here so the box is finite
@@ -51,6 +53,12 @@ MACHINE_FEATURES = ("present", "busy", "busy_for", "buffer", "queued_work")
 TOOL_FEATURES = ("present", "location", "free")
 AGV_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_pickup")
 TT_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_tool")
+#: appended with ``decisions="full"``: the full net's decision points
+FULL_GLOBAL_FEATURES = ("phase_start", "phase_tool", "phase_use", "hold_allowed")
+FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dispatched_ahead")
+FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "requests")
+#: the full net's action blocks after the paper's (job, agv, tt), in this order
+FULL_BLOCKS = ("start", "tool", "use", "hold")
 
 
 class _Tables:
@@ -92,7 +100,10 @@ class ShopEnv(gym.Env):
     def __init__(self, instances: Instance | Sequence[Instance] | Callable[[np.random.Generator], Instance],
                  *, reward: str = "shaped", max_jobs: int | None = None, max_machines: int | None = None,
                  max_tools: int | None = None, max_agvs: int | None = None, max_tts: int | None = None,
-                 invalid_action: str = "penalty", invalid_penalty: float = -10.0):
+                 invalid_action: str = "penalty", invalid_penalty: float = -10.0, decisions: str = "paper"):
+        if decisions not in DECISIONS:
+            raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")
+        self.decisions = decisions
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; choose from {', '.join(REWARDS)}")
         if invalid_action not in ("raise", "penalty"):
@@ -120,10 +131,19 @@ class ShopEnv(gym.Env):
         self.invalid_action = invalid_action
         self.invalid_penalty = float(invalid_penalty)
         self.n_actions = self.max_jobs + self.max_agvs + self.max_tts
-        self.action_space = spaces.Discrete(self.n_actions)
         size = (len(GLOBAL_FEATURES) + self.max_jobs * len(JOB_FEATURES) + self.max_machines * len(MACHINE_FEATURES)
                 + self.max_tools * len(TOOL_FEATURES) + self.max_agvs * len(AGV_FEATURES)
                 + self.max_tts * len(TT_FEATURES))
+        if decisions == "full":
+            # [job | agv | tt | start 0..max_jobs-1 | tool 1..max_tools | use 0..max_jobs-1 | hold]
+            self._offset = {"job": 0, "agv": self.max_jobs, "tt": self.max_jobs + self.max_agvs,
+                            "start": self.n_actions, "tool": self.n_actions + self.max_jobs - 1,
+                            "use": self.n_actions + self.max_jobs + self.max_tools,
+                            "hold": self.n_actions + 2 * self.max_jobs + self.max_tools}
+            self.n_actions += 2 * self.max_jobs + self.max_tools + 1
+            size += (len(FULL_GLOBAL_FEATURES) + self.max_jobs * len(FULL_JOB_FEATURES)
+                     + self.max_tools * len(FULL_TOOL_FEATURES))
+        self.action_space = spaces.Discrete(self.n_actions)
         self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
         self.shop: Shop | None = None
         self.instance: Instance | None = None
@@ -144,7 +164,11 @@ class ShopEnv(gym.Env):
         inst = (options or {}).get("instance") or self._sample(self.np_random)
         self._check_fits(inst)
         self.instance = inst
-        self.shop = Shop(inst)
+        self.shop = make_shop(inst, self.decisions)
+        if self.decisions == "full":
+            kinds = [self.shop.action_kind(a) for a in range(self.shop.n_actions)]
+            self._net_to_env = [self._offset[k] + n for k, n in kinds]
+            self._env_to_net = {e: a for a, e in enumerate(self._net_to_env)}
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
         self._lb = self._lower_bound()
@@ -188,6 +212,8 @@ class ShopEnv(gym.Env):
     # ------------------------------------------------------------------ action mapping
     def _to_net(self, a: int) -> int | None:
         s = self.shop
+        if self.decisions == "full":
+            return self._env_to_net.get(a)
         if 0 <= a < self.max_jobs:
             return a if a < s.n_jobs else None
         a -= self.max_jobs
@@ -200,6 +226,8 @@ class ShopEnv(gym.Env):
 
     def _from_net(self, a: int) -> int:
         s = self.shop
+        if self.decisions == "full":
+            return self._net_to_env[a]
         if a < s.n_jobs:
             return a
         if a < s.n_jobs + s.n_agvs:
@@ -288,7 +316,7 @@ class ShopEnv(gym.Env):
         count = np.zeros(nm + 1, dtype=np.int64)
         work = np.zeros(nm + 1, dtype=np.int64)
         for tok in s.p_buffer.tokens():
-            j, kop, m, _ = tok.colour
+            j, kop, m = tok.colour[:3]
             count[m] += 1
             work[m] += tb.dur[j, kop]
         Mn[:, 3] = count[1:] / inst.n_jobs
@@ -299,17 +327,50 @@ class ShopEnv(gym.Env):
             nt = inst.n_tools
             T[:nt, 0] = 1.0
             T[:nt, 1] = np.asarray(s.tool_loc[1:nt + 1], dtype=np.float64) / mm
-            for tok in s.p_tool_free.tokens():
-                T[tok.colour[0] - 1, 2] = 1.0
+            if isinstance(s, FullShop):
+                T[:nt, 2] = [s.tool_user[t] is None for t in range(1, nt + 1)]
+            else:
+                for tok in s.p_tool_free.tokens():
+                    T[tok.colour[0] - 1, 2] = 1.0
         A = self._vehicles(self.max_agvs, s.n_agvs, s.agv_loc, s.agv_free_at, s.agv_work,
                            {c[0] for c in s.idle_agvs()}, inst.agv_travel, req[2] if req else None, now, sc, mm)
         treq = s.awaiting_transporter()
         R = self._vehicles(self.max_tts, s.n_tts, s.tt_loc, s.tt_free_at, s.tt_work,
                            {c[0] for c in s.idle_transporters()}, inst.tool_travel, treq[1] if treq else None,
                            now, sc, mm)
-        obs = np.concatenate([g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(),
-                              T.astype(np.float32).ravel(), A.ravel(), R.ravel()])
+        parts = [g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(), T.astype(np.float32).ravel(),
+                 A.ravel(), R.ravel()]
+        if isinstance(s, FullShop):
+            parts += self._full_features(s, legal)
+        obs = np.concatenate(parts)
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
+
+    def _full_features(self, s: FullShop, legal: list[int]) -> list[np.ndarray]:
+        """The full net's decision points: which starts, tool take-ups and request choices are offered, where
+        the parts and tools stand in their reservations."""
+        inst = self.instance
+        kinds: dict[str, list[int]] = {}
+        for a in legal:
+            k, num = s.action_kind(a)
+            kinds.setdefault(k, []).append(num)
+        g = np.array(("start" in kinds, "tool" in kinds, "use" in kinds, "hold" in kinds), dtype=np.float32)
+        J = np.zeros((self.max_jobs, len(FULL_JOB_FEATURES)), dtype=np.float32)
+        J[kinds.get("start", []), 0] = 1.0
+        J[kinds.get("use", []), 2] = 1.0
+        chosen = s.tool_choice
+        for j in range(inst.n_jobs):
+            J[j, 1] = s.buffered_op(j) is not None
+            if chosen is not None:
+                k = s.request_of(chosen, j)
+                J[j, 3] = k is not None and k == s.started[j]
+            J[j, 4] = s.job_started_ops[j] > s.job_done_ops[j] + 1
+        T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
+        if inst.has_tools:
+            T[[t - 1 for t in kinds.get("tool", [])], 0] = 1.0
+            for t in range(1, inst.n_tools + 1):
+                T[t - 1, 1:] = (s.tool_user[t] is not None, s.tool_running[t], s.tool_next[t] is not None,
+                                chosen == t, len(s.treq[t]) / max(1, inst.n_jobs))
+        return [g, J.ravel(), T.ravel()]
 
     @staticmethod
     def _vehicles(cap: int, n: int, loc: list[int], free_at: list[int], work: list[int], idle: set[int],

@@ -224,3 +224,47 @@ def test_table_features_follow_live_orders():
     env.instance = env.shop.instance
     assert np.array_equal(env._obs(), reference_obs(env))
     assert env._lower_bound() == reference_lower_bound(env)
+
+
+# ---------------------------------------------------------------------------------------------- full net
+@pytest.mark.parametrize("name", ["EX12", "ra01"])
+def test_full_decisions_pass_gymnasium_check_env(name):
+    gym_check_env(ShopEnv(builtin(name), decisions="full"), skip_render_check=True)
+
+
+def test_full_action_space_layout_masks_and_a_valid_episode():
+    from fms_sim.env import FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES
+
+    small, big = builtin("ra01"), builtin("sl00")
+    env = ShopEnv([small, big], decisions="full")
+    paper = ShopEnv([small, big])
+    mj, ma, mr, mt = env.max_jobs, env.max_agvs, env.max_tts, env.max_tools
+    assert env.n_actions == 3 * mj + ma + mr + mt + 1 == paper.n_actions + 2 * mj + mt + 1
+    extra = len(FULL_GLOBAL_FEATURES) + mj * len(FULL_JOB_FEATURES) + mt * len(FULL_TOOL_FEATURES)
+    assert env.observation_space.shape[0] == paper.observation_space.shape[0] + extra
+    rng = np.random.default_rng(1)
+    obs, info = env.reset(options={"instance": small})
+    shop = env.shop
+    seen = set()
+    done = False
+    while not done:
+        mask = env.action_masks()
+        legal = shop.legal_actions()
+        # the env's mask is the net's, moved into the padded blocks; padded slots stay False
+        assert sorted(env._to_net(int(a)) for a in np.flatnonzero(mask)) == legal
+        seen.update(shop.action_kind(a)[0] for a in legal)
+        a = int(rng.choice(np.flatnonzero(mask)))
+        obs, _, done, _, info = env.step(a)
+        assert env.observation_space.contains(obs)
+    assert {"job", "agv", "tt", "start", "tool", "use", "hold"} <= seen
+    assert validate(small, shop.schedule()) == []
+    env.reset(options={"instance": small})
+    hold = env.n_actions - 1
+    assert not env.action_masks()[hold]  # nothing is in flight at time 0
+    _, reward, done, _, info = env.step(hold)
+    assert done and info.get("invalid_action") and reward == env.invalid_penalty
+
+
+def test_unknown_decisions_rejected():
+    with pytest.raises(ValueError, match="unknown decisions"):
+        ShopEnv(builtin("EX12"), decisions="fifo")
