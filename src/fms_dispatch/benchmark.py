@@ -90,9 +90,9 @@ def _row_key(row: dict[str, Any]) -> tuple[Any, ...]:
 
 
 def searches(method: str) -> bool:
-    """Whether a method takes a time limit (everything except rules, ``first`` and ``random``)."""
+    """Whether a method takes a time limit (everything except rules, ``first``, ``random`` and ``list``)."""
     low = method.lower()
-    return not (low.startswith("rule:") or low in ("first", "random"))
+    return not (low.startswith(("rule:", "rules:")) or low in ("first", "random", "list", "rules"))
 
 
 def check_methods(methods: Sequence[str]) -> list[str]:

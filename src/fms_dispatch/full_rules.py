@@ -18,7 +18,8 @@ before the AGV could get there; when nothing of that is left it holds.
 
 Solvers: ``rule:JOB+VEHICLE[+TOOL]`` with ``decisions="full"``; ``list`` — the earliest-start list schedule
 (:func:`fms_dispatch.exact.greedy_schedule`) executed through the full net by replay, a strong baseline that
-decides through the net; ``rules`` — the best of every rule combination and ``list`` on the instance.
+decides through the net; ``rules`` (or ``rules:full``) — the best of every full-net rule combination and
+``list`` on the instance; ``rules:paper`` — the best of the paper net's 36 rule pairs.
 """
 
 from __future__ import annotations
@@ -241,14 +242,30 @@ def solve_list(instance: Instance, **_: Any) -> Schedule:
     return s
 
 
-def solve_best_rules(instance: Instance, *, progress: bool = False, **_: Any) -> Schedule:
-    """The best schedule of every full-net rule combination and the list policy (ties: the first listed).
-    ``meta["rule"]`` names the winner; with ``progress`` a line goes to stderr every 10 s."""
+def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: str = "full", **_: Any) -> Schedule:
+    """The best schedule of every rule combination on ``instance`` (ties: the first listed), with
+    ``meta["rule"]`` naming the winner. ``decisions="full"``: every full-net combination and ``list`` (solvers
+    ``rules``, ``rules:full``); ``"paper"``: the 36 pairs of the paper's net (``rules:paper``). With
+    ``progress`` a line goes to stderr every 10 s."""
+    from fms_sim.shop import run_policy
+
+    from .rules import all_rule_pairs, parse_rule_name
+
+    if decisions == "full":
+        names = full_rule_names(instance) + ["list"]
+    elif decisions == "paper":
+        names = all_rule_pairs(include_nearest=True)
+    else:
+        raise ValueError(f"unknown decisions {decisions!r}; choose from full, paper")
     best: Schedule | None = None
-    names = full_rule_names(instance) + ["list"]
     t0 = last = time.perf_counter()
     for i, name in enumerate(names):
-        s = solve_list(instance) if name == "list" else run_full(instance, parse_full_rule(name))
+        if name == "list":
+            s = solve_list(instance)
+        elif decisions == "full":
+            s = run_full(instance, parse_full_rule(name))
+        else:
+            s = run_policy(instance, parse_rule_name(name))
         if best is None or s.makespan < best.makespan:
             best = s
             best.meta["rule"] = name
@@ -258,7 +275,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, **_: Any) ->
                   f"{now - t0:.0f} s", file=sys.stderr, flush=True)
             last = now
     assert best is not None
-    best.meta["solver"] = "rules"
+    best.meta["solver"] = "rules" if decisions == "full" else "rules:paper"
     best.meta["combinations"] = len(names)
+    best.meta["decisions"] = decisions
     return best
-

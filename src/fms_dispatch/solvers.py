@@ -4,8 +4,9 @@ Names: ``first`` (baseline: always the lowest enabled action), ``random`` (unifo
 seeded), ``rule:<JOB>+<first|least-work|nearest>[+<TOOL>]`` (see :mod:`fms_dispatch.rules`; a tool rule only
 on the full net, :mod:`fms_dispatch.full_rules`) — these three take ``decisions="paper"`` (the default here,
 which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the default of ``fms solve``) —,
-``list`` (the earliest-start list schedule executed through the full net), ``rules`` (the best full-net rule
-combination or ``list``), ``sos`` (symbiotic
+``list`` (the earliest-start list schedule executed through the full net), ``rules`` / ``rules:full`` (the
+best full-net rule combination or ``list``), ``rules:paper`` (the best of the paper net's 36 rule pairs),
+``sos`` (symbiotic
 organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
 option ``lookahead=True`` pre-positions idle vehicles, ``lookahead="fast"`` does it without retries), each
 honouring ``time_limit`` where it searches. Every schedule leaves here with ``meta["solver"]`` and
@@ -112,7 +113,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list", "rules", "sos", "cpsat",
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list", "rules[:full|:paper]", "sos", "cpsat",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
 
@@ -129,10 +130,11 @@ def get_solver(name: str) -> Solver:
         from .full_rules import solve_list
 
         return solve_list
-    if low == "rules":
+    if low in ("rules", "rules:full", "rules:paper"):
         from .full_rules import solve_best_rules
 
-        return solve_best_rules
+        net = "paper" if low == "rules:paper" else "full"
+        return lambda inst, **kw: solve_best_rules(inst, **{**kw, "decisions": net})
     if low == "sos":
         return _sos
     if low == "cpsat":

@@ -66,3 +66,17 @@ def test_cli_decisions(tmp_path, capsys):
     capsys.readouterr()
     assert main(["solve", "ra01", "--solver", "cpsat", "--decisions", "full", "-q"]) == 2
     assert "--decisions applies to" in capsys.readouterr().err
+
+
+def test_best_of_names_for_each_net():
+    from fms_dispatch.benchmark import searches
+    from fms_dispatch.rules import all_rule_pairs, parse_rule_name
+    from fms_sim.shop import run_policy
+
+    inst = builtin("EX21")
+    paper = solve(inst, "rules:paper")
+    assert paper.meta["combinations"] == 36 and paper.meta["decisions"] == "paper"
+    assert paper.makespan == min(run_policy(inst, parse_rule_name(n)).makespan
+                                 for n in all_rule_pairs(include_nearest=True))
+    assert solve(inst, "rules:full").makespan == solve(inst, "rules").makespan
+    assert not any(searches(m) for m in ("rules", "rules:full", "rules:paper", "list"))
