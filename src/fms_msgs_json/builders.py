@@ -15,8 +15,8 @@ from typing import Any
 from fms_sim.schedule import Schedule
 
 from .schemas import (
-    RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_ERROR, SCHEMA_EVENT, SCHEMA_ORDER, SCHEMA_REPLAY_REQUEST,
-    SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, validate,
+    ERROR_MAX_CHARS, RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_ERROR, SCHEMA_EVENT, SCHEMA_ORDER,
+    SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, bounded, validate,
 )
 
 __all__ = [
@@ -149,13 +149,17 @@ def make_error(source: str, code: str, message: str, *, run_id: str | None = Non
                received: str | bytes | None = None) -> dict[str, Any]:
     """An ``fms/error/v1`` from node ``source``: ``code`` (one of ``ERROR_CODES``) and a one-line ``message``.
 
-    ``received`` (the offending raw text) is cut to ``RECEIVED_MAX_CHARS`` characters; bytes are decoded as
-    UTF-8 with replacement characters.
+    Every string field is cut to its ``ERROR_MAX_CHARS`` (the cut marked with ``…``; ``received``, the
+    offending raw text, is cut plainly), so an encoded error never exceeds ``ERROR_MAX_BYTES`` whatever it
+    reports on; bytes are decoded as UTF-8 with replacement characters.
     """
-    msg: dict[str, Any] = {"schema": SCHEMA_ERROR, "source": source, "code": code,
-                           "message": _one_line(message) if isinstance(message, str) else message}
+    def cap(field: str, value: Any) -> Any:
+        return bounded(value, ERROR_MAX_CHARS[field]) if isinstance(value, str) else value
+
+    msg: dict[str, Any] = {"schema": SCHEMA_ERROR, "source": cap("source", source), "code": code,
+                           "message": cap("message", _one_line(message) if isinstance(message, str) else message)}
     if run_id is not None:
-        msg["run_id"] = run_id
+        msg["run_id"] = cap("run_id", run_id)
     if received is not None:
         if isinstance(received, (bytes, bytearray)):
             received = bytes(received).decode("utf-8", errors="replace")

@@ -34,7 +34,8 @@ __all__ = [
     "SCHEMA_REPLAY_REQUEST",
     "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
     "TOPIC_REPLAY", "TOPICS",
-    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "TOPIC_QOS", "TopicQos",
+    "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "ERROR_MAX_CHARS", "ERROR_MAX_BYTES", "bounded",
+    "TOPIC_QOS", "TopicQos",
     "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
     "MessageError", "validate", "kind_of", "encode", "decode",
 ]
@@ -111,6 +112,23 @@ ERROR_CODES: tuple[str, ...] = (
 
 RECEIVED_MAX_CHARS = 1000
 """An error message quotes at most this many characters of the offending text."""
+
+ERROR_MAX_CHARS: dict[str, int] = {"source": 200, "message": 500, "run_id": 200, "received": RECEIVED_MAX_CHARS}
+"""The most characters each string field of an ``fms/error/v1`` may have: :func:`make_error` cuts longer ones
+(marking the cut with ``…``), :func:`decode` rejects them (``bad_schema``)."""
+
+ERROR_MAX_BYTES = 12 * 1024
+"""Bound on an encoded ``fms/error/v1`` in UTF-8 bytes: every capped field at its worst (each character
+escaped as ``\\uXXXX``, 6 bytes), the longest code, the keys and the schema id fit (checked below)."""
+
+_ERROR_OVERHEAD = len('{"schema":"fms/error/v1","source":"","code":"forbidden_action","message":"","run_id":"",'
+                      '"received":""}')
+assert _ERROR_OVERHEAD + 6 * sum(ERROR_MAX_CHARS.values()) <= ERROR_MAX_BYTES
+
+
+def bounded(text: str, max_chars: int) -> str:
+    """``text`` itself, or its first ``max_chars - 1`` characters and ``…`` if it is longer."""
+    return text if len(text) <= max_chars else text[:max_chars - 1] + "…"
 
 _SCHEMA_RE = re.compile(r"fms/([a-z][a-z0-9_]*)/v([0-9]+)")
 
@@ -282,11 +300,11 @@ _ORDER = (
 )
 
 _ERROR = (
-    Field("source", Str(what="the reporting node's name")),
+    Field("source", Str(max_len=ERROR_MAX_CHARS["source"], what="the reporting node's name")),
     Field("code", OneOf(ERROR_CODES)),
-    Field("message", Str()),
-    Field("run_id", _OPTIONAL_STR, required=False),
-    Field("received", Nullable(Str(nonempty=False, max_len=RECEIVED_MAX_CHARS)), required=False),
+    Field("message", Str(max_len=ERROR_MAX_CHARS["message"])),
+    Field("run_id", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["run_id"])), required=False),
+    Field("received", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["received"])), required=False),
 )
 
 _REPLAY_REQUEST = (

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from fms_msgs_json import (
-    TOPIC_ERRORS, TOPIC_REPLAY, MessageError, decode, error_reply, make_replay_request,
+    ERROR_MAX_CHARS, TOPIC_ERRORS, TOPIC_REPLAY, MessageError, bounded, decode, error_reply, make_replay_request,
 )
 
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
@@ -143,11 +143,16 @@ class RecorderStore:
         return cur.rowcount == 1
 
     def add_error(self, error: dict[str, Any], now: float | None = None, *, commit: bool = True) -> None:
-        """Store a decoded ``fms/error/v1`` (errors are not de-duplicated: each report is a fact)."""
+        """Store a decoded ``fms/error/v1`` (errors are not de-duplicated: each report is a fact). Its fields
+        are cut to ``ERROR_MAX_CHARS`` as :func:`~fms_msgs_json.make_error` does (a decoded error already fits)."""
+        def cap(field: str) -> Any:
+            value = error.get(field)
+            return bounded(value, ERROR_MAX_CHARS[field]) if isinstance(value, str) else value
+
         self.db.execute("INSERT INTO errors (source, code, message, run_id, received_text, at) "
                         "VALUES (?, ?, ?, ?, ?, ?)",
-                        (error["source"], error["code"], error["message"], error.get("run_id"),
-                         error.get("received"), time.time() if now is None else now))
+                        (cap("source"), error["code"], cap("message"), cap("run_id"), cap("received"),
+                         time.time() if now is None else now))
         if commit:
             self.db.commit()
 

@@ -164,6 +164,29 @@ def test_make_error_truncates_and_flattens() -> None:
     assert decode(encode(msg), expect="error") == msg
 
 
+def test_every_error_field_is_capped_for_a_5_mb_input() -> None:
+    """An order with a 5 MB order_id once gave an error whose message was 5 MB (on the topic, in the log and in
+    the database): the builders cap every field, so the encoded error stays under ERROR_MAX_BYTES."""
+    huge = "\x01\"" * 2_500_000                                # 5 MB of characters JSON escapes (6 and 2 bytes)
+    exc = MessageError("bad_order", f"order {huge!r} names machine 7, which this shop does not have")
+    for msg in (m.make_error(huge, "bad_order", huge, run_id=huge, received=huge),
+                m.error_reply(huge, exc, received=huge.encode(), run_id=huge)):
+        for field, most in m.ERROR_MAX_CHARS.items():
+            assert len(msg[field]) == most, field
+        assert msg["message"].endswith("…") and msg["run_id"].endswith("…") and msg["source"].endswith("…")
+        text = encode(msg)
+        assert 6 * 1000 < len(text.encode()) <= m.ERROR_MAX_BYTES
+        assert decode(text, expect="error") == msg
+    assert m.error_reply("n", exc)["message"].startswith("order '\\x01\"\\x01")
+    assert m.make_error("n", "internal", "x" * 500)["message"] == "x" * 500          # at the cap: kept whole
+    assert m.bounded("abc", 2) == "a…" and m.bounded("ab", 2) == "ab"
+    for field in m.ERROR_MAX_CHARS:      # the receiving side: longer fields are bad_schema, not stored whole
+        too_long = {"schema": "fms/error/v1", "source": "n", "code": "internal", "message": "m",
+                    field: "z" * (m.ERROR_MAX_CHARS[field] + 1)}
+        with pytest.raises(MessageError, match=f"field '{field}' must be .* at most"):
+            decode(json.dumps(too_long), expect="error")
+
+
 def test_error_reply() -> None:
     text = '{"schema":"fms/state/v2"}'
     with pytest.raises(MessageError) as info:
@@ -291,7 +314,8 @@ def test_missing_required_field(kind: str, key: str) -> None:
     ("event", "data", {"jobs": [0, "1"]}, "field 'data.jobs[1]' must be an integer >= 0, got '1'"),
     ("order", "order_id", "", "field 'order_id' must be a non-empty string"),
     ("order", "run_id", 1, "field 'run_id' must be null or a string"),
-    ("error", "source", "", "field 'source' must be a non-empty string (the reporting node's name)"),
+    ("error", "source", "", "field 'source' must be a non-empty string of at most 200 characters (the reporting "
+                            "node's name)"),
     ("error", "message", "", "field 'message' must be a non-empty string"),
     ("error", "code", "oops", "field 'code' must be one of 'malformed_json', 'bad_schema'"),
     ("error", "received", "x" * 1001, "field 'received' must be null or a string of at most 1000 characters, "
