@@ -113,9 +113,18 @@ class FullRulePolicy:
         ops = {j: shop.buffered_op(j)[0] for j in jobs}
         return shop.action_index(f"start:{self._best_job(shop, ops)}")
 
-    def _current(self, shop: FullShop, tool: int) -> list[int]:
-        """Jobs whose request on ``tool`` is for their next operation, due soon, and may be served now."""
-        return [j for j in shop.treq[tool] if self._due(shop, j, shop.request_of(tool, j)) and shop._candidate(tool, j)]
+    def _due_requests(self, shop: FullShop) -> dict[int, list[int]]:
+        """Per tool, the jobs whose next operation to start needs it, is due soon and may be served now."""
+        out: dict[int, list[int]] = {}
+        jobs = shop.instance.jobs
+        for j, k in enumerate(shop.started):
+            if k >= len(jobs[j]):
+                continue
+            t = jobs[j][k].tool
+            if t is not None and shop.request_of(t, j) == k and self._due(shop, j, k) and shop._servable(t) \
+                    and shop._candidate(t, j):
+                out.setdefault(t, []).append(j)
+        return out
 
     @staticmethod
     def _due(shop: FullShop, j: int, k: int | None) -> bool:
@@ -134,8 +143,12 @@ class FullRulePolicy:
         return k > 0 or shop.p_parts.tokens(j) != ()
 
     def _tool(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
-        for t in by_kind.get("tool", ()):
-            if self._current(shop, t):
+        offered = by_kind.get("tool")
+        if not offered or not shop.instance.has_tools:
+            return None
+        due = self._due_requests(shop)
+        for t in offered:
+            if t in due:
                 return shop.action_index(f"tool:{t}")
         return None
 

@@ -50,7 +50,7 @@ _KIND_ORDER = {"job": 0, "agv": 1, "tt": 2, "start": 3, "tool": 4, "use": 5}
 
 #: state kept beside the marking (copied by save_state, hashed by state_key)
 _FULL_STATE = ("disp_next", "started", "m_idle", "buf_at", "tool_ready_for", "tool_user", "tool_running",
-               "tool_next", "treq", "tool_choice", "tt_waiting", "_use_cands")
+               "tool_next", "treq", "treq_at", "tool_choice", "tt_waiting", "_use_cands")
 
 
 def make_shop(instance: Instance, decisions: str = "full") -> Shop:
@@ -88,6 +88,7 @@ class FullShop(Shop):
         self.tool_running = [False] * nt
         self.tool_next: list[tuple[int, int] | None] = [None] * nt
         self.treq: list[dict[int, list[int]]] = [{} for _ in range(nt)]
+        self.treq_at: list[dict[int, set[int]]] = [{} for _ in range(nt)]  # tool -> machine -> jobs next there
         self.tool_choice: int | None = None
         self.tt_waiting: list[int | None] = [None] * nt
         self._use_cands: list[int] = []
@@ -121,6 +122,8 @@ class FullShop(Shop):
         self._tool_ops.append([])
         for k, op in enumerate(self._jobs[j]):
             if inst.has_tools and op.tool is not None:
+                if j not in self.treq[op.tool]:
+                    self.treq_at[op.tool].setdefault(op.machine, set()).add(j)
                 self.treq[op.tool].setdefault(j, []).append(k)
                 self._tool_ops[j].append((k, op.tool))
         if inst.has_agvs:
@@ -356,7 +359,9 @@ class FullShop(Shop):
     def _tool_ok(self, t: int, b: dict) -> bool:
         if self.tool_choice is not None or not self.treq[t] or not self._servable(t):
             return False
-        return any(self._candidate(t, j) for j in self.treq[t])
+        # without an idle transporter only requests on the machine where the tool is can be served
+        cands = self.treq[t] if self.p_tt_idle.count else self.treq_at[t].get(self.tool_loc[t], ())
+        return any(self._candidate(t, j) for j in cands)
 
     def _use_ok(self, j: int, b: dict) -> bool:
         t = self.tool_choice
@@ -449,7 +454,11 @@ class FullShop(Shop):
         assert t is not None
         ks = self.treq[t][j]
         k = ks.pop(0)
-        if not ks:
+        at = self.treq_at[t]
+        at[self._jobs[j][k].machine].discard(j)
+        if ks:
+            at.setdefault(self._jobs[j][ks[0]].machine, set()).add(j)
+        else:
             del self.treq[t][j]
         op = (j, k)
         m = self._jobs[j][k].machine
