@@ -487,3 +487,29 @@ def test_shipped_large_models_valid_on_sl00(name, no_tools):
 def test_bu_model_refuses_too_large_instance():
     with pytest.raises(ValueError, match="larger than model bu"):
         ppo_solver("ppo:bu")(builtin("sl00"))
+
+
+def test_models_record_the_net_they_were_trained_on_and_load_with_it(tmp_path):
+    import json
+    import shutil
+
+    from fms_dispatch.rl.models import load_agent, resolve_model
+    from fms_dispatch.rl.train import DEFAULT_CONFIG
+
+    assert DEFAULT_CONFIG["decisions"] == "paper"
+    for name in ("bu", "large", "large-agv"):
+        ref = resolve_model(name)
+        assert ref.config["decisions"] == "paper" == ref.decisions
+    assert load_agent("bu").decisions == "paper"
+    s = ppo_solver("ppo:bu")(builtin("EX12"))
+    assert s.meta["decisions"] == "paper" and validate(builtin("EX12"), s) == []
+    # a model made for another net is refused by name, never run on the wrong one
+    folder = tmp_path / "fullnet"
+    shutil.copytree(resolve_model("bu").folder, folder)
+    cfg = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**cfg, "decisions": "full"}))
+    with pytest.raises(ValueError, match="trained on the 'full' net"):
+        load_agent(str(folder))
+    (folder / "config.json").write_text(json.dumps({**cfg, "decisions": "fifo"}))
+    with pytest.raises(ValueError, match="unknown decisions"):
+        load_agent(str(folder))

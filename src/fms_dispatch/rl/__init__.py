@@ -43,7 +43,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, **_: Any) -> Schedule:
-        from fms_sim.shop import Shop
+        from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
         from .lookahead import run_agent
@@ -57,9 +57,10 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
                              f"({agent.padding})")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
-        sched = run_agent(Shop(instance), agent.act, lookahead=bool(lookahead), progress=report, retry=not fast)
+        sched = run_agent(make_shop(instance, agent.decisions), agent.act, lookahead=bool(lookahead), progress=report, retry=not fast)
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
+        sched.meta["decisions"] = agent.decisions
         sched.meta["lookahead"] = bool(lookahead)
         if lookahead:
             sched.meta["lookahead_fast"] = fast

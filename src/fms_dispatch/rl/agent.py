@@ -51,11 +51,17 @@ class Agent:
     :meth:`logits` with ``fast=False``, which tests compare with the numpy actor).
     """
 
-    def __init__(self, model_path: str | Path, padding: dict[str, int], name: str = "", torch: bool = False):
+    def __init__(self, model_path: str | Path, padding: dict[str, int], name: str = "", torch: bool = False,
+                 decisions: str = "paper"):
         path = Path(model_path)
         if not path.is_file():
             raise ValueError(f"model file {path} does not exist")
         self.name = name or path.parent.name
+        if decisions != "paper":
+            raise ValueError(f"model {self.name} was trained on the {decisions!r} net; this build's agent runs "
+                             "models of the paper's net only")
+        self.decisions = decisions
+        """The net the model was trained on and decides through (its config's ``decisions``)."""
         self.path = path
         self.padding = dict(padding)
         self.policy: Any = None  # the torch policy, when loaded

@@ -112,6 +112,13 @@ class ModelRef:
         from .envs import padding_for
 
         self.padding = padding_for(self.config["padding"], [])
+        from fms_sim.full_shop import DECISIONS
+
+        #: the net the model was trained on (configs before the full net existed: the paper's)
+        self.decisions = self.config.get("decisions", "paper")
+        if self.decisions not in DECISIONS:
+            raise ValueError(f"model {self.name}: unknown decisions {self.decisions!r} in its config "
+                             f"(choose from {', '.join(DECISIONS)})")
 
     def __repr__(self) -> str:
         return f"ModelRef({self.name!r}, {self.weights})"
@@ -146,14 +153,14 @@ def default_model_name(inst: Instance) -> str:
 
 
 @functools.lru_cache(maxsize=8)
-def _cached_agent(weights: str, mtime: float, padding: tuple, name: str) -> Any:
+def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisions: str = "paper") -> Any:
     from .agent import Agent
 
-    return Agent(weights, dict(padding), name=name)
+    return Agent(weights, dict(padding), name=name, decisions=decisions)
 
 
 def load_agent(spec: str) -> Any:
     """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file)."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
-                         ref.name)
+                         ref.name, ref.decisions)

@@ -40,6 +40,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "eval": [],
     "fleet": {"agvs": None, "tool_transporters": None, "no_tools": False},
     "padding": "auto",
+    "decisions": "paper",
     "reward": "shaped",
     "steps": 100_000,
     "seed": 0,
@@ -224,6 +225,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
     if not cfg["train"]:
         raise ValueError("no training instances given")
+    if cfg.get("decisions", "paper") != "paper":
+        raise ValueError(f"decisions {cfg['decisions']!r}: fms train trains on the paper's net only in this build "
+                         "(the full-decision net has a Gymnasium env, ShopEnv(decisions='full'), but no agent "
+                         "features or experts yet)")
+    cfg["decisions"] = "paper"
     if cfg["reward"] not in ("idle", "makespan", "shaped"):
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
