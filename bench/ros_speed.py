@@ -1,8 +1,9 @@
 """ROS 2 speed: decisions per second over topics, and the wall time of ``fms up`` end to end.
 
 For each instance (default EX12 and sl00) the script runs ``python -m fms_dispatch.up INSTANCE --solver S``
-``--repeat`` times (shop, agent and recorder as separate processes, on a fresh random ROS domain each time)
-and reports medians (and the best run, the figure least disturbed by other load on the machine):
+``--repeat`` times (shop, agent and recorder as separate processes, on the ROS domain ``ROS_DOMAIN_ID`` names,
+else on a fresh random one each time; the last column lists the domains fms up used) and reports medians (and
+the best run, the figure least disturbed by other load on the machine):
 
 * ``fms up`` wall time — process start, discovery, the whole run, recording, the Gantt chart and a clean
   stop, measured around the command (goal for EX12: <= 5 s);
@@ -22,6 +23,7 @@ import argparse
 import itertools
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -60,13 +62,12 @@ def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedule]:
-    """One ``fms up`` run; returns its wall time and the schedule it wrote."""
+def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedule, int]:
+    """One ``fms up`` run; returns its wall time, the schedule it wrote and the ROS domain it ran on."""
     out = work / f"{name}-{run}.schedule.json"
     cmd = [sys.executable, "-m", "fms_dispatch.up", name, "--solver", solver, "--out", str(out),
-           "--db", str(work / "bench.sqlite"), "--quiet"]
-    env = dict(os.environ)
-    env.pop("ROS_DOMAIN_ID", None)  # a fresh random domain per run
+           "--db", str(work / "bench.sqlite")]
+    env = dict(os.environ)  # fms up uses ROS_DOMAIN_ID when it is set, else a fresh random domain per run
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     t0 = time.perf_counter()
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
@@ -77,7 +78,10 @@ def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedul
     problems = validate(builtin(name), sched)
     if problems:
         raise SystemExit(f"fms up {name}: invalid schedule: {problems[0]}")
-    return wall, sched
+    domain = re.search(r"; ROS_DOMAIN_ID=(\d+)$", res.stderr, re.M)  # fms up's start line says which it used
+    if domain is None:
+        raise SystemExit(f"fms up {name} did not say its ROS domain:\n{res.stderr}")
+    return wall, sched, int(domain.group(1))
 
 
 def main() -> None:
@@ -89,22 +93,23 @@ def main() -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# ros_speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
           f"{platform.python_version()}, load average {load:.1f} at start; solver {a.solver}; "
-          f"median (best) of {a.repeat} runs")
+          f"median (best) of {a.repeat} runs; ROS domain {os.environ.get('ROS_DOMAIN_ID') or 'random per run'}")
     print(f"{'instance':>9} {'decisions':>9} {'fms up wall s (best)':>20} {'decisions/s topics (best)':>25} "
-          f"{'decisions/s in-process':>22} {'makespan':>8}")
+          f"{'decisions/s in-process':>22} {'makespan':>8}  ROS domains")
     with tempfile.TemporaryDirectory(prefix="fms-ros-speed-") as tmp:
         for name in a.instances:
-            walls, rates = [], []
+            walls, rates, domains = [], [], []
             sched = None
             for run in range(a.repeat):
-                wall, sched = fms_up(name, a.solver, Path(tmp), run)
+                wall, sched, domain = fms_up(name, a.solver, Path(tmp), run)
                 walls.append(wall)
+                domains.append(str(domain))
                 rates.append(sched.meta["decisions"] / max(sched.meta["decision_time"], 1e-9))
             assert sched is not None
             wall_txt = f"{statistics.median(walls):.2f} ({min(walls):.2f})"
             rate_txt = f"{statistics.median(rates):.0f} ({max(rates):.0f})"
             print(f"{name:>9} {sched.meta['decisions']:>9} {wall_txt:>20} {rate_txt:>25} "
-                  f"{in_process_rate(name, a.solver):>22.0f} {sched.makespan:>8}", flush=True)
+                  f"{in_process_rate(name, a.solver):>22.0f} {sched.makespan:>8}  {','.join(domains)}", flush=True)
 
 
 if __name__ == "__main__":
