@@ -79,15 +79,20 @@ def cmd_solve(a: argparse.Namespace) -> int:
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
         return EXIT_INFEASIBLE
     print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s, valid)")
-    if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        sched.save(a.out)
-        print(f"schedule: {a.out}")
-    if a.gantt:
+    _write_outputs(sched, inst, a.out, a.gantt)
+    return 0
+
+
+def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
+    """Save the schedule JSON and the Gantt chart where asked, one line each."""
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        sched.save(out)
+        print(f"schedule: {out}")
+    if gantt:
         from fms_sim.gantt import save_gantt
 
-        print(f"gantt:    {save_gantt(sched, a.gantt, instance=inst)}")
-    return 0
+        print(f"gantt:    {save_gantt(sched, gantt, instance=inst)}")
 
 
 def cmd_validate(a: argparse.Namespace) -> int:
@@ -129,14 +134,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
         raise
     print(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
-    if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        out.save(a.out)
-        print(f"schedule: {a.out}")
-    if a.gantt:
-        from fms_sim.gantt import save_gantt
-
-        print(f"gantt:    {save_gantt(out, a.gantt, instance=inst)}")
+    _write_outputs(out, inst, a.out, a.gantt)
     return 0
 
 

@@ -33,7 +33,7 @@ from fms_sim.instance import Instance
 from fms_sim.replay import replay
 from fms_sim.schedule import Schedule
 
-from .rules import JOB_RULES, VEHICLE_RULES
+from .rules import JOB_RULES, VEHICLE_RULES, choose_vehicle
 
 __all__ = ["TOOL_RULES", "FullRulePolicy", "run_full", "full_rule_names", "solve_list", "solve_best_rules"]
 
@@ -220,13 +220,7 @@ class FullRulePolicy:
         free_at, work, loc = ((shop.agv_free_at, shop.agv_work, shop.agv_loc) if agv
                               else (shop.tt_free_at, shop.tt_work, shop.tt_loc))
         travel = shop.instance.agv_travel if agv else shop.instance.tool_travel
-        rule = self.vehicle_rule
-        if rule == "first":
-            v = min(cands, key=lambda v: (free_at[v], v))
-        elif rule == "least-work":
-            v = min(cands, key=lambda v: (work[v], v))
-        else:
-            v = min(cands, key=lambda v: (travel[loc[v]][target], work[v], v))
+        v = choose_vehicle(self.vehicle_rule, cands, free_at, work, loc, travel, target)
         return shop.action_index(f"{kind}:{v}")
 
 

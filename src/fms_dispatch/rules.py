@@ -100,12 +100,17 @@ class RulePolicy:
 
     def _vehicle(self, cands: list[int], free_at: list[int], work: list[int], loc: list[int],
                  travel, pickup: int) -> int:
-        rule = self.vehicle_rule
-        if rule == "first":
-            return min(cands, key=lambda v: (free_at[v], v))
-        if rule == "least-work":
-            return min(cands, key=lambda v: (work[v], v))
-        return min(cands, key=lambda v: (travel[loc[v]][pickup], work[v], v))
+        return choose_vehicle(self.vehicle_rule, cands, free_at, work, loc, travel, pickup)
+
+
+def choose_vehicle(rule: str, cands: list[int], free_at: list[int], work: list[int], loc: list[int], travel,
+                   target: int) -> int:
+    """The vehicle a vehicle rule picks among ``cands`` for a trip that starts (loaded) at ``target``."""
+    if rule == "first":
+        return min(cands, key=lambda v: (free_at[v], v))
+    if rule == "least-work":
+        return min(cands, key=lambda v: (work[v], v))
+    return min(cands, key=lambda v: (travel[loc[v]][target], work[v], v))
 
 
 def parse_rule_name(name: str) -> RulePolicy:
