@@ -91,8 +91,9 @@ def _row_key(row: dict[str, Any]) -> tuple[Any, ...]:
 
 def searches(method: str) -> bool:
     """Whether a method takes a time limit (everything except rules, ``first``, ``random`` and ``list``)."""
-    low = method.lower()
-    return not (low.startswith(("rule:", "rules:")) or low in ("first", "random", "list", "rules"))
+    from .solvers import searches_time
+
+    return searches_time(method)
 
 
 def check_methods(methods: Sequence[str]) -> list[str]:

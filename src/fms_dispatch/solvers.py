@@ -6,6 +6,7 @@ on the full net, :mod:`fms_dispatch.full_rules`) — these three take ``decision
 which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the default of ``fms solve``) —,
 ``list`` (the earliest-start list schedule executed through the full net), ``rules`` / ``rules:full`` (the
 best full-net rule combination or ``list``), ``rules:paper`` (the best of the paper net's 36 rule pairs),
+``plan:<SOLVER>[:SECONDS]`` (solve offline within SECONDS, then execute the plan through the full net),
 ``sos`` (symbiotic
 organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
 option ``lookahead=True`` pre-positions idle vehicles, ``lookahead="fast"`` does it without retries), each
@@ -114,6 +115,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 def solver_names() -> list[str]:
     return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list", "rules[:full|:paper]", "sos", "cpsat",
+            "plan:<SOLVER>[:SECONDS]",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
 
@@ -130,6 +132,8 @@ def get_solver(name: str) -> Solver:
         from .full_rules import solve_list
 
         return solve_list
+    if low.startswith("plan:"):
+        return plan_solver(name)
     if low in ("rules", "rules:full", "rules:paper"):
         from .full_rules import solve_best_rules
 
@@ -154,6 +158,56 @@ def get_solver(name: str) -> Solver:
             return lambda inst, **kw: fn(inst, **{**kw, "lookahead": mode})
         return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
+
+
+def parse_plan_name(name: str) -> tuple[str, float | None]:
+    """``plan:BASE[:SECONDS]`` -> (base solver name, seconds or None); raises :class:`UnknownSolver`."""
+    body = name.split(":", 1)[1] if name.lower().startswith("plan:") else ""
+    base, seconds = body, None
+    head, sep, tail = body.rpartition(":")
+    if sep and head:
+        try:
+            seconds = float(tail)
+        except ValueError:
+            pass
+        else:
+            base = head
+            if not seconds > 0:
+                raise UnknownSolver(f"the time budget of {name!r} must be positive")
+    if not base or base.lower().startswith(("plan:", "ppo")) or base.lower() in ("first", "random"):
+        raise UnknownSolver(f"bad plan solver {name!r}: use plan:SOLVER[:SECONDS] with an offline solver "
+                            "(cpsat, sos, rules, list, rule:...)")
+    get_solver(base)
+    return base, seconds
+
+
+def plan_solver(name: str) -> Solver:
+    """``plan:BASE[:SECONDS]``: solve the whole instance with BASE within SECONDS (its ``time_limit``), then
+    execute that plan through the full-decision net (:func:`fms_sim.replay.replay`): the schedule a shop gets
+    when it follows the plan, never later than the plan."""
+    base, seconds = parse_plan_name(name)
+
+    def solver(instance: Instance, time_limit: float | None = None, **kw: Any) -> Schedule:
+        from fms_sim.replay import replay
+
+        opts = dict(kw)
+        opts.pop("decisions", None)
+        budget = seconds if seconds is not None else time_limit
+        if budget is not None and searches_time(base):
+            opts["time_limit"] = budget
+        plan = solve(instance, base, **opts)
+        out = replay(instance, plan)
+        out.meta.update(solver=name, plan_solver=base, plan_makespan=plan.makespan,
+                        plan_wall_time=plan.meta.get("wall_time"), lower_bound=plan.meta.get("lower_bound"))
+        return out
+
+    return solver
+
+
+def searches_time(method: str) -> bool:
+    """Whether a solver takes a time limit (everything but rules, list, first and random)."""
+    low = method.lower()
+    return not (low.startswith(("rule:", "rules")) or low in ("first", "random", "list"))
 
 
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
