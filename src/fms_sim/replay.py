@@ -18,10 +18,11 @@ from __future__ import annotations
 from collections import defaultdict, deque
 from typing import Deque
 
-from .full_shop import FullShop
+from .full_shop import HOLD, FullShop
 from .instance import Instance
 from .petri import InvalidAction
 from .schedule import Schedule
+from .stepping import Move, Stepper, moves_label
 from .validate import validate
 
 __all__ = ["replay", "ReplayError", "PlanPolicy"]
@@ -39,8 +40,9 @@ class ReplayError(ValueError):
 class PlanPolicy:
     """The orders of ``schedule`` per resource, answered through a :class:`~fms_sim.full_shop.FullShop`.
 
-    ``step(shop)`` issues the pre-positioning orders that are due and returns the action to fire now, or None
-    when nothing planned can be done at this moment (the caller lets time pass)."""
+    :meth:`answer` gives the label for a :class:`~fms_sim.stepping.Stepper`'s stop (moves at an idle stop, the
+    planned action or ``hold`` at a decision), so a plan runs offline and, as labels, through the shop node;
+    :meth:`step` is the decision part: the action to fire now, or None when nothing planned can be done."""
 
     def __init__(self, instance: Instance, schedule: Schedule):
         self.instance = instance
@@ -66,19 +68,28 @@ class PlanPolicy:
             if tool is not None:
                 self.tool[tool].append((r.job, r.op))
 
-    # ------------------------------------------------------------------ idle vehicles
-    def reposition(self, shop: FullShop) -> bool:
-        """Send every idle vehicle whose next leg is an empty one on its way; True if any was sent."""
-        sent = False
-        for kind, idle, plans in (("agv", shop.idle_agvs(), self.agv), ("tt", shop.idle_transporters(), self.tt)):
-            for v, here in idle:
-                plan = plans.get(v)
+    # ------------------------------------------------------------------ answers at a stepper's stops
+    def answer(self, stepper: Stepper) -> str:
+        """The label that answers ``stepper``'s current stop: the moves of the offered vehicles whose next leg is
+        an empty one (``wait`` if none), or the planned action (``hold`` when nothing planned can be done now)."""
+        shop = stepper.shop
+        assert isinstance(shop, FullShop)
+        if stepper.kind == "idle":
+            moves = []
+            for kind, v, here in stepper.idle:
+                plan = (self.agv if kind == "agv" else self.tt).get(v)
+                while plan and plan[0][0] == "move" and plan[0][1] == here:
+                    plan.popleft()  # a leg to where the vehicle already is
                 if plan and plan[0][0] == "move":
-                    dest = plan.popleft()[1]
-                    if dest != here:
-                        shop.reposition(kind, v, dest, advance=False)
-                        sent = True
-        return sent
+                    moves.append(Move(kind, v, plan.popleft()[1]))
+            return moves_label(moves)
+        action = self.step(shop)
+        if action is None:
+            if not shop.hold_allowed():
+                raise ReplayError(f"replay of {shop.instance.name} is stuck at time {shop.now}: no planned order "
+                                  "can be carried out and nothing is in flight")
+            return HOLD
+        return shop.action_labels()[action]
 
     # ------------------------------------------------------------------ decisions
     def step(self, shop: FullShop) -> int | None:
@@ -164,25 +175,14 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True) -> Sch
         raise ReplayError(f"the schedule is not valid for {instance.name}: {head}", problems)
     shop = FullShop(instance)
     policy = PlanPolicy(instance, schedule)
-    net = shop.net
-    while True:
-        net.run_autonomous()
-        if shop.done:
-            break
-        if policy.reposition(shop):
-            continue
-        action = policy.step(shop)
-        if action is not None:
-            try:
-                shop.fire_action(action)
-            except InvalidAction as exc:  # pragma: no cover - a bug: the policy only fires offered actions
-                raise ReplayError(f"replay of {instance.name} failed at time {shop.now}: {exc}") from exc
-            continue
-        t = net.next_event_time()
-        if t is None:
-            raise ReplayError(f"replay of {instance.name} is stuck at time {shop.now}: no planned order can be "
-                              f"carried out and nothing is in flight")
-        net.release_until(t)
+    stepper = Stepper(shop, idle_stops=True)
+    stepper.advance()
+    while stepper.kind != "done":
+        label = policy.answer(stepper)
+        try:
+            stepper.apply(label)
+        except InvalidAction as exc:  # pragma: no cover - a bug: the policy only gives offered answers
+            raise ReplayError(f"replay of {instance.name} failed at time {shop.now}: {exc}") from exc
     out = shop.schedule()
     out.meta.update({"solver": "replay", "replayed": schedule.meta.get("solver", "?"),
                      "given_makespan": schedule.makespan})

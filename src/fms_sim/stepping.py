@@ -16,6 +16,11 @@ all stop at exactly the same places:
   even where travel times are 0;
 * **done**: every job is finished.
 
+On the full-decision net (:class:`fms_sim.full_shop.FullShop`) something can nearly always be decided, so an
+idle stop there comes *before* the decisions of the same moment, and a vehicle is offered once per idle period
+(from the moment it turns idle until it is given work or moved) rather than once between two decisions: a plan
+that moves a vehicle the moment it turns idle (replay, plan execution) can do so at exactly that moment.
+
 Answers are written as labels, so they can travel in messages and histories: a decision is its action label
 (``job:3``, ``agv:1``, ``tt:0``), an idle stop's answer is ``wait`` (no move) or
 ``reposition:agv:0:3,tt:1:5`` (AGV 0 to location 3 and transporter 1 to location 5, in that order).
@@ -87,6 +92,7 @@ class Stepper:
     def __init__(self, shop: Shop, idle_stops: bool = True) -> None:
         self.shop = shop
         self.idle_stops = idle_stops
+        self.idle_first = getattr(shop, "decisions", "paper") == "full"
         self.looked: set[tuple[str, int]] = set()
         self.kind: StopKind | None = None
         self.idle: list[Move] = []
@@ -94,6 +100,7 @@ class Stepper:
     def copy(self) -> "Stepper":
         """An independent twin at the same stop."""
         twin = Stepper(self.shop.copy(), self.idle_stops)
+        twin.idle_first = self.idle_first
         twin.looked, twin.kind, twin.idle = set(self.looked), self.kind, list(self.idle)
         return twin
 
@@ -127,6 +134,13 @@ class Stepper:
             return self.kind
         while True:
             net.run_autonomous()
+            if self.idle_first and not shop.done:
+                vehicles = self.idle_vehicles()
+                self.looked &= {(m.kind, m.vehicle) for m in vehicles}  # a vehicle that left idle is new again
+                idle = [m for m in vehicles if (m.kind, m.vehicle) not in self.looked]
+                if idle:
+                    self.idle, self.kind = idle, "idle"
+                    return self.kind
             if net.enabled_actions():
                 self.kind = "decision"
                 return self.kind
@@ -148,7 +162,8 @@ class Stepper:
         if self.kind != "decision":
             raise InvalidAction(f"no decision is due at time {self.shop.now} ({self._where()})")
         self.shop.fire_action(action)
-        self.looked.clear()
+        if not self.idle_first:
+            self.looked.clear()
         return self.advance()
 
     def move(self, moves: list[Move] | list[tuple[str, int, int]]) -> StopKind:
@@ -173,7 +188,7 @@ class Stepper:
             seen.add((kind, v))
         for kind, v, loc in moves:
             shop.reposition(kind, v, loc, advance=False)
-        self.looked.update(offered)
+        self.looked.update(offered - seen if self.idle_first else offered)
         return self.advance()
 
     def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:
