@@ -22,7 +22,7 @@ from .full_shop import HOLD, FullShop
 from .instance import Instance
 from .petri import InvalidAction
 from .schedule import Schedule
-from .stepping import Move, Stepper, moves_label
+from .stepping import Move, Stepper, moves_label, parse_moves
 from .validate import validate
 
 __all__ = ["replay", "ReplayError", "PlanPolicy"]
@@ -71,17 +71,16 @@ class PlanPolicy:
     # ------------------------------------------------------------------ answers at a stepper's stops
     def answer(self, stepper: Stepper) -> str:
         """The label that answers ``stepper``'s current stop: the moves of the offered vehicles whose next leg is
-        an empty one (``wait`` if none), or the planned action (``hold`` when nothing planned can be done now)."""
+        an empty one (``wait`` if none), or the planned action (``hold`` when nothing planned can be done now).
+        Idempotent: the plan moves on only by :meth:`apply`, so a state answered twice gets the same answer."""
         shop = stepper.shop
         assert isinstance(shop, FullShop)
         if stepper.kind == "idle":
             moves = []
             for kind, v, here in stepper.idle:
-                plan = (self.agv if kind == "agv" else self.tt).get(v)
-                while plan and plan[0][0] == "move" and plan[0][1] == here:
-                    plan.popleft()  # a leg to where the vehicle already is
-                if plan and plan[0][0] == "move":
-                    moves.append(Move(kind, v, plan.popleft()[1]))
+                leg = self._next_leg(kind, v, here)
+                if leg is not None and leg[0] == "move":
+                    moves.append(Move(kind, v, leg[1]))
             return moves_label(moves)
         action = self.step(shop)
         if action is None:
@@ -91,47 +90,76 @@ class PlanPolicy:
             return HOLD
         return shop.action_labels()[action]
 
+    def apply(self, stepper: Stepper, label: str) -> None:
+        """Move the plan on by the answer ``label`` about to be applied at ``stepper``'s current stop (call it
+        before the stepper applies it): the legs, uses and starts it carries out are consumed."""
+        shop = stepper.shop
+        assert isinstance(shop, FullShop)
+        if stepper.kind == "idle":
+            for kind, v, _ in parse_moves(label):
+                plans = self.agv if kind == "agv" else self.tt
+                here = next(loc for k, u, loc in stepper.idle if (k, u) == (kind, v))
+                self._next_leg(kind, v, here)
+                plans[v].popleft()
+            return
+        if label == HOLD:
+            return
+        kind, _, num = label.partition(":")
+        if kind == "agv":
+            self._next_leg("agv", int(num), None)
+            self.agv[int(num)].popleft()
+        elif kind == "tt":
+            self._next_leg("tt", int(num), None)
+            self.tt[int(num)].popleft()
+        elif kind == "use":
+            self.tool[shop.tool_choice].popleft()
+        elif kind == "start":
+            _, m = shop.buffered_op(int(num))
+            self.machine[m].popleft()
+
+    def _next_leg(self, kind: str, v: int, here: int | None) -> tuple | None:
+        """The vehicle's next leg, dropping empty legs to where it already is (``here``)."""
+        plan = (self.agv if kind == "agv" else self.tt).get(v)
+        while plan and here is not None and plan[0][0] == "move" and plan[0][1] == here:
+            plan.popleft()
+        return plan[0] if plan else None
+
     # ------------------------------------------------------------------ decisions
     def step(self, shop: FullShop) -> int | None:
+        """The planned action to fire now (without consuming it), or None when nothing planned can be done."""
         offered = shop.net.enabled_actions()
         if not offered:
             return None
         kind, _ = shop.action_kind(offered[0])
-        if kind == "agv":  # the AGV for the job just dispatched; its route moves on only now
+        if kind == "agv":  # the AGV for the job just dispatched
             j, k = shop.awaiting_agv()[:2]
-            v = self.part_carrier[j, k]
-            self.agv[v].popleft()
-            return shop.action_index(f"agv:{v}")
+            return shop.action_index(f"agv:{self.part_carrier[j, k]}")
         if kind == "tt":
             _, _, j, k, _ = shop.awaiting_transporter()
-            r = self.tool_carrier[j, k]
-            self.tt[r].popleft()
-            return shop.action_index(f"tt:{r}")
+            return shop.action_index(f"tt:{self.tool_carrier[j, k]}")
         if kind == "use":
-            t = shop.tool_choice
-            j, _ = self.tool[t][0]
-            self.tool[t].popleft()
+            j, _ = self.tool[shop.tool_choice][0]
             return shop.action_index(f"use:{j}")
         legal = set(offered)
-        for choose in (self._dispatch, self._tool, self._start):  # one at a time: each pops what it fires
+        for choose in (self._dispatch, self._tool, self._start):
             a = choose(shop, legal)
             if a is not None:
                 return a
         return None
 
     def _dispatch(self, shop: FullShop, legal: set[int]) -> int | None:
-        idle = dict(shop.idle_agvs())
-        for v in idle:
-            plan = self.agv.get(v)
-            if not plan or plan[0][0] != "carry":
+        for v, here in shop.idle_agvs():
+            leg = self._next_leg("agv", v, None)
+            if leg is None or leg[0] != "carry":
                 continue
-            _, j, k = plan[0]
+            _, j, k = leg
             a = shop.action_index(f"job:{j}")
             if a in legal and shop.next_op(j) == k:
                 return a
         return None
 
     def _tool(self, shop: FullShop, legal: set[int]) -> int | None:
+        idle_tts = dict(shop.idle_transporters())
         for t, uses in self.tool.items():
             if not uses:
                 continue
@@ -141,14 +169,12 @@ class PlanPolicy:
                 continue
             r = self.tool_carrier.get((j, k))
             if r is not None:
-                plan = self.tt.get(r)
-                if not plan or plan[0] != ("carry", j, k) or r not in dict(shop.idle_transporters()):
+                if self._next_leg("tt", r, None) != ("carry", j, k) or r not in idle_tts:
                     continue
             elif shop.tool_loc[t] != shop.instance.jobs[j][k].machine:
                 continue
-            if not shop._candidate(t, j):
-                continue
-            return a
+            if shop._candidate(t, j):
+                return a
         return None
 
     def _start(self, shop: FullShop, legal: set[int]) -> int | None:
@@ -158,7 +184,6 @@ class PlanPolicy:
             j, k = queue[0]
             a = shop.action_index(f"start:{j}")
             if a in legal and shop.buffered_op(j) == (k, m):
-                queue.popleft()
                 return a
         return None
 
@@ -179,6 +204,7 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True) -> Sch
     stepper.advance()
     while stepper.kind != "done":
         label = policy.answer(stepper)
+        policy.apply(stepper, label)
         try:
             stepper.apply(label)
         except InvalidAction as exc:  # pragma: no cover - a bug: the policy only gives offered answers
