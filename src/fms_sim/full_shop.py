@@ -33,9 +33,7 @@ from __future__ import annotations
 
 import copy
 from functools import partial
-from typing import Sequence
-
-from .instance import Instance, Operation
+from .instance import Instance
 from .petri import Arc, InvalidAction, Output, Transition
 from .schedule import AgvTrip, OperationRecord, ToolTrip
 from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
@@ -570,8 +568,12 @@ class FullShop(Shop):
         self.net.advance()
         self._check_progress()
 
-    def add_jobs(self, jobs: Sequence[Sequence[Operation]], advance: bool = True) -> list[int]:
-        raise NotImplementedError("live orders are not supported by the full-decision net yet; use decisions='paper'")
+    def _add_job_transition(self, j: int) -> None:
+        """A live order's job joins the net (called by :meth:`Shop.add_jobs` for each new job)."""
+        self.disp_next.append(self._next_transport(j, 0))
+        self.started.append(0)
+        self._add_job(j)
+        self._touch_tools()  # new requests for the tools
 
     # ------------------------------------------------------------------ introspection
     def next_op(self, job: int) -> int:

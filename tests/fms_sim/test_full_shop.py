@@ -183,10 +183,25 @@ def test_trial_restores_the_full_state():
     assert validate(inst, shop.schedule()) == []
 
 
-def test_live_orders_are_refused_clearly():
-    shop = FullShop(builtin("EX12"))
-    with pytest.raises(NotImplementedError, match="paper"):
-        shop.add_jobs([[Operation(1, None, 3)]])
+def test_live_orders_join_the_full_net():
+    inst = builtin("ra01")
+    for seed in range(4):
+        rng = random.Random(seed)
+        shop = FullShop(inst)
+        for _ in range(25):
+            shop.act(rng.choice(shop.legal_actions()))
+        t0 = shop.now
+        ids = shop.add_jobs([[Operation(1, 1, 3), Operation(2, 2, 4)], [Operation(3, None, 5)]])
+        assert ids == [inst.n_jobs, inst.n_jobs + 1] and shop.n_jobs == inst.n_jobs + 2
+        labels = shop.action_labels()
+        for j in ids:
+            assert f"job:{j}" in labels and f"start:{j}" in labels and f"use:{j}" in labels
+        assert shop.request_of(1, ids[0]) == 0
+        while not shop.done:
+            shop.act(rng.choice(shop.legal_actions()))
+        s = shop.schedule()
+        assert validate(shop.instance, s) == []
+        assert min(r.start for r in s.operations if r.job in ids) >= t0
 
 
 def test_incremental_and_naive_engines_decide_identically():
