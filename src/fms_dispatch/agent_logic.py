@@ -28,7 +28,12 @@ Solvers (the ``solver`` parameter):
   the one the offline ``ppo+lookahead`` solver makes. ``+lookahead-fast`` is the same without retries of
   rejected moves (the offline ``ppo+lookahead-fast``). Every other solver answers idle states with ``wait``.
 
-Offline solvers (``sos``, ``cpsat``) raise :class:`UnavailableSolver`, which the node turns into exit code 2.
+* ``plan:<SOLVER>[:SECONDS]`` — a whole plan by an offline solver (``cpsat``, ``sos``, ``rules``, ``list``,
+  ``rule:...``) computed at the first state within SECONDS, then executed through a twin of the full-decision
+  net (:class:`PlanDecider`). It needs a shop started with ``decisions:=full``, ``history`` and ``idle_stops``.
+
+Offline solvers named alone (``sos``, ``cpsat``) raise :class:`UnavailableSolver` (use ``plan:sos``,
+``plan:cpsat``), which the node turns into exit code 2.
 """
 
 from __future__ import annotations
@@ -50,11 +55,11 @@ if TYPE_CHECKING:
 
 __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision", "FEATURE_JOB_KEYS",
            "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent", "needs_twin",
-           "needs_idle_stops"]
+           "needs_idle_stops", "PlanDecider", "needs_full_net"]
 
 SOURCE = "fms_agent"
 AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
-                 "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast")
+                 "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast", "plan:<SOLVER>[:SECONDS]")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]
@@ -187,6 +192,8 @@ class TwinDecider:
     """
 
     handles_idle = True
+    decisions = "paper"
+    """The net of the twin (and of the shop it follows)."""
 
     def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str, planner: Any = None) -> None:
         self.instance = instance
@@ -206,9 +213,9 @@ class TwinDecider:
         return None if self.stepper is None else self.stepper.shop
 
     def _reset(self, run_id: str, idle_stops: bool) -> None:
-        from fms_sim.shop import Shop
+        from fms_sim.full_shop import make_shop
 
-        self.stepper = Stepper(Shop(self.instance), idle_stops=idle_stops)
+        self.stepper = Stepper(make_shop(self.instance, self.decisions), idle_stops=idle_stops)
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
         self.rebuilds += 1
@@ -230,10 +237,14 @@ class TwinDecider:
                 applied += 2  # an order changes the run: never "one step on" (see sync)
             if p >= len(labels):
                 return applied
+            self._applying(labels[p])
             st.apply(labels[p])
             self._labels.append(labels[p])
             p += 1
             applied += 1
+
+    def _applying(self, label: str) -> None:
+        """Called before the twin applies each label of the history (a plan follows the run with it)."""
 
     def _agrees(self, state: dict[str, Any]) -> str | None:
         """None if the twin matches the state (time, labels, mask, idle vehicles); else what differs."""
@@ -244,7 +255,7 @@ class TwinDecider:
             return f"twin time {twin.now} != state time {state['time']}"
         if twin.action_labels() != state["actions"]:
             return "the twin's action labels differ from the state's"
-        if list(twin.action_mask()) != state["mask"]:
+        if list(st.mask()) != state["mask"]:
             return "the twin's mask differs from the state's"
         idle = state.get("idle")
         if idle is not None and [(d["kind"], d["vehicle"], d["location"]) for d in idle] != list(map(tuple, st.idle)):
@@ -258,6 +269,10 @@ class TwinDecider:
         if history is None:
             raise DecisionError(f"state {state['seq']} has no 'history'; {self.name} replays it into a twin of "
                                 "the shop (start the shop with history:=true)")
+        net = state.get("decisions", "paper")
+        if net != self.decisions:
+            raise DecisionError(f"state {state['seq']} is of the {net!r} net but {self.name} decides on the "
+                                f"{self.decisions!r} net; start the shop with decisions:={self.decisions}")
         name = state.get("instance")
         if name is not None and name != self.instance.name:
             raise DecisionError(f"state {state['seq']} is of instance {name!r} but this agent holds "
@@ -305,6 +320,97 @@ class TwinDecider:
         except (ValueError, RuntimeError, IndexError) as exc:
             raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending "
                                    f"{_fallback(state)!r}", _fallback(state)) from None
+
+
+class PlanDecider(TwinDecider):
+    """``plan:SOLVER[:SECONDS]``: at the first state, solve the shop's instance offline with SOLVER within
+    SECONDS, then answer every state of the run from that plan through a twin of the full-decision net
+    (:class:`fms_sim.replay.PlanPolicy`): the run is the one the offline ``plan:`` solver makes.
+
+    The plan follows the run: each label of the history moves it on as the twin applies it, so answers never
+    drift from what the shop did. Jobs the plan does not know (a live order) and a plan that cannot go on are
+    answered by the ``fallback`` full-net rule from then on (re-planning is not built yet); the first such state
+    also publishes an ``internal`` error that says so."""
+
+    decisions = "full"
+
+    def __init__(self, instance: Instance, name: str, fallback: str = "rule:MTWR+nearest+fifo") -> None:
+        from fms_dispatch.full_rules import parse_full_rule
+
+        super().__init__(instance, lambda shop: 0, name)
+        from .solvers import parse_plan_name
+
+        self.base, self.seconds = parse_plan_name(name)
+        self.fallback_name = fallback
+        self.fallback = parse_full_rule(fallback)
+        self.plan: Any = None
+        self.policy: Any = None
+        self.plan_wall_time: float | None = None
+        self.on_fallback = False
+
+    def _make_plan(self) -> None:
+        import time
+
+        from fms_sim.replay import PlanPolicy
+
+        from .solvers import solve
+
+        opts: dict[str, Any] = {}
+        if self.seconds is not None:
+            opts["time_limit"] = self.seconds
+        t0 = time.perf_counter()
+        self.plan = solve(self.instance, self.base, **opts)
+        self.plan_wall_time = time.perf_counter() - t0
+        self.policy = PlanPolicy(self.instance, self.plan)
+
+    def _reset(self, run_id: str, idle_stops: bool) -> None:
+        super()._reset(run_id, idle_stops)
+        if self.plan is None:
+            self._make_plan()
+        from fms_sim.replay import PlanPolicy
+
+        self.policy = PlanPolicy(self.instance, self.plan)  # a fresh twin: the plan starts over with it
+        self.on_fallback = False
+
+    def _applying(self, label: str) -> None:
+        st = self.stepper
+        if self.policy is not None and st is not None and not self.on_fallback:
+            if st.shop.n_jobs != self.instance.n_jobs:
+                self.on_fallback = True  # an order joined: the plan no longer covers the run
+                return
+            self.policy.apply(st, label)
+
+    def __call__(self, state: dict[str, Any]) -> str:
+        if state.get("idle") is None:
+            raise DecisionError(f"state {state['seq']} has no 'idle' field; {self.name} moves vehicles at the "
+                                "shop's idle stops (start the shop with idle_stops:=true)")
+        self.sync(state)
+        st = self.stepper
+        assert st is not None
+        if not self.on_fallback and st.shop.n_jobs != self.instance.n_jobs:
+            self.on_fallback = True
+            raise FallbackDecision(f"state {state['seq']}: jobs joined that the plan of {self.name} does not cover "
+                                   f"(re-planning is not built yet); {self.fallback_name} decides from here on",
+                                   self._fallback_answer(st))
+        if self.on_fallback:
+            return self._fallback_answer(st)
+        try:
+            return self.policy.answer(st)
+        except ValueError as exc:
+            self.on_fallback = True
+            raise FallbackDecision(f"state {state['seq']}: {self.name} cannot go on ({exc}); "
+                                   f"{self.fallback_name} decides from here on", self._fallback_answer(st)) from None
+
+    def _fallback_answer(self, st: Stepper) -> str:
+        if st.kind == "idle":
+            return WAIT
+        return st.shop.action_labels()[self.fallback(st.shop)]
+
+
+def needs_full_net(solver: str) -> bool:
+    """Whether ``solver`` decides on the full-decision net (plan solvers): the shop must run it, with history
+    and idle stops."""
+    return solver.strip().lower().startswith("plan:")
 
 
 def _fallback(state: dict[str, Any]) -> str:
@@ -375,10 +481,22 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -
         return decider, decider.name
     if needs_twin(name):
         return _ppo_decider(name, instance)
+    if needs_full_net(name):
+        if instance is None:
+            raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it plans the "
+                                    "whole run; give the agent the parameter instance (the same as the shop's)")
+        from .solvers import UnknownSolver
+
+        try:
+            plan_decider = PlanDecider(instance, name)
+        except (UnknownSolver, ValueError) as exc:
+            raise UnavailableSolver(str(exc)) from None
+        return plan_decider, name
     base = low.split(":", 1)[0]
     if base in _OFFLINE:
         raise UnavailableSolver(f"solver {name!r} plans a whole schedule offline and cannot decide state by state "
-                                f"in the agent node; choose from {', '.join(AGENT_SOLVERS)}")
+                                f"in the agent node: execute its plan with plan:{name}; choose from "
+                                f"{', '.join(AGENT_SOLVERS)}")
     raise UnavailableSolver(f"unknown solver {name!r}; the agent node accepts {', '.join(AGENT_SOLVERS)} "
                             f"(job rules: {', '.join(JOB_RULES)}; vehicle rules: {', '.join(VEHICLE_RULES)})")
 

@@ -841,6 +841,7 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
     solver.parameters.max_time_in_seconds = time_limit
     solver.parameters.num_workers = max(1, workers)
     solver.parameters.random_seed = seed
+    solver.parameters.catch_sigint_signal = False  # see _solve_full
     status = solver.solve(model)
     starts = None
     if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
@@ -922,6 +923,9 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
     p.max_time_in_seconds = max(0.1, time_limit - (time.monotonic() - t0))
     p.num_workers = workers
     p.random_seed = seed
+    # CP-SAT's own SIGINT handler would outlive the solve: a node that planned with it then dies of the SIGINT
+    # that should stop it cleanly (the agent node running plan:cpsat); the caller's handler stays in charge
+    p.catch_sigint_signal = False
     p.log_search_progress = log
     for key, val in (cp_params or {}).items():
         if not hasattr(p, key):

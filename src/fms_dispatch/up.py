@@ -12,7 +12,9 @@ not as a failed run: nothing is lost by then. It imports no rclpy itself: the no
 instance in-process first and runs the winner over the topics: PPO if its makespan is strictly smaller than the
 best rule pair's, else that pair (:func:`best_solver`; it says which). A ``ppo`` solver makes the launcher
 start the shop with ``history:=true`` (and ``features:=false``) and give the agent the instance file, so that
-the agent can replay the run into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
+the agent can replay the run into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``, and
+a plan solver (``plan:cpsat:10``: the agent plans at the first state, then executes the plan) runs the shop on
+the full-decision net (``decisions:=full``) with history and idle stops. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
 environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails).
@@ -42,7 +44,7 @@ from fms_sim.recorder_store import DEFAULT_DB, gantt_path
 from fms_sim.schedule import Schedule, ScheduleError
 from fms_sim.shop_service import new_run_id
 
-from .agent_logic import UnavailableSolver, make_decider, needs_idle_stops, needs_twin
+from .agent_logic import UnavailableSolver, make_decider, needs_full_net, needs_idle_stops, needs_twin
 
 __all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "best_solver", "NodeProcess", "node_command",
            "stop_all"]
@@ -75,8 +77,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     add_instance_args(p)
     p.add_argument("--solver", default="first",
                    help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
-                        "ppo[:<model>]+lookahead | best (the shipped PPO model, with or without lookahead, if it "
-                        "beats the best rule pair in simulation, else that pair) (default: first)")
+                        "ppo[:<model>]+lookahead | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
+                        "state, then execute the plan) | best (the shipped PPO model, with or without lookahead, if "
+                        "it beats the best rule pair in simulation, else that pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -274,7 +277,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     for stale in (sched_tmp, inst_final):
         stale.unlink(missing_ok=True)
 
-    twin = needs_twin(solver)
+    full = needs_full_net(solver)
+    twin = needs_twin(solver) or full
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if twin:
         agent_params["instance"] = str(inst_in)
@@ -289,7 +293,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         NodeProcess("shop", node_command("fms_sim.shop_node", {
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
             "instance_out": str(inst_final), "history": twin, "features": not twin,
-            "idle_stops": needs_idle_stops(solver)}), log_dir / "shop.log", env),
+            "idle_stops": needs_idle_stops(solver) or full, "decisions": "full" if full else "paper"}),
+            log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
     say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")

@@ -10,7 +10,8 @@ rejected message is answered on ``fms/errors`` and logged; the node keeps runnin
 Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
 (0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
 carry the rule features), ``history`` (true: states carry the replay history a PPO agent needs; default
-false), ``idle_stops`` (true: the shop also stops, and publishes a state, when a vehicle is idle between
+false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``idle_stops``
+(true: the shop also stops, and publishes a state, when a vehicle is idle between
 decisions, so a ``ppo+lookahead`` agent can pre-position it; default false), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
 schedule JSON and the final instance including accepted orders; '' = none).
 
@@ -163,8 +164,13 @@ class ShopNode(FmsNode):
         features = param(n, "features", True)
         history = param(n, "history", False)
         idle_stops = param(n, "idle_stops", False)
+        decisions = param(n, "decisions", "paper")
         self.schedule_out = param(n, "schedule_out", "")
         self.instance_out = param(n, "instance_out", "")
+        from .full_shop import DECISIONS
+
+        if decisions not in DECISIONS:
+            raise StartupError(f"parameter 'decisions' must be one of {', '.join(DECISIONS)}, got {decisions!r}")
         if not spec:
             raise StartupError("parameter 'instance' is required (a built-in name such as EX12, or a file): "
                                "--ros-args -p instance:=EX12")
@@ -174,7 +180,7 @@ class ShopNode(FmsNode):
         except (InstanceError, OSError) as exc:
             raise StartupError(str(exc).splitlines()[0]) from None
         self.service = ShopService(inst, run_id=run_id or None, features=features, history=history,
-                                   idle_stops=idle_stops)
+                                   idle_stops=idle_stops, decisions=decisions)
         self.io = TopicIO(n, ["state", "event", "schedule", "error"])
         self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
         self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))

@@ -14,6 +14,9 @@ rclpy:
   agent that needs the whole shop (the PPO policy) replays it into its own twin of the shop, started from the
   same instance; the net is deterministic, so the twin reaches the same state. The agent keeps no state of
   its own across restarts: the latched state is all it needs.
+* **Decisions** (``decisions="paper"`` by default, or ``"full"``): the net the shop runs and whose action
+  labels the states carry (docs/semantics.md); every state names it in ``decisions``. On the full net idle
+  stops come before the decisions of the same moment, once per idle period of a vehicle.
 * **Idle stops** (opt-in, ``idle_stops=True``, for an agent that pre-positions vehicles: ``ppo+lookahead``).
   The run is driven by a :class:`~fms_sim.stepping.Stepper`, which also stops when no decision is due but an
   idle AGV or tool transporter has not been offered since the last decision. Such a state enables no action
@@ -52,6 +55,7 @@ from fms_msgs_json import (
 
 from .instance import Instance, InstanceError, Operation
 from .petri import InvalidAction
+from .full_shop import make_shop
 from .schedule import Schedule
 from .shop import Shop
 from .stepping import Stepper, parse_moves
@@ -121,13 +125,13 @@ def shop_features(shop: Shop, table: _JobTable | None = None) -> dict[str, Any]:
     }
     req = shop.awaiting_agv()
     if req is not None:
-        j, k, pickup, machine, _ = req
+        j, k, pickup, machine = req[:4]
         travel = inst.agv_travel
         out["agv_request"] = {"job": j, "op": k, "pickup": pickup, "to": machine,
                               "empty_travel": [travel[loc][pickup] for loc in shop.agv_loc]}
     treq = shop.awaiting_transporter()
     if treq is not None:
-        tool, tloc, j, k, machine, _ = treq
+        tool, tloc, j, k, machine = treq[:5]
         travel = inst.tool_travel
         out["tt_request"] = {"tool": tool, "job": j, "op": k, "pickup": tloc, "to": machine,
                              "empty_travel": [travel[loc][tloc] for loc in shop.tt_loc]}
@@ -186,8 +190,8 @@ class ShopService:
 
     def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
                  features: bool = True, history: bool = False, idle_stops: bool = False,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
-        self.shop = Shop(instance)
+                 clock: Callable[[], float] = time.perf_counter, decisions: str = "paper") -> None:
+        self.shop = make_shop(instance, decisions)
         self.stepper = Stepper(self.shop, idle_stops=idle_stops)
         self.stepper.advance()
         self.run_id = run_id or new_run_id(instance.name)
@@ -375,11 +379,12 @@ class ShopService:
         done = shop.done
         features = shop_features(shop, self._table) if self.with_features and not done else None
         self.state = make_state(self.run_id, self.state_seq, shop.now, shop.net.marking(), shop.action_labels(),
-                                shop.action_mask() if not done else [False] * shop.n_actions, done,
+                                self.stepper.mask(), done,
                                 instance=shop.instance.name, makespan=shop.makespan if done else None,
                                 features=features, idle=self._idle_offer())
         if self.with_history and not done:  # added after make_state's check; the schema (history) allows it
             self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
+        self.state["decisions"] = shop.decisions  # an extra field (allowed): the net the labels belong to
         return self.state
 
     def _idle_offer(self) -> list[dict[str, Any]] | None:

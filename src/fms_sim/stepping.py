@@ -116,6 +116,13 @@ class Stepper:
             self.shop.restore_state(state)
             self.looked, self.kind, self.idle, self.idle_stops = saved
 
+    def mask(self) -> list[bool]:
+        """The actions this stop offers: the shop's mask at a decision, none at an idle stop or the end (on the
+        full net an idle stop can come while actions are enabled; they are offered at the next stop)."""
+        if self.kind == "decision":
+            return self.shop.action_mask()
+        return [False] * self.shop.n_actions
+
     def idle_vehicles(self) -> list[Move]:
         shop = self.shop
         out = [Move("agv", v, loc) for v, loc in shop.idle_agvs()]
