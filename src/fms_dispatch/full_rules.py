@@ -18,8 +18,9 @@ before the AGV could get there; when nothing of that is left it holds.
 
 Solvers: ``rule:JOB+VEHICLE[+TOOL]`` with ``decisions="full"``; ``list`` — the earliest-start list schedule
 (:func:`fms_dispatch.exact.greedy_schedule`) executed through the full net by replay, a strong baseline that
-decides through the net; ``rules`` (or ``rules:full``) — the best of every full-net rule combination and
-``list`` on the instance; ``rules:paper`` — the best of the paper net's 36 rule pairs.
+decides through the net, and ``list:ect`` / ``list:<JOB RULE>`` (earliest completion; operations in a job
+rule's order); ``rules`` (or ``rules:full``) — the best of every full-net rule combination and every list
+order on the instance; ``rules:paper`` — the best of the paper net's 36 rule pairs.
 """
 
 from __future__ import annotations
@@ -240,12 +241,46 @@ def parse_full_rule(name: str) -> FullRulePolicy:
     return FullRulePolicy(job or "FIFO", vehicle or "first", tool or "fifo")
 
 
-def solve_list(instance: Instance, **_: Any) -> Schedule:
-    """The earliest-start list schedule, executed through the full-decision net (replay)."""
+#: list-scheduling variants: ``list`` (earliest start), ``list:ect`` (earliest completion), ``list:<JOB RULE>``
+LIST_ORDERS = ("est", "ect") + tuple(JOB_RULES)
+
+
+def list_names() -> list[str]:
+    """Every list-scheduling solver name: ``list``, ``list:ect`` and ``list:<JOB RULE>`` for the 12 job rules."""
+    return ["list", "list:ect"] + [f"list:{r}" for r in JOB_RULES]
+
+
+def _static_priority(instance: Instance, rule: str) -> dict[tuple[int, int], float]:
+    """A job rule's key for each operation, as if it were its job's next one at time 0 (smaller first)."""
+    key = JOB_RULES[rule]
+
+    class _At:
+        def __init__(self, k: int) -> None:
+            self.instance, self.k = instance, k
+            self.job_entry = list(range(instance.n_jobs))
+            self.job_ready_since = [0] * instance.n_jobs
+
+        def next_op(self, job: int) -> int:
+            return self.k
+
+    return {(j, k): key(_At(k), j) for j, job in enumerate(instance.jobs) for k in range(len(job))}
+
+
+def solve_list(instance: Instance, order: str = "est", **_: Any) -> Schedule:
+    """A list schedule (:func:`fms_dispatch.exact.greedy_schedule`), executed through the full-decision net by
+    replay: ``order`` ``est`` (earliest start, the default), ``ect`` (earliest completion) or a job rule (the
+    operations in the order of the rule's key, each as early as its resources allow)."""
     from .exact import greedy_schedule
 
-    s = replay(instance, greedy_schedule(instance, rule="est"))
-    s.meta["solver"] = "list"
+    up = order.upper()
+    if order.lower() in ("est", "ect"):
+        plan = greedy_schedule(instance, rule=order.lower())
+    elif up in JOB_RULES:
+        plan = greedy_schedule(instance, rule="guided", priority=_static_priority(instance, up))
+    else:
+        raise ValueError(f"unknown list order {order!r}; choose from {', '.join(LIST_ORDERS)}")
+    s = replay(instance, plan)
+    s.meta["solver"] = "list" if order.lower() == "est" else f"list:{order if order.lower() == 'ect' else up}"
     return s
 
 
@@ -259,7 +294,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     from .rules import all_rule_pairs, parse_rule_name
 
     if decisions == "full":
-        names = full_rule_names(instance) + ["list"]
+        names = full_rule_names(instance) + list_names()
     elif decisions == "paper":
         names = all_rule_pairs(include_nearest=True)
     else:
@@ -267,8 +302,8 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     best: Schedule | None = None
     t0 = last = time.perf_counter()
     for i, name in enumerate(names):
-        if name == "list":
-            s = solve_list(instance)
+        if name.startswith("list"):
+            s = solve_list(instance, name.partition(":")[2] or "est")
         elif decisions == "full":
             s = run_full(instance, parse_full_rule(name))
         else:

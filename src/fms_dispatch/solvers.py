@@ -4,8 +4,8 @@ Names: ``first`` (baseline: always the lowest enabled action), ``random`` (unifo
 seeded), ``rule:<JOB>+<first|least-work|nearest>[+<TOOL>]`` (see :mod:`fms_dispatch.rules`; a tool rule only
 on the full net, :mod:`fms_dispatch.full_rules`) — these three take ``decisions="paper"`` (the default here,
 which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the default of ``fms solve``) —,
-``list`` (the earliest-start list schedule executed through the full net), ``rules`` / ``rules:full`` (the
-best full-net rule combination or ``list``), ``rules:paper`` (the best of the paper net's 36 rule pairs),
+``list[:ect|:<JOB>]`` (a list schedule executed through the full net), ``rules`` / ``rules:full`` (the best
+full-net rule combination or list schedule), ``rules:paper`` (the best of the paper net's 36 rule pairs),
 ``plan:<SOLVER>[:SECONDS]`` (solve offline within SECONDS, then execute the plan through the full net),
 ``sos`` (symbiotic
 organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
@@ -114,7 +114,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list", "rules[:full|:paper]", "sos", "cpsat",
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]", "rules[:full|:paper]", "sos", "cpsat",
             "plan:<SOLVER>[:SECONDS]",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
@@ -128,10 +128,13 @@ def get_solver(name: str) -> Solver:
         return _random
     if low.startswith("rule:"):
         return _rule(name)
-    if low == "list":
-        from .full_rules import solve_list
+    if low == "list" or low.startswith("list:"):
+        from .full_rules import LIST_ORDERS, solve_list
 
-        return solve_list
+        order = name.partition(":")[2] or "est"
+        if order.lower() not in ("est", "ect") and order.upper() not in LIST_ORDERS:
+            raise UnknownSolver(f"unknown list order in {name!r}; use list, list:ect or list:<JOB RULE>")
+        return lambda inst, **kw: solve_list(inst, order)
     if low.startswith("plan:"):
         return plan_solver(name)
     if low in ("rules", "rules:full", "rules:paper"):
@@ -207,7 +210,7 @@ def plan_solver(name: str) -> Solver:
 def searches_time(method: str) -> bool:
     """Whether a solver takes a time limit (everything but rules, list, first and random)."""
     low = method.lower()
-    return not (low.startswith(("rule:", "rules")) or low in ("first", "random", "list"))
+    return not (low.startswith(("rule:", "rules", "list")) or low in ("first", "random"))
 
 
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:

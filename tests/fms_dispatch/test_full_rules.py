@@ -26,22 +26,33 @@ def test_tool_rules_decide_differently():
 
 def test_list_policy_through_the_net_is_the_list_schedule():
     from fms_dispatch.exact import greedy_schedule
+    from fms_dispatch.full_rules import _static_priority
 
     for name in ("EX12", "ra05", "sl00"):
         inst = builtin(name)
         s = solve(inst, "list")
         assert validate(inst, s) == [] and s.makespan <= greedy_schedule(inst, rule="est").makespan
+        s = solve(inst, "list:ect")
+        assert validate(inst, s) == [] and s.makespan <= greedy_schedule(inst, rule="ect").makespan
+        s = solve(inst, "list:mtwr")
+        guided = greedy_schedule(inst, rule="guided", priority=_static_priority(inst, "MTWR"))
+        assert validate(inst, s) == [] and s.makespan <= guided.makespan and s.meta["solver"] == "list:MTWR"
+    with pytest.raises(UnknownSolver, match="list order"):
+        solve(builtin("EX12"), "list:fastest")
 
 
 def test_rules_is_the_best_of_every_combination():
     inst = builtin("ra03")
     best = solve(inst, "rules")
     assert validate(inst, best) == []
+    from fms_dispatch.full_rules import list_names
+
     names = full_rule_names(inst)
-    assert len(names) == 12 * 3 * 4 and best.meta["combinations"] == len(names) + 1
-    spans = [run_full(inst, parse_full_rule(n)).makespan for n in names] + [solve(inst, "list").makespan]
+    lists = list_names()
+    assert len(names) == 12 * 3 * 4 and len(lists) == 14 and best.meta["combinations"] == len(names) + len(lists)
+    spans = [run_full(inst, parse_full_rule(n)).makespan for n in names] + [solve(inst, n).makespan for n in lists]
     assert best.makespan == min(spans)
-    assert best.meta["rule"] in names + ["list"]
+    assert best.meta["rule"] in names + lists
     assert len(full_rule_names(builtin("EX12"))) == 12 * 3  # no tools: the tool rule does not act
 
 
