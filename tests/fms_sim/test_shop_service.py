@@ -535,3 +535,31 @@ def test_idle_schema_is_strict() -> None:
                         (dict(st, mask=[True] + st["mask"][1:]), "either a decision or an idle stop")):
         with pytest.raises(MessageError, match=needle):
             decode(json.dumps(bad))
+
+
+def test_full_net_states_name_their_net_and_idle_stops_offer_no_action() -> None:
+    import random
+
+    from fms_msgs_json import make_command
+
+    inst = builtin("ra01")
+    paper = ShopService(inst, run_id="p")
+    paper.start()
+    assert paper.state["decisions"] == "paper"
+    svc = ShopService(inst, run_id="f", decisions="full", idle_stops=True, history=True)
+    svc.start()
+    rng = random.Random(2)
+    idle_seen = 0
+    while not svc.done:
+        st = svc.state
+        assert st["decisions"] == "full"
+        if st["idle"]:
+            idle_seen += 1
+            assert not any(st["mask"])
+            label = "wait"
+        else:
+            label = rng.choice([a for a, ok in zip(st["actions"], st["mask"]) if ok])
+        out = svc.handle_command(encode(make_command("f", st["seq"], label)))
+        assert not [o for o in out if o.topic == "fms/errors"]
+    assert idle_seen and validate(svc.instance, svc.final_schedule) == []
+    assert {"start:0", "tool:1", "use:0", "hold"} <= set(svc.state["actions"])
