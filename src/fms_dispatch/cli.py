@@ -95,14 +95,18 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
         print(f"gantt:    {save_gantt(sched, gantt, instance=inst)}")
 
 
+def _load_schedule(path: str) -> Schedule:
+    try:
+        return Schedule.load(path)
+    except OSError as exc:
+        raise CliError(f"cannot read schedule {path}: {exc.strerror}") from None
+
+
 def cmd_validate(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
     inst = load_from_args(a)
-    try:
-        sched = Schedule.load(a.schedule)
-    except OSError as exc:
-        raise CliError(f"cannot read schedule {a.schedule}: {exc.strerror}") from None
+    sched = _load_schedule(a.schedule)
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
     problems = validate(inst, sched)
@@ -119,10 +123,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
     from fms_sim.replay import ReplayError, replay
 
     inst = load_from_args(a)
-    try:
-        given = Schedule.load(a.schedule)
-    except OSError as exc:
-        raise CliError(f"cannot read schedule {a.schedule}: {exc.strerror}") from None
+    given = _load_schedule(a.schedule)
     try:
         out = replay(inst, given)
     except ReplayError as exc:

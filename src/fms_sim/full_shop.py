@@ -34,7 +34,7 @@ from __future__ import annotations
 import copy
 from functools import partial
 from .instance import Instance
-from .petri import Arc, InvalidAction, Output, Transition
+from .petri import Arc, InvalidAction, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, ToolTrip
 from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
 
@@ -168,12 +168,8 @@ class FullShop(Shop):
             net.put(self.p_agv_idle, (v, 0))
         for v in range(inst.n_agvs):
             # colour of trip tokens: (agv, job, op, pickup, machine)
-            net.add_transition(Transition(
-                name=f"select_agv[{v}]", label=f"agv:{v}", controllable=True, priority=_P_VEHICLE,
-                arcs=[Arc(self.p_awaiting_agv, "r", first=True), Arc(self.p_agv_idle, "a", key=v)],
-                outputs=[Output(self.p_agv_pick, lambda b: (b["a"][0],) + b["r"],
-                                delay=lambda b: T[b["a"][1]][b["r"][2]])],
-                on_fire=self._on_select_agv_full))
+            self._vehicle_choice("agv", v, self.p_awaiting_agv, self.p_agv_idle, self.p_agv_pick, T, 2,
+                                 self._on_select_agv_full)
             net.add_transition(Transition(
                 name=f"agv_load[{v}]", priority=_P_DONE,
                 arcs=[Arc(self.p_agv_pick, "e", key=v), Arc(self.p_parts, "p", key=lambda b: b["e"][1])],
@@ -186,6 +182,17 @@ class FullShop(Shop):
                          Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
                 on_fire=self._on_agv_unload))
         self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T, self._on_agv_reposition)
+
+    def _vehicle_choice(self, kind: str, v: int, waiting: Place, idle: Place, to_pickup: Place, travel,
+                        origin: int, on_fire) -> Transition:
+        """The controllable choice ``KIND:V`` of an idle vehicle for the request waiting in ``waiting``: it
+        deadheads from where it is to the request's field ``origin`` (a timed token in ``to_pickup``)."""
+        return self.net.add_transition(Transition(
+            name=f"select_{kind}[{v}]", label=f"{kind}:{v}", controllable=True, priority=_P_VEHICLE,
+            arcs=[Arc(waiting, "r", first=True), Arc(idle, "a", key=v)],
+            outputs=[Output(to_pickup, lambda b: (b["a"][0],) + b["r"],
+                            delay=lambda b: travel[b["a"][1]][b["r"][origin]])],
+            on_fire=on_fire))
 
     def _job_ok(self, j: int, b: dict) -> bool:
         k = self.disp_next[j]
@@ -321,12 +328,8 @@ class FullShop(Shop):
             net.wake_on_count(self.p_tt_idle, tr)  # requests that need a trip need an idle transporter
         # colour of trip tokens: (transporter, tool, tool_location, job, op, machine)
         for r in range(inst.n_tool_transporters):
-            net.add_transition(Transition(
-                name=f"select_tt[{r}]", label=f"tt:{r}", controllable=True, priority=_P_VEHICLE,
-                arcs=[Arc(self.p_awaiting_tt, "w", first=True), Arc(self.p_tt_idle, "a", key=r)],
-                outputs=[Output(self.p_tt_pick, lambda b: (b["a"][0],) + b["w"],
-                                delay=lambda b: TT[b["a"][1]][b["w"][1]])],
-                on_fire=self._on_select_tt_full))
+            self._vehicle_choice("tt", r, self.p_awaiting_tt, self.p_tt_idle, self.p_tt_pick, TT, 1,
+                                 self._on_select_tt_full)
             self.t_tt_load.append(net.add_transition(Transition(
                 name=f"tt_load[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_pick, "e", key=r)],
                 guard=self._tt_load_ok,
@@ -480,7 +483,7 @@ class FullShop(Shop):
 
     def _on_select_tt_full(self, b: dict, now: int) -> None:
         r, here = b["a"]
-        tool, tloc, _, _, _ = b["w"]
+        tool, tloc, _, _, _ = b["r"]
         t = self.instance.tool_travel[here][tloc]
         if here != tloc:
             self.rec.tt.append(ToolTrip(r, None, None, None, here, tloc, now, now + t, False))
