@@ -268,3 +268,20 @@ def test_full_action_space_layout_masks_and_a_valid_episode():
 def test_unknown_decisions_rejected():
     with pytest.raises(ValueError, match="unknown decisions"):
         ShopEnv(builtin("EX12"), decisions="fifo")
+
+
+def test_maskable_ppo_learns_on_the_full_action_space():
+    # the full net's env works with sb3-contrib's MaskablePPO end to end (a few hundred steps, then a
+    # deterministic masked episode that yields a valid schedule)
+    sb3c = pytest.importorskip("sb3_contrib")
+    inst = builtin("ra01")
+    env = ShopEnv(inst, decisions="full")
+    model = sb3c.MaskablePPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0, verbose=0)
+    model.learn(total_timesteps=128)
+    obs, info = env.reset(options={"instance": inst})
+    done = False
+    while not done:
+        action, _ = model.predict(obs, action_masks=env.action_masks(), deterministic=True)
+        obs, _, done, _, info = env.step(int(action))
+        assert not info.get("invalid_action")
+    assert validate(inst, env.shop.schedule()) == []
