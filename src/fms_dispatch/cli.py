@@ -61,6 +61,9 @@ def cmd_solve(a: argparse.Namespace) -> int:
         opts["time_limit"] = a.time_limit
     from .solvers import DECISION_SOLVERS
 
+    scenario = _scenario_from_args(a, inst)
+    if scenario is not None:
+        opts["scenario"] = scenario
     if a.solver.lower().startswith(DECISION_SOLVERS):
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
@@ -81,6 +84,23 @@ def cmd_solve(a: argparse.Namespace) -> int:
     print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s, valid)")
     _write_outputs(sched, inst, a.out, a.gantt)
     return 0
+
+
+def _scenario_from_args(a: argparse.Namespace, inst: Instance):  # -> Scenario | None
+    """The disruptions of ``--scenario FILE`` and ``--noise SPREAD`` (seeded by ``--seed``), checked against the
+    instance; None for an undisrupted run."""
+    from fms_sim.disruptions import Scenario
+
+    scenario = Scenario.load(a.scenario) if getattr(a, "scenario", None) else None
+    noise = getattr(a, "noise", None)
+    if noise is not None:
+        if noise < 0:
+            raise CliError("--noise must be >= 0")
+        base = scenario or Scenario()
+        scenario = Scenario(base.breakdowns, base.outages, noise, a.seed)
+    if scenario is not None:
+        scenario.check(inst)
+    return scenario
 
 
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
@@ -107,9 +127,10 @@ def cmd_validate(a: argparse.Namespace) -> int:
 
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
+    scenario = _scenario_from_args(a, inst)
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
-    problems = validate(inst, sched)
+    problems = validate(inst, sched, scenario)
     if problems:
         print(f"INVALID: {len(problems)} violation(s)")
         for p in problems:
@@ -176,7 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ppo: the lookahead without retrying rejected moves (several times faster on 50-100 "
                         "jobs, other schedules; never worse than plain ppo either)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
+    s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
+                   "vehicles out of service, noise); first, random, rule: and plan: solvers")
+    s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
+                   "time (sigma, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
     s.add_argument("--out", help="write the schedule JSON here")
     s.add_argument("--gantt", help="write a Gantt chart PNG here")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -185,6 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("validate", help="check a schedule file against an instance (exit 1 if infeasible)")
     add_instance_args(s)
     s.add_argument("schedule", help="schedule JSON file")
+    s.add_argument("--scenario", metavar="FILE", help="the disruptions of the run (default: the scenario the "
+                   "schedule records, if any)")
     s.set_defaults(fn=cmd_validate)
 
     s = sub.add_parser("replay", help="run a valid schedule's orders through the full-decision net (exit 2 if the "
@@ -232,7 +259,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         a.tools = a.machines
     try:
         return a.fn(a)
-    except (CliError, InstanceError, ScheduleError, ValueError) as exc:
+    except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"fms: error: {msg}", file=sys.stderr)
         return EXIT_BAD_INPUT

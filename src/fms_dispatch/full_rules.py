@@ -29,6 +29,7 @@ import sys
 import time
 from typing import Any, Callable
 
+from fms_sim.disruptions import Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.instance import Instance
 from fms_sim.replay import replay
@@ -55,9 +56,10 @@ class _OpView:
         return self._ops[job]
 
 
-def run_full(instance: Instance, choose: Callable[[FullShop], int]) -> Schedule:
-    """Run the full-decision net to completion, asking ``choose(shop)`` at every decision."""
-    shop = FullShop(instance)
+def run_full(instance: Instance, choose: Callable[[FullShop], int], scenario: Scenario | None = None) -> Schedule:
+    """Run the full-decision net to completion, asking ``choose(shop)`` at every decision (in a shop disrupted
+    by ``scenario``, if given)."""
+    shop = FullShop(instance, scenario=scenario)
     while not shop.done:
         shop.act(choose(shop))
     return shop.schedule()

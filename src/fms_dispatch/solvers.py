@@ -35,24 +35,29 @@ class UnknownSolver(ValueError):
     pass
 
 
-def _run(instance: Instance, choose: Callable[[Any], int], decisions: str) -> Schedule:
-    """Run ``choose`` through the paper's net or the full-decision one (:data:`fms_sim.full_shop.DECISIONS`)."""
+def _run(instance: Instance, choose: Callable[[Any], int], decisions: str, scenario: Any = None) -> Schedule:
+    """Run ``choose`` through the paper's net or the full-decision one (:data:`fms_sim.full_shop.DECISIONS`),
+    in a shop disrupted by ``scenario`` (full net only)."""
     if decisions == "paper":
+        if scenario is not None:
+            raise UnknownSolver("disruptions (--scenario, --noise) run on the full-decision net only "
+                                "(decisions='full')")
         return run_policy(instance, choose)
     if decisions == "full":
         from .full_rules import run_full
 
-        return run_full(instance, choose)
+        return run_full(instance, choose, scenario)
     raise UnknownSolver(f"unknown decisions {decisions!r}; choose from full, paper")
 
 
-def _first(instance: Instance, decisions: str = "paper", **_: Any) -> Schedule:
-    return _run(instance, lambda shop: shop.legal_actions()[0], decisions)
+def _first(instance: Instance, decisions: str = "paper", scenario: Any = None, **_: Any) -> Schedule:
+    return _run(instance, lambda shop: shop.legal_actions()[0], decisions, scenario)
 
 
-def _random(instance: Instance, seed: int = 0, decisions: str = "paper", **_: Any) -> Schedule:
+def _random(instance: Instance, seed: int = 0, decisions: str = "paper", scenario: Any = None,
+            **_: Any) -> Schedule:
     rng = random.Random(seed)
-    return _run(instance, lambda shop: rng.choice(shop.legal_actions()), decisions)
+    return _run(instance, lambda shop: rng.choice(shop.legal_actions()), decisions, scenario)
 
 
 def _rule(name: str) -> Solver:
@@ -65,11 +70,11 @@ def _rule(name: str) -> Solver:
     except ValueError as exc:
         raise UnknownSolver(str(exc)) from None
 
-    def solver(instance: Instance, decisions: str = "paper", **_: Any) -> Schedule:
+    def solver(instance: Instance, decisions: str = "paper", scenario: Any = None, **_: Any) -> Schedule:
         if decisions == "paper" and paper is None:
             raise UnknownSolver(f"{name!r} names a tool rule, which only the full-decision net has "
                                 "(decisions='full')")
-        s = _run(instance, paper if decisions == "paper" else full, decisions)
+        s = _run(instance, paper if decisions == "paper" else full, decisions, scenario)
         s.meta["solver"] = name
         return s
 
@@ -190,7 +195,7 @@ def plan_solver(name: str) -> Solver:
     when it follows the plan, never later than the plan."""
     base, seconds = parse_plan_name(name)
 
-    def solver(instance: Instance, time_limit: float | None = None, **kw: Any) -> Schedule:
+    def solver(instance: Instance, time_limit: float | None = None, scenario: Any = None, **kw: Any) -> Schedule:
         from fms_sim.replay import replay
 
         opts = dict(kw)
@@ -198,8 +203,8 @@ def plan_solver(name: str) -> Solver:
         budget = seconds if seconds is not None else time_limit
         if budget is not None and searches_time(base):
             opts["time_limit"] = budget
-        plan = solve(instance, base, **opts)
-        out = replay(instance, plan)
+        plan = solve(instance, base, **opts)  # on the nominal shop: disruptions are not known in advance
+        out = replay(instance, plan, scenario=scenario)
         out.meta.update(solver=name, plan_solver=base, plan_makespan=plan.makespan,
                         plan_wall_time=plan.meta.get("wall_time"), lower_bound=plan.meta.get("lower_bound"))
         return out
@@ -213,9 +218,24 @@ def searches_time(method: str) -> bool:
     return not (low.startswith(("rule:", "rules", "list")) or low in ("first", "random"))
 
 
+#: solvers that can run in a disrupted shop (option ``scenario``): online deciders on the full net, and plans
+#: executed without re-planning
+DISRUPTABLE = ("first", "random", "rule:", "plan:")
+
+
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
-    """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through."""
+    """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through.
+    ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
+    :data:`DISRUPTABLE`; the others refuse it."""
     fn = get_solver(solver)
+    scenario = options.get("scenario")
+    if scenario is not None and scenario.empty:
+        options = {k: v for k, v in options.items() if k != "scenario"}
+    elif scenario is not None:
+        if not solver.lower().startswith(DISRUPTABLE):
+            raise UnknownSolver(f"{solver} does not run in a disrupted shop; use first, random, rule: (full net) "
+                                "or plan:SOLVER (its plan executed under the disruptions)")
+        scenario.check(instance)
     t0 = time.perf_counter()
     s = fn(instance, **options)
     s.meta.setdefault("solver", solver)

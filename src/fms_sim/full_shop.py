@@ -32,10 +32,12 @@ use:0..n-1 | hold``; the first three blocks are the paper net's. Labels as shown
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 from functools import partial
+from .disruptions import Scenario
 from .instance import Instance
 from .petri import Arc, InvalidAction, Output, Place, Transition
-from .schedule import AgvTrip, OperationRecord, ToolTrip
+from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
 
 __all__ = ["FullShop", "DECISIONS", "make_shop", "HOLD"]
@@ -43,19 +45,24 @@ __all__ = ["FullShop", "DECISIONS", "make_shop", "HOLD"]
 #: the nets a decider can run on: the paper's (FIFO tools, ready-only dispatch, stamp-order starts) and ours
 DECISIONS = ("full", "paper")
 HOLD = "hold"
+_P_DISRUPT = -1  # disruptions take effect before anything else happens at their time
 _P_USE = 4  # after tool:T, the request it serves comes before anything else (then the transporter, at 5)
 _KIND_ORDER = {"job": 0, "agv": 1, "tt": 2, "start": 3, "tool": 4, "use": 5}
 
 #: state kept beside the marking (copied by save_state, hashed by state_key)
 _FULL_STATE = ("disp_next", "started", "m_idle", "buf_at", "tool_ready_for", "tool_user", "tool_running",
-               "tool_next", "treq", "treq_at", "tool_choice", "tt_waiting", "_use_cands")
+               "tool_next", "treq", "treq_at", "tool_choice", "tt_waiting", "_use_cands", "m_down", "out", "_trips",
+               "_running_rec")
 
 
-def make_shop(instance: Instance, decisions: str = "full") -> Shop:
-    """A runnable shop net for ``instance`` with the paper's decisions or the full ones (see :data:`DECISIONS`)."""
+def make_shop(instance: Instance, decisions: str = "full", scenario: Scenario | None = None) -> Shop:
+    """A runnable shop net for ``instance`` with the paper's decisions or the full ones (see :data:`DECISIONS`);
+    ``scenario`` (breakdowns, outages, noise) needs the full one."""
     if decisions == "full":
-        return FullShop(instance)
+        return FullShop(instance, scenario=scenario)
     if decisions == "paper":
+        if scenario is not None and not scenario.empty:
+            raise ValueError("disruptions (a scenario or noise) run on the full-decision net only")
         return Shop(instance)
     raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")
 
@@ -65,6 +72,12 @@ class FullShop(Shop):
     ``hold`` action (the last index)."""
 
     decisions = "full"
+
+    def __init__(self, instance: Instance, *, incremental: bool = True, scenario: Scenario | None = None):
+        if scenario is not None:
+            scenario.check(instance)
+        self.scenario = scenario if scenario is not None and not scenario.empty else None
+        super().__init__(instance, incremental=incremental)
 
     # ------------------------------------------------------------------ building
     def _build(self) -> None:
@@ -90,6 +103,12 @@ class FullShop(Shop):
         self.tool_choice: int | None = None
         self.tt_waiting: list[int | None] = [None] * nt
         self._use_cands: list[int] = []
+        self.m_down = [False] * (M + 1)                      # machines broken down now
+        self.out = {"agv": [False] * self.n_agvs, "tt": [False] * self.n_tts}  # vehicles out of service now
+        self._trips = {"agv": [0] * self.n_agvs, "tt": [0] * self.n_tts}      # legs driven (noise draws)
+        self._last_leg: dict[tuple[str, int], int] = {}      # the time of the leg a vehicle just began
+        self._running_rec: list[int] = [-1] * (M + 1)          # rec.ops index of the operation on each machine
+        self.t_select: dict[tuple[str, int], Transition] = {}
         self._tool_ops: list[list[tuple[int, int]]] = []
         self._danger_cache: dict[int, set[tuple[int, int]]] = {}  # per job: (op, tool) of its operations with a tool
         self.t_job: list[Transition] = []
@@ -104,6 +123,7 @@ class FullShop(Shop):
         for j in range(n):
             self._add_job(j)
         self._machines_block_full()
+        self._disruptions_block()
         self._order_actions()
 
     def _next_transport(self, j: int, k: int) -> int:
@@ -131,6 +151,8 @@ class FullShop(Shop):
                 guard=partial(self._job_ok, j), outputs=[Output(self.p_awaiting_agv, partial(self._request_of, j))],
                 on_fire=partial(self._on_job, j)))
             self.t_job.append(t)
+            if self.scenario is not None and any(o.kind == "agv" for o in self.scenario.outages):
+                net.wake_on_change(self.p_agv_idle, t)  # see _disruptions_block
             net.add_transition(Transition(
                 name=f"stay[{j}]", priority=_P_ALLOC, arcs=[Arc(self.p_parts, "p", key=j)],
                 guard=self._stays, outputs=[Output(self.p_buffer, self._to_buffer)], on_fire=self._on_buffered))
@@ -173,30 +195,65 @@ class FullShop(Shop):
             net.add_transition(Transition(
                 name=f"agv_load[{v}]", priority=_P_DONE,
                 arcs=[Arc(self.p_agv_pick, "e", key=v), Arc(self.p_parts, "p", key=lambda b: b["e"][1])],
-                guard=lambda b: b["p"][1] == b["e"][2],
-                outputs=[Output(self.p_agv_drop, lambda b: b["e"], delay=lambda b: T[b["e"][3]][b["e"][4]])],
+                guard=self._agv_load_ok,
+                outputs=[Output(self.p_agv_drop, lambda b: b["e"], delay=partial(self._loaded_leg, "agv", 3, 4))],
                 on_fire=self._on_agv_load))
             net.add_transition(Transition(
                 name=f"agv_unload[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_drop, "l", key=v)],
                 outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4])),
                          Output(self.p_agv_idle, lambda b: (b["l"][0], b["l"][4]))],
                 on_fire=self._on_agv_unload))
-        self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T, self._on_agv_reposition)
+        self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T,
+                                                   partial(self._on_reposition_full, "agv"),
+                                                   partial(self._reposition_leg, "agv"))
 
     def _vehicle_choice(self, kind: str, v: int, waiting: Place, idle: Place, to_pickup: Place, travel,
                         origin: int, on_fire) -> Transition:
         """The controllable choice ``KIND:V`` of an idle vehicle for the request waiting in ``waiting``: it
         deadheads from where it is to the request's field ``origin`` (a timed token in ``to_pickup``)."""
-        return self.net.add_transition(Transition(
+        t = self.net.add_transition(Transition(
             name=f"select_{kind}[{v}]", label=f"{kind}:{v}", controllable=True, priority=_P_VEHICLE,
-            arcs=[Arc(waiting, "r", first=True), Arc(idle, "a", key=v)],
+            arcs=[Arc(waiting, "r", first=True), Arc(idle, "a", key=v)], guard=partial(self._serving, kind, v),
             outputs=[Output(to_pickup, lambda b: (b["a"][0],) + b["r"],
-                            delay=lambda b: travel[b["a"][1]][b["r"][origin]])],
+                            delay=partial(self._leg_to, kind, origin))],
             on_fire=on_fire))
+        self.t_select[kind, v] = t
+        return t
+
+    def _serving(self, kind: str, v: int, b: dict) -> bool:
+        return not self.out[kind][v]
+
+    def _leg(self, kind: str, v: int, a: int, z: int) -> int:
+        """The time of the leg ``a -> z`` that vehicle ``v`` of ``kind`` begins now (noise drawn per leg)."""
+        travel = self.instance.agv_travel if kind == "agv" else self.instance.tool_travel
+        t = travel[a][z]
+        if a != z and self.scenario is not None:
+            n = self._trips[kind][v]
+            self._trips[kind][v] = n + 1
+            t = self.scenario.trip_time(kind, v, n, t)
+        self._last_leg[kind, v] = t
+        return t
+
+    def _leg_to(self, kind: str, origin: int, b: dict) -> int:
+        return self._leg(kind, b["a"][0], b["a"][1], b["r"][origin])
+
+    def _loaded_leg(self, kind: str, a: int, z: int, b: dict) -> int:
+        e = b["e"]
+        return self._leg(kind, e[0], e[a], e[z])
+
+    def _reposition_leg(self, kind: str, b: dict) -> int:
+        return self._leg(kind, b["a"][0], b["a"][1], b["o"][1])
 
     def _job_ok(self, j: int, b: dict) -> bool:
         k = self.disp_next[j]
-        return k < len(self._jobs[j]) and self.started[j] >= k
+        return k < len(self._jobs[j]) and self.started[j] >= k and self._in_service("agv", self.p_agv_idle)
+
+    def _in_service(self, kind: str, idle: Place) -> bool:
+        """Some vehicle of ``kind`` is idle and not out of service."""
+        if not self.scenario:
+            return idle.count > 0
+        out = self.out[kind]
+        return any(not out[c[0]] for c in idle.colours())
 
     def _request_of(self, j: int, b: dict) -> tuple:
         k = self.disp_next[j]
@@ -210,10 +267,29 @@ class FullShop(Shop):
         self.pending_job = j
         self.net.touch(self.t_job[j])
 
+    def _agv_load_ok(self, b: dict) -> bool:
+        return b["p"][1] == b["e"][2] and not self.out["agv"][b["e"][0]]
+
+    def _on_reposition_full(self, kind: str, b: dict, now: int) -> None:
+        v, here = b["a"]
+        dest = b["o"][1]
+        t = self._last_leg[kind, v]
+        agv = kind == "agv"
+        if here != dest:
+            if agv:
+                self.rec.agv.append(AgvTrip(v, None, None, here, dest, now, now + t, False))
+            else:
+                self.rec.tt.append(ToolTrip(v, None, None, None, here, dest, now, now + t, False))
+        work, loc, free = ((self.agv_work, self.agv_loc, self.agv_free_at) if agv
+                           else (self.tt_work, self.tt_loc, self.tt_free_at))
+        work[v] += t
+        loc[v] = dest
+        free[v] = now + t
+
     def _on_select_agv_full(self, b: dict, now: int) -> None:
         v, here = b["a"]
         pickup = b["r"][2]
-        t = self.instance.agv_travel[here][pickup]
+        t = self._last_leg["agv", v]
         if here != pickup:
             self.rec.agv.append(AgvTrip(v, None, None, here, pickup, now, now + t, False))
         self.agv_work[v] += t
@@ -223,7 +299,7 @@ class FullShop(Shop):
 
     def _on_agv_load(self, b: dict, now: int) -> None:
         v, j, k, pickup, m = b["e"]
-        t = self.instance.agv_travel[pickup][m]
+        t = self._last_leg["agv", v]
         self.rec.agv.append(AgvTrip(v, j, k, pickup, m, now, now + t, True))
         self.agv_work[v] += t
         self.agv_loc[v] = m
@@ -263,9 +339,14 @@ class FullShop(Shop):
         j, k, m = b["q"]
         return (j, k, m, self._jobs[j][k].tool if self.instance.has_tools else None)
 
+    def _duration(self, b: dict) -> int:
+        j, k, _ = b["q"]
+        nominal = self._jobs[j][k].duration
+        return self.scenario.op_duration(j, k, nominal) if self.scenario is not None else nominal
+
     def _start_ok(self, b: dict) -> bool:
         j, k, m = b["q"]
-        if not self.m_idle[m]:
+        if not self.m_idle[m] or self.m_down[m]:
             return False
         return not self.instance.has_tools or self._jobs[j][k].tool is None or (j, k) in self.tool_ready_for
 
@@ -273,8 +354,10 @@ class FullShop(Shop):
         j, k, m = b["q"]
         op = self._jobs[j][k]
         tool = op.tool if self.instance.has_tools else None
-        self.rec.ops.append(OperationRecord(j, k, m, tool, now, now + op.duration))
-        self.machine_busy_until[m] = now + op.duration
+        d = self._duration(b)
+        self._running_rec[m] = len(self.rec.ops)
+        self.rec.ops.append(OperationRecord(j, k, m, tool, now, now + d))
+        self.machine_busy_until[m] = now + d
         self.m_idle[m] = False
         self.buf_at[m].discard(j)
         self._touch_starts(m)
@@ -288,6 +371,7 @@ class FullShop(Shop):
 
     def _on_end_full(self, b: dict, now: int) -> None:
         j, k, m, tool = b["x"]
+        self._running_rec[m] = -1
         self.job_done_ops[j] = k + 1
         self.job_ready_since[j] = now
         if now > self.makespan:
@@ -304,6 +388,61 @@ class FullShop(Shop):
                 elif self.tt_waiting[tool] is not None:
                     self.net.touch(self.t_tt_load[self.tt_waiting[tool]])
             self._touch_tools()
+
+    # disruptions ---------------------------------------------------------
+    def _disruptions_block(self) -> None:
+        """Breakdowns and outages of the scenario as timed tokens: each takes effect when its time comes (no
+        decider knows of it before) and a second token ends it."""
+        net = self.net
+        self.p_disrupt = net.add_place("disruptions")
+        # before anything else of the same moment: a vehicle out from t starts no trip at t
+        net.add_transition(Transition(name="disruption", priority=_P_DISRUPT, arcs=[Arc(self.p_disrupt, "d")],
+                                      on_fire=self._on_disruption))
+        if self.scenario is None:
+            return
+        # with vehicles out of service, "an idle vehicle in service" can change without the idle count turning
+        # empty: the guards that ask for one read every change of the idle place
+        kinds = {o.kind for o in self.scenario.outages}  # (job transitions: see _add_job)
+        if "tt" in kinds:
+            for t in self.t_tool:
+                net.wake_on_change(self.p_tt_idle, t)
+        for b in self.scenario.breakdowns:
+            net.put(self.p_disrupt, ("down", b.machine, b.duration), delay=b.start)
+        for o in self.scenario.outages:
+            net.put(self.p_disrupt, ("out", o.kind, o.vehicle, o.duration), delay=o.start)
+
+    def _on_disruption(self, b: dict, now: int) -> None:
+        d = b["d"]
+        if d[0] == "down":
+            _, m, dur = d
+            self.m_down[m] = True
+            i = self._running_rec[m]
+            if i >= 0 and self.rec.ops[i].end > now:  # the operation on the machine is suspended until the repair
+                rec = self.rec.ops[i]
+                self.rec.ops[i] = replace(rec, end=rec.end + dur)
+                self.machine_busy_until[m] += dur
+                self.net.postpone(self.p_busy, m, dur)
+            self.net.put(self.p_disrupt, ("up", m), delay=dur)
+            self._touch_starts(m)
+        elif d[0] == "up":
+            self.m_down[d[1]] = False
+            self._touch_starts(d[1])
+        else:
+            kind, v = d[1], d[2]
+            self.out[kind][v] = d[0] == "out"
+            if d[0] == "out":
+                self.net.put(self.p_disrupt, ("back", kind, v), delay=d[3])
+            touch = self.net.touch
+            touch(self.t_select[kind, v])
+            if kind == "agv":
+                for t in self.t_job:
+                    touch(t)
+            else:
+                self._touch_tools()
+                touch(self.t_tt_load[v])
+            for t in self.net.transitions:  # a committed vehicle waiting to load
+                if t.name == f"{kind}_load[{v}]":
+                    touch(t)
 
     def _touch_starts(self, m: int) -> None:
         t_start, touch = self.t_start, self.net.touch
@@ -333,13 +472,14 @@ class FullShop(Shop):
             self.t_tt_load.append(net.add_transition(Transition(
                 name=f"tt_load[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_pick, "e", key=r)],
                 guard=self._tt_load_ok,
-                outputs=[Output(self.p_tt_drop, lambda b: b["e"], delay=lambda b: TT[b["e"][2]][b["e"][5]])],
+                outputs=[Output(self.p_tt_drop, lambda b: b["e"], delay=partial(self._loaded_leg, "tt", 2, 5))],
                 on_fire=self._on_tt_load)))
             net.add_transition(Transition(
                 name=f"tt_unload[{r}]", priority=_P_DONE, arcs=[Arc(self.p_tt_drop, "l", key=r)],
                 outputs=[Output(self.p_tt_idle, lambda b: (b["l"][0], b["l"][5]))], on_fire=self._on_tt_unload))
         self.p_tt_orders = self._reposition_block("tt", self.p_tt_idle, inst.n_tool_transporters, TT,
-                                                  self._on_tt_reposition)
+                                                  partial(self._on_reposition_full, "tt"),
+                                                  partial(self._reposition_leg, "tt"))
 
     def _servable(self, t: int) -> bool:
         """Tool t may take up a new request: it is free, or in use by a running operation with none queued."""
@@ -353,7 +493,7 @@ class FullShop(Shop):
         if not ks:
             return False
         k = ks[0]
-        if self.tool_loc[t] != self._jobs[j][k].machine and not self.p_tt_idle.count:
+        if self.tool_loc[t] != self._jobs[j][k].machine and not self._in_service("tt", self.p_tt_idle):
             return False
         return self._safe(t, (j, k))
 
@@ -361,7 +501,8 @@ class FullShop(Shop):
         if self.tool_choice is not None or not self.treq[t] or not self._servable(t):
             return False
         # without an idle transporter only requests on the machine where the tool is can be served
-        cands = self.treq[t] if self.p_tt_idle.count else self.treq_at[t].get(self.tool_loc[t], ())
+        cands = (self.treq[t] if self._in_service("tt", self.p_tt_idle)
+                 else self.treq_at[t].get(self.tool_loc[t], ()))
         return any(self._candidate(t, j) for j in cands)
 
     def _use_ok(self, j: int, b: dict) -> bool:
@@ -484,7 +625,7 @@ class FullShop(Shop):
     def _on_select_tt_full(self, b: dict, now: int) -> None:
         r, here = b["a"]
         tool, tloc, _, _, _ = b["r"]
-        t = self.instance.tool_travel[here][tloc]
+        t = self._last_leg["tt", r]
         if here != tloc:
             self.rec.tt.append(ToolTrip(r, None, None, None, here, tloc, now, now + t, False))
         self.tt_work[r] += t
@@ -493,12 +634,12 @@ class FullShop(Shop):
         self.tt_waiting[tool] = r
 
     def _tt_load_ok(self, b: dict) -> bool:
-        _, tool, _, j, k, _ = b["e"]
-        return self.tool_user[tool] == (j, k) and not self.tool_running[tool]
+        r, tool, _, j, k, _ = b["e"]
+        return self.tool_user[tool] == (j, k) and not self.tool_running[tool] and not self.out["tt"][r]
 
     def _on_tt_load(self, b: dict, now: int) -> None:
         r, tool, src, j, k, m = b["e"]
-        t = self.instance.tool_travel[src][m]
+        t = self._last_leg["tt", r]
         self.rec.tt.append(ToolTrip(r, tool, j, k, src, m, now, now + t, True))
         self.tt_work[r] += t
         self.tt_loc[r] = m
@@ -579,6 +720,27 @@ class FullShop(Shop):
         self._touch_tools()  # new requests for the tools
 
     # ------------------------------------------------------------------ introspection
+    def idle_agvs(self) -> list[tuple[int, int]]:
+        """Idle AGVs in service (out-of-service ones cannot be sent anywhere)."""
+        return [c for c in super().idle_agvs() if not self.out["agv"][c[0]]]
+
+    def idle_transporters(self) -> list[tuple[int, int]]:
+        return [c for c in super().idle_transporters() if not self.out["tt"][c[0]]]
+
+    def check_reposition(self, kind: str, vehicle: int, location: int) -> None:
+        super().check_reposition(kind, vehicle, location)
+        if self.out[kind][vehicle]:
+            what = "AGV" if kind == "agv" else "tool transporter"
+            raise InvalidAction(f"{what} {vehicle} is out of service at time {self.now}")
+
+    def schedule(self) -> Schedule:
+        """The schedule; a disrupted run records its scenario in ``meta["scenario"]``, which the validator
+        checks the realised times against."""
+        out = super().schedule()
+        if self.scenario is not None:
+            out.meta["scenario"] = self.scenario.to_dict()
+        return out
+
     def next_op(self, job: int) -> int:
         """Index of the next operation of ``job`` that needs a dispatch decision (== number of ops if none)."""
         return self.disp_next[job]

@@ -318,9 +318,29 @@ class Net:
         state kept outside the marking (counters, reservations) calls this when that state changes."""
         self._mark(t)
 
+    def wake_on_change(self, place: Place, t: Transition) -> None:
+        """Wake ``t`` whenever any token enters or leaves ``place`` (a guard that reads the place's tokens)."""
+        place._all_listeners.append(t)
+
     def wake_on_count(self, place: Place, t: Transition) -> None:
         """Wake ``t`` whenever ``place`` turns empty or non-empty (for a guard that reads only its count)."""
         place._count_listeners.append(t)
+
+    def postpone(self, place: Place, key: Hashable, delta: int) -> int:
+        """Delay every sojourning token of ``place`` in bucket ``key`` by ``delta`` (a timed activity that is
+        suspended, e.g. an operation on a machine that breaks down); returns how many were delayed."""
+        hit = 0
+        entries = []
+        for ready, seq, p, tok in self._pending:
+            if p is place and tok.key == key:
+                tok = Token(tok.colour, tok.key, ready + delta)
+                ready += delta
+                hit += 1
+            entries.append((ready, seq, p, tok))
+        if hit:
+            heapq.heapify(entries)
+            self._pending = entries
+        return hit
 
     def take(self, place: Place, key: Hashable) -> Any:
         """Remove and return the colour of the oldest available token of ``place`` in bucket ``key`` (a

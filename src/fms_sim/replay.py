@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import defaultdict, deque
 from typing import Deque
 
+from .disruptions import Scenario
 from .full_shop import HOLD, FullShop
 from .instance import Instance
 from .petri import InvalidAction
@@ -188,8 +189,12 @@ class PlanPolicy:
         return None
 
 
-def replay(instance: Instance, schedule: Schedule, *, check: bool = True) -> Schedule:
+def replay(instance: Instance, schedule: Schedule, *, check: bool = True,
+           scenario: Scenario | None = None) -> Schedule:
     """Run ``schedule``'s orders through the full-decision net and return the schedule the net makes.
+
+    With a ``scenario`` (breakdowns, outages, noise) the orders are kept and the times shift: the plan executed
+    in a disrupted shop without re-planning (its makespan may then exceed the plan's).
 
     Raises :class:`ReplayError` if ``schedule`` is not valid for ``instance`` (with the validator's first
     errors; nothing is run) or, with ``check``, if the replayed schedule were not valid (never for a valid input;
@@ -198,7 +203,7 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True) -> Sch
     if problems:
         head = "; ".join(problems[:5]) + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else "")
         raise ReplayError(f"the schedule is not valid for {instance.name}: {head}", problems)
-    shop = FullShop(instance)
+    shop = FullShop(instance, scenario=scenario)
     policy = PlanPolicy(instance, schedule)
     stepper = Stepper(shop, idle_stops=True)
     stepper.advance()

@@ -219,17 +219,20 @@ class Shop:
         gate = [Arc(self.p_agv_idle, kind="test", count_only=True)]
         return gate, [Output(self.p_awaiting_agv, self._request)]
 
-    def _reposition_block(self, kind: str, idle: Place, n: int, travel, on_fire) -> Place:
+    def _reposition_block(self, kind: str, idle: Place, n: int, travel, on_fire, delay=None) -> Place:
         """Pre-positioning module for one fleet: an order ``(vehicle, location)`` in the returned place sends
-        that idle vehicle empty to the location (a timed trip); it is idle again on arrival."""
+        that idle vehicle empty to the location (a timed trip); it is idle again on arrival. ``delay(binding)``
+        replaces the travel matrix's time where trips take other times (a disrupted run)."""
         net = self.net
+        if delay is None:
+            delay = lambda b: travel[b["a"][1]][b["o"][1]]  # noqa: E731
         orders = net.add_place(f"{kind}_orders", key=lambda c: c[0])
         moving = net.add_place(f"{kind}_repositioning", key=lambda c: c[0])
         for v in range(n):
             net.add_transition(Transition(
                 name=f"{kind}_reposition[{v}]", priority=_P_ALLOC,
                 arcs=[Arc(orders, "o", key=v), Arc(idle, "a", key=v)],
-                outputs=[Output(moving, lambda b: b["o"], delay=lambda b: travel[b["a"][1]][b["o"][1]])],
+                outputs=[Output(moving, lambda b: b["o"], delay=delay)],
                 on_fire=on_fire,
             ))
             net.add_transition(Transition(

@@ -14,7 +14,11 @@ project's semantic contract, without using the Petri net, and reports *every* vi
 * every tool starts in the magazine, is at the machine of each operation that uses it from start to end,
   moves only on loaded tool-transporter trips that start after its previous use ended, and each transporter
   route is continuous with exact ``tool_travel`` legs;
-* ``makespan`` equals the latest operation end.
+* ``makespan`` equals the latest operation end;
+* with disruptions (a :class:`~fms_sim.disruptions.Scenario`, given or recorded in ``meta["scenario"]``): each
+  operation lasts its realised duration (noise) plus every breakdown of its machine that began while it ran,
+  none starts while its machine is down, each trip lasts its realised travel time, and no vehicle starts a trip
+  while out of service. The realised times are recomputed from the scenario's seed, not read from the run.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 from collections import defaultdict
 from typing import Iterable
 
+from .disruptions import Scenario, ScenarioError
 from .instance import Instance
 from .schedule import Schedule
 
@@ -38,24 +43,37 @@ class ScheduleInvalid(ValueError):
         super().__init__(f"{len(violations)} violation(s): {head}{more}")
 
 
-def check(instance: Instance, schedule: Schedule) -> None:
+def check(instance: Instance, schedule: Schedule, scenario: Scenario | None = None) -> None:
     """Raise :class:`ScheduleInvalid` unless ``schedule`` is feasible for ``instance``."""
-    v = validate(instance, schedule)
+    v = validate(instance, schedule, scenario)
     if v:
         raise ScheduleInvalid(v)
 
 
-def validate(instance: Instance, schedule: Schedule) -> list[str]:
-    """Every violation of the contract, as human-readable lines; an empty list means feasible."""
+def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None = None) -> list[str]:
+    """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
+    (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
     errs: list[str] = []
-    ops = _check_operations(instance, schedule, errs)
+    if scenario is None and isinstance(schedule.meta.get("scenario"), dict):
+        try:
+            scenario = Scenario.from_dict(schedule.meta["scenario"])
+        except ScenarioError as exc:
+            return [f"the schedule's recorded scenario is malformed: {exc}"]
+    if scenario is not None:
+        try:
+            scenario.check(instance)
+        except ScenarioError as exc:
+            return [f"the scenario does not fit the instance: {exc}"]
+        if scenario.empty:
+            scenario = None
+    ops = _check_operations(instance, schedule, errs, scenario)
     if ops is None:
         return errs
     _check_machines(schedule, errs)
     if instance.has_agvs:
         _check_parts_with_agvs(instance, schedule, ops, errs)
         _check_routes("AGV", "agv", instance.agv_travel, schedule.n_agvs, instance.n_agvs,
-                      [(t.agv, t.from_, t.to, t.start, t.end) for t in schedule.agv_trips], errs)
+                      [(t.agv, t.from_, t.to, t.start, t.end) for t in schedule.agv_trips], errs, scenario)
     else:
         if schedule.agv_trips:
             errs.append("schedule has AGV trips but the instance has no AGVs")
@@ -68,7 +86,7 @@ def validate(instance: Instance, schedule: Schedule) -> list[str]:
         _check_tools(instance, schedule, ops, errs)
         _check_routes("tool transporter", "transporter", instance.tool_travel, schedule.n_tool_transporters,
                       instance.n_tool_transporters,
-                      [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs)
+                      [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs, scenario)
     elif schedule.tool_trips:
         errs.append("schedule has tool trips but the instance has no tools")
     ends = [e for (_, e) in ops.values()]
@@ -78,7 +96,8 @@ def validate(instance: Instance, schedule: Schedule) -> list[str]:
     return errs
 
 
-def _check_operations(instance: Instance, schedule: Schedule, errs: list[str]) -> dict[tuple[int, int], tuple[int, int]] | None:
+def _check_operations(instance: Instance, schedule: Schedule, errs: list[str],
+                      scenario: Scenario | None = None) -> dict[tuple[int, int], tuple[int, int]] | None:
     ops: dict[tuple[int, int], tuple[int, int]] = {}
     for r in schedule.operations:
         key = (r.job, r.op)
@@ -94,8 +113,19 @@ def _check_operations(instance: Instance, schedule: Schedule, errs: list[str]) -
         want_tool = spec.tool if instance.has_tools else None
         if instance.has_tools and r.tool != want_tool:
             errs.append(f"op ({r.job},{r.op}) uses tool {r.tool}, needs tool {want_tool}")
-        if r.end - r.start != spec.duration:
-            errs.append(f"op ({r.job},{r.op}) lasts {r.end - r.start}, its duration is {spec.duration}")
+        if scenario is None:
+            if r.end - r.start != spec.duration:
+                errs.append(f"op ({r.job},{r.op}) lasts {r.end - r.start}, its duration is {spec.duration}")
+        else:
+            real = scenario.op_duration(r.job, r.op, spec.duration)
+            want = scenario.op_end(spec.machine, r.start, real)
+            if r.end != want:
+                errs.append(f"op ({r.job},{r.op}) ends at {r.end}; with its realised duration {real} and the "
+                            f"breakdowns of machine {spec.machine} it ends at {want}")
+            for b in scenario.windows(spec.machine):
+                if b.start <= r.start < b.end:
+                    errs.append(f"op ({r.job},{r.op}) starts at {r.start} while machine {spec.machine} is down "
+                                f"[{b.start}, {b.end})")
         if r.start < 0:
             errs.append(f"op ({r.job},{r.op}) starts before time 0")
         ops[key] = (r.start, r.end)
@@ -154,7 +184,8 @@ def _check_parts_with_agvs(instance: Instance, schedule: Schedule, ops: dict, er
 
 
 def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
-                  trips: Iterable[tuple[int, int, int, int, int]], errs: list[str]) -> None:
+                  trips: Iterable[tuple[int, int, int, int, int]], errs: list[str],
+                  scenario: Scenario | None = None) -> None:
     if n_declared != n_fleet:
         errs.append(f"schedule declares {n_declared} {what}s, the instance has {n_fleet}")
     size = len(travel)
@@ -169,14 +200,24 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
         routes[v].append((s, e, a, b))
     for v, legs in routes.items():
         legs.sort(key=lambda leg: (leg[0], leg[1]))  # stable: zero-length legs keep the schedule's order
-        here, free = 0, 0
+        here, free, n = 0, 0, 0
+        kind = "agv" if key == "agv" else "tt"
+        outs = [o for o in scenario.outages if o.kind == kind and o.vehicle == v] if scenario else []
         for s, e, a, b in legs:
             if s < free:
                 errs.append(f"{what} {v}: trip {a}->{b} at {s} starts before its previous trip ends at {free}")
             if a != here:
                 errs.append(f"{what} {v}: trip {a}->{b} at {s} starts at {a} but the vehicle is at {here}")
-            if e - s != travel[a][b]:
-                errs.append(f"{what} {v}: trip {a}->{b} at {s} lasts {e - s}, travel time is {travel[a][b]}")
+            want = travel[a][b]
+            if scenario is not None and a != b:
+                want = scenario.trip_time(kind, v, n, want)
+                n += 1
+            if e - s != want:
+                errs.append(f"{what} {v}: trip {a}->{b} at {s} lasts {e - s}, travel time is {want}"
+                            + (" (realised)" if scenario is not None else ""))
+            for o in outs:
+                if o.start <= s < o.end and a != b:
+                    errs.append(f"{what} {v}: trip {a}->{b} starts at {s} while out of service [{o.start}, {o.end})")
             here, free = b, max(free, e)
 
 

@@ -147,3 +147,31 @@ def test_replay_refuses_an_invalid_schedule_and_writes_nothing(tmp_path, capsys)
     assert not out.exists()
     code, _, err = run(["replay", "EX12", str(tmp_path / "missing.json")], capsys)
     assert code == 2 and "cannot read schedule" in err
+
+
+def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
+    sc, out = tmp_path / "sc.json", tmp_path / "s.json"
+    sc.write_text(json.dumps({"schema": "fms/scenario/v1", "noise": 0.1, "seed": 2,
+                              "breakdowns": [{"machine": 2, "start": 30, "duration": 20}],
+                              "outages": [{"kind": "agv", "vehicle": 1, "start": 10, "duration": 15}]}))
+    assert run(["solve", "EX12", "--solver", "plan:list", "--scenario", str(sc), "--out", str(out), "-q"],
+               capsys)[0] == 0
+    s = Schedule.load(out)
+    assert s.meta["scenario"]["breakdowns"] == [{"machine": 2, "start": 30, "duration": 20}]
+    assert run(["validate", "EX12", str(out)], capsys)[0] == 0  # checked against the recorded scenario
+    assert run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--noise", "0.2", "--seed", "5", "--out", str(out),
+                "-q"], capsys)[0] == 0
+    assert Schedule.load(out).meta["scenario"]["noise"] == 0.2
+    for bad, msg in [({"breakdowns": [{"machine": 9, "start": 0, "duration": 3}]}, "machine 9"),
+                     ({"outages": [{"kind": "agv", "vehicle": 0, "start": 0, "duration": -3}]}, "duration > 0")]:
+        sc.write_text(json.dumps(bad))
+        code, _, err = run(["solve", "EX12", "--scenario", str(sc), "-q"], capsys)
+        assert code == 2 and msg in err
+    sc.write_text("{not json")
+    code, _, err = run(["solve", "EX12", "--scenario", str(sc), "-q"], capsys)
+    assert code == 2 and "not valid JSON" in err
+    code, _, err = run(["solve", "EX12", "--solver", "cpsat", "--noise", "0.1", "-q"], capsys)
+    assert code == 2 and "does not run in a disrupted shop" in err
+    code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--decisions", "paper", "--noise", "0.1",
+                        "-q"], capsys)
+    assert code == 2 and "full-decision net only" in err

@@ -1,0 +1,150 @@
+"""Disruptions: breakdowns, vehicles out of service and noise, in the full net and the validator."""
+
+import dataclasses
+import json
+import random
+
+import pytest
+
+from fms_sim.benchmarks import builtin
+from fms_sim.disruptions import Breakdown, Outage, Scenario, ScenarioError
+from fms_sim.full_shop import FullShop, make_shop
+from fms_sim.replay import replay
+from fms_sim.validate import validate
+
+
+def _run(inst, scenario, seed=0):
+    rng = random.Random(seed)
+    shop = FullShop(inst, scenario=scenario)
+    while not shop.done:
+        shop.act(rng.choice(shop.legal_actions()))
+    return shop.schedule()
+
+
+# ---------------------------------------------------------------------------------------------- data
+def test_bad_scenarios_are_refused_with_a_reason():
+    inst = builtin("ra01")
+    cases = [
+        (Scenario(breakdowns=(Breakdown(99, 0, 5),)), "machine 99"),
+        (Scenario(outages=(Outage("agv", 7, 0, 5),)), "AGV 7"),
+        (Scenario(outages=(Outage("tt", 3, 0, 5),)), "tool transporter 3"),
+    ]
+    for sc, msg in cases:
+        with pytest.raises(ScenarioError, match=msg):
+            sc.check(inst)
+    with pytest.raises(ScenarioError, match="no tool transporters"):
+        Scenario(outages=(Outage("tt", 0, 0, 5),)).check(builtin("EX12"))
+    with pytest.raises(ScenarioError, match="overlap"):
+        Scenario(breakdowns=(Breakdown(1, 0, 10), Breakdown(1, 5, 3)))
+    with pytest.raises(ScenarioError, match="overlap"):
+        Scenario(outages=(Outage("agv", 0, 0, 10), Outage("agv", 0, 9, 3)))
+    with pytest.raises(ScenarioError, match="duration > 0"):
+        Scenario(breakdowns=(Breakdown(1, 0, 0),))
+    with pytest.raises(ScenarioError, match="start must be >= 0"):
+        Scenario(outages=(Outage("agv", 0, -1, 3),))
+    with pytest.raises(ScenarioError, match="agv or tt"):
+        Scenario(outages=(Outage("truck", 0, 0, 3),))
+    with pytest.raises(ScenarioError, match="noise"):
+        Scenario(noise=-0.1)
+    for bad, msg in [({"breakdowns": [{"machine": "1", "start": 0, "duration": 3}]}, "integer"),
+                     ({"breakdowns": {}}, "lists"), ({"schema": "fms/scenario/v9"}, "schema"),
+                     ({"storms": []}, "unknown scenario field"), ([], "object")]:
+        with pytest.raises(ScenarioError, match=msg):
+            Scenario.from_dict(bad)
+    with pytest.raises(ValueError, match="full-decision"):
+        make_shop(inst, "paper", Scenario(noise=0.1))
+
+
+def test_scenario_json_round_trip_and_draw(tmp_path):
+    inst = builtin("sl00")
+    sc = Scenario.draw(inst, noise=0.1, breakdowns=3, horizon=500, seed=4)
+    assert len(sc.breakdowns) == 3 and sc == Scenario.draw(inst, noise=0.1, breakdowns=3, horizon=500, seed=4)
+    assert sc != Scenario.draw(inst, noise=0.1, breakdowns=3, horizon=500, seed=5)
+    sc = dataclasses.replace(sc, outages=(Outage("tt", 1, 10, 20),))
+    path = tmp_path / "s.json"
+    sc.save(path)
+    assert json.loads(path.read_text())["schema"] == "fms/scenario/v1"
+    assert Scenario.load(path) == sc
+    with pytest.raises(ScenarioError, match="cannot read"):
+        Scenario.load(tmp_path / "missing.json")
+
+
+# ---------------------------------------------------------------------------------------------- runs
+@pytest.mark.parametrize("name", ["EX12", "ra01", "ra11L3"])
+def test_random_deciders_finish_valid_runs_under_random_disruptions(name):
+    base = builtin(name)
+    for inst in (base, base.without_agvs()):
+        for seed in range(8):
+            outs = []
+            if inst.has_agvs:
+                outs.append(Outage("agv", seed % inst.n_agvs, 5 + seed, 20))
+            if inst.has_tools:
+                outs.append(Outage("tt", 0, 3 + seed, 30))
+            sc = dataclasses.replace(Scenario.draw(inst, noise=0.2, breakdowns=2, horizon=120, seed=seed),
+                                     outages=tuple(outs))
+            s = _run(inst, sc, seed)
+            assert validate(inst, s) == [], (inst.mode, seed)
+            assert Scenario.from_dict(s.meta["scenario"]) == sc
+
+
+def test_noise_is_reproducible_and_checked_by_the_validator():
+    inst = builtin("ra01")
+    a, b = _run(inst, Scenario(noise=0.2, seed=1)), _run(inst, Scenario(noise=0.2, seed=1))
+    c = _run(inst, Scenario(noise=0.2, seed=2))
+    assert a.to_dict() == b.to_dict() and a.to_dict() != c.to_dict()
+    nominal = _run(inst, None)
+    assert validate(inst, nominal) == [] and "scenario" not in nominal.meta
+    # the realised durations differ from the nominal ones, and the validator knows both
+    durations = {(r.job, r.op): r.end - r.start for r in a.operations}
+    assert any(durations[j, k] != op.duration for j, job in enumerate(inst.jobs) for k, op in enumerate(job))
+    assert validate(inst, a) == []
+    assert validate(inst, dataclasses.replace(a, meta={k: v for k, v in a.meta.items() if k != "scenario"}))
+    ops = list(a.operations)
+    ops[0] = dataclasses.replace(ops[0], end=ops[0].end + 1)
+    assert any("realised duration" in v for v in validate(inst, dataclasses.replace(a, operations=ops)))
+
+
+def test_a_breakdown_suspends_the_running_operation_and_blocks_starts():
+    inst = builtin("EX12")
+    nominal = _run(inst, None)
+    first = min(nominal.operations, key=lambda r: r.start)
+    mid = first.start + 1  # the machine breaks down while its first operation runs
+    sc = Scenario(breakdowns=(Breakdown(first.machine, mid, 17),))
+    s = _run(inst, sc)
+    assert validate(inst, s) == []
+    rec = next(r for r in s.operations if (r.job, r.op) == (first.job, first.op))
+    assert rec.start == first.start and rec.end == first.end + 17
+    for r in s.operations:
+        if r.machine == first.machine:
+            assert not mid <= r.start < mid + 17
+    bad = dataclasses.replace(s, operations=[dataclasses.replace(r, end=r.end - 17) if r is rec else r
+                                             for r in s.operations])
+    assert validate(inst, bad)
+
+
+def test_no_trip_starts_while_its_vehicle_is_out():
+    inst = builtin("ra01")
+    sc = Scenario(outages=(Outage("agv", 0, 0, 60), Outage("tt", 0, 0, 60)))
+    s = _run(inst, sc, seed=3)
+    assert validate(inst, s) == []
+    assert all(t.start >= 60 for t in s.agv_trips if t.agv == 0)
+    assert all(t.start >= 60 for t in s.tool_trips if t.transporter == 0)
+    trips = list(s.agv_trips)
+    i = next(i for i, t in enumerate(trips) if t.agv == 1)
+    moved = dataclasses.replace(s, agv_trips=[dataclasses.replace(t, agv=0) if k == i else t
+                                              for k, t in enumerate(trips)])
+    assert validate(inst, moved)  # AGV 0 cannot have driven then (out of service, or two places at once)
+
+
+def test_a_plan_executed_under_disruptions_keeps_its_orders_and_stays_valid():
+    from fms_dispatch.exact import greedy_schedule
+
+    inst = builtin("ra05")
+    plan = greedy_schedule(inst, rule="est")
+    sc = Scenario.draw(inst, noise=0.15, breakdowns=2, horizon=plan.makespan, seed=7)
+    out = replay(inst, plan, scenario=sc)
+    assert validate(inst, out) == [] and out.meta["scenario"] == sc.to_dict()
+    for m in range(1, inst.n_machines + 1):  # each machine keeps the plan's order
+        order = lambda sched: [(r.job, r.op) for r in sorted(sched.operations, key=lambda r: r.start)  # noqa: E731
+                               if r.machine == m]
+        assert order(out) == order(plan)
