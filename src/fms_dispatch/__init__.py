@@ -2,13 +2,15 @@
 
 Every method shares one signature, ``solver(instance, **options) -> Schedule``, selected by name through
 :func:`solve` / :func:`get_solver` (``"first"``, ``"random"``, ``"rule:<JOB>+<vehicle>"``, ``"sos"``,
-``"cpsat"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
+``"cpsat"``, ``"list"``, ``"rules"``, ``"plan:cpsat:10"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
 """
 
+from .full_rules import TOOL_RULES, FullRulePolicy, full_rule_names, run_full, solve_best_rules, solve_list
 from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, all_rule_pairs, parse_rule_name, solve_rule
 from .solvers import UnknownSolver, get_solver, solve, solver_names
 
 __all__ = [
     "solve", "get_solver", "solver_names", "UnknownSolver",
     "RulePolicy", "JOB_RULES", "VEHICLE_RULES", "all_rule_pairs", "parse_rule_name", "solve_rule",
+    "FullRulePolicy", "TOOL_RULES", "full_rule_names", "run_full", "solve_list", "solve_best_rules",
 ]

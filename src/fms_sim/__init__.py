@@ -1,16 +1,21 @@
-"""fms_sim: instances, the coloured-timed Petri net engine, the shop net, schedules and their validator."""
+"""fms_sim: instances, the coloured-timed Petri net engine, the shop nets, schedules, replay, disruptions and
+the validator."""
 
 from .benchmarks import builtin, builtin_names
+from .disruptions import Breakdown, Outage, Scenario, ScenarioError
 from .formats import load_instance
+from .full_shop import DECISIONS, FullShop, make_shop
 from .instance import Instance, InstanceError, Operation
 from .petri import Deadlock, InvalidAction, Net
 from .schedule import AgvTrip, OperationRecord, Schedule, ScheduleError, ToolTrip
+from .replay import PlanPolicy, ReplayError, replay
 from .shop import Shop
 from .validate import ScheduleInvalid, check, validate
 
 __all__ = [
     "Instance", "InstanceError", "Operation", "builtin", "builtin_names", "load_instance",
-    "Net", "Shop", "InvalidAction", "Deadlock",
+    "Net", "Shop", "FullShop", "make_shop", "DECISIONS", "InvalidAction", "Deadlock",
+    "replay", "ReplayError", "PlanPolicy", "Scenario", "Breakdown", "Outage", "ScenarioError",
     "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
     "validate", "check", "ScheduleInvalid",
 ]
