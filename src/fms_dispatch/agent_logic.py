@@ -205,6 +205,7 @@ class TwinDecider:
         self._idle_stops = False
         self._labels: list[str] = []           # labels replayed into the twin
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
+        self._disruptions: list[dict[str, Any]] = []  # disruptions replayed into the twin
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
         self.model_path: Any = None              # the weights file the policy was loaded from (logged)
 
@@ -218,23 +219,38 @@ class TwinDecider:
         self.stepper = Stepper(make_shop(self.instance, self.decisions), idle_stops=idle_stops)
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
+        self._disruptions = []
         self.rebuilds += 1
 
-    def _replay(self, labels: list[str], orders: list[dict[str, Any]]) -> int:
+    def _replay(self, labels: list[str], orders: list[dict[str, Any]],
+                disruptions: list[dict[str, Any]] | None = None) -> int:
         """Apply the entries of the history beyond those already replayed (raises on an impossible step);
-        returns how many were applied (labels and orders)."""
+        returns how many were applied (labels, orders and disruptions)."""
+        from fms_sim.disruptions import Breakdown, Outage
+
         st = self.stepper
         assert st is not None
-        p, q = len(self._labels), len(self._orders)
+        disruptions = disruptions or []
+        p, q, r = len(self._labels), len(self._orders), len(self._disruptions)
         applied = 0
         while True:
-            while q < len(orders) and orders[q]["at"] == p:
-                jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops]
-                        for ops in orders[q]["jobs"]]
-                st.add_jobs(jobs)
-                self._orders.append(orders[q])
-                q += 1
-                applied += 2  # an order changes the run: never "one step on" (see sync)
+            while True:  # the orders and disruptions that came before action p, in the order they came
+                if r < len(disruptions) and disruptions[r]["at"] == p and disruptions[r]["orders_before"] == q:
+                    d = disruptions[r]["disruption"]
+                    st.disrupt(Breakdown(d["machine"], d["start"], d["duration"]) if d["kind"] == "breakdown"
+                               else Outage(d["vehicle_kind"], d["vehicle"], d["start"], d["duration"]))
+                    self._disruptions.append(disruptions[r])
+                    r += 1
+                    applied += 2
+                elif q < len(orders) and orders[q]["at"] == p:
+                    jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops]
+                            for ops in orders[q]["jobs"]]
+                    st.add_jobs(jobs)
+                    self._orders.append(orders[q])
+                    q += 1
+                    applied += 2  # an order changes the run: never "one step on" (see sync)
+                else:
+                    break
             if p >= len(labels):
                 return applied
             self._applying(labels[p])
@@ -283,17 +299,19 @@ class TwinDecider:
                                 "vehicles at the shop's idle stops (start the shop with idle_stops:=true)")
         labels = history["actions"].split(" ") if history["actions"] else []
         orders = history["orders"]
-        n, m = len(self._labels), len(self._orders)
+        disruptions = history.get("disruptions") or []
+        n, m, k = len(self._labels), len(self._orders), len(self._disruptions)
         fresh = (self.stepper is None or self._run_id != state["run_id"] or self._idle_stops != idle_stops
-                 or len(labels) < n or len(orders) < m or labels[:n] != self._labels or orders[:m] != self._orders)
+                 or len(labels) < n or len(orders) < m or labels[:n] != self._labels or orders[:m] != self._orders
+                 or len(disruptions) < k or disruptions[:k] != self._disruptions)
         problem = None
         for attempt in range(2):
             if fresh or attempt:
                 self._reset(state["run_id"], idle_stops)
             try:
-                applied = self._replay(labels, orders)
+                applied = self._replay(labels, orders, disruptions)
                 problem = self._agrees(state)
-            except (InvalidAction, InstanceError) as exc:
+            except (InvalidAction, InstanceError, ValueError) as exc:  # ScenarioError is a ValueError
                 problem = f"replaying the history failed: {exc}"
             if problem is None:
                 # the planner's cached completion holds while the run moves one answer at a time

@@ -15,13 +15,13 @@ from typing import Any
 from fms_sim.schedule import Schedule
 
 from .schemas import (
-    ERROR_MAX_CHARS, RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_ERROR, SCHEMA_EVENT, SCHEMA_ORDER,
-    SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, bounded, validate,
+    ERROR_MAX_CHARS, RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_DISRUPTION, SCHEMA_ERROR, SCHEMA_EVENT,
+    SCHEMA_ORDER, SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, bounded, validate,
 )
 
 __all__ = [
     "make_state", "make_command", "make_event", "make_schedule", "make_order", "make_error", "error_reply",
-    "make_replay_request",
+    "make_replay_request", "make_disruption",
 ]
 
 
@@ -138,6 +138,21 @@ def make_order(order_id: str, jobs: Iterable[Iterable[Any]], *, run_id: str | No
     msg: dict[str, Any] = {"schema": SCHEMA_ORDER, "order_id": order_id, "jobs": body}
     if run_id is not None:
         msg["run_id"] = run_id
+    return _checked(msg)
+
+
+def make_disruption(disruption_id: str, kind: str, duration: int, *, machine: int | None = None,
+                    vehicle_kind: str | None = None, vehicle: int | None = None, start: int | None = None,
+                    run_id: str | None = None) -> dict[str, Any]:
+    """An ``fms/disruption/v1``: a machine breakdown (``kind="breakdown"``, ``machine``) or a vehicle out of
+    service (``kind="outage"``, ``vehicle_kind`` agv or tt, ``vehicle``) from ``start`` (None: now) for
+    ``duration``. Whether the machine or vehicle exists is for the shop to check."""
+    msg: dict[str, Any] = {"schema": SCHEMA_DISRUPTION, "disruption_id": disruption_id, "kind": kind,
+                           "duration": _plain(duration)}
+    for key, value in (("machine", machine), ("vehicle_kind", vehicle_kind), ("vehicle", vehicle),
+                       ("start", start), ("run_id", run_id)):
+        if value is not None:
+            msg[key] = _plain(value)
     return _checked(msg)
 
 

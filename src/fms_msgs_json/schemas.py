@@ -31,9 +31,9 @@ from .fields import Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, 
 __all__ = [
     "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
     "SCHEMA_STATE", "SCHEMA_COMMAND", "SCHEMA_EVENT", "SCHEMA_SCHEDULE", "SCHEMA_ORDER", "SCHEMA_ERROR",
-    "SCHEMA_REPLAY_REQUEST",
+    "SCHEMA_REPLAY_REQUEST", "SCHEMA_DISRUPTION", "DISRUPTION_KINDS",
     "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
-    "TOPIC_REPLAY", "TOPICS",
+    "TOPIC_REPLAY", "TOPIC_DISRUPTIONS", "TOPICS",
     "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "ERROR_MAX_CHARS", "ERROR_MAX_BYTES", "bounded",
     "TOPIC_QOS", "TopicQos",
     "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
@@ -43,7 +43,8 @@ __all__ = [
 SCHEMA_VERSION = 1
 """The one version of every kind this build reads and writes."""
 
-KINDS: tuple[str, ...] = ("state", "command", "event", "schedule", "order", "error", "replay_request")
+KINDS: tuple[str, ...] = ("state", "command", "event", "schedule", "order", "error", "replay_request",
+                          "disruption")
 
 
 def schema_id(kind: str) -> str:
@@ -63,6 +64,7 @@ SCHEMA_SCHEDULE = SCHEMAS["schedule"]
 SCHEMA_ORDER = SCHEMAS["order"]
 SCHEMA_ERROR = SCHEMAS["error"]
 SCHEMA_REPLAY_REQUEST = SCHEMAS["replay_request"]
+SCHEMA_DISRUPTION = SCHEMAS["disruption"]
 
 TOPIC_STATE = "fms/state"
 TOPIC_COMMAND = "fms/command"
@@ -71,10 +73,12 @@ TOPIC_SCHEDULE = "fms/schedule"
 TOPIC_ORDERS = "fms/orders"
 TOPIC_ERRORS = "fms/errors"
 TOPIC_REPLAY = "fms/replay_request"
+TOPIC_DISRUPTIONS = "fms/disruptions"
 
 TOPICS: dict[str, str] = {
     "state": TOPIC_STATE, "command": TOPIC_COMMAND, "event": TOPIC_EVENTS, "schedule": TOPIC_SCHEDULE,
     "order": TOPIC_ORDERS, "error": TOPIC_ERRORS, "replay_request": TOPIC_REPLAY,
+    "disruption": TOPIC_DISRUPTIONS,
 }
 """Kind name → the topic that carries it."""
 
@@ -98,16 +102,18 @@ TOPIC_QOS: dict[str, TopicQos] = {
                                          # (order ids are accepted once, so re-delivery adds nothing)
     "error": TopicQos(100, False),
     "replay_request": TopicQos(10, False),
+    "disruption": TopicQos(100, True),   # like orders: delivered to a shop that subscribes late, accepted once
 }
 """Kind name → the QoS of its topic (see docs/ros.md, "Quality of service")."""
 
 EVENT_KINDS: tuple[str, ...] = (
     "op_start", "op_end", "agv_trip_start", "agv_trip_end", "tool_trip_start", "tool_trip_end",
-    "order_accepted", "run_start", "run_end",
+    "order_accepted", "run_start", "run_end", "disruption_accepted",
 )
 
 ERROR_CODES: tuple[str, ...] = (
     "malformed_json", "bad_schema", "stale_state", "unknown_run", "forbidden_action", "bad_order", "internal",
+    "bad_disruption",
 )
 
 RECEIVED_MAX_CHARS = 1000
@@ -185,10 +191,27 @@ _HISTORY_ORDER = Obj((
         Field("duration", Int(0)),
     ), expected="an operation object {machine, tool, duration}"), nonempty=True), nonempty=True)),
 ), expected="an order object {at, jobs}")
+DISRUPTION_KINDS: tuple[str, ...] = ("breakdown", "outage")
+
+_DISRUPTION_BODY = (
+    Field("disruption_id", Str()),
+    Field("kind", OneOf(DISRUPTION_KINDS)),
+    Field("machine", Int(1), required=False),
+    Field("vehicle_kind", OneOf(("agv", "tt")), required=False),
+    Field("vehicle", Int(0), required=False),
+    Field("start", Nullable(Int(0)), required=False),
+    Field("duration", Int(1)),
+)
+_HISTORY_DISRUPTION = Obj((
+    Field("at", Int(0)),
+    Field("orders_before", Int(0)),
+    Field("disruption", Obj(_DISRUPTION_BODY)),
+), expected="a disruption object {at, orders_before, disruption}")
 _HISTORY = Obj((
     Field("actions", Str(nonempty=False, what="action labels separated by single spaces")),
     Field("orders", ListOf(_HISTORY_ORDER)),
-), expected="a history object {actions, orders}")
+    Field("disruptions", ListOf(_HISTORY_DISRUPTION), required=False),
+), expected="a history object {actions, orders[, disruptions]}")
 
 # The optional "idle" of a state, sent by a shop that stops at idle-vehicle moments (for pre-positioning; see
 # fms_sim.stepping): the vehicles offered now, or [] at a decision. Absent (or null) if the shop does not stop
@@ -235,6 +258,11 @@ _EVENT_DATA = (  # all optional: which ones are present depends on the event kin
     Field("instance", Str(nonempty=False), required=False),
     Field("makespan", Nullable(Int(0)), required=False),
     Field("start", Int(0), required=False),
+    Field("disruption_id", Str(), required=False),
+    Field("disruption", Str(), required=False),
+    Field("vehicle_kind", Str(), required=False),
+    Field("vehicle", Int(0), required=False),
+    Field("duration", Int(1), required=False),
 )
 
 _EVENT = (
@@ -306,6 +334,19 @@ _ERROR = (
     Field("run_id", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["run_id"])), required=False),
     Field("received", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["received"])), required=False),
 )
+
+# A disruption at run time (docs/ros.md): a machine breakdown or a vehicle out of service, from ``start`` (the
+# shop's current time if absent, null or past) for ``duration``; accepted once per ``disruption_id``.
+_DISRUPTION = _DISRUPTION_BODY + (Field("run_id", _OPTIONAL_STR, required=False),)
+
+
+def _disruption_complete(msg: dict[str, Any], path: str) -> None:
+    """A breakdown names its machine; an outage its vehicle's kind and number."""
+    if msg["kind"] == "breakdown" and msg.get("machine") is None:
+        raise FieldError("machine", "a breakdown needs field 'machine' (1..)")
+    if msg["kind"] == "outage" and (msg.get("vehicle_kind") is None or msg.get("vehicle") is None):
+        raise FieldError("vehicle", "an outage needs fields 'vehicle_kind' (agv or tt) and 'vehicle' (0..)")
+
 
 _REPLAY_REQUEST = (
     Field("run_id", Str(what='a run id, or "*" for the current run')),
@@ -380,6 +421,7 @@ _SPECS: dict[str, tuple[tuple[Field, ...], _Extra]] = {
     "order": (_ORDER, None),
     "error": (_ERROR, None),
     "replay_request": (_REPLAY_REQUEST, None),
+    "disruption": (_DISRUPTION, _disruption_complete),
 }
 assert set(_SPECS) == set(KINDS)
 

@@ -34,7 +34,7 @@ from __future__ import annotations
 import copy
 from dataclasses import replace
 from functools import partial
-from .disruptions import Scenario
+from .disruptions import Breakdown, Outage, Scenario, ScenarioError
 from .instance import Instance
 from .petri import Arc, InvalidAction, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
@@ -410,6 +410,27 @@ class FullShop(Shop):
             net.put(self.p_disrupt, ("down", b.machine, b.duration), delay=b.start)
         for o in self.scenario.outages:
             net.put(self.p_disrupt, ("out", o.kind, o.vehicle, o.duration), delay=o.start)
+
+    def add_disruption(self, d: Breakdown | Outage) -> None:
+        """A breakdown or outage reported during the run (``d.start`` >= now; it takes effect then). Raises
+        :class:`~fms_sim.disruptions.ScenarioError` (nothing changed) for an unknown machine or vehicle, a past
+        start, or a window that overlaps a known one of the same machine or vehicle."""
+        if d.start < self.now:
+            raise ScenarioError(f"the disruption starts at {d.start}, before the shop's time {self.now}")
+        base = self.scenario or Scenario()
+        if isinstance(d, Breakdown):
+            new = replace(base, breakdowns=base.breakdowns + (d,), _factors=base._factors)
+        else:
+            new = replace(base, outages=base.outages + (d,), _factors=base._factors)
+        new.check(self.instance)
+        if isinstance(d, Outage) and not any(o.kind == d.kind for o in base.outages):
+            for t in (self.t_job if d.kind == "agv" else self.t_tool):  # see _disruptions_block
+                self.net.wake_on_change(self.p_agv_idle if d.kind == "agv" else self.p_tt_idle, t)
+        self.scenario = new
+        if isinstance(d, Breakdown):
+            self.net.put(self.p_disrupt, ("down", d.machine, d.duration), delay=d.start - self.now)
+        else:
+            self.net.put(self.p_disrupt, ("out", d.kind, d.vehicle, d.duration), delay=d.start - self.now)
 
     def _on_disruption(self, b: dict, now: int) -> None:
         d = b["d"]

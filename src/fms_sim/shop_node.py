@@ -185,6 +185,7 @@ class ShopNode(FmsNode):
         self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
         self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))
         self.io.subscribe("replay_request", lambda t: self._handle(self.service.handle_replay, t))
+        self.io.subscribe("disruption", lambda t: self._handle(self.service.handle_disruption, t))
         self._written = False
         n.get_logger().info(f"run {self.service.run_id}: {inst.describe()}")
         self.io.publish(self.service.start())

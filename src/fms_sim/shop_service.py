@@ -33,6 +33,10 @@ rclpy:
 * **Orders.** A valid order joins the running net as new jobs (:meth:`Shop.add_jobs`) at the current time,
   is announced by an ``order_accepted`` event and a new state; an order id is accepted once. Invalid orders
   (unknown machine or tool, bad duration, finished run) are rejected with a ``bad_order`` (or schema) error.
+* **Disruptions** (full net only). A valid ``fms/disruption/v1`` (a machine breakdown or a vehicle out of
+  service, from now or a later time) joins the run's scenario (:meth:`FullShop.add_disruption`), is announced by
+  a ``disruption_accepted`` event and a new state, and enters the history; a bad one (unknown machine or
+  vehicle, overlapping window, repeated id, finished run, paper net) is rejected with ``bad_disruption``.
 * **End.** When the last job is done the service publishes the remaining events, ``run_end``, a final state
   (``done``, ``makespan``) and the schedule (``fms/schedule/v1``) whose ``meta`` names the run, the agent,
   the number of decisions, the accepted orders, ``wall_time`` (seconds from the first state to the end,
@@ -201,6 +205,8 @@ class ShopService:
         self._applied: list[str] = []                     # applied action labels, in order (for history)
         self._applied_text = ""                           # the same, space-separated
         self._order_history: list[dict[str, Any]] = []    # accepted orders: {"at": n actions before, "jobs"}
+        self._disruption_history: list[dict[str, Any]] = []  # {"at", "orders_before", "disruption"}
+        self.disruptions: dict[str, dict[str, Any]] = {}  # accepted disruption id -> its message body
         self._clock = clock
         self._table = _JobTable()
         self._queue = _EventQueue()
@@ -321,6 +327,50 @@ class ShopService:
         out = [self._event(self.shop.now, "order_accepted", {"order_id": oid, "jobs": ids})]
         return out + self._after_step()
 
+    def handle_disruption(self, text: str) -> list[Outgoing]:
+        """Accept a breakdown or outage reported now (full net only); reject bad, repeated or late ones."""
+        from .disruptions import Breakdown, Outage, ScenarioError
+
+        try:
+            msg = decode(text, expect="disruption")
+        except MessageError as exc:
+            return [self._error_reply(exc, text)]
+        did = msg["disruption_id"]
+        target = msg.get("run_id")
+        if target is not None and target != self.run_id:
+            return [self._error("unknown_run", f"disruption {did!r} is for run {target!r} but this shop runs "
+                                               f"{self.run_id!r}", text)]
+        if did in self.disruptions:
+            return [self._error("bad_disruption", f"disruption {did!r} was already accepted; an id is accepted "
+                                                  "once", text)]
+        if self.done:
+            return [self._error("bad_disruption", f"disruption {did!r} arrived after run {self.run_id!r} "
+                                                  "completed", text)]
+        if self.shop.decisions != "full":
+            return [self._error("bad_disruption", f"disruption {did!r} rejected: disruptions need a shop on the "
+                                                  "full-decision net (decisions:=full)", text)]
+        now = self.shop.now
+        start = max(now, msg.get("start") or now)
+        body = {k: msg[k] for k in ("disruption_id", "kind", "machine", "vehicle_kind", "vehicle", "duration")
+                if msg.get(k) is not None}
+        body["start"] = start
+        d = (Breakdown(msg["machine"], start, msg["duration"]) if msg["kind"] == "breakdown"
+             else Outage(msg["vehicle_kind"], msg["vehicle"], start, msg["duration"]))
+        try:
+            self.stepper.disrupt(d)
+        except (ScenarioError, InvalidAction) as exc:
+            return [self._error("bad_disruption", f"disruption {did!r} rejected: {exc}", text)]
+        self.disruptions[did] = body
+        if self.with_history:
+            self._disruption_history.append({"at": len(self._applied), "orders_before": len(self._order_history),
+                                             "disruption": body})
+        data = {"disruption_id": did, "disruption": msg["kind"], "start": start, "duration": msg["duration"]}
+        for key in ("machine", "vehicle_kind", "vehicle"):
+            if msg.get(key) is not None:
+                data[key] = msg[key]
+        out = [self._event(now, "disruption_accepted", data)]
+        return out + self._after_step()
+
     def handle_replay(self, text: str) -> list[Outgoing]:
         """Re-publish this run's events from ``from_seq`` on (and the schedule if the run is complete)."""
         try:
@@ -384,6 +434,8 @@ class ShopService:
                                 features=features, idle=self._idle_offer())
         if self.with_history and not done:  # added after make_state's check; the schema (history) allows it
             self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
+            if self._disruption_history:
+                self.state["history"]["disruptions"] = list(self._disruption_history)
         self.state["decisions"] = shop.decisions  # an extra field (allowed): the net the labels belong to
         return self.state
 

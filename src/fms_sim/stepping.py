@@ -29,7 +29,7 @@ Answers are written as labels, so they can travel in messages and histories: a d
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Iterator, Literal, NamedTuple, Sequence
+from typing import Any, Iterator, Literal, NamedTuple, Sequence
 
 from .instance import Operation
 from .petri import InvalidAction
@@ -204,6 +204,15 @@ class Stepper:
         ids = self.shop.add_jobs(jobs, advance=False)
         self.advance()
         return ids
+
+    def disrupt(self, d: Any) -> StopKind:
+        """Report a breakdown or outage now (:meth:`FullShop.add_disruption <fms_sim.full_shop.FullShop.
+        add_disruption>`, full net only) and run to the next stop."""
+        add = getattr(self.shop, "add_disruption", None)
+        if add is None:
+            raise InvalidAction("disruptions need the full-decision net (decisions='full')")
+        add(d)
+        return self.advance()
 
     def apply(self, label: str) -> StopKind:
         """Apply an answer given as a label (an action label at a decision, ``wait``/``reposition:...`` at an

@@ -86,3 +86,58 @@ def test_plan_solvers_need_the_full_net_with_idle_stops_and_the_instance():
         make_decider("plan:ppo", instance=inst)
     with pytest.raises(UnavailableSolver, match="plan:cpsat"):
         make_decider("cpsat", instance=inst)
+
+
+def test_disruptions_at_run_time_reach_the_shop_and_the_plan_agents_twin():
+    from fms_msgs_json import make_disruption
+
+    inst = builtin("ra01")
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+    agent = AgentLogic("plan:list", instance=inst)
+    svc.start()
+    sent = {15: make_disruption("m1", "breakdown", 25, machine=1),
+            30: make_disruption("v0", "outage", 20, vehicle_kind="agv", vehicle=0, start=60)}
+    errors, events = [], []
+    steps = 0
+    while not svc.done:
+        if steps in sent:
+            res = svc.handle_disruption(encode(sent[steps]))
+            assert not [o for o in res if o.topic == "fms/errors"], res
+            events += [o.msg for o in res if o.topic == "fms/events" and o.msg["kind"] == "disruption_accepted"]
+        out = agent.on_state(encode(svc.state))
+        errors += [o.msg for o in out if o.topic == "fms/errors"]
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+        res = svc.handle_command(encode(cmd))
+        assert not [o for o in res if o.topic == "fms/errors"], res
+        steps += 1
+    assert errors == [] and len(events) == 2  # the twin followed the disruptions: no disagreement
+    s = svc.final_schedule
+    assert validate(inst, s) == [] and len(s.meta["scenario"]["breakdowns"]) == 1
+    assert s.meta["scenario"]["outages"] == [{"kind": "agv", "vehicle": 0, "start": 60, "duration": 20}]
+
+
+def test_bad_disruptions_are_rejected_and_change_nothing():
+    from fms_msgs_json import make_disruption
+
+    inst = builtin("ra01")
+    svc = ShopService(inst, run_id="r", decisions="full")
+    svc.start()
+    before = svc.state_seq
+    svc.handle_disruption(encode(make_disruption("ok", "breakdown", 10, machine=2, start=50)))
+    cases = [(make_disruption("x1", "breakdown", 5, machine=9), "machine 9"),
+             (make_disruption("x2", "outage", 5, vehicle_kind="tt", vehicle=7), "tool transporter 7"),
+             (make_disruption("x3", "breakdown", 5, machine=2, start=55), "overlap"),
+             (make_disruption("ok", "breakdown", 5, machine=3), "already accepted"),
+             (make_disruption("x4", "breakdown", 5, machine=3, run_id="other"), "other")]
+    seq = svc.state_seq
+    for msg, why in cases:
+        (err,) = svc.handle_disruption(encode(msg))
+        assert err.topic == "fms/errors" and why in err.msg["message"], err.msg
+    assert svc.state_seq == seq > before and len(svc.shop.scenario.breakdowns) == 1
+    (err,) = svc.handle_disruption('{"schema": "fms/disruption/v1", "disruption_id": "y", "kind": "outage", '
+                                   '"duration": 3}')
+    assert err.msg["code"] == "bad_schema"
+    paper = ShopService(inst, run_id="p")
+    paper.start()
+    (err,) = paper.handle_disruption(encode(make_disruption("z", "breakdown", 5, machine=1)))
+    assert err.msg["code"] == "bad_disruption" and "decisions:=full" in err.msg["message"]

@@ -96,7 +96,7 @@ class Observer:
     topics, decoded, and publishes commands, orders and replay requests."""
 
     KINDS_IN = ("state", "event", "schedule", "error")
-    KINDS_OUT = ("command", "order", "replay_request")
+    KINDS_OUT = ("command", "order", "replay_request", "disruption")
 
     def __init__(self, domain_id: int) -> None:
         self.ctx = rclpy.context.Context()

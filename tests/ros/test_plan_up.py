@@ -30,3 +30,41 @@ def test_fms_up_executes_a_cpsat_plan_at_the_optimum(ros_env: dict[str, str], tm
     assert "did not stop cleanly" not in res.stderr  # CP-SAT leaves SIGINT to the node
     for name in ("shop", "agent", "recorder"):
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
+
+
+def test_a_breakdown_mid_run_reaches_the_shop_and_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
+    import fms_msgs_json as m
+
+    from fms_sim.recorder_store import RecorderStore, gantt_path
+
+    from .conftest import RUN_S, STARTUP_S, wait_file
+
+    db = tmp_path / "rec.sqlite"
+    nodes.start("recorder", "fms_sim.recorder_node", db=db)
+    nodes.start("shop", "fms_sim.shop_node", instance="ra01", run_id="disrupted", decisions="full", history=True,
+                idle_stops=True, features=False)
+    nodes.start("agent", "fms_dispatch.agent_node", solver="plan:list", instance="ra01", delay_s=0.05)
+    observer.wait_for(lambda g: any(s["seq"] >= 8 for s in g["state"]), STARTUP_S + RUN_S, "state 8")
+    bad = [m.make_disruption("b1", "breakdown", 10, machine=42, run_id="disrupted"),
+           m.make_disruption("b2", "outage", 10, vehicle_kind="agv", vehicle=5, run_id="disrupted"),
+           {"schema": "fms/disruption/v1", "disruption_id": "b3", "kind": "breakdown", "duration": 0,
+            "machine": 1}]
+    for msg in bad:
+        observer.publish("disruption", msg if isinstance(msg, dict) else m.encode(msg))
+    observer.publish("disruption", m.encode(m.make_disruption("jam", "breakdown", 30, machine=2, run_id="disrupted")))
+    got = observer.wait_for(lambda g: [x for x in g["schedule"] if x["run_id"] == "disrupted"], RUN_S * 2,
+                            "the schedule")
+    sched = Schedule.from_dict(got[0]["schedule"])
+    inst = builtin("ra01")
+    assert validate(inst, sched) == []
+    assert [b["machine"] for b in sched.meta["scenario"]["breakdowns"]] == [2]
+    accepted = [e for e in observer.snapshot("event") if e["kind"] == "disruption_accepted"]
+    assert [e["data"]["disruption_id"] for e in accepted] == ["jam"]
+    errors = observer.wait_for(
+        lambda g: [e for e in g["error"] if '"fms/disruption/v1"' in (e.get("received") or "")] or None, 10,
+        "the disruption errors")
+    assert sorted(e["code"] for e in errors) == ["bad_disruption", "bad_disruption", "bad_schema"]
+    agent_errors = [e for e in observer.snapshot("error") if e["source"] == "fms_agent"]
+    assert agent_errors == []  # the plan agent's twin followed the breakdown
+    wait_file(gantt_path(tmp_path, "disrupted"), RUN_S, nodes)
+    assert RecorderStore(db).errors("disrupted")
