@@ -206,6 +206,7 @@ class TwinDecider:
         self._labels: list[str] = []           # labels replayed into the twin
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
         self._disruptions: list[dict[str, Any]] = []  # disruptions replayed into the twin
+        self._scenario: dict[str, Any] | None = None  # the run's scenario from the history (twin mirrors it)
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
         self.model_path: Any = None              # the weights file the policy was loaded from (logged)
 
@@ -216,7 +217,10 @@ class TwinDecider:
     def _reset(self, run_id: str, idle_stops: bool) -> None:
         from fms_sim.full_shop import make_shop
 
-        self.stepper = Stepper(make_shop(self.instance, self.decisions), idle_stops=idle_stops)
+        from fms_sim.disruptions import Scenario
+
+        scenario = Scenario.from_dict(self._scenario) if self._scenario is not None else None
+        self.stepper = Stepper(make_shop(self.instance, self.decisions, scenario), idle_stops=idle_stops)
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
         self._disruptions = []
@@ -300,6 +304,9 @@ class TwinDecider:
         labels = history["actions"].split(" ") if history["actions"] else []
         orders = history["orders"]
         disruptions = history.get("disruptions") or []
+        scenario = history.get("scenario")
+        if scenario != self._scenario:
+            self._scenario, self.stepper = scenario, None  # another run's disruptions: rebuild the twin
         n, m, k = len(self._labels), len(self._orders), len(self._disruptions)
         fresh = (self.stepper is None or self._run_id != state["run_id"] or self._idle_stops != idle_stops
                  or len(labels) < n or len(orders) < m or labels[:n] != self._labels or orders[:m] != self._orders

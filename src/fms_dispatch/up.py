@@ -80,7 +80,11 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "ppo[:<model>]+lookahead | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
                         "state, then execute the plan) | best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair in simulation, else that pair) (default: first)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random solver")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
+    p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
+                   "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first or random solvers")
+    p.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
+                   "time, seeded by --seed (with --scenario it replaces the file's noise)")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
     p.add_argument("--gantt-dir", help="folder for the Gantt PNG (default: the database's folder)")
@@ -247,6 +251,17 @@ def cmd_up(a: argparse.Namespace) -> int:
         make_decider(solver, a.seed, inst)
     except UnavailableSolver as exc:
         raise UpError(str(exc)) from None
+    disrupted = bool(a.scenario) or bool(a.noise)
+    if disrupted:
+        from .cli import _scenario_from_args
+
+        try:
+            scenario = _scenario_from_args(a, inst)
+        except ValueError as exc:  # a bad scenario file (ScenarioError), a bad --noise
+            raise UpError(str(exc).splitlines()[0]) from None
+        if not (needs_full_net(solver) or solver.lower() in ("first", "random")):
+            raise UpError(f"--scenario and --noise need a solver that decides on the full net (plan:..., first, "
+                          f"random), not {solver}")
     if a.timeout <= 0:
         raise UpError("--timeout must be positive")
     domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
@@ -274,11 +289,14 @@ def cmd_up(a: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     inst_in, inst_final, sched_tmp = work / "instance.json", work / "final_instance.json", work / "schedule.json"
     inst.save(inst_in)
+    scenario_file = work / "scenario.json"
+    if disrupted:
+        scenario.save(scenario_file)
     for stale in (sched_tmp, inst_final):
         stale.unlink(missing_ok=True)
 
-    full = needs_full_net(solver)
-    twin = needs_twin(solver) or full
+    full = needs_full_net(solver) or disrupted
+    twin = needs_twin(solver) or needs_full_net(solver)
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if twin:
         agent_params["instance"] = str(inst_in)
@@ -293,7 +311,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         NodeProcess("shop", node_command("fms_sim.shop_node", {
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
             "instance_out": str(inst_final), "history": twin, "features": not twin,
-            "idle_stops": needs_idle_stops(solver) or full, "decisions": "full" if full else "paper"}),
+            "idle_stops": needs_idle_stops(solver) or needs_full_net(solver), "decisions": "full" if full else "paper",
+            **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed}
+               if disrupted else {})}),
             log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]

@@ -211,7 +211,8 @@ _HISTORY = Obj((
     Field("actions", Str(nonempty=False, what="action labels separated by single spaces")),
     Field("orders", ListOf(_HISTORY_ORDER)),
     Field("disruptions", ListOf(_HISTORY_DISRUPTION), required=False),
-), expected="a history object {actions, orders[, disruptions]}")
+    Field("scenario", Obj(()), required=False),
+), expected="a history object {actions, orders[, disruptions, scenario]}")
 
 # The optional "idle" of a state, sent by a shop that stops at idle-vehicle moments (for pre-positioning; see
 # fms_sim.stepping): the vehicles offered now, or [] at a decision. Absent (or null) if the shop does not stop

@@ -10,7 +10,9 @@ rejected message is answered on ``fms/errors`` and logged; the node keeps runnin
 Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
 (0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
 carry the rule features), ``history`` (true: states carry the replay history a PPO agent needs; default
-false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``idle_stops``
+false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``scenario`` (a
+``fms/scenario/v1`` file of breakdowns and outages, full net only), ``noise`` and ``noise_seed`` (lognormal
+noise on every duration), ``idle_stops``
 (true: the shop also stops, and publishes a state, when a vehicle is idle between
 decisions, so a ``ppo+lookahead`` agent can pre-position it; default false), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
 schedule JSON and the final instance including accepted orders; '' = none).
@@ -165,6 +167,9 @@ class ShopNode(FmsNode):
         history = param(n, "history", False)
         idle_stops = param(n, "idle_stops", False)
         decisions = param(n, "decisions", "paper")
+        scenario_file = param(n, "scenario", "")
+        noise = param(n, "noise", 0.0)
+        noise_seed = param(n, "noise_seed", 0)
         self.schedule_out = param(n, "schedule_out", "")
         self.instance_out = param(n, "instance_out", "")
         from .full_shop import DECISIONS
@@ -179,8 +184,21 @@ class ShopNode(FmsNode):
                                  no_tools=no_tools, no_agvs=no_agvs)
         except (InstanceError, OSError) as exc:
             raise StartupError(str(exc).splitlines()[0]) from None
+        scenario = None
+        if scenario_file or noise:
+            from .disruptions import Scenario, ScenarioError
+
+            try:
+                scenario = Scenario.load(scenario_file) if scenario_file else Scenario()
+                if noise:
+                    scenario = Scenario(scenario.breakdowns, scenario.outages, noise, noise_seed)
+                scenario.check(inst)
+            except ScenarioError as exc:
+                raise StartupError(str(exc)) from None
+            if decisions != "full":
+                raise StartupError("a scenario or noise needs decisions:=full")
         self.service = ShopService(inst, run_id=run_id or None, features=features, history=history,
-                                   idle_stops=idle_stops, decisions=decisions)
+                                   idle_stops=idle_stops, decisions=decisions, scenario=scenario)
         self.io = TopicIO(n, ["state", "event", "schedule", "error"])
         self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
         self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))

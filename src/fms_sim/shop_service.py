@@ -194,8 +194,11 @@ class ShopService:
 
     def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
                  features: bool = True, history: bool = False, idle_stops: bool = False,
-                 clock: Callable[[], float] = time.perf_counter, decisions: str = "paper") -> None:
-        self.shop = make_shop(instance, decisions)
+                 clock: Callable[[], float] = time.perf_counter, decisions: str = "paper",
+                 scenario: Any = None) -> None:
+        self.shop = make_shop(instance, decisions, scenario)
+        # the run's scenario as given at the start, for twins that mirror the shop (with history)
+        self._scenario_doc = scenario.to_dict() if scenario is not None and not scenario.empty else None
         self.stepper = Stepper(self.shop, idle_stops=idle_stops)
         self.stepper.advance()
         self.run_id = run_id or new_run_id(instance.name)
@@ -436,6 +439,8 @@ class ShopService:
             self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
             if self._disruption_history:
                 self.state["history"]["disruptions"] = list(self._disruption_history)
+            if self._scenario_doc is not None:
+                self.state["history"]["scenario"] = self._scenario_doc
         self.state["decisions"] = shop.decisions  # an extra field (allowed): the net the labels belong to
         return self.state
 

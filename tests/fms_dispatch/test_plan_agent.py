@@ -141,3 +141,22 @@ def test_bad_disruptions_are_rejected_and_change_nothing():
     paper.start()
     (err,) = paper.handle_disruption(encode(make_disruption("z", "breakdown", 5, machine=1)))
     assert err.msg["code"] == "bad_disruption" and "decisions:=full" in err.msg["message"]
+
+
+def test_a_plan_run_in_a_disrupted_shop_is_the_offline_disrupted_run():
+    from fms_sim.disruptions import Breakdown, Outage, Scenario
+
+    inst = builtin("ra02")
+    sc = Scenario(breakdowns=(Breakdown(2, 20, 15),), outages=(Outage("tt", 0, 5, 30),), noise=0.15, seed=3)
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False,
+                      scenario=sc)
+    agent = AgentLogic("plan:list", instance=inst)
+    svc.start()
+    while not svc.done:
+        out = agent.on_state(encode(svc.state))
+        assert not [o for o in out if o.topic == "fms/errors"], out
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+        svc.handle_command(encode(cmd))
+    live, offline = svc.final_schedule, solve(inst, "plan:list", scenario=sc)
+    assert validate(inst, live) == [] and live.meta["scenario"] == sc.to_dict()
+    assert live.to_dict()["operations"] == offline.to_dict()["operations"]

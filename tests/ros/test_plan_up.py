@@ -32,6 +32,26 @@ def test_fms_up_executes_a_cpsat_plan_at_the_optimum(ros_env: dict[str, str], tm
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
 
 
+def test_fms_up_runs_a_plan_in_a_noisy_shop_like_the_offline_run(ros_env: dict[str, str], tmp_path: Path) -> None:
+    from fms_dispatch.solvers import solve
+    from fms_sim.disruptions import Scenario
+
+    out = tmp_path / "s.json"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "plan:list", "--noise", "0.2",
+                          "--seed", "4", "--out", str(out), "--db", str(tmp_path / "fms.sqlite"), "--domain-id",
+                          ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr + res.stdout
+    inst = builtin("ra01")
+    sched = Schedule.load(out)
+    offline = solve(inst, "plan:list", scenario=Scenario(noise=0.2, seed=4))
+    assert validate(inst, sched) == [] and sched.meta["scenario"]["noise"] == 0.2
+    assert sched.to_dict()["operations"] == offline.to_dict()["operations"]
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "rule:MTWR+first", "--noise",
+                          "0.2", "--db", str(tmp_path / "x.sqlite")], env=ros_env, capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 2 and "decides on the full net" in res.stderr
+
+
 def test_a_breakdown_mid_run_reaches_the_shop_and_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
     import fms_msgs_json as m
 
