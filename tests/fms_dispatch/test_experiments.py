@@ -132,3 +132,19 @@ def test_parser() -> None:
     assert a.studies == ["lookahead", "masking"] and a.steps is None
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "nonsense"])
+
+
+def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from fms_dispatch.experiments import DISRUPTION_COLUMNS, DISRUPTION_MISSING, run_disruptions
+
+    doc = run_disruptions(quick=True, results_dir=tmp_path)
+    rows, saved = _outputs(tmp_path, "disruptions", DISRUPTION_COLUMNS)
+    assert len(rows) == 2 * 2 * 2  # two instances x noise 0 / 10 % x two methods, one seed
+    assert {r["instance"] for r in rows} == {"EX12", "ra01"} and {float(r["noise"]) for r in rows} == {0.0, 0.1}
+    assert all(int(r["breakdowns"]) == 2 for r in rows)
+    for r in rows:  # every run measured (and validated inside the experiment), with its decision latency
+        assert int(r["makespan"]) > 0 and int(r["decisions"]) > 0 and float(r["latency_ms"]) > 0
+    assert saved["not_measured"] == DISRUPTION_MISSING and "plan:cpsat+replan" in saved["not_measured"]
+    assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in ("plan:cpsat", "best-rule") for n in (0.0, 0.1)}
+    out = capsys.readouterr().out
+    assert "| method | noise |" in out and "not measured:" in out
