@@ -30,7 +30,8 @@ Solvers (the ``solver`` parameter):
 
 * ``plan:<SOLVER>[:SECONDS]`` — a whole plan by an offline solver (``cpsat``, ``sos``, ``rules``, ``list``,
   ``rule:...``) computed at the first state within SECONDS, then executed through a twin of the full-decision
-  net (:class:`PlanDecider`). It needs a shop started with ``decisions:=full``, ``history`` and ``idle_stops``.
+  net (:class:`PlanDecider`); ``plan:file:PATH`` executes the valid schedule in a file (made offline, with any
+  budget). It needs a shop started with ``decisions:=full``, ``history`` and ``idle_stops``.
 
 Offline solvers named alone (``sos``, ``cpsat``) raise :class:`UnavailableSolver` (use ``plan:sos``,
 ``plan:cpsat``), which the node turns into exit code 2.
@@ -371,31 +372,35 @@ class PlanDecider(TwinDecider):
         self.plan: Any = None
         self.policy: Any = None
         self.plan_wall_time: float | None = None
+        self.plan_error: str | None = None      # why no plan could be made (the fallback rule decides then)
         self.on_fallback = False
+        if self.base.lower().startswith("file:"):
+            self._make_plan()  # a given plan is checked at once: a bad file stops the agent before the run
 
     def _make_plan(self) -> None:
         import time
 
         from fms_sim.replay import PlanPolicy
 
-        from .solvers import solve
+        from .solvers import make_plan
 
-        opts: dict[str, Any] = {}
-        if self.seconds is not None:
-            opts["time_limit"] = self.seconds
         t0 = time.perf_counter()
-        self.plan = solve(self.instance, self.base, **opts)
+        self.plan = make_plan(self.instance, self.base, self.seconds)
         self.plan_wall_time = time.perf_counter() - t0
         self.policy = PlanPolicy(self.instance, self.plan)
 
     def _reset(self, run_id: str, idle_stops: bool) -> None:
         super()._reset(run_id, idle_stops)
-        if self.plan is None:
-            self._make_plan()
+        if self.plan is None and self.plan_error is None:
+            try:
+                self._make_plan()
+            except (ValueError, RuntimeError) as exc:  # e.g. no schedule within the budget
+                self.plan_error = str(exc).splitlines()[0]
         from fms_sim.replay import PlanPolicy
 
-        self.policy = PlanPolicy(self.instance, self.plan)  # a fresh twin: the plan starts over with it
-        self.on_fallback = False
+        # a fresh twin: the plan starts over with it
+        self.policy = PlanPolicy(self.instance, self.plan) if self.plan is not None else None
+        self.on_fallback = self.plan is None
 
     def _applying(self, label: str) -> None:
         st = self.stepper
@@ -412,6 +417,11 @@ class PlanDecider(TwinDecider):
         self.sync(state)
         st = self.stepper
         assert st is not None
+        if self.plan_error is not None:
+            why, self.plan_error = self.plan_error, ""  # said once; "" keeps the plan from being tried again
+            if why:
+                raise FallbackDecision(f"state {state['seq']}: {self.name} could not plan ({why}); "
+                                       f"{self.fallback_name} decides from here on", self._fallback_answer(st))
         if not self.on_fallback and st.shop.n_jobs != self.instance.n_jobs:
             self.on_fallback = True
             raise FallbackDecision(f"state {state['seq']}: jobs joined that the plan of {self.name} does not cover "

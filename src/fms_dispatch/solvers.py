@@ -169,8 +169,14 @@ def get_solver(name: str) -> Solver:
 
 
 def parse_plan_name(name: str) -> tuple[str, float | None]:
-    """``plan:BASE[:SECONDS]`` -> (base solver name, seconds or None); raises :class:`UnknownSolver`."""
+    """``plan:BASE[:SECONDS]`` -> (base solver name, seconds or None); ``plan:file:PATH`` -> ("file:PATH",
+    None). Raises :class:`UnknownSolver`."""
     body = name.split(":", 1)[1] if name.lower().startswith("plan:") else ""
+    if body.lower().startswith("file:"):
+        path = body[5:]
+        if not path:
+            raise UnknownSolver(f"bad plan solver {name!r}: plan:file:PATH names a schedule file")
+        return body, None
     base, seconds = body, None
     head, sep, tail = body.rpartition(":")
     if sep and head:
@@ -184,26 +190,46 @@ def parse_plan_name(name: str) -> tuple[str, float | None]:
                 raise UnknownSolver(f"the time budget of {name!r} must be positive")
     if not base or base.lower().startswith(("plan:", "ppo")) or base.lower() in ("first", "random"):
         raise UnknownSolver(f"bad plan solver {name!r}: use plan:SOLVER[:SECONDS] with an offline solver "
-                            "(cpsat, sos, rules, list, rule:...)")
+                            "(cpsat, sos, rules, list, rule:...) or plan:file:PATH")
     get_solver(base)
     return base, seconds
+
+
+def make_plan(instance: Instance, base: str, seconds: float | None = None, **options: Any) -> Schedule:
+    """The plan of a ``plan:`` solver: ``base`` solved on the nominal instance within ``seconds`` (its time
+    limit), or the schedule in ``file:PATH`` (refused with the validator's first errors if it is not valid for
+    the instance)."""
+    if base.lower().startswith("file:"):
+        from fms_sim.schedule import Schedule as _Schedule
+        from fms_sim.validate import validate
+
+        path = base[5:]
+        try:
+            plan = _Schedule.load(path)
+        except OSError as exc:
+            raise UnknownSolver(f"cannot read plan {path}: {exc.strerror}") from None
+        problems = validate(instance, plan)
+        if problems:
+            raise UnknownSolver(f"plan {path} is not valid for {instance.name}: {problems[0]}"
+                                + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+        return plan
+    opts = {k: v for k, v in options.items() if k not in ("decisions", "scenario")}
+    if seconds is not None and searches_time(base):
+        opts["time_limit"] = seconds
+    return solve(instance, base, **opts)
 
 
 def plan_solver(name: str) -> Solver:
     """``plan:BASE[:SECONDS]``: solve the whole instance with BASE within SECONDS (its ``time_limit``), then
     execute that plan through the full-decision net (:func:`fms_sim.replay.replay`): the schedule a shop gets
-    when it follows the plan, never later than the plan."""
+    when it follows the plan, never later than the plan. ``plan:file:PATH`` executes the schedule in a file."""
     base, seconds = parse_plan_name(name)
 
     def solver(instance: Instance, time_limit: float | None = None, scenario: Any = None, **kw: Any) -> Schedule:
         from fms_sim.replay import replay
 
-        opts = dict(kw)
-        opts.pop("decisions", None)
         budget = seconds if seconds is not None else time_limit
-        if budget is not None and searches_time(base):
-            opts["time_limit"] = budget
-        plan = solve(instance, base, **opts)  # on the nominal shop: disruptions are not known in advance
+        plan = make_plan(instance, base, budget, **kw)  # on the nominal shop: disruptions are not known ahead
         out = replay(instance, plan, scenario=scenario)
         out.meta.update(solver=name, plan_solver=base, plan_makespan=plan.makespan,
                         plan_wall_time=plan.meta.get("wall_time"), lower_bound=plan.meta.get("lower_bound"))

@@ -160,3 +160,32 @@ def test_a_plan_run_in_a_disrupted_shop_is_the_offline_disrupted_run():
     live, offline = svc.final_schedule, solve(inst, "plan:list", scenario=sc)
     assert validate(inst, live) == [] and live.meta["scenario"] == sc.to_dict()
     assert live.to_dict()["operations"] == offline.to_dict()["operations"]
+
+
+def test_a_plan_file_is_executed_live_exactly_as_fms_replay_does(tmp_path):
+    from fms_sim.replay import replay
+
+    inst = builtin("EX42")
+    plan = solve(inst, "cpsat", time_limit=3)
+    path = tmp_path / "plan.json"
+    plan.save(path)
+    svc, errors = drive(inst, f"plan:file:{path}")
+    assert errors == []
+    assert svc.final_schedule.to_dict()["operations"] == replay(inst, plan).to_dict()["operations"]
+    with pytest.raises(UnavailableSolver, match="not valid for EX43"):
+        make_decider(f"plan:file:{path}", instance=builtin("EX43"))
+    with pytest.raises(UnavailableSolver, match="cannot read plan"):
+        make_decider(f"plan:file:{tmp_path / 'none.json'}", instance=inst)
+
+
+def test_a_plan_that_cannot_be_made_hands_over_to_the_fallback(monkeypatch):
+    import fms_dispatch.solvers as solvers
+
+    def broken(*a, **k):
+        raise RuntimeError("cpsat found no feasible schedule")
+
+    monkeypatch.setattr(solvers, "make_plan", broken)
+    inst = builtin("EX12")
+    svc, errors = drive(inst, "plan:cpsat:1")
+    assert svc.done and validate(inst, svc.final_schedule) == []
+    assert len(errors) == 1 and "could not plan" in errors[0]["message"]
