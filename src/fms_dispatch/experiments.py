@@ -526,10 +526,8 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
 # ---------------------------------------------------------------------- disruptions
 def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: str | None) -> tuple[Schedule, int, float]:
     """Run a plan (by replay) or a full-net rule under ``scenario``; (schedule, decisions, seconds)."""
-    from fms_sim.disruptions import Scenario  # noqa: F401  (type of ``scenario``)
     from fms_sim.full_shop import FullShop
-    from fms_sim.replay import PlanPolicy
-    from fms_sim.stepping import Stepper
+    from fms_sim.replay import PlanPolicy, execute
 
     from .full_rules import parse_full_rule
 
@@ -537,14 +535,7 @@ def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: str |
     shop = FullShop(inst, scenario=scenario)
     n = 0
     if plan is not None:
-        policy = PlanPolicy(inst, plan)
-        st = Stepper(shop, idle_stops=True)
-        st.advance()
-        while st.kind != "done":
-            label = policy.answer(st)
-            policy.apply(st, label)
-            st.apply(label)
-            n += 1
+        n = execute(shop, PlanPolicy(inst, plan))
     else:
         choose = parse_full_rule(rule or "")
         while not shop.done:

@@ -26,7 +26,7 @@ from .schedule import Schedule
 from .stepping import Move, Stepper, moves_label, parse_moves
 from .validate import validate
 
-__all__ = ["replay", "ReplayError", "PlanPolicy"]
+__all__ = ["replay", "execute", "ReplayError", "PlanPolicy"]
 
 
 class ReplayError(ValueError):
@@ -189,6 +189,23 @@ class PlanPolicy:
         return None
 
 
+def execute(shop: FullShop, policy: PlanPolicy) -> int:
+    """Run ``shop`` to the end with ``policy`` answering every stop of a :class:`~fms_sim.stepping.Stepper`
+    (idle stops included); returns the number of answers."""
+    stepper = Stepper(shop, idle_stops=True)
+    stepper.advance()
+    n = 0
+    while stepper.kind != "done":
+        label = policy.answer(stepper)
+        policy.apply(stepper, label)
+        try:
+            stepper.apply(label)
+        except InvalidAction as exc:  # pragma: no cover - a bug: the policy only gives offered answers
+            raise ReplayError(f"replay of {shop.instance.name} failed at time {shop.now}: {exc}") from exc
+        n += 1
+    return n
+
+
 def replay(instance: Instance, schedule: Schedule, *, check: bool = True,
            scenario: Scenario | None = None) -> Schedule:
     """Run ``schedule``'s orders through the full-decision net and return the schedule the net makes.
@@ -204,16 +221,7 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True,
         head = "; ".join(problems[:5]) + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else "")
         raise ReplayError(f"the schedule is not valid for {instance.name}: {head}", problems)
     shop = FullShop(instance, scenario=scenario)
-    policy = PlanPolicy(instance, schedule)
-    stepper = Stepper(shop, idle_stops=True)
-    stepper.advance()
-    while stepper.kind != "done":
-        label = policy.answer(stepper)
-        policy.apply(stepper, label)
-        try:
-            stepper.apply(label)
-        except InvalidAction as exc:  # pragma: no cover - a bug: the policy only gives offered answers
-            raise ReplayError(f"replay of {instance.name} failed at time {shop.now}: {exc}") from exc
+    execute(shop, PlanPolicy(instance, schedule))
     out = shop.schedule()
     out.meta.update({"solver": "replay", "replayed": schedule.meta.get("solver", "?"),
                      "given_makespan": schedule.makespan})
