@@ -110,6 +110,24 @@ def _layout(schedule: Schedule, instance: Instance | None) -> tuple[list[_Row], 
     return rows, heads, y
 
 
+_DOWN_FACE, _DOWN_EDGE = (0.9, 0.3, 0.25, 0.18), "#c0392b"
+
+
+def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[tuple[float, float, float, float]]:
+    """Spans of the breakdowns and outages that ``schedule.meta["scenario"]`` records, on their rows."""
+    sc = schedule.meta.get("scenario")
+    if not isinstance(sc, dict):
+        return []
+    out = []
+    windows = [("machine", b.get("machine"), b.get("start"), b.get("duration")) for b in sc.get("breakdowns", [])]
+    windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in sc.get("outages", [])]
+    for kind, i, start, dur in windows:
+        y = row_y.get((kind, i))
+        if y is not None and isinstance(start, int) and isinstance(dur, int):
+            out.append((start, start + dur, y - 0.48, y + 0.48))
+    return out
+
+
 def _rects(spans: Iterable[tuple[float, float, float, float]]) -> np.ndarray:
     """``(x0, x1, y0, y1)`` spans as an ``(N, 4, 2)`` array of rectangle vertices for a PolyCollection."""
     a = np.asarray(list(spans), dtype=float).reshape(-1, 4)
@@ -203,6 +221,13 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
         ax.add_collection(PolyCollection(_rects(empty_spans), facecolors=_EMPTY_FACE, edgecolors=_EMPTY_EDGE,
                                          linewidths=0.4, hatch="/////"))
 
+    # Disruptions recorded with the schedule: machines down and vehicles out of service, as red hatched bands
+    # behind the bars of their row.
+    down = _downtime(schedule, row_y)
+    if down:
+        ax.add_collection(PolyCollection(_rects(down), facecolors=_DOWN_FACE, edgecolors=_DOWN_EDGE, linewidths=0.6,
+                                         hatch="xxx", zorder=0.5))
+
     if len(labels) <= _MAX_LABELS:
         for x, y, text, col, fs in labels:
             ax.text(x, y, text, ha="center", va="center", fontsize=fs, color=col, clip_on=True)
@@ -236,6 +261,9 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
     if not schedule.agv_trips and not schedule.tool_trips:
         handles = [handles[0], handles[2]]
         handles[0] = Patch(facecolor=colour(0), edgecolor="#303030", lw=0.4, label="operation (colour = job)")
+    if down:
+        handles.insert(-1, Patch(facecolor=_DOWN_FACE, edgecolor=_DOWN_EDGE, hatch="xxx", lw=0.6,
+                                 label="down / out of service"))
     ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(handles), frameon=False,
               fontsize=8, handlelength=2.2, borderaxespad=0.2)
     fig.text(_LEFT_IN / width_in, 1 - 0.12 / height_in, title if title is not None else

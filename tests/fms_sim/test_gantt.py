@@ -235,3 +235,25 @@ def test_does_not_touch_pyplot() -> None:
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
+
+
+def test_disruptions_are_drawn_behind_their_rows():
+    from fms_sim.benchmarks import builtin
+    from fms_sim.disruptions import Breakdown, Outage, Scenario
+    from fms_sim.full_shop import FullShop
+
+    inst = builtin("ra01")
+    sc = Scenario(breakdowns=(Breakdown(2, 30, 20),), outages=(Outage("agv", 1, 10, 15),))
+    shop = FullShop(inst, scenario=sc)
+    while not shop.done:
+        shop.act(shop.legal_actions()[0])
+    sched = shop.schedule()
+
+    def legend(fig):
+        return [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+
+    assert "down / out of service" in legend(plot_gantt(sched, inst))
+    nominal = FullShop(inst)
+    while not nominal.done:
+        nominal.act(nominal.legal_actions()[0])
+    assert "down / out of service" not in legend(plot_gantt(nominal.schedule(), inst))
