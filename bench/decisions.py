@@ -8,8 +8,8 @@ optimum, per sl group and mode the mean gap to ``cpsat``, each against its goal 
 5 % of the optima; sl: within 10 % of cpsat with tools, 8 % without).
 
 Usage: ``nice python bench/decisions.py [--results-dir results/decisions] [--jobs 1] [--summary]``
-(``--summary``: only print the summary of what the cache holds). About 3 hours on one core of the 2-core
-machine, most of it ``rules:full`` on the 100-job instances (145 rule runs each).
+(``--summary``: only print the summary of what the cache holds). About 4 hours on one core of the 2-core
+machine, most of it ``rules:full`` on the 100-job instances with tools (158 runs each, 5-8 minutes).
 """
 
 from __future__ import annotations
