@@ -45,27 +45,34 @@ def _int(d: dict[str, Any], key: str, where: str) -> int:
     return v
 
 
+class _Window:
+    """A time window ``[start, start + duration)``."""
+
+    start: int
+    duration: int
+
+    @property
+    def end(self) -> int:
+        return self.start + self.duration
+
+
 @dataclass(frozen=True)
-class Breakdown:
+class Breakdown(_Window):
+    """Machine ``machine`` is down in the window."""
+
     machine: int
     start: int
     duration: int
 
-    @property
-    def end(self) -> int:
-        return self.start + self.duration
-
 
 @dataclass(frozen=True)
-class Outage:
+class Outage(_Window):
+    """AGV (``kind="agv"``) or tool transporter (``"tt"``) ``vehicle`` is out of service in the window."""
+
     kind: str
     vehicle: int
     start: int
     duration: int
-
-    @property
-    def end(self) -> int:
-        return self.start + self.duration
 
 
 @dataclass(frozen=True)

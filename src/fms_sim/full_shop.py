@@ -182,12 +182,7 @@ class FullShop(Shop):
     def _agv_block_full(self) -> None:
         net, inst = self.net, self.instance
         T = inst.agv_travel
-        self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
-        self.p_awaiting_agv = net.add_place("awaiting_agv")
-        self.p_agv_pick = net.add_place("agv_to_pickup", key=lambda c: c[0])
-        self.p_agv_drop = net.add_place("agv_loaded_trip", key=lambda c: c[0])
-        for v in range(inst.n_agvs):
-            net.put(self.p_agv_idle, (v, 0))
+        self.p_agv_pick, self.p_agv_drop = self._agv_places("agv_to_pickup", "agv_loaded_trip")
         for v in range(inst.n_agvs):
             # colour of trip tokens: (agv, job, op, pickup, machine)
             self._vehicle_choice("agv", v, self.p_awaiting_agv, self.p_agv_idle, self.p_agv_pick, T, 2,

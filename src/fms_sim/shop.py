@@ -184,12 +184,7 @@ class Shop:
     def _agv_block(self) -> tuple[list[Arc], list[Output]]:
         net, inst = self.net, self.instance
         T = inst.agv_travel
-        self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
-        self.p_awaiting_agv = net.add_place("awaiting_agv")
-        self.p_agv_empty = net.add_place("agv_empty_trip", key=lambda c: c[0])
-        self.p_agv_loaded = net.add_place("agv_loaded_trip", key=lambda c: c[0])
-        for v in range(inst.n_agvs):
-            net.put(self.p_agv_idle, (v, 0))
+        self.p_agv_empty, self.p_agv_loaded = self._agv_places("agv_empty_trip", "agv_loaded_trip")
         # a part already at its machine needs no AGV
         net.add_transition(Transition(
             name="stay", priority=_P_ALLOC, arcs=[Arc(self.p_awaiting_agv, "r")],
@@ -218,6 +213,17 @@ class Shop:
         self.p_agv_orders = self._reposition_block("agv", self.p_agv_idle, inst.n_agvs, T, self._on_agv_reposition)
         gate = [Arc(self.p_agv_idle, kind="test", count_only=True)]
         return gate, [Output(self.p_awaiting_agv, self._request)]
+
+    def _agv_places(self, first_leg: str, second_leg: str) -> tuple[Place, Place]:
+        """The AGV fleet's places (idle AGVs at L/U, the request waiting for its AGV) and the two places of a
+        transport's legs, keyed by AGV, which the transport module names and returns."""
+        net = self.net
+        self.p_agv_idle = net.add_place("agv_idle", key=lambda c: c[0])
+        self.p_awaiting_agv = net.add_place("awaiting_agv")
+        legs = (net.add_place(first_leg, key=lambda c: c[0]), net.add_place(second_leg, key=lambda c: c[0]))
+        for v in range(self.instance.n_agvs):
+            net.put(self.p_agv_idle, (v, 0))
+        return legs
 
     def _reposition_block(self, kind: str, idle: Place, n: int, travel, on_fire, delay=None) -> Place:
         """Pre-positioning module for one fleet: an order ``(vehicle, location)`` in the returned place sends
