@@ -109,13 +109,14 @@ class FullShop(Shop):
         self._last_leg: dict[tuple[str, int], int] = {}      # the time of the leg a vehicle just began
         self._running_rec: list[int] = [-1] * (M + 1)          # rec.ops index of the operation on each machine
         self.t_select: dict[tuple[str, int], Transition] = {}
-        self._tool_ops: list[list[tuple[int, int]]] = []
-        self._danger_cache: dict[int, set[tuple[int, int]]] = {}  # per job: (op, tool) of its operations with a tool
+        self._tool_ops: list[list[tuple[int, int]]] = []  # per job: (op, tool) of its operations with a tool
+        self._danger_cache: dict[int, set[tuple[int, int]]] = {}  # see _danger
         self.t_job: list[Transition] = []
         self.t_start: list[Transition] = []
         self.t_use: list[Transition] = []
         self.t_tool: list[Transition] = []
         self.t_tt_load: list[Transition] = []
+        self.t_agv_load: list[Transition] = []
         if inst.has_tools:
             self._tools_block_full()
         if inst.has_agvs:
@@ -152,7 +153,7 @@ class FullShop(Shop):
                 on_fire=partial(self._on_job, j)))
             self.t_job.append(t)
             if self.scenario is not None and any(o.kind == "agv" for o in self.scenario.outages):
-                net.wake_on_change(self.p_agv_idle, t)  # see _disruptions_block
+                self._watch_outages("agv", [t])
             net.add_transition(Transition(
                 name=f"stay[{j}]", priority=_P_ALLOC, arcs=[Arc(self.p_parts, "p", key=j)],
                 guard=self._stays, outputs=[Output(self.p_buffer, self._to_buffer)], on_fire=self._on_buffered))
@@ -187,12 +188,12 @@ class FullShop(Shop):
             # colour of trip tokens: (agv, job, op, pickup, machine)
             self._vehicle_choice("agv", v, self.p_awaiting_agv, self.p_agv_idle, self.p_agv_pick, T, 2,
                                  self._on_select_agv_full)
-            net.add_transition(Transition(
+            self.t_agv_load.append(net.add_transition(Transition(
                 name=f"agv_load[{v}]", priority=_P_DONE,
                 arcs=[Arc(self.p_agv_pick, "e", key=v), Arc(self.p_parts, "p", key=lambda b: b["e"][1])],
                 guard=self._agv_load_ok,
                 outputs=[Output(self.p_agv_drop, lambda b: b["e"], delay=partial(self._loaded_leg, "agv", 3, 4))],
-                on_fire=self._on_agv_load))
+                on_fire=self._on_agv_load)))
             net.add_transition(Transition(
                 name=f"agv_unload[{v}]", priority=_P_DONE, arcs=[Arc(self.p_agv_drop, "l", key=v)],
                 outputs=[Output(self.p_buffer, lambda b: (b["l"][1], b["l"][2], b["l"][4])),
@@ -266,20 +267,7 @@ class FullShop(Shop):
         return b["p"][1] == b["e"][2] and not self.out["agv"][b["e"][0]]
 
     def _on_reposition_full(self, kind: str, b: dict, now: int) -> None:
-        v, here = b["a"]
-        dest = b["o"][1]
-        t = self._last_leg[kind, v]
-        agv = kind == "agv"
-        if here != dest:
-            if agv:
-                self.rec.agv.append(AgvTrip(v, None, None, here, dest, now, now + t, False))
-            else:
-                self.rec.tt.append(ToolTrip(v, None, None, None, here, dest, now, now + t, False))
-        work, loc, free = ((self.agv_work, self.agv_loc, self.agv_free_at) if agv
-                           else (self.tt_work, self.tt_loc, self.tt_free_at))
-        work[v] += t
-        loc[v] = dest
-        free[v] = now + t
+        self._record_reposition(kind, b, now, self._last_leg[kind, b["a"][0]])  # the leg's drawn time
 
     def _on_select_agv_full(self, b: dict, now: int) -> None:
         v, here = b["a"]
@@ -395,16 +383,19 @@ class FullShop(Shop):
                                       on_fire=self._on_disruption))
         if self.scenario is None:
             return
-        # with vehicles out of service, "an idle vehicle in service" can change without the idle count turning
-        # empty: the guards that ask for one read every change of the idle place
-        kinds = {o.kind for o in self.scenario.outages}  # (job transitions: see _add_job)
-        if "tt" in kinds:
-            for t in self.t_tool:
-                net.wake_on_change(self.p_tt_idle, t)
+        if any(o.kind == "tt" for o in self.scenario.outages):
+            self._watch_outages("tt", self.t_tool)  # (job transitions: in _add_job)
         for b in self.scenario.breakdowns:
             net.put(self.p_disrupt, ("down", b.machine, b.duration), delay=b.start)
         for o in self.scenario.outages:
             net.put(self.p_disrupt, ("out", o.kind, o.vehicle, o.duration), delay=o.start)
+
+    def _watch_outages(self, kind: str, transitions: list[Transition]) -> None:
+        """With vehicles of ``kind`` out of service, "an idle vehicle in service" can change without the idle
+        count turning empty: the guards that ask for one (``transitions``) read every change of the idle place."""
+        idle = self.p_agv_idle if kind == "agv" else self.p_tt_idle
+        for t in transitions:
+            self.net.wake_on_change(idle, t)
 
     def add_disruption(self, d: Breakdown | Outage) -> None:
         """A breakdown or outage reported during the run (``d.start`` >= now; it takes effect then). Raises
@@ -419,8 +410,7 @@ class FullShop(Shop):
             new = replace(base, outages=base.outages + (d,), _factors=base._factors)
         new.check(self.instance)
         if isinstance(d, Outage) and not any(o.kind == d.kind for o in base.outages):
-            for t in (self.t_job if d.kind == "agv" else self.t_tool):  # see _disruptions_block
-                self.net.wake_on_change(self.p_agv_idle if d.kind == "agv" else self.p_tt_idle, t)
+            self._watch_outages(d.kind, self.t_job if d.kind == "agv" else self.t_tool)
         self.scenario = new
         if isinstance(d, Breakdown):
             self.net.put(self.p_disrupt, ("down", d.machine, d.duration), delay=d.start - self.now)
@@ -450,15 +440,12 @@ class FullShop(Shop):
                 self.net.put(self.p_disrupt, ("back", kind, v), delay=d[3])
             touch = self.net.touch
             touch(self.t_select[kind, v])
+            touch((self.t_agv_load if kind == "agv" else self.t_tt_load)[v])  # a committed vehicle waiting to load
             if kind == "agv":
                 for t in self.t_job:
                     touch(t)
             else:
                 self._touch_tools()
-                touch(self.t_tt_load[v])
-            for t in self.net.transitions:  # a committed vehicle waiting to load
-                if t.name == f"{kind}_load[{v}]":
-                    touch(t)
 
     def _touch_starts(self, m: int) -> None:
         t_start, touch = self.t_start, self.net.touch
@@ -541,7 +528,7 @@ class FullShop(Shop):
         s = self.started[j]
         if z == s:
             return True  # nothing of the job comes before it: it waits for no reservation
-        running, nxt, user = self.tool_running, self.tool_next, self.tool_user
+        waiter = self._waiter
         danger = None
         for y, need in self._tool_ops[j]:
             if y >= z:
@@ -550,7 +537,7 @@ class FullShop(Shop):
                 continue
             if need == tool:
                 return False  # the job needs the tool for an earlier operation first
-            w = nxt[need] if running[need] else user[need]
+            w = waiter(need)
             if w is None or w == (j, y):
                 continue
             if danger is None:
@@ -565,8 +552,8 @@ class FullShop(Shop):
         cached = self._danger_cache.get(tool)
         if cached is not None:
             return cached
-        running, nxt, user, started = self.tool_running, self.tool_next, self.tool_user, self.started
-        nodes = {w for w in (nxt[t] if running[t] else user[t] for t in range(1, len(user))) if w is not None}
+        waiter, started = self._waiter, self.started
+        nodes = {w for w in map(waiter, range(1, len(self.tool_user))) if w is not None}
         into: dict[tuple[int, int], list[tuple[int, int]]] = {}
         frontier = []
         for node in nodes:
@@ -580,7 +567,7 @@ class FullShop(Shop):
                 if need == tool:
                     hit = True
                     continue
-                w = nxt[need] if running[need] else user[need]
+                w = waiter(need)
                 if w is not None and w != (i, y):
                     into.setdefault(w, []).append(node)
             if hit:

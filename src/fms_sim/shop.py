@@ -249,13 +249,24 @@ class Shop:
 
     def _on_agv_reposition(self, b: dict, now: int) -> None:
         v, here = b["a"]
+        self._record_reposition("agv", b, now, self.instance.agv_travel[here][b["o"][1]])
+
+    def _record_reposition(self, kind: str, b: dict, now: int, t: int) -> None:
+        """Record a pre-positioning trip of ``t`` time units that vehicle ``b["a"]`` of ``kind`` began now to
+        ``b["o"]``'s location, and its statistics (work, destination, free time)."""
+        v, here = b["a"]
         dest = b["o"][1]
-        t = self.instance.agv_travel[here][dest]
+        agv = kind == "agv"
         if here != dest:
-            self.rec.agv.append(AgvTrip(v, None, None, here, dest, now, now + t, False))
-        self.agv_work[v] += t
-        self.agv_loc[v] = dest
-        self.agv_free_at[v] = now + t
+            if agv:
+                self.rec.agv.append(AgvTrip(v, None, None, here, dest, now, now + t, False))
+            else:
+                self.rec.tt.append(ToolTrip(v, None, None, None, here, dest, now, now + t, False))
+        work, loc, free = ((self.agv_work, self.agv_loc, self.agv_free_at) if agv
+                           else (self.tt_work, self.tt_loc, self.tt_free_at))
+        work[v] += t
+        loc[v] = dest
+        free[v] = now + t
 
     def _on_stay(self, b: dict, now: int) -> None:
         self.pending_job = None
@@ -383,13 +394,7 @@ class Shop:
 
     def _on_tt_reposition(self, b: dict, now: int) -> None:
         r, here = b["a"]
-        dest = b["o"][1]
-        t = self.instance.tool_travel[here][dest]
-        if here != dest:
-            self.rec.tt.append(ToolTrip(r, None, None, None, here, dest, now, now + t, False))
-        self.tt_work[r] += t
-        self.tt_loc[r] = dest
-        self.tt_free_at[r] = now + t
+        self._record_reposition("tt", b, now, self.instance.tool_travel[here][b["o"][1]])
 
     def _no_tool(self, b: dict) -> tuple | None:
         j, k, _ = b["p"]
