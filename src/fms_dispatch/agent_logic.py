@@ -380,14 +380,11 @@ class PlanDecider(TwinDecider):
     def _make_plan(self) -> None:
         import time
 
-        from fms_sim.replay import PlanPolicy
-
         from .solvers import make_plan
 
         t0 = time.perf_counter()
         self.plan = make_plan(self.instance, self.base, self.seconds)
         self.plan_wall_time = time.perf_counter() - t0
-        self.policy = PlanPolicy(self.instance, self.plan)
 
     def _reset(self, run_id: str, idle_stops: bool) -> None:
         super()._reset(run_id, idle_stops)

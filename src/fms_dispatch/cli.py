@@ -9,10 +9,13 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
+
+if TYPE_CHECKING:
+    from fms_sim.disruptions import Scenario
 
 EXIT_BAD_INPUT = 2
 EXIT_INFEASIBLE = 1
@@ -61,7 +64,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
         opts["time_limit"] = a.time_limit
     from .solvers import DECISION_SOLVERS
 
-    scenario = _scenario_from_args(a, inst)
+    scenario = scenario_from_args(a, inst)
     if scenario is not None:
         opts["scenario"] = scenario
     if a.solver.lower().startswith(DECISION_SOLVERS):
@@ -86,7 +89,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     return 0
 
 
-def _scenario_from_args(a: argparse.Namespace, inst: Instance):  # -> Scenario | None
+def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None:
     """The disruptions of ``--scenario FILE`` and ``--noise SPREAD`` (seeded by ``--seed``), checked against the
     instance; None for an undisrupted run."""
     from fms_sim.disruptions import Scenario
@@ -127,7 +130,7 @@ def cmd_validate(a: argparse.Namespace) -> int:
 
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
-    scenario = _scenario_from_args(a, inst)
+    scenario = scenario_from_args(a, inst)
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
     problems = validate(inst, sched, scenario)

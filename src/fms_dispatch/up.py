@@ -253,10 +253,10 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(str(exc)) from None
     disrupted = bool(a.scenario) or bool(a.noise)
     if disrupted:
-        from .cli import _scenario_from_args
+        from .cli import scenario_from_args
 
         try:
-            scenario = _scenario_from_args(a, inst)
+            scenario = scenario_from_args(a, inst)
         except ValueError as exc:  # a bad scenario file (ScenarioError), a bad --noise
             raise UpError(str(exc).splitlines()[0]) from None
         if not (needs_full_net(solver) or solver.lower() in ("first", "random")):
