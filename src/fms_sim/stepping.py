@@ -154,10 +154,11 @@ class Stepper:
             if shop.done:
                 self.kind = "done"
                 return self.kind
-            idle = [m for m in self.idle_vehicles() if (m.kind, m.vehicle) not in self.looked]
-            if idle:
-                self.idle, self.kind = idle, "idle"
-                return self.kind
+            if not self.idle_first:  # (idle-first: the vehicles were offered above)
+                idle = [m for m in self.idle_vehicles() if (m.kind, m.vehicle) not in self.looked]
+                if idle:
+                    self.idle, self.kind = idle, "idle"
+                    return self.kind
             t = net.next_event_time()
             if t is None:
                 shop._check_progress()  # raises Deadlock
