@@ -72,6 +72,12 @@ def cmd_solve(a: argparse.Namespace) -> int:
     elif a.decisions:
         raise CliError(f"--decisions applies to the first, random and rule: solvers, not {a.solver} "
                        "(list and rules always use the full net; sos and ppo the paper's)")
+    if a.replan is not None:
+        if not a.solver.lower().startswith("plan:"):
+            raise CliError("--replan applies to the plan: solvers only")
+        if a.replan <= 0:
+            raise CliError("--replan must be positive (seconds per re-plan)")
+        opts["replan"] = a.replan
     if a.lookahead or a.lookahead_fast:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead and --lookahead-fast apply to the ppo solver only")
@@ -84,7 +90,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if problems:  # a solver bug: never hand out an infeasible schedule silently
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
         return EXIT_INFEASIBLE
-    print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s, valid)")
+    replans = sched.meta.get("replans")
+    extra = "" if replans is None else (f", {len(replans)} re-plans "
+                                        f"({sum(e['status'] == 'adopted' for e in replans)} adopted)")
+    print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     _write_outputs(sched, inst, a.out, a.gantt)
     return 0
 
@@ -205,6 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "vehicles out of service, noise); first, random, rule: and plan: solvers")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
                    "time (sigma, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
+    s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
+                   "disrupted shop departs from the plan (breakdown, outage, lateness); default: keep the plan")
     s.add_argument("--out", help="write the schedule JSON here")
     s.add_argument("--gantt", help="write a Gantt chart PNG here")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress output")

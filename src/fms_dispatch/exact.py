@@ -59,6 +59,7 @@ from ortools.sat.python import cp_model
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.snapshot import Snapshot
 from fms_sim.validate import validate
 
 __all__ = [
@@ -290,6 +291,7 @@ def greedy_schedule(
     rng: random.Random | None = None,
     priority: dict[tuple[int, int], float] | None = None,
     noise: dict[tuple[int, int], float] | None = None,
+    origin: Snapshot | None = None,
 ) -> Schedule:
     """A feasible schedule by list scheduling, appending every activity to the end of its resources.
 
@@ -300,35 +302,47 @@ def greedy_schedule(
     per-operation offset to the start times compared by ``"est"`` (randomised restarts). Empty trips
     start as soon as the vehicle is free; vehicles then wait for the part or tool. Always valid, never
     optimal in general; it gives the solver its first upper bound and the fallback its schedule.
+
+    ``origin`` (a :class:`fms_sim.snapshot.Snapshot` of a running shop) plans only what has not started, from
+    that state: committed moves and tool reservations are kept (they get no trip record), a reserved tool serves
+    its reserved operation first, and the result holds the remaining operations and the new trips only, with
+    ``makespan`` the predicted end of the whole run (``meta["residual"]``: the time it starts from). Such a
+    *residual plan* is not a schedule of the instance (the validator would miss the past); re-planning executes
+    it with :meth:`fms_sim.replay.PlanPolicy.resume`.
     """
     if rule not in ("est", "ect", "guided"):
         raise ValueError(f"unknown greedy rule {rule!r}; use 'est', 'ect' or 'guided'")
     if rule == "guided" and priority is None:
         raise ValueError("greedy rule 'guided' needs a priority for every operation")
+    if origin is not None and origin.instance.n_jobs != inst.n_jobs:
+        raise ValueError(f"the snapshot has {origin.instance.n_jobs} jobs, the instance {inst.n_jobs}")
+    o = origin if origin is not None else Snapshot.initial(inst)
     jobs = inst.jobs
     nj = len(jobs)
     atr, ttr = inst.agv_travel, inst.tool_travel
-    nxt = [0] * nj
-    ready = [0] * nj
-    remaining = [sum(op.duration for op in job) for job in jobs]
-    mach_free = [0] * (inst.n_machines + 1)
-    agv_loc = [0] * inst.n_agvs
-    agv_free = [0] * inst.n_agvs
-    tr_loc = [0] * inst.n_tool_transporters
-    tr_free = [0] * inst.n_tool_transporters
-    tool_loc = [0] * (inst.n_tools + 1)
-    tool_free = [0] * (inst.n_tools + 1)
+    nxt = list(o.next_op)
+    ready = list(o.ready)
+    remaining = [sum(op.duration for op in job[nxt[j]:]) for j, job in enumerate(jobs)]
+    mach_free = list(o.machine_free)
+    agv_loc, agv_free = list(o.agv_loc), list(o.agv_free)
+    tr_loc, tr_free = list(o.tt_loc), list(o.tt_free)
+    tool_loc, tool_free = list(o.tool_loc), list(o.tool_free)
+    arrival = dict(o.arrival)          # job -> when its next part is at the machine (move done or committed)
+    reserved = dict(o.tool_reserved)   # tool -> (job, op, when the tool is there) served before any other use
     ops: list[OperationRecord] = []
     agv_trips: list[AgvTrip] = []
     tool_trips: list[ToolTrip] = []
 
-    def plan(j: int) -> tuple[int, int, int, int, int, int]:
-        """(start, agv, loaded start, transporter, tool loaded start, end) for the next operation of j."""
+    def plan(j: int) -> tuple[int, int, int, int, int, int] | None:
+        """(start, agv, loaded start, transporter, tool loaded start, end) for the next operation of j; None
+        while its tool is reserved for another operation."""
         k = nxt[j]
         op = jobs[j][k]
         m = op.machine
         arrive, best_a, ls = ready[j], -1, 0
-        if atr is not None:
+        if arrival and j in arrival:
+            arrive = arrival[j]
+        elif atr is not None:
             pick = jobs[j][k - 1].machine if k else 0
             if pick != m:
                 best_a, ls = _earliest_vehicle(agv_loc, agv_free, atr, pick, ready[j])
@@ -336,7 +350,12 @@ def greedy_schedule(
         tool_at, best_r, tls = 0, -1, 0
         if ttr is not None and op.tool is not None:
             t = op.tool
-            if tool_loc[t] == m:
+            res = reserved.get(t) if reserved else None
+            if res is not None:
+                if res[0] != j or res[1] != k:
+                    return None
+                tool_at = res[2]
+            elif tool_loc[t] == m:
                 tool_at = tool_free[t]
             else:
                 src = tool_loc[t]
@@ -345,13 +364,15 @@ def greedy_schedule(
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration
 
-    for _ in range(inst.n_operations):
+    for _ in range(o.remaining):
         best_key = None
         best_j, best_plan = -1, None
         for j in range(nj):
             if nxt[j] >= len(jobs[j]):
                 continue
             p = plan(j)
+            if p is None:
+                continue
             tie = rng.random() if rng is not None else -remaining[j]
             if rule == "est":
                 key: tuple = (p[0] + noise[j, nxt[j]] if noise is not None else p[0], tie)
@@ -362,7 +383,8 @@ def greedy_schedule(
                 key = (priority[j, nxt[j]], p[0], tie)
             if best_key is None or key < best_key:
                 best_key, best_j, best_plan = key, j, p
-        assert best_plan is not None
+        if best_plan is None:  # every next operation waits for a reservation: the snapshot had a circular wait
+            raise ValueError(f"no operation of {inst.name} can be planned: the tool reservations wait on each other")
         j, k = best_j, nxt[best_j]
         op = jobs[j][k]
         m = op.machine
@@ -385,20 +407,27 @@ def greedy_schedule(
             tr_loc[r], tr_free[r] = m, tls + ttr[src][m]
         if ttr is not None and op.tool is not None:
             tool_loc[op.tool], tool_free[op.tool] = m, end
+            if reserved:
+                reserved.pop(op.tool, None)
+        if arrival:
+            arrival.pop(j, None)
         mach_free[m] = end
         ready[j] = end
         remaining[j] -= op.duration
         nxt[j] += 1
         ops.append(OperationRecord(j, k, m, op.tool if inst.has_tools else None, start, end))
+    meta: dict[str, object] = {"solver": "greedy", "rule": rule}
+    if origin is not None:
+        meta["residual"] = origin.now
     return Schedule(
         instance=inst.name,
-        makespan=max(o.end for o in ops),
+        makespan=max([r.end for r in ops] + [o.makespan]),
         n_agvs=inst.n_agvs,
         n_tool_transporters=inst.n_tool_transporters,
         operations=ops,
         agv_trips=agv_trips,
         tool_trips=tool_trips,
-        meta={"solver": "greedy", "rule": rule},
+        meta=meta,
     )
 
 
@@ -974,25 +1003,30 @@ def _solve_fallback(inst: Instance, incumbent: Schedule, lb: int, t0: float, tim
 
 def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[int, int], int] | None, bound: int,
                            deadline: float, seed: int, progress: Progress | None, t0: float,
-                           max_stall: int | None = None) -> Schedule:
+                           max_stall: int | None = None, origin: Snapshot | None = None) -> Schedule:
     """Randomised greedy restarts, keeping the best schedule, until ``deadline`` (or ``max_stall`` attempts
     in a row without improvement): first a schedule guided by the relaxation's start times (if given), then
     earliest-start list schedules whose start times are perturbed by random offsets (two in three attempts)
-    and schedules guided by the best schedule's start times plus noise."""
+    and schedules guided by the best schedule's start times plus noise. With ``origin`` every schedule is a
+    residual plan from that snapshot (see :func:`greedy_schedule`)."""
     rng = random.Random(seed)
-    mean_p = max(1.0, sum(o.duration for job in inst.jobs for o in job) / inst.n_operations)
-    keys = [(j, k) for j, job in enumerate(inst.jobs) for k in range(len(job))]
+    first = origin.next_op if origin is not None else (0,) * inst.n_jobs
+    keys = [(j, k) for j, job in enumerate(inst.jobs) for k in range(first[j], len(job))]
+    if not keys:
+        return best
+    mean_p = max(1.0, sum(inst.jobs[j][k].duration for j, k in keys) / len(keys))
     it = stall = 0
     while best.makespan > bound and (max_stall is None or stall < max_stall):
         t1 = time.monotonic()
         scale = mean_p * rng.choice((0.05, 0.2, 0.5))
         if it == 0 and starts is not None:
-            cand = greedy_schedule(inst, rule="guided", priority=dict(starts))
+            cand = greedy_schedule(inst, rule="guided", priority=dict(starts), origin=origin)
         elif rng.random() < 2 / 3:
-            cand = greedy_schedule(inst, rule="est", noise={key: scale * rng.random() for key in keys})
+            cand = greedy_schedule(inst, rule="est", noise={key: scale * rng.random() for key in keys},
+                                   origin=origin)
         else:
             prio = {(o.job, o.op): o.start + 4 * scale * rng.random() for o in best.operations}
-            cand = greedy_schedule(inst, rule="guided", priority=prio)
+            cand = greedy_schedule(inst, rule="guided", priority=prio, origin=origin)
         stall += 1
         if cand.makespan < best.makespan:
             best, stall = cand, 0

@@ -222,15 +222,29 @@ def make_plan(instance: Instance, base: str, seconds: float | None = None, **opt
 def plan_solver(name: str) -> Solver:
     """``plan:BASE[:SECONDS]``: solve the whole instance with BASE within SECONDS (its ``time_limit``), then
     execute that plan through the full-decision net (:func:`fms_sim.replay.replay`): the schedule a shop gets
-    when it follows the plan, never later than the plan. ``plan:file:PATH`` executes the schedule in a file."""
+    when it follows the plan, never later than the plan. ``plan:file:PATH`` executes the schedule in a file.
+
+    Option ``replan`` (seconds, default None: off): re-plan within that budget when the (disrupted) shop departs
+    from the plan (:mod:`fms_dispatch.replan`; ``drift`` sets the lateness that triggers it); the events are in
+    ``meta["replans"]``."""
     base, seconds = parse_plan_name(name)
 
-    def solver(instance: Instance, time_limit: float | None = None, scenario: Any = None, **kw: Any) -> Schedule:
+    def solver(instance: Instance, time_limit: float | None = None, scenario: Any = None,
+               replan: float | None = None, drift: float | None = None, **kw: Any) -> Schedule:
         from fms_sim.replay import replay
 
         budget = seconds if seconds is not None else time_limit
         plan = make_plan(instance, base, budget, **kw)  # on the nominal shop: disruptions are not known ahead
-        out = replay(instance, plan, scenario=scenario)
+        if replan is not None:
+            from .replan import DEFAULT_DRIFT, solve_with_replanning
+
+            if not replan > 0:
+                raise ValueError(f"the re-planning budget must be positive, got {replan}")
+            out = solve_with_replanning(instance, plan, budget=replan, scenario=scenario,
+                                        drift=drift if drift is not None else DEFAULT_DRIFT,
+                                        seed=int(kw.get("seed", 0) or 0))
+        else:
+            out = replay(instance, plan, scenario=scenario)
         out.meta.update(solver=name, plan_solver=base, plan_makespan=plan.makespan,
                         plan_wall_time=plan.meta.get("wall_time"), lower_bound=plan.meta.get("lower_bound"))
         return out

@@ -342,6 +342,21 @@ class Net:
             self._pending = entries
         return hit
 
+    def sojourning(self, place: Place) -> list[tuple[int, Any]]:
+        """``(ready time, colour)`` of the tokens on their way into ``place`` (timed activities under way)."""
+        return [(ready, tok.colour) for ready, _, p, tok in self._pending if p is place]
+
+    def discard_pending(self, place: Place, drop: Callable[[Any], bool]) -> int:
+        """Remove the sojourning tokens of ``place`` whose colour ``drop`` selects (events that a what-if copy
+        of a run must not see, e.g. disruptions not known yet); returns how many were removed."""
+        keep = [e for e in self._pending if not (e[2] is place and drop(e[3].colour))]
+        gone = len(self._pending) - len(keep)
+        if gone:
+            heapq.heapify(keep)
+            self._pending = keep
+            place.in_flight -= gone
+        return gone
+
     def take(self, place: Place, key: Hashable) -> Any:
         """Remove and return the colour of the oldest available token of ``place`` in bucket ``key`` (a
         module's on_fire hook moving a token that no arc of the fired transition names); KeyError if none."""

@@ -69,6 +69,44 @@ class PlanPolicy:
             if tool is not None:
                 self.tool[tool].append((r.job, r.op))
 
+    @classmethod
+    def resume(cls, shop: FullShop, plan: Schedule) -> "PlanPolicy":
+        """The orders of ``plan`` (a whole schedule, or a residual plan from
+        :func:`fms_dispatch.exact.greedy_schedule` with ``origin``) from ``shop``'s state now: operations that
+        have started, tool uses already reserved and parts already dispatched are dropped from the orders, so a
+        plan made from an earlier state of the same run (re-planning while the shop went on) goes on from here."""
+        pol = cls(shop.instance, plan)
+        started, dispatched = shop.started, shop.job_started_ops
+        for q in pol.machine.values():
+            keep = [(j, k) for j, k in q if k >= started[j]]
+            q.clear()
+            q.extend(keep)
+        for t, q in pol.tool.items():
+            keep = [(j, k) for j, k in q if k in shop.treq[t].get(j, ())]
+            q.clear()
+            q.extend(keep)
+        jobs = shop.instance.jobs
+
+        def served(j: int, k: int) -> bool:
+            tool = jobs[j][k].tool
+            return tool is None or k not in shop.treq[tool].get(j, ())
+
+        for plans, done, idle in ((pol.agv, lambda j, k: dispatched[j] > k, shop.idle_agvs()),
+                                  (pol.tt, served, shop.idle_transporters())):
+            for legs in plans.values():
+                # what comes before a vehicle's last carry already done was driven (or is moot) too
+                last = max((i for i, leg in enumerate(legs) if leg[0] == "carry" and done(leg[1], leg[2])),
+                           default=-1)
+                keep = [leg for leg in list(legs)[last + 1:] if leg[0] != "carry" or not done(leg[1], leg[2])]
+                legs.clear()
+                legs.extend(keep)
+            # a vehicle idle now has had its idle stop: its first trip starts from where it stands
+            for v, _ in idle:
+                legs = plans.get(v)
+                while legs and legs[0][0] == "move":
+                    legs.popleft()
+        return pol
+
     # ------------------------------------------------------------------ answers at a stepper's stops
     def answer(self, stepper: Stepper) -> str:
         """The label that answers ``stepper``'s current stop: the moves of the offered vehicles whose next leg is

@@ -1,0 +1,417 @@
+"""Re-planning: keep what has started, re-optimise the rest from the shop's state, within a time budget.
+
+A plan (a schedule from ``cpsat``, ``sos``, ...) is executed through the full-decision net by
+:class:`fms_sim.replay.PlanPolicy`. When the shop departs from it, :class:`Replanner` re-plans:
+
+* **triggers** — a live order (jobs the plan does not cover), a breakdown or an outage that begins, an
+  operation that starts later than planned by more than ``drift`` times the plan's makespan, or a plan that
+  cannot go on (its orders are stuck; rare, after an adopted plan met decisions taken meanwhile);
+* **the state** — a :class:`fms_sim.snapshot.Snapshot`: running operations, committed moves and tool
+  reservations stay as they are;
+* **the optimisation** (:func:`replan`) — within ``budget`` seconds: the current plan's order continued from
+  the state (the prediction *before*), earliest-start and earliest-completion list schedules from the state, a
+  CP-SAT model of the remaining work (machines, tools, job precedences with their loaded trips; vehicles are
+  left to the list scheduler) *hinted with the remaining plan* whose start times then guide a list schedule,
+  and randomised list-scheduling restarts around the best plan until the budget is spent. The best predicted
+  makespan (*after*) wins; if it is no better than *before*, the current plan stays in force (an order always
+  needs a new plan: the old one does not cover its jobs);
+* **the new plan** is a residual plan: the remaining operations and new trips, executed from the shop's state
+  by :meth:`fms_sim.replay.PlanPolicy.resume`.
+
+Each re-plan is an event ``{reason, time, wall_time, budget, before, after, status}`` (status ``adopted``,
+``kept`` or ``failed``). Offline (:func:`solve_with_replanning`, solvers ``plan:...`` with ``replan``) the
+simulated shop waits for the re-plan; the agent node re-plans in a thread and answers from the current plan
+(or its fallback rule) meanwhile (:class:`fms_dispatch.agent_logic.PlanDecider`).
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from ortools.sat.python import cp_model
+
+from fms_sim.disruptions import Scenario
+from fms_sim.full_shop import FullShop
+from fms_sim.instance import Instance
+from fms_sim.replay import PlanPolicy, ReplayError
+from fms_sim.schedule import Schedule
+from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
+from fms_sim.stepping import Stepper
+
+from .exact import _improve_by_priorities, greedy_schedule
+
+__all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS", "DEFAULT_DRIFT"]
+
+#: why a re-plan happens
+REPLAN_REASONS = ("order", "breakdown", "outage", "late", "stuck")
+DEFAULT_DRIFT = 0.05
+"""Re-plan when an operation starts later than planned by more than this fraction of the plan's makespan."""
+
+
+@dataclass
+class ReplanResult:
+    """What :func:`replan` found: the best residual plan, the predicted makespans of keeping the current plan
+    (``before``; None when it does not cover the remaining work) and of the new one (``after``), the method that
+    made it and the wall time in seconds."""
+
+    plan: Schedule
+    before: int | None
+    after: int
+    method: str
+    wall_time: float
+
+    @property
+    def better(self) -> bool:
+        """Whether the new plan should replace the current one."""
+        return self.before is None or self.after < self.before
+
+
+def _remaining_starts(snap: Snapshot, plan: Schedule | None) -> dict[tuple[int, int], int] | None:
+    """The current plan's start time of every operation that has not started; None if it misses one."""
+    if plan is None:
+        return None
+    starts = {(r.job, r.op): r.start for r in plan.operations}
+    out = {}
+    for j, job in enumerate(snap.instance.jobs):
+        for k in range(snap.next_op[j], len(job)):
+            if (j, k) not in starts:
+                return None
+            out[j, k] = starts[j, k]
+    return out
+
+
+def _relaxed_starts(snap: Snapshot, ub: int, hint: dict[tuple[int, int], int] | None, time_limit: float,
+                    workers: int, seed: int) -> dict[tuple[int, int], int] | None:
+    """Start times of CP-SAT's best schedule of the remaining work with machines, tools and job precedences
+    (loaded trips as lags; vehicles relaxed), from the snapshot's release times, hinted with ``hint``."""
+    inst = snap.instance
+    jobs = inst.jobs
+    atr, ttr = inst.agv_travel, inst.tool_travel
+    m = cp_model.CpModel()
+    s: dict[tuple[int, int], Any] = {}
+    by_res: dict[tuple[str, int], list[Any]] = {}
+    horizon = max(ub, snap.now) + 1
+    mk = m.new_int_var(snap.makespan, horizon, "makespan")
+    for j, job in enumerate(jobs):
+        k0 = snap.next_op[j]
+        for k in range(k0, len(job)):
+            op = job[k]
+            lo = snap.machine_free[op.machine]
+            if k == k0:
+                if j in snap.arrival:
+                    lo = max(lo, snap.arrival[j])
+                else:
+                    pick = job[k - 1].machine if k else 0
+                    lo = max(lo, snap.ready[j] + (atr[pick][op.machine] if atr is not None else 0))
+            t = op.tool if inst.has_tools else None
+            if t is not None:
+                res = snap.tool_reserved.get(t)
+                if res is not None and res[:2] == (j, k):
+                    lo = max(lo, res[2])
+                elif res is None:
+                    here = snap.tool_loc[t]
+                    lo = max(lo, snap.tool_free[t] + (ttr[here][op.machine] if ttr is not None else 0))
+            v = m.new_int_var(lo, max(lo, horizon), f"s{j}_{k}")
+            s[j, k] = v
+            iv = m.new_fixed_size_interval_var(v, op.duration, f"i{j}_{k}")
+            by_res.setdefault(("m", op.machine), []).append(iv)
+            if t is not None:
+                by_res.setdefault(("t", t), []).append(iv)
+            if k > k0:
+                prev = job[k - 1]
+                lag = atr[prev.machine][op.machine] if atr is not None else 0
+                m.add(v >= s[j, k - 1] + prev.duration + lag)
+        if k0 < len(job):
+            m.add(mk >= s[j, len(job) - 1] + job[-1].duration)
+    for t, res in snap.tool_reserved.items():  # a reserved tool serves its reservation first
+        first = s.get(res[:2])
+        if first is None:
+            continue
+        d = jobs[res[0]][res[1]].duration
+        for j, job in enumerate(jobs):
+            for k in range(snap.next_op[j], len(job)):
+                if (j, k) != res[:2] and inst.has_tools and job[k].tool == t:
+                    m.add(s[j, k] >= first + d)
+    for ivs in by_res.values():
+        if len(ivs) > 1:
+            m.add_no_overlap(ivs)
+    m.minimize(mk)
+    if hint:
+        for key, v in s.items():
+            if key in hint:
+                m.add_hint(v, hint[key])
+    solver = cp_model.CpSolver()
+    p = solver.parameters
+    p.max_time_in_seconds = max(0.01, time_limit)
+    p.num_workers = max(1, workers)
+    p.random_seed = seed
+    p.catch_sigint_signal = False  # the caller (a node) keeps its own SIGINT handler
+    status = solver.solve(m)
+    if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
+        return None
+    return {key: solver.value(v) for key, v in s.items()}
+
+
+def simulate(sim: FullShop, plan: Schedule | PlanPolicy) -> int | None:
+    """Run ``plan``'s orders to the end on ``sim`` (a :func:`fms_sim.snapshot.nominal_copy`, consumed) and
+    return the makespan, or None when its orders get stuck (they do not fit the state). ``plan`` is a plan
+    (resumed from the state) or a policy following the run (consumed)."""
+    st = Stepper(sim, idle_stops=True)
+    st.advance()
+    pol = plan if isinstance(plan, PlanPolicy) else PlanPolicy.resume(sim, plan)
+    while st.kind != "done":
+        try:
+            label = pol.answer(st)
+        except ReplayError:
+            return None
+        pol.apply(st, label)
+        st.apply(label)
+    return sim.makespan
+
+
+def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: FullShop | None = None,
+           policy: PlanPolicy | None = None, seed: int = 0, workers: int = 1) -> ReplanResult:
+    """Re-optimise the work left in ``snap`` within ``budget`` seconds (module docstring), warm-started from
+    ``current`` (the plan in force: a whole schedule or a residual plan).
+
+    With ``sim`` (a :func:`fms_sim.snapshot.nominal_copy` of the shop at the snapshot) the predictions are
+    simulations through the net: *before* runs the current plan's orders on, *after* the two best new plans
+    (one that gets stuck is dropped), so both are what the shop would do under nominal times; ``policy`` (a copy
+    of the policy following the run, consumed) continues the current plan exactly. Simulations are used only
+    where about nine list schedules fit the budget (a run through the net costs about three); otherwise, and
+    without ``sim``, the predictions are the list scheduler's own (*before*: the current plan's order, each
+    operation as early as the state allows). At least one list schedule is always made, so a re-plan of a large
+    shop may take up to a second (100 x 20) beyond a very small budget."""
+    t0 = time.monotonic()
+    deadline = t0 + budget
+    inst = snap.instance
+    hint = _remaining_starts(snap, current)
+    cands: list[tuple[Schedule, str]] = [(greedy_schedule(inst, rule="est", origin=snap), "est")]
+    one = time.monotonic() - t0  # one list schedule: what each further step must fit in
+    # a run through the net costs about three list schedules: simulate only where three runs fit the budget
+    if sim is not None and deadline - time.monotonic() < 9 * one:
+        sim = None
+    before: int | None = None
+    reserve = 0.0
+    if hint is not None and current is not None:
+        t1 = time.monotonic()
+        if sim is not None:
+            before = simulate(copy.deepcopy(sim), policy if policy is not None else current)
+            reserve = 2 * (time.monotonic() - t1)  # the final simulations of two new plans
+        else:
+            before = greedy_schedule(inst, rule="guided", priority=hint, origin=snap).makespan
+    if time.monotonic() + one <= deadline - reserve:
+        cands.append((greedy_schedule(inst, rule="ect", origin=snap), "ect"))
+    best = min(cands, key=lambda c: c[0].makespan)[0]
+    left = deadline - reserve - time.monotonic()
+    if left > 2 * one + 0.05:
+        starts = _relaxed_starts(snap, best.makespan, hint or {(r.job, r.op): r.start for r in best.operations},
+                                 0.4 * left - one, workers, seed)
+        if starts is not None and time.monotonic() + one <= deadline - reserve:
+            cands.append((greedy_schedule(inst, rule="guided", priority=starts, origin=snap), "cpsat"))
+    best = min(cands, key=lambda c: c[0].makespan)[0]
+    if time.monotonic() + one <= deadline - reserve:
+        improved = _improve_by_priorities(inst, best, None, 0, deadline - reserve, seed, None, t0, origin=snap)
+        if improved.makespan < best.makespan:
+            cands.append((improved, "restarts"))
+    cands.sort(key=lambda c: c[0].makespan)
+    if sim is None:
+        plan, method = cands[0]
+        after = plan.makespan
+    else:
+        scored = []
+        for i, (plan, method) in enumerate(cands[:2]):
+            if i and time.monotonic() + reserve / 2 > deadline:
+                break
+            made = simulate(copy.deepcopy(sim), plan)
+            if made is not None:
+                scored.append((made, i, plan, method))
+        if not scored:
+            raise RuntimeError("every new plan got stuck in the simulation of the shop")
+        after, _, plan, method = min(scored)
+    plan.meta.update(solver="replan", method=method)
+    return ReplanResult(plan, before, after, method, time.monotonic() - t0)
+
+
+@dataclass
+class Replanner:
+    """Executes ``plan`` on a :class:`~fms_sim.stepping.Stepper` over a :class:`~fms_sim.full_shop.FullShop`
+    and re-plans on the triggers of the module docstring (``budget`` seconds each; ``drift`` as a fraction of
+    the plan's makespan). Offline use: :meth:`step` at every stop; the agent node drives :meth:`trigger`,
+    :meth:`compute` (in a thread) and :meth:`adopt` itself."""
+
+    instance: Instance
+    plan: Schedule
+    budget: float = 2.0
+    drift: float = DEFAULT_DRIFT
+    seed: int = 0
+    workers: int = 1
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.budget > 0:
+            raise ValueError(f"the re-planning budget must be positive, got {self.budget}")
+        if not self.drift > 0:
+            raise ValueError(f"the re-planning drift must be positive, got {self.drift}")
+        self.policy: PlanPolicy | None = None
+        self._pending: str | None = None
+        self._off_plan = False  # the last answer came from the fallback rule: the plan resumes from the state
+        self._follow(self.plan, self.instance.n_jobs)
+
+    def _follow(self, plan: Schedule, n_jobs: int, shop: FullShop | None = None) -> None:
+        """Make ``plan`` the plan in force (from ``shop``'s state when given)."""
+        self.plan = plan
+        self.policy = PlanPolicy.resume(shop, plan) if shop is not None else PlanPolicy(self.instance, plan)
+        self._planned = {(r.job, r.op): r.start for r in plan.operations}
+        self._tol = max(1.0, self.drift * plan.makespan)
+        self._n_jobs = n_jobs
+        self._seen = len(shop.rec.ops) if shop is not None else 0
+        self._active = self._disruptions(shop) if shop is not None else set()
+
+    @staticmethod
+    def _disruptions(shop: FullShop) -> set[tuple]:
+        down = {("breakdown", m) for m, d in enumerate(shop.m_down) if d}
+        out = {("outage", kind, v) for kind, flags in shop.out.items() for v, o in enumerate(flags) if o}
+        return down | out
+
+    # ------------------------------------------------------------------ triggers
+    def trigger(self, shop: FullShop) -> str | None:
+        """Why the plan in force should be revised now (one of :data:`REPLAN_REASONS`), or None. A reason found
+        at a stop where no snapshot can be taken is kept until one can (see :func:`fms_sim.snapshot.snapshot`)."""
+        reason = self._pending
+        if reason is None:
+            if shop.n_jobs != self._n_jobs:
+                reason = "order"
+            else:
+                active = self._disruptions(shop)
+                new = active - self._active
+                self._active = active
+                if new:
+                    reason = min(d[0] for d in new)  # "breakdown" before "outage"
+                else:
+                    ops = shop.rec.ops
+                    for r in ops[self._seen:]:
+                        planned = self._planned.get((r.job, r.op))
+                        if planned is not None and r.start - planned > self._tol:
+                            reason = "late"
+                            break
+                    self._seen = len(ops)
+        if reason is not None and not self.can_snapshot(shop):
+            self._pending = reason
+            return None
+        self._pending = None
+        return reason
+
+    @staticmethod
+    def can_snapshot(shop: FullShop) -> bool:
+        return shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
+            shop.instance.has_tools and len(shop.p_awaiting_tt))
+
+    # ------------------------------------------------------------------ re-planning
+    def compute(self, snap: Snapshot, sim: FullShop | None = None, policy: PlanPolicy | None = None) -> ReplanResult:
+        """The re-plan from ``snap``, ``sim`` (its nominal copy of the shop) and ``policy`` (a copy of the plan's
+        policy then), all taken by the caller: this touches nothing of the running shop, so it is safe in another
+        thread (see :meth:`take`)."""
+        return replan(snap, self.plan, self.budget, sim=sim, policy=policy, seed=self.seed + len(self.events),
+                      workers=self.workers)
+
+    def take(self, shop: FullShop) -> tuple[Snapshot, FullShop, PlanPolicy | None]:
+        """What :meth:`compute` needs, taken from ``shop`` now (in the thread that runs the shop)."""
+        return snapshot(shop), nominal_copy(shop), copy.deepcopy(self.policy)
+
+    def adopt(self, shop: FullShop, result: ReplanResult | None, reason: str, *, wall_time: float | None = None,
+              error: str | None = None) -> dict[str, Any]:
+        """Put ``result`` in force if it is better (or the plan no longer covers the shop's jobs) and record the
+        event; ``result`` None (the re-plan failed: ``error`` says why) keeps the current plan."""
+        event: dict[str, Any] = {"reason": reason, "time": shop.now, "budget": self.budget,
+                                 "wall_time": round(wall_time if wall_time is not None
+                                                    else (result.wall_time if result else 0.0), 4)}
+        if result is None:
+            event.update(status="failed", before=None, after=None, error=error or "no plan")
+            self._follow_state(shop)
+        else:
+            event.update(before=result.before, after=result.after, method=result.method)
+            if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
+                self._follow(result.plan, shop.n_jobs, shop)
+                event["status"] = "adopted"
+            else:
+                event["status"] = "kept"
+                self._follow_state(shop)
+        self.events.append(event)
+        return event
+
+    def _follow_state(self, shop: FullShop) -> None:
+        """Keep the current plan but take the shop's state as seen (so one deviation triggers once)."""
+        self._seen = len(shop.rec.ops)
+        self._active = self._disruptions(shop)
+        self._n_jobs = shop.n_jobs  # new jobs left out wait; a plan that then cannot go on re-plans ("stuck")
+
+    def replan_now(self, shop: FullShop, reason: str) -> dict[str, Any]:
+        """Re-plan synchronously from ``shop``'s state (offline: the simulated shop waits)."""
+        t0 = time.monotonic()
+        try:
+            result = self.compute(*self.take(shop))
+        except (ValueError, RuntimeError) as exc:
+            return self.adopt(shop, None, reason, wall_time=time.monotonic() - t0, error=str(exc).splitlines()[0])
+        return self.adopt(shop, result, reason)
+
+    # ------------------------------------------------------------------ answering
+    def answer(self, stepper: Stepper) -> str:
+        """The plan's answer to ``stepper``'s stop (see :meth:`PlanPolicy.answer`)."""
+        assert self.policy is not None
+        return self.policy.answer(stepper)
+
+    def apply(self, stepper: Stepper, label: str) -> None:
+        """Move the plan on by ``label`` (before the stepper applies it), unless it came from the fallback."""
+        assert self.policy is not None
+        if not self._off_plan:
+            self.policy.apply(stepper, label)
+
+    def step(self, stepper: Stepper, fallback: Any = None) -> str:
+        """Offline: re-plan if a trigger fires, then the answer to the stop (moved on by :meth:`apply`). A plan
+        that is stuck is re-planned at once; if it still is, ``fallback`` (a full-net rule) answers."""
+        shop = stepper.shop
+        assert isinstance(shop, FullShop)
+        if self._off_plan:  # the fallback acted last time: the plan goes on from what it did
+            self.policy = PlanPolicy.resume(shop, self.plan)
+            self._off_plan = False
+        reason = self.trigger(shop)
+        if reason is not None:
+            self.replan_now(shop, reason)
+        try:
+            return self.answer(stepper)
+        except ReplayError:
+            if self.can_snapshot(shop):
+                self.replan_now(shop, "stuck")
+                try:
+                    return self.answer(stepper)
+                except ReplayError:
+                    pass
+            if fallback is None or stepper.kind == "idle":
+                raise
+            self._off_plan = True
+            return shop.action_labels()[fallback(shop)]
+
+
+def solve_with_replanning(instance: Instance, plan: Schedule, *, budget: float = 2.0, drift: float = DEFAULT_DRIFT,
+                          scenario: Scenario | None = None, seed: int = 0,
+                          fallback: str = "rule:MTWR+nearest+fifo") -> Schedule:
+    """Execute ``plan`` through the full-decision net in a shop disrupted by ``scenario``, re-planning on the
+    triggers (module docstring); the realised schedule, with ``meta["replans"]`` the events."""
+    from .full_rules import parse_full_rule
+
+    shop = FullShop(instance, scenario=scenario)
+    rp = Replanner(instance, plan, budget=budget, drift=drift, seed=seed)
+    rule = parse_full_rule(fallback)
+    stepper = Stepper(shop, idle_stops=True)
+    stepper.advance()
+    while stepper.kind != "done":
+        label = rp.step(stepper, rule)
+        rp.apply(stepper, label)
+        stepper.apply(label)
+    out = shop.schedule()
+    out.meta["replans"] = rp.events
+    return out

@@ -1,0 +1,116 @@
+"""Snapshots of a running full-decision shop, and residual plans made from them."""
+
+import random
+
+import pytest
+
+from fms_sim.benchmarks import builtin
+from fms_sim.disruptions import Breakdown, Scenario
+from fms_sim.full_shop import FullShop
+from fms_sim.generate import generate_instances
+from fms_sim.replay import PlanPolicy, ReplayError
+from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
+from fms_sim.stepping import Stepper
+from fms_sim.validate import validate
+from fms_dispatch.exact import greedy_schedule
+
+
+def _small_tools():
+    return generate_instances(8, 5, 4, 1, n_agvs=2, n_tool_transporters=2, name_prefix="snap")[0]
+
+
+def _run_until(inst, plan, cut, scenario=None):
+    """Replay ``plan`` for ``cut`` answers, then on to the next stop where a snapshot can be taken."""
+    shop = FullShop(inst, scenario=scenario)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    pol = PlanPolicy(inst, plan)
+    n = 0
+    while st.kind != "done":
+        free = shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
+            inst.has_tools and len(shop.p_awaiting_tt))
+        if n >= cut and free:
+            break
+        label = pol.answer(st)
+        pol.apply(st, label)
+        st.apply(label)
+        n += 1
+    return shop, st
+
+
+def test_the_snapshot_of_a_fresh_shop_is_the_initial_state():
+    for name in ("EX12", "ra03"):
+        inst = builtin(name)
+        shop = FullShop(inst)
+        Stepper(shop, idle_stops=True).advance()
+        assert snapshot(shop) == Snapshot.initial(inst)
+
+
+def test_a_list_schedule_from_the_initial_snapshot_is_the_plain_one():
+    for name in ("EX74", "ra05", "sl00"):
+        inst = builtin(name)
+        a = greedy_schedule(inst, rule="est")
+        b = greedy_schedule(inst, rule="est", origin=Snapshot.initial(inst))
+        assert b.operations == a.operations and b.agv_trips == a.agv_trips and b.tool_trips == a.tool_trips
+        assert b.makespan == a.makespan and b.meta["residual"] == 0
+
+
+@pytest.mark.parametrize("name", ["EX74", "ra05", "small-tools"])
+def test_residual_plans_from_any_state_run_to_a_valid_end(name):
+    inst = _small_tools() if name == "small-tools" else builtin(name)
+    plan = greedy_schedule(inst, rule="ect")
+    rng = random.Random(1)
+    for cut in sorted(rng.sample(range(1, 4 * inst.n_operations), 12)):
+        shop, st = _run_until(inst, plan, cut)
+        if st.kind == "done":
+            continue
+        snap = snapshot(shop)
+        assert snap.now == shop.now and snap.remaining == sum(len(j) for j in inst.jobs) - sum(shop.started)
+        for rule in ("est", "ect"):
+            sim = nominal_copy(shop)
+            residual = greedy_schedule(inst, rule=rule, origin=snap)
+            # only what has not started is planned, none of it before now
+            assert {(r.job, r.op) for r in residual.operations} == {
+                (j, k) for j, job in enumerate(inst.jobs) for k in range(snap.next_op[j], len(job))}
+            assert all(r.start >= snap.now for r in residual.operations)
+            st2 = Stepper(sim, idle_stops=True)
+            st2.advance()
+            pol = PlanPolicy.resume(sim, residual)
+            while st2.kind != "done":
+                label = pol.answer(st2)  # never stuck: the residual plan fits the state
+                pol.apply(st2, label)
+                st2.apply(label)
+            out = sim.schedule()
+            assert validate(inst, out) == [], (name, cut, rule)
+
+
+def test_a_snapshot_is_refused_while_a_vehicle_choice_is_pending():
+    inst = builtin("EX12")
+    shop = FullShop(inst)
+    shop.net.advance()
+    shop.fire_action(shop.action_index("job:0"))  # an AGV must be chosen now
+    with pytest.raises(ValueError, match="pending"):
+        snapshot(shop)
+
+
+def test_the_nominal_copy_forgets_noise_and_future_breakdowns_but_not_the_present():
+    inst = builtin("ra05")
+    plan = greedy_schedule(inst)
+    mid = plan.makespan // 3
+    sc = Scenario(breakdowns=(Breakdown(1, 1, 6), Breakdown(2, plan.makespan, 9)), noise=0.3, seed=4)
+    shop, st = _run_until(inst, plan, 2 * inst.n_operations, scenario=sc)
+    assert shop.now > 1
+    sim = nominal_copy(shop)
+    assert sim.scenario is not None and sim.scenario.noise == 0
+    assert [b.machine for b in sim.scenario.breakdowns] == [1]  # the one that has begun
+    assert not any(c[0] == "down" for _, c in sim.net.sojourning(sim.p_disrupt))
+    snap = snapshot(shop)
+    assert any(i >= 0 for i in sim._running_rec)
+    for m, i in enumerate(sim._running_rec):
+        if i >= 0:
+            r = sim.rec.ops[i]
+            # a running operation ends at its nominal estimate in the copy and in the snapshot alike
+            assert r.end == snap.machine_free[m] == max(r.start + inst.jobs[r.job][r.op].duration
+                                                        + (6 if m == 1 and r.start < 1 < r.end else 0), shop.now + 1)
+    # the real shop is untouched
+    assert shop.scenario is sc
