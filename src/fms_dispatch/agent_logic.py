@@ -354,26 +354,45 @@ class PlanDecider(TwinDecider):
     (:class:`fms_sim.replay.PlanPolicy`): the run is the one the offline ``plan:`` solver makes.
 
     The plan follows the run: each label of the history moves it on as the twin applies it, so answers never
-    drift from what the shop did. Jobs the plan does not know (a live order) and a plan that cannot go on are
-    answered by the ``fallback`` full-net rule from then on (re-planning is not built yet); the first such state
-    also publishes an ``internal`` error that says so."""
+    drift from what the shop did. With ``replan`` > 0 (seconds, the budget of one re-plan) the agent re-plans
+    (:mod:`fms_dispatch.replan`) when an order arrives, a breakdown or outage begins, an operation starts late by
+    more than ``drift`` of the plan's makespan, or the plan cannot go on. A re-plan runs in a thread from a
+    snapshot of the twin; until it is ready the current plan answers (jobs it does not cover wait; a state it
+    cannot answer gets the ``fallback`` rule), so the shop never waits for it. A finished re-plan is put in
+    force if it predicts an earlier end (always for an order) and is published as an ``fms/replan/v1``
+    (:meth:`drain`); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout`` and the
+    current plan stays. With ``replan`` 0, jobs the plan does not know and a plan that cannot go on are answered
+    by the fallback rule from then on, and the first such state publishes an ``internal`` error."""
 
     decisions = "full"
 
-    def __init__(self, instance: Instance, name: str, fallback: str = "rule:MTWR+nearest+fifo") -> None:
+    def __init__(self, instance: Instance, name: str, fallback: str = "rule:MTWR+nearest+fifo",
+                 replan: float = 0.0, drift: float | None = None, source: str = SOURCE) -> None:
         from fms_dispatch.full_rules import parse_full_rule
+
+        from .replan import DEFAULT_DRIFT
 
         super().__init__(instance, lambda shop: 0, name)
         from .solvers import parse_plan_name
 
+        if replan < 0:
+            raise UnavailableSolver(f"the re-planning budget must be >= 0 seconds (0: off), got {replan}")
         self.base, self.seconds = parse_plan_name(name)
         self.fallback_name = fallback
         self.fallback = parse_full_rule(fallback)
+        self.replan_budget = float(replan)
+        self.drift = DEFAULT_DRIFT if drift is None else float(drift)
+        if not self.drift > 0:
+            raise UnavailableSolver(f"the re-planning drift must be positive, got {self.drift}")
+        self.source = source
         self.plan: Any = None
         self.policy: Any = None
+        self.replanner: Any = None
         self.plan_wall_time: float | None = None
         self.plan_error: str | None = None      # why no plan could be made (the fallback rule decides then)
         self.on_fallback = False
+        self._job: _ReplanJob | None = None
+        self._outbox: list[Outgoing] = []
         if self.base.lower().startswith("file:"):
             self._make_plan()  # a given plan is checked at once: a bad file stops the agent before the run
 
@@ -395,17 +414,56 @@ class PlanDecider(TwinDecider):
                 self.plan_error = str(exc).splitlines()[0]
         from fms_sim.replay import PlanPolicy
 
-        # a fresh twin: the plan starts over with it
-        self.policy = PlanPolicy(self.instance, self.plan) if self.plan is not None else None
+        from .replan import Replanner
+
+        # a fresh twin: the plan starts over with it (a re-plan of an earlier twin is dropped)
+        self._job = None
+        self.replanner = None
+        self.policy = None
+        if self.plan is not None:
+            if self.replan_budget > 0:
+                self.replanner = Replanner(self.instance, self.plan, budget=self.replan_budget, drift=self.drift)
+                self.policy = self.replanner.policy
+            else:
+                self.policy = PlanPolicy(self.instance, self.plan)
         self.on_fallback = self.plan is None
 
     def _applying(self, label: str) -> None:
         st = self.stepper
-        if self.policy is not None and st is not None and not self.on_fallback:
+        if self.policy is None or st is None or self.on_fallback:
+            return
+        rp = self.replanner
+        if rp is None:
             if st.shop.n_jobs != self.instance.n_jobs:
                 self.on_fallback = True  # an order joined: the plan no longer covers the run
                 return
             self.policy.apply(st, label)
+            return
+        from fms_sim.replay import ReplayError
+
+        self._resync()
+        try:
+            planned = rp.answer(st)
+        except ReplayError:
+            planned = None
+        if label == planned:
+            rp.apply(st, label)
+        else:  # the run did something else here (the fallback answered, or a plan adopted meanwhile)
+            rp._off_plan = True
+
+    def _resync(self) -> None:
+        """After a label the plan did not give, the plan goes on from the twin's state."""
+        rp = self.replanner
+        if rp is not None and rp._off_plan and self.stepper is not None:
+            from fms_sim.replay import PlanPolicy
+
+            rp.policy = PlanPolicy.resume(self.stepper.shop, rp.plan)
+            rp._off_plan = False
+
+    def drain(self) -> list[Outgoing]:
+        """The messages (``fms/replan/v1``) to publish after the last answer."""
+        out, self._outbox = self._outbox, []
+        return out
 
     def __call__(self, state: dict[str, Any]) -> str:
         if state.get("idle") is None:
@@ -419,10 +477,12 @@ class PlanDecider(TwinDecider):
             if why:
                 raise FallbackDecision(f"state {state['seq']}: {self.name} could not plan ({why}); "
                                        f"{self.fallback_name} decides from here on", self._fallback_answer(st))
+        if self.replanner is not None and not self.on_fallback:
+            return self._answer_replanning(state, st)
         if not self.on_fallback and st.shop.n_jobs != self.instance.n_jobs:
             self.on_fallback = True
             raise FallbackDecision(f"state {state['seq']}: jobs joined that the plan of {self.name} does not cover "
-                                   f"(re-planning is not built yet); {self.fallback_name} decides from here on",
+                                   f"(re-planning is off); {self.fallback_name} decides from here on",
                                    self._fallback_answer(st))
         if self.on_fallback:
             return self._fallback_answer(st)
@@ -437,6 +497,101 @@ class PlanDecider(TwinDecider):
         if st.kind == "idle":
             return WAIT
         return st.shop.action_labels()[self.fallback(st.shop)]
+
+    # ------------------------------------------------------------------ re-planning in a thread
+    def _answer_replanning(self, state: dict[str, Any], st: Stepper) -> str:
+        from fms_sim.replay import ReplayError
+
+        rp = self.replanner
+        shop = st.shop
+        self._resync()
+        self._collect(state)
+        if self._job is None:
+            reason = rp.trigger(shop)
+            if reason is not None:
+                self._start(reason, state)
+        try:
+            return rp.answer(st)
+        except ReplayError:
+            if self._job is None and rp.can_snapshot(shop):
+                self._start("stuck", state)
+            rp._off_plan = True
+            return self._fallback_answer(st)
+
+    def _start(self, reason: str, state: dict[str, Any]) -> None:
+        rp = self.replanner
+        shop = self.stepper.shop
+        try:
+            args = rp.take(shop)
+        except ValueError as exc:  # pragma: no cover - take is only called where a snapshot can be taken
+            self._report(state["run_id"], state["seq"], shop.now, reason, "failed", 0.0, None, None, None, str(exc))
+            return
+        self._job = _ReplanJob(rp.compute, args, reason, state["run_id"], state["seq"], shop.now)
+
+    def _collect(self, state: dict[str, Any]) -> None:
+        """Put a finished re-plan in force (or report a timed-out one) and queue its message."""
+        job = self._job
+        if job is None:
+            return
+        rp = self.replanner
+        if not job.done.is_set():
+            elapsed = job.elapsed()
+            if elapsed > rp.budget + REPLAN_GRACE_S:
+                self._job = None  # the thread ends by itself (its searches have time limits); its plan is dropped
+                rp._follow_state(self.stepper.shop)
+                self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
+                             f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
+                             "plan stays in force")
+            return
+        self._job = None
+        shop = self.stepper.shop
+        if job.error is not None:
+            ev = rp.adopt(shop, None, job.reason, wall_time=job.wall, error=job.error)
+        else:
+            ev = rp.adopt(shop, job.result, job.reason, wall_time=job.wall)
+        self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev.get("before"),
+                     ev.get("after"), ev.get("method"), ev.get("error"))
+
+    def _report(self, run_id: str, seq: int, time: int, reason: str, status: str, wall: float, before: Any,
+                after: Any, method: Any, message: Any) -> None:
+        from fms_msgs_json import TOPIC_REPLANS, make_replan
+
+        self._outbox.append(Outgoing(TOPIC_REPLANS, make_replan(
+            run_id, self.source, seq, time, reason, status, budget_s=self.replan_budget, wall_s=wall, before=before,
+            after=after, method=method, message=message)))
+
+
+REPLAN_GRACE_S = 5.0
+"""How long past its budget a re-plan may run before the agent reports it ``timeout``."""
+
+
+class _ReplanJob:
+    """One re-plan running in a daemon thread (a node that stops never waits for it)."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int) -> None:
+        import threading
+        import time as _time
+
+        self.reason, self.run_id, self.seq, self.time = reason, run_id, seq, time
+        self.result: Any = None
+        self.error: str | None = None
+        self.wall = 0.0
+        self.done = threading.Event()
+        self._t0 = _time.monotonic()
+        self._clock = _time.monotonic
+
+        def work() -> None:
+            try:
+                self.result = fn(*args)
+            except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
+                self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            self.wall = self._clock() - self._t0
+            self.done.set()
+
+        threading.Thread(target=work, name="fms-replan", daemon=True).start()
+
+    def elapsed(self) -> float:
+        return self._clock() - self._t0
 
 
 def needs_full_net(solver: str) -> bool:
@@ -491,10 +646,12 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     return decider, canonical
 
 
-def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -> tuple[Decider, str]:
+def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *, replan: float = 0.0,
+                 drift: float | None = None) -> tuple[Decider, str]:
     """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
 
-    ``instance`` (the shop's instance) is needed by ``ppo`` solvers only."""
+    ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off)
+    and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`)."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
@@ -520,7 +677,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None) -
         from .solvers import UnknownSolver
 
         try:
-            plan_decider = PlanDecider(instance, name)
+            plan_decider = PlanDecider(instance, name, replan=replan, drift=drift)
         except (UnknownSolver, ValueError) as exc:
             raise UnavailableSolver(str(exc)) from None
         return plan_decider, name
@@ -542,8 +699,8 @@ class AgentLogic:
     """
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
-                 instance: Instance | None = None) -> None:
-        self.decide, self.name = make_decider(solver, seed, instance)
+                 instance: Instance | None = None, replan: float = 0.0, drift: float | None = None) -> None:
+        self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift)
         self.source = source
         self.run_id: str | None = None
         self.last_seq = -1           # the newest state seq seen in run_id
@@ -578,6 +735,9 @@ class AgentLogic:
                                                       received=text))]
         self.answered_seq = seq
         self.decisions += 1
+        drain = getattr(self.decide, "drain", None)  # e.g. re-plan reports of a plan decider
+        if drain is not None:
+            out.extend(drain())
         return out + [Outgoing(TOPIC_COMMAND, make_command(run_id, seq, label, agent=self.name))]
 
     def waiting_for(self) -> tuple[str, int] | None:

@@ -13,7 +13,9 @@ Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|ne
 ``layout``, ``agvs``, ``tool_transporters``, ``no_tools``, ``no_agvs`` (the shop's instance, the same values
 as the shop node's; needed by ``ppo`` solvers, which replay the states' ``history`` into a twin of the shop —
 start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahead), ``delay_s`` (think time before each command, for demos and tests),
-``resend_s`` (default 1.0).
+``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
+re-planning off) and ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
+default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``).
 """
 
 from __future__ import annotations
@@ -45,14 +47,16 @@ class AgentNode(FmsNode):
         seed = param(n, "seed", 0)
         self.delay_s = float(param(n, "delay_s", 0.0))
         self.resend_s = float(param(n, "resend_s", 1.0))
+        replan = float(param(n, "replan", 2.0))
+        drift = float(param(n, "drift", 0.05))
         inst = self._instance()
         try:
-            self.logic = AgentLogic(solver, seed=seed, instance=inst)
+            self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:
             raise StartupError("parameters 'delay_s' must be >= 0 and 'resend_s' > 0")
-        self.io = TopicIO(n, ["command", "error"])
+        self.io = TopicIO(n, ["command", "error", "replan"])
         self._pending: Outgoing | None = None     # a command waiting for the shop to listen
         self._sent: Outgoing | None = None        # the last command sent, and when
         self._sent_at = 0.0

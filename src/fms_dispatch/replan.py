@@ -62,6 +62,7 @@ class ReplanResult:
     after: int
     method: str
     wall_time: float
+    n_jobs: int = 0  # the jobs the plan covers (the snapshot's)
 
     @property
     def better(self) -> bool:
@@ -233,7 +234,7 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
             raise RuntimeError("every new plan got stuck in the simulation of the shop")
         after, _, plan, method = min(scored)
     plan.meta.update(solver="replan", method=method)
-    return ReplanResult(plan, before, after, method, time.monotonic() - t0)
+    return ReplanResult(plan, before, after, method, time.monotonic() - t0, inst.n_jobs)
 
 
 @dataclass
@@ -335,7 +336,7 @@ class Replanner:
         else:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
-                self._follow(result.plan, shop.n_jobs, shop)
+                self._follow(result.plan, result.n_jobs or shop.n_jobs, shop)
                 event["status"] = "adopted"
             else:
                 event["status"] = "kept"

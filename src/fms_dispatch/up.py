@@ -85,6 +85,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first or random solvers")
     p.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
                    "time, seeded by --seed (with --scenario it replaces the file's noise)")
+    p.add_argument("--replan", type=float, default=2.0, metavar="SECONDS",
+                   help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
+                        "(default 2; 0: never re-plan)")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
     p.add_argument("--gantt-dir", help="folder for the Gantt PNG (default: the database's folder)")
@@ -264,6 +267,8 @@ def cmd_up(a: argparse.Namespace) -> int:
                           f"random), not {solver}")
     if a.timeout <= 0:
         raise UpError("--timeout must be positive")
+    if a.replan < 0:
+        raise UpError("--replan must be >= 0 seconds (0: never re-plan)")
     domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
     try:
         domain = int(domain)
@@ -298,6 +303,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     full = needs_full_net(solver) or disrupted
     twin = needs_twin(solver) or needs_full_net(solver)
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
+    if needs_full_net(solver):
+        agent_params["replan"] = float(a.replan)
     if twin:
         agent_params["instance"] = str(inst_in)
     env = dict(os.environ)

@@ -3,7 +3,7 @@
 Nodes exchange ``std_msgs/String`` messages whose ``data`` is one JSON object with ``"schema":
 "fms/<kind>/v1"``. This package builds, encodes, decodes and strictly validates those objects without
 importing rclpy, so every rule is testable without ROS. Kinds: ``state``, ``command``, ``event``,
-``schedule``, ``order``, ``error``, ``replay_request``, ``disruption``; topics and examples are in ``docs/ros.md``.
+``schedule``, ``order``, ``error``, ``replay_request``, ``disruption``, ``replan``; topics and examples are in ``docs/ros.md``.
 
 Typical use::
 
@@ -12,14 +12,14 @@ Typical use::
 """
 
 from .builders import (
-    error_reply, make_command, make_disruption, make_error, make_event, make_order, make_replay_request,
-    make_schedule, make_state,
+    error_reply, make_command, make_disruption, make_error, make_event, make_order, make_replan,
+    make_replay_request, make_schedule, make_state,
 )
 from .schemas import (
     DISRUPTION_KINDS, ERROR_CODES, ERROR_MAX_BYTES, ERROR_MAX_CHARS, EVENT_KINDS, FEATURE_JOB_COLUMNS, FEATURE_VEHICLE_COLUMNS, KINDS,
     RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_ERROR, SCHEMA_EVENT, SCHEMA_ORDER, SCHEMA_REPLAY_REQUEST,
-    SCHEMA_DISRUPTION, SCHEMA_SCHEDULE, SCHEMA_STATE, SCHEMA_VERSION, SCHEMAS, TOPIC_COMMAND, TOPIC_DISRUPTIONS,
-    TOPIC_ERRORS, TOPIC_EVENTS, TOPIC_ORDERS,
+    SCHEMA_DISRUPTION, SCHEMA_REPLAN, REPLAN_REASONS, REPLAN_STATUSES, SCHEMA_SCHEDULE, SCHEMA_STATE, SCHEMA_VERSION, SCHEMAS, TOPIC_COMMAND, TOPIC_DISRUPTIONS,
+    TOPIC_ERRORS, TOPIC_EVENTS, TOPIC_ORDERS, TOPIC_REPLANS,
     TOPIC_QOS, TOPIC_REPLAY, TOPIC_SCHEDULE, TOPIC_STATE, TOPICS, MessageError, TopicQos, bounded, decode, encode,
     kind_of, schema_id, validate,
 )

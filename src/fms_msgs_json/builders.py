@@ -16,12 +16,13 @@ from fms_sim.schedule import Schedule
 
 from .schemas import (
     ERROR_MAX_CHARS, RECEIVED_MAX_CHARS, SCHEMA_COMMAND, SCHEMA_DISRUPTION, SCHEMA_ERROR, SCHEMA_EVENT,
-    SCHEMA_ORDER, SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, bounded, validate,
+    SCHEMA_ORDER, SCHEMA_REPLAN, SCHEMA_REPLAY_REQUEST, SCHEMA_SCHEDULE, SCHEMA_STATE, MessageError, bounded,
+    validate,
 )
 
 __all__ = [
     "make_state", "make_command", "make_event", "make_schedule", "make_order", "make_error", "error_reply",
-    "make_replay_request", "make_disruption",
+    "make_replay_request", "make_disruption", "make_replan",
 ]
 
 
@@ -153,6 +154,23 @@ def make_disruption(disruption_id: str, kind: str, duration: int, *, machine: in
                        ("start", start), ("run_id", run_id)):
         if value is not None:
             msg[key] = _plain(value)
+    return _checked(msg)
+
+
+def make_replan(run_id: str, source: str, state_seq: int, time: int, reason: str, status: str, *, budget_s: float,
+                wall_s: float, before: int | None, after: int | None, method: str | None = None,
+                message: str | None = None) -> dict[str, Any]:
+    """An ``fms/replan/v1``: the agent ``source`` re-planned at state ``state_seq`` (shop time ``time``) for
+    ``reason``; ``status`` adopted, kept, failed or timeout; budget and wall time in seconds (sent as whole
+    milliseconds); predicted makespans ``before`` (keeping the plan) and ``after`` (the new plan)."""
+    msg: dict[str, Any] = {"schema": SCHEMA_REPLAN, "run_id": run_id, "source": source, "state_seq": state_seq,
+                           "time": _plain(time), "reason": reason, "status": status,
+                           "budget_ms": max(1, round(budget_s * 1000)), "wall_ms": max(0, round(wall_s * 1000)),
+                           "before": _plain(before), "after": _plain(after)}
+    if method is not None:
+        msg["method"] = method
+    if message is not None:
+        msg["message"] = bounded(_one_line(message), ERROR_MAX_CHARS["message"])
     return _checked(msg)
 
 

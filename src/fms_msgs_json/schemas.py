@@ -31,9 +31,10 @@ from .fields import Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, 
 __all__ = [
     "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
     "SCHEMA_STATE", "SCHEMA_COMMAND", "SCHEMA_EVENT", "SCHEMA_SCHEDULE", "SCHEMA_ORDER", "SCHEMA_ERROR",
-    "SCHEMA_REPLAY_REQUEST", "SCHEMA_DISRUPTION", "DISRUPTION_KINDS",
+    "SCHEMA_REPLAY_REQUEST", "SCHEMA_DISRUPTION", "SCHEMA_REPLAN", "DISRUPTION_KINDS", "REPLAN_REASONS",
+    "REPLAN_STATUSES",
     "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
-    "TOPIC_REPLAY", "TOPIC_DISRUPTIONS", "TOPICS",
+    "TOPIC_REPLAY", "TOPIC_DISRUPTIONS", "TOPIC_REPLANS", "TOPICS",
     "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "ERROR_MAX_CHARS", "ERROR_MAX_BYTES", "bounded",
     "TOPIC_QOS", "TopicQos",
     "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
@@ -44,7 +45,7 @@ SCHEMA_VERSION = 1
 """The one version of every kind this build reads and writes."""
 
 KINDS: tuple[str, ...] = ("state", "command", "event", "schedule", "order", "error", "replay_request",
-                          "disruption")
+                          "disruption", "replan")
 
 
 def schema_id(kind: str) -> str:
@@ -65,6 +66,7 @@ SCHEMA_ORDER = SCHEMAS["order"]
 SCHEMA_ERROR = SCHEMAS["error"]
 SCHEMA_REPLAY_REQUEST = SCHEMAS["replay_request"]
 SCHEMA_DISRUPTION = SCHEMAS["disruption"]
+SCHEMA_REPLAN = SCHEMAS["replan"]
 
 TOPIC_STATE = "fms/state"
 TOPIC_COMMAND = "fms/command"
@@ -74,11 +76,12 @@ TOPIC_ORDERS = "fms/orders"
 TOPIC_ERRORS = "fms/errors"
 TOPIC_REPLAY = "fms/replay_request"
 TOPIC_DISRUPTIONS = "fms/disruptions"
+TOPIC_REPLANS = "fms/replans"
 
 TOPICS: dict[str, str] = {
     "state": TOPIC_STATE, "command": TOPIC_COMMAND, "event": TOPIC_EVENTS, "schedule": TOPIC_SCHEDULE,
     "order": TOPIC_ORDERS, "error": TOPIC_ERRORS, "replay_request": TOPIC_REPLAY,
-    "disruption": TOPIC_DISRUPTIONS,
+    "disruption": TOPIC_DISRUPTIONS, "replan": TOPIC_REPLANS,
 }
 """Kind name → the topic that carries it."""
 
@@ -103,6 +106,7 @@ TOPIC_QOS: dict[str, TopicQos] = {
     "error": TopicQos(100, False),
     "replay_request": TopicQos(10, False),
     "disruption": TopicQos(100, True),   # like orders: delivered to a shop that subscribes late, accepted once
+    "replan": TopicQos(100, True),       # a late or restarted recorder still gets a run's re-plans
 }
 """Kind name → the QoS of its topic (see docs/ros.md, "Quality of service")."""
 
@@ -349,6 +353,27 @@ def _disruption_complete(msg: dict[str, Any], path: str) -> None:
         raise FieldError("vehicle", "an outage needs fields 'vehicle_kind' (agv or tt) and 'vehicle' (0..)")
 
 
+REPLAN_REASONS: tuple[str, ...] = ("order", "breakdown", "outage", "late", "stuck")
+REPLAN_STATUSES: tuple[str, ...] = ("adopted", "kept", "failed", "timeout")
+
+# A re-plan by the agent (docs/ros.md): why, at which state and shop time, how long it took against its budget,
+# the predicted makespans of keeping the plan (before; null when it did not cover the shop's jobs) and of the
+# new plan (after; null when none was made), and what became of it.
+_REPLAN = (
+    _RUN_ID,
+    Field("source", Str(what="the agent node's name")),
+    Field("state_seq", Int(0)),
+    Field("time", Int(0)),
+    Field("reason", OneOf(REPLAN_REASONS)),
+    Field("status", OneOf(REPLAN_STATUSES)),
+    Field("budget_ms", Int(1)),
+    Field("wall_ms", Int(0)),
+    Field("before", Nullable(Int(0))),
+    Field("after", Nullable(Int(0))),
+    Field("method", _OPTIONAL_STR, required=False),
+    Field("message", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["message"])), required=False),
+)
+
 _REPLAY_REQUEST = (
     Field("run_id", Str(what='a run id, or "*" for the current run')),
     Field("from_seq", Int(0)),
@@ -423,6 +448,7 @@ _SPECS: dict[str, tuple[tuple[Field, ...], _Extra]] = {
     "error": (_ERROR, None),
     "replay_request": (_REPLAY_REQUEST, None),
     "disruption": (_DISRUPTION, _disruption_complete),
+    "replan": (_REPLAN, None),
 }
 assert set(_SPECS) == set(KINDS)
 

@@ -1,7 +1,7 @@
 """ROS 2 node ``fms_recorder`` (``ros2 run fms_sim recorder``, ``fms-recorder``): the durable run log.
 
 A thin adapter around :class:`fms_sim.recorder_store.Recorder`: it stores every ``fms/events``,
-``fms/schedule`` and ``fms/errors`` message in SQLite (WAL), de-duplicated by ``(run_id, seq)``, and renders a
+``fms/schedule``, ``fms/replans`` and ``fms/errors`` message in SQLite (WAL), de-duplicated by ``(run_id, seq)``, and renders a
 Gantt PNG when a run is complete. On start — as soon as a shop listens on ``fms/replay_request`` — it asks the
 shop to replay the current run from event 0, so a recorder restarted mid-run ends with every event exactly
 once; gaps in the event numbers (and a final schedule whose events are incomplete) trigger further requests,
@@ -61,6 +61,7 @@ class RecorderNode(FmsNode):
         rec = self.recorder
         self.io.subscribe("event", lambda t: self._handle(lambda: rec.handle_event(t, time.monotonic()), t))
         self.io.subscribe("schedule", lambda t: self._handle(lambda: rec.handle_schedule(t, time.monotonic()), t))
+        self.io.subscribe("replan", lambda t: self._handle(lambda: rec.handle_replan(t, time.monotonic()), t))
         # failures to store an error are logged only: publishing them would feed them back to this node
         self.io.subscribe("error", lambda t: self._handle(lambda: rec.handle_error(t, time.monotonic()), t,
                                                           report=False))

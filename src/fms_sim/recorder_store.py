@@ -14,7 +14,8 @@ the Gantt chart once (:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id
 
 Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
 data, received)``, ``schedules(run_id, makespan, schedule, received)``, ``errors(id, source, code, message,
-run_id, received_text, at)``; ``data``/``schedule`` hold JSON text.
+run_id, received_text, at)``, ``replans(run_id, source, state_seq, time, reason, status, data, received)`` (the
+agent's ``fms/replan/v1`` messages, each stored once); ``data``/``schedule`` hold JSON text.
 """
 
 from __future__ import annotations
@@ -62,6 +63,17 @@ CREATE TABLE IF NOT EXISTS schedules (
     makespan INTEGER NOT NULL,
     schedule TEXT NOT NULL,
     received REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS replans (
+    run_id TEXT NOT NULL,
+    source TEXT NOT NULL,
+    state_seq INTEGER NOT NULL,
+    time INTEGER NOT NULL,
+    reason TEXT NOT NULL,
+    status TEXT NOT NULL,
+    data TEXT NOT NULL,
+    received REAL NOT NULL,
+    PRIMARY KEY (run_id, source, state_seq, reason)
 );
 CREATE TABLE IF NOT EXISTS errors (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -155,6 +167,23 @@ class RecorderStore:
                          time.time() if now is None else now))
         if commit:
             self.db.commit()
+
+    def add_replan(self, msg: dict[str, Any], now: float | None = None, *, commit: bool = True) -> bool:
+        """Store a decoded ``fms/replan/v1`` once (a re-delivered one is ignored); True if it was new."""
+        data = {k: v for k, v in msg.items() if k != "schema"}
+        cur = self.db.execute(
+            "INSERT OR IGNORE INTO replans (run_id, source, state_seq, time, reason, status, data, received) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            (msg["run_id"], msg["source"], msg["state_seq"], msg["time"], msg["reason"], msg["status"],
+             json.dumps(data, separators=(",", ":")), time.time() if now is None else now))
+        if commit:
+            self.db.commit()
+        return cur.rowcount == 1
+
+    def replans(self, run_id: str) -> list[dict[str, Any]]:
+        """The stored re-plans of a run (the message fields without ``schema``), by state and time."""
+        rows = self.db.execute("SELECT data FROM replans WHERE run_id = ? ORDER BY state_seq, time", (run_id,))
+        return [json.loads(d) for (d,) in rows]
 
     def set_gantt(self, run_id: str, path: str | Path) -> None:
         self.db.execute("UPDATE runs SET gantt = ? WHERE run_id = ?", (str(path), run_id))
@@ -364,6 +393,15 @@ class Recorder:
         self._has_schedule[run_id] = True
         self._wrote(now)
         return self._ask(run_id, now)
+
+    def handle_replan(self, text: str, now: float = 0.0) -> list[Outgoing]:
+        try:
+            msg = decode(text, expect="replan")
+        except MessageError as exc:
+            return [self._error(exc, text)]
+        self.store.add_replan(msg, commit=False)
+        self._wrote(now)
+        return []
 
     def handle_error(self, text: str, now: float = 0.0) -> list[Outgoing]:
         try:

@@ -144,17 +144,19 @@ class PlanPolicy:
         if label == HOLD:
             return
         kind, _, num = label.partition(":")
+        v = int(num)
         if kind == "agv":
-            self._next_leg("agv", int(num), None)
-            self.agv[int(num)].popleft()
+            j, k = shop.awaiting_agv()[:2]
+            _consume(self.agv[v], ("carry", j, k))
         elif kind == "tt":
-            self._next_leg("tt", int(num), None)
-            self.tt[int(num)].popleft()
+            _, _, j, k, _ = shop.awaiting_transporter()
+            _consume(self.tt[v], ("carry", j, k))
         elif kind == "use":
-            self.tool[shop.tool_choice].popleft()
+            t = shop.tool_choice
+            _consume(self.tool[t], (v, shop.request_of(t, v)))
         elif kind == "start":
-            _, m = shop.buffered_op(int(num))
-            self.machine[m].popleft()
+            k, m = shop.buffered_op(v)
+            _consume(self.machine[m], (v, k))
 
     def _next_leg(self, kind: str, v: int, here: int | None) -> tuple | None:
         """The vehicle's next leg, dropping empty legs to where it already is (``here``)."""
@@ -225,6 +227,15 @@ class PlanPolicy:
             if a in legal and shop.buffered_op(j) == (k, m):
                 return a
         return None
+
+
+def _consume(queue: Deque[tuple], item: tuple) -> None:
+    """Take ``item`` out of a resource's orders: its head when a plan is followed; wherever it is when the run
+    did things in another order (a plan adopted mid-run, a fallback's answer); nothing if it is not there."""
+    if queue and queue[0] == item:
+        queue.popleft()
+    elif item in queue:
+        queue.remove(item)
 
 
 def execute(shop: FullShop, policy: PlanPolicy) -> int:

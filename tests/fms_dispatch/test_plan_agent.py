@@ -10,10 +10,12 @@ from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
 
 
-def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None):
-    """Run a ShopService against AgentLogic in-process; returns (service, errors published by the agent)."""
+def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None, replan=0.0, replans=None, settle=True):
+    """Run a ShopService against AgentLogic in-process; returns (service, errors published by the agent).
+    ``replans`` (a list) collects the agent's re-plan messages; with ``settle`` a re-plan under way is waited
+    for before the next state (deterministic tests), else the run goes on meanwhile."""
     svc = ShopService(inst, run_id="r", decisions=decisions, history=True, idle_stops=idle_stops, features=False)
-    agent = AgentLogic(solver, instance=inst)
+    agent = AgentLogic(solver, instance=inst, replan=replan)
     svc.start()
     errors = []
     steps = 0
@@ -22,6 +24,11 @@ def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None):
             res = svc.handle_order(encode(orders[steps]))
             assert not [o for o in res if o.topic == "fms/errors"], res
         out = agent.on_state(encode(svc.state))
+        job = getattr(agent.decide, "_job", None)
+        if settle and job is not None:
+            assert job.done.wait(30)
+        if replans is not None:
+            replans += [o.msg for o in out if o.topic == "fms/replans"]
         errors += [o.msg for o in out if o.topic == "fms/errors"]
         cmds = [o.msg for o in out if o.topic == "fms/command"]
         if not cmds:
@@ -71,6 +78,55 @@ def test_orders_hand_over_to_the_fallback_rule_and_say_so():
     assert svc.done and validate(svc.instance, svc.final_schedule) == []
     assert len(errors) == 1 and errors[0]["code"] == "internal"
     assert "does not cover" in errors[0]["message"] and "decides from here on" in errors[0]["message"]
+
+
+def test_an_order_is_replanned_and_the_new_jobs_are_served_by_the_plan():
+    inst = builtin("ra01")
+    order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
+    replans = []
+    svc, errors = drive(inst, "plan:list", orders={20: order}, replan=0.5, replans=replans)
+    assert svc.done and errors == []  # no hand-over to the fallback rule
+    s = svc.final_schedule
+    assert validate(svc.instance, s) == [] and {r.job for r in s.operations} == set(range(inst.n_jobs + 1))
+    (msg,) = [m for m in replans if m["reason"] == "order"]
+    assert msg["status"] == "adopted" and msg["before"] is None and msg["after"] >= s.makespan - 50
+    assert msg["budget_ms"] == 500 and 0 <= msg["wall_ms"] <= 500 + 1000
+    assert decode(encode(msg), expect="replan") == msg
+
+
+def test_decisions_keep_flowing_while_a_replan_runs(monkeypatch):
+    import time
+
+    from fms_dispatch import replan as replan_module
+
+    slow = replan_module.Replanner.compute
+
+    def compute(self, *args):
+        time.sleep(0.6)  # a long re-plan: the shop must not wait for it
+        return slow(self, *args)
+
+    monkeypatch.setattr(replan_module.Replanner, "compute", compute)
+    inst = builtin("sl00")
+    order = make_order("o1", [[{"machine": 2, "tool": 3, "duration": 50}]])
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+    agent = AgentLogic("plan:list", instance=inst, replan=1.0)
+    svc.start()
+    replans, slowest, steps, during = [], 0.0, 0, 0
+    while not svc.done:
+        if steps == 30:
+            svc.handle_order(encode(order))
+        t0 = time.monotonic()
+        out = agent.on_state(encode(svc.state))
+        slowest = max(slowest, time.monotonic() - t0)
+        job = agent.decide._job
+        during += job is not None and not job.done.is_set()
+        replans += [o.msg for o in out if o.topic == "fms/replans"]
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"] or [out]
+        svc.handle_command(encode(cmd))
+        steps += 1
+    assert slowest < 0.5 and during >= 1  # states were answered while the re-plan ran
+    assert [m["reason"] for m in replans][:1] == ["order"] and replans[0]["status"] == "adopted"
+    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_plan_solvers_need_the_full_net_with_idle_stops_and_the_instance():
