@@ -62,10 +62,9 @@ ABLATION_STUDIES = ("reward_shaping", "lookahead", "masking")
 GENERALIZATION_COLUMNS = ("group", "size", "agent", "instance", "makespan", "valid", "wall_time", "train_steps")
 DISRUPTION_COLUMNS = ("instance", "mode", "noise", "seed", "breakdowns", "method", "makespan", "nominal_makespan",
                       "ratio", "decisions", "latency_ms", "plan_time")
-DISRUPTION_METHODS = ("plan:cpsat", "best-rule")
+DISRUPTION_METHODS = ("plan:cpsat", "plan:cpsat+replan", "best-rule")
 #: methods of the issue that cannot run in a disrupted shop yet, with the reason (reported, not measured)
 DISRUPTION_MISSING = {
-    "plan:cpsat+replan": "re-planning from the current state is not built yet",
     "ppo": "the shipped PPO models decide on the paper's net, which does not run disruptions",
     "ppo+lookahead": "the shipped PPO models decide on the paper's net, which does not run disruptions",
 }
@@ -545,21 +544,26 @@ def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: str |
 
 
 def run_disruptions(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
-                    seeds: int | None = None, cpsat_time: float | None = None, echo: bool = True) -> dict[str, Any]:
+                    seeds: int | None = None, cpsat_time: float | None = None, echo: bool = True,
+                    replan_budget: float | None = None) -> dict[str, Any]:
     """Plans and rules in disrupted shops: breakdowns (2 per run, in the first half of the nominal plan, 5-15 %
     of it long) and noise 0 / 10 / 20 % on every duration, several seeds (issue 18 §5).
 
     Methods: ``plan:cpsat`` — a CP-SAT plan of the nominal instance (``cpsat_time`` s) executed as it is (orders
-    kept, times shift); ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
+    kept, times shift); ``plan:cpsat+replan`` — the same plan re-planned within ``replan_budget`` s (default 1;
+    quick 0.2) on breakdowns and lateness (:mod:`fms_dispatch.replan`; the simulated shop waits for it, so its
+    latency column includes the re-plans); ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
     run in the disrupted shop (a list schedule is a plan: executed as one). Not measured, and listed in the output
-    with the reason: re-planning, PPO and PPO + lookahead (:data:`DISRUPTION_MISSING`). Instances: sl{g}0 for
+    with the reason: PPO and PPO + lookahead (:data:`DISRUPTION_MISSING`). Instances: sl{g}0 for
     groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed)."""
     from fms_sim.disruptions import Scenario
     from fms_sim.formats import load_instance
 
+    from .replan import solve_with_replanning
     from .solvers import solve
 
     cpsat_time = float(cpsat_time) if cpsat_time is not None else (1.0 if quick else 10.0)
+    budget = float(replan_budget) if replan_budget is not None else (0.2 if quick else 1.0)
     n_seeds = int(seeds) if seeds else (1 if quick else 3)
     noises = (0.0, 0.1) if quick else (0.0, 0.1, 0.2)
     if quick:
@@ -580,7 +584,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         rule_time = time.perf_counter() - t0
         winner = best.meta["rule"]
         rule_plan = solve(inst, winner) if winner.startswith("list") else None
-        nominal = {"plan:cpsat": plan.makespan, "best-rule": best.makespan}
+        nominal = {"plan:cpsat": plan.makespan, "plan:cpsat+replan": plan.makespan, "best-rule": best.makespan}
         for noise in noises:
             for k in range(n_seeds):
                 sc = Scenario.draw(inst, noise=noise, breakdowns=2, horizon=max(1, plan.makespan // 2),
@@ -589,6 +593,10 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                 for method in DISRUPTION_METHODS:
                     if method == "plan:cpsat":
                         sched, n, secs = _timed_run(inst, sc, plan, None)
+                    elif method == "plan:cpsat+replan":
+                        t1 = time.perf_counter()
+                        sched = solve_with_replanning(inst, plan, budget=budget, scenario=sc, seed=k)
+                        n, secs = sched.meta["answers"], time.perf_counter() - t1
                     else:
                         sched, n, secs = _timed_run(inst, sc, rule_plan, None if rule_plan else winner)
                     _checked(inst, sched)
@@ -598,25 +606,30 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                                  "nominal_makespan": nominal[method],
                                  "ratio": round(sched.makespan / nominal[method], 4), "decisions": n,
                                  "latency_ms": round(1000 * secs / max(1, n), 4),
-                                 "plan_time": round(plan_time if method == "plan:cpsat" else rule_time, 3)})
+                                 "plan_time": round(plan_time if method.startswith("plan:") else rule_time, 3)})
     summary: dict[str, Any] = {}
     for noise in noises:
         for method in DISRUPTION_METHODS:
-            sel = [r for r in rows if r["noise"] == noise and r["method"].startswith(method)]
+            sel = [r for r in rows if r["noise"] == noise and r["method"].split(" ")[0] == method]
             summary[f"{method} noise {noise:g}"] = {"mean_makespan": _mean([r["makespan"] for r in sel]),
                                                     "mean_ratio_to_nominal": _mean([r["ratio"] for r in sel]),
                                                     "runs": len(sel)}
-    wins = {}
+    wins, rwins = {}, {}
     for noise in noises:
         pairs = {}
         for r in rows:
             if r["noise"] == noise:
                 pairs.setdefault((r["instance"], r["mode"], r["seed"]), {})[r["method"].split(" ")[0]] = r["makespan"]
         wins[f"noise {noise:g}"] = sum(1 for v in pairs.values() if v["plan:cpsat"] < v["best-rule"]), len(pairs)
+        rwins[f"noise {noise:g}"] = (sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["best-rule"]),
+                                     sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["plan:cpsat"]),
+                                     len(pairs))
     meta = {"experiment": "disruptions", "quick": quick, "seed": seed, "seeds": n_seeds, "noises": list(noises),
             "cpsat_time": cpsat_time, "instances": [f"{n} ({m})" for n, m in insts],
             "not_measured": DISRUPTION_MISSING, "summary": summary,
-            "plan_beats_best_rule": {k: f"{a}/{b}" for k, (a, b) in wins.items()}}
+            "plan_beats_best_rule": {k: f"{a}/{b}" for k, (a, b) in wins.items()},
+            "replan_beats_best_rule": {k: f"{a}/{c}" for k, (a, b, c) in rwins.items()},
+            "replan_beats_plan": {k: f"{b}/{c}" for k, (a, b, c) in rwins.items()}, "replan_budget": budget}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(7, 4.5)
@@ -627,7 +640,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                    label=method)
         a.set_xlabel("noise spread (with 2 breakdowns per run)")
         a.set_ylabel("realised / nominal makespan (mean)")
-        a.set_title("Plans and rules in disrupted shops (no re-planning)")
+        a.set_title("Plans, re-planning and rules in disrupted shops")
         a.legend()
         fig.tight_layout()
         fig.savefig(path)
@@ -641,6 +654,9 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             print(f"| {method} | {noise} | {v['runs']} | {v['mean_makespan']} | {v['mean_ratio_to_nominal']} |")
         print("\nplan:cpsat beats the best rule: " + ", ".join(f"{k}: {v}" for k, v in meta["plan_beats_best_rule"]
                                                                .items()))
+        print("plan:cpsat+replan beats the best rule: " + ", ".join(
+            f"{k}: {v}" for k, v in meta["replan_beats_best_rule"].items()) + "; beats plan:cpsat without re-planning: "
+            + ", ".join(f"{k}: {v}" for k, v in meta["replan_beats_plan"].items()))
         print("not measured: " + "; ".join(f"{k} ({why})" for k, why in DISRUPTION_MISSING.items()))
         print(f"written: {', '.join(str(p) for p in paths.values())}")
     return dict(meta, rows=rows)

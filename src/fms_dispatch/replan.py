@@ -33,6 +33,8 @@ from typing import Any
 
 from ortools.sat.python import cp_model
 
+from fms_msgs_json import REPLAN_REASONS  # why a re-plan happens (the values of fms/replan/v1's "reason")
+
 from fms_sim.disruptions import Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.instance import Instance
@@ -43,10 +45,8 @@ from fms_sim.stepping import Stepper
 
 from .exact import _improve_by_priorities, greedy_schedule
 
-__all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS", "DEFAULT_DRIFT"]
-
-#: why a re-plan happens
-REPLAN_REASONS = ("order", "breakdown", "outage", "late", "stuck")
+__all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS",
+           "DEFAULT_DRIFT"]
 DEFAULT_DRIFT = 0.05
 """Re-plan when an operation starts later than planned by more than this fraction of the plan's makespan."""
 
@@ -409,10 +409,13 @@ def solve_with_replanning(instance: Instance, plan: Schedule, *, budget: float =
     rule = parse_full_rule(fallback)
     stepper = Stepper(shop, idle_stops=True)
     stepper.advance()
+    answers = 0
     while stepper.kind != "done":
         label = rp.step(stepper, rule)
         rp.apply(stepper, label)
         stepper.apply(label)
+        answers += 1
     out = shop.schedule()
     out.meta["replans"] = rp.events
+    out.meta["answers"] = answers
     return out

@@ -1,8 +1,8 @@
 """ROS 2 node ``fms_recorder`` (``ros2 run fms_sim recorder``, ``fms-recorder``): the durable run log.
 
 A thin adapter around :class:`fms_sim.recorder_store.Recorder`: it stores every ``fms/events``,
-``fms/schedule``, ``fms/replans`` and ``fms/errors`` message in SQLite (WAL), de-duplicated by ``(run_id, seq)``, and renders a
-Gantt PNG when a run is complete. On start — as soon as a shop listens on ``fms/replay_request`` — it asks the
+``fms/schedule``, ``fms/replans`` and ``fms/errors`` message in SQLite (WAL), events de-duplicated by
+``(run_id, seq)``, and renders a Gantt PNG when a run is complete. On start — as soon as a shop listens on ``fms/replay_request`` — it asks the
 shop to replay the current run from event 0, so a recorder restarted mid-run ends with every event exactly
 once; gaps in the event numbers (and a final schedule whose events are incomplete) trigger further requests,
 repeated every ``retry_s`` seconds while something is missing.

@@ -139,12 +139,17 @@ def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
 
     doc = run_disruptions(quick=True, results_dir=tmp_path)
     rows, saved = _outputs(tmp_path, "disruptions", DISRUPTION_COLUMNS)
-    assert len(rows) == 2 * 2 * 2  # two instances x noise 0 / 10 % x two methods, one seed
+    assert len(rows) == 2 * 2 * 3  # two instances x noise 0 / 10 % x three methods, one seed
     assert {r["instance"] for r in rows} == {"EX12", "ra01"} and {float(r["noise"]) for r in rows} == {0.0, 0.1}
     assert all(int(r["breakdowns"]) == 2 for r in rows)
     for r in rows:  # every run measured (and validated inside the experiment), with its decision latency
         assert int(r["makespan"]) > 0 and int(r["decisions"]) > 0 and float(r["latency_ms"]) > 0
-    assert saved["not_measured"] == DISRUPTION_MISSING and "plan:cpsat+replan" in saved["not_measured"]
-    assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in ("plan:cpsat", "best-rule") for n in (0.0, 0.1)}
+    assert saved["not_measured"] == DISRUPTION_MISSING and "ppo" in saved["not_measured"]
+    assert "plan:cpsat+replan" not in saved["not_measured"]
+    methods = ("plan:cpsat", "plan:cpsat+replan", "best-rule")
+    assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in methods for n in (0.0, 0.1)}
+    for key, v in doc["summary"].items():
+        assert v["runs"] == 2, key  # each method's rows only (one prefixes another)
+    assert set(saved["replan_beats_plan"]) == {"noise 0", "noise 0.1"}
     out = capsys.readouterr().out
     assert "| method | noise |" in out and "not measured:" in out

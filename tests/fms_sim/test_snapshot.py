@@ -8,7 +8,7 @@ from fms_sim.benchmarks import builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
-from fms_sim.replay import PlanPolicy, ReplayError
+from fms_sim.replay import PlanPolicy
 from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
@@ -96,7 +96,6 @@ def test_a_snapshot_is_refused_while_a_vehicle_choice_is_pending():
 def test_the_nominal_copy_forgets_noise_and_future_breakdowns_but_not_the_present():
     inst = builtin("ra05")
     plan = greedy_schedule(inst)
-    mid = plan.makespan // 3
     sc = Scenario(breakdowns=(Breakdown(1, 1, 6), Breakdown(2, plan.makespan, 9)), noise=0.3, seed=4)
     shop, st = _run_until(inst, plan, 2 * inst.n_operations, scenario=sc)
     assert shop.now > 1

@@ -38,7 +38,7 @@ def test_fms_up_runs_a_plan_in_a_noisy_shop_like_the_offline_run(ros_env: dict[s
 
     out = tmp_path / "s.json"
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "plan:list", "--noise", "0.2",
-                          "--seed", "4", "--out", str(out), "--db", str(tmp_path / "fms.sqlite"), "--domain-id",
+                          "--seed", "4", "--replan", "0", "--out", str(out), "--db", str(tmp_path / "fms.sqlite"), "--domain-id",
                           ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr + res.stdout
     inst = builtin("ra01")
@@ -52,7 +52,7 @@ def test_fms_up_runs_a_plan_in_a_noisy_shop_like_the_offline_run(ros_env: dict[s
     assert res.returncode == 2 and "decides on the full net" in res.stderr
 
 
-def test_a_breakdown_mid_run_reaches_the_shop_and_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
+def test_a_breakdown_and_an_order_mid_run_are_replanned_by_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
     import fms_msgs_json as m
 
     from fms_sim.recorder_store import RecorderStore, gantt_path
@@ -72,11 +72,19 @@ def test_a_breakdown_mid_run_reaches_the_shop_and_the_plan_agent(nodes, observer
     for msg in bad:
         observer.publish("disruption", msg if isinstance(msg, dict) else m.encode(msg))
     observer.publish("disruption", m.encode(m.make_disruption("jam", "breakdown", 30, machine=2, run_id="disrupted")))
+    observer.wait_for(lambda g: any(e["kind"] == "disruption_accepted" for e in g["event"]), RUN_S, "the breakdown")
+    observer.publish("order", m.encode(m.make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5},
+                                                            {"machine": 3, "duration": 4}]], run_id="disrupted")))
     got = observer.wait_for(lambda g: [x for x in g["schedule"] if x["run_id"] == "disrupted"], RUN_S * 2,
                             "the schedule")
     sched = Schedule.from_dict(got[0]["schedule"])
+    import dataclasses
+
+    from fms_sim.instance import Operation
+
     inst = builtin("ra01")
-    assert validate(inst, sched) == []
+    ordered = dataclasses.replace(inst, jobs=inst.jobs + ((Operation(1, 1, 5), Operation(3, None, 4)),))
+    assert validate(ordered, sched) == [] and {r.job for r in sched.operations} == set(range(ordered.n_jobs))
     assert [b["machine"] for b in sched.meta["scenario"]["breakdowns"]] == [2]
     accepted = [e for e in observer.snapshot("event") if e["kind"] == "disruption_accepted"]
     assert [e["data"]["disruption_id"] for e in accepted] == ["jam"]
@@ -88,3 +96,8 @@ def test_a_breakdown_mid_run_reaches_the_shop_and_the_plan_agent(nodes, observer
     assert agent_errors == []  # the plan agent's twin followed the breakdown
     wait_file(gantt_path(tmp_path, "disrupted"), RUN_S, nodes)
     assert RecorderStore(db).errors("disrupted")
+    # both were re-planned by the agent (default budget 2 s) and the recorder stored the re-plans
+    replans = RecorderStore(db).replans("disrupted")
+    assert {"breakdown", "order"} <= {r["reason"] for r in replans}, replans
+    (order,) = [r for r in replans if r["reason"] == "order"]
+    assert order["status"] == "adopted" and order["source"] == "fms_agent" and order["wall_ms"] <= 2000 + 1000

@@ -1,0 +1,77 @@
+"""Re-planning after a live order on a large shop: is it done within its budget + 1 s, and do decisions keep
+flowing meanwhile? (issue goal; docs/benchmarks.md §8)
+
+In-process, the shop service and the agent logic exchange the same JSON messages as the nodes do over ROS 2
+(without the middleware's latency). The agent runs ``plan:PLAN`` with re-planning on; after ``--at`` answered
+states an order of ``--jobs`` random jobs arrives. Printed: the re-plan's wall time against its budget, the
+slowest answer and the number of states answered while the re-plan ran, and the realised makespan (the run is
+validated).
+
+    .venv/bin/python bench/replan.py                       # sl70, plan:list, budget 2 s
+    .venv/bin/python bench/replan.py --instance sl70 --plan plan:cpsat:10 --budget 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import random
+import time
+
+from fms_dispatch.agent_logic import AgentLogic
+from fms_msgs_json import encode, make_order
+from fms_sim.benchmarks import builtin
+from fms_sim.shop_service import ShopService
+from fms_sim.validate import validate
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--instance", default="sl70")
+    p.add_argument("--plan", default="plan:list")
+    p.add_argument("--budget", type=float, default=2.0)
+    p.add_argument("--at", type=int, default=800, help="answered states before the order")
+    p.add_argument("--jobs", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args()
+    inst = builtin(a.instance)
+    rng = random.Random(a.seed)
+    jobs = [[{"machine": m, "tool": rng.randint(1, inst.n_tools) if inst.has_tools else None,
+              "duration": rng.randint(1, 99)} for m in rng.sample(range(1, inst.n_machines + 1), 5)]
+            for _ in range(a.jobs)]
+    svc = ShopService(inst, run_id="bench", decisions="full", history=True, idle_stops=True, features=False)
+    t0 = time.monotonic()
+    agent = AgentLogic(a.plan, instance=inst, replan=a.budget)
+    svc.start()
+    steps, during, slowest_during, slowest, replans = 0, 0, 0.0, 0.0, []
+    while not svc.done:
+        if steps == a.at:
+            svc.handle_order(encode(make_order("bench-order", jobs)))
+        t1 = time.monotonic()
+        out = agent.on_state(encode(svc.state))
+        dt = time.monotonic() - t1
+        job = agent.decide._job
+        if job is not None and not job.done.is_set():
+            during += 1
+            slowest_during = max(slowest_during, dt)
+        if steps > 0:
+            slowest = max(slowest, dt)
+        replans += [o.msg for o in out if o.topic == "fms/replans"]
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+        svc.handle_command(encode(cmd))
+        steps += 1
+    s = svc.final_schedule
+    assert validate(svc.instance, s) == []
+    print(f"{a.instance} {a.plan}, budget {a.budget:g} s, order of {a.jobs} jobs after {a.at} states "
+          f"({platform.node()}, {time.strftime('%Y-%m-%d')}); run {time.monotonic() - t0:.1f} s, {steps} states, "
+          f"makespan {s.makespan}")
+    for r in replans:
+        ok = "within" if r["wall_ms"] <= a.budget * 1000 + 1000 else "OVER"
+        print(f"  re-plan ({r['reason']}) at t={r['time']}: {r['status']}, {r['wall_ms']} ms ({ok} budget + 1 s), "
+              f"predicted {r['before']} -> {r['after']}")
+    print(f"  states answered while a re-plan ran: {during}, slowest of them {slowest_during * 1000:.0f} ms; "
+          f"slowest answer of the run {slowest * 1000:.0f} ms")
+
+
+if __name__ == "__main__":
+    main()
