@@ -172,16 +172,19 @@ class PlanPolicy:
         if not offered:
             return None
         kind, _ = shop.action_kind(offered[0])
+        legal = set(offered)
+        # a choice the plan did not set up (a plan resumed after another decider chose) gets None: not planned
         if kind == "agv":  # the AGV for the job just dispatched
             j, k = shop.awaiting_agv()[:2]
-            return shop.action_index(f"agv:{self.part_carrier[j, k]}")
+            v = self.part_carrier.get((j, k))
+            return _if_legal(shop, f"agv:{v}", legal) if v is not None else None
         if kind == "tt":
             _, _, j, k, _ = shop.awaiting_transporter()
-            return shop.action_index(f"tt:{self.tool_carrier[j, k]}")
+            r = self.tool_carrier.get((j, k))
+            return _if_legal(shop, f"tt:{r}", legal) if r is not None else None
         if kind == "use":
-            j, _ = self.tool[shop.tool_choice][0]
-            return shop.action_index(f"use:{j}")
-        legal = set(offered)
+            uses = self.tool.get(shop.tool_choice)
+            return _if_legal(shop, f"use:{uses[0][0]}", legal) if uses else None
         for choose in (self._dispatch, self._tool, self._start):
             a = choose(shop, legal)
             if a is not None:
@@ -227,6 +230,11 @@ class PlanPolicy:
             if a in legal and shop.buffered_op(j) == (k, m):
                 return a
         return None
+
+
+def _if_legal(shop: FullShop, label: str, legal: set[int]) -> int | None:
+    a = shop.action_index(label)
+    return a if a in legal else None
 
 
 def _consume(queue: Deque[tuple], item: tuple) -> None:

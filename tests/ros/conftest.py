@@ -95,7 +95,7 @@ class Observer:
     """An rclpy node in the test process (own context, spun in a thread): records every message of the fms
     topics, decoded, and publishes commands, orders and replay requests."""
 
-    KINDS_IN = ("state", "event", "schedule", "error")
+    KINDS_IN = ("state", "event", "schedule", "error", "replan")
     KINDS_OUT = ("command", "order", "replay_request", "disruption")
 
     def __init__(self, domain_id: int) -> None:
