@@ -691,10 +691,11 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--sos-time", type=float, help="SOS time limit per re-solve in s (default 5; quick 0.2)")
     p.add_argument("--steps", type=int, help="unused (no training in this experiment)")
     p.set_defaults(fn=_cmd)
-    p = sub.add_parser("disruptions", help="plans and rules under breakdowns and noise (no re-planning yet)")
+    p = sub.add_parser("disruptions", help="plans, re-planning and rules under breakdowns and noise")
     common(p)
     p.add_argument("--seeds", type=int, help="disruption seeds per instance and noise level (default 3; quick 1)")
     p.add_argument("--cpsat-time", type=float, help="CP-SAT plan time limit in s (default 10; quick 1)")
+    p.add_argument("--replan-budget", type=float, help="seconds per re-plan (default 1; quick 0.2)")
     p.set_defaults(fn=_cmd)
     return s
 
@@ -705,7 +706,7 @@ def _cmd(a: argparse.Namespace) -> int:
     elif a.experiment == "generalization":
         run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools)
     elif a.experiment == "disruptions":
-        run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time)
+        run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget)
     else:
         run_dynamic(a.quick, a.results_dir, a.seed, a.instance, a.model, a.sos_time)
     return 0

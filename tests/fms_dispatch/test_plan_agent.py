@@ -117,14 +117,15 @@ def test_decisions_keep_flowing_while_a_replan_runs(monkeypatch):
             svc.handle_order(encode(order))
         t0 = time.monotonic()
         out = agent.on_state(encode(svc.state))
-        slowest = max(slowest, time.monotonic() - t0)
         job = agent.decide._job
-        during += job is not None and not job.done.is_set()
+        if job is not None and not job.done.is_set():  # answered while the re-plan runs
+            during += 1
+            slowest = max(slowest, time.monotonic() - t0)
         replans += [o.msg for o in out if o.topic == "fms/replans"]
         (cmd,) = [o.msg for o in out if o.topic == "fms/command"] or [out]
         svc.handle_command(encode(cmd))
         steps += 1
-    assert slowest < 0.5 and during >= 1  # states were answered while the re-plan ran
+    assert during >= 3 and slowest < 0.4  # states were answered, at once, while the re-plan ran
     assert [m["reason"] for m in replans][:1] == ["order"] and replans[0]["status"] == "adopted"
     assert validate(svc.instance, svc.final_schedule) == []
 

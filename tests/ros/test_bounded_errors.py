@@ -20,6 +20,18 @@ from .conftest import STARTUP_S, NodeProcs, Observer  # noqa: E402
 HUGE = "o" * 5_000_000
 
 
+def stored_runs(db: Path) -> list[tuple]:
+    if not db.exists():
+        return []
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10)
+    try:
+        return con.execute("SELECT run_id FROM runs").fetchall()
+    except sqlite3.OperationalError:
+        return []
+    finally:
+        con.close()
+
+
 def stored_errors(db: Path) -> list[tuple]:
     if not db.exists():
         return []
@@ -38,6 +50,11 @@ def test_a_5_mb_order_id_gives_bounded_errors_logs_and_rows(nodes: NodeProcs, ob
     nodes.start("recorder", "fms_sim.recorder_node", db=db)
     nodes.start("shop", "fms_sim.shop_node", instance="EX12", run_id="huge")
     observer.wait_for(lambda g: g["state"], STARTUP_S, "the shop's first state")
+    # the recorder's subscriptions are matched once it has stored the run's first events (errors are not
+    # latched: one published before that would never reach it)
+    deadline = time.monotonic() + STARTUP_S
+    while time.monotonic() < deadline and not stored_runs(db):
+        time.sleep(0.1)
     observer.publish("order", {"schema": "fms/order/v1", "order_id": HUGE, "run_id": "huge",
                                "jobs": [[{"machine": 99, "tool": None, "duration": 3}]]})
     err = observer.wait_for(lambda g: next((e for e in g["error"] if e["code"] == "bad_order"), None), 30,
@@ -53,4 +70,7 @@ def test_a_5_mb_order_id_gives_bounded_errors_logs_and_rows(nodes: NodeProcs, ob
             assert value is None or field == "code" or len(value) <= ERROR_MAX_CHARS[field], field
     for name in ("shop", "recorder"):
         assert len(nodes.log(name)) < 20_000, (name, len(nodes.log(name)))
+    deadline = time.monotonic() + 10  # the node's log line may reach the file a moment after the message
+    while time.monotonic() < deadline and "[bad_order] order 'ooo" not in nodes.log("shop"):
+        time.sleep(0.1)
     assert "[bad_order] order 'ooo" in nodes.log("shop")
