@@ -9,8 +9,20 @@ from .full_rules import TOOL_RULES, FullRulePolicy, full_rule_names, run_full, s
 from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, all_rule_pairs, parse_rule_name, solve_rule
 from .solvers import UnknownSolver, get_solver, solve, solver_names
 
+# these load OR-Tools (the function replan stays in fms_dispatch.replan: the module has its name)
+_LAZY = {"Replanner": "replan", "solve_with_replanning": "replan"}
+
 __all__ = [
-    "solve", "get_solver", "solver_names", "UnknownSolver",
+    "solve", "get_solver", "solver_names", "UnknownSolver", "Replanner", "solve_with_replanning",
     "RulePolicy", "JOB_RULES", "VEHICLE_RULES", "all_rule_pairs", "parse_rule_name", "solve_rule",
     "FullRulePolicy", "TOOL_RULES", "full_rule_names", "run_full", "solve_list", "solve_best_rules",
 ]
+
+
+def __getattr__(name: str) -> object:
+    """The re-planning API, imported on first use (it loads OR-Tools)."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

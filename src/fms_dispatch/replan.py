@@ -19,7 +19,7 @@ A plan (a schedule from ``cpsat``, ``sos``, ...) is executed through the full-de
   by :meth:`fms_sim.replay.PlanPolicy.resume`.
 
 Each re-plan is an event ``{reason, time, wall_time, budget, before, after, status}`` (status ``adopted``,
-``kept`` or ``failed``). Offline (:func:`solve_with_replanning`, solvers ``plan:...`` with ``replan``) the
+``kept`` or ``failed``; the agent node also reports ``timeout``). Offline (:func:`solve_with_replanning`, solvers ``plan:...`` with ``replan``) the
 simulated shop waits for the re-plan; the agent node re-plans in a thread and answers from the current plan
 (or its fallback rule) meanwhile (:class:`fms_dispatch.agent_logic.PlanDecider`).
 """
@@ -47,6 +47,7 @@ from .exact import _improve_by_priorities, greedy_schedule
 
 __all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS",
            "DEFAULT_DRIFT"]
+
 DEFAULT_DRIFT = 0.05
 """Re-plan when an operation starts later than planned by more than this fraction of the plan's makespan."""
 

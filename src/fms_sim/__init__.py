@@ -1,5 +1,5 @@
-"""fms_sim: instances, the coloured-timed Petri net engine, the shop nets, schedules, replay, disruptions and
-the validator."""
+"""fms_sim: instances, the coloured-timed Petri net engine, the shop nets, schedules, replay, disruptions,
+snapshots of running shops (for re-planning) and the validator."""
 
 from .benchmarks import builtin, builtin_names
 from .disruptions import Breakdown, Outage, Scenario, ScenarioError
@@ -10,12 +10,13 @@ from .petri import Deadlock, InvalidAction, Net
 from .schedule import AgvTrip, OperationRecord, Schedule, ScheduleError, ToolTrip
 from .replay import PlanPolicy, ReplayError, replay
 from .shop import Shop
+from .snapshot import Snapshot, nominal_copy, snapshot
 from .validate import ScheduleInvalid, check, validate
 
 __all__ = [
     "Instance", "InstanceError", "Operation", "builtin", "builtin_names", "load_instance",
     "Net", "Shop", "FullShop", "make_shop", "DECISIONS", "InvalidAction", "Deadlock",
-    "replay", "ReplayError", "PlanPolicy", "Scenario", "Breakdown", "Outage", "ScenarioError",
+    "replay", "ReplayError", "PlanPolicy", "Snapshot", "snapshot", "nominal_copy", "Scenario", "Breakdown", "Outage", "ScenarioError",
     "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
     "validate", "check", "ScheduleInvalid",
 ]

@@ -175,3 +175,17 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
     code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--decisions", "paper", "--noise", "0.1",
                         "-q"], capsys)
     assert code == 2 and "full-decision net only" in err
+
+
+def test_solve_replans_a_plan_under_disruptions_and_refuses_bad_replan_options(tmp_path, capsys):
+    out = tmp_path / "s.json"
+    code, stdout, _ = run(["solve", "sl00", "--solver", "plan:list", "--noise", "0.2", "--seed", "3", "--replan", "0.3",
+                           "--out", str(out), "-q"], capsys)
+    assert code == 0 and "re-plans (" in stdout
+    s = Schedule.load(out)
+    assert validate(builtin("sl00"), s) == [] and isinstance(s.meta["replans"], list)
+    assert run(["validate", "sl00", str(out)], capsys)[0] == 0
+    code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--replan", "1", "-q"], capsys)
+    assert code == 2 and "plan: solvers only" in err
+    code, _, err = run(["solve", "EX12", "--solver", "plan:list", "--replan", "0", "-q"], capsys)
+    assert code == 2 and "--replan must be positive" in err
