@@ -543,8 +543,10 @@ class PlanDecider(TwinDecider):
                              f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
                              "plan stays in force")
             return
-        self._job = None
         shop = self.stepper.shop
+        if job.error is None and not rp.can_snapshot(shop):
+            return  # a plan made meanwhile is re-timed from a state where no choice is pending: collect it then
+        self._job = None
         if job.error is not None:
             ev = rp.adopt(shop, None, job.reason, wall_time=job.wall, error=job.error)
         else:

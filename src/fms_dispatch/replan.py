@@ -322,7 +322,27 @@ class Replanner:
 
     def take(self, shop: FullShop) -> tuple[Snapshot, FullShop, PlanPolicy | None]:
         """What :meth:`compute` needs, taken from ``shop`` now (in the thread that runs the shop)."""
+        self._taken_at = (shop.now, shop.net.acted, shop.n_jobs)
         return snapshot(shop), nominal_copy(shop), copy.deepcopy(self.policy)
+
+    def moved_on(self, shop: FullShop) -> bool:
+        """Whether ``shop`` has acted since :meth:`take` (a re-plan computed meanwhile must be re-timed)."""
+        return getattr(self, "_taken_at", None) != (shop.now, shop.net.acted, shop.n_jobs)
+
+    @staticmethod
+    def retime(shop: FullShop, plan: Schedule) -> Schedule:
+        """``plan``'s order of the remaining operations, re-timed from ``shop``'s state now (a list schedule
+        guided by the plan's start times; jobs the plan does not know come last). A plan made from an earlier
+        state of the run thus fits every decision taken since: its orders can all be carried out from here."""
+        snap = snapshot(shop)
+        starts = {(r.job, r.op): r.start for r in plan.operations}
+        last = max(starts.values(), default=0) + 1
+        prio = {(j, k): starts.get((j, k), last + k) for j, job in enumerate(snap.instance.jobs)
+                for k in range(snap.next_op[j], len(job))}
+        out = greedy_schedule(snap.instance, rule="guided", priority=prio, origin=snap)
+        out.meta.update(plan.meta)
+        out.meta["retimed"] = snap.now
+        return out
 
     def adopt(self, shop: FullShop, result: ReplanResult | None, reason: str, *, wall_time: float | None = None,
               error: str | None = None) -> dict[str, Any]:
@@ -337,7 +357,11 @@ class Replanner:
         else:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
-                self._follow(result.plan, result.n_jobs or shop.n_jobs, shop)
+                if self.moved_on(shop):  # computed from an earlier state (in a thread): re-time it from here
+                    self._follow(self.retime(shop, result.plan), shop.n_jobs, shop)
+                    event["retimed"] = True
+                else:
+                    self._follow(result.plan, result.n_jobs or shop.n_jobs, shop)
                 event["status"] = "adopted"
             else:
                 event["status"] = "kept"

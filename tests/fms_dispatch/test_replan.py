@@ -123,3 +123,32 @@ def test_the_plan_solvers_take_the_replan_option():
     assert [e["reason"] for e in out.meta["replans"]][:1] == ["breakdown"]
     plain = solve(inst, "plan:list", scenario=sc)
     assert "replans" not in plain.meta
+
+
+def test_a_plan_computed_while_the_shop_moved_on_is_retimed_and_runs_to_a_valid_end():
+    inst = builtin("sl00")
+    plan = greedy_schedule(inst, rule="ect")
+    sc = Scenario(breakdowns=(Breakdown(4, 300, 200),))
+    shop = FullShop(inst, scenario=sc)
+    rp = Replanner(inst, plan, budget=0.3)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    fallback = parse_full_rule("rule:MTWR+nearest+fifo")
+    taken = result = None
+    n = 0
+    while st.kind != "done":
+        if taken is None and shop.now >= 300 and rp.can_snapshot(shop):
+            taken = rp.take(shop)  # as the agent does: the plan is computed while the run goes on
+            result = rp.compute(*taken)
+        elif taken is not None and result is not None and n % 50 == 0 and rp.can_snapshot(shop):
+            assert rp.moved_on(shop)
+            event = rp.adopt(shop, result, "breakdown")
+            result = None
+            assert event["status"] == "adopted" and event["after"] < event["before"]  # (this case: adopted)
+            assert event["retimed"] and rp.plan.meta["retimed"] == shop.now
+        label = rp.step(st, fallback)
+        rp.apply(st, label)
+        st.apply(label)
+        n += 1
+    assert taken is not None and result is None and validate(inst, shop.schedule()) == []
+    assert not any(e["reason"] == "stuck" for e in rp.events)
