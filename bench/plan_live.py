@@ -32,7 +32,8 @@ def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     t0 = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", name, "--solver", solver, "--out", str(out),
-                          "--db", str(work / "fms.sqlite"), "--domain-id", str(random.randint(1, 101)), "-q"],
+                          "--db", str(work / "fms.sqlite"), "--domain-id", str(random.randint(1, 101)), "-q",
+                          "--timeout", "500"],
                          env=env, capture_output=True, text=True, timeout=600)
     wall = time.perf_counter() - t0
     if res.returncode != 0:

@@ -393,6 +393,7 @@ class PlanDecider(TwinDecider):
         self.on_fallback = False
         self._job: _ReplanJob | None = None
         self._outbox: list[Outgoing] = []
+        self._answered: str | None = None  # the plan's last answer, not yet seen in the history
         if self.base.lower().startswith("file:"):
             self._make_plan()  # a given plan is checked at once: a bad file stops the agent before the run
 
@@ -418,6 +419,7 @@ class PlanDecider(TwinDecider):
 
         # a fresh twin: the plan starts over with it (a re-plan of an earlier twin is dropped)
         self._job = None
+        self._answered = None
         self.replanner = None
         self.policy = None
         if self.plan is not None:
@@ -442,10 +444,12 @@ class PlanDecider(TwinDecider):
         from fms_sim.replay import ReplayError
 
         self._resync()
-        try:
-            planned = rp.answer(st)
-        except ReplayError:
-            planned = None
+        planned, self._answered = self._answered, None
+        if planned is None:  # not our last answer (another state, a restart): ask the plan
+            try:
+                planned = rp.answer(st)
+            except ReplayError:
+                planned = None
         if label == planned:
             rp.apply(st, label)
         else:  # the run did something else here (the fallback answered, or a plan adopted meanwhile)
@@ -511,8 +515,10 @@ class PlanDecider(TwinDecider):
             if reason is not None:
                 self._start(reason, state)
         try:
-            return rp.answer(st)
+            self._answered = rp.answer(st)  # the next history label is this one if the shop applied it
+            return self._answered
         except ReplayError:
+            self._answered = None
             if self._job is None and rp.can_snapshot(shop):
                 self._start("stuck", state)
             rp._off_plan = True
