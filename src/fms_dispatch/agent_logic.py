@@ -420,21 +420,20 @@ class PlanDecider(TwinDecider):
         # a fresh twin: the plan starts over with it (a re-plan of an earlier twin is dropped)
         self._job = None
         self._answered = None
-        self.replanner = None
+        self.replanner = None  # with re-planning, the plan's policy is the replanner's (it changes with each plan)
         self.policy = None
         if self.plan is not None:
             if self.replan_budget > 0:
                 self.replanner = Replanner(self.instance, self.plan, budget=self.replan_budget, drift=self.drift)
-                self.policy = self.replanner.policy
             else:
                 self.policy = PlanPolicy(self.instance, self.plan)
         self.on_fallback = self.plan is None
 
     def _applying(self, label: str) -> None:
         st = self.stepper
-        if self.policy is None or st is None or self.on_fallback:
-            return
         rp = self.replanner
+        if st is None or self.on_fallback or (self.policy is None and rp is None):
+            return
         if rp is None:
             if st.shop.n_jobs != self.instance.n_jobs:
                 self.on_fallback = True  # an order joined: the plan no longer covers the run

@@ -38,9 +38,9 @@ from fms_msgs_json import REPLAN_REASONS  # why a re-plan happens (the values of
 from fms_sim.disruptions import Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.instance import Instance
-from fms_sim.replay import PlanPolicy, ReplayError
+from fms_sim.replay import PlanPolicy, ReplayError, execute
 from fms_sim.schedule import Schedule
-from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
+from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 
 from .exact import _improve_by_priorities, greedy_schedule
@@ -161,16 +161,10 @@ def simulate(sim: FullShop, plan: Schedule | PlanPolicy) -> int | None:
     """Run ``plan``'s orders to the end on ``sim`` (a :func:`fms_sim.snapshot.nominal_copy`, consumed) and
     return the makespan, or None when its orders get stuck (they do not fit the state). ``plan`` is a plan
     (resumed from the state) or a policy following the run (consumed)."""
-    st = Stepper(sim, idle_stops=True)
-    st.advance()
-    pol = plan if isinstance(plan, PlanPolicy) else PlanPolicy.resume(sim, plan)
-    while st.kind != "done":
-        try:
-            label = pol.answer(st)
-        except ReplayError:
-            return None
-        pol.apply(st, label)
-        st.apply(label)
+    try:
+        execute(sim, plan if isinstance(plan, PlanPolicy) else PlanPolicy.resume(sim, plan))
+    except ReplayError:
+        return None
     return sim.makespan
 
 
@@ -198,7 +192,7 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
         sim = None
     before: int | None = None
     reserve = 0.0
-    if hint is not None and current is not None:
+    if hint is not None:  # the current plan covers the remaining work: how would it end?
         t1 = time.monotonic()
         if sim is not None:
             before = simulate(copy.deepcopy(sim), policy if policy is not None else current)
@@ -307,10 +301,7 @@ class Replanner:
         self._pending = None
         return reason
 
-    @staticmethod
-    def can_snapshot(shop: FullShop) -> bool:
-        return shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
-            shop.instance.has_tools and len(shop.p_awaiting_tt))
+    can_snapshot = staticmethod(can_snapshot)
 
     # ------------------------------------------------------------------ re-planning
     def compute(self, snap: Snapshot, sim: FullShop | None = None, policy: PlanPolicy | None = None) -> ReplanResult:

@@ -16,7 +16,8 @@ from .validate import ScheduleInvalid, check, validate
 __all__ = [
     "Instance", "InstanceError", "Operation", "builtin", "builtin_names", "load_instance",
     "Net", "Shop", "FullShop", "make_shop", "DECISIONS", "InvalidAction", "Deadlock",
-    "replay", "ReplayError", "PlanPolicy", "Snapshot", "snapshot", "nominal_copy", "Scenario", "Breakdown", "Outage", "ScenarioError",
+    "replay", "ReplayError", "PlanPolicy", "Snapshot", "snapshot", "nominal_copy",
+    "Scenario", "Breakdown", "Outage", "ScenarioError",
     "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
     "validate", "check", "ScheduleInvalid",
 ]

@@ -2,10 +2,10 @@
 
 A thin adapter around :class:`fms_sim.recorder_store.Recorder`: it stores every ``fms/events``,
 ``fms/schedule``, ``fms/replans`` and ``fms/errors`` message in SQLite (WAL), events de-duplicated by
-``(run_id, seq)``, and renders a Gantt PNG when a run is complete. On start — as soon as a shop listens on ``fms/replay_request`` — it asks the
-shop to replay the current run from event 0, so a recorder restarted mid-run ends with every event exactly
-once; gaps in the event numbers (and a final schedule whose events are incomplete) trigger further requests,
-repeated every ``retry_s`` seconds while something is missing.
+``(run_id, seq)``, and renders a Gantt PNG when a run is complete. On start — as soon as a shop listens on
+``fms/replay_request`` — it asks the shop to replay the current run from event 0, so a recorder restarted
+mid-run ends with every event exactly once; gaps in the event numbers (and a final schedule whose events are
+incomplete) trigger further requests, repeated every ``retry_s`` seconds while something is missing.
 
 Parameters: ``db`` (SQLite file, default ``fms_recorder.sqlite`` in the working directory), ``gantt`` (true:
 render charts), ``gantt_dir`` ('' = the database's folder; charts are ``<run_id>.gantt.png``), ``retry_s``

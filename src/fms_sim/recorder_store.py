@@ -395,20 +395,18 @@ class Recorder:
         return self._ask(run_id, now)
 
     def handle_replan(self, text: str, now: float = 0.0) -> list[Outgoing]:
-        try:
-            msg = decode(text, expect="replan")
-        except MessageError as exc:
-            return [self._error(exc, text)]
-        self.store.add_replan(msg, commit=False)
-        self._wrote(now)
-        return []
+        return self._store(text, "replan", self.store.add_replan, now)
 
     def handle_error(self, text: str, now: float = 0.0) -> list[Outgoing]:
+        return self._store(text, "error", self.store.add_error, now)
+
+    def _store(self, text: str, kind: str, add: Callable[..., Any], now: float) -> list[Outgoing]:
+        """Decode a message of ``kind`` that is stored as it is (no run bookkeeping) and store it."""
         try:
-            err = decode(text, expect="error")
+            msg = decode(text, expect=kind)
         except MessageError as exc:
             return [self._error(exc, text)]
-        self.store.add_error(err, commit=False)
+        add(msg, commit=False)
         self._wrote(now)
         return []
 

@@ -24,7 +24,7 @@ from .disruptions import Scenario
 from .full_shop import FullShop
 from .instance import Instance
 
-__all__ = ["Snapshot", "snapshot", "nominal_copy"]
+__all__ = ["Snapshot", "snapshot", "can_snapshot", "nominal_copy"]
 
 
 @dataclass(frozen=True)
@@ -90,11 +90,16 @@ def _all(shop: FullShop, place) -> list[tuple]:
     return place.colours() + [c for _, c in shop.net.sojourning(place)]
 
 
+def can_snapshot(shop: FullShop) -> bool:
+    """Whether ``shop`` stands where a snapshot can be taken: no vehicle or tool-use choice is pending (an idle
+    stop, or a decision among the base actions)."""
+    return shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
+        shop.instance.has_tools and len(shop.p_awaiting_tt))
+
+
 def snapshot(shop: FullShop) -> Snapshot:
-    """The :class:`Snapshot` of ``shop`` now. Call it at a stop where no vehicle or tool-use choice is pending
-    (an idle stop, or a decision among the base actions); raises ``ValueError`` otherwise."""
-    if shop.tool_choice is not None or len(shop.p_awaiting_agv) or (shop.instance.has_tools
-                                                                     and len(shop.p_awaiting_tt)):
+    """The :class:`Snapshot` of ``shop`` now; raises ``ValueError`` unless :func:`can_snapshot`."""
+    if not can_snapshot(shop):
         raise ValueError(f"no snapshot at time {shop.now}: a vehicle or tool-use choice is pending")
     inst, now = shop.instance, shop.now
     jobs = inst.jobs

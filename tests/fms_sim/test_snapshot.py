@@ -9,7 +9,7 @@ from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
 from fms_sim.replay import PlanPolicy
-from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
+from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
 from fms_dispatch.exact import greedy_schedule
@@ -27,9 +27,7 @@ def _run_until(inst, plan, cut, scenario=None):
     pol = PlanPolicy(inst, plan)
     n = 0
     while st.kind != "done":
-        free = shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
-            inst.has_tools and len(shop.p_awaiting_tt))
-        if n >= cut and free:
+        if n >= cut and can_snapshot(shop):
             break
         label = pol.answer(st)
         pol.apply(st, label)

@@ -20,28 +20,25 @@ from .conftest import STARTUP_S, NodeProcs, Observer  # noqa: E402
 HUGE = "o" * 5_000_000
 
 
-def stored_runs(db: Path) -> list[tuple]:
+def _rows(db: Path, sql: str) -> list[tuple]:
+    """The rows of a read-only query on the recorder's database (none while it does not exist yet)."""
     if not db.exists():
         return []
     con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10)
     try:
-        return con.execute("SELECT run_id FROM runs").fetchall()
+        return con.execute(sql).fetchall()
     except sqlite3.OperationalError:
         return []
     finally:
         con.close()
+
+
+def stored_runs(db: Path) -> list[tuple]:
+    return _rows(db, "SELECT run_id FROM runs")
 
 
 def stored_errors(db: Path) -> list[tuple]:
-    if not db.exists():
-        return []
-    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10)
-    try:
-        return con.execute("SELECT source, code, message, run_id, received_text FROM errors").fetchall()
-    except sqlite3.OperationalError:
-        return []
-    finally:
-        con.close()
+    return _rows(db, "SELECT source, code, message, run_id, received_text FROM errors")
 
 
 def test_a_5_mb_order_id_gives_bounded_errors_logs_and_rows(nodes: NodeProcs, observer: Observer,
