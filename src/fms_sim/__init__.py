@@ -10,6 +10,7 @@ from .petri import Deadlock, InvalidAction, Net
 from .schedule import AgvTrip, OperationRecord, Schedule, ScheduleError, ToolTrip
 from .replay import PlanPolicy, ReplayError, replay
 from .shop import Shop
+from .shopsets import bu_shop, check_training_specs, expand_specs, heldout_shops, is_reserved
 from .snapshot import Snapshot, nominal_copy, snapshot
 from .validate import ScheduleInvalid, check, validate
 
@@ -20,6 +21,7 @@ __all__ = [
     "Scenario", "Breakdown", "Outage", "ScenarioError",
     "Schedule", "ScheduleError", "OperationRecord", "AgvTrip", "ToolTrip",
     "validate", "check", "ScheduleInvalid",
+    "bu_shop", "expand_specs", "heldout_shops", "check_training_specs", "is_reserved",
 ]
 __version__ = "0.1.0"
 

@@ -9,6 +9,8 @@
   instance ``k`` of the group's continued random streams (see :mod:`fms_sim.generate`); 10 AGVs,
   5 tool transporters.
 * ``ta01``: Taillard's ta01, the plain 15x15 job shop (sl00's times and routing; optimum 1231).
+* ``ho00``..``ho49``: not benchmarks but the fixed held-out set of generated shops (``fms_sim/data/heldout.json``,
+  :mod:`fms_sim.shopsets`); they load by name like the built-ins, and :func:`builtin_names` does not list them.
 
 The data files live in the package (``fms_sim/data``) and are read with :mod:`importlib.resources`.
 """
@@ -55,11 +57,13 @@ BU_OPTIMAL_MAKESPAN: dict[tuple[int, int], int] = {
 }
 _BU_LITERATURE_ONLY = {(4, 1), (7, 1), (7, 4)}
 
-NAME_PATTERNS = "EX{set 1-10}{layout 1-4} (EX11..EX104), ra01..ra20 (optionally ra01L3), sl00..sl79, ta01"
+NAME_PATTERNS = ("EX{set 1-10}{layout 1-4} (EX11..EX104), ra01..ra20 (optionally ra01L3), sl00..sl79, ta01, "
+                 "and the held-out shops ho00..ho49")
 
 _EX_RE = re.compile(r"ex(\d+)", re.IGNORECASE)
 _RA_RE = re.compile(r"ra(\d+)(?:l(\d+))?", re.IGNORECASE)
 _SL_RE = re.compile(r"sl(\d)(\d)", re.IGNORECASE)
+_HO_RE = re.compile(r"ho\d+", re.IGNORECASE)
 
 
 def builtin_names() -> list[str]:
@@ -72,11 +76,12 @@ def builtin_names() -> list[str]:
 
 
 def is_builtin_name(name: str) -> bool:
-    """Whether ``name`` is spelled like a built-in (``EX<digits>``, ``ra<digits>[L<digit>]``, ``sl..``, ``ta..``).
+    """Whether ``name`` is spelled like a built-in (``EX<digits>``, ``ra<digits>[L<digit>]``, ``sl..``, ``ta..``)
+    or a held-out shop (``ho<digits>``).
 
     A name of that shape that is out of range (``sl99``) is still refused by :func:`builtin`, with the reason.
     """
-    return bool(re.fullmatch(r"ex\d+|ra\d+(l\d+)?|sl\d+|ta\d+", name.strip(), re.IGNORECASE))
+    return bool(re.fullmatch(r"ex\d+|ra\d+(l\d+)?|sl\d+|ta\d+|ho\d+", name.strip(), re.IGNORECASE))
 
 
 def _unknown(name: str, why: str = "") -> InstanceError:
@@ -131,6 +136,12 @@ def builtin(name: str, *, layout: int | None = None) -> Instance:
     if key.lower() == "ta01":
         _no_layout(name, layout)
         return _copy(_ta01())
+
+    if _HO_RE.fullmatch(key):
+        _no_layout(name, layout)
+        from .shopsets import heldout_shop  # shopsets builds on this module
+
+        return heldout_shop(key)
 
     raise _unknown(name)
 
