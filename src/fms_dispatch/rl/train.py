@@ -10,17 +10,19 @@ thread. Hyper-parameters come from ``--config FILE`` (JSON) and the command line
 written to ``config.json`` next to the model. At the end each saved ``X.zip`` gets its numpy actor export
 ``X.actor.npz`` (:func:`fms_dispatch.rl.agent.export_actor`), so solving with the model needs no torch.
 
-Instance specs: built-in names or files (as ``fms solve`` takes them), shell patterns over built-in names
-(``'EX?2'``, ``'sl[0-2]?'``), and generated sets ``gen:JxMxT*COUNT@SEED`` (Taillard-LCG instances of that size
-from seeds derived from SEED, with the large benchmark's travel matrices and fleets: 10 AGVs, 5 transporters).
+Instance specs are parsed by :func:`fms_sim.shopsets.expand_specs` (its module docstring has the syntax):
+built-in names or files (as ``fms solve`` takes them), shell patterns over built-in names (``'EX?2'``,
+``'sl[0-2]?'``), generated sets ``gen:JxMxT*COUNT@SEED`` (Taillard-LCG instances of that size from seeds
+derived from SEED, with the large benchmark's travel matrices and fleets: 10 AGVs, 5 transporters; ``/aNtN``
+or ``/notools`` give another fleet) and ``genbu:L*COUNT@SEED`` (random job sets on Bilge–Ulusoy layout L).
+Seeds >= 900000 are reserved for the held-out shops ``ho00``..``ho49``; benchmarks and held-out shops must
+not be trained or selected on (:func:`fms_sim.shopsets.check_training_specs`).
 """
 
 from __future__ import annotations
 
 import argparse
-import fnmatch
 import json
-import re
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -58,42 +60,11 @@ DEFAULT_CONFIG: dict[str, Any] = {
             "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
 }
 
-_GEN_RE = re.compile(r"gen:(\d+)x(\d+)x(\d+)\*(\d+)@(\d+)", re.IGNORECASE)
-_M31 = 2**31 - 1
-
-
-def _derived_seed(seed: int, salt: int) -> int:
-    return (seed * 1_000_003 + salt * 7_919 + 12_345) % (_M31 - 1) + 1
-
-
 def expand_instances(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> list[Instance]:
     """Load instance specs (see the module docstring), applying the fleet overrides to each."""
-    from fms_sim.benchmarks import builtin_names
-    from fms_sim.formats import load_instance
-    from fms_sim.generate import generate_instances
+    from fms_sim.shopsets import expand_specs
 
-    fleet = dict(DEFAULT_CONFIG["fleet"], **(fleet or {}))
-    out: list[Instance] = []
-    for spec in specs:
-        if m := _GEN_RE.fullmatch(spec.strip()):
-            j, mm, t, count, seed = (int(x) for x in m.groups())
-            insts = generate_instances(
-                j, mm, t, count, time_seed=_derived_seed(seed, 1), route_seed=_derived_seed(seed, 2),
-                tool_seed=_derived_seed(seed, 3), tools=not fleet["no_tools"],
-                n_agvs=fleet["agvs"] or 10, n_tool_transporters=fleet["tool_transporters"] or 5,
-                name_prefix=f"gen{j}x{mm}s{seed}_")
-            out.extend(insts)
-            continue
-        if any(c in spec for c in "*?["):
-            names = [n for n in builtin_names() if fnmatch.fnmatchcase(n.lower(), spec.lower())]
-            if not names:
-                raise ValueError(f"pattern {spec!r} matches no built-in instance")
-        else:
-            names = [spec]
-        for name in names:
-            out.append(load_instance(name, agvs=fleet["agvs"], tool_transporters=fleet["tool_transporters"],
-                                     no_tools=fleet["no_tools"]))
-    return out
+    return expand_specs(specs, dict(DEFAULT_CONFIG["fleet"], **(fleet or {})))
 
 
 class _Cycle:
