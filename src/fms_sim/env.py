@@ -165,10 +165,7 @@ class ShopEnv(gym.Env):
         self._check_fits(inst)
         self.instance = inst
         self.shop = make_shop(inst, self.decisions)
-        if self.decisions == "full":
-            kinds = [self.shop.action_kind(a) for a in range(self.shop.n_actions)]
-            self._net_to_env = [self._offset[k] + n for k, n in kinds]
-            self._env_to_net = {e: a for a, e in enumerate(self._net_to_env)}
+        self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
         self._lb = self._lower_bound()
@@ -210,6 +207,16 @@ class ShopEnv(gym.Env):
         return m
 
     # ------------------------------------------------------------------ action mapping
+    def _map_actions(self) -> None:
+        """Build the full net's action index maps for the current shop (its actions depend on its jobs)."""
+        if self.decisions != "full":
+            return
+        if not isinstance(self.shop, FullShop):
+            raise ValueError("an env with decisions='full' observes a FullShop, not the paper's Shop")
+        kinds = [self.shop.action_kind(a) for a in range(self.shop.n_actions)]
+        self._net_to_env = [self._offset[k] + n for k, n in kinds]
+        self._env_to_net = {e: a for a, e in enumerate(self._net_to_env)}
+
     def _to_net(self, a: int) -> int | None:
         s = self.shop
         if self.decisions == "full":
@@ -258,7 +265,9 @@ class ShopEnv(gym.Env):
         tb = self._t()
         now = s.now
         lb = max(now, s.makespan)
-        k = np.asarray(s.job_started_ops, dtype=np.int64)
+        # work not yet begun: on the full net a part can be dispatched ahead of its operation, so count from the
+        # operations whose processing has started there (the paper's net starts an operation when it dispatches)
+        k = np.asarray(s.started if isinstance(s, FullShop) else s.job_started_ops, dtype=np.int64)
         rem = tb.suffix[tb.rows, k]
         if rem.size and rem.max() > 0:
             lb = max(lb, now + int(rem.max()))

@@ -47,7 +47,9 @@ class NumpyEntityActor:
 
     ``lay`` is the observation layout (:func:`~fms_dispatch.rl.envs.obs_layout`), ``blocks`` the embedded
     entity blocks in order (``jobs``, ``machines``, then ``tools`` / ``agvs`` / ``tts`` where present),
-    ``nets[block]`` each block's embedding layers and ``heads[block]`` the scoring layers of each action block.
+    ``nets[block]`` each block's embedding layers and ``heads[block]`` the scoring layers of each action block
+    (on the full net also ``start``, ``use`` and ``tool``, which score job and tool rows, and ``hold``, which
+    scores the context).
     """
 
     kind = "entity"
@@ -82,6 +84,14 @@ class NumpyEntityActor:
             size = L[nr] * L[f]
             rows[name] = obs[i:i + size].reshape(L[nr], L[f])
             i += size
+        full = bool(L.get("full"))
+        if full:  # the full net's features join the rows they describe (as in EntityNet._split)
+            g = np.concatenate([g, obs[i:i + L["full_g"]]])
+            i += L["full_g"]
+            for name, f in (("jobs", "full_job_f"), ("tools", "full_tool_f")):
+                size = L[name] * L[f]
+                rows[name] = np.concatenate([rows[name], obs[i:i + size].reshape(L[name], L[f])], axis=1)
+                i += size
         # rows that exist: the 'present' feature is 1 exactly for them, and they come first
         n = {b: int(rows[b][:, 0].sum()) if L[b] else 0 for b in rows}
         jobs = rows["jobs"][:n["jobs"]]
@@ -99,12 +109,22 @@ class NumpyEntityActor:
         ctx = np.concatenate([emb[b].mean(axis=0) if emb[b].shape[0] else np.zeros(h, np.float32)
                               for b in self.blocks])
         out = np.full(mask.shape[0], -np.inf)
-        start = {"jobs": 0, "agvs": L["jobs"], "tts": L["jobs"] + L["agvs"]}
+        paper = L["jobs"] + L["agvs"] + L["tts"]
+        # head -> (first action slot, slots, embedded block it scores)
+        where = {"jobs": (0, L["jobs"], "jobs"), "agvs": (L["jobs"], L["agvs"], "agvs"),
+                 "tts": (L["jobs"] + L["agvs"], L["tts"], "tts"), "start": (paper, L["jobs"], "jobs"),
+                 "tool": (paper + L["jobs"], L["tools"], "tools"),
+                 "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
         for b, head in self.heads.items():
-            lo = start[b]
-            if not mask[lo:lo + L[b]].any():
+            if b == "hold":
+                lo = paper + 2 * L["jobs"] + L["tools"]
+                if mask[lo]:
+                    out[lo] = _run_layers(head, np.concatenate([ctx, g]))[0]
                 continue
-            e = emb[b]
+            lo, slots, src = where[b]
+            if not mask[lo:lo + slots].any():
+                continue
+            e = emb[src]
             out[lo:lo + e.shape[0]] = self._run(head, e, ctx)[:, 0]
         out[~mask] = -np.inf
         return out

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from fms_sim.full_shop import FullShop
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
@@ -57,9 +58,8 @@ class Agent:
         if not path.is_file():
             raise ValueError(f"model file {path} does not exist")
         self.name = name or path.parent.name
-        if decisions != "paper":
-            raise ValueError(f"model {self.name} was trained on the {decisions!r} net; this build's agent runs "
-                             "models of the paper's net only")
+        if decisions not in ("paper", "full"):
+            raise ValueError(f"model {self.name}: unknown decisions {decisions!r}; choose paper or full")
         self.decisions = decisions
         """The net the model was trained on and decides through (its config's ``decisions``)."""
         self.path = path
@@ -71,8 +71,29 @@ class Agent:
 
             self.policy = load_torch_policy(path)
             self.actor = actor_from_policy(self.policy)
+        self._check_net()
         self._envs: dict[int, FastShopEnv] = {}
         self._last: FastShopEnv | None = None
+
+    def _check_net(self) -> None:
+        """Refuse weights made for another net or layout than the config says (they would read garbage)."""
+        from .actors import NumpyEntityActor
+        from .envs import obs_layout, obs_size
+
+        want = obs_size(obs_layout(self.padding, self.decisions))
+        if isinstance(self.actor, NumpyEntityActor):
+            if bool(self.actor.lay.get("full")) != (self.decisions == "full"):
+                made = "full" if self.actor.lay.get("full") else "paper"
+                raise ValueError(f"model {self.name} was trained on the {made!r} net, but its config says "
+                                 f"{self.decisions!r}")
+            got = obs_size(self.actor.lay)
+        elif self.actor is not None:
+            got = int(self.actor.layers[0][0].shape[0])
+        else:
+            return
+        if got != want:
+            raise ValueError(f"model {self.name} reads observations of size {got}, its config's padding and net "
+                             f"give {want}")
 
     @property
     def uses_torch(self) -> bool:
@@ -102,7 +123,10 @@ class Agent:
             if not self.fits(shop.instance):
                 raise ValueError(f"instance {shop.instance.name} does not fit model {self.name} "
                                  f"(max {self.padding})")
-            env = FastShopEnv(shop.instance, **self.padding)
+            if isinstance(shop, FullShop) != (self.decisions == "full"):
+                raise ValueError(f"model {self.name} decides through the {self.decisions} net, not through a "
+                                 f"{type(shop).__name__}")
+            env = FastShopEnv(shop.instance, decisions=self.decisions, **self.padding)
             env.attach(shop)
             if self._last is not None:
                 env.adopt_tables(self._last)  # twins share the real shop's instance tables

@@ -15,11 +15,12 @@ from typing import Sequence
 
 import numpy as np
 
-from fms_sim.env import AGV_FEATURES, GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, TOOL_FEATURES, ShopEnv
+from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
+                         JOB_FEATURES, MACHINE_FEATURES, TOOL_FEATURES, ShopEnv)
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout"]
+__all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size"]
 
 #: Maximum layouts (env keyword arguments) by profile name.
 PADDING: dict[str, dict[str, int]] = {
@@ -44,13 +45,32 @@ def padding_for(profile: str | dict[str, int] | None, instances: Sequence[Instan
     return dict(PADDING[profile])
 
 
-def obs_layout(padding: dict[str, int]) -> dict[str, int]:
-    """Block sizes of the flat observation (rows and features per block), for the entity policy."""
-    return dict(n_global=len(GLOBAL_FEATURES), jobs=padding["max_jobs"], job_f=len(JOB_FEATURES),
-                machines=padding["max_machines"], machine_f=len(MACHINE_FEATURES),
-                tools=padding["max_tools"], tool_f=len(TOOL_FEATURES),
-                agvs=padding["max_agvs"], agv_f=len(AGV_FEATURES),
-                tts=padding["max_tts"], tt_f=len(AGV_FEATURES))
+def obs_layout(padding: dict[str, int], decisions: str = "paper") -> dict[str, int]:
+    """Block sizes of the flat observation (rows and features per block), for the entity policy.
+
+    With ``decisions="full"`` the layout also has ``full=1`` and the sizes of the full net's extra blocks,
+    which follow the paper's in the observation: ``full_g`` global features, ``full_job_f`` features per job
+    and ``full_tool_f`` per tool (:data:`fms_sim.env.FULL_GLOBAL_FEATURES` etc.)."""
+    lay = dict(n_global=len(GLOBAL_FEATURES), jobs=padding["max_jobs"], job_f=len(JOB_FEATURES),
+               machines=padding["max_machines"], machine_f=len(MACHINE_FEATURES),
+               tools=padding["max_tools"], tool_f=len(TOOL_FEATURES),
+               agvs=padding["max_agvs"], agv_f=len(AGV_FEATURES),
+               tts=padding["max_tts"], tt_f=len(AGV_FEATURES))
+    if decisions == "full":
+        lay.update(full=1, full_g=len(FULL_GLOBAL_FEATURES), full_job_f=len(FULL_JOB_FEATURES),
+                   full_tool_f=len(FULL_TOOL_FEATURES))
+    elif decisions != "paper":
+        raise ValueError(f"unknown decisions {decisions!r}; choose paper or full")
+    return lay
+
+
+def obs_size(layout: dict[str, int]) -> int:
+    """Length of the flat observation of an :func:`obs_layout`."""
+    n = layout["n_global"] + sum(layout[r] * layout[f] for r, f in (
+        ("jobs", "job_f"), ("machines", "machine_f"), ("tools", "tool_f"), ("agvs", "agv_f"), ("tts", "tt_f")))
+    if layout.get("full"):
+        n += layout["full_g"] + layout["jobs"] * layout["full_job_f"] + layout["tools"] * layout["full_tool_f"]
+    return n
 
 
 class FastShopEnv(ShopEnv):
@@ -63,12 +83,18 @@ class FastShopEnv(ShopEnv):
         self._check_fits(inst)
         self.shop = shop
         self.instance = inst
+        self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
 
     def observe(self) -> tuple[np.ndarray, np.ndarray]:
         """(observation, action mask) of the attached shop."""
         return self._obs(), self.action_masks()
+
+    def potential(self) -> int:
+        """The shaped reward's potential of the attached shop: its makespan lower bound (the makespan once done);
+        a decision's shaped reward is ``-(potential after - potential before) / scale``."""
+        return self.shop.makespan if self.shop.done else self._lower_bound()
 
     def to_net_action(self, a: int) -> int | None:
         """Net action index of padded action ``a`` (None for an empty slot)."""

@@ -40,19 +40,25 @@ def _masked_mean(e: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
 class EntityNet(nn.Module):
     """Shared per-entity embeddings -> (action logits, value latent); used as the policy's mlp_extractor.
 
-    ``layout`` gives the observation blocks (see :func:`~fms_dispatch.rl.envs.obs_layout`).
+    ``layout`` gives the observation blocks (see :func:`~fms_dispatch.rl.envs.obs_layout`). On the full net
+    (``layout["full"]``) the full net's extra features join their rows (global, job and tool features), and
+    four more heads score the full net's decisions: machine starts and tool take-ups per job (from the job's
+    embedding), tool-request choices per tool (from the tool's), and ``hold`` (from the context).
     """
 
     def __init__(self, layout: dict[str, int], hidden: int = 64):
         super().__init__()
         self.lay = dict(layout)
         L, h = self.lay, hidden
-        g = L["n_global"]
-        self.job_emb = _mlp(L["job_f"] + L["machine_f"] + g, h, h)
+        self.full = bool(L.get("full"))
+        g = L["n_global"] + (L["full_g"] if self.full else 0)
+        job_f = L["job_f"] + (L["full_job_f"] if self.full else 0)
+        tool_f = L["tool_f"] + (L["full_tool_f"] if self.full else 0)
+        self.job_emb = _mlp(job_f + L["machine_f"] + g, h, h)
         self.mach_emb = _mlp(L["machine_f"] + g, h, h)
         self.blocks = ["jobs", "machines"]
         if L["tools"]:
-            self.tool_emb = _mlp(L["tool_f"] + g, h, h)
+            self.tool_emb = _mlp(tool_f + g, h, h)
             self.blocks.append("tools")
         if L["agvs"]:
             self.agv_emb = _mlp(L["agv_f"] + g, h, h)
@@ -68,6 +74,13 @@ class EntityNet(nn.Module):
             self.tt_head = nn.Sequential(nn.Linear(h + ctx - g, h), nn.Tanh(), nn.Linear(h, 1))
         self.value = nn.Sequential(nn.Linear(ctx, h), nn.Tanh(), nn.Linear(h, h), nn.Tanh())
         self.latent_dim_pi = L["jobs"] + L["agvs"] + L["tts"]
+        if self.full:
+            self.start_head = nn.Sequential(nn.Linear(h + ctx - g, h), nn.Tanh(), nn.Linear(h, 1))
+            self.use_head = nn.Sequential(nn.Linear(h + ctx - g, h), nn.Tanh(), nn.Linear(h, 1))
+            if L["tools"]:
+                self.tool_head = nn.Sequential(nn.Linear(h + ctx - g, h), nn.Tanh(), nn.Linear(h, 1))
+            self.hold_head = nn.Sequential(nn.Linear(ctx, h), nn.Tanh(), nn.Linear(h, 1))
+            self.latent_dim_pi += 2 * L["jobs"] + L["tools"] + 1
         self.latent_dim_vf = h
 
     def _split(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -81,6 +94,13 @@ class EntityNet(nn.Module):
             size = L[rows] * L[f]
             out[name] = obs[:, i:i + size].reshape(B, L[rows], L[f])
             i += size
+        if self.full:  # the full net's blocks follow; their features join the rows they describe
+            out["g"] = torch.cat([out["g"], obs[:, i:i + L["full_g"]]], dim=-1)
+            i += L["full_g"]
+            for name, rows, f in (("jobs", "jobs", "full_job_f"), ("tools", "tools", "full_tool_f")):
+                size = L[rows] * L[f]
+                out[name] = torch.cat([out[name], obs[:, i:i + size].reshape(B, L[rows], L[f])], dim=-1)
+                i += size
         return out
 
     def _encode(self, obs: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
@@ -110,7 +130,7 @@ class EntityNet(nn.Module):
         ctx = torch.cat(pooled, dim=-1)
         return emb, ctx, g
 
-    def _logits(self, emb: dict[str, torch.Tensor], ctx: torch.Tensor) -> torch.Tensor:
+    def _logits(self, emb: dict[str, torch.Tensor], ctx: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         def score(head: nn.Module, e: torch.Tensor) -> torch.Tensor:
             return head(torch.cat([e, ctx.unsqueeze(1).expand(e.shape[0], e.shape[1], ctx.shape[1])],
                                   dim=-1)).squeeze(-1)
@@ -120,15 +140,21 @@ class EntityNet(nn.Module):
             parts.append(score(self.agv_head, emb["agvs"]))
         if "tts" in self.blocks:
             parts.append(score(self.tt_head, emb["tts"]))
+        if self.full:  # [start per job | tool per tool | use per job | hold], the env's order
+            parts.append(score(self.start_head, emb["jobs"]))
+            if "tools" in self.blocks:
+                parts.append(score(self.tool_head, emb["tools"]))
+            parts.append(score(self.use_head, emb["jobs"]))
+            parts.append(self.hold_head(torch.cat([ctx, g], dim=-1)))
         return torch.cat(parts, dim=-1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         emb, ctx, g = self._encode(features)
-        return self._logits(emb, ctx), self.value(torch.cat([ctx, g], dim=-1))
+        return self._logits(emb, ctx, g), self.value(torch.cat([ctx, g], dim=-1))
 
     def forward_actor(self, features: torch.Tensor) -> torch.Tensor:
-        emb, ctx, _ = self._encode(features)
-        return self._logits(emb, ctx)
+        emb, ctx, g = self._encode(features)
+        return self._logits(emb, ctx, g)
 
     def forward_critic(self, features: torch.Tensor) -> torch.Tensor:
         _, ctx, g = self._encode(features)
@@ -159,6 +185,12 @@ def entity_actor(net: EntityNet) -> NumpyEntityActor:
         heads["agvs"] = _layers(net.agv_head)
     if "tts" in net.blocks:
         heads["tts"] = _layers(net.tt_head)
+    if net.full:
+        heads["start"] = _layers(net.start_head)
+        heads["use"] = _layers(net.use_head)
+        if "tools" in net.blocks:
+            heads["tool"] = _layers(net.tool_head)
+        heads["hold"] = _layers(net.hold_head)
     return NumpyEntityActor(net.lay, net.blocks, net.latent_dim_vf, nets, heads)
 
 

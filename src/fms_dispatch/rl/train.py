@@ -79,7 +79,8 @@ class _Cycle:
         return self.instances[self.i]
 
 
-def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int):
+def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int,
+              decisions: str = "paper"):
     def make():
         import torch
         from stable_baselines3.common.monitor import Monitor
@@ -87,7 +88,7 @@ def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], r
         from .envs import FastShopEnv
 
         torch.set_num_threads(1)
-        env = FastShopEnv(instances, reward=reward, invalid_action="raise", **padding)
+        env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, **padding)
         env.reset(seed=seed)
         return Monitor(env)
 
@@ -107,18 +108,18 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequence[Instance],
-                   lookahead: bool = False) -> dict[str, int]:
-    """Makespan per instance of the deterministic policy (schedules validated)."""
-    from fms_sim.shop import Shop
+                   lookahead: bool = False, decisions: str = "paper") -> dict[str, int]:
+    """Makespan per instance of the deterministic policy on the net ``decisions`` (schedules validated)."""
+    from fms_sim.full_shop import make_shop
     from fms_sim.validate import validate
 
     from .lookahead import run_agent
     from .agent import Agent
 
-    agent = Agent(weights, padding)
+    agent = Agent(weights, padding, decisions=decisions)
     out = {}
     for inst in instances:
-        s = run_agent(Shop(inst), agent.act, lookahead=lookahead)
+        s = run_agent(make_shop(inst, decisions), agent.act, lookahead=lookahead)
         problems = validate(inst, s)
         if problems:
             raise RuntimeError(f"invalid schedule for {inst.name}: {problems[0]}")
@@ -196,31 +197,44 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
     if not cfg["train"]:
         raise ValueError("no training instances given")
-    if cfg.get("decisions", "paper") != "paper":
-        raise ValueError(f"decisions {cfg['decisions']!r}: fms train trains on the paper's net only in this build "
-                         "(the full-decision net has a Gymnasium env, ShopEnv(decisions='full'), but no agent "
-                         "features or experts yet)")
-    cfg["decisions"] = "paper"
+    decisions = cfg.get("decisions") or "paper"
+    if decisions not in ("paper", "full"):
+        raise ValueError(f"unknown decisions {decisions!r}; choose paper (the paper's net) or full (the "
+                         "full-decision net)")
+    cfg["decisions"] = decisions
     if cfg["reward"] not in ("idle", "makespan", "shaped"):
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
     from .imitation import EXPERTS, RULE_EXPERTS
+    from .plan_expert import is_plan_expert
 
-    if warm["expert"] and not resume and warm["expert"] not in EXPERTS:
-        raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)}")
+    planned = is_plan_expert(warm["expert"])
+    if warm["expert"] and not resume:
+        if planned and decisions != "full":
+            raise ValueError(f"the plan expert {warm['expert']!r} demonstrates on the full-decision net: set "
+                             "decisions to full")
+        if not planned and warm["expert"] not in EXPERTS:
+            raise ValueError(f"unknown warm-start expert {warm['expert']!r}; choose from {', '.join(EXPERTS)} "
+                             "(paper net) or plan:SOLVER[:SECONDS] (full net, e.g. plan:cpsat:5, plan:list)")
+        if not planned and decisions == "full":
+            raise ValueError(f"the expert {warm['expert']!r} acts on the paper's net; on the full net use a plan "
+                             "expert (plan:SOLVER[:SECONDS], e.g. plan:cpsat:5 or plan:list)")
     if dagger < 0 or (dagger and not resume):
         raise ValueError("--dagger N adds rounds to a model being resumed; for a new model set "
                          "warm_start.dagger in its config")
     rounds = dagger if resume else int(warm["dagger"])
-    if rounds and warm["expert"] not in RULE_EXPERTS:
-        raise ValueError(f"DAgger needs a rule-pair warm-start expert (rules or rules+nearest), not "
-                         f"{warm['expert']!r}: only a rule can label the policy's own states")
+    if rounds and warm["expert"] not in RULE_EXPERTS and not planned:
+        raise ValueError(f"DAgger needs a rule-pair or plan warm-start expert (rules, rules+nearest, "
+                         f"plan:SOLVER[:SECONDS]), not {warm['expert']!r}: only those can label the policy's own "
+                         "states")
     if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
         raise ValueError("--steps must be positive")
     refine = _refine_stages(warm["refine"], cfg["fleet"], int(cfg["seed"])) if not resume else []
     if refine and not warm["expert"]:
         raise ValueError("warm_start.refine follows the cloning of a warm-start expert: set warm_start.expert")
+    if refine and decisions == "full":
+        raise ValueError("warm_start.refine clones rule pairs of the paper's net; it does not apply to the full net")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
     padding = padding_for(cfg["padding"], train_set + eval_set + [i for st in refine for i in st[1]])
@@ -231,9 +245,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     n_envs = max(1, int(cfg["n_envs"]))
     seed = int(cfg["seed"])
-    fns = [_make_env(train_set, padding, cfg["reward"], seed + i) for i in range(n_envs)]
+    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions) for i in range(n_envs)]
     venv = SubprocVecEnv(fns) if n_envs > 1 and cfg["vec_env"] == "subproc" else DummyVecEnv(fns)
-    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000)])
+    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions)])
 
     ppo = dict(cfg["ppo"])
     if resume:
@@ -243,7 +257,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             from .policy import EntityPolicy
 
             policy: Any = EntityPolicy
-            pkw = {"layout": obs_layout(padding), "hidden": int(cfg["hidden"])}
+            pkw = {"layout": obs_layout(padding, decisions), "hidden": int(cfg["hidden"])}
         elif cfg["arch"] == "mlp":
             policy, pkw = "MlpPolicy", {"net_arch": list(cfg["net_arch"])}
         else:
@@ -279,15 +293,21 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         from sb3_contrib.common.maskable.evaluation import evaluate_policy
 
         from .imitation import clone, dagger as run_dagger, demonstrations
+        from .plan_expert import plan_dagger, plan_demonstrations
 
         say = (lambda line: print(line, flush=True)) if (verbose or progress) else None
         warm_set = train_set[:int(warm["instances"])]
         pairs: dict[str, str] = {}
-        demos, expert_ms = demonstrations(warm_set, padding, cfg["reward"], warm["expert"],
-                                          iters=int(warm["search_iters"]), seed=seed, progress=say, pairs=pairs,
-                                          insert=float(warm["search_insert"]),
-                                          restarts=int(warm["search_restarts"]), starts=int(warm["search_starts"]),
-                                          workers=int(warm["workers"]))
+        plans: dict[str, Any] = {}
+        if planned:
+            demos, expert_ms = plan_demonstrations(warm_set, padding, cfg["reward"], warm["expert"], seed=seed,
+                                                   progress=say, plans=plans)
+        else:
+            demos, expert_ms = demonstrations(warm_set, padding, cfg["reward"], warm["expert"],
+                                              iters=int(warm["search_iters"]), seed=seed, progress=say,
+                                              pairs=pairs, insert=float(warm["search_insert"]),
+                                              restarts=int(warm["search_restarts"]),
+                                              starts=int(warm["search_starts"]), workers=int(warm["workers"]))
         bc: dict[str, Any] = {}
         refined: list[dict[str, Any]] = []
         if not resume:
@@ -295,10 +315,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             refined = _refine(model, refine, padding, cfg["reward"], say)
         history: list[dict[str, Any]] = []
         if rounds:
-            _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
-                                    epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]),
-                                    seed=seed + 100 * int(old.get("warm_start", {}).get("dagger", 0)),
-                                    progress=say)
+            dagger_seed = seed + 100 * int(old.get("warm_start", {}).get("dagger", 0))
+            if planned:
+                _, history = plan_dagger(model, demos, plans, expert_ms, warm_set, padding, cfg["reward"], rounds,
+                                         epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]),
+                                         seed=dagger_seed, progress=say)
+            else:
+                _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
+                                        epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]), seed=dagger_seed,
+                                        progress=say)
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
         if not resume or float(mean_r) >= eval_cb.best_mean_reward:  # the best weights are kept
             eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the warm-started policy to replace it
@@ -337,7 +362,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if (out / saved).is_file():
             export_actor(out / saved)
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
-    makespans = evaluate_model(weights, padding, eval_set)
+    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions)
     prev = old.get("training", {})
     metrics = dict(old)
     if warm_metrics is not None:

@@ -1,0 +1,205 @@
+"""Plan experts on the full-decision net: demonstrations from offline plans, DAgger labels for the policy's states.
+
+The paper's experts (rule pairs, searches over decision sequences) only exist on the paper's net. On the full
+net (:class:`fms_sim.full_shop.FullShop`) every valid schedule is reachable (:mod:`fms_sim.replay`), so the
+best schedules the project can compute become experts:
+
+* :func:`plan_demonstrations` — per training shop, an offline plan (``plan:SOLVER[:SECONDS]``, e.g.
+  ``plan:cpsat:5`` or ``plan:list``, solved by :func:`fms_dispatch.solvers.make_plan`) executed through the
+  net by :class:`~fms_sim.replay.PlanPolicy`; every decision with a choice is a demonstration
+  ``(observation, mask, action)``. The plan's empty vehicle moves (pre-positioning) are carried out but not
+  recorded: the policy has no move actions (the lookahead does that part).
+* :func:`plan_dagger_round` — DAgger (Ross et al., 2011) on the full net: the current policy drives, and every
+  state it reaches is labelled with what the shop's plan orders from there (:meth:`PlanPolicy.resume` of the
+  same plan: what has started is dropped, the remaining orders per machine, tool and vehicle stand). Where the
+  plan can no longer be carried out from the policy's state, the remaining work is re-planned by list
+  scheduling from a snapshot of the state (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``), and that
+  plan labels the rest of the run.
+
+Returns-to-go (for the value head) are exact for the ``shaped`` reward (the potential telescopes:
+``-(makespan - LB_t) / scale``) and the ``makespan`` reward; NaN (unused) for ``idle``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from fms_sim.full_shop import HOLD, FullShop
+from fms_sim.instance import Instance
+from fms_sim.replay import PlanPolicy
+from fms_sim.schedule import Schedule
+from fms_sim.stepping import Stepper
+
+__all__ = ["is_plan_expert", "expert_plan", "plan_demonstrations", "plan_dagger_round", "plan_dagger"]
+
+
+def is_plan_expert(expert: str | None) -> bool:
+    """Whether ``expert`` names a plan expert (``plan:SOLVER[:SECONDS]``)."""
+    return bool(expert) and str(expert).lower().startswith("plan:")
+
+
+def expert_plan(inst: Instance, expert: str, seed: int = 0) -> Schedule:
+    """The offline plan of ``expert`` (``plan:SOLVER[:SECONDS]``) for ``inst`` (one CP-SAT worker, so several
+    experts can run side by side and the result does not depend on the machine's core count)."""
+    from ..solvers import make_plan, parse_plan_name
+
+    base, seconds = parse_plan_name(expert)
+    opts: dict[str, Any] = {"seed": seed}
+    if base.lower().startswith("cpsat"):
+        opts["workers"] = 1
+    return make_plan(inst, base, seconds, **opts)
+
+
+def _ret(env: Any, reward: str, lb: int, makespan: int) -> float:
+    if reward == "shaped":
+        return -(makespan - lb) / env._scale
+    if reward == "makespan":
+        return -makespan / env._scale
+    return float("nan")
+
+
+def _env(inst: Instance, shop: FullShop, padding: dict[str, int], reward: str) -> Any:
+    from .envs import FastShopEnv
+
+    env = FastShopEnv(inst, reward=reward, decisions="full", **padding)
+    env.attach(shop)
+    return env
+
+
+def plan_trajectory(inst: Instance, plan: Schedule, padding: dict[str, int], reward: str,
+                    rows: tuple[list, list, list, list]) -> int:
+    """Execute ``plan`` through a fresh full net, appending its decisions with a choice to ``rows``
+    (observations, masks, env actions, returns-to-go); returns the makespan reached."""
+    obs, masks, actions, rets = rows
+    shop = FullShop(inst)
+    env = _env(inst, shop, padding, reward)
+    policy = PlanPolicy(inst, plan)
+    stepper = Stepper(shop, idle_stops=True)
+    stepper.advance()
+    lbs: list[int] = []
+    while stepper.kind != "done":
+        label = policy.answer(stepper)
+        if stepper.kind == "decision":
+            mask = env.action_masks()
+            if mask.sum() > 1:
+                obs.append(env.observe()[0])
+                masks.append(mask)
+                actions.append(env.from_net_action(shop.action_index(label)))
+                lbs.append(env.potential())
+        policy.apply(stepper, label)
+        stepper.apply(label)
+    rets.extend(_ret(env, reward, lb, shop.makespan) for lb in lbs)
+    return shop.makespan
+
+
+def plan_demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
+                        seed: int = 0, progress: Callable[[str], None] | None = None,
+                        plans: dict[str, Schedule] | None = None
+                        ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Demonstrations of the plan expert ``expert`` on ``instances`` (arrays as
+    :func:`fms_dispatch.rl.imitation.demonstrations` returns them) and the makespans the net reaches with the
+    plans. ``plans`` (if given) receives each instance's plan, for :func:`plan_dagger_round`."""
+    from .imitation import _as_demos
+
+    rows: tuple[list, list, list, list] = ([], [], [], [])
+    makespans: dict[str, int] = {}
+    for n, inst in enumerate(instances):
+        plan = expert_plan(inst, expert, seed=seed + n)
+        if plans is not None:
+            plans[inst.name] = plan
+        makespans[inst.name] = plan_trajectory(inst, plan, padding, reward, rows)
+        if progress is not None:
+            progress(f"  {expert} demonstrations: {n + 1}/{len(instances)} shops ({inst.name}: plan "
+                     f"{plan.makespan}, executed {makespans[inst.name]}, {len(rows[0])} decisions recorded)")
+    return _as_demos(*rows), makespans
+
+
+class _Labeller:
+    """What the plan orders at each state of a run that may have left it (see the module docstring)."""
+
+    def __init__(self, shop: FullShop, plan: Schedule):
+        from fms_dispatch.full_rules import FullRulePolicy
+
+        self.shop, self.plan = shop, plan
+        self.replans = 0
+        self._rule = FullRulePolicy("MTWR", "nearest", "earliest-start")  # only where no plan can say anything
+
+    def __call__(self) -> int:
+        from fms_sim.snapshot import can_snapshot, snapshot
+
+        from ..exact import greedy_schedule
+
+        shop = self.shop
+        a = PlanPolicy.resume(shop, self.plan).step(shop)
+        if a is None and shop.hold_allowed():
+            return shop.action_index(HOLD)
+        if a is None and can_snapshot(shop):  # the plan cannot go on from here: plan the rest again
+            self.plan = greedy_schedule(shop.instance, origin=snapshot(shop))
+            self.replans += 1
+            a = PlanPolicy.resume(shop, self.plan).step(shop)
+        return a if a is not None else self._rule(shop)
+
+
+def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str, Schedule],
+                      padding: dict[str, int], reward: str, progress: Callable[[str], None] | None = None
+                      ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """One DAgger round on the full net: the deterministic policy ``model`` runs each instance, and every state
+    with a choice is labelled by the instance's plan (``plans``, from :func:`plan_demonstrations`) as the module
+    docstring says. Returns the labelled rows (``ret``: the policy's own return-to-go) and the policy's
+    makespans."""
+    from .imitation import _as_demos
+
+    obs: list = []
+    masks: list = []
+    actions: list = []
+    rets: list = []
+    makespans: dict[str, int] = {}
+    for n, inst in enumerate(instances):
+        if inst.name not in plans:
+            raise ValueError(f"no expert plan for {inst.name}")
+        shop = FullShop(inst)
+        env = _env(inst, shop, padding, reward)
+        label = _Labeller(shop, plans[inst.name])
+        lbs: list[int] = []
+        while not shop.done:
+            o, mask = env.observe()
+            if mask.sum() > 1:
+                obs.append(o)
+                masks.append(mask)
+                actions.append(env.from_net_action(label()))
+                lbs.append(env.potential())
+                a = env.to_net_action(int(model.predict(o, action_masks=mask, deterministic=True)[0]))
+            else:
+                a = shop.legal_actions()[0]
+            shop.act(a)
+        rets.extend(_ret(env, reward, lb, shop.makespan) for lb in lbs)
+        makespans[inst.name] = shop.makespan
+        if progress is not None:
+            progress(f"  dagger: {n + 1}/{len(instances)} shops ({inst.name}: policy makespan {shop.makespan}, "
+                     f"plan {plans[inst.name].makespan}, {label.replans} re-plans, {len(obs)} states labelled)")
+    return _as_demos(obs, masks, actions, rets), makespans
+
+
+def plan_dagger(model: Any, demos: dict[str, np.ndarray], plans: dict[str, Schedule], expert_ms: dict[str, int],
+                instances: Sequence[Instance], padding: dict[str, int], reward: str, rounds: int,
+                epochs: int = 10, lr: float = 1e-3, seed: int = 0,
+                progress: Callable[[str], None] | None = None
+                ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    """``rounds`` DAgger rounds with plan labels (as :func:`fms_dispatch.rl.imitation.dagger` does with rule
+    pairs): label the policy's states, aggregate, clone ``epochs`` more epochs. Returns the aggregate and per
+    round the policy's mean makespan before that round's cloning relative to the executed plans."""
+    from .imitation import clone, concat_demos
+
+    history: list[dict[str, Any]] = []
+    for r in range(rounds):
+        new, policy_ms = plan_dagger_round(model, instances, plans, padding, reward, progress=progress)
+        demos = concat_demos(demos, new)
+        ratio = float(np.mean([policy_ms[k] / expert_ms[k] for k in policy_ms]))
+        if progress is not None:
+            progress(f"  dagger round {r + 1}/{rounds}: policy makespan {100 * (ratio - 1):+.2f} % against the "
+                     f"plans; cloning {len(demos['obs'])} states")
+        bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed + r + 1, progress=progress)
+        history.append(dict(round=r + 1, policy_vs_expert=round(ratio, 4), **bc))
+    return demos, history

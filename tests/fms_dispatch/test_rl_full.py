@@ -1,0 +1,139 @@
+"""Policies on the full-decision net: the entity network's full heads, plan experts, DAgger and training."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from fms_sim.benchmarks import builtin
+from fms_sim.full_shop import FullShop
+from fms_sim.replay import replay
+from fms_sim.shop import Shop
+from fms_sim.validate import validate
+from fms_dispatch.rl.actors import load_actor, save_actor
+from fms_dispatch.rl.envs import FastShopEnv, obs_layout, obs_size, padding_for
+from fms_dispatch.rl.plan_expert import expert_plan, plan_dagger_round, plan_demonstrations
+from fms_dispatch.rl.policy import EntityPolicy, actor_from_policy
+
+
+def _model(inst, padding, hidden=32):
+    from sb3_contrib import MaskablePPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    env = FastShopEnv(inst, decisions="full", **padding)
+    return MaskablePPO(EntityPolicy, DummyVecEnv([lambda: env]), device="cpu", seed=3, n_steps=64, batch_size=32,
+                       policy_kwargs={"layout": obs_layout(padding, "full"), "hidden": hidden})
+
+
+@pytest.mark.parametrize("name,padding", [("EX12", "bu"), ("ra01", None), ("ra01", "large")])
+def test_full_entity_network_numpy_actor_equals_torch_and_covers_every_block(name, padding, tmp_path):
+    inst = builtin(name)
+    pad = padding_for(padding, [inst])
+    model = _model(inst, pad)
+    demos, _ = plan_demonstrations([inst], pad, "shaped", "plan:list")
+    lay = obs_layout(pad, "full")
+    assert demos["obs"].shape[1] == obs_size(lay) == FastShopEnv(inst, decisions="full", **pad).observation_space.shape[0]
+    ext = model.policy.mlp_extractor
+    assert ext.latent_dim_pi == FastShopEnv(inst, decisions="full", **pad).n_actions
+    actor = actor_from_policy(model.policy)
+    path = save_actor(actor, tmp_path / "a.actor.npz", "sha")
+    loaded, sha = load_actor(path)
+    assert sha == "sha"
+    X = torch.as_tensor(demos["obs"])
+    with torch.no_grad():
+        ref = ext.forward_actor(X).numpy()
+    kinds = set()
+    env = FastShopEnv(inst, decisions="full", **pad)
+    env.reset(options={"instance": inst})
+    for i in range(len(X)):
+        m = demos["mask"][i]
+        for a in (actor, loaded):
+            got = a.logits(demos["obs"][i], m)
+            assert np.allclose(got[m], ref[i][m], atol=1e-4)
+            assert np.all(np.isneginf(got[~m]))
+        kinds.update(env.shop.action_kind(env.to_net_action(int(x)))[0] for x in np.flatnonzero(m))
+    # the demonstrations exercise the full net's own decisions, not only dispatching
+    assert {"start", "job"} <= kinds and ("tool" in kinds) == inst.has_tools
+
+
+def test_plan_demonstrations_follow_the_plan_and_return_exact_returns():
+    inst = builtin("ra01")
+    pad = padding_for(None, [inst])
+    plan = expert_plan(inst, "plan:cpsat:2")
+    plans: dict = {}
+    demos, ms = plan_demonstrations([inst], pad, "shaped", "plan:cpsat:2", plans=plans)
+    assert ms["ra01"] == replay(inst, plans["ra01"]).makespan <= plans["ra01"].makespan
+    assert plan.makespan == plans["ra01"].makespan  # same expert, same seed: same plan
+    n = len(demos["obs"])
+    assert n == len(demos["mask"]) == len(demos["action"]) == len(demos["ret"]) > 10
+    assert all(demos["mask"][i][demos["action"][i]] and demos["mask"][i].sum() > 1 for i in range(n))
+    # shaped returns telescope: the first is -(makespan - LB_0) / scale, and they never decrease
+    env = FastShopEnv(inst, decisions="full", **pad)
+    env.reset(options={"instance": inst})
+    assert demos["ret"][0] == pytest.approx(-(ms["ra01"] - env.potential()) / env._scale, abs=1e-5)
+    assert np.all(np.diff(demos["ret"]) >= -1e-6)
+    mk, _ = plan_demonstrations([inst], pad, "makespan", "plan:list")
+    assert np.allclose(mk["ret"], mk["ret"][0]) and mk["ret"][0] < 0
+    idle, _ = plan_demonstrations([inst], pad, "idle", "plan:list")
+    assert np.all(np.isnan(idle["ret"]))
+
+
+class _FirstLegal:
+    """A stand-in policy that always takes the lowest legal action (it leaves any plan at once)."""
+
+    def predict(self, obs, action_masks, deterministic=True):
+        return np.array(int(np.flatnonzero(action_masks)[0])), None
+
+
+@pytest.mark.parametrize("name", ["EX12", "ra01"])
+def test_dagger_labels_every_state_of_the_policy_with_a_legal_plan_action(name):
+    inst = builtin(name)
+    pad = padding_for(None, [inst])
+    plans: dict = {}
+    plan_demonstrations([inst], pad, "shaped", "plan:list", plans=plans)
+    rows, pm = plan_dagger_round(_FirstLegal(), [inst], plans, pad, "shaped")
+    assert len(rows["obs"]) > 0 and all(rows["mask"][i][rows["action"][i]] for i in range(len(rows["obs"])))
+    assert pm[name] > 0
+
+
+def test_train_on_the_full_net_with_a_plan_expert_dagger_and_ppo(tmp_path, capsys):
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.lookahead import run_agent
+    from fms_dispatch.rl.models import load_agent
+    from fms_dispatch.rl.train import expand_instances, train
+
+    out = tmp_path / "full"
+    cfg = {"train": ["gen:8x4x3*3@7"], "eval": ["gen:8x4x3*1@8"], "decisions": "full", "steps": 128,
+           "n_envs": 1, "vec_env": "dummy", "hidden": 16, "eval_freq": 64, "save_freq": 64,
+           "warm_start": {"expert": "plan:list", "epochs": 5, "dagger": 1, "dagger_epochs": 2},
+           "ppo": {"n_steps": 64, "batch_size": 32}}
+    m = train(cfg, out, progress=False)
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["decisions"] == "full" and m["training"]["timesteps"] >= 128
+    assert len(m["warm_start"]["dagger_rounds"]) == 1 and set(m["warm_start"]["expert_makespan"]) == {
+        f"gen8x4s7_{k:02d}" for k in range(3)}
+    agent = load_agent(str(out))
+    assert agent.decisions == "full" and not agent.uses_torch  # the numpy export covers the full heads
+    (inst,) = expand_instances(["gen:8x4x3*1@9"])
+    plain = ppo_solver(f"ppo:{out}")(inst)
+    assert plain.meta["decisions"] == "full" and validate(inst, plain) == []
+    ahead = ppo_solver(f"ppo:{out}")(inst, lookahead=True)
+    assert validate(inst, ahead) == [] and ahead.makespan <= plain.makespan  # verified moves only
+    # the agent never decides through the wrong net
+    with pytest.raises(ValueError, match="full net, not through a Shop"):
+        run_agent(Shop(inst), agent.act)
+
+
+def test_full_net_training_refuses_experts_of_the_other_net(tmp_path):
+    from fms_dispatch.rl.train import train
+
+    base = {"train": ["gen:8x4x3*1@7"], "steps": 0, "n_envs": 1, "vec_env": "dummy"}
+    with pytest.raises(ValueError, match="on the full net use a plan expert"):
+        train({**base, "decisions": "full", "warm_start": {"expert": "rules"}}, tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match="set decisions to full"):
+        train({**base, "warm_start": {"expert": "plan:list"}}, tmp_path / "b", progress=False)
+    with pytest.raises(ValueError, match="unknown decisions"):
+        train({**base, "decisions": "fifo", "warm_start": {"expert": "plan:list"}}, tmp_path / "c", progress=False)
