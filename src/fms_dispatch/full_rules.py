@@ -119,31 +119,16 @@ class FullRulePolicy:
     def _due_requests(self, shop: FullShop) -> dict[int, list[int]]:
         """Per tool, the jobs whose next operation to start needs it, is due soon and may be served now."""
         out: dict[int, list[int]] = {}
-        jobs = shop.instance.jobs
-        for j, k in enumerate(shop.started):
-            if k >= len(jobs[j]):
-                continue
-            t = jobs[j][k].tool
-            if t is not None and shop.request_of(t, j) == k and self._due(shop, j, k) and shop._servable(t) \
-                    and shop._candidate(t, j):
+        for j in range(shop.instance.n_jobs):
+            t = shop.due_tool_request(j)
+            if t is not None:
                 out.setdefault(t, []).append(j)
         return out
 
     @staticmethod
     def _due(shop: FullShop, j: int, k: int | None) -> bool:
-        """Operation (j, k) is the job's next to start and its part is on its way: buffered, carried (dispatched),
-        or finishing the previous operation where no AGV is needed."""
-        if k is None or k != shop.started[j]:
-            return False
-        buffered = shop.buffered_op(j)
-        if buffered is not None:
-            return True
-        inst = shop.instance
-        if inst.has_agvs:
-            if shop.job_started_ops[j] > k:
-                return True
-            return k > 0 and inst.jobs[j][k - 1].machine == inst.jobs[j][k].machine
-        return k > 0 or shop.p_parts.tokens(j) != ()
+        """Operation (j, k) is the job's next to start and its part is on its way (:meth:`FullShop.part_on_its_way`)."""
+        return shop.part_on_its_way(j, k)
 
     def _tool(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
         offered = by_kind.get("tool")

@@ -55,8 +55,8 @@ AGV_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_pickup")
 TT_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_tool")
 #: appended with ``decisions="full"``: the full net's decision points
 FULL_GLOBAL_FEATURES = ("phase_start", "phase_tool", "phase_use", "hold_allowed")
-FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dispatched_ahead")
-FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "requests")
+FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dispatched_ahead", "tool_due")
+FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "requests", "due")
 #: the full net's action blocks after the paper's (job, agv, tt), in this order
 FULL_BLOCKS = ("start", "tool", "use", "hold")
 
@@ -367,18 +367,23 @@ class ShopEnv(gym.Env):
         J[kinds.get("start", []), 0] = 1.0
         J[kinds.get("use", []), 2] = 1.0
         chosen = s.tool_choice
+        due_count = np.zeros(inst.n_tools + 1 if inst.has_tools else 1)
         for j in range(inst.n_jobs):
             J[j, 1] = s.buffered_op(j) is not None
             if chosen is not None:
                 k = s.request_of(chosen, j)
                 J[j, 3] = k is not None and k == s.started[j]
             J[j, 4] = s.job_started_ops[j] > s.job_done_ops[j] + 1
+            due = s.due_tool_request(j) if inst.has_tools else None
+            if due is not None:  # its tool may be taken up for it now, and the part is on its way
+                J[j, 5] = 1.0
+                due_count[due] += 1
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
             T[[t - 1 for t in kinds.get("tool", [])], 0] = 1.0
             for t in range(1, inst.n_tools + 1):
                 T[t - 1, 1:] = (s.tool_user[t] is not None, s.tool_running[t], s.tool_next[t] is not None,
-                                chosen == t, len(s.treq[t]) / max(1, inst.n_jobs))
+                                chosen == t, len(s.treq[t]) / max(1, inst.n_jobs), due_count[t] / inst.n_jobs)
         return [g, J.ravel(), T.ravel()]
 
     @staticmethod

@@ -758,6 +758,34 @@ class FullShop(Shop):
         ks = self.treq[tool].get(job)
         return ks[0] if ks else None
 
+    def part_on_its_way(self, j: int, k: int | None) -> bool:
+        """Operation ``(j, k)`` is the job's next to start and its part is on its way: buffered, carried
+        (dispatched), or finishing the previous operation where no AGV is needed. This is when a tool for it is
+        *due*: taking it up earlier reserves the tool for an operation that may start much later."""
+        if k is None or k != self.started[j]:
+            return False
+        if self.buffered_op(j) is not None:
+            return True
+        inst = self.instance
+        if inst.has_agvs:
+            if self.job_started_ops[j] > k:
+                return True
+            return k > 0 and inst.jobs[j][k - 1].machine == inst.jobs[j][k].machine
+        return k > 0 or self.p_parts.tokens(j) != ()
+
+    def due_tool_request(self, j: int) -> int | None:
+        """The tool that job ``j``'s next operation to start needs, when that request is pending, due
+        (:meth:`part_on_its_way`) and may be served now (the tool may take up a request and this one is a
+        candidate); else None."""
+        k = self.started[j]
+        jobs = self.instance.jobs
+        if k >= len(jobs[j]):
+            return None
+        t = jobs[j][k].tool
+        if t is None or self.request_of(t, j) != k or not self.part_on_its_way(j, k):
+            return None
+        return t if self._servable(t) and self._candidate(t, j) else None
+
     # ------------------------------------------------------------------ saving
     def save_state(self) -> ShopState:
         base = super().save_state()

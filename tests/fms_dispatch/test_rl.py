@@ -20,7 +20,8 @@ from fms_dispatch.rl.train import expand_instances, train  # noqa: E402
 from fms_sim.benchmarks import builtin  # noqa: E402
 from fms_sim.validate import validate  # noqa: E402
 
-TINY = {"n_envs": 1, "vec_env": "dummy", "eval_freq": 128, "save_freq": 128, "hidden": 16,
+# mechanics tests may train on benchmark instances; shipped models may not (test_shipped_models_train_apart)
+TINY = {"n_envs": 1, "vec_env": "dummy", "eval_freq": 128, "save_freq": 128, "hidden": 16, "allow_benchmarks": True,
         "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 1}}
 
 
@@ -106,6 +107,35 @@ def _best_rule_makespan(inst, include_nearest):
     from fms_sim.shop import run_policy
 
     return min(run_policy(inst, parse_rule_name(name)).makespan for name in all_rule_pairs(include_nearest))
+
+
+def test_training_on_benchmark_or_held_out_shops_is_refused_unless_allowed(tmp_path):
+    base = {k: v for k, v in TINY.items() if k != "allow_benchmarks"}
+    for cfg, culprit in ((dict(base, train=["EX12"], steps=10), "EX12"),
+                         (dict(base, train=["gen:6x4x3*1@5"], eval=["sl00"], steps=10), "sl00"),
+                         (dict(base, train=["ho03"], steps=10), "ho03")):
+        with pytest.raises(ValueError, match=f"(?s)generated shops only.*{culprit}.*--allow-benchmarks"):
+            train(cfg, tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()
+    m = train(dict(base, train=["EX12"], steps=0, allow_benchmarks=True, padding="bu",
+                   warm_start={"expert": "rules", "epochs": 1}), tmp_path / "ok", progress=False)
+    assert json.loads((tmp_path / "ok" / "config.json").read_text())["allow_benchmarks"] is True
+    assert m["training"]["eval_makespan"]["EX12"] > 0
+
+
+def test_shipped_models_train_apart():
+    """No shipped model trains or selects on a benchmark instance or a held-out shop (issue 19)."""
+    from pathlib import Path
+
+    from fms_sim.shopsets import check_training_specs
+
+    root = Path(__file__).resolve().parents[2] / "models"
+    folders = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
+    assert len(folders) >= 3
+    for folder in folders:
+        cfg = json.loads((folder / "config.json").read_text())
+        assert not cfg.get("allow_benchmarks"), folder.name
+        check_training_specs(cfg)
 
 
 @pytest.mark.parametrize("expert,nearest", [("rules", False), ("rules+nearest", True)])

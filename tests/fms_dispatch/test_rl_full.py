@@ -10,12 +10,12 @@ import torch
 
 from fms_sim.benchmarks import builtin
 from fms_sim.full_shop import FullShop
-from fms_sim.replay import replay
 from fms_sim.shop import Shop
 from fms_sim.validate import validate
 from fms_dispatch.rl.actors import load_actor, save_actor
 from fms_dispatch.rl.envs import FastShopEnv, obs_layout, obs_size, padding_for
-from fms_dispatch.rl.plan_expert import expert_plan, plan_dagger_round, plan_demonstrations
+from fms_dispatch.full_rules import run_full
+from fms_dispatch.rl.plan_expert import PlanPriorityPolicy, expert_plan, plan_dagger_round, plan_demonstrations
 from fms_dispatch.rl.policy import EntityPolicy, actor_from_policy
 
 
@@ -65,8 +65,26 @@ def test_plan_demonstrations_follow_the_plan_and_return_exact_returns():
     plan = expert_plan(inst, "plan:cpsat:2")
     plans: dict = {}
     demos, ms = plan_demonstrations([inst], pad, "shaped", "plan:cpsat:2", plans=plans)
-    assert ms["ra01"] == replay(inst, plans["ra01"]).makespan <= plans["ra01"].makespan
     assert plan.makespan == plans["ra01"].makespan  # same expert, same seed: same plan
+    acted = run_full(inst, PlanPriorityPolicy(plans["ra01"]))
+    assert validate(inst, acted) == [] and ms["ra01"] == acted.makespan
+    # its choices follow the plan: a start goes to the buffered job planned first, a tool to the job planned first
+    shop, policy, checked = FullShop(inst), PlanPriorityPolicy(plans["ra01"]), 0
+    planned = {(r.job, r.op): r.start for r in plans["ra01"].operations}
+    while not shop.done:
+        a = policy(shop)
+        kind, j = shop.action_kind(a)
+        legal = [shop.action_kind(x) for x in shop.legal_actions()]
+        if kind == "start":
+            others = [n for k, n in legal if k == "start"]
+            assert planned[j, shop.buffered_op(j)[0]] == min(planned[n, shop.buffered_op(n)[0]] for n in others)
+            checked += 1
+        elif kind == "use":
+            t = shop.tool_choice
+            assert planned[j, shop.request_of(t, j)] == min(planned[n, shop.request_of(t, n)] for k, n in legal)
+            checked += 1
+        shop.act(a)
+    assert checked > 20 and shop.makespan == acted.makespan
     n = len(demos["obs"])
     assert n == len(demos["mask"]) == len(demos["action"]) == len(demos["ret"]) > 10
     assert all(demos["mask"][i][demos["action"][i]] and demos["mask"][i].sum() > 1 for i in range(n))

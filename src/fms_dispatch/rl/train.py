@@ -16,7 +16,13 @@ built-in names or files (as ``fms solve`` takes them), shell patterns over built
 derived from SEED, with the large benchmark's travel matrices and fleets: 10 AGVs, 5 transporters; ``/aNtN``
 or ``/notools`` give another fleet) and ``genbu:L*COUNT@SEED`` (random job sets on Bilge–Ulusoy layout L).
 Seeds >= 900000 are reserved for the held-out shops ``ho00``..``ho49``; benchmarks and held-out shops must
-not be trained or selected on (:func:`fms_sim.shopsets.check_training_specs`).
+not be trained or selected on (:func:`fms_sim.shopsets.check_training_specs`): ``fms train`` refuses a config
+that names one in ``train``, ``eval`` or a refine stage unless it sets ``allow_benchmarks`` (``--allow-benchmarks``,
+for reproducing the paper's own setting; the flag is saved in ``config.json``).
+
+``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
+``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
+:mod:`fms_dispatch.rl.plan_expert`).
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "fleet": {"agvs": None, "tool_transporters": None, "no_tools": False},
     "padding": "auto",
     "decisions": "paper",
+    "allow_benchmarks": False,
     "reward": "shaped",
     "steps": 100_000,
     "seed": 0,
@@ -197,6 +204,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
     if not cfg["train"]:
         raise ValueError("no training instances given")
+    if not cfg.get("allow_benchmarks") and not resume:
+        from fms_sim.shopsets import check_training_specs
+
+        try:
+            check_training_specs(cfg)
+        except ValueError as exc:
+            raise ValueError(f"{exc}\n(a model for reproducing the paper's own setting may train on benchmark "
+                             "instances with --allow-benchmarks; its config then says so, and the figures measured "
+                             "on those instances are not held-out results)") from None
     decisions = cfg.get("decisions") or "paper"
     if decisions not in ("paper", "full"):
         raise ValueError(f"unknown decisions {decisions!r}; choose paper (the paper's net) or full (the "
@@ -401,6 +417,11 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--tool-transporters", type=int, help="override the number of tool transporters")
     s.add_argument("--no-tools", action="store_true", help="drop tools (AGV-only model)")
     s.add_argument("--resume", action="store_true", help="continue training the model in --out")
+    s.add_argument("--decisions", choices=("paper", "full"), help="the net the model decides through (default "
+                                                                    "paper)")
+    s.add_argument("--allow-benchmarks", action="store_true",
+                   help="allow benchmark instances or held-out shops in training and evaluation (paper "
+                        "reproductions only; refused otherwise)")
     s.add_argument("--dagger", type=int, default=0, metavar="N",
                    help="with --resume: N more DAgger rounds (label the policy's own states with the rule-pair "
                         "expert and clone again) before the PPO steps; --steps 0 runs DAgger only")
@@ -421,7 +442,8 @@ def cmd_train(a: argparse.Namespace) -> int:
             raise ValueError(f"config {a.config} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
     over: dict[str, Any] = {"steps": a.steps, "reward": a.reward, "seed": a.seed, "padding": a.padding,
                             "arch": a.arch, "n_envs": a.n_envs, "eval_freq": a.eval_freq,
-                            "train": a.instances or None, "eval": a.eval}
+                            "train": a.instances or None, "eval": a.eval, "decisions": a.decisions,
+                            "allow_benchmarks": True if a.allow_benchmarks else None}
     fleet = {"agvs": a.agvs, "tool_transporters": a.tool_transporters, "no_tools": True if a.no_tools else None}
     over["fleet"] = {k: v for k, v in fleet.items() if v is not None} or None
     cfg = _merge(cfg, over)
