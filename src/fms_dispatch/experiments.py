@@ -7,20 +7,21 @@ figures show that the pipeline works, not what the methods are worth.
 
 * **ablation** — three switches, one at a time:
 
-  - *reward shaping*: two agents trained with the same budget and seed on sl40..sl44 (quick: sl40), one with
-    the dense ``shaped`` reward (lower-bound increments, on) and one with the sparse ``makespan`` reward (only
-    the final makespan, off); both evaluated (deterministic, validated) on sl40..sl49 (quick: sl40, sl41);
+  - *reward shaping*: two agents trained with the same budget and seed on generated shops of group 4's size
+    (``gen:30x20x20*5@140``, quick: one), selected on two others (``@141``), one with the dense ``shaped``
+    reward (lower-bound increments, on) and one with the sparse ``makespan`` reward (only the final makespan,
+    off); both measured (deterministic, validated) on sl40..sl49 (quick: sl40, sl41), which no agent trains on;
   - *lookahead*: the shipped ``bu`` model with and without the twin's pre-positioning on EX12..EX102
     (inference only; quick: EX12, EX22);
-  - *masking*: MaskablePPO on EX12..EX52 (quick: EX12) with action masks vs the same algorithm with masking
-    disabled, where an invalid action ends the episode with the env's penalty (-10); the curve is the mean
-    reward of the episodes that ended in each rollout.
+  - *masking*: MaskablePPO on five generated job sets on BU layout 2 (``genbu:2*5@150``, quick: one) with
+    action masks vs the same algorithm with masking disabled, where an invalid action ends the episode with
+    the env's penalty (-10); the curve is the mean reward of the episodes that ended in each rollout.
 
 * **generalization** — per size group g of the large benchmark, the general shipped model (``large``, or
   ``large-agv`` with ``--no-tools``) against a specialised agent trained only on generated instances of that
-  group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group 0, 256 steps),
-  evaluated on held-out instances sl{g}5..sl{g}9 (quick: sl{g}9). The general models were selected on
-  sl00/sl10/sl20/sl30, so those are avoided.
+  group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group 0, 256 steps) and
+  selected on another (``@(120+g)``), measured on sl{g}5..sl{g}9 (quick: sl{g}9). No model trains or is
+  selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``).
 
 * **dynamic** — an instance's jobs split into 10 partitions (job j in partition ``j*10//n``); partition p
   arrives at ``p*Δ`` with ``Δ`` = the instance's simple lower bound (max of the largest machine load and the
@@ -49,6 +50,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fms_sim.benchmarks import SL_GROUPS
+from fms_sim.shopsets import expand_specs
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
 from fms_sim.validate import validate
@@ -150,15 +152,23 @@ def lower_bound(inst: Instance) -> int:
 
 def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed: int, reward: str,
                  folder: Path, padding: str | dict[str, int] = "auto",
-                 fleet: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Train one small agent with :func:`fms_dispatch.rl.train.train`; returns its metrics (with the
-    validated deterministic makespans on ``eval_specs``)."""
-    from .rl.train import train
+                 fleet: dict[str, Any] | None = None, measure: list[str] | None = None) -> dict[str, Any]:
+    """Train one small agent with :func:`fms_dispatch.rl.train.train` on generated shops (``train_specs``,
+    selected on ``eval_specs``); returns its metrics, with ``"measured"``: the validated deterministic
+    makespans on the instances ``measure`` (benchmark instances, which training never sees)."""
+    from .rl.envs import padding_for
+    from .rl.train import evaluate_model, expand_instances, train
 
     cfg = {"train": train_specs, "eval": eval_specs, "steps": steps, "seed": seed, "reward": reward,
            "padding": padding, "n_envs": 1, "vec_env": "dummy", "eval_freq": 10 * steps + 10_000,
            "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {}}
-    return train(cfg, folder, progress=False, tensorboard=folder / "tb")
+    metrics = train(cfg, folder, progress=False, tensorboard=folder / "tb")
+    if measure:
+        used = json.loads((folder / "config.json").read_text())
+        weights = folder / metrics["training"]["weights"]
+        metrics["measured"] = evaluate_model(weights, padding_for(used["padding"], []),
+                                             expand_instances(measure, fleet), decisions=used["decisions"])
+    return metrics
 
 
 # ---------------------------------------------------------------------- ablation
@@ -236,14 +246,18 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
         if st not in ABLATION_STUDIES:
             raise ValueError(f"unknown ablation study {st!r}; choose from {', '.join(ABLATION_STUDIES)}")
     # (1) reward shaping
-    train_sl = ["sl40"] if quick else [f"sl4{k}" for k in range(5)]
+    # trained on generated shops of group 4's size, selected on others, measured on sl40.. (never trained on)
+    j4, m4, t4 = SL_GROUPS[4]
+    train_sl = [f"gen:{j4}x{m4}x{t4}*{1 if quick else 5}@140"]
+    select_sl = [f"gen:{j4}x{m4}x{t4}*{1 if quick else 2}@141"]
     eval_sl = ["sl40", "sl41"] if quick else [f"sl4{k}" for k in range(10)]
     shaping = (("shaped", "shaped"), ("sparse", "makespan")) if "reward_shaping" in chosen else ()
     with tempfile.TemporaryDirectory(prefix="fms-ablation-") as tmp:
         for variant, reward in shaping:
             t0 = time.perf_counter()
-            m = _train_agent(train_sl, eval_sl, steps, seed, reward, Path(tmp) / variant)["training"]
-            for name, ms in m["eval_makespan"].items():
+            full = _train_agent(train_sl, select_sl, steps, seed, reward, Path(tmp) / variant, measure=eval_sl)
+            m = full["training"]
+            for name, ms in full["measured"].items():
                 rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
                              "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
             if echo:
@@ -260,7 +274,8 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
             rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
                          "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
     # (3) masking
-    mask_insts = [load_instance(n) for n in (["EX12"] if quick else [f"EX{s}2" for s in range(1, 6)])]
+    # generated job sets on BU layout 2 (the studies train on them; no benchmark instance is trained on)
+    mask_insts = expand_specs([f"genbu:2*{1 if quick else 5}@150"])
     masking = (("masked", True), ("unmasked", False)) if "masking" in chosen else ()
     for variant, flag in masking:
         t0 = time.perf_counter()
@@ -289,7 +304,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
         a0.bar(["shaped", "sparse"], [rs.get("shaped", math.nan), rs.get("sparse", math.nan)],
                color=["tab:blue", "tab:orange"])
         a0.set_title(f"reward shaping ({steps} steps)")
-        a0.set_ylabel("mean makespan (sl40-49)")
+        a0.set_ylabel("mean makespan (sl40-49, never trained on)")
         la_names = sorted({r["instance"] for r in rows if r["study"] == "lookahead"},
                           key=lambda n: int(n[2:-1]))
         for v, c in (("off", "tab:gray"), ("on", "tab:green")):
@@ -362,9 +377,11 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
                              "makespan": sched.makespan, "valid": _checked(inst, sched),
                              "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
             train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
-            met = _train_agent(train_spec, held, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
-                               fleet=fleet)["training"]
-            for name, ms in met["eval_makespan"].items():  # validated by evaluate_model
+            select = [f"gen:{j}x{m}x{t}*1@{120 + g}"]  # model selection on generated shops, never on sl
+            full = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
+                                fleet=fleet, measure=held)
+            met = full["training"]
+            for name, ms in full["measured"].items():  # validated by evaluate_model
                 rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
                              "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
             if echo:

@@ -345,6 +345,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the warm-started policy to replace it
             model.save(str(out / "best_model.zip"))
         model.save(str(out / "model.zip"))
+        model.save(str(out / "warm_start.zip"))  # the clone as it was before PPO, to measure what PPO adds
         if resume:  # extend the record of the first warm start
             warm_metrics = dict(old.get("warm_start", {}))
             warm_metrics["dagger"] = int(warm_metrics.get("dagger", 0)) + rounds
@@ -374,7 +375,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     from .agent import export_actor
 
-    for saved in ("model.zip", "best_model.zip"):  # numpy exports: inference without torch
+    for saved in ("model.zip", "best_model.zip", "warm_start.zip"):  # numpy exports: inference without torch
         if (out / saved).is_file():
             export_actor(out / saved)
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"

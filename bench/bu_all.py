@@ -1,0 +1,68 @@
+"""PPO on all 40 Bilge–Ulusoy instances (EX11..EX104): plain and with lookahead, against the best rule pair and
+the optima (issue 19's BU goal: a policy trained without any EX instance, with lookahead mean gap <= 3 % and
+<= the best rule pair on at least 36 of 40, <= 0.1 s per instance)::
+
+    python bench/bu_all.py [--model bu] [--json results/bu_all.json]
+
+The best rule pair is the best of the 36 paper-net pairs (12 job rules x first / least-work / nearest) per
+instance. Every schedule is validated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rules import all_rule_pairs, parse_rule_name
+from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
+from fms_sim.shop import run_policy
+from fms_sim.validate import validate
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default="bu", help="model name or folder (default bu)")
+    ap.add_argument("--json", help="write the rows here")
+    a = ap.parse_args(argv)
+    solver = ppo_solver(f"ppo:{a.model}")
+    rows = []
+    for s in range(1, 11):
+        for lay in range(1, 5):
+            inst = builtin(f"EX{s}{lay}")
+            row = {"instance": inst.name, "optimum": BU_OPTIMAL_MAKESPAN[s, lay]}
+            best = None
+            for name in all_rule_pairs(True):
+                ms = run_policy(inst, parse_rule_name(name)).makespan
+                best = ms if best is None else min(best, ms)
+            row["rules"] = best
+            for la in (False, True):
+                t0 = time.perf_counter()
+                sched = solver(inst, lookahead=la)
+                dt = time.perf_counter() - t0
+                assert validate(inst, sched) == [], inst.name
+                key = "ppo+la" if la else "ppo"
+                row[key], row[key + "_s"] = sched.makespan, round(dt, 4)
+            rows.append(row)
+            print(row, flush=True)
+    opt = [r for r in rows if r["optimum"]]
+    for key in ("rules", "ppo", "ppo+la"):
+        gap = statistics.mean(100 * (r[key] / r["optimum"] - 1) for r in opt)
+        print(f"{key:7s} mean {statistics.mean(r[key] for r in rows):7.2f}  gap to optima {gap:+.2f} % "
+              f"({len(opt)} with optima)" + (f", <= best rule pair on {sum(r[key] <= r['rules'] for r in rows)}/40, "
+                                             f"max {max(r[key + '_s'] for r in rows):.3f} s" if key != "rules" else ""))
+    for lay in range(1, 5):
+        sub = [r for r in rows if r["instance"].endswith(str(lay))]
+        print(f"layout {lay}: " + ", ".join(f"{k} {statistics.mean(r[k] for r in sub):.1f}"
+                                           for k in ("optimum", "rules", "ppo", "ppo+la")))
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,120 @@
+"""The held-out shops ``ho00``..``ho49`` (issue 19): PPO models against CP-SAT, list schedules and full-net rules.
+
+No model is trained or selected on these shops (``fms_sim.shopsets``; ``fms train`` refuses them), so the
+figures say how the policies do on shops they never saw::
+
+    python bench/heldout.py --models ppo:full ppo [--cpsat 10] [--limit N] [--json results/heldout.json]
+
+Per shop: CP-SAT within ``--cpsat`` seconds (the reference; two workers), the earliest-start and
+earliest-completion list schedules executed through the full net (``list``, ``list:ect``; the better one is
+``list``), the best of the 12 job rules with the nearest vehicle and the earliest-start tool rule on the full net
+(``rule``), and each model plain and with the lookahead (``+la``; without retries from 50 jobs on). Every schedule
+is validated. The summary gives each method's mean gap to CP-SAT and, per model, on how many shops it is at most
+the list schedule. A model that does not fit a shop (padding) is skipped there and the count says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from fms_dispatch.full_rules import FullRulePolicy, run_full
+from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rules import JOB_RULES
+from fms_dispatch.solvers import solve
+from fms_sim.shopsets import heldout_shops
+from fms_sim.validate import validate
+
+
+def _checked(inst, sched, what: str):
+    problems = validate(inst, sched)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
+    return sched
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def measure(inst, models: list[str], cpsat_s: float) -> dict:
+    row: dict = {"shop": inst.name, "size": f"{inst.n_jobs}x{inst.n_machines}", "tools": inst.has_tools,
+                 "agvs": inst.n_agvs, "tts": inst.n_tool_transporters if inst.has_tools else 0}
+    s, dt = _timed(lambda: solve(inst, "cpsat", time_limit=cpsat_s, workers=2))
+    row["cpsat"] = _checked(inst, s, "cpsat").makespan
+    row["cpsat_s"] = round(dt, 2)
+    lists = [_checked(inst, solve(inst, name), name).makespan for name in ("list", "list:ect")]
+    row["list"] = min(lists)
+    row["rule"] = min(_checked(inst, run_full(inst, FullRulePolicy(j, "nearest", "earliest-start")), j).makespan
+                      for j in JOB_RULES)
+    for spec in models:
+        solver = ppo_solver(spec)
+        for la in (False, True):
+            key = spec + ("+la" if la else "")
+            mode: bool | str = ("fast" if inst.n_jobs >= 50 else True) if la else False
+            try:
+                s, dt = _timed(lambda: solver(inst, lookahead=mode))
+            except ValueError as exc:  # larger than the model's padding
+                row[key] = None
+                row[key + "_why"] = str(exc)
+                continue
+            row[key] = _checked(inst, s, key).makespan
+            row[key + "_s"] = round(dt, 2)
+            row[key + "_model"] = s.meta.get("model")
+    return row
+
+
+def summary(rows: list[dict], models: list[str]) -> list[str]:
+    keys = ["list", "rule"] + [m + suf for m in models for suf in ("", "+la")]
+    out = [f"{len(rows)} held-out shops; mean gap to CP-SAT ({rows[0]['cpsat_s'] if rows else '?'} s first):"]
+    for k in keys:
+        got = [r for r in rows if r.get(k) is not None]
+        if not got:
+            continue
+        gap = statistics.mean(100 * (r[k] / r["cpsat"] - 1) for r in got)
+        line = f"  {k:24s} {gap:+7.2f} %  ({len(got)} shops"
+        if k not in ("list", "rule"):
+            line += f", <= list on {sum(r[k] <= r['list'] for r in got)}, mean {statistics.mean(r[k] for r in got):.1f}"
+            line += f" vs list {statistics.mean(r['list'] for r in got):.1f}"
+        out.append(line + ")")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", nargs="*", default=["ppo"], help="PPO solver specs (ppo, ppo:NAME, ppo:FOLDER)")
+    ap.add_argument("--cpsat", type=float, default=10.0, help="CP-SAT seconds per shop (reference)")
+    ap.add_argument("--limit", type=int, help="only the first N shops")
+    ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
+    ap.add_argument("--json", help="write the rows and the summary here")
+    a = ap.parse_args(argv)
+    shops = heldout_shops()
+    if a.only:
+        shops = [s for s in shops if s.name in set(a.only)]
+    shops = shops[:a.limit] if a.limit else shops
+    rows = []
+    t0 = time.perf_counter()
+    for inst in shops:
+        row = measure(inst, a.models, a.cpsat)
+        rows.append(row)
+        cols = " ".join(f"{k}={row[k]}" for k in row if k in ("cpsat", "list", "rule") or
+                        (k.startswith("ppo") and not k.endswith(("_s", "_why", "_model"))))
+        print(f"{inst.name} {row['size']}{' tools' if row['tools'] else ''}: {cols}", file=sys.stderr, flush=True)
+    lines = summary(rows, a.models)
+    print("\n".join(lines))
+    print(f"({time.perf_counter() - t0:.0f} s)")
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps({"cpsat_seconds": a.cpsat, "models": a.models, "rows": rows,
+                                            "summary": lines}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
