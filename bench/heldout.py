@@ -4,6 +4,7 @@ No model is trained or selected on these shops (``fms_sim.shopsets``; ``fms trai
 figures say how the policies do on shops they never saw::
 
     python bench/heldout.py --models ppo:full ppo [--cpsat 10] [--limit N] [--json results/heldout.json]
+    python bench/heldout.py --models ppo:other --reference results/heldout.json --json results/heldout2.json
 
 Per shop: CP-SAT within ``--cpsat`` seconds (the reference; two workers), the earliest-start and
 earliest-completion list schedules executed through the full net (``list``, ``list:ect``; the better one is
@@ -43,16 +44,19 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
-def measure(inst, models: list[str], cpsat_s: float) -> dict:
+def measure(inst, models: list[str], cpsat_s: float, known: dict | None = None) -> dict:
     row: dict = {"shop": inst.name, "size": f"{inst.n_jobs}x{inst.n_machines}", "tools": inst.has_tools,
                  "agvs": inst.n_agvs, "tts": inst.n_tool_transporters if inst.has_tools else 0}
-    s, dt = _timed(lambda: solve(inst, "cpsat", time_limit=cpsat_s, workers=2))
-    row["cpsat"] = _checked(inst, s, "cpsat").makespan
-    row["cpsat_s"] = round(dt, 2)
-    lists = [_checked(inst, solve(inst, name), name).makespan for name in ("list", "list:ect")]
-    row["list"] = min(lists)
-    row["rule"] = min(_checked(inst, run_full(inst, FullRulePolicy(j, "nearest", "earliest-start")), j).makespan
-                      for j in JOB_RULES)
+    if known:  # the references of an earlier run (--reference): the same CP-SAT figures for every model
+        row.update({k: known[k] for k in ("cpsat", "cpsat_s", "list", "rule")})
+    else:
+        s, dt = _timed(lambda: solve(inst, "cpsat", time_limit=cpsat_s, workers=2))
+        row["cpsat"] = _checked(inst, s, "cpsat").makespan
+        row["cpsat_s"] = round(dt, 2)
+        lists = [_checked(inst, solve(inst, name), name).makespan for name in ("list", "list:ect")]
+        row["list"] = min(lists)
+        row["rule"] = min(_checked(inst, run_full(inst, FullRulePolicy(j, "nearest", "earliest-start")),
+                                   j).makespan for j in JOB_RULES)
     for spec in models:
         solver = ppo_solver(spec)
         for la in (False, True):
@@ -86,6 +90,40 @@ def summary(rows: list[dict], models: list[str]) -> list[str]:
     return out
 
 
+def write_metrics(rows: list[dict], models: list[str], command: str) -> None:
+    """Store, per model folder, its held-out figures (per shop and means) in its ``metrics.json``."""
+    from fms_dispatch.rl.models import resolve_model
+
+    folders: dict[Path, dict] = {}
+    for spec in models:
+        if spec.endswith(".zip"):  # other weights of a folder (e.g. warm_start.zip): not the folder's model
+            continue
+        for suffix in ("", "+la"):
+            key = spec + suffix
+            for r in rows:
+                name = r.get(key + "_model")
+                if r.get(key) is None or not name:
+                    continue
+                folder = resolve_model(name if spec == "ppo" else spec.split(":", 1)[1]).folder
+                entry = folders.setdefault(folder, {"command": command, "date": time.strftime("%Y-%m-%d"),
+                                                    "shops": {}})
+                shop = entry["shops"].setdefault(r["shop"], {"cpsat": r["cpsat"], "list": r["list"],
+                                                             "rule": r["rule"]})
+                shop["ppo+lookahead" if suffix else "ppo"] = r[key]
+    for folder, entry in folders.items():
+        shops = entry["shops"].values()
+        for k in ("ppo", "ppo+lookahead", "list", "rule"):
+            got = [s for s in shops if k in s]
+            if got:
+                entry[f"mean_gap_to_cpsat_{k}"] = round(statistics.mean(100 * (s[k] / s["cpsat"] - 1) for s in got), 2)
+        entry["ppo_at_most_list"] = sum(s["ppo"] <= s["list"] for s in shops if "ppo" in s)
+        path = folder / "metrics.json"
+        metrics = json.loads(path.read_text())
+        metrics["heldout"] = entry
+        path.write_text(json.dumps(metrics, indent=2) + "\n")
+        print(f"held-out figures of {len(entry['shops'])} shops written to {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", nargs="*", default=["ppo"], help="PPO solver specs (ppo, ppo:NAME, ppo:FOLDER)")
@@ -93,25 +131,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, help="only the first N shops")
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
     ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--write-metrics", action="store_true",
+                    help="store each model's held-out figures under 'heldout' in its metrics.json")
+    ap.add_argument("--reference", help="a JSON file of an earlier run: reuse its CP-SAT, list and rule figures "
+                                        "(and rows of models measured there)")
     a = ap.parse_args(argv)
     shops = heldout_shops()
     if a.only:
         shops = [s for s in shops if s.name in set(a.only)]
     shops = shops[:a.limit] if a.limit else shops
+    earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
     rows = []
     t0 = time.perf_counter()
     for inst in shops:
-        row = measure(inst, a.models, a.cpsat)
+        row = measure(inst, a.models, a.cpsat, earlier.get(inst.name))
+        for k, v in earlier.get(inst.name, {}).items():  # keep the earlier run's model figures too
+            row.setdefault(k, v)
         rows.append(row)
         cols = " ".join(f"{k}={row[k]}" for k in row if k in ("cpsat", "list", "rule") or
                         (k.startswith("ppo") and not k.endswith(("_s", "_why", "_model"))))
         print(f"{inst.name} {row['size']}{' tools' if row['tools'] else ''}: {cols}", file=sys.stderr, flush=True)
-    lines = summary(rows, a.models)
+    models = a.models + [m for m in (json.loads(Path(a.reference).read_text())["models"] if a.reference else [])
+                         if m not in a.models]
+    lines = summary(rows, models)
     print("\n".join(lines))
     print(f"({time.perf_counter() - t0:.0f} s)")
+    if a.write_metrics:
+        write_metrics(rows, a.models, " ".join(["python", "bench/heldout.py"] + (argv or sys.argv[1:])))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({"cpsat_seconds": a.cpsat, "models": a.models, "rows": rows,
+        Path(a.json).write_text(json.dumps({"cpsat_seconds": a.cpsat, "models": models, "rows": rows,
                                             "summary": lines}, indent=2) + "\n")
     return 0
 

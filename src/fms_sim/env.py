@@ -55,7 +55,8 @@ AGV_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_pickup")
 TT_FEATURES = ("present", "idle", "location", "busy_for", "work", "to_tool")
 #: appended with ``decisions="full"``: the full net's decision points
 FULL_GLOBAL_FEATURES = ("phase_start", "phase_tool", "phase_use", "hold_allowed")
-FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dispatched_ahead", "tool_due")
+FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dispatched_ahead", "tool_due",
+                     "start_estimate")
 FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "requests", "due")
 #: the full net's action blocks after the paper's (job, agv, tt), in this order
 FULL_BLOCKS = ("start", "tool", "use", "hold")
@@ -86,6 +87,7 @@ class _Tables:
                 self.load_suffix[j, k] = self.load_suffix[j, k + 1]
                 self.load_suffix[j, k, ops[k].machine] += ops[k].duration
         self.rows = np.arange(n)
+        self.travel: np.ndarray | None = None  # the AGV travel matrix as an array, made when first needed
 
 
 class ShopEnv(gym.Env):
@@ -367,17 +369,42 @@ class ShopEnv(gym.Env):
         J[kinds.get("start", []), 0] = 1.0
         J[kinds.get("use", []), 2] = 1.0
         chosen = s.tool_choice
+        tb = self._t()
+        n = inst.n_jobs
+        rows = tb.rows
+        k = np.asarray(s.started, dtype=np.int64)             # each job's next operation to start
+        kk = np.minimum(k, tb.nops)
+        buffered = np.zeros(n, dtype=bool)
+        for tok in s.p_buffer.tokens():
+            buffered[tok.colour[0]] = True
+        J[:n, 1] = buffered
+        if chosen is not None:
+            for j, ks in s.treq[chosen].items():
+                J[j, 3] = ks[0] == s.started[j]
+        dispatched = np.asarray(s.job_started_ops, dtype=np.int64)
+        done = np.asarray(s.job_done_ops, dtype=np.int64)
+        J[:n, 4] = dispatched > done + 1
+        # the part of each job's next operation is on its way (FullShop.part_on_its_way, for all jobs at once)
+        prev_m = tb.mach[rows, np.maximum(kk - 1, 0)]
+        m = tb.mach[rows, kk]
+        if inst.has_agvs:
+            on_way = buffered | (dispatched > k) | ((k > 0) & (prev_m == m))
+        else:
+            has_part = np.zeros(n, dtype=bool)
+            for tok in s.p_parts.tokens():
+                has_part[tok.colour[0]] = True
+            on_way = buffered | (k > 0) | has_part
+        on_way &= k < tb.nops
         due_count = np.zeros(inst.n_tools + 1 if inst.has_tools else 1)
-        for j in range(inst.n_jobs):
-            J[j, 1] = s.buffered_op(j) is not None
-            if chosen is not None:
-                k = s.request_of(chosen, j)
-                J[j, 3] = k is not None and k == s.started[j]
-            J[j, 4] = s.job_started_ops[j] > s.job_done_ops[j] + 1
-            due = s.due_tool_request(j) if inst.has_tools else None
-            if due is not None:  # its tool may be taken up for it now, and the part is on its way
-                J[j, 5] = 1.0
-                due_count[due] += 1
+        if inst.has_tools:  # due tool requests (FullShop.due_tool_request), read from the pending requests
+            for t in range(1, inst.n_tools + 1):
+                if not s.treq[t] or not s._servable(t):
+                    continue
+                for j, ks in s.treq[t].items():
+                    if ks[0] == k[j] and on_way[j] and s._candidate(t, j):
+                        J[j, 5] = 1.0
+                        due_count[t] += 1
+        J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done) / self._scale
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
             T[[t - 1 for t in kinds.get("tool", [])], 0] = 1.0
@@ -385,6 +412,52 @@ class ShopEnv(gym.Env):
                 T[t - 1, 1:] = (s.tool_user[t] is not None, s.tool_running[t], s.tool_next[t] is not None,
                                 chosen == t, len(s.treq[t]) / max(1, inst.n_jobs), due_count[t] / inst.n_jobs)
         return [g, J.ravel(), T.ravel()]
+
+    def _start_estimates(self, s: FullShop, tb: "_Tables", k: np.ndarray, m: np.ndarray, prev_m: np.ndarray,
+                         buffered: np.ndarray, done: np.ndarray) -> np.ndarray:
+        """:meth:`_start_estimate` of every job at once (numpy; the per-job method is the reference)."""
+        inst, now = s.instance, s.now
+        busy = np.asarray(s.machine_busy_until, dtype=np.int64)
+        if inst.has_agvs:
+            if tb.travel is None:
+                tb.travel = np.asarray(inst.agv_travel, dtype=np.int64)
+            travel = tb.travel
+        here = np.full(tb.n, -1, dtype=np.int64)
+        for tok in s.p_parts.tokens():
+            here[tok.colour[0]] = tok.colour[2]
+        free = done >= k
+        if inst.has_agvs:
+            go = travel[np.maximum(here, 0), m]
+            free_part = now + np.where((here >= 0) & (here != m), go, 0)
+            run_part = np.maximum(now, busy[prev_m]) + np.where(prev_m != m, travel[prev_m, m], 0)
+        else:
+            free_part = np.full(tb.n, now, dtype=np.int64)
+            run_part = np.maximum(now, busy[prev_m])
+        part = np.where(buffered, now, np.where(free, free_part, run_part))
+        est = np.maximum(np.maximum(part, busy[m]), now) - now
+        return np.where(k < tb.nops, est, 0).astype(np.float64)
+
+    @staticmethod
+    def _start_estimate(s: FullShop, j: int) -> int:
+        """Time from now until job ``j``'s next operation to start could start on its machine: when the part can
+        be there (buffered now; else free now or when its running operation ends, plus the AGV trip) and the
+        machine is free. Vehicles and tools are not counted; 0 for a finished job."""
+        ops = s.instance.jobs[j]
+        k = s.started[j]
+        if k >= len(ops):
+            return 0
+        now, m = s.now, ops[k].machine
+        busy = s.machine_busy_until
+        travel = s.instance.agv_travel if s.instance.has_agvs else None
+        if s.buffered_op(j) is not None:
+            part = now
+        elif s.job_done_ops[j] >= k:  # the part is free (at the L/U or a machine) or on its way
+            here = s.part_location(j)
+            part = now + (travel[here][m] if travel is not None and here is not None and here != m else 0)
+        else:  # its previous operation still runs
+            prev = ops[k - 1].machine
+            part = max(now, busy[prev]) + (travel[prev][m] if travel is not None and prev != m else 0)
+        return max(part, busy[m], now) - now
 
     @staticmethod
     def _vehicles(cap: int, n: int, loc: list[int], free_at: list[int], work: list[int], idle: set[int],

@@ -127,7 +127,7 @@ def test_shipped_models_train_apart():
     """No shipped model trains or selects on a benchmark instance or a held-out shop (issue 19)."""
     from pathlib import Path
 
-    from fms_sim.shopsets import check_training_specs
+    from fms_sim.shopsets import check_training_specs, expand_specs
 
     root = Path(__file__).resolve().parents[2] / "models"
     folders = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
@@ -136,6 +136,13 @@ def test_shipped_models_train_apart():
         cfg = json.loads((folder / "config.json").read_text())
         assert not cfg.get("allow_benchmarks"), folder.name
         check_training_specs(cfg)
+        # each model card lists its training shops, its PPO steps and its held-out results
+        metrics = json.loads((folder / "metrics.json").read_text())
+        specs = cfg["train"] + [x for st in cfg["warm_start"].get("refine", []) for x in st["train"]]
+        assert metrics["training_shops"] == list(dict.fromkeys(i.name for i in expand_specs(specs, cfg["fleet"])))
+        assert metrics["ppo_steps"] == metrics["training"]["timesteps"]
+        held = metrics["heldout"]["shops"]
+        assert held and all(name.startswith("ho") and "ppo" in row for name, row in held.items())
 
 
 @pytest.mark.parametrize("expert,nearest", [("rules", False), ("rules+nearest", True)])

@@ -131,6 +131,8 @@ def test_train_on_the_full_net_with_a_plan_expert_dagger_and_ppo(tmp_path, capsy
     m = train(cfg, out, progress=False)
     saved = json.loads((out / "config.json").read_text())
     assert saved["decisions"] == "full" and m["training"]["timesteps"] >= 128
+    assert m["ppo_steps"] == m["training"]["timesteps"] and m["training_shops"] == [f"gen8x4s7_{k:02d}" for k in range(3)]
+    assert (out / "warm_start.zip").is_file() and (out / "warm_start.actor.npz").is_file()  # the clone before PPO
     assert len(m["warm_start"]["dagger_rounds"]) == 1 and set(m["warm_start"]["expert_makespan"]) == {
         f"gen8x4s7_{k:02d}" for k in range(3)}
     agent = load_agent(str(out))

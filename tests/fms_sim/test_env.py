@@ -285,3 +285,38 @@ def test_maskable_ppo_learns_on_the_full_action_space():
         obs, _, done, _, info = env.step(int(action))
         assert not info.get("invalid_action")
     assert validate(inst, env.shop.schedule()) == []
+
+
+@pytest.mark.parametrize("name,steps", [("EX12", None), ("ra01", None), ("ra05", None), ("sl00", 600)])
+def test_full_features_match_the_shops_own_per_job_answers(name, steps):
+    """The full net's vectorised job and tool features equal FullShop's per-job methods (the reference) at every
+    state of a random run: buffered parts, due tool requests (and their count per tool), start estimates."""
+    from fms_sim.env import FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES
+
+    env = ShopEnv(builtin(name), decisions="full")
+    obs, _ = env.reset(seed=3)
+    rng = np.random.default_rng(5)
+    base = len(obs) - len(FULL_GLOBAL_FEATURES) - env.max_jobs * len(FULL_JOB_FEATURES) \
+        - env.max_tools * len(FULL_TOOL_FEATURES)
+    checked = due_seen = 0
+    done = False
+    while not done and (steps is None or checked < steps):
+        s = env.shop
+        J = obs[base + len(FULL_GLOBAL_FEATURES):][:env.max_jobs * len(FULL_JOB_FEATURES)].reshape(env.max_jobs, -1)
+        T = obs[base + len(FULL_GLOBAL_FEATURES) + env.max_jobs * len(FULL_JOB_FEATURES):].reshape(
+            env.max_tools, len(FULL_TOOL_FEATURES))
+        counts = {}
+        for j in range(s.instance.n_jobs):
+            assert J[j, 1] == (s.buffered_op(j) is not None)
+            due = s.due_tool_request(j)
+            assert J[j, 5] == (due is not None)
+            if due is not None:
+                counts[due] = counts.get(due, 0) + 1
+                due_seen += 1
+            assert J[j, 6] == pytest.approx(ShopEnv._start_estimate(s, j) / env._scale, rel=1e-6)
+        for t in range(1, s.instance.n_tools + 1 if s.instance.has_tools else 1):
+            assert T[t - 1, 6] == pytest.approx(counts.get(t, 0) / s.instance.n_jobs)
+        checked += 1
+        mask = env.action_masks()
+        obs, _, done, _, _ = env.step(int(rng.choice(np.flatnonzero(mask))))
+    assert checked > 20 and (due_seen > 0) == builtin(name).has_tools

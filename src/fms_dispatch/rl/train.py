@@ -393,6 +393,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         "eval_mean_makespan": round(float(np.mean(list(makespans.values()))), 2),
         "interrupted": interrupted,
     }
+    metrics["training_shops"] = list(dict.fromkeys([inst.name for inst in train_set]
+                                                   + [inst.name for st in refine for inst in st[1]]
+                                                   + list(old.get("training_shops", []))))
+    metrics["ppo_steps"] = int(model.num_timesteps)  # 0: a clone (DAgger included), not a PPO-trained model
     metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
 
