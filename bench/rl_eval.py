@@ -29,6 +29,7 @@ from fms_dispatch.rl.lookahead import run_agent
 from fms_dispatch.rl.models import load_agent, resolve_model
 from fms_dispatch.rules import all_rule_pairs, parse_rule_name
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, SL_GROUPS, builtin
+from fms_sim.full_shop import make_shop
 from fms_sim.shop import Shop, run_policy
 from fms_sim.validate import validate
 
@@ -51,7 +52,7 @@ def run_ppo(agent, inst, lookahead: bool | str, vehicles: str | None = None) -> 
     """Makespan and seconds of PPO on ``inst``; ``lookahead``: False, True or "fast" (no retries)."""
     t0, c0 = time.perf_counter(), time.process_time()
     choose = agent.act if vehicles is None else with_vehicle_rule(agent, vehicles)
-    s = run_agent(Shop(inst), choose, lookahead=bool(lookahead), retry=lookahead != "fast")
+    s = run_agent(make_shop(inst, agent.decisions), choose, lookahead=bool(lookahead), retry=lookahead != "fast")
     dt = time.perf_counter() - t0
     CPU["last"] = time.process_time() - c0
     problems = validate(inst, s)

@@ -585,7 +585,15 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     from .rl.models import load_agent
     from .solvers import solve
 
-    agent = load_agent(DISRUPTION_MODEL)  # decides through the full net, which runs the disruptions
+    from .rl.models import ModelNotFoundError
+
+    missing = dict(DISRUPTION_MISSING)
+    methods = DISRUPTION_METHODS
+    try:
+        agent = load_agent(DISRUPTION_MODEL)  # decides through the full net, which runs the disruptions
+    except (ModelNotFoundError, ImportError) as exc:
+        agent, methods = None, tuple(m for m in DISRUPTION_METHODS if m != "ppo")
+        missing["ppo"] = f"model {DISRUPTION_MODEL!r} not available: {str(exc).splitlines()[0]}"
 
     cpsat_time = float(cpsat_time) if cpsat_time is not None else (1.0 if quick else 10.0)
     budget = float(replan_budget) if replan_budget is not None else (0.2 if quick else 1.0)
@@ -609,15 +617,15 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         rule_time = time.perf_counter() - t0
         winner = best.meta["rule"]
         rule_plan = solve(inst, winner) if winner.startswith("list") else None
-        nominal_ppo, _, _ = _timed_run(inst, None, None, agent.act)
-        nominal = {"plan:cpsat": plan.makespan, "plan:cpsat+replan": plan.makespan, "best-rule": best.makespan,
-                   "ppo": nominal_ppo.makespan}
+        nominal = {"plan:cpsat": plan.makespan, "plan:cpsat+replan": plan.makespan, "best-rule": best.makespan}
+        if agent is not None:
+            nominal["ppo"] = _timed_run(inst, None, None, agent.act)[0].makespan
         for noise in noises:
             for k in range(n_seeds):
                 sc = Scenario.draw(inst, noise=noise, breakdowns=2, horizon=max(1, plan.makespan // 2),
                                    duration=(max(1, plan.makespan // 20), max(1, plan.makespan // 7)),
                                    seed=seed * 1000 + k)
-                for method in DISRUPTION_METHODS:
+                for method in methods:
                     if method == "plan:cpsat":
                         sched, n, secs = _timed_run(inst, sc, plan, None)
                     elif method == "plan:cpsat+replan":
@@ -638,12 +646,12 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                                  "plan_time": round(plan_time if method.startswith("plan:") else rule_time, 3)})
     summary: dict[str, Any] = {}
     for noise in noises:
-        for method in DISRUPTION_METHODS:
+        for method in methods:
             sel = [r for r in rows if r["noise"] == noise and r["method"].split(" ")[0] == method]
             summary[f"{method} noise {noise:g}"] = {"mean_makespan": _mean([r["makespan"] for r in sel]),
                                                     "mean_ratio_to_nominal": _mean([r["ratio"] for r in sel]),
                                                     "runs": len(sel)}
-    wins, rwins = {}, {}
+    wins, rwins, pwins = {}, {}, {}
     for noise in noises:
         pairs = {}
         for r in rows:
@@ -653,17 +661,22 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         rwins[f"noise {noise:g}"] = (sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["best-rule"]),
                                      sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["plan:cpsat"]),
                                      len(pairs))
+        if "ppo" in methods:
+            pwins[f"noise {noise:g}"] = (sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["ppo"]),
+                                         sum(1 for v in pairs.values() if v["ppo"] < v["best-rule"]), len(pairs))
     meta = {"experiment": "disruptions", "quick": quick, "seed": seed, "seeds": n_seeds, "noises": list(noises),
             "cpsat_time": cpsat_time, "instances": [f"{n} ({m})" for n, m in insts],
-            "not_measured": DISRUPTION_MISSING, "summary": summary,
+            "not_measured": missing, "summary": summary,
             "plan_beats_best_rule": {k: f"{a}/{b}" for k, (a, b) in wins.items()},
             "replan_beats_best_rule": {k: f"{a}/{c}" for k, (a, b, c) in rwins.items()},
-            "replan_beats_plan": {k: f"{b}/{c}" for k, (a, b, c) in rwins.items()}, "replan_budget": budget}
+            "replan_beats_plan": {k: f"{b}/{c}" for k, (a, b, c) in rwins.items()}, "replan_budget": budget,
+            "replan_beats_ppo": {k: f"{a}/{c}" for k, (a, b, c) in pwins.items()},
+            "ppo_beats_best_rule": {k: f"{b}/{c}" for k, (a, b, c) in pwins.items()}}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(7, 4.5)
         a = ax[0][0]
-        for method in DISRUPTION_METHODS:
+        for method in methods:
             a.plot([f"{n:g}" for n in noises],
                    [summary[f"{method} noise {n:g}"]["mean_ratio_to_nominal"] for n in noises], marker="o",
                    label=method)
@@ -686,7 +699,11 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         print("plan:cpsat+replan beats the best rule: " + ", ".join(
             f"{k}: {v}" for k, v in meta["replan_beats_best_rule"].items()) + "; beats plan:cpsat without re-planning: "
             + ", ".join(f"{k}: {v}" for k, v in meta["replan_beats_plan"].items()))
-        print("not measured: " + "; ".join(f"{k} ({why})" for k, why in DISRUPTION_MISSING.items()))
+        if pwins:
+            print("plan:cpsat+replan beats PPO: " + ", ".join(f"{k}: {v}" for k, v in meta["replan_beats_ppo"].items())
+                  + "; PPO beats the best rule: " + ", ".join(f"{k}: {v}" for k, v in meta["ppo_beats_best_rule"]
+                                                             .items()))
+        print("not measured: " + "; ".join(f"{k} ({why})" for k, why in missing.items()))
         print(f"written: {', '.join(str(p) for p in paths.values())}")
     return dict(meta, rows=rows)
 

@@ -135,21 +135,36 @@ def test_parser() -> None:
 
 
 def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from fms_dispatch.experiments import DISRUPTION_COLUMNS, DISRUPTION_MISSING, run_disruptions
+    from fms_dispatch.experiments import DISRUPTION_COLUMNS, DISRUPTION_METHODS, DISRUPTION_MISSING, run_disruptions
 
     doc = run_disruptions(quick=True, results_dir=tmp_path)
     rows, saved = _outputs(tmp_path, "disruptions", DISRUPTION_COLUMNS)
-    assert len(rows) == 2 * 2 * 3  # two instances x noise 0 / 10 % x three methods, one seed
+    assert len(rows) == 2 * 2 * 4  # two instances x noise 0 / 10 % x four methods (PPO: the full-net model)
     assert {r["instance"] for r in rows} == {"EX12", "ra01"} and {float(r["noise"]) for r in rows} == {0.0, 0.1}
     assert all(int(r["breakdowns"]) == 2 for r in rows)
     for r in rows:  # every run measured (and validated inside the experiment), with its decision latency
         assert int(r["makespan"]) > 0 and int(r["decisions"]) > 0 and float(r["latency_ms"]) > 0
-    assert saved["not_measured"] == DISRUPTION_MISSING and "ppo" in saved["not_measured"]
-    assert "plan:cpsat+replan" not in saved["not_measured"]
-    methods = ("plan:cpsat", "plan:cpsat+replan", "best-rule")
-    assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in methods for n in (0.0, 0.1)}
+    assert saved["not_measured"] == DISRUPTION_MISSING and set(DISRUPTION_MISSING) == {"ppo+lookahead"}
+    assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in DISRUPTION_METHODS for n in (0.0, 0.1)}
     for key, v in doc["summary"].items():
         assert v["runs"] == 2, key  # each method's rows only (one prefixes another)
-    assert set(saved["replan_beats_plan"]) == {"noise 0", "noise 0.1"}
+    assert set(saved["replan_beats_plan"]) == set(saved["replan_beats_ppo"]) == {"noise 0", "noise 0.1"}
+    # PPO decides in the disrupted shop itself: its nominal run is the model's plain run of the instance
+    from fms_dispatch.rl import ppo_solver
+    from fms_sim.benchmarks import builtin
+
+    ppo = [r for r in rows if r["method"] == "ppo" and r["instance"] == "EX12"]
+    assert {int(r["nominal_makespan"]) for r in ppo} == {ppo_solver("ppo:full")(builtin("EX12")).makespan}
     out = capsys.readouterr().out
     assert "| method | noise |" in out and "not measured:" in out
+
+
+def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from fms_dispatch.experiments import run_disruptions
+
+    monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path / "none"))
+    doc = run_disruptions(quick=True, results_dir=tmp_path, echo=False)
+    assert "no model named 'full'" in doc["not_measured"]["ppo"]
+    assert {r["method"].split(" ")[0] for r in doc["rows"]} == {"plan:cpsat", "plan:cpsat+replan", "best-rule"}
+

@@ -125,17 +125,17 @@ def _installed_env(prefix: Path, ros_env: dict[str, str]) -> dict[str, str]:
 
 
 def test_fms_up_best_runs_the_installed_model(prefix: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
-    """The issue's case: after a non-editable install ``fms up EX12 --solver best`` runs the shipped PPO model
-    with lookahead (82), not silently the best rule pair (86)."""
-    out = tmp_path / "EX12.json"
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "best", "--out", str(out),
+    """The issue's case: after a non-editable install ``fms up EX62 --solver best`` runs the shipped PPO model
+    with lookahead (121), not silently the best rule pair (123)."""
+    out = tmp_path / "EX62.json"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "best", "--out", str(out),
                           "--db", str(tmp_path / "fms.sqlite"), "--log-dir", str(tmp_path / "logs")],
                          env=_installed_env(prefix, ros_env), capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr
-    assert ("best on EX12: ppo:bu+lookahead (makespan 82 in simulation; best rule pair rule:LPTN+nearest: 86)"
+    assert ("best on EX62: ppo:bu+lookahead (makespan 121 in simulation; best rule pair rule:SPTN+least-work: 123)"
             in res.stderr)
     assert str(prefix) in (tmp_path / "logs" / "agent.log").read_text()    # the installed model was used
-    assert json.loads(out.read_text())["makespan"] == 82
+    assert json.loads(out.read_text())["makespan"] == 121
 
 
 def test_missing_models_are_an_error_naming_the_places(prefix: Path, ros_env: dict[str, str]) -> None:

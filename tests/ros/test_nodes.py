@@ -70,34 +70,35 @@ def schedule_of(obs: Observer, run_id: str) -> Schedule:
 
 
 # ------------------------------------------------------------------------------------------------ fms up
-def test_fms_up_runs_ex12_end_to_end(ros_env: dict[str, str], tmp_path: Path) -> None:
-    out, db = tmp_path / "out" / "EX12.schedule.json", tmp_path / "out" / "fms.sqlite"
+def test_fms_up_runs_ex62_end_to_end(ros_env: dict[str, str], tmp_path: Path) -> None:
+    out, db = tmp_path / "out" / "EX62.schedule.json", tmp_path / "out" / "fms.sqlite"
     t0 = time.perf_counter()
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "best", "--out", str(out),
-                          "--db", str(db), "--run-id", "up-ex12", "--domain-id", ros_env["ROS_DOMAIN_ID"],
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "best", "--out", str(out),
+                          "--db", str(db), "--run-id", "up-ex62", "--domain-id", ros_env["ROS_DOMAIN_ID"],
                           "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     wall = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr + res.stdout
-    # the shipped PPO model with lookahead (82) beats the best rule pair (86) in simulation, so best runs it
+    # the shipped PPO model with lookahead (121) beats the best rule pair (123) in simulation, so best runs it
     # over the topics: the agent pre-positions AGVs at the shop's idle stops
-    assert ("best on EX12: ppo:bu+lookahead (makespan 82 in simulation; best rule pair rule:LPTN+nearest: 86)"
+    assert ("best on EX62: ppo:bu+lookahead (makespan 121 in simulation; best rule pair rule:SPTN+least-work: 123)"
             in res.stderr)
     lines = res.stdout.splitlines()
-    assert lines[0].startswith("EX12: makespan 82 (ppo:bu+lookahead over ROS 2 topics, 26 decisions, valid)")
-    png = gantt_path(db.parent, "up-ex12")
-    assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex12)", f"gantt:    {png}"]
+    inst = builtin("EX62")
+    assert lines[0].startswith(f"EX62: makespan 121 (ppo:bu+lookahead over ROS 2 topics, {2 * inst.n_operations} "
+                               "decisions, valid)")
+    png = gantt_path(db.parent, "up-ex62")
+    assert lines[1:] == [f"schedule: {out}", f"sqlite:   {db} (run up-ex62)", f"gantt:    {png}"]
     sched = Schedule.load(out)
-    inst = builtin("EX12")
-    assert validate(inst, sched) == [] and sched.makespan == 82
-    assert sched.meta["solver"] == "ppo:bu+lookahead" and sched.meta["decisions"] == 26
+    assert validate(inst, sched) == [] and sched.makespan == 121
+    assert sched.meta["solver"] == "ppo:bu+lookahead" and sched.meta["decisions"] == 2 * inst.n_operations
     assert sched.meta["idle_answers"] > 0
     assert any(not t.loaded and t.job is None for t in sched.agv_trips)  # a pre-positioning trip
-    check_log(db, "up-ex12", sched, inst)
+    check_log(db, "up-ex62", sched, inst)
     assert png.read_bytes()[:4] == b"\x89PNG"
     for name in ("shop", "agent", "recorder"):                  # stopped cleanly, no tracebacks
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
-    print(f"fms up EX12: {wall:.2f} s wall")
+    print(f"fms up EX62: {wall:.2f} s wall")
 
 
 def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
@@ -123,18 +124,18 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
 def test_fms_up_ppo_lookahead_equals_the_offline_solver(ros_env: dict[str, str], tmp_path: Path) -> None:
     from fms_dispatch.rl import ppo_solver
 
-    out, db = tmp_path / "EX22.json", tmp_path / "fms.sqlite"
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX22", "--solver", "ppo+lookahead", "--out",
+    out, db = tmp_path / "EX12.json", tmp_path / "fms.sqlite"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "ppo+lookahead", "--out",
                           str(out), "--db", str(db), "--run-id", "up-look", "--domain-id", ros_env["ROS_DOMAIN_ID"],
                           "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr + res.stdout
-    inst = builtin("EX22")
+    inst = builtin("EX12")
     ref = ppo_solver("ppo")(inst, lookahead=True)
     plain = ppo_solver("ppo")(inst)
     sched = Schedule.load(out)
     assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:bu+lookahead"
-    assert sched.makespan == ref.makespan < plain.makespan      # pre-positioning pays off on EX22
+    assert sched.makespan == ref.makespan < plain.makespan      # pre-positioning pays off on EX12
     assert sched.to_dict()["agv_trips"] == ref.to_dict()["agv_trips"]
     check_log(db, "up-look", sched, inst)
     for name in ("shop", "agent"):

@@ -11,9 +11,10 @@ A model folder (``models/NAME``) holds:
 * ``best_model.actor.npz`` / ``model.actor.npz`` — the actor in numpy for inference without torch, with the
   SHA-256 of the weights it was exported from (:mod:`fms_dispatch.rl.actors`; ignored when stale).
 
-Shipped models: ``bu`` (Bilge-Ulusoy, layout 2, 2 AGVs, no tools), ``large`` (large benchmark with AGVs and
-tools) and ``large-agv`` (AGVs only). A model name is looked up in :func:`model_dirs`, one list of places
-for every caller (``fms solve``, ``fms up``, the agent node):
+Shipped models: ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools), ``large`` (large shops with AGVs and
+tools) and ``large-agv`` (AGVs only), all deciding through the paper's net, and ``full`` (the full-decision net,
+any shop up to 100 x 20 x 20; chosen by name: ``ppo:full``). A model name is looked up in :func:`model_dirs`,
+one list of places for every caller (``fms solve``, ``fms up``, the agent node):
 
 * ``$FMS_MODELS_DIR`` when it is set (then nothing else);
 * the repository's ``models/`` folder when the package runs from a source checkout (editable install,
@@ -41,7 +42,7 @@ from fms_sim.instance import Instance
 __all__ = ["ModelRef", "ModelNotFoundError", "model_dirs", "models_dir", "resolve_model", "default_model_name",
            "load_config", "SHIPPED", "SHARE_SUBDIR", "load_agent"]
 
-SHIPPED = ("bu", "large", "large-agv")
+SHIPPED = ("bu", "large", "large-agv", "full")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 
