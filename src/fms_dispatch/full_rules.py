@@ -125,11 +125,6 @@ class FullRulePolicy:
                 out.setdefault(t, []).append(j)
         return out
 
-    @staticmethod
-    def _due(shop: FullShop, j: int, k: int | None) -> bool:
-        """Operation (j, k) is the job's next to start and its part is on its way (:meth:`FullShop.part_on_its_way`)."""
-        return shop.part_on_its_way(j, k)
-
     def _tool(self, shop: FullShop, by_kind: dict[str, list[int]]) -> int | None:
         offered = by_kind.get("tool")
         if not offered or not shop.instance.has_tools:
@@ -165,7 +160,7 @@ class FullRulePolicy:
         t = shop.tool_choice
         assert t is not None
         cands = [shop.action_kind(a)[1] for a in legal]
-        current = [j for j in cands if self._due(shop, j, shop.request_of(t, j))]
+        current = [j for j in cands if shop.part_on_its_way(j, shop.request_of(t, j))]
         cands = current or cands
         inst = shop.instance
         TT = inst.tool_travel

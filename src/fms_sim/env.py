@@ -263,7 +263,7 @@ class ShopEnv(gym.Env):
         return self._tables
 
     def _lower_bound(self) -> int:
-        s, inst = self.shop, self.instance
+        s = self.shop
         tb = self._t()
         now = s.now
         lb = max(now, s.makespan)
@@ -352,13 +352,14 @@ class ShopEnv(gym.Env):
         parts = [g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(), T.astype(np.float32).ravel(),
                  A.ravel(), R.ravel()]
         if isinstance(s, FullShop):
-            parts += self._full_features(s, legal)
+            parts += self._full_features(s, legal, loc)
         obs = np.concatenate(parts)
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
 
-    def _full_features(self, s: FullShop, legal: list[int]) -> list[np.ndarray]:
+    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray) -> list[np.ndarray]:
         """The full net's decision points: which starts, tool take-ups and request choices are offered, where
-        the parts and tools stand in their reservations."""
+        the parts and tools stand in their reservations. ``loc``: each job's part location (-1: none or on a
+        vehicle), as :meth:`_obs` read it."""
         inst = self.instance
         kinds: dict[str, list[int]] = {}
         for a in legal:
@@ -390,10 +391,7 @@ class ShopEnv(gym.Env):
         if inst.has_agvs:
             on_way = buffered | (dispatched > k) | ((k > 0) & (prev_m == m))
         else:
-            has_part = np.zeros(n, dtype=bool)
-            for tok in s.p_parts.tokens():
-                has_part[tok.colour[0]] = True
-            on_way = buffered | (k > 0) | has_part
+            on_way = buffered | (k > 0) | (loc >= 0)
         on_way &= k < tb.nops
         due_count = np.zeros(inst.n_tools + 1 if inst.has_tools else 1)
         if inst.has_tools:  # due tool requests (FullShop.due_tool_request), read from the pending requests
@@ -404,7 +402,7 @@ class ShopEnv(gym.Env):
                     if ks[0] == k[j] and on_way[j] and s._candidate(t, j):
                         J[j, 5] = 1.0
                         due_count[t] += 1
-        J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done) / self._scale
+        J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done, loc) / self._scale
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
             T[[t - 1 for t in kinds.get("tool", [])], 0] = 1.0
@@ -413,18 +411,19 @@ class ShopEnv(gym.Env):
                                 chosen == t, len(s.treq[t]) / max(1, inst.n_jobs), due_count[t] / inst.n_jobs)
         return [g, J.ravel(), T.ravel()]
 
-    def _start_estimates(self, s: FullShop, tb: "_Tables", k: np.ndarray, m: np.ndarray, prev_m: np.ndarray,
-                         buffered: np.ndarray, done: np.ndarray) -> np.ndarray:
-        """:meth:`_start_estimate` of every job at once (numpy; the per-job method is the reference)."""
+    @staticmethod
+    def _start_estimates(s: FullShop, tb: "_Tables", k: np.ndarray, m: np.ndarray, prev_m: np.ndarray,
+                         buffered: np.ndarray, done: np.ndarray, here: np.ndarray) -> np.ndarray:
+        """Per job, the time from now until its next operation to start (``k``, on machine ``m``; ``prev_m`` the
+        machine of the one before) could start: when the part can be there (buffered now; else free now at
+        ``here`` or when its running operation ends, plus the AGV trip) and the machine is free. Vehicles and
+        tools are not counted; 0 for a finished job."""
         inst, now = s.instance, s.now
         busy = np.asarray(s.machine_busy_until, dtype=np.int64)
         if inst.has_agvs:
             if tb.travel is None:
                 tb.travel = np.asarray(inst.agv_travel, dtype=np.int64)
             travel = tb.travel
-        here = np.full(tb.n, -1, dtype=np.int64)
-        for tok in s.p_parts.tokens():
-            here[tok.colour[0]] = tok.colour[2]
         free = done >= k
         if inst.has_agvs:
             go = travel[np.maximum(here, 0), m]
@@ -436,28 +435,6 @@ class ShopEnv(gym.Env):
         part = np.where(buffered, now, np.where(free, free_part, run_part))
         est = np.maximum(np.maximum(part, busy[m]), now) - now
         return np.where(k < tb.nops, est, 0).astype(np.float64)
-
-    @staticmethod
-    def _start_estimate(s: FullShop, j: int) -> int:
-        """Time from now until job ``j``'s next operation to start could start on its machine: when the part can
-        be there (buffered now; else free now or when its running operation ends, plus the AGV trip) and the
-        machine is free. Vehicles and tools are not counted; 0 for a finished job."""
-        ops = s.instance.jobs[j]
-        k = s.started[j]
-        if k >= len(ops):
-            return 0
-        now, m = s.now, ops[k].machine
-        busy = s.machine_busy_until
-        travel = s.instance.agv_travel if s.instance.has_agvs else None
-        if s.buffered_op(j) is not None:
-            part = now
-        elif s.job_done_ops[j] >= k:  # the part is free (at the L/U or a machine) or on its way
-            here = s.part_location(j)
-            part = now + (travel[here][m] if travel is not None and here is not None and here != m else 0)
-        else:  # its previous operation still runs
-            prev = ops[k - 1].machine
-            part = max(now, busy[prev]) + (travel[prev][m] if travel is not None and prev != m else 0)
-        return max(part, busy[m], now) - now
 
     @staticmethod
     def _vehicles(cap: int, n: int, loc: list[int], free_at: list[int], work: list[int], idle: set[int],

@@ -287,6 +287,28 @@ def test_maskable_ppo_learns_on_the_full_action_space():
     assert validate(inst, env.shop.schedule()) == []
 
 
+def _start_estimate(s, j: int) -> int:
+    """Reference, one job at a time: time from now until job ``j``'s next operation to start could start on its
+    machine (the part there: buffered now; else free now or when its running operation ends, plus the AGV trip;
+    the machine free); 0 for a finished job."""
+    ops = s.instance.jobs[j]
+    k = s.started[j]
+    if k >= len(ops):
+        return 0
+    now, m = s.now, ops[k].machine
+    busy = s.machine_busy_until
+    travel = s.instance.agv_travel if s.instance.has_agvs else None
+    if s.buffered_op(j) is not None:
+        part = now
+    elif s.job_done_ops[j] >= k:  # the part is free (at the L/U or a machine) or on its way
+        here = s.part_location(j)
+        part = now + (travel[here][m] if travel is not None and here is not None and here != m else 0)
+    else:  # its previous operation still runs
+        prev = ops[k - 1].machine
+        part = max(now, busy[prev]) + (travel[prev][m] if travel is not None and prev != m else 0)
+    return max(part, busy[m], now) - now
+
+
 @pytest.mark.parametrize("name,steps", [("EX12", None), ("ra01", None), ("ra05", None), ("sl00", 600)])
 def test_full_features_match_the_shops_own_per_job_answers(name, steps):
     """The full net's vectorised job and tool features equal FullShop's per-job methods (the reference) at every
@@ -313,7 +335,7 @@ def test_full_features_match_the_shops_own_per_job_answers(name, steps):
             if due is not None:
                 counts[due] = counts.get(due, 0) + 1
                 due_seen += 1
-            assert J[j, 6] == pytest.approx(ShopEnv._start_estimate(s, j) / env._scale, rel=1e-6)
+            assert J[j, 6] == pytest.approx(_start_estimate(s, j) / env._scale, rel=1e-6)
         for t in range(1, s.instance.n_tools + 1 if s.instance.has_tools else 1):
             assert T[t - 1, 6] == pytest.approx(counts.get(t, 0) / s.instance.n_jobs)
         checked += 1

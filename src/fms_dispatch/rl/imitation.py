@@ -37,7 +37,7 @@ from fms_sim.shop import Shop
 
 __all__ = ["EXPERTS", "RULE_EXPERTS", "best_rule_pair", "rule_trajectory", "search_trajectory",
            "SequencePolicy", "lookahead_search", "lookahead_demonstration", "demonstrations",
-           "pair_demonstrations", "clone", "dagger", "dagger_round", "concat_demos"]
+           "pair_demonstrations", "clone", "dagger", "dagger_round", "dagger_rounds", "concat_demos"]
 
 #: the warm-start experts (``warm_start.expert`` of a training config)
 EXPERTS = ("search", "search+lookahead", "rules", "rules+nearest")
@@ -439,25 +439,37 @@ def dagger_round(model: Any, instances: Sequence[Instance], pairs: dict[str, str
     return _as_demos(obs, masks, actions, rets), makespans
 
 
-def dagger(model: Any, demos: dict[str, np.ndarray], pairs: dict[str, str], expert_ms: dict[str, int],
-           instances: Sequence[Instance],
-           padding: dict[str, int], reward: str, rounds: int, epochs: int = 10, lr: float = 1e-3, seed: int = 0,
-           progress: Callable[[str], None] | None = None) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
-    """``rounds`` DAgger rounds after :func:`clone`: each labels the current policy's states
-    (:func:`dagger_round`), adds them to ``demos`` and clones the aggregate for ``epochs`` more epochs.
-    Returns the aggregate and per round the policy's mean makespan on ``instances`` *before* that round's
-    cloning (relative to the experts' makespans ``expert_ms``) and the cloning figures."""
+def dagger_rounds(model: Any, demos: dict[str, np.ndarray],
+                  label_round: Callable[[], tuple[dict[str, np.ndarray], dict[str, int]]], expert_ms: dict[str, int],
+                  rounds: int, epochs: int = 10, lr: float = 1e-3, seed: int = 0,
+                  progress: Callable[[str], None] | None = None, experts: str = "experts"
+                  ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    """``rounds`` DAgger rounds after :func:`clone`: each runs ``label_round()`` (the current policy's states
+    with the expert's labels, and the policy's makespans), adds the rows to ``demos`` and clones the aggregate
+    for ``epochs`` more epochs. Returns the aggregate and per round the policy's mean makespan *before* that
+    round's cloning (relative to the experts' makespans ``expert_ms``; ``experts`` names them in the progress
+    lines) and the cloning figures."""
     history: list[dict[str, Any]] = []
     for r in range(rounds):
-        new, policy_ms = dagger_round(model, instances, pairs, padding, reward, progress=progress)
+        new, policy_ms = label_round()
         demos = concat_demos(demos, new)
         ratio = float(np.mean([policy_ms[k] / expert_ms[k] for k in policy_ms]))
         if progress is not None:
             progress(f"  dagger round {r + 1}/{rounds}: policy makespan {100 * (ratio - 1):+.2f} % against the "
-                     f"experts; cloning {len(demos['obs'])} states")
+                     f"{experts}; cloning {len(demos['obs'])} states")
         bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed + r + 1, progress=progress)
         history.append(dict(round=r + 1, policy_vs_expert=round(ratio, 4), **bc))
     return demos, history
+
+
+def dagger(model: Any, demos: dict[str, np.ndarray], pairs: dict[str, str], expert_ms: dict[str, int],
+           instances: Sequence[Instance],
+           padding: dict[str, int], reward: str, rounds: int, epochs: int = 10, lr: float = 1e-3, seed: int = 0,
+           progress: Callable[[str], None] | None = None) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    """:func:`dagger_rounds` with the rule-pair labels of :func:`dagger_round` on ``instances``."""
+    return dagger_rounds(model, demos,
+                         lambda: dagger_round(model, instances, pairs, padding, reward, progress=progress),
+                         expert_ms, rounds, epochs=epochs, lr=lr, seed=seed, progress=progress)
 
 
 def clone(model: Any, demos: dict[str, np.ndarray], epochs: int = 300, lr: float = 1e-3, batch_size: int = 256,

@@ -188,19 +188,10 @@ def plan_dagger(model: Any, demos: dict[str, np.ndarray], plans: dict[str, Sched
                 epochs: int = 10, lr: float = 1e-3, seed: int = 0,
                 progress: Callable[[str], None] | None = None
                 ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
-    """``rounds`` DAgger rounds with plan labels (as :func:`fms_dispatch.rl.imitation.dagger` does with rule
-    pairs): label the policy's states, aggregate, clone ``epochs`` more epochs. Returns the aggregate and per
-    round the policy's mean makespan before that round's cloning relative to the executed plans."""
-    from .imitation import clone, concat_demos
+    """:func:`fms_dispatch.rl.imitation.dagger_rounds` with plan labels (:func:`plan_dagger_round`); the policy's
+    makespans are compared with the plans as executed."""
+    from .imitation import dagger_rounds
 
-    history: list[dict[str, Any]] = []
-    for r in range(rounds):
-        new, policy_ms = plan_dagger_round(model, instances, plans, padding, reward, progress=progress)
-        demos = concat_demos(demos, new)
-        ratio = float(np.mean([policy_ms[k] / expert_ms[k] for k in policy_ms]))
-        if progress is not None:
-            progress(f"  dagger round {r + 1}/{rounds}: policy makespan {100 * (ratio - 1):+.2f} % against the "
-                     f"plans; cloning {len(demos['obs'])} states")
-        bc = clone(model, demos, epochs=epochs, lr=lr, seed=seed + r + 1, progress=progress)
-        history.append(dict(round=r + 1, policy_vs_expert=round(ratio, 4), **bc))
-    return demos, history
+    return dagger_rounds(model, demos,
+                         lambda: plan_dagger_round(model, instances, plans, padding, reward, progress=progress),
+                         expert_ms, rounds, epochs=epochs, lr=lr, seed=seed, progress=progress, experts="plans")
