@@ -6,7 +6,7 @@ node, recorder attached), their gap, the wall time of ``fms up`` and whether the
 (BU instances carry their optimum). Goals (issue 18): within 1 % of the offline makespan on sl00-sl79, exactly
 the optimum on the BU instances that cpsat proves.
 
-Usage: ``python bench/plan_live.py [--set bu|sl] [--per-group K] [--limit N] [--time-limit S]`` (ROS 2 Jazzy installed; each
+Usage: ``python bench/plan_live.py [--set bu|sl] [--per-group K] [--skip K] [--limit N] [--time-limit S]`` (ROS 2 Jazzy installed; each
 run gets a random ROS domain).
 """
 
@@ -46,11 +46,13 @@ def main() -> None:
     ap.add_argument("--set", choices=("bu", "sl"), default="bu")
     ap.add_argument("--limit", type=int, help="only the first N instances")
     ap.add_argument("--per-group", type=int, default=10, help="sl: instances per group (default all 10)")
+    ap.add_argument("--skip", type=int, default=0,
+                    help="sl: skip the first K instances of each group (e.g. --skip 5: sl05-sl09, ..., sl75-sl79)")
     ap.add_argument("--time-limit", type=float, default=10.0)
     ap.add_argument("--json", help="also write the rows here")
     a = ap.parse_args()
     names = ([f"EX{s}{lay}" for lay in range(1, 5) for s in range(1, 11)] if a.set == "bu"
-             else [f"sl{g}{k}" for g in range(8) for k in range(a.per_group)])[:a.limit]
+             else [f"sl{g}{k}" for g in range(8) for k in range(a.skip, a.skip + a.per_group) if k < 10])[:a.limit]
     solver = f"plan:cpsat:{a.time_limit:g}"
     rows = []
     print(f"| instance | offline cpsat {a.time_limit:g} s | live {solver} | gap | optimum | fms up wall s |")

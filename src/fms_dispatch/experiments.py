@@ -64,15 +64,12 @@ ABLATION_STUDIES = ("reward_shaping", "lookahead", "masking")
 GENERALIZATION_COLUMNS = ("group", "size", "agent", "instance", "makespan", "valid", "wall_time", "train_steps")
 DISRUPTION_COLUMNS = ("instance", "mode", "noise", "seed", "breakdowns", "method", "makespan", "nominal_makespan",
                       "ratio", "decisions", "latency_ms", "plan_time")
-DISRUPTION_METHODS = ("plan:cpsat", "plan:cpsat+replan", "best-rule", "ppo")
+DISRUPTION_METHODS = ("plan:cpsat", "plan:cpsat+replan", "best-rule", "ppo", "ppo+lookahead")
 #: the PPO model of the disruptions experiment: it must decide through the full net, which runs disruptions
 DISRUPTION_MODEL = "full"
-#: methods of the issue that cannot run in a disrupted shop yet, with the reason (reported, not measured)
-DISRUPTION_MISSING = {
-    "ppo+lookahead": "the lookahead's twins are trial runs of the disrupted shop itself, so they would see its "
-                     "realised future (noise, breakdowns), which a dispatcher cannot know; twins on the nominal "
-                     "copy (fms_sim.snapshot.nominal_copy) are not built yet",
-}
+#: PPO + lookahead runs only on shops with at most this many operations by default: in a disrupted shop every
+#: idle stop rolls the policy out afresh on a nominal copy (about 5 min per run on sl00, 225 operations)
+DISRUPTION_LOOKAHEAD_MAX_OPS = 100
 DYNAMIC_COLUMNS = ("partition", "arrival", "entered_at", "early", "jobs_so_far", "rl_makespan", "rl_time_cum",
                    "rl_projection_time", "sos_makespan", "sos_time_cum", "sos_valid")
 
@@ -566,7 +563,8 @@ def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: Any) 
 
 def run_disruptions(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                     seeds: int | None = None, cpsat_time: float | None = None, echo: bool = True,
-                    replan_budget: float | None = None) -> dict[str, Any]:
+                    replan_budget: float | None = None,
+                    lookahead_max_ops: int = DISRUPTION_LOOKAHEAD_MAX_OPS) -> dict[str, Any]:
     """Plans and rules in disrupted shops: breakdowns (2 per run, in the first half of the nominal plan, 5-15 %
     of it long) and noise 0 / 10 / 20 % on every duration, several seeds (issue 18 §5).
 
@@ -575,8 +573,10 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     quick 0.2) on breakdowns and lateness (:mod:`fms_dispatch.replan`; the simulated shop waits for it, so its
     latency column includes the re-plans); ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
     run in the disrupted shop (a list schedule is a plan: executed as one); ``ppo`` — the shipped full-net model
-    (:data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes. Not measured, and listed in the output
-    with the reason: PPO + lookahead (:data:`DISRUPTION_MISSING`). Instances: sl{g}0 for
+    (:data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes; ``ppo+lookahead`` — the same with the
+    verified lookahead (fast mode), whose twins are nominal copies of the shop
+    (:func:`fms_sim.snapshot.nominal_copy`: what a dispatcher can know), on shops of at most
+    ``lookahead_max_ops`` operations (the others are listed in ``not_measured``). Instances: sl{g}0 for
     groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed)."""
     from fms_sim.disruptions import Scenario
     from fms_sim.formats import load_instance
@@ -587,14 +587,31 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
 
     from .rl.models import ModelNotFoundError
 
-    missing = dict(DISRUPTION_MISSING)
+    from fms_sim.snapshot import nominal_copy
+
+    from .rl.lookahead import run_with_lookahead
+
+    missing: dict[str, str] = {}
     methods = DISRUPTION_METHODS
     try:
         agent = load_agent(DISRUPTION_MODEL)  # decides through the full net, which runs the disruptions
     except (ModelNotFoundError, ImportError) as exc:
-        agent, methods = None, tuple(m for m in DISRUPTION_METHODS if m != "ppo")
-        missing["ppo"] = f"model {DISRUPTION_MODEL!r} not available: {str(exc).splitlines()[0]}"
+        agent, methods = None, tuple(m for m in DISRUPTION_METHODS if not m.startswith("ppo"))
+        missing["ppo"] = missing["ppo+lookahead"] = (f"model {DISRUPTION_MODEL!r} not available: "
+                                                     f"{str(exc).splitlines()[0]}")
+    skipped_la: list[str] = []
 
+    def lookahead_run(inst: Instance, sc: Any) -> tuple[Schedule, int, float]:
+        from fms_sim.full_shop import FullShop
+
+        t0 = time.perf_counter()
+        decisions: list[Any] = []
+        sched = run_with_lookahead(FullShop(inst, scenario=sc), agent.act, retry=False, twin=nominal_copy,
+                                   decisions=decisions)
+        return sched, len(decisions), time.perf_counter() - t0
+
+    if lookahead_max_ops < 0:
+        raise ValueError(f"--lookahead-max-ops must be >= 0, got {lookahead_max_ops}")
     cpsat_time = float(cpsat_time) if cpsat_time is not None else (1.0 if quick else 10.0)
     budget = float(replan_budget) if replan_budget is not None else (0.2 if quick else 1.0)
     n_seeds = int(seeds) if seeds else (1 if quick else 3)
@@ -618,14 +635,21 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         winner = best.meta["rule"]
         rule_plan = solve(inst, winner) if winner.startswith("list") else None
         nominal = {"plan:cpsat": plan.makespan, "plan:cpsat+replan": plan.makespan, "best-rule": best.makespan}
+        look = agent is not None and sum(len(ops) for ops in inst.jobs) <= lookahead_max_ops
         if agent is not None:
             nominal["ppo"] = _timed_run(inst, None, None, agent.act)[0].makespan
+            if look:
+                nominal["ppo+lookahead"] = lookahead_run(inst, None)[0].makespan
+            else:
+                skipped_la.append(f"{inst.name} ({mode})")
         for noise in noises:
             for k in range(n_seeds):
                 sc = Scenario.draw(inst, noise=noise, breakdowns=2, horizon=max(1, plan.makespan // 2),
                                    duration=(max(1, plan.makespan // 20), max(1, plan.makespan // 7)),
                                    seed=seed * 1000 + k)
                 for method in methods:
+                    if method == "ppo+lookahead" and not look:
+                        continue
                     if method == "plan:cpsat":
                         sched, n, secs = _timed_run(inst, sc, plan, None)
                     elif method == "plan:cpsat+replan":
@@ -634,6 +658,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                         n, secs = sched.meta["answers"], time.perf_counter() - t1
                     elif method == "ppo":
                         sched, n, secs = _timed_run(inst, sc, None, agent.act)
+                    elif method == "ppo+lookahead":
+                        sched, n, secs = lookahead_run(inst, sc)
                     else:
                         sched, n, secs = _timed_run(inst, sc, rule_plan, None if rule_plan else winner)
                     _checked(inst, sched)
@@ -644,6 +670,9 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                                  "ratio": round(sched.makespan / nominal[method], 4), "decisions": n,
                                  "latency_ms": round(1000 * secs / max(1, n), 4),
                                  "plan_time": round(plan_time if method.startswith("plan:") else rule_time, 3)})
+    if skipped_la:
+        missing["ppo+lookahead"] = (f"not run on shops over {lookahead_max_ops} operations (--lookahead-max-ops): "
+                                    + ", ".join(skipped_la))
     summary: dict[str, Any] = {}
     for noise in noises:
         for method in methods:
@@ -651,7 +680,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             summary[f"{method} noise {noise:g}"] = {"mean_makespan": _mean([r["makespan"] for r in sel]),
                                                     "mean_ratio_to_nominal": _mean([r["ratio"] for r in sel]),
                                                     "runs": len(sel)}
-    wins, rwins, pwins = {}, {}, {}
+    wins, rwins, pwins, lwins = {}, {}, {}, {}
     for noise in noises:
         pairs = {}
         for r in rows:
@@ -664,6 +693,9 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         if "ppo" in methods:
             pwins[f"noise {noise:g}"] = (sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["ppo"]),
                                          sum(1 for v in pairs.values() if v["ppo"] < v["best-rule"]), len(pairs))
+            la = [v for v in pairs.values() if "ppo+lookahead" in v]
+            lwins[f"noise {noise:g}"] = (sum(1 for v in la if v["plan:cpsat+replan"] < v["ppo+lookahead"]),
+                                         sum(1 for v in la if v["ppo+lookahead"] < v["ppo"]), len(la))
     meta = {"experiment": "disruptions", "quick": quick, "seed": seed, "seeds": n_seeds, "noises": list(noises),
             "cpsat_time": cpsat_time, "instances": [f"{n} ({m})" for n, m in insts],
             "not_measured": missing, "summary": summary,
@@ -671,7 +703,10 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             "replan_beats_best_rule": {k: f"{a}/{c}" for k, (a, b, c) in rwins.items()},
             "replan_beats_plan": {k: f"{b}/{c}" for k, (a, b, c) in rwins.items()}, "replan_budget": budget,
             "replan_beats_ppo": {k: f"{a}/{c}" for k, (a, b, c) in pwins.items()},
-            "ppo_beats_best_rule": {k: f"{b}/{c}" for k, (a, b, c) in pwins.items()}}
+            "ppo_beats_best_rule": {k: f"{b}/{c}" for k, (a, b, c) in pwins.items()},
+            "replan_beats_ppo_lookahead": {k: f"{a}/{c}" for k, (a, b, c) in lwins.items()},
+            "ppo_lookahead_beats_ppo": {k: f"{b}/{c}" for k, (a, b, c) in lwins.items()},
+            "lookahead_max_ops": lookahead_max_ops}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(7, 4.5)
@@ -703,7 +738,12 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             print("plan:cpsat+replan beats PPO: " + ", ".join(f"{k}: {v}" for k, v in meta["replan_beats_ppo"].items())
                   + "; PPO beats the best rule: " + ", ".join(f"{k}: {v}" for k, v in meta["ppo_beats_best_rule"]
                                                              .items()))
-        print("not measured: " + "; ".join(f"{k} ({why})" for k, why in missing.items()))
+        if lwins:
+            print("plan:cpsat+replan beats PPO + lookahead: " + ", ".join(
+                f"{k}: {v}" for k, v in meta["replan_beats_ppo_lookahead"].items()) + "; PPO + lookahead beats PPO: "
+                + ", ".join(f"{k}: {v}" for k, v in meta["ppo_lookahead_beats_ppo"].items()))
+        if missing:
+            print("not measured: " + "; ".join(f"{k} ({why})" for k, why in missing.items()))
         print(f"written: {', '.join(str(p) for p in paths.values())}")
     return dict(meta, rows=rows)
 
@@ -742,6 +782,9 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, help="disruption seeds per instance and noise level (default 3; quick 1)")
     p.add_argument("--cpsat-time", type=float, help="CP-SAT plan time limit in s (default 10; quick 1)")
     p.add_argument("--replan-budget", type=float, help="seconds per re-plan (default 1; quick 0.2)")
+    p.add_argument("--lookahead-max-ops", type=int, default=DISRUPTION_LOOKAHEAD_MAX_OPS,
+                   help=f"PPO + lookahead only on shops with at most this many operations "
+                        f"(default {DISRUPTION_LOOKAHEAD_MAX_OPS})")
     p.set_defaults(fn=_cmd)
     return s
 
@@ -752,7 +795,8 @@ def _cmd(a: argparse.Namespace) -> int:
     elif a.experiment == "generalization":
         run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools)
     elif a.experiment == "disruptions":
-        run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget)
+        run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget,
+                        lookahead_max_ops=a.lookahead_max_ops)
     else:
         run_dynamic(a.quick, a.results_dir, a.seed, a.instance, a.model, a.sos_time)
     return 0

@@ -130,33 +130,54 @@ def test_parser() -> None:
     assert (a.groups, a.steps, a.quick, a.results_dir) == ([0, 2], 100, False, "results")
     a = p.parse_args(["experiment", "ablation", "--studies", "lookahead", "masking"])
     assert a.studies == ["lookahead", "masking"] and a.steps is None
+    a = p.parse_args(["experiment", "disruptions", "--seeds", "1", "--lookahead-max-ops", "300"])
+    assert (a.seeds, a.lookahead_max_ops) == (1, 300)
+    assert p.parse_args(["experiment", "disruptions"]).lookahead_max_ops == 100
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "nonsense"])
 
 
 def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from fms_dispatch.experiments import DISRUPTION_COLUMNS, DISRUPTION_METHODS, DISRUPTION_MISSING, run_disruptions
+    from fms_dispatch.experiments import DISRUPTION_COLUMNS, DISRUPTION_METHODS, run_disruptions
 
     doc = run_disruptions(quick=True, results_dir=tmp_path)
     rows, saved = _outputs(tmp_path, "disruptions", DISRUPTION_COLUMNS)
-    assert len(rows) == 2 * 2 * 4  # two instances x noise 0 / 10 % x four methods (PPO: the full-net model)
+    assert len(rows) == 2 * 2 * 5  # two instances x noise 0 / 10 % x five methods (PPO: the full-net model)
     assert {r["instance"] for r in rows} == {"EX12", "ra01"} and {float(r["noise"]) for r in rows} == {0.0, 0.1}
     assert all(int(r["breakdowns"]) == 2 for r in rows)
     for r in rows:  # every run measured (and validated inside the experiment), with its decision latency
         assert int(r["makespan"]) > 0 and int(r["decisions"]) > 0 and float(r["latency_ms"]) > 0
-    assert saved["not_measured"] == DISRUPTION_MISSING and set(DISRUPTION_MISSING) == {"ppo+lookahead"}
+    assert saved["not_measured"] == {}
     assert set(doc["summary"]) == {f"{m} noise {n:g}" for m in DISRUPTION_METHODS for n in (0.0, 0.1)}
     for key, v in doc["summary"].items():
         assert v["runs"] == 2, key  # each method's rows only (one prefixes another)
     assert set(saved["replan_beats_plan"]) == set(saved["replan_beats_ppo"]) == {"noise 0", "noise 0.1"}
+    assert set(saved["replan_beats_ppo_lookahead"]) == set(saved["ppo_lookahead_beats_ppo"]) == {"noise 0", "noise 0.1"}
+    assert all(v.endswith("/2") for v in saved["replan_beats_ppo_lookahead"].values())
     # PPO decides in the disrupted shop itself: its nominal run is the model's plain run of the instance
     from fms_dispatch.rl import ppo_solver
     from fms_sim.benchmarks import builtin
 
     ppo = [r for r in rows if r["method"] == "ppo" and r["instance"] == "EX12"]
     assert {int(r["nominal_makespan"]) for r in ppo} == {ppo_solver("ppo:full")(builtin("EX12")).makespan}
+    # without disruptions the verified lookahead is never worse than the plain model (nominal runs)
+    look = [r for r in rows if r["method"] == "ppo+lookahead"]
+    for r in look:
+        plain = next(p for p in rows if p["method"] == "ppo" and p["instance"] == r["instance"])
+        assert int(r["nominal_makespan"]) <= int(plain["nominal_makespan"])
     out = capsys.readouterr().out
-    assert "| method | noise |" in out and "not measured:" in out
+    assert "| method | noise |" in out and "beats PPO + lookahead" in out
+
+
+def test_disruptions_run_the_lookahead_only_up_to_its_size_limit(tmp_path: Path) -> None:
+    from fms_dispatch.experiments import run_disruptions
+
+    doc = run_disruptions(quick=True, results_dir=tmp_path, echo=False, seeds=1, lookahead_max_ops=0)
+    assert "ppo+lookahead" not in {r["method"] for r in doc["rows"]}
+    assert "over 0 operations" in doc["not_measured"]["ppo+lookahead"] and "EX12" in doc["not_measured"]["ppo+lookahead"]
+    assert doc["replan_beats_ppo_lookahead"] == {"noise 0": "0/0", "noise 0.1": "0/0"}
+    with pytest.raises(ValueError, match="--lookahead-max-ops"):
+        run_disruptions(quick=True, results_dir=tmp_path, echo=False, lookahead_max_ops=-1)
 
 
 def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path,
@@ -165,6 +186,6 @@ def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path
 
     monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path / "none"))
     doc = run_disruptions(quick=True, results_dir=tmp_path, echo=False)
-    assert "no model named 'full'" in doc["not_measured"]["ppo"]
+    assert "no model named 'full'" in doc["not_measured"]["ppo"] and "no model" in doc["not_measured"]["ppo+lookahead"]
     assert {r["method"].split(" ")[0] for r in doc["rows"]} == {"plan:cpsat", "plan:cpsat+replan", "best-rule"}
 

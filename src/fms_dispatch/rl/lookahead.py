@@ -16,6 +16,14 @@ waiting for the request. Repositioning is a net transition like any other, so ev
 construction (tests validate it); it can cost time when another request arrives while the vehicle is on its way,
 which the benchmarks measure. The same :class:`LookaheadPlanner` answers the shop node's idle states in the
 agent node (``ppo+lookahead``), so over ROS topics the run is the same as offline.
+
+In a **disrupted** shop (a :class:`~fms_sim.full_shop.FullShop` with a scenario: noise, breakdowns, outages)
+a trial run on the shop itself would see its realised future, which no dispatcher knows. There the twins are
+made by a ``twin`` function instead (``twin=nominal_copy``, :func:`fms_sim.snapshot.nominal_copy`): a copy
+whose future is the nominal one (no noise on what is still to come, no breakdown or outage that has not
+begun). Each idle stop then predicts and verifies from a fresh nominal copy of the current state (the real run
+leaves the predicted trajectory as soon as a time differs, so nothing is cached), and "never worse than the
+plain policy" holds for the predictions, not for the realised run.
 """
 
 from __future__ import annotations
@@ -29,20 +37,23 @@ from fms_sim.shop import Shop
 from fms_sim.stepping import Move, Stepper
 
 __all__ = ["run_agent", "run_with_lookahead", "predict_task", "predict_tasks", "LookaheadPlanner", "Trajectory",
-           "finish", "plain_trajectory"]
+           "finish", "plain_trajectory", "TwinMaker"]
 
 Choose = Callable[[Shop], int]
+#: makes a twin of a shop for the lookahead's predictions (e.g. :func:`fms_sim.snapshot.nominal_copy`)
+TwinMaker = Callable[[Shop], Shop]
 
 #: at most this many decisions are simulated in the twin per idle vehicle
 DEFAULT_HORIZON = 200
 
 
 def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int = DEFAULT_HORIZON,
-              verify: bool = True, progress: Callable[[str], None] | None = None, retry: bool = True) -> Schedule:
+              verify: bool = True, progress: Callable[[str], None] | None = None, retry: bool = True,
+              twin: TwinMaker | None = None) -> Schedule:
     """Run ``shop`` to completion with ``choose(shop) -> net action``; pre-position idle vehicles if asked
-    (``progress``, ``retry``: see :func:`run_with_lookahead`)."""
+    (``progress``, ``retry``, ``twin``: see :func:`run_with_lookahead`)."""
     if lookahead:
-        return run_with_lookahead(shop, choose, horizon, verify, progress, retry=retry)
+        return run_with_lookahead(shop, choose, horizon, verify, progress, retry=retry, twin=twin)
     while not shop.done:
         shop.act(choose(shop))
     return shop.schedule()
@@ -209,6 +220,10 @@ class LookaheadPlanner:
     the end. Its moves are the same. ``verified``, ``accepted`` and ``rejoined`` count the verifying rollouts,
     those whose moves were kept, and those stopped early.
 
+    ``twin`` (e.g. :func:`fms_sim.snapshot.nominal_copy`, for disrupted shops; see the module docstring): every
+    twin is ``twin(shop)`` and every idle stop predicts and verifies afresh from the current state; without
+    disruptions its moves are the reference's.
+
     ``retry=False`` is the *fast* lookahead for very large instances: a move (vehicle, location) that a
     verification rejected is not proposed again until some moves are accepted (which changes the planned
     completion); the other vehicles' moves at a stop are still proposed. By default (``retry=True``) the
@@ -220,8 +235,9 @@ class LookaheadPlanner:
     """
 
     def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
-                 reference: bool = False, retry: bool = True) -> None:
+                 reference: bool = False, retry: bool = True, twin: TwinMaker | None = None) -> None:
         self.choose = choose
+        self.twin = twin
         self.horizon = horizon
         self.verify = verify
         self.reference = reference
@@ -238,6 +254,8 @@ class LookaheadPlanner:
         shop, choose = stepper.shop, self.choose
         vehicles = [(m.kind, m.vehicle) for m in stepper.idle]
         ref = self.reference
+        if self.twin is not None:
+            return self._plan_on_twins(stepper, vehicles)
         if self.verify and not ref:
             if self.trajectory is None:
                 self.trajectory = plain_trajectory(shop, choose, keys=True)
@@ -267,11 +285,39 @@ class LookaheadPlanner:
                 moves = []
         return moves
 
+    def _plan_on_twins(self, stepper: Stepper, vehicles: list[tuple[str, int]]) -> list[Move]:
+        """:meth:`plan` with every twin made by ``self.twin`` from the current state (nothing cached)."""
+        assert self.twin is not None
+        shop, choose = stepper.shop, self.choose
+        plain = _complete(self.twin(shop), choose)
+        dests = plain.next_pickups(shop, vehicles, self.horizon)
+        moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
+                 if (dest := dests[(kind, v)]) is not None and dest != loc]
+        if moves and self.verify and not self.retry:
+            kept = [m for m in moves if m not in self._rejected]
+            self.skipped += len(moves) - len(kept)
+            moves = kept
+        if moves and self.verify:
+            twin = Stepper(self.twin(shop), idle_stops=False)
+            twin.idle_first, twin.looked, twin.kind, twin.idle = (stepper.idle_first, set(stepper.looked), "idle",
+                                                                  list(stepper.idle))
+            twin.move(moves)
+            made = _complete(twin.shop, choose).makespan
+            self.verified += 1
+            if made < plain.makespan:
+                self.accepted += 1
+                self._rejected.clear()
+            else:
+                if not self.retry:
+                    self._rejected.update(moves)
+                moves = []
+        return moves
+
 
 def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
                        progress: Callable[[str], None] | None = None, every_s: float = 2.0,
                        reference: bool = False, decisions: list[tuple[list[int], int]] | None = None,
-                       retry: bool = True) -> Schedule:
+                       retry: bool = True, twin: TwinMaker | None = None) -> Schedule:
     """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
     :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's).
 
@@ -279,9 +325,10 @@ def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZO
     instances the lookahead takes minutes (see docs/benchmarks.md). ``reference``: see
     :class:`LookaheadPlanner`. ``decisions`` (a list, if given) receives ``(legal actions, action)`` for each
     decision of the run itself, not of its twins (the lookahead search mutates them). ``retry=False``: the
-    fast lookahead (see :class:`LookaheadPlanner`)."""
+    fast lookahead; ``twin``: how twins are made (nominal copies in a disrupted shop; see
+    :class:`LookaheadPlanner`)."""
     stepper = Stepper(shop, idle_stops=True)
-    planner = LookaheadPlanner(choose, horizon, verify, reference, retry)
+    planner = LookaheadPlanner(choose, horizon, verify, reference, retry, twin)
     t0 = last = time.perf_counter()
     total = sum(len(ops) for ops in shop.instance.jobs)
     stops = moved = 0
