@@ -571,7 +571,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     Methods: ``plan:cpsat`` — a CP-SAT plan of the nominal instance (``cpsat_time`` s) executed as it is (orders
     kept, times shift); ``plan:cpsat+replan`` — the same plan re-planned within ``replan_budget`` s (default 1;
     quick 0.2) on breakdowns and lateness (:mod:`fms_dispatch.replan`; the simulated shop waits for it, so its
-    latency column includes the re-plans); ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
+    latency column includes the re-plans), each re-plan also weighing the best rule's continuation when that
+    rule is a full-net rule; ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
     run in the disrupted shop (a list schedule is a plan: executed as one); ``ppo`` — the shipped full-net model
     (:data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes; ``ppo+lookahead`` — the same with the
     verified lookahead (fast mode), whose twins are nominal copies of the shop
@@ -654,7 +655,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                         sched, n, secs = _timed_run(inst, sc, plan, None)
                     elif method == "plan:cpsat+replan":
                         t1 = time.perf_counter()
-                        sched = solve_with_replanning(inst, plan, budget=budget, scenario=sc, seed=k)
+                        sched = solve_with_replanning(inst, plan, budget=budget, scenario=sc, seed=k,
+                                                      rules=() if rule_plan else (winner,))
                         n, secs = sched.meta["answers"], time.perf_counter() - t1
                     elif method == "ppo":
                         sched, n, secs = _timed_run(inst, sc, None, agent.act)

@@ -12,7 +12,8 @@ A plan (a schedule from ``cpsat``, ``sos``, ...) is executed through the full-de
   the state (the prediction *before*), earliest-start and earliest-completion list schedules from the state, a
   CP-SAT model of the remaining work (machines, tools, job precedences with their loaded trips; vehicles are
   left to the list scheduler) *hinted with the remaining plan* whose start times then guide a list schedule,
-  and randomised list-scheduling restarts around the best plan until the budget is spent. The best predicted
+  and randomised list-scheduling restarts around the best plan until the budget is spent; optionally
+  (``rules``) the continuations of full-net rules, each run to the end on a nominal copy. The best predicted
   makespan (*after*) wins; if it is no better than *before*, the current plan stays in force (an order always
   needs a new plan: the old one does not cover its jobs);
 * **the new plan** is a residual plan: the remaining operations and new trips, executed from the shop's state
@@ -29,7 +30,7 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 from ortools.sat.python import cp_model
 
@@ -44,6 +45,7 @@ from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 
 from .exact import _improve_by_priorities, greedy_schedule
+from .full_rules import parse_full_rule
 
 __all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS",
            "DEFAULT_DRIFT"]
@@ -168,8 +170,18 @@ def simulate(sim: FullShop, plan: Schedule | PlanPolicy) -> int | None:
     return sim.makespan
 
 
+def _rule_plan(sim: FullShop, rule: Any) -> Schedule:
+    """The schedule of completing ``sim`` (a nominal copy, consumed) with full-net ``rule``: a whole plan that
+    agrees with the state's past, and its makespan the simulated one."""
+    sim.net.advance()
+    while not sim.done:
+        sim.act(rule(sim))
+    return sim.schedule()
+
+
 def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: FullShop | None = None,
-           policy: PlanPolicy | None = None, seed: int = 0, workers: int = 1) -> ReplanResult:
+           policy: PlanPolicy | None = None, seed: int = 0, workers: int = 1,
+           rules: Sequence[tuple[str, Any]] = ()) -> ReplanResult:
     """Re-optimise the work left in ``snap`` within ``budget`` seconds (module docstring), warm-started from
     ``current`` (the plan in force: a whole schedule or a residual plan).
 
@@ -180,7 +192,13 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     where about nine list schedules fit the budget (a run through the net costs about three); otherwise, and
     without ``sim``, the predictions are the list scheduler's own (*before*: the current plan's order, each
     operation as early as the state allows). At least one list schedule is always made, so a re-plan of a large
-    shop may take up to a second (100 x 20) beyond a very small budget."""
+    shop may take up to a second (100 x 20) beyond a very small budget.
+
+    ``rules`` (``(name, full-net rule)`` pairs; with ``sim`` only) are further candidates: each rule completes
+    a copy of ``sim``, and the run's schedule is a plan, predicted by simulating its orders like the others
+    (following a plan's orders can end earlier than the rule did: vehicles are sent as soon as the orders allow). They are tried
+    first, while at least half the budget is left; a rule reacts to the state it meets, so after a breakdown or
+    under noise its continuation can beat every list schedule of the remaining work."""
     t0 = time.monotonic()
     deadline = t0 + budget
     inst = snap.instance
@@ -190,6 +208,14 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     # a run through the net costs about three list schedules: simulate only where three runs fit the budget
     if sim is not None and deadline - time.monotonic() < 9 * one:
         sim = None
+    ruled: list[tuple[int, int, Schedule, str]] = []  # (simulated makespan, order, plan, method)
+    for name, rule in rules if sim is not None else ():
+        if time.monotonic() > t0 + budget / 2:
+            break
+        made = _rule_plan(copy.deepcopy(sim), rule)
+        executed = simulate(copy.deepcopy(sim), made)  # the plan's orders, as the shop will follow them
+        if executed is not None:
+            ruled.append((executed, -1 - len(ruled), made, name))
     before: int | None = None
     reserve = 0.0
     if hint is not None:  # the current plan covers the remaining work: how would it end?
@@ -218,7 +244,7 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
         plan, method = cands[0]
         after = plan.makespan
     else:
-        scored = []
+        scored = list(ruled)
         for i, (plan, method) in enumerate(cands[:2]):
             if i and time.monotonic() + reserve / 2 > deadline:
                 break
@@ -246,12 +272,15 @@ class Replanner:
     seed: int = 0
     workers: int = 1
     events: list[dict[str, Any]] = field(default_factory=list)
+    #: full-net rules (names, e.g. ``rule:LPSR+nearest+fifo``) whose continuations each re-plan also weighs
+    rules: Sequence[str] = ()
 
     def __post_init__(self) -> None:
         if not self.budget > 0:
             raise ValueError(f"the re-planning budget must be positive, got {self.budget}")
         if not self.drift > 0:
             raise ValueError(f"the re-planning drift must be positive, got {self.drift}")
+        self._rules = [(name, parse_full_rule(name)) for name in self.rules]
         self.policy: PlanPolicy | None = None
         self._pending: str | None = None
         self._off_plan = False  # the last answer came from the fallback rule: the plan resumes from the state
@@ -309,7 +338,7 @@ class Replanner:
         policy then), all taken by the caller: this touches nothing of the running shop, so it is safe in another
         thread (see :meth:`take`)."""
         return replan(snap, self.plan, self.budget, sim=sim, policy=policy, seed=self.seed + len(self.events),
-                      workers=self.workers)
+                      workers=self.workers, rules=self._rules)
 
     def take(self, shop: FullShop) -> tuple[Snapshot, FullShop, PlanPolicy | None]:
         """What :meth:`compute` needs, taken from ``shop`` now (in the thread that runs the shop)."""
@@ -415,13 +444,12 @@ class Replanner:
 
 def solve_with_replanning(instance: Instance, plan: Schedule, *, budget: float = 2.0, drift: float = DEFAULT_DRIFT,
                           scenario: Scenario | None = None, seed: int = 0,
-                          fallback: str = "rule:MTWR+nearest+fifo") -> Schedule:
+                          fallback: str = "rule:MTWR+nearest+fifo", rules: Sequence[str] = ()) -> Schedule:
     """Execute ``plan`` through the full-decision net in a shop disrupted by ``scenario``, re-planning on the
-    triggers (module docstring); the realised schedule, with ``meta["replans"]`` the events."""
-    from .full_rules import parse_full_rule
-
+    triggers (module docstring; ``rules``: see :class:`Replanner`); the realised schedule, with
+    ``meta["replans"]`` the events."""
     shop = FullShop(instance, scenario=scenario)
-    rp = Replanner(instance, plan, budget=budget, drift=drift, seed=seed)
+    rp = Replanner(instance, plan, budget=budget, drift=drift, seed=seed, rules=tuple(rules))
     rule = parse_full_rule(fallback)
     stepper = Stepper(shop, idle_stops=True)
     stepper.advance()

@@ -152,3 +152,39 @@ def test_a_plan_computed_while_the_shop_moved_on_is_retimed_and_runs_to_a_valid_
         n += 1
     assert taken is not None and result is None and validate(inst, shop.schedule()) == []
     assert not any(e["reason"] == "stuck" for e in rp.events)
+
+
+@pytest.mark.parametrize("name", ["EX74", "sl00"])
+def test_rule_continuations_are_weighed_as_plans(name):
+    import copy
+
+    from fms_dispatch.replan import _rule_plan, simulate
+
+    inst = builtin(name)
+    plan = greedy_schedule(inst)
+    sc = Scenario(breakdowns=(Breakdown(2, plan.makespan // 5, plan.makespan // 4),), noise=0.1, seed=2)
+    shop = FullShop(inst, scenario=sc)
+    stepper = Stepper(shop, idle_stops=True)
+    rp = Replanner(inst, plan, budget=2.0)
+    stepper.advance()
+    while shop.now < plan.makespan // 3:  # past the breakdown's start, by the plan
+        label = rp.answer(stepper)
+        rp.apply(stepper, label)
+        stepper.apply(label)
+    names = ["rule:LPSR+nearest+fifo", "rule:MTWR+nearest+fifo"]
+    sim = nominal_copy(shop)
+    made = {n: _rule_plan(copy.deepcopy(sim), parse_full_rule(n)) for n in names}
+    executed = {n: simulate(copy.deepcopy(sim), s) for n, s in made.items()}
+    assert all(executed.values())  # a rule's continuation is a plan the shop can follow from here
+    res = replan(snapshot(shop), plan, 2.0, sim=copy.deepcopy(sim), rules=[(n, parse_full_rule(n)) for n in names])
+    assert res.after <= min(executed.values())
+    assert simulate(copy.deepcopy(sim), res.plan) == res.after  # the prediction is the plan's nominal run
+    out = solve_with_replanning(inst, plan, budget=0.5, scenario=sc, rules=names)
+    assert validate(inst, out) == []
+    _check_events(out.meta["replans"])
+
+
+def test_unknown_replanning_rules_are_refused():
+    inst = builtin("EX12")
+    with pytest.raises(ValueError):
+        Replanner(inst, greedy_schedule(inst), rules=("rule:NOPE",))
