@@ -33,6 +33,11 @@ figures show that the pipeline works, not what the methods are worth.
   model has no release times, so SOS schedules those jobs **released at 0**: its makespans are an optimistic
   bound, not a feasible plan under the arrivals. The RL time is the policy's decision time (cumulative; the
   projections are timed separately), the SOS time its cumulative search time.
+
+The paper's net and the full one side by side: ``--decisions full`` runs the ablation and the generalization
+study on the full net (the full-net model ``full`` for the lookahead study and as the general model; the
+trained agents train on the full net), and ``fms experiment dynamic --model full`` continues the full-net model
+on a live full-net shop.
 """
 
 from __future__ import annotations
@@ -70,11 +75,21 @@ DISRUPTION_MODEL = "full"
 #: PPO + lookahead runs only on shops with at most this many operations by default: in a disrupted shop every
 #: idle stop rolls the policy out afresh on a nominal copy (about 5 min per run on sl00, 225 operations)
 DISRUPTION_LOOKAHEAD_MAX_OPS = 100
+#: the shipped model of the ablation's lookahead study, per net
+ABLATION_LOOKAHEAD_MODEL = {"paper": "bu", "full": "full"}
+#: the general shipped model of the generalization study, per net and tool mode (the full-net model covers both)
+GENERAL_MODEL = {("paper", False): "large", ("paper", True): "large-agv", ("full", False): "full",
+                 ("full", True): "full"}
 DYNAMIC_COLUMNS = ("partition", "arrival", "entered_at", "early", "jobs_so_far", "rl_makespan", "rl_time_cum",
                    "rl_projection_time", "sos_makespan", "sos_time_cum", "sos_valid")
 
 
 # ---------------------------------------------------------------------- shared helpers
+def _check_decisions(decisions: str) -> None:
+    if decisions not in ("paper", "full"):
+        raise ValueError(f"unknown decisions {decisions!r}; choose paper or full")
+
+
 def _checked(inst: Instance, sched: Schedule) -> bool:
     """Validate ``sched``; an infeasible schedule is a bug, so it raises instead of being reported."""
     problems = validate(inst, sched)
@@ -152,7 +167,8 @@ def lower_bound(inst: Instance) -> int:
 
 def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed: int, reward: str,
                  folder: Path, padding: str | dict[str, int] = "auto",
-                 fleet: dict[str, Any] | None = None, measure: list[str] | None = None) -> dict[str, Any]:
+                 fleet: dict[str, Any] | None = None, measure: list[str] | None = None,
+                 decisions: str = "paper") -> dict[str, Any]:
     """Train one small agent with :func:`fms_dispatch.rl.train.train` on generated shops (``train_specs``,
     selected on ``eval_specs``); returns its metrics, with ``"measured"``: the validated deterministic
     makespans on the instances ``measure`` (benchmark instances, which training never sees)."""
@@ -161,7 +177,8 @@ def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed
 
     cfg = {"train": train_specs, "eval": eval_specs, "steps": steps, "seed": seed, "reward": reward,
            "padding": padding, "n_envs": 1, "vec_env": "dummy", "eval_freq": 10 * steps + 10_000,
-           "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {}}
+           "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {},
+           "decisions": decisions}
     metrics = train(cfg, folder, progress=False, tensorboard=folder / "tb")
     if measure:
         used = json.loads((folder / "config.json").read_text())
@@ -172,8 +189,10 @@ def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed
 
 
 # ---------------------------------------------------------------------- ablation
-def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, seed: int) -> list[dict[str, Any]]:
-    """Train MaskablePPO (entity policy, shaped reward) with or without masks; mean episode reward per rollout."""
+def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, seed: int,
+                   decisions: str = "paper") -> list[dict[str, Any]]:
+    """Train MaskablePPO (entity policy, shaped reward, on the ``decisions`` net) with or without masks; mean
+    episode reward per rollout."""
     import torch
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.callbacks import BaseCallback
@@ -187,7 +206,7 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
     padding = padding_for("auto", instances)
 
     def make() -> Any:
-        env = FastShopEnv(instances, reward="shaped", invalid_action="penalty", **padding)
+        env = FastShopEnv(instances, reward="shaped", invalid_action="penalty", decisions=decisions, **padding)
         env.reset(seed=seed)
         return Monitor(env)
 
@@ -219,7 +238,7 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
     # about 8+ rollouts, so that even a tiny budget draws a curve
     ppo = dict(learning_rate=3e-4, n_epochs=5, gamma=1.0, gae_lambda=0.95, ent_coef=0.01,
                **_ppo_budget(max(16, steps // 8)))
-    model = MaskablePPO(EntityPolicy, venv, policy_kwargs={"layout": obs_layout(padding)}, seed=seed,
+    model = MaskablePPO(EntityPolicy, venv, policy_kwargs={"layout": obs_layout(padding, decisions)}, seed=seed,
                         device="cpu", verbose=0, **ppo)
     model.learn(total_timesteps=steps, callback=Curve(), use_masking=use_masking)
     venv.close()
@@ -228,11 +247,11 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
 
 def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                  steps: int | None = None, studies: Sequence[str] | None = None,
-                 echo: bool = True) -> dict[str, Any]:
-    """The ablations in ``studies`` (default all of :data:`ABLATION_STUDIES`; see the module docstring);
-    returns the JSON document written."""
+                 echo: bool = True, decisions: str = "paper") -> dict[str, Any]:
+    """The ablations in ``studies`` (default all of :data:`ABLATION_STUDIES`; see the module docstring) on the
+    paper's net or the full one (``decisions``); returns the JSON document written."""
     from fms_sim.formats import load_instance
-    from fms_sim.shop import Shop
+    from fms_sim.full_shop import make_shop
 
     from .rl.lookahead import run_agent
     from .rl.models import load_agent
@@ -241,6 +260,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     steps = int(steps) if steps else (128 if quick else 20_000)
     if steps <= 0:
         raise ValueError("--steps must be positive")
+    _check_decisions(decisions)
     chosen = list(studies) if studies else list(ABLATION_STUDIES)
     for st in chosen:
         if st not in ABLATION_STUDIES:
@@ -255,21 +275,23 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     with tempfile.TemporaryDirectory(prefix="fms-ablation-") as tmp:
         for variant, reward in shaping:
             t0 = time.perf_counter()
-            full = _train_agent(train_sl, select_sl, steps, seed, reward, Path(tmp) / variant, measure=eval_sl)
-            m = full["training"]
-            for name, ms in full["measured"].items():
+            trained = _train_agent(train_sl, select_sl, steps, seed, reward, Path(tmp) / variant, measure=eval_sl,
+                                   decisions=decisions)
+            m = trained["training"]
+            for name, ms in trained["measured"].items():
                 rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
                              "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
             if echo:
                 print(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
-    # (2) lookahead with the shipped bu model
-    agent = load_agent("bu")
+    # (2) lookahead with the shipped model of BU scale for the net
+    look_model = ABLATION_LOOKAHEAD_MODEL[decisions]
+    agent = load_agent(look_model)
     look_sets = ([1, 2] if quick else list(range(1, 11))) if "lookahead" in chosen else []
     for s in look_sets:
         inst = load_instance(f"EX{s}2")
         for variant, la in (("off", False), ("on", True)):
             t0 = time.perf_counter()
-            sched = run_agent(Shop(inst), agent.act, lookahead=la)
+            sched = run_agent(make_shop(inst, decisions), agent.act, lookahead=la)
             wall = time.perf_counter() - t0
             rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
                          "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
@@ -279,7 +301,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     masking = (("masked", True), ("unmasked", False)) if "masking" in chosen else ()
     for variant, flag in masking:
         t0 = time.perf_counter()
-        for p in _episode_curve(flag, mask_insts, steps, seed):
+        for p in _episode_curve(flag, mask_insts, steps, seed, decisions):
             rows.append(dict(p, study="masking", variant=variant, wall_time=round(time.perf_counter() - t0, 2)))
 
     summary: dict[str, Any] = {}
@@ -293,8 +315,9 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
                                 and r["variant"] == v)} for v in ("masked", "unmasked")}
     summary = {k: v for k, v in summary.items() if k in chosen}
     meta = {"experiment": "ablation", "quick": quick, "seed": seed, "steps": steps, "studies": chosen,
+            "decisions": decisions,
             "reward_shaping": {"train": train_sl, "eval": eval_sl, "on": "shaped", "off": "makespan (sparse)"},
-            "lookahead": {"model": "bu"}, "masking": {"instances": [i.name for i in mask_insts],
+            "lookahead": {"model": look_model}, "masking": {"instances": [i.name for i in mask_insts],
                                                       "invalid_penalty": -10.0}, "summary": summary}
 
     def draw(path: Path) -> None:
@@ -346,9 +369,10 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
 # ---------------------------------------------------------------------- generalization
 def run_generalization(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                        steps: int | None = None, groups: Sequence[int] | None = None, no_tools: bool = False,
-                       echo: bool = True) -> dict[str, Any]:
-    """General shipped model vs an agent specialised per size group (see the module docstring)."""
-    from fms_sim.shop import Shop
+                       echo: bool = True, decisions: str = "paper") -> dict[str, Any]:
+    """General shipped model vs an agent specialised per size group (see the module docstring), on the paper's
+    net or the full one (``decisions``)."""
+    from fms_sim.full_shop import make_shop
 
     from .rl.lookahead import run_agent
     from .rl.models import load_agent
@@ -361,7 +385,8 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
     for g in groups:
         if not 0 <= g < len(SL_GROUPS):
             raise ValueError(f"size group {g} does not exist (0-{len(SL_GROUPS) - 1})")
-    general = "large-agv" if no_tools else "large"
+    _check_decisions(decisions)
+    general = GENERAL_MODEL[(decisions, bool(no_tools))]
     fleet = {"no_tools": no_tools}
     agent = load_agent(general)
     rows: list[dict[str, Any]] = []
@@ -372,16 +397,16 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
             held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
             for inst in expand_instances(held, fleet):
                 t0 = time.perf_counter()
-                sched = run_agent(Shop(inst), agent.act)
+                sched = run_agent(make_shop(inst, decisions), agent.act)
                 rows.append({"group": g, "size": size, "agent": f"general ({general})", "instance": inst.name,
                              "makespan": sched.makespan, "valid": _checked(inst, sched),
                              "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
             train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
             select = [f"gen:{j}x{m}x{t}*1@{120 + g}"]  # model selection on generated shops, never on sl
-            full = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
-                                fleet=fleet, measure=held)
-            met = full["training"]
-            for name, ms in full["measured"].items():  # validated by evaluate_model
+            spec = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
+                                fleet=fleet, measure=held, decisions=decisions)
+            met = spec["training"]
+            for name, ms in spec["measured"].items():  # validated by evaluate_model
                 rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
                              "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
             if echo:
@@ -389,7 +414,7 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
     summary = {str(g): {a: _mean([r["makespan"] for r in rows if r["group"] == g and r["agent"] == a])
                         for a in (f"general ({general})", "specialized")} for g in groups}
     meta = {"experiment": "generalization", "quick": quick, "seed": seed, "steps": steps, "groups": groups,
-            "general_model": general, "no_tools": no_tools, "summary": summary}
+            "general_model": general, "no_tools": no_tools, "decisions": decisions, "summary": summary}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(max(5.0, 1.3 * len(groups) + 2), 4.5)
@@ -433,9 +458,10 @@ def _sub_instance(inst: Instance, jobs: Sequence[int], label: str) -> Instance:
 def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                 instance: str | None = None, model: str | None = None, sos_time: float | None = None,
                 parts: int = 10, echo: bool = True) -> dict[str, Any]:
-    """Partitions arriving over time: RL continues on one live shop, SOS re-solves (see the module docstring)."""
+    """Partitions arriving over time: RL continues on one live shop, SOS re-solves (see the module docstring).
+    A full-net ``model`` (``full``) runs on the full net."""
     from fms_sim.formats import load_instance
-    from fms_sim.shop import Shop
+    from fms_sim.full_shop import make_shop
 
     from .rl.lookahead import finish, run_agent
     from .rl.models import default_model_name, load_agent
@@ -456,7 +482,7 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         raise ValueError(f"instance {inst.name} does not fit model {agent.name} ({agent.padding})")
 
     rows: list[dict[str, Any]] = []
-    shop = Shop(_sub_instance(inst, groups[0], "-dyn"))
+    shop = make_shop(_sub_instance(inst, groups[0], "-dyn"), agent.decisions)
     decide = 0.0
     nxt = 1
 
@@ -499,12 +525,13 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         shop.act(a)
     final = shop.schedule()
     _checked(shop.instance, final)
-    static_ms = run_agent(Shop(inst), agent.act).makespan  # reference: every job released at 0
+    static_ms = run_agent(make_shop(inst, agent.decisions), agent.act).makespan  # reference: all jobs at 0
     last = rows[-1]
     summary = {"rl_final_makespan": final.makespan, "rl_decision_time": round(decide, 4),
                "rl_static_makespan": static_ms, "sos_final_makespan": last["sos_makespan"],
                "sos_total_time": last["sos_time_cum"], "early_partitions": sum(bool(r["early"]) for r in rows)}
     meta = {"experiment": "dynamic", "quick": quick, "seed": seed, "instance": inst.name, "model": agent.name,
+            "decisions": agent.decisions,
             "partitions": len(groups), "lower_bound": lb, "delta": round(delta, 2), "sos_time_limit": sos_time,
             "sos_release": "all arrived jobs released at 0 (optimistic for SOS)", "summary": summary}
 
@@ -765,12 +792,17 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     common(p)
     p.add_argument("--steps", type=int, help="training steps per agent (default 20000; quick 128)")
     p.add_argument("--studies", nargs="+", choices=ABLATION_STUDIES, help="run only these (default all)")
+    p.add_argument("--decisions", choices=("paper", "full"), default="paper",
+                   help="the net the agents decide through (default paper; full: the full-net model `full` in the "
+                        "lookahead study, full-net training in the others)")
     p.set_defaults(fn=_cmd)
     p = sub.add_parser("generalization", help="general vs specialized agents per size group")
     common(p)
     p.add_argument("--steps", type=int, help="training steps per specialized agent (default 20000; quick 256)")
     p.add_argument("--groups", type=int, nargs="+", help="size groups 0-7 (default all; quick 0)")
     p.add_argument("--no-tools", action="store_true", help="instances without tools, general model large-agv")
+    p.add_argument("--decisions", choices=("paper", "full"), default="paper",
+                   help="the net (default paper; full: general model `full`, specialists trained on the full net)")
     p.set_defaults(fn=_cmd)
     p = sub.add_parser("dynamic", help="jobs arriving in 10 partitions: RL continues, SOS re-solves")
     common(p)
@@ -793,9 +825,9 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def _cmd(a: argparse.Namespace) -> int:
     if a.experiment == "ablation":
-        run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies)
+        run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies, decisions=a.decisions)
     elif a.experiment == "generalization":
-        run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools)
+        run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools, decisions=a.decisions)
     elif a.experiment == "disruptions":
         run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget,
                         lookahead_max_ops=a.lookahead_max_ops)

@@ -112,6 +112,42 @@ def test_generalization_quick(tmp_path: Path) -> None:
     assert doc["summary"]["0"]["specialized"] == float(rows[1]["makespan"])
 
 
+def test_the_experiments_on_the_full_net(tmp_path: Path) -> None:
+    """The paper's experiments side by side on the full net: the full-net model `full` for inference, full-net
+    training for the trained agents; every schedule is validated inside the experiments."""
+    from fms_dispatch.rl import ppo_solver
+
+    doc = run_ablation(quick=True, results_dir=tmp_path / "a", steps=64, studies=["lookahead", "masking"],
+                       echo=False, decisions="full")
+    assert doc["decisions"] == "full" and doc["lookahead"]["model"] == "full"
+    look = {(r["instance"], r["variant"]): r["makespan"] for r in doc["rows"] if r["study"] == "lookahead"}
+    assert look[("EX12", "off")] == ppo_solver("ppo:full")(builtin("EX12")).makespan
+    assert all(look[(i, "on")] <= look[(i, "off")] for i in ("EX12", "EX22"))  # verified moves only
+    curve = [r for r in doc["rows"] if r["study"] == "masking"]
+    assert all(r["invalid_episodes"] == 0 for r in curve if r["variant"] == "masked")
+    assert sum(r["invalid_episodes"] for r in curve if r["variant"] == "unmasked") > 0
+
+    doc = run_generalization(quick=True, results_dir=tmp_path / "g", steps=32, echo=False, decisions="full")
+    assert doc["general_model"] == "full" and doc["decisions"] == "full"
+    general, special = doc["rows"]
+    assert (general["agent"], special["agent"]) == ("general (full)", "specialized")
+    assert general["makespan"] == ppo_solver("ppo:full")(builtin("sl09")).makespan
+
+    doc = run_dynamic(quick=True, results_dir=tmp_path / "d", model="full", echo=False)
+    assert doc["model"] == "full" and doc["decisions"] == "full"
+    static = doc["summary"]["rl_static_makespan"]
+    assert static == ppo_solver("ppo:full")(builtin("sl00")).makespan
+    with pytest.raises(ValueError, match="full net, not through a Shop"):  # the model never runs on the wrong net
+        from fms_dispatch.rl.models import load_agent
+        from fms_sim.shop import Shop
+
+        load_agent("full").act(Shop(builtin("EX12")))
+    with pytest.raises(ValueError, match="unknown decisions 'both'"):
+        run_ablation(quick=True, results_dir=tmp_path, studies=["lookahead"], echo=False, decisions="both")
+    with pytest.raises(ValueError, match="unknown decisions"):
+        run_generalization(quick=True, results_dir=tmp_path, echo=False, decisions="both")
+
+
 def test_bad_options(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="size group 9"):
         run_generalization(quick=True, results_dir=tmp_path, groups=[9], echo=False)
@@ -133,6 +169,8 @@ def test_parser() -> None:
     a = p.parse_args(["experiment", "disruptions", "--seeds", "1", "--lookahead-max-ops", "300"])
     assert (a.seeds, a.lookahead_max_ops) == (1, 300)
     assert p.parse_args(["experiment", "disruptions"]).lookahead_max_ops == 100
+    assert p.parse_args(["experiment", "ablation"]).decisions == "paper"
+    assert p.parse_args(["experiment", "generalization", "--decisions", "full"]).decisions == "full"
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "nonsense"])
 
