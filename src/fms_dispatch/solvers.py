@@ -258,9 +258,9 @@ def searches_time(method: str) -> bool:
     return not (low.startswith(("rule:", "rules", "list")) or low in ("first", "random"))
 
 
-#: solvers that can run in a disrupted shop (option ``scenario``): online deciders on the full net, and plans
-#: executed without re-planning
-DISRUPTABLE = ("first", "random", "rule:", "plan:")
+#: solvers that can run in a disrupted shop (option ``scenario``): online deciders on the full net (rules,
+#: full-net PPO models), and plans executed without re-planning
+DISRUPTABLE = ("first", "random", "rule:", "plan:", "ppo")
 
 
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
@@ -273,8 +273,8 @@ def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule
         options = {k: v for k, v in options.items() if k != "scenario"}
     elif scenario is not None:
         if not solver.lower().startswith(DISRUPTABLE):
-            raise UnknownSolver(f"{solver} does not run in a disrupted shop; use first, random, rule: (full net) "
-                                "or plan:SOLVER (its plan executed under the disruptions)")
+            raise UnknownSolver(f"{solver} does not run in a disrupted shop; use first, random, rule: (full net), "
+                                "ppo:full (a full-net model) or plan:SOLVER (its plan executed under the disruptions)")
         scenario.check(instance)
     t0 = time.perf_counter()
     s = fn(instance, **options)

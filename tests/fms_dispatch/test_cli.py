@@ -177,6 +177,32 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
     assert code == 2 and "full-decision net only" in err
 
 
+def test_solve_runs_a_full_net_ppo_model_under_disruptions(tmp_path, capsys):
+    from fms_dispatch.experiments import _timed_run
+    from fms_dispatch.rl.lookahead import run_agent
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.disruptions import Scenario
+    from fms_sim.full_shop import FullShop
+    from fms_sim.snapshot import nominal_copy
+
+    out = tmp_path / "s.json"
+    inst = builtin("EX12")
+    agent = load_agent("full")
+    sc = Scenario(noise=0.2, seed=5)
+    for extra, lookahead in (([], False), (["--lookahead"], True)):
+        assert run(["solve", "EX12", "--solver", "ppo:full", "--noise", "0.2", "--seed", "5", "--out", str(out), "-q"]
+                   + extra, capsys)[0] == 0
+        s = Schedule.load(out)
+        assert s.meta["scenario"]["noise"] == 0.2 and s.meta["lookahead"] is lookahead
+        assert run(["validate", "EX12", str(out)], capsys)[0] == 0  # against the realised times
+        # the run the experiments measure: the model deciding in the disrupted shop (twins: nominal copies)
+        ref = (run_agent(FullShop(inst, scenario=sc), agent.act, lookahead=True, twin=nominal_copy) if lookahead
+               else _timed_run(inst, sc, None, agent.act)[0])
+        assert s.makespan == ref.makespan
+    code, _, err = run(["solve", "EX12", "--solver", "ppo:bu", "--noise", "0.1", "-q"], capsys)
+    assert code == 2 and "paper's net, which runs no disruptions" in err
+
+
 def test_solve_replans_a_plan_under_disruptions_and_refuses_bad_replan_options(tmp_path, capsys):
     out = tmp_path / "s.json"
     code, stdout, _ = run(["solve", "sl00", "--solver", "plan:list", "--noise", "0.2", "--seed", "3", "--replan", "0.3",

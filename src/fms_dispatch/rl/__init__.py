@@ -33,6 +33,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     ``lookahead="fast"`` is the lookahead without retries of rejected moves (``retry=False`` of
     :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`): 1.5-3.6 times faster on 15-20-job instances and
     6-8 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
+    ``scenario`` (breakdowns, outages, noise) disrupts the run of a full-net model; with the lookahead its twins
+    are then nominal copies of the shop (:func:`fms_sim.snapshot.nominal_copy`), which know only the past.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -42,8 +44,10 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     else:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
-    def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, **_: Any) -> Schedule:
+    def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
+              **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
+        from fms_sim.snapshot import nominal_copy
 
         from ..solvers import lookahead_suffix
         from .lookahead import run_agent
@@ -56,8 +60,15 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if not agent.fits(instance):
             raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
                              f"({agent.padding})")
+        disrupted = scenario is not None and not scenario.empty
+        if disrupted and agent.decisions != "full":
+            raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
+                             "full-net model (ppo:full)")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
-        sched = run_agent(make_shop(instance, agent.decisions), agent.act, lookahead=bool(lookahead), progress=report, retry=not fast)
+        shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
+        # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
+        sched = run_agent(shop, agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
+                          twin=nominal_copy if disrupted else None)
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["decisions"] = agent.decisions
