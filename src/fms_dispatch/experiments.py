@@ -591,7 +591,8 @@ def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: Any) 
 def run_disruptions(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                     seeds: int | None = None, cpsat_time: float | None = None, echo: bool = True,
                     replan_budget: float | None = None,
-                    lookahead_max_ops: int = DISRUPTION_LOOKAHEAD_MAX_OPS) -> dict[str, Any]:
+                    lookahead_max_ops: int = DISRUPTION_LOOKAHEAD_MAX_OPS,
+                    instances: Sequence[str] | None = None) -> dict[str, Any]:
     """Plans and rules in disrupted shops: breakdowns (2 per run, in the first half of the nominal plan, 5-15 %
     of it long) and noise 0 / 10 / 20 % on every duration, several seeds (issue 18 §5).
 
@@ -605,7 +606,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     verified lookahead (fast mode), whose twins are nominal copies of the shop
     (:func:`fms_sim.snapshot.nominal_copy`: what a dispatcher can know), on shops of at most
     ``lookahead_max_ops`` operations (the others are listed in ``not_measured``). Instances: sl{g}0 for
-    groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed)."""
+    groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed); ``instances``
+    (names among those) runs only these."""
     from fms_sim.disruptions import Scenario
     from fms_sim.formats import load_instance
 
@@ -649,6 +651,12 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     else:
         insts = ([(f"sl{g}0", mode) for g in range(5) for mode in ("tools", "agvs")]
                  + [(f"EX{s}2", "agvs") for s in range(1, 11)])
+    if instances:
+        unknown = sorted(set(instances) - {n for n, _ in insts})
+        if unknown:
+            raise ValueError(f"--instances: {', '.join(unknown)} not in this experiment (choose from "
+                             f"{', '.join(dict.fromkeys(n for n, _ in insts))})")
+        insts = [(n, m) for n, m in insts if n in set(instances)]
     rows: list[dict[str, Any]] = []
     for name, mode in insts:
         inst = load_instance(name)
@@ -816,6 +824,7 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, help="disruption seeds per instance and noise level (default 3; quick 1)")
     p.add_argument("--cpsat-time", type=float, help="CP-SAT plan time limit in s (default 10; quick 1)")
     p.add_argument("--replan-budget", type=float, help="seconds per re-plan (default 1; quick 0.2)")
+    p.add_argument("--instances", nargs="+", help="only these of the experiment's instances (e.g. sl00 EX12)")
     p.add_argument("--lookahead-max-ops", type=int, default=DISRUPTION_LOOKAHEAD_MAX_OPS,
                    help=f"PPO + lookahead only on shops with at most this many operations "
                         f"(default {DISRUPTION_LOOKAHEAD_MAX_OPS})")
@@ -830,7 +839,7 @@ def _cmd(a: argparse.Namespace) -> int:
         run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools, decisions=a.decisions)
     elif a.experiment == "disruptions":
         run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget,
-                        lookahead_max_ops=a.lookahead_max_ops)
+                        lookahead_max_ops=a.lookahead_max_ops, instances=a.instances)
     else:
         run_dynamic(a.quick, a.results_dir, a.seed, a.instance, a.model, a.sos_time)
     return 0

@@ -166,8 +166,8 @@ def test_parser() -> None:
     assert (a.groups, a.steps, a.quick, a.results_dir) == ([0, 2], 100, False, "results")
     a = p.parse_args(["experiment", "ablation", "--studies", "lookahead", "masking"])
     assert a.studies == ["lookahead", "masking"] and a.steps is None
-    a = p.parse_args(["experiment", "disruptions", "--seeds", "1", "--lookahead-max-ops", "300"])
-    assert (a.seeds, a.lookahead_max_ops) == (1, 300)
+    a = p.parse_args(["experiment", "disruptions", "--seeds", "1", "--lookahead-max-ops", "300", "--instances", "sl00"])
+    assert (a.seeds, a.lookahead_max_ops, a.instances) == (1, 300, ["sl00"])
     assert p.parse_args(["experiment", "disruptions"]).lookahead_max_ops == 100
     assert p.parse_args(["experiment", "ablation"]).decisions == "paper"
     assert p.parse_args(["experiment", "generalization", "--decisions", "full"]).decisions == "full"
@@ -216,6 +216,10 @@ def test_disruptions_run_the_lookahead_only_up_to_its_size_limit(tmp_path: Path)
     assert doc["replan_beats_ppo_lookahead"] == {"noise 0": "0/0", "noise 0.1": "0/0"}
     with pytest.raises(ValueError, match="--lookahead-max-ops"):
         run_disruptions(quick=True, results_dir=tmp_path, echo=False, lookahead_max_ops=-1)
+    doc = run_disruptions(quick=True, results_dir=tmp_path, echo=False, instances=["ra01"], seeds=1)
+    assert {r["instance"] for r in doc["rows"]} == {"ra01"}
+    with pytest.raises(ValueError, match="sl99 not in this experiment"):
+        run_disruptions(quick=True, results_dir=tmp_path, echo=False, instances=["sl99"])
 
 
 def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path,

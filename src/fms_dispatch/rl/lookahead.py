@@ -289,8 +289,11 @@ class LookaheadPlanner:
         """:meth:`plan` with every twin made by ``self.twin`` from the current state (nothing cached)."""
         assert self.twin is not None
         shop, choose = stepper.shop, self.choose
-        plain = _complete(self.twin(shop), choose)
-        dests = plain.next_pickups(shop, vehicles, self.horizon)
+        # the next tasks from a short rollout (it stops once every idle vehicle has one); the plain completion
+        # is run to the end only when there are moves to verify
+        twin_shop = self.twin(shop)
+        twin_shop.net.advance()
+        dests = _first_pickups(_rollout(twin_shop, choose, self.horizon), _targets(twin_shop, vehicles), vehicles)
         moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
                  if (dest := dests[(kind, v)]) is not None and dest != loc]
         if moves and self.verify and not self.retry:
@@ -298,6 +301,7 @@ class LookaheadPlanner:
             self.skipped += len(moves) - len(kept)
             moves = kept
         if moves and self.verify:
+            plain = _complete(self.twin(shop), choose)
             twin = Stepper(self.twin(shop), idle_stops=False)
             twin.idle_first, twin.looked, twin.kind, twin.idle = (stepper.idle_first, set(stepper.looked), "idle",
                                                                   list(stepper.idle))
