@@ -262,28 +262,39 @@ class LookaheadPlanner:
             dests = self.trajectory.next_pickups(shop, vehicles, self.horizon)
         else:
             dests = predict_tasks(shop, choose, vehicles, self.horizon, copies=ref)
+        moves = self._proposed(stepper, dests)
+        if moves and self.verify:
+            if self.trajectory is None or (self.trajectory.keys is None and not ref):
+                # after accepted moves the cache is their rollout, recorded without keys: record them now
+                self.trajectory = plain_trajectory(shop, choose, copies=ref, keys=not ref)
+            with_moves = _trajectory_after_moves(stepper, choose, moves, ref, None if ref else self.trajectory)
+            self.rejoined += with_moves.rejoined
+            if self._verdict(moves, with_moves.makespan, self.trajectory.makespan):
+                self.trajectory = with_moves
+            else:
+                moves = []
+        return moves
+
+    def _proposed(self, stepper: Stepper, dests: dict[tuple[str, int], int | None]) -> list[Move]:
+        """The moves of the idle vehicles to their next pickups (``dests``), less those not to be retried."""
         moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
                  if (dest := dests[(kind, v)]) is not None and dest != loc]
         if moves and self.verify and not self.retry:
             kept = [m for m in moves if m not in self._rejected]
             self.skipped += len(moves) - len(kept)
             moves = kept
-        if moves and self.verify:
-            if self.trajectory is None or (self.trajectory.keys is None and not ref):
-                # after accepted moves the cache is their rollout, recorded without keys: record them now
-                self.trajectory = plain_trajectory(shop, choose, copies=ref, keys=not ref)
-            with_moves = _trajectory_after_moves(stepper, choose, moves, ref, None if ref else self.trajectory)
-            self.verified += 1
-            self.rejoined += with_moves.rejoined
-            if with_moves.makespan < self.trajectory.makespan:
-                self.trajectory = with_moves
-                self.accepted += 1
-                self._rejected.clear()
-            else:
-                if not self.retry:
-                    self._rejected.update(moves)
-                moves = []
         return moves
+
+    def _verdict(self, moves: list[Move], made: int, plain: int) -> bool:
+        """Whether verified ``moves`` are kept (their completion ``made`` beats the ``plain`` one); counts."""
+        self.verified += 1
+        if made < plain:
+            self.accepted += 1
+            self._rejected.clear()
+            return True
+        if not self.retry:
+            self._rejected.update(moves)
+        return False
 
     def _plan_on_twins(self, stepper: Stepper, vehicles: list[tuple[str, int]]) -> list[Move]:
         """:meth:`plan` with every twin made by ``self.twin`` from the current state (nothing cached)."""
@@ -294,26 +305,14 @@ class LookaheadPlanner:
         twin_shop = self.twin(shop)
         twin_shop.net.advance()
         dests = _first_pickups(_rollout(twin_shop, choose, self.horizon), _targets(twin_shop, vehicles), vehicles)
-        moves = [Move(kind, v, dest) for kind, v, loc in stepper.idle
-                 if (dest := dests[(kind, v)]) is not None and dest != loc]
-        if moves and self.verify and not self.retry:
-            kept = [m for m in moves if m not in self._rejected]
-            self.skipped += len(moves) - len(kept)
-            moves = kept
+        moves = self._proposed(stepper, dests)
         if moves and self.verify:
             plain = _complete(self.twin(shop), choose)
             twin = Stepper(self.twin(shop), idle_stops=False)
             twin.idle_first, twin.looked, twin.kind, twin.idle = (stepper.idle_first, set(stepper.looked), "idle",
                                                                   list(stepper.idle))
             twin.move(moves)
-            made = _complete(twin.shop, choose).makespan
-            self.verified += 1
-            if made < plain.makespan:
-                self.accepted += 1
-                self._rejected.clear()
-            else:
-                if not self.retry:
-                    self._rejected.update(moves)
+            if not self._verdict(moves, _complete(twin.shop, choose).makespan, plain.makespan):
                 moves = []
         return moves
 
