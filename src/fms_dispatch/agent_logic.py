@@ -104,15 +104,22 @@ FEATURE_JOB_KEYS: dict[str, FeatureKey] = {
 assert set(FEATURE_JOB_KEYS) == set(JOB_RULES)
 
 
+_PAPER_KINDS = ("job", "agv", "tt")
+_FULL_KINDS = ("start", "use", "tool")  # and "hold", without a number
+
+
 def _legal(state: dict[str, Any]) -> list[tuple[str, int, str]]:
-    """The enabled actions of a state as ``(kind, number, label)``, in action order."""
+    """The enabled actions of a state as ``(kind, number, label)``, in action order (``hold``: number 0)."""
     out = []
     for label, enabled in zip(state["actions"], state["mask"]):
         if enabled:
+            if label == "hold":
+                out.append(("hold", 0, label))
+                continue
             kind, _, num = label.partition(":")
-            if kind not in ("job", "agv", "tt") or not num.isdigit():
+            if kind not in _PAPER_KINDS + _FULL_KINDS or not num.isdigit():
                 raise DecisionError(f"state {state['seq']} has an action label {label!r} this agent does not know "
-                                    "(expected job:J, agv:V or tt:R)")
+                                    "(expected job:J, agv:V, tt:R, or on the full net start:J, use:J, tool:T, hold)")
             out.append((kind, int(num), label))
     if not out:
         raise DecisionError(f"state {state['seq']} enables no action, so there is nothing to decide")
@@ -132,6 +139,9 @@ class RuleDecider:
 
     def __call__(self, state: dict[str, Any]) -> str:
         legal = _legal(state)
+        if any(k not in _PAPER_KINDS for k, _, _ in legal):
+            raise DecisionError(f"state {state['seq']} is of the full net; {self.name} decides on the paper's net "
+                                "(start the shop with decisions:=paper)")
         f = state.get("features")
         if f is None:
             raise DecisionError(f"state {state['seq']} has no 'features'; {self.name} needs them (start the shop "
@@ -644,11 +654,13 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead:
-        from .rl.lookahead import LookaheadPlanner
+        from .rl.lookahead import LookaheadPlanner, nominal_twin
 
-        planner = LookaheadPlanner(agent.act, retry=LOOKAHEAD_SUFFIXES[suffix] != "fast")
+        # a twin that mirrors a disrupted shop knows its scenario: the planner's twins are nominal copies then
+        planner = LookaheadPlanner(agent.act, retry=LOOKAHEAD_SUFFIXES[suffix] != "fast", twin=nominal_twin)
         canonical += suffix
     decider = TwinDecider(instance, agent.act, canonical, planner)
+    decider.decisions = agent.decisions  # a full-net model follows a full-net shop
     decider.model_path = agent.path
     return decider, canonical
 

@@ -604,7 +604,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     run in the disrupted shop (a list schedule is a plan: executed as one); ``ppo`` — the shipped full-net model
     (:data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes; ``ppo+lookahead`` — the same with the
     verified lookahead (fast mode), whose twins are nominal copies of the shop
-    (:func:`fms_sim.snapshot.nominal_copy`: what a dispatcher can know), on shops of at most
+    (:func:`~fms_dispatch.rl.lookahead.nominal_twin`: what a dispatcher can know), on shops of at most
     ``lookahead_max_ops`` operations (the others are listed in ``not_measured``). Instances: sl{g}0 for
     groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed); ``instances``
     (names among those) runs only these."""
@@ -617,9 +617,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
 
     from .rl.models import ModelNotFoundError
 
-    from fms_sim.snapshot import nominal_copy
-
-    from .rl.lookahead import run_with_lookahead
+    from .rl.lookahead import nominal_twin, run_with_lookahead
 
     missing: dict[str, str] = {}
     methods = DISRUPTION_METHODS
@@ -636,7 +634,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
 
         t0 = time.perf_counter()
         decisions: list[Any] = []
-        sched = run_with_lookahead(FullShop(inst, scenario=sc), agent.act, retry=False, twin=nominal_copy,
+        sched = run_with_lookahead(FullShop(inst, scenario=sc), agent.act, retry=False, twin=nominal_twin,
                                    decisions=decisions)
         return sched, len(decisions), time.perf_counter() - t0
 

@@ -251,9 +251,11 @@ def cmd_up(a: argparse.Namespace) -> int:
         solver, _, reason = best_solver(inst)
         say(reason)
     try:
-        make_decider(solver, a.seed, inst)
+        decider, _ = make_decider(solver, a.seed, inst)
     except UnavailableSolver as exc:
         raise UpError(str(exc)) from None
+    # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
+    full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
     disrupted = bool(a.scenario) or bool(a.noise)
     if disrupted:
         from .cli import scenario_from_args
@@ -262,9 +264,9 @@ def cmd_up(a: argparse.Namespace) -> int:
             scenario = scenario_from_args(a, inst)
         except ValueError as exc:  # a bad scenario file (ScenarioError), a bad --noise
             raise UpError(str(exc).splitlines()[0]) from None
-        if not (needs_full_net(solver) or solver.lower() in ("first", "random")):
+        if not (needs_full_net(solver) or full_model or solver.lower() in ("first", "random")):
             raise UpError(f"--scenario and --noise need a solver that decides on the full net (plan:..., first, "
-                          f"random), not {solver}")
+                          f"random, a full-net model such as ppo:full), not {solver}")
     if a.timeout <= 0:
         raise UpError("--timeout must be positive")
     if a.replan < 0:
@@ -300,7 +302,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     for stale in (sched_tmp, inst_final):
         stale.unlink(missing_ok=True)
 
-    full = needs_full_net(solver) or disrupted
+    full = needs_full_net(solver) or disrupted or full_model
     twin = needs_twin(solver) or needs_full_net(solver)
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if needs_full_net(solver):

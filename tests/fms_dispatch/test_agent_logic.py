@@ -279,6 +279,48 @@ def test_ppo_lookahead_over_messages_equals_the_offline_solver(name: str, fast: 
     assert agent.decide.rebuilds == 1
 
 
+@pytest.mark.parametrize("name", ["EX12", "ra01"])
+def test_full_net_ppo_lookahead_in_a_disrupted_shop_over_messages_equals_the_offline_solver(name: str) -> None:
+    """The agent's twin mirrors the shop's scenario (noise seed, breakdowns), so its lookahead plans on nominal
+    copies, as the offline solver does: neither sees the disrupted future, and the runs are the same."""
+    from fms_dispatch.rl import ppo_solver
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    inst = builtin(name)
+    sc = Scenario(breakdowns=(Breakdown(2, 20, 15),), noise=0.2, seed=4)
+    ref = ppo_solver("ppo:full")(inst, lookahead=True, scenario=sc)
+    svc = ShopService(inst, run_id="d", history=True, idle_stops=True, decisions="full", scenario=sc)
+    agent = AgentLogic("ppo:full+lookahead", instance=inst)
+    svc.start()
+    while not svc.done:
+        (cmd,) = agent.on_state(encode(svc.state))
+        assert not [o for o in svc.handle_command(encode(cmd.msg)) if o.topic == m.TOPIC_ERRORS]
+    got = svc.final_schedule
+    for key in ("operations", "agv_trips", "tool_trips", "makespan"):
+        assert got.to_dict()[key] == ref.to_dict()[key], key
+    assert validate(inst, got) == [] and svc.idle_answers > 0
+
+
+def test_first_and_random_decide_on_the_full_net_and_rules_refuse_it() -> None:
+    inst = builtin("ra01")
+    for solver in ("first", "random"):
+        svc = ShopService(inst, run_id=solver, decisions="full")
+        decide, _ = make_decider(solver, 3, inst)
+        svc.start()
+        labels = set()
+        while not svc.done:
+            label = decide(svc.state)
+            labels.add(label.split(":")[0])
+            out = svc.handle_command(encode(m.make_command(svc.run_id, svc.state_seq, label, agent=solver)))
+            assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+        assert validate(inst, svc.final_schedule) == [] and labels & {"start", "use", "tool"}
+    rule, _ = make_decider("rule:MTWR+nearest")
+    svc = ShopService(inst, run_id="r", decisions="full")
+    svc.start()
+    with pytest.raises(DecisionError, match="is of the full net; rule:MTWR\\+nearest decides on the paper's net"):
+        rule(svc.state)
+
+
 def test_lookahead_moves_vehicles_over_messages_and_restarts() -> None:
     from fms_dispatch.rl import ppo_solver
 

@@ -121,3 +121,31 @@ def test_stop_all_sends_each_node_one_sigint(tmp_path: Path, monkeypatch: pytest
             time.sleep(0.01)
     assert up.stop_all(nodes, 10.0) == {"n0": 0, "n1": 0}
     assert sorted(sent) == sorted((n.proc.pid, signal.SIGINT) for n in nodes)
+
+
+def test_a_full_net_model_runs_the_shop_on_the_full_net(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
+    """`fms up --solver ppo:full` (also in a disrupted shop) starts the shop on the full net with history, so the
+    agent's twin follows it; a paper-net model under disruptions is refused before any node starts."""
+    fake_nodes()
+    seen: dict[str, dict[str, Any]] = {}
+    fake = up.node_command
+
+    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+        seen[module.rsplit(".", 1)[1]] = params
+        return fake(module, params, python)
+
+    monkeypatch.setattr(up, "node_command", command)
+    for extra, idle in (([], False), (["--noise", "0.1"], False)):
+        seen.clear()
+        (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)  # (the stand-in recorder's chart)
+        code = up.main(["EX12", "--solver", "ppo:full", "--out", str(tmp_path / "out" / "s.json"), "--db",
+                        str(tmp_path / "out" / "fms.sqlite"), "--run-id", "t1", "--timeout", "60", *extra])
+        assert code == up.EXIT_OK
+        shop, agent = seen["shop_node"], seen["agent_node"]
+        assert shop["decisions"] == "full" and shop["history"] is True and shop["idle_stops"] is idle
+        assert agent["solver"] == "ppo:full" and "instance" in agent
+        assert ("noise" in shop) is bool(extra)
+    seen.clear()
+    code = up.main(["EX12", "--solver", "ppo:bu", "--noise", "0.1", "--out", str(tmp_path / "out" / "b.json"),
+                    "--db", str(tmp_path / "out" / "fms.sqlite")])
+    assert code == 2 and not seen and "a full-net model such as ppo:full" in capsys.readouterr().err

@@ -34,7 +34,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`): 1.5-3.6 times faster on 15-20-job instances and
     6-8 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
     ``scenario`` (breakdowns, outages, noise) disrupts the run of a full-net model; with the lookahead its twins
-    are then nominal copies of the shop (:func:`fms_sim.snapshot.nominal_copy`), which know only the past.
+    are then nominal copies of the shop (:func:`~fms_dispatch.rl.lookahead.nominal_twin`), which know only the past.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -47,10 +47,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
               **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
-        from fms_sim.snapshot import nominal_copy
 
         from ..solvers import lookahead_suffix
-        from .lookahead import run_agent
+        from .lookahead import nominal_twin, run_agent
         from .models import default_model_name, load_agent
 
         suffix = lookahead_suffix(lookahead)  # also rejects a bad value before any work
@@ -68,7 +67,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
         # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
         sched = run_agent(shop, agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
-                          twin=nominal_copy if disrupted else None)
+                          twin=nominal_twin)
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["decisions"] = agent.decisions

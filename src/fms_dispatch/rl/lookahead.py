@@ -19,11 +19,13 @@ agent node (``ppo+lookahead``), so over ROS topics the run is the same as offlin
 
 In a **disrupted** shop (a :class:`~fms_sim.full_shop.FullShop` with a scenario: noise, breakdowns, outages)
 a trial run on the shop itself would see its realised future, which no dispatcher knows. There the twins are
-made by a ``twin`` function instead (``twin=nominal_copy``, :func:`fms_sim.snapshot.nominal_copy`): a copy
-whose future is the nominal one (no noise on what is still to come, no breakdown or outage that has not
+made by a ``twin`` function instead (:func:`nominal_twin`, built on :func:`fms_sim.snapshot.nominal_copy`):
+a copy whose future is the nominal one (no noise on what is still to come, no breakdown or outage that has not
 begun). Each idle stop then predicts and verifies from a fresh nominal copy of the current state (the real run
 leaves the predicted trajectory as soon as a time differs, so nothing is cached), and "never worse than the
-plain policy" holds for the predictions, not for the realised run.
+plain policy" holds for the predictions, not for the realised run. :func:`nominal_twin` makes no twin for an
+undisrupted shop (it returns None), so the same planner keeps the cached trial runs there; the offline solver,
+the disruptions experiment and the agent node (whose twin mirrors the shop's scenario) all use it.
 """
 
 from __future__ import annotations
@@ -34,14 +36,23 @@ from typing import Any, Callable, Iterable, Iterator
 
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
+from fms_sim.snapshot import nominal_copy
 from fms_sim.stepping import Move, Stepper
 
 __all__ = ["run_agent", "run_with_lookahead", "predict_task", "predict_tasks", "LookaheadPlanner", "Trajectory",
-           "finish", "plain_trajectory", "TwinMaker"]
+           "finish", "plain_trajectory", "TwinMaker", "nominal_twin"]
 
 Choose = Callable[[Shop], int]
-#: makes a twin of a shop for the lookahead's predictions (e.g. :func:`fms_sim.snapshot.nominal_copy`)
-TwinMaker = Callable[[Shop], Shop]
+#: makes a twin of a shop for the lookahead's predictions, or None: trial runs on the shop itself will do
+TwinMaker = Callable[[Shop], "Shop | None"]
+
+
+def nominal_twin(shop: Shop) -> Shop | None:
+    """A nominal copy (:func:`fms_sim.snapshot.nominal_copy`) of a disrupted shop; None for one without a
+    scenario, whose trial runs know nothing a dispatcher does not."""
+    if getattr(shop, "scenario", None) is None:
+        return None
+    return nominal_copy(shop)  # type: ignore[arg-type]  # (only a FullShop has a scenario)
 
 #: at most this many decisions are simulated in the twin per idle vehicle
 DEFAULT_HORIZON = 200
@@ -220,9 +231,10 @@ class LookaheadPlanner:
     the end. Its moves are the same. ``verified``, ``accepted`` and ``rejoined`` count the verifying rollouts,
     those whose moves were kept, and those stopped early.
 
-    ``twin`` (e.g. :func:`fms_sim.snapshot.nominal_copy`, for disrupted shops; see the module docstring): every
-    twin is ``twin(shop)`` and every idle stop predicts and verifies afresh from the current state; without
-    disruptions its moves are the reference's.
+    ``twin`` (:func:`nominal_twin` for disrupted shops; see the module docstring): where ``twin(shop)`` makes a
+    twin, every twin is ``twin(shop)`` and every idle stop predicts and verifies afresh from the current state
+    (with :func:`fms_sim.snapshot.nominal_copy` on an undisrupted shop, the moves are the reference's); where it
+    returns None, the planner runs trials on the shop itself as without it.
 
     ``retry=False`` is the *fast* lookahead for very large instances: a move (vehicle, location) that a
     verification rejected is not proposed again until some moves are accepted (which changes the planned
@@ -254,8 +266,9 @@ class LookaheadPlanner:
         shop, choose = stepper.shop, self.choose
         vehicles = [(m.kind, m.vehicle) for m in stepper.idle]
         ref = self.reference
-        if self.twin is not None:
-            return self._plan_on_twins(stepper, vehicles)
+        first = self.twin(shop) if self.twin is not None else None
+        if first is not None:
+            return self._plan_on_twins(stepper, vehicles, first)
         if self.verify and not ref:
             if self.trajectory is None:
                 self.trajectory = plain_trajectory(shop, choose, keys=True)
@@ -274,6 +287,11 @@ class LookaheadPlanner:
             else:
                 moves = []
         return moves
+
+    def _made(self, shop: Shop) -> Shop:
+        twin = self.twin(shop) if self.twin is not None else None
+        assert twin is not None  # (the shop was disrupted at this stop, so it still is)
+        return twin
 
     def _proposed(self, stepper: Stepper, dests: dict[tuple[str, int], int | None]) -> list[Move]:
         """The moves of the idle vehicles to their next pickups (``dests``), less those not to be retried."""
@@ -296,19 +314,19 @@ class LookaheadPlanner:
             self._rejected.update(moves)
         return False
 
-    def _plan_on_twins(self, stepper: Stepper, vehicles: list[tuple[str, int]]) -> list[Move]:
-        """:meth:`plan` with every twin made by ``self.twin`` from the current state (nothing cached)."""
+    def _plan_on_twins(self, stepper: Stepper, vehicles: list[tuple[str, int]], twin_shop: Shop) -> list[Move]:
+        """:meth:`plan` with every twin made by ``self.twin`` from the current state (``twin_shop`` the first;
+        nothing cached)."""
         assert self.twin is not None
         shop, choose = stepper.shop, self.choose
         # the next tasks from a short rollout (it stops once every idle vehicle has one); the plain completion
         # is run to the end only when there are moves to verify
-        twin_shop = self.twin(shop)
         twin_shop.net.advance()
         dests = _first_pickups(_rollout(twin_shop, choose, self.horizon), _targets(twin_shop, vehicles), vehicles)
         moves = self._proposed(stepper, dests)
         if moves and self.verify:
-            plain = _complete(self.twin(shop), choose)
-            twin = Stepper(self.twin(shop), idle_stops=False)
+            plain = _complete(self._made(shop), choose)
+            twin = Stepper(self._made(shop), idle_stops=False)
             twin.idle_first, twin.looked, twin.kind, twin.idle = (stepper.idle_first, set(stepper.looked), "idle",
                                                                   list(stepper.idle))
             twin.move(moves)
