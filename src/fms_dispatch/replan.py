@@ -196,8 +196,8 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
 
     ``rules`` (``(name, full-net rule)`` pairs; with ``sim`` only) are further candidates: each rule completes
     a copy of ``sim``, and the run's schedule is a plan, predicted by simulating its orders like the others
-    (following a plan's orders can end earlier than the rule did: vehicles are sent as soon as the orders allow). They are tried
-    first, while at least half the budget is left; a rule reacts to the state it meets, so after a breakdown or
+    (following a plan's orders can end earlier than the rule did: vehicles are sent as soon as the orders
+    allow). They are tried first, while at least half the budget is left; a rule reacts to the state it meets, so after a breakdown or
     under noise its continuation can beat every list schedule of the remaining work."""
     t0 = time.monotonic()
     deadline = t0 + budget
