@@ -60,6 +60,8 @@ FULL_JOB_FEATURES = ("legal_start", "buffered", "legal_use", "request_due", "dis
 FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "requests", "due")
 #: the full net's action blocks after the paper's (job, agv, tt), in this order
 FULL_BLOCKS = ("start", "tool", "use", "hold")
+#: every kind of full-net action
+FULL_KINDS = ("job", "agv", "tt") + FULL_BLOCKS
 
 
 class _Tables:
@@ -88,6 +90,7 @@ class _Tables:
                 self.load_suffix[j, k, ops[k].machine] += ops[k].duration
         self.rows = np.arange(n)
         self.travel: np.ndarray | None = None  # the AGV travel matrix as an array, made when first needed
+        self.guide: tuple[Instance, Any] | None = None  # a subclass's plan guide: (planned for, guide)
 
 
 class ShopEnv(gym.Env):
@@ -218,6 +221,14 @@ class ShopEnv(gym.Env):
         kinds = [self.shop.action_kind(a) for a in range(self.shop.n_actions)]
         self._net_to_env = [self._offset[k] + n for k, n in kinds]
         self._env_to_net = {e: a for a, e in enumerate(self._net_to_env)}
+        # each net action's kind (index in FULL_KINDS) and number, for reading legal actions by kind at once
+        self._kind_code = np.array([FULL_KINDS.index(k) for k, _ in kinds], dtype=np.int64)
+        self._kind_num = np.array([n for _, n in kinds], dtype=np.int64)
+
+    def legal_of_kind(self, legal: list[int], kind: str) -> np.ndarray:
+        """The numbers (job, tool, vehicle) of the legal full-net actions of ``kind``."""
+        la = np.asarray(legal, dtype=np.int64)
+        return self._kind_num[la[self._kind_code[la] == FULL_KINDS.index(kind)]]
 
     def _to_net(self, a: int) -> int | None:
         s = self.shop
@@ -361,14 +372,14 @@ class ShopEnv(gym.Env):
         the parts and tools stand in their reservations. ``loc``: each job's part location (-1: none or on a
         vehicle), as :meth:`_obs` read it."""
         inst = self.instance
-        kinds: dict[str, list[int]] = {}
-        for a in legal:
-            k, num = s.action_kind(a)
-            kinds.setdefault(k, []).append(num)
-        g = np.array(("start" in kinds, "tool" in kinds, "use" in kinds, "hold" in kinds), dtype=np.float32)
+        la = np.asarray(legal, dtype=np.int64)
+        codes, nums = self._kind_code[la], self._kind_num[la]
+        starts, tools, uses = (nums[codes == FULL_KINDS.index(k)] for k in ("start", "tool", "use"))
+        g = np.array((starts.size > 0, tools.size > 0, uses.size > 0, (codes == FULL_KINDS.index("hold")).any()),
+                     dtype=np.float32)
         J = np.zeros((self.max_jobs, len(FULL_JOB_FEATURES)), dtype=np.float32)
-        J[kinds.get("start", []), 0] = 1.0
-        J[kinds.get("use", []), 2] = 1.0
+        J[starts, 0] = 1.0
+        J[uses, 2] = 1.0
         chosen = s.tool_choice
         tb = self._t()
         n = inst.n_jobs
@@ -405,7 +416,7 @@ class ShopEnv(gym.Env):
         J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done, loc) / self._scale
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
-            T[[t - 1 for t in kinds.get("tool", [])], 0] = 1.0
+            T[tools - 1, 0] = 1.0
             for t in range(1, inst.n_tools + 1):
                 T[t - 1, 1:] = (s.tool_user[t] is not None, s.tool_running[t], s.tool_next[t] is not None,
                                 chosen == t, len(s.treq[t]) / max(1, inst.n_jobs), due_count[t] / inst.n_jobs)

@@ -77,6 +77,7 @@ class FullShop(Shop):
         if scenario is not None:
             scenario.check(instance)
         self.scenario = scenario if scenario is not None and not scenario.empty else None
+        self._kinds: list[tuple[str, int]] = []  # action_kind per controllable transition, parsed once
         super().__init__(instance, incremental=incremental)
 
     # ------------------------------------------------------------------ building
@@ -668,10 +669,13 @@ class FullShop(Shop):
 
     def action_kind(self, action: int) -> tuple[str, int]:
         """``(kind, number)`` for an action index: kinds job, agv, tt, start, tool, use; ``("hold", 0)``."""
-        if action == self.hold_action:
+        ctrl = self.net.controllable
+        if action == len(ctrl):
             return HOLD, 0
-        kind, num = self.net.controllable[action].label.split(":")
-        return kind, int(num)
+        kinds = self._kinds
+        if len(kinds) != len(ctrl):  # parsed once per layout (a live order adds transitions)
+            kinds = self._kinds = [(k, int(n)) for k, n in (t.label.split(":") for t in ctrl)]
+        return kinds[action]
 
     def action_index(self, label: str) -> int:
         try:

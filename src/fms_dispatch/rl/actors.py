@@ -92,6 +92,12 @@ class NumpyEntityActor:
                 size = L[name] * L[f]
                 rows[name] = np.concatenate([rows[name], obs[i:i + size].reshape(L[name], L[f])], axis=1)
                 i += size
+        if L.get("guide"):  # the guide's features join the rows they describe (as in EntityNet._split)
+            for name, f in (("jobs", "guide_job_f"), ("tools", "guide_tool_f"), ("agvs", "guide_agv_f"),
+                            ("tts", "guide_tt_f")):
+                size = L[name] * L[f]
+                rows[name] = np.concatenate([rows[name], obs[i:i + size].reshape(L[name], L[f])], axis=1)
+                i += size
         # rows that exist: the 'present' feature is 1 exactly for them, and they come first
         n = {b: int(rows[b][:, 0].sum()) if L[b] else 0 for b in rows}
         jobs = rows["jobs"][:n["jobs"]]

@@ -53,7 +53,7 @@ class Agent:
     """
 
     def __init__(self, model_path: str | Path, padding: dict[str, int], name: str = "", torch: bool = False,
-                 decisions: str = "paper"):
+                 decisions: str = "paper", guide: str | None = None):
         path = Path(model_path)
         if not path.is_file():
             raise ValueError(f"model file {path} does not exist")
@@ -62,6 +62,11 @@ class Agent:
             raise ValueError(f"model {self.name}: unknown decisions {decisions!r}; choose paper or full")
         self.decisions = decisions
         """The net the model was trained on and decides through (its config's ``decisions``)."""
+        from .envs import check_guide
+
+        check_guide(guide, decisions)
+        self.guide = guide
+        """The observation's plan guide (its config's ``guide``; :mod:`fms_dispatch.rl.envs`)."""
         self.path = path
         self.padding = dict(padding)
         self.policy: Any = None  # the torch policy, when loaded
@@ -80,12 +85,16 @@ class Agent:
         from .actors import NumpyEntityActor
         from .envs import obs_layout, obs_size
 
-        want = obs_size(obs_layout(self.padding, self.decisions))
+        want = obs_size(obs_layout(self.padding, self.decisions, self.guide))
         if isinstance(self.actor, NumpyEntityActor):
             if bool(self.actor.lay.get("full")) != (self.decisions == "full"):
                 made = "full" if self.actor.lay.get("full") else "paper"
                 raise ValueError(f"model {self.name} was trained on the {made!r} net, but its config says "
                                  f"{self.decisions!r}")
+            if bool(self.actor.lay.get("guide")) != (self.guide is not None):
+                made = "with" if self.actor.lay.get("guide") else "without"
+                raise ValueError(f"model {self.name} was trained {made} a plan guide, but its config says guide "
+                                 f"{self.guide!r}")
             got = obs_size(self.actor.lay)
         elif self.actor is not None:
             got = int(self.actor.layers[0][0].shape[0])
@@ -126,7 +135,7 @@ class Agent:
             if isinstance(shop, FullShop) != (self.decisions == "full"):
                 raise ValueError(f"model {self.name} decides through the {self.decisions} net, not through a "
                                  f"{type(shop).__name__}")
-            env = FastShopEnv(shop.instance, decisions=self.decisions, **self.padding)
+            env = FastShopEnv(shop.instance, decisions=self.decisions, guide=self.guide, **self.padding)
             env.attach(shop)
             if self._last is not None:
                 env.adopt_tables(self._last)  # twins share the real shop's instance tables

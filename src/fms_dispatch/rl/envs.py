@@ -7,6 +7,15 @@ in a few seconds) plus :meth:`FastShopEnv.attach`, so that inference and lookahe
 Padding profiles (``PADDING``) name the maximum layouts of the shipped models: ``"large"`` (100 jobs x 20
 machines x 20 tools, 10 AGVs, 5 transporters: every large-benchmark instance) and ``"bu"`` (8 jobs x 4 machines,
 2 AGVs, no tools: the Bilge-Ulusoy sets).
+
+Guide (``guide="list"``, full net only): when a run starts the better of the earliest-start and
+earliest-completion list schedules is planned once
+(:func:`fms_dispatch.rl.guide.guide_plan`), and every observation ends with that plan's orders as read from the
+state (:class:`fms_dispatch.rl.guide.PlanGuide`): per job, tool, AGV and transporter whether its planned next
+order can be carried out now, and each job's rank and lateness in the plan (``GUIDE_*_FEATURES``). A policy can
+then follow the plan, which replayed through the net is the list schedule, and learn where to depart from it.
+Twins of a shop share its guide (:meth:`FastShopEnv.adopt_tables`); a shop first seen after it started, or
+after its jobs changed (a live order), gets a plan from its state.
 """
 
 from __future__ import annotations
@@ -15,12 +24,22 @@ from typing import Sequence
 
 import numpy as np
 
-from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
+from gymnasium import spaces
+
+from fms_sim.env import (OBS_HIGH, AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
                          JOB_FEATURES, MACHINE_FEATURES, TOOL_FEATURES, ShopEnv)
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-__all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size"]
+from .guide import GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanGuide
+
+__all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
+
+#: observation guides (see the module docstring); None: no guide
+GUIDES = ("list",)
+#: the guide's blocks: (layout key, rows, features), in the observation's order
+_GUIDE_BLOCKS = (("guide_job_f", "jobs", GUIDE_JOB_FEATURES), ("guide_tool_f", "tools", GUIDE_TOOL_FEATURES),
+                 ("guide_agv_f", "agvs", GUIDE_AGV_FEATURES), ("guide_tt_f", "tts", GUIDE_TT_FEATURES))
 
 #: Maximum layouts (env keyword arguments) by profile name.
 PADDING: dict[str, dict[str, int]] = {
@@ -45,12 +64,25 @@ def padding_for(profile: str | dict[str, int] | None, instances: Sequence[Instan
     return dict(PADDING[profile])
 
 
-def obs_layout(padding: dict[str, int], decisions: str = "paper") -> dict[str, int]:
+def check_guide(guide: str | None, decisions: str) -> None:
+    """Raise ValueError for an unknown guide or a guide on the paper's net."""
+    if guide is None:
+        return
+    if guide not in GUIDES:
+        raise ValueError(f"unknown guide {guide!r}; choose from {', '.join(GUIDES)} (or none)")
+    if decisions != "full":
+        raise ValueError(f"the guide {guide!r} describes full-net decisions: set decisions to full")
+
+
+def obs_layout(padding: dict[str, int], decisions: str = "paper", guide: str | None = None) -> dict[str, int]:
     """Block sizes of the flat observation (rows and features per block), for the entity policy.
 
     With ``decisions="full"`` the layout also has ``full=1`` and the sizes of the full net's extra blocks,
     which follow the paper's in the observation: ``full_g`` global features, ``full_job_f`` features per job
-    and ``full_tool_f`` per tool (:data:`fms_sim.env.FULL_GLOBAL_FEATURES` etc.)."""
+    and ``full_tool_f`` per tool (:data:`fms_sim.env.FULL_GLOBAL_FEATURES` etc.). With a ``guide``, ``guide=1``
+    and the guide's features per job, tool, AGV and transporter (``guide_job_f``, ``guide_tool_f``,
+    ``guide_agv_f``, ``guide_tt_f``; :mod:`fms_dispatch.rl.guide`) come last, in that order."""
+    check_guide(guide, decisions)
     lay = dict(n_global=len(GLOBAL_FEATURES), jobs=padding["max_jobs"], job_f=len(JOB_FEATURES),
                machines=padding["max_machines"], machine_f=len(MACHINE_FEATURES),
                tools=padding["max_tools"], tool_f=len(TOOL_FEATURES),
@@ -61,6 +93,8 @@ def obs_layout(padding: dict[str, int], decisions: str = "paper") -> dict[str, i
                    full_tool_f=len(FULL_TOOL_FEATURES))
     elif decisions != "paper":
         raise ValueError(f"unknown decisions {decisions!r}; choose paper or full")
+    if guide is not None:
+        lay.update(guide=1, **{key: len(f) for key, _, f in _GUIDE_BLOCKS})
     return lay
 
 
@@ -70,11 +104,52 @@ def obs_size(layout: dict[str, int]) -> int:
         ("jobs", "job_f"), ("machines", "machine_f"), ("tools", "tool_f"), ("agvs", "agv_f"), ("tts", "tt_f")))
     if layout.get("full"):
         n += layout["full_g"] + layout["jobs"] * layout["full_job_f"] + layout["tools"] * layout["full_tool_f"]
+    if layout.get("guide"):
+        n += sum(layout[rows] * layout[key] for key, rows, _ in _GUIDE_BLOCKS)
     return n
 
 
+def _same_fleet(a: Instance, b: Instance) -> bool:
+    """Whether two instances with the same jobs have the same vehicles, tools and travel times."""
+    return (a.n_agvs, a.n_tool_transporters, a.has_agvs, a.has_tools, a.agv_travel, a.tool_travel) == (
+        b.n_agvs, b.n_tool_transporters, b.has_agvs, b.has_tools, b.agv_travel, b.tool_travel)
+
+
 class FastShopEnv(ShopEnv):
-    """:class:`ShopEnv` that can observe a live shop; see the module docstring."""
+    """:class:`ShopEnv` that can observe a live shop, optionally with a plan's guide; see the module
+    docstring."""
+
+    def __init__(self, instances, *, guide: str | None = None, **kwargs):
+        super().__init__(instances, **kwargs)
+        check_guide(guide, self.decisions)
+        self.guide = guide
+        if guide is not None:
+            padding = dict(max_jobs=self.max_jobs, max_machines=self.max_machines, max_tools=self.max_tools,
+                           max_agvs=self.max_agvs, max_tts=self.max_tts)
+            size = obs_size(obs_layout(padding, self.decisions, guide))
+            self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
+
+    def _obs(self) -> np.ndarray:
+        obs = super()._obs()
+        if self.guide is None:
+            return obs
+        legal_tools = self.legal_of_kind(self.shop.legal_actions(), "tool").tolist()
+        rows = self._guide().features(self.shop, legal_tools, self.max_jobs, self.max_tools, self.max_agvs,
+                                      self.max_tts)
+        return np.concatenate([obs] + [r.ravel() for r in rows])
+
+    def _guide(self) -> PlanGuide:
+        """The guide of the observed shop, kept with the instance tables. Tables follow the jobs only, so a guide
+        is reused only for the same fleet and travel times."""
+        tb = self._t()
+        inst = self.instance
+        if tb.guide is not None:
+            planned_for, guide = tb.guide
+            if planned_for is inst or _same_fleet(planned_for, inst):
+                return guide
+        guide = PlanGuide.for_shop(self.shop)
+        tb.guide = (inst, guide)
+        return guide
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:
@@ -107,4 +182,4 @@ class FastShopEnv(ShopEnv):
     def adopt_tables(self, other: "FastShopEnv") -> None:
         """Reuse ``other``'s instance tables (a twin's shop has an equal copy of the instance)."""
         if other._tables is not None:
-            self._tables, self._tables_for = other._tables, None
+            self._tables, self._tables_for = other._tables, None  # the guide's plan comes with them

@@ -120,6 +120,14 @@ class ModelRef:
         if self.decisions not in DECISIONS:
             raise ValueError(f"model {self.name}: unknown decisions {self.decisions!r} in its config "
                              f"(choose from {', '.join(DECISIONS)})")
+        #: the observation's plan guide (None: none; :mod:`fms_dispatch.rl.envs`)
+        self.guide = self.config.get("guide")
+        from .envs import check_guide
+
+        try:
+            check_guide(self.guide, self.decisions)
+        except ValueError as exc:
+            raise ValueError(f"model {self.name}: {exc}") from None
 
     def __repr__(self) -> str:
         return f"ModelRef({self.name!r}, {self.weights})"
@@ -154,14 +162,15 @@ def default_model_name(inst: Instance) -> str:
 
 
 @functools.lru_cache(maxsize=8)
-def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisions: str = "paper") -> Any:
+def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisions: str = "paper",
+                  guide: str | None = None) -> Any:
     from .agent import Agent
 
-    return Agent(weights, dict(padding), name=name, decisions=decisions)
+    return Agent(weights, dict(padding), name=name, decisions=decisions, guide=guide)
 
 
 def load_agent(spec: str) -> Any:
     """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file)."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
-                         ref.name, ref.decisions)
+                         ref.name, ref.decisions, ref.guide)

@@ -11,6 +11,10 @@ best schedules the project can compute become experts:
   demonstration ``(observation, mask, action)``.
 * :func:`plan_dagger_round` — DAgger (Ross et al., 2011): the current policy drives, and every state it reaches
   is labelled by the same :class:`PlanPriorityPolicy` (the plan's priorities apply in any state).
+* expert ``guide`` — the earliest-start list schedule acted out by :class:`fms_dispatch.rl.guide.GuideFollower`
+  (the replay read from states, so it labels any state too). It is the expert of a guided model
+  (``guide="list"``), whose observation shows the same plan's orders: its decisions are a function of what the
+  policy sees.
 
 Why not the plan's own execution (:class:`fms_sim.replay.PlanPolicy`, exact to the time unit)? Its waits
 ("hold until the planned part arrives") depend on the whole plan, not on what a state shows: a policy cloned
@@ -33,20 +37,30 @@ from fms_sim.schedule import Schedule
 
 from ..full_rules import FullRulePolicy
 
-__all__ = ["is_plan_expert", "expert_plan", "PlanPriorityPolicy", "plan_trajectory", "plan_demonstrations",
+__all__ = ["GUIDE_EXPERT", "is_plan_expert", "expert_plan", "expert_policy", "PlanPriorityPolicy",
+           "plan_trajectory", "plan_demonstrations",
            "plan_dagger_round", "plan_dagger"]
 
 
+#: the guide follower's expert name (see the module docstring)
+GUIDE_EXPERT = "guide"
+
+
 def is_plan_expert(expert: str | None) -> bool:
-    """Whether ``expert`` names a plan expert (``plan:SOLVER[:SECONDS]``)."""
-    return bool(expert) and str(expert).lower().startswith("plan:")
+    """Whether ``expert`` names a plan expert (``plan:SOLVER[:SECONDS]``, or ``guide``)."""
+    return bool(expert) and (str(expert).lower().startswith("plan:") or str(expert).lower() == GUIDE_EXPERT)
 
 
 def expert_plan(inst: Instance, expert: str, seed: int = 0) -> Schedule:
     """The offline plan of ``expert`` (``plan:SOLVER[:SECONDS]``) for ``inst`` (one CP-SAT worker, so several
-    experts can run side by side and the result does not depend on the machine's core count)."""
+    experts can run side by side and the result does not depend on the machine's core count); for ``guide``
+    the guide's plan (the earliest-start list schedule)."""
     from ..solvers import make_plan, parse_plan_name
 
+    if expert.lower() == GUIDE_EXPERT:
+        from .guide import guide_plan
+
+        return guide_plan(FullShop(inst))
     base, seconds = parse_plan_name(expert)
     opts: dict[str, Any] = {"seed": seed}
     if base.lower().startswith("cpsat"):
@@ -62,10 +76,10 @@ def _ret(env: Any, reward: str, lb: int, makespan: int) -> float:
     return float("nan")
 
 
-def _env(inst: Instance, shop: FullShop, padding: dict[str, int], reward: str) -> Any:
+def _env(inst: Instance, shop: FullShop, padding: dict[str, int], reward: str, guide: str | None = None) -> Any:
     from .envs import FastShopEnv
 
-    env = FastShopEnv(inst, reward=reward, decisions="full", **padding)
+    env = FastShopEnv(inst, reward=reward, decisions="full", guide=guide, **padding)
     env.attach(shop)
     return env
 
@@ -99,14 +113,24 @@ class PlanPriorityPolicy(FullRulePolicy):
         return shop.action_index(f"use:{min(jobs, key=lambda j: self._planned(j, shop.request_of(t, j)))}")
 
 
+def expert_policy(inst: Instance, plan: Schedule, follow: bool = False) -> Callable[[FullShop], int]:
+    """The policy that acts ``plan`` out: :class:`PlanPriorityPolicy`, or with ``follow`` the guide follower."""
+    if follow:
+        from .guide import GuideFollower, PlanGuide
+
+        return GuideFollower(PlanGuide(inst, plan))
+    return PlanPriorityPolicy(plan)
+
+
 def plan_trajectory(inst: Instance, plan: Schedule, padding: dict[str, int], reward: str,
-                    rows: tuple[list, list, list, list]) -> int:
-    """Run :class:`PlanPriorityPolicy` of ``plan`` on a fresh full net, appending its decisions with a choice to
-    ``rows`` (observations, masks, env actions, returns-to-go); returns the makespan reached."""
+                    rows: tuple[list, list, list, list], guide: str | None = None, follow: bool = False) -> int:
+    """Run :class:`PlanPriorityPolicy` of ``plan`` (with ``follow``: the guide follower) on a fresh full net,
+    appending its decisions with a choice to ``rows`` (observations, masks, env actions, returns-to-go); returns
+    the makespan reached."""
     obs, masks, actions, rets = rows
     shop = FullShop(inst)
-    env = _env(inst, shop, padding, reward)
-    policy = PlanPriorityPolicy(plan)
+    env = _env(inst, shop, padding, reward, guide)
+    policy = expert_policy(inst, plan, follow)
     lbs: list[int] = []
     while not shop.done:
         a = policy(shop)
@@ -123,20 +147,22 @@ def plan_trajectory(inst: Instance, plan: Schedule, padding: dict[str, int], rew
 
 def plan_demonstrations(instances: Sequence[Instance], padding: dict[str, int], reward: str, expert: str,
                         seed: int = 0, progress: Callable[[str], None] | None = None,
-                        plans: dict[str, Schedule] | None = None
+                        plans: dict[str, Schedule] | None = None, guide: str | None = None
                         ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Demonstrations of the plan expert ``expert`` on ``instances`` (arrays as
     :func:`fms_dispatch.rl.imitation.demonstrations` returns them) and the makespans the net reaches with the
-    plans. ``plans`` (if given) receives each instance's plan, for :func:`plan_dagger_round`."""
+    plans. ``plans`` (if given) receives each instance's plan, for :func:`plan_dagger_round`; ``guide``: the
+    observation's plan guide (:mod:`fms_dispatch.rl.envs`)."""
     from .imitation import _as_demos
 
     rows: tuple[list, list, list, list] = ([], [], [], [])
     makespans: dict[str, int] = {}
+    follow = expert.lower() == GUIDE_EXPERT
     for n, inst in enumerate(instances):
         plan = expert_plan(inst, expert, seed=seed + n)
         if plans is not None:
             plans[inst.name] = plan
-        makespans[inst.name] = plan_trajectory(inst, plan, padding, reward, rows)
+        makespans[inst.name] = plan_trajectory(inst, plan, padding, reward, rows, guide, follow)
         if progress is not None:
             progress(f"  {expert} demonstrations: {n + 1}/{len(instances)} shops ({inst.name}: plan "
                      f"{plan.makespan}, executed {makespans[inst.name]}, {len(rows[0])} decisions recorded)")
@@ -144,7 +170,8 @@ def plan_demonstrations(instances: Sequence[Instance], padding: dict[str, int], 
 
 
 def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str, Schedule],
-                      padding: dict[str, int], reward: str, progress: Callable[[str], None] | None = None
+                      padding: dict[str, int], reward: str, progress: Callable[[str], None] | None = None,
+                      guide: str | None = None, follow: bool = False
                       ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """One DAgger round on the full net: the deterministic policy ``model`` runs each instance, and every state
     with a choice is labelled by the instance's plan (``plans``, from :func:`plan_demonstrations`) as the module
@@ -161,8 +188,8 @@ def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str
         if inst.name not in plans:
             raise ValueError(f"no expert plan for {inst.name}")
         shop = FullShop(inst)
-        env = _env(inst, shop, padding, reward)
-        label = PlanPriorityPolicy(plans[inst.name])
+        env = _env(inst, shop, padding, reward, guide)
+        label = expert_policy(inst, plans[inst.name], follow)
         lbs: list[int] = []
         while not shop.done:
             o, mask = env.observe()
@@ -186,12 +213,13 @@ def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str
 def plan_dagger(model: Any, demos: dict[str, np.ndarray], plans: dict[str, Schedule], expert_ms: dict[str, int],
                 instances: Sequence[Instance], padding: dict[str, int], reward: str, rounds: int,
                 epochs: int = 10, lr: float = 1e-3, seed: int = 0,
-                progress: Callable[[str], None] | None = None
+                progress: Callable[[str], None] | None = None, guide: str | None = None, follow: bool = False
                 ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """:func:`fms_dispatch.rl.imitation.dagger_rounds` with plan labels (:func:`plan_dagger_round`); the policy's
     makespans are compared with the plans as executed."""
     from .imitation import dagger_rounds
 
     return dagger_rounds(model, demos,
-                         lambda: plan_dagger_round(model, instances, plans, padding, reward, progress=progress),
+                         lambda: plan_dagger_round(model, instances, plans, padding, reward, progress=progress,
+                                                   guide=guide, follow=follow),
                          expert_ms, rounds, epochs=epochs, lr=lr, seed=seed, progress=progress, experts="plans")

@@ -43,7 +43,8 @@ class EntityNet(nn.Module):
     ``layout`` gives the observation blocks (see :func:`~fms_dispatch.rl.envs.obs_layout`). On the full net
     (``layout["full"]``) the full net's extra features join their rows (global, job and tool features), and
     four more heads score the full net's decisions: machine starts and tool take-ups per job (from the job's
-    embedding), tool-request choices per tool (from the tool's), and ``hold`` (from the context).
+    embedding), tool-request choices per tool (from the tool's), and ``hold`` (from the context). A guide's
+    features (``layout["guide"]``, :mod:`fms_dispatch.rl.guide`) join the job, tool, AGV and transporter rows.
     """
 
     def __init__(self, layout: dict[str, int], hidden: int = 64):
@@ -52,8 +53,11 @@ class EntityNet(nn.Module):
         L, h = self.lay, hidden
         self.full = bool(L.get("full"))
         g = L["n_global"] + (L["full_g"] if self.full else 0)
-        job_f = L["job_f"] + (L["full_job_f"] if self.full else 0)
-        tool_f = L["tool_f"] + (L["full_tool_f"] if self.full else 0)
+        guide = bool(L.get("guide"))
+        job_f = L["job_f"] + (L["full_job_f"] if self.full else 0) + (L["guide_job_f"] if guide else 0)
+        tool_f = L["tool_f"] + (L["full_tool_f"] if self.full else 0) + (L["guide_tool_f"] if guide else 0)
+        agv_f = L["agv_f"] + (L["guide_agv_f"] if guide else 0)
+        tt_f = L["tt_f"] + (L["guide_tt_f"] if guide else 0)
         self.job_emb = _mlp(job_f + L["machine_f"] + g, h, h)
         self.mach_emb = _mlp(L["machine_f"] + g, h, h)
         self.blocks = ["jobs", "machines"]
@@ -61,10 +65,10 @@ class EntityNet(nn.Module):
             self.tool_emb = _mlp(tool_f + g, h, h)
             self.blocks.append("tools")
         if L["agvs"]:
-            self.agv_emb = _mlp(L["agv_f"] + g, h, h)
+            self.agv_emb = _mlp(agv_f + g, h, h)
             self.blocks.append("agvs")
         if L["tts"]:
-            self.tt_emb = _mlp(L["tt_f"] + g, h, h)
+            self.tt_emb = _mlp(tt_f + g, h, h)
             self.blocks.append("tts")
         ctx = h * len(self.blocks) + g
         self.job_head = nn.Sequential(nn.Linear(h + ctx - g, h), nn.Tanh(), nn.Linear(h, 1))
@@ -100,6 +104,12 @@ class EntityNet(nn.Module):
             for name, rows, f in (("jobs", "jobs", "full_job_f"), ("tools", "tools", "full_tool_f")):
                 size = L[rows] * L[f]
                 out[name] = torch.cat([out[name], obs[:, i:i + size].reshape(B, L[rows], L[f])], dim=-1)
+                i += size
+        if L.get("guide"):  # the guide's features join the rows they describe
+            for name, f in (("jobs", "guide_job_f"), ("tools", "guide_tool_f"), ("agvs", "guide_agv_f"),
+                            ("tts", "guide_tt_f")):
+                size = L[name] * L[f]
+                out[name] = torch.cat([out[name], obs[:, i:i + size].reshape(B, L[name], L[f])], dim=-1)
                 i += size
         return out
 

@@ -22,7 +22,8 @@ for reproducing the paper's own setting; the flag is saved in ``config.json``).
 
 ``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
 ``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
-:mod:`fms_dispatch.rl.plan_expert`).
+:mod:`fms_dispatch.rl.plan_expert`). ``guide`` (full net only; ``--guide list``) adds the earliest-start list
+schedule's order to the observation (:mod:`fms_dispatch.rl.envs`).
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "fleet": {"agvs": None, "tool_transporters": None, "no_tools": False},
     "padding": "auto",
     "decisions": "paper",
+    "guide": None,
     "allow_benchmarks": False,
     "reward": "shaped",
     "steps": 100_000,
@@ -87,7 +89,7 @@ class _Cycle:
 
 
 def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int,
-              decisions: str = "paper"):
+              decisions: str = "paper", guide: str | None = None):
     def make():
         import torch
         from stable_baselines3.common.monitor import Monitor
@@ -95,7 +97,8 @@ def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], r
         from .envs import FastShopEnv
 
         torch.set_num_threads(1)
-        env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, **padding)
+        env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, guide=guide,
+                          **padding)
         env.reset(seed=seed)
         return Monitor(env)
 
@@ -115,7 +118,7 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequence[Instance],
-                   lookahead: bool = False, decisions: str = "paper") -> dict[str, int]:
+                   lookahead: bool = False, decisions: str = "paper", guide: str | None = None) -> dict[str, int]:
     """Makespan per instance of the deterministic policy on the net ``decisions`` (schedules validated)."""
     from fms_sim.full_shop import make_shop
     from fms_sim.validate import validate
@@ -123,7 +126,7 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     from .lookahead import run_agent
     from .agent import Agent
 
-    agent = Agent(weights, padding, decisions=decisions)
+    agent = Agent(weights, padding, decisions=decisions, guide=guide)
     out = {}
     for inst in instances:
         s = run_agent(make_shop(inst, decisions), agent.act, lookahead=lookahead)
@@ -218,14 +221,22 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"unknown decisions {decisions!r}; choose paper (the paper's net) or full (the "
                          "full-decision net)")
     cfg["decisions"] = decisions
+    guide = cfg.get("guide") or None  # "" (--guide none) overrides a config file's guide
+    from .envs import check_guide
+
+    check_guide(guide, decisions)
+    cfg["guide"] = guide
     if cfg["reward"] not in ("idle", "makespan", "shaped"):
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
     from .imitation import EXPERTS, RULE_EXPERTS
-    from .plan_expert import is_plan_expert
+    from .plan_expert import GUIDE_EXPERT, is_plan_expert
 
     planned = is_plan_expert(warm["expert"])
+    if planned and str(warm["expert"]).lower() == GUIDE_EXPERT and guide is None and not resume:
+        raise ValueError("the guide expert follows the plan that a guided observation shows: set guide to list "
+                         "(--guide list)")
     if warm["expert"] and not resume:
         if planned and decisions != "full":
             raise ValueError(f"the plan expert {warm['expert']!r} demonstrates on the full-decision net: set "
@@ -261,9 +272,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     n_envs = max(1, int(cfg["n_envs"]))
     seed = int(cfg["seed"])
-    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions) for i in range(n_envs)]
+    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide) for i in range(n_envs)]
     venv = SubprocVecEnv(fns) if n_envs > 1 and cfg["vec_env"] == "subproc" else DummyVecEnv(fns)
-    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions)])
+    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions, guide)])
 
     ppo = dict(cfg["ppo"])
     if resume:
@@ -273,7 +284,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             from .policy import EntityPolicy
 
             policy: Any = EntityPolicy
-            pkw = {"layout": obs_layout(padding, decisions), "hidden": int(cfg["hidden"])}
+            pkw = {"layout": obs_layout(padding, decisions, guide), "hidden": int(cfg["hidden"])}
         elif cfg["arch"] == "mlp":
             policy, pkw = "MlpPolicy", {"net_arch": list(cfg["net_arch"])}
         else:
@@ -317,7 +328,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         plans: dict[str, Any] = {}
         if planned:
             demos, expert_ms = plan_demonstrations(warm_set, padding, cfg["reward"], warm["expert"], seed=seed,
-                                                   progress=say, plans=plans)
+                                                   progress=say, plans=plans, guide=guide)
         else:
             demos, expert_ms = demonstrations(warm_set, padding, cfg["reward"], warm["expert"],
                                               iters=int(warm["search_iters"]), seed=seed, progress=say,
@@ -335,7 +346,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             if planned:
                 _, history = plan_dagger(model, demos, plans, expert_ms, warm_set, padding, cfg["reward"], rounds,
                                          epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]),
-                                         seed=dagger_seed, progress=say)
+                                         seed=dagger_seed, progress=say, guide=guide,
+                                         follow=str(warm["expert"]).lower() == GUIDE_EXPERT)
             else:
                 _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
                                         epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]), seed=dagger_seed,
@@ -379,7 +391,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if (out / saved).is_file():
             export_actor(out / saved)
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
-    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions)
+    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions, guide=guide)
     prev = old.get("training", {})
     metrics = dict(old)
     if warm_metrics is not None:
@@ -424,6 +436,8 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true", help="continue training the model in --out")
     s.add_argument("--decisions", choices=("paper", "full"), help="the net the model decides through (default "
                                                                     "paper)")
+    s.add_argument("--guide", choices=("list", "none"), help="full net: add the earliest-start list schedule's "
+                                                           "order to the observation (default none)")
     s.add_argument("--allow-benchmarks", action="store_true",
                    help="allow benchmark instances or held-out shops in training and evaluation (paper "
                         "reproductions only; refused otherwise)")
@@ -448,6 +462,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     over: dict[str, Any] = {"steps": a.steps, "reward": a.reward, "seed": a.seed, "padding": a.padding,
                             "arch": a.arch, "n_envs": a.n_envs, "eval_freq": a.eval_freq,
                             "train": a.instances or None, "eval": a.eval, "decisions": a.decisions,
+                            "guide": {"none": "", "list": "list"}.get(a.guide) if a.guide else None,
                             "allow_benchmarks": True if a.allow_benchmarks else None}
     fleet = {"agvs": a.agvs, "tool_transporters": a.tool_transporters, "no_tools": True if a.no_tools else None}
     over["fleet"] = {k: v for k, v in fleet.items() if v is not None} or None

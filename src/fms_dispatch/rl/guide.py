@@ -1,0 +1,343 @@
+"""A plan's orders read from any state of the full net: the guide of a policy's observation, and its follower.
+
+:class:`fms_sim.replay.PlanPolicy` executes a schedule by consuming, resource by resource, the orders it
+fixes (each machine's operations, each tool's uses, each vehicle's carries). A policy cannot learn from that
+directly: which order comes next is a fact of the plan, not of the state (a policy cloned from exact replays of
+CP-SAT plans without it ended 88 % above them, docs/benchmarks.md §9). :class:`PlanGuide` makes it a fact of the
+state: for any state of a :class:`~fms_sim.full_shop.FullShop` it computes the *head* of every resource's order
+(its first order not yet carried out, read from what the shop has started, dispatched and reserved), without
+memory of how the state was reached, so the lookahead's twins and a drifting live shop read it as well.
+
+* :meth:`PlanGuide.features` — per job, tool, AGV and transporter, whether its planned next order can be carried
+  out now (:data:`GUIDE_JOB_FEATURES` etc.), plus the job's rank and lateness in the plan: what
+  ``FastShopEnv(..., guide="list")`` appends to the observation (:mod:`fms_dispatch.rl.envs`);
+* :class:`GuideFollower` — the policy that does what the heads say (dispatch, tool take-up, start, the planned
+  vehicles) and holds otherwise; on the plan's own run it is the replay but for the replay's empty
+  pre-positioning trips, so it reaches the list schedule's makespan or comes within about 1 % of it. It is the expert a guided model is cloned from
+  (``warm_start.expert = "guide"``), and it labels any state the policy reaches (DAgger).
+
+The guide's plan is the better of the earliest-start and earliest-completion list schedules
+(:func:`fms_dispatch.exact.greedy_schedule`, 1.2 s for both on a 100-job shop), planned when a run starts, or
+from the shop's state (residual plans) when a shop is first seen after it started or after its jobs changed (a
+live order).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fms_sim.full_shop import FullShop
+from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
+
+from ..full_rules import FullRulePolicy
+
+__all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
+           "GuideFollower", "guide_plan"]
+
+#: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
+#: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
+#: among the unfinished jobs (0 first, 1 finished); tanh of (planned start - now) / mean operation duration
+GUIDE_JOB_FEATURES = ("start_head", "dispatch_head", "carrier_idle", "use_head", "rank", "due")
+#: per tool: its next use in the plan can be taken up now as the plan does it (replay's condition)
+GUIDE_TOOL_FEATURES = ("take_up",)
+#: per AGV / transporter: it is the planned carrier of the part / tool awaiting a vehicle now
+GUIDE_AGV_FEATURES = ("planned",)
+GUIDE_TT_FEATURES = ("planned",)
+
+
+def guide_plan(shop: FullShop) -> Schedule:
+    """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
+    (the project's ``list`` reference; earliest start on ties), from scratch when the run has not started, else
+    from its state (residual plans). A state with a vehicle or tool-use choice pending cannot be snapshot; the
+    plans then start from a copy that answers those choices (first offered) and stops at the next state that
+    can."""
+    import copy
+
+    from fms_sim.snapshot import can_snapshot, snapshot
+
+    from ..exact import greedy_schedule
+
+    origin = None
+    if shop.now > 0 or any(shop.job_started_ops):
+        if not can_snapshot(shop):
+            shop = copy.deepcopy(shop)
+            while not can_snapshot(shop) and not shop.done:
+                shop.act(shop.legal_actions()[0])
+        origin = snapshot(shop)
+    plans = [greedy_schedule(shop.instance, rule=rule, origin=origin) for rule in ("est", "ect")]
+    return min(plans, key=lambda p: p.makespan)
+
+
+class _Orders:
+    """Resource orders concatenated: ``J[i], K[i]`` the i-th order, segment ``s`` is ``lo[s]:hi[s]``."""
+
+    def __init__(self, queues: dict[int, list[tuple[int, int]]], ids: range):
+        self.ids = list(ids)
+        J: list[int] = []
+        K: list[int] = []
+        lo, hi = [], []
+        self.index: dict[tuple[int, int], int] = {}
+        for s in self.ids:
+            lo.append(len(J))
+            for j, k in queues.get(s, ()):
+                self.index[j, k] = len(J)
+                J.append(j)
+                K.append(k)
+            hi.append(len(J))
+        self.J = np.asarray(J, dtype=np.int64)
+        self.K = np.asarray(K, dtype=np.int64)
+        self.lo = np.asarray(lo, dtype=np.int64)
+        self.hi = np.asarray(hi, dtype=np.int64)
+
+    def heads(self, done: np.ndarray) -> dict[int, tuple[int, int]]:
+        """Resource id -> its first order not done."""
+        undone = np.flatnonzero(~done)
+        if not undone.size:
+            return {}
+        pos = np.searchsorted(undone, self.lo)
+        first = undone[np.minimum(pos, undone.size - 1)]
+        ok = (pos < undone.size) & (first < self.hi)
+        return {self.ids[s]: (int(self.J[first[s]]), int(self.K[first[s]])) for s in np.flatnonzero(ok)}
+
+
+class PlanGuide:
+    """The orders of ``plan`` (a schedule of ``instance``, or a residual plan) read from shop states; see the
+    module docstring."""
+
+    def __init__(self, instance: Instance, plan: Schedule):
+        self.instance = instance
+        self.plan = plan
+        inst = instance
+        L = max(len(ops) for ops in inst.jobs)
+        self.start = np.full((inst.n_jobs, L + 1), np.inf)
+        mq: dict[int, list[tuple[int, int]]] = {}
+        tq: dict[int, list[tuple[int, int]]] = {}
+        for r in sorted(plan.operations, key=lambda r: (r.start, r.end)):
+            self.start[r.job, r.op] = r.start
+            mq.setdefault(r.machine, []).append((r.job, r.op))
+            tool = inst.jobs[r.job][r.op].tool if inst.has_tools else None
+            if tool is not None:
+                tq.setdefault(tool, []).append((r.job, r.op))
+        aq: dict[int, list[tuple[int, int]]] = {}
+        self.part_carrier: dict[tuple[int, int], int] = {}
+        for t in sorted(plan.agv_trips, key=lambda t: (t.start, t.end)):
+            if t.loaded and t.from_ != t.to:
+                aq.setdefault(t.agv, []).append((t.job, t.op))
+                self.part_carrier[t.job, t.op] = t.agv
+        rq: dict[int, list[tuple[int, int]]] = {}
+        self.tool_carrier: dict[tuple[int, int], int] = {}
+        for t in sorted(plan.tool_trips, key=lambda t: (t.start, t.end)):
+            if t.loaded and t.from_ != t.to:
+                rq.setdefault(t.transporter, []).append((t.job, t.op))
+                self.tool_carrier[t.job, t.op] = t.transporter
+        self.machines = _Orders(mq, range(1, inst.n_machines + 1))
+        self.tools = _Orders(tq, range(1, (inst.n_tools if inst.has_tools else 0) + 1))
+        self.agvs = _Orders(aq, range(inst.n_agvs if inst.has_agvs else 0))
+        self.tts = _Orders(rq, range(inst.n_tool_transporters if inst.has_tools else 0))
+        ops = sum(len(o) for o in inst.jobs)
+        self.mean_duration = max(1.0, sum(op.duration for o in inst.jobs for op in o) / max(1, ops))
+
+    @classmethod
+    def for_shop(cls, shop: FullShop) -> "PlanGuide":
+        """The guide of :func:`guide_plan` for ``shop``."""
+        return cls(shop.instance, guide_plan(shop))
+
+    # ------------------------------------------------------------------ the heads of a state
+    @staticmethod
+    def _served(shop: FullShop, orders: _Orders, started: np.ndarray) -> np.ndarray:
+        """Tool orders carried out: the operation started, or its tool reserved for it (use fired)."""
+        done = started[orders.J] > orders.K if orders.J.size else np.zeros(0, dtype=bool)
+        for t in range(1, len(shop.tool_user)):
+            for op in (shop.tool_user[t], shop.tool_next[t]):
+                i = orders.index.get(op) if op is not None else None
+                if i is not None:
+                    done[i] = True
+        return done
+
+    def view(self, shop: FullShop, tools: bool = True) -> dict[str, Any]:
+        """The heads of every order in ``shop``'s state and what follows for each job (see the module
+        docstring); the input of :meth:`features` and :class:`GuideFollower`. ``tools=False`` skips the tools'
+        and transporters' orders (a state with no tool decision open does not need them)."""
+        inst = self.instance
+        n = inst.n_jobs
+        started = np.asarray(shop.started, dtype=np.int64)
+        dispatched = np.asarray(shop.job_started_ops, dtype=np.int64)
+        m_heads = self.machines.heads(started[self.machines.J] > self.machines.K)
+        start_head = np.zeros(n, dtype=bool)
+        for m, (j, k) in m_heads.items():
+            if shop.buffered_op(j) == (k, m):
+                start_head[j] = True
+        dispatch_head = np.zeros(n, dtype=bool)
+        carrier_idle = np.zeros(n, dtype=bool)
+        idle_agvs = {v for v, _ in shop.idle_agvs()} if inst.has_agvs else set()
+        if inst.has_agvs:
+            for v, (j, k) in self.agvs.heads(dispatched[self.agvs.J] > self.agvs.K).items():
+                if shop.next_op(j) == k:
+                    dispatch_head[j] = True
+                    carrier_idle[j] = v in idle_agvs
+        t_heads: dict[int, tuple[int, int]] = {}
+        r_heads: dict[int, tuple[int, int]] = {}
+        if inst.has_tools and tools:
+            t_heads = self.tools.heads(self._served(shop, self.tools, started))
+            r_heads = self.tts.heads(self._served(shop, self.tts, started))
+        return dict(shop=shop, started=started, start_head=start_head, dispatch_head=dispatch_head,
+                    carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_agvs=idle_agvs)
+
+    def use_head(self, v: dict[str, Any]) -> int | None:
+        """The job whose request the chosen tool serves next in the plan (None: no choice open, or the plan's
+        next use of the tool is not a pending request now)."""
+        shop = v["shop"]
+        t = shop.tool_choice
+        head = v["t_heads"].get(t) if t is not None else None
+        if head is None or shop.request_of(t, head[0]) != head[1]:
+            return None
+        return head[0]
+
+    def take_up(self, v: dict[str, Any], t: int) -> bool:
+        """Tool ``t`` may take up its next planned use now as the replay does: the request is pending and may be
+        served, and the tool is at the machine or its planned transporter is idle with this carry next."""
+        shop = v["shop"]
+        head = v["t_heads"].get(t)
+        if head is None:
+            return False
+        j, k = head
+        if shop.request_of(t, j) != k or not shop._servable(t):
+            return False
+        r = self.tool_carrier.get((j, k))
+        if r is not None:
+            if v["r_heads"].get(r) != (j, k) or r not in {u for u, _ in shop.idle_transporters()}:
+                return False
+        elif shop.tool_loc[t] != self.instance.jobs[j][k].machine:
+            return False
+        return shop._candidate(t, j)
+
+    def planned_vehicle(self, shop: FullShop, kind: str) -> int | None:
+        """The planned carrier of the part (``kind="agv"``) or tool (``"tt"``) awaiting a vehicle now."""
+        if kind == "agv":
+            req = shop.awaiting_agv()
+            return self.part_carrier.get((req[0], req[1])) if req is not None else None
+        req = shop.awaiting_transporter()
+        return self.tool_carrier.get((req[2], req[3])) if req is not None else None
+
+    @staticmethod
+    def vehicle_target(shop: FullShop, kind: str) -> int:
+        """Where the awaiting part (``"agv"``) or tool (``"tt"``) is picked up."""
+        return shop.awaiting_agv()[2] if kind == "agv" else shop.awaiting_transporter()[1]
+
+    # ------------------------------------------------------------------ features
+    def features(self, shop: FullShop, legal_tools: list[int], max_jobs: int, max_tools: int, max_agvs: int,
+                 max_tts: int) -> list[np.ndarray]:
+        """The guide's rows (jobs, tools, AGVs, transporters; padded), for the observation."""
+        inst = self.instance
+        n = inst.n_jobs
+        v = self.view(shop, tools=bool(legal_tools) or shop.tool_choice is not None)
+        started = v["started"]
+        J = np.zeros((max_jobs, len(GUIDE_JOB_FEATURES)), dtype=np.float32)
+        J[:n, 0] = v["start_head"]
+        J[:n, 1] = v["dispatch_head"]
+        J[:n, 2] = v["carrier_idle"]
+        u = self.use_head(v)
+        if u is not None:
+            J[u, 3] = 1.0
+        rows = np.arange(n)
+        nops = self.start.shape[1] - 1
+        k = np.minimum(started, nops)
+        ps = self.start[rows, k]
+        fin = np.isfinite(ps)
+        order = np.lexsort((rows, np.where(fin, ps, np.inf)))
+        rank = np.empty(n, dtype=np.float64)
+        rank[order] = np.arange(n)
+        J[:n, 4] = np.where(fin, rank / n, 1.0)
+        J[:n, 5] = np.where(fin, np.tanh((np.where(fin, ps, 0.0) - shop.now) / self.mean_duration), 0.0)
+        T = np.zeros((max_tools, len(GUIDE_TOOL_FEATURES)), dtype=np.float32)
+        for t in legal_tools:
+            T[t - 1, 0] = self.take_up(v, t)
+        A = np.zeros((max_agvs, len(GUIDE_AGV_FEATURES)), dtype=np.float32)
+        R = np.zeros((max_tts, len(GUIDE_TT_FEATURES)), dtype=np.float32)
+        if inst.has_agvs:
+            a = self.planned_vehicle(shop, "agv")
+            if a is not None:
+                A[a, 0] = 1.0
+        if inst.has_tools:
+            r = self.planned_vehicle(shop, "tt")
+            if r is not None:
+                R[r, 0] = 1.0
+        return [J, T, A, R]
+
+
+_NEAREST = FullRulePolicy("FIFO", "nearest", "earliest-start")  # its vehicle choice only
+
+
+class GuideFollower:
+    """Does what the guide's heads say (``policy(shop) -> net action``): the planned carrier (else the nearest
+    vehicle), the planned next use of the chosen tool (else the earliest planned request), then a dispatch, a
+    tool take-up or a start that heads its orders, and ``hold`` when none does. When nothing planned is possible
+    and the net may not hold (a run that left the plan), the legal action of the earliest planned operation.
+
+    ``guide`` is fixed, or made per shop by :meth:`PlanGuide.for_shop` (``guide=None``)."""
+
+    def __init__(self, guide: PlanGuide | None = None):
+        self.guide = guide
+        self._made: dict[int, PlanGuide] = {}
+
+    @property
+    def name(self) -> str:
+        return "guide:list"
+
+    def _guide(self, shop: FullShop) -> PlanGuide:
+        if self.guide is not None:
+            return self.guide
+        g = self._made.get(id(shop))
+        if g is None or g.instance is not shop.instance:
+            g = self._made[id(shop)] = PlanGuide.for_shop(shop)
+        return g
+
+    def __call__(self, shop: FullShop) -> int:
+        legal = shop.legal_actions()
+        if len(legal) == 1:
+            return legal[0]
+        g = self._guide(shop)
+        kind = shop.action_kind(legal[0])[0]
+        if kind in ("agv", "tt"):
+            v = g.planned_vehicle(shop, kind)
+            a = shop.action_index(f"{kind}:{v}") if v is not None else None
+            if a in legal:
+                return a
+            return _NEAREST._vehicle(shop, kind, legal, g.vehicle_target(shop, kind))
+        view = g.view(shop, tools=kind == "use" or any(shop.action_kind(a)[0] == "tool" for a in legal))
+        if kind == "use":
+            u = g.use_head(view)
+            a = shop.action_index(f"use:{u}") if u is not None else None
+            if a in legal:
+                return a
+            t = shop.tool_choice
+            jobs = [shop.action_kind(x)[1] for x in legal]
+            return shop.action_index(f"use:{min(jobs, key=lambda j: (g.start[j, shop.request_of(t, j)], j))}")
+        by_kind: dict[str, list[int]] = {}
+        for a in legal:
+            k, num = shop.action_kind(a)
+            by_kind.setdefault(k, []).append(num)
+        for j in by_kind.get("job", []):
+            if view["dispatch_head"][j] and view["carrier_idle"][j]:
+                return shop.action_index(f"job:{j}")
+        for t in by_kind.get("tool", []):
+            if g.take_up(view, t):
+                return shop.action_index(f"tool:{t}")
+        for j in by_kind.get("start", []):
+            if view["start_head"][j]:
+                return shop.action_index(f"start:{j}")
+        if shop.hold_action in legal:
+            return shop.hold_action
+        started = view["started"]
+
+        def planned(a: int) -> tuple[float, int]:
+            k, num = shop.action_kind(a)
+            if k in ("job", "start"):
+                op = shop.next_op(num) if k == "job" else started[num]
+                return (float(g.start[num, min(op, g.start.shape[1] - 1)]), a)
+            return (float("inf"), a)
+
+        return min(legal, key=planned)
