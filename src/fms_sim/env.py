@@ -90,7 +90,6 @@ class _Tables:
                 self.load_suffix[j, k, ops[k].machine] += ops[k].duration
         self.rows = np.arange(n)
         self.travel: np.ndarray | None = None  # the AGV travel matrix as an array, made when first needed
-        self.guide: tuple[Instance, Any] | None = None  # a subclass's plan guide: (planned for, guide)
 
 
 class ShopEnv(gym.Env):

@@ -168,3 +168,38 @@ def test_dagger_labels_of_the_follower_on_the_policys_states():
     rows, ms = plan_dagger_round(model, [inst], plans, pad, "shaped", guide="list", follow=True)
     assert len(rows["obs"]) > 0 and rows["obs"].shape[1] == demos["obs"].shape[1]
     assert all(rows["mask"][i][rows["action"][i]] for i in range(len(rows["obs"])))  # labels are legal
+
+
+def test_a_run_at_its_start_never_inherits_a_plan_made_from_another_runs_state():
+    # an agent keeps its tables between runs; a guide planned from a live run's state (after an order arrived)
+    # must not steer a later run of the same jobs from its start
+    from fms_dispatch.rl.envs import FastShopEnv
+
+    inst = builtin("ra01")
+    pad = padding_for(None, [inst])
+    live = FullShop(inst)
+    for _ in range(27):
+        live.act(live.legal_actions()[0])
+    env = FastShopEnv(inst, decisions="full", guide="list", **pad)
+    env.attach(live)
+    residual = env._guide()
+    assert residual.origin == live.now > 0
+    fresh = FastShopEnv(inst, decisions="full", guide="list", **pad)
+    fresh.attach(FullShop(inst))
+    fresh.adopt_tables(env)
+    assert fresh._guide().origin is None  # planned from scratch
+    assert env._guide() is residual  # the live run keeps its own
+    twin = copy.deepcopy(live)
+    twin.act(twin.legal_actions()[0])
+    again = FastShopEnv(inst, decisions="full", guide="list", **pad)
+    again.attach(twin)
+    again.adopt_tables(env)
+    assert again._guide() is residual  # a twin of the live run shares its guide
+    # an instance with other jobs (a live order adds one) gets its own guide
+    import dataclasses
+
+    bigger = dataclasses.replace(inst, jobs=inst.jobs + (inst.jobs[0],))
+    other = FastShopEnv(bigger, decisions="full", guide="list", **padding_for(None, [bigger]))
+    other.attach(FullShop(bigger))
+    other.adopt_tables(env)
+    assert other._guide() is not residual and other._guide().instance is bigger

@@ -123,6 +123,8 @@ class FastShopEnv(ShopEnv):
         super().__init__(instances, **kwargs)
         check_guide(guide, self.decisions)
         self.guide = guide
+        self._plan_guide: PlanGuide | None = None
+        self._guide_for: Instance | None = None  # the instance the guide was last checked against
         if guide is not None:
             padding = dict(max_jobs=self.max_jobs, max_machines=self.max_machines, max_tools=self.max_tools,
                            max_agvs=self.max_agvs, max_tts=self.max_tts)
@@ -139,16 +141,23 @@ class FastShopEnv(ShopEnv):
         return np.concatenate([obs] + [r.ravel() for r in rows])
 
     def _guide(self) -> PlanGuide:
-        """The guide of the observed shop, kept with the instance tables. Tables follow the jobs only, so a guide
-        is reused only for the same fleet and travel times."""
-        tb = self._t()
-        inst = self.instance
-        if tb.guide is not None:
-            planned_for, guide = tb.guide
-            if planned_for is inst or _same_fleet(planned_for, inst):
+        """The guide of the observed shop: this env's own, or the one a twin adopted with the real shop's tables
+        (:meth:`adopt_tables`), if it describes this run; else a new one for the shop. A guide describes a run
+        of the same jobs, fleet and travel times, planned from scratch for a run at its start, or from a state
+        of the run for shops at or after that state's time."""
+        shop, inst = self.shop, self.instance
+        guide = self._plan_guide
+        if guide is not None and self._guide_for is not inst:
+            same = guide.instance is inst or (guide.instance.jobs == inst.jobs and _same_fleet(guide.instance, inst))
+            self._guide_for = inst if same else None
+            if not same:
+                guide = None
+        if guide is not None:
+            fresh = shop.now == 0 and not any(shop.job_started_ops)
+            if (guide.origin is None) if fresh else (guide.origin is None or shop.now >= guide.origin):
                 return guide
-        guide = PlanGuide.for_shop(self.shop)
-        tb.guide = (inst, guide)
+        guide = self._plan_guide = PlanGuide.for_shop(shop)
+        self._guide_for = inst
         return guide
 
     # ------------------------------------------------------------------ live shops
@@ -180,6 +189,8 @@ class FastShopEnv(ShopEnv):
         return self._from_net(int(a))
 
     def adopt_tables(self, other: "FastShopEnv") -> None:
-        """Reuse ``other``'s instance tables (a twin's shop has an equal copy of the instance)."""
+        """Reuse ``other``'s instance tables and plan guide (a twin's shop has an equal copy of the instance and
+        continues its run)."""
         if other._tables is not None:
-            self._tables, self._tables_for = other._tables, None  # the guide's plan comes with them
+            self._tables, self._tables_for = other._tables, None
+        self._plan_guide, self._guide_for = other._plan_guide, None  # a twin follows its shop's plan

@@ -110,6 +110,8 @@ class PlanGuide:
     def __init__(self, instance: Instance, plan: Schedule):
         self.instance = instance
         self.plan = plan
+        #: the time a residual plan starts from (a run's state); None for a plan from scratch
+        self.origin: int | None = plan.meta.get("residual")
         inst = instance
         L = max(len(ops) for ops in inst.jobs)
         self.start = np.full((inst.n_jobs, L + 1), np.inf)
