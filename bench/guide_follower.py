@@ -1,0 +1,61 @@
+"""How faithfully a state-read policy acts out a list schedule through the full net (the guide's expert).
+
+    python bench/guide_follower.py sl00 sl10 sl20 sl30 sl50 sl70 [--json results/guide_follower.json]
+
+Per instance: the guide's plan (the better of the earliest-start and earliest-completion list schedules), its
+exact replay (``fms_sim.replay``, orders consumed as they are carried out), the plan acted out by
+``PlanPriorityPolicy`` (the full-net rule skeleton with the plan's start times as priorities: the expert of the
+``full`` model) and by ``GuideFollower`` (the heads of the plan's orders read from each state: the expert of the
+``guided`` model), with the follower's wall time. Every schedule is validated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from fms_dispatch.full_rules import run_full
+from fms_dispatch.rl.guide import GuideFollower, guide_plan
+from fms_dispatch.rl.plan_expert import PlanPriorityPolicy
+from fms_sim.benchmarks import builtin
+from fms_sim.full_shop import FullShop
+from fms_sim.replay import replay
+from fms_sim.validate import validate
+
+
+def _valid(inst, s):
+    problems = validate(inst, s)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name}: {problems[0]}")
+    return s.makespan
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("instances", nargs="+")
+    ap.add_argument("--json", help="write the rows here")
+    a = ap.parse_args(argv)
+    rows = []
+    print("| instance | list plan | replay | PlanPriorityPolicy | GuideFollower | follower s |")
+    print("|---|---|---|---|---|---|")
+    for name in a.instances:
+        inst = builtin(name)
+        plan = guide_plan(FullShop(inst))
+        t0 = time.perf_counter()
+        follower = _valid(inst, run_full(inst, GuideFollower()))
+        dt = time.perf_counter() - t0
+        row = dict(instance=name, plan=plan.makespan, replay=_valid(inst, replay(inst, plan)),
+                   priority=_valid(inst, run_full(inst, PlanPriorityPolicy(plan))), follower=follower,
+                   follower_s=round(dt, 2))
+        rows.append(row)
+        print(f"| {name} | {row['plan']} | {row['replay']} | {row['priority']} | {row['follower']} | {row['follower_s']} |",
+              flush=True)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
