@@ -159,10 +159,10 @@ def test_legal_labels() -> None:
 
 # ------------------------------------------------------------------------------------------------ ppo
 def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: int | None = None,
-            idle_stops: bool = False):
-    """Drive a history-carrying shop with a PPO agent; optionally replace the agent by a fresh one (a restart)
-    before state ``restart_at`` and send an order before state ``order_at``."""
-    svc = ShopService(inst, run_id="p", history=True, idle_stops=idle_stops)
+            idle_stops: bool = False, decisions: str = "paper"):
+    """Drive a history-carrying shop (on the net ``decisions``) with a PPO agent; optionally replace the agent
+    by a fresh one (a restart) before state ``restart_at`` and send an order before state ``order_at``."""
+    svc = ShopService(inst, run_id="p", history=True, idle_stops=idle_stops, decisions=decisions)
     agent = AgentLogic(solver, instance=inst)
     agents = [agent]
     out = svc.start()
@@ -180,13 +180,14 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
     return svc, agents
 
 
-@pytest.mark.parametrize("name, model", [("EX12", "bu"), ("ra01", "large")])
-def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, model: str) -> None:
+@pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo", "bu", "paper"), ("ra01", "ppo:large", "large", "paper"),
+                                                      ("ra01", "ppo", "guided", "full")])
+def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, solver: str, model: str, net: str) -> None:
     from fms_dispatch.rl import ppo_solver
 
     inst = builtin(name)
-    ref = ppo_solver("ppo")(inst)
-    svc, (agent,) = ppo_run(inst)
+    ref = ppo_solver(solver)(inst)
+    svc, (agent,) = ppo_run(inst, solver=solver, decisions=net)
     assert agent.name == f"ppo:{model}" and svc.final_schedule.meta["solver"] == f"ppo:{model}"
     assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"]
     assert svc.final_schedule.makespan == ref.makespan
@@ -267,7 +268,8 @@ def test_ppo_lookahead_over_messages_equals_the_offline_solver(name: str, fast: 
     inst = builtin(name)
     suffix = "+lookahead-fast" if fast else "+lookahead"
     ref = ppo_solver("ppo")(inst, lookahead="fast" if fast else True)
-    svc, (agent,) = ppo_run(inst, solver="ppo" + suffix, idle_stops=True)
+    # the default model of ra01 (tools) is the guided full-net one: the shop runs the full net for it
+    svc, (agent,) = ppo_run(inst, solver="ppo" + suffix, idle_stops=True, decisions=ref.meta["decisions"])
     model = ref.meta["model"]
     assert agent.name == f"ppo:{model}{suffix}" == svc.final_schedule.meta["solver"] == ref.meta["solver"]
     assert agent.decide.planner.retry is not fast
@@ -352,7 +354,7 @@ def test_lookahead_twin_follows_orders_at_idle_stops() -> None:
     assert validate(svc.instance, svc.final_schedule) == []
 
 
-@pytest.mark.parametrize("solver", ["rule:SPTN+nearest", "ppo"])
+@pytest.mark.parametrize("solver", ["rule:SPTN+nearest", "ppo:large"])
 def test_other_solvers_wait_at_idle_stops(solver: str) -> None:
     inst = builtin("ra01")
     svc, (agent,) = ppo_run(inst, solver=solver, idle_stops=True)

@@ -440,9 +440,12 @@ def test_solver_spec_errors():
 
 def test_default_model_choice():
     assert default_model_name(builtin("EX12")) == "bu"
-    assert default_model_name(builtin("ra01")) == "large"
-    assert default_model_name(builtin("sl00")) == "large"
-    assert default_model_name(builtin("sl00").without_tools()) == "large-agv"
+    assert default_model_name(builtin("ra01")) == "guided"  # tools: the guided full-net model
+    assert default_model_name(builtin("sl00")) == "guided"
+    assert default_model_name(builtin("sl00").without_tools()) == "guided"
+    import dataclasses
+
+    assert default_model_name(dataclasses.replace(builtin("EX12"), n_agvs=3)) == "guided"  # more AGVs than BU
 
 
 # ---------------------------------------------------------------------- shipped models
@@ -508,12 +511,12 @@ def test_shipped_bu_model_valid_on_ex12():
     assert validate(inst, s) == []
 
 
-@pytest.mark.parametrize("name,no_tools", [("large", False), ("large-agv", True)])
+@pytest.mark.parametrize("name,no_tools", [("large", False), ("large-agv", True), ("guided", False), ("guided", True)])
 def test_shipped_large_models_valid_on_sl00(name, no_tools):
     inst = builtin("sl00")
     if no_tools:
         inst = inst.without_tools()
-    solve = ppo_solver("ppo")
+    solve = ppo_solver(f"ppo:{name}")
     t0 = time.perf_counter()
     s = solve(inst)
     assert time.perf_counter() - t0 < 10.0

@@ -11,9 +11,10 @@ A model folder (``models/NAME``) holds:
 * ``best_model.actor.npz`` / ``model.actor.npz`` — the actor in numpy for inference without torch, with the
   SHA-256 of the weights it was exported from (:mod:`fms_dispatch.rl.actors`; ignored when stale).
 
-Shipped models: ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools), ``large`` (large shops with AGVs and
-tools) and ``large-agv`` (AGVs only), all deciding through the paper's net, and ``full`` (the full-decision net,
-any shop up to 100 x 20 x 20; chosen by name: ``ppo:full``). A model name is looked up in :func:`model_dirs`,
+Shipped models: ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools; the paper's net; the default there),
+``guided`` (the full-decision net with the list schedule's guide, any shop up to 100 x 20 x 20; the default
+everywhere else), and, chosen by name, ``large`` and ``large-agv`` (the paper's net; large shops with and
+without tools) and ``full`` (the full net without a guide). A model name is looked up in :func:`model_dirs`,
 one list of places for every caller (``fms solve``, ``fms up``, the agent node):
 
 * ``$FMS_MODELS_DIR`` when it is set (then nothing else);
@@ -42,7 +43,7 @@ from fms_sim.instance import Instance
 __all__ = ["ModelRef", "ModelNotFoundError", "model_dirs", "models_dir", "resolve_model", "default_model_name",
            "load_config", "SHIPPED", "SHARE_SUBDIR", "load_agent"]
 
-SHIPPED = ("bu", "large", "large-agv", "full")
+SHIPPED = ("bu", "large", "large-agv", "full", "guided")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 
@@ -153,12 +154,12 @@ def resolve_model(spec: str) -> ModelRef:
 
 
 def default_model_name(inst: Instance) -> str:
-    """The shipped model for an instance: tools -> ``large``; small 2-AGV shops -> ``bu``; else ``large-agv``."""
-    if inst.has_tools:
-        return "large"
-    if inst.n_jobs <= 8 and inst.n_machines <= 4 and (not inst.has_agvs or inst.n_agvs <= 2):
+    """The shipped model for an instance: small 2-AGV shops without tools (Bilge-Ulusoy size) -> ``bu``; every
+    other shop -> ``guided`` (the full net with the list schedule's guide). Chosen on generated validation shops
+    that no model trains on and no reported figure comes from (``bench/validation.py``, docs/benchmarks.md §9)."""
+    if not inst.has_tools and inst.n_jobs <= 8 and inst.n_machines <= 4 and (not inst.has_agvs or inst.n_agvs <= 2):
         return "bu"
-    return "large-agv"
+    return "guided"
 
 
 @functools.lru_cache(maxsize=8)
