@@ -373,3 +373,20 @@ def test_lookahead_needs_a_shop_with_idle_stops() -> None:
     (err,) = agent.on_state(encode(svc.state))
     assert err.topic == m.TOPIC_ERRORS and "has no 'idle' field" in err.msg["message"]
     assert "idle_stops:=true" in err.msg["message"]
+
+
+def test_guided_default_model_follows_orders_and_disruptions_on_the_full_net() -> None:
+    """The default model of a tool shop (``guided``) re-plans its guide from the live state when an order
+    arrives, and runs a shop with a breakdown and an outage; both schedules are valid."""
+    from fms_dispatch.rl import ppo_solver
+    from fms_sim.disruptions import Breakdown, Outage, Scenario
+
+    inst = builtin("ra01")
+    svc, (agent,) = ppo_run(inst, order_at=20, decisions="full")
+    assert agent.name == "ppo:guided" and svc.instance.n_jobs == inst.n_jobs + 1
+    assert agent.decide.twin.instance.n_jobs == inst.n_jobs + 1
+    assert validate(svc.instance, svc.final_schedule) == []
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (Outage(kind="agv", vehicle=0, start=10, duration=50),),
+                  0.1, 5)
+    s = ppo_solver("ppo")(inst, scenario=sc)
+    assert s.meta["model"] == "guided" and validate(inst, s) == []
