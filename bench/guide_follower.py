@@ -78,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
                    priority=_valid(inst, run_full(inst, PlanPriorityPolicy(plan))), follower=follower,
                    follower_s=round(dt, 2), with_empty_trips=follower_with_empty_trips(inst))
         rows.append(row)
-        print(f"| {name} | {row['plan']} | {row['replay']} | {row['priority']} | {row['follower']} | {row['follower_s']} "
-              f"| {row['with_empty_trips']} |", flush=True)
+        cells = [name] + [row[k] for k in ("plan", "replay", "priority", "follower", "follower_s", "with_empty_trips")]
+        print("| " + " | ".join(map(str, cells)) + " |", flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)

@@ -180,7 +180,8 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
     return svc, agents
 
 
-@pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo", "bu", "paper"), ("ra01", "ppo:large", "large", "paper"),
+@pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo", "bu", "paper"),
+                                                      ("ra01", "ppo:large", "large", "paper"),
                                                       ("ra01", "ppo", "guided", "full")])
 def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, solver: str, model: str, net: str) -> None:
     from fms_dispatch.rl import ppo_solver
@@ -386,7 +387,7 @@ def test_guided_default_model_follows_orders_and_disruptions_on_the_full_net() -
     assert agent.name == "ppo:guided" and svc.instance.n_jobs == inst.n_jobs + 1
     assert agent.decide.twin.instance.n_jobs == inst.n_jobs + 1
     assert validate(svc.instance, svc.final_schedule) == []
-    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (Outage(kind="agv", vehicle=0, start=10, duration=50),),
-                  0.1, 5)
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),),
+                  (Outage(kind="agv", vehicle=0, start=10, duration=50),), 0.1, 5)
     s = ppo_solver("ppo")(inst, scenario=sc)
     assert s.meta["model"] == "guided" and validate(inst, s) == []

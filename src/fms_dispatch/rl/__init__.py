@@ -1,6 +1,8 @@
 """Reinforcement-learning dispatcher: MaskablePPO agents on the shop net, with an optional lookahead twin.
 
-* :mod:`.envs` — the agent's environment (fast features, padding profiles);
+* :mod:`.envs` — the agent's environment (fast features, padding profiles, the optional plan guide);
+* :mod:`.guide` — a list schedule's orders read from any full-net state, and the follower that acts them out;
+* :mod:`.plan_expert` — plan experts and DAgger labels on the full net;
 * :mod:`.policy` — the entity policy network (torch);
 * :mod:`.actors` — its actor in numpy, and the ``.actor.npz`` export;
 * :mod:`.agent` — the deterministic :class:`~.agent.Agent` (numpy at inference; torch only without an export);
@@ -25,7 +27,8 @@ __all__ = ["ppo_solver", "add_train_parser"]
 
 
 def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
-    """Solver for ``"ppo"`` (the shipped model that fits the instance) or ``"ppo:MODEL"`` (name, folder, .zip).
+    """Solver for ``"ppo"`` (the shipped default for the instance: ``bu`` on Bilge-Ulusoy-size shops without tools,
+    else ``guided``) or ``"ppo:MODEL"`` (name, folder, .zip).
 
     The returned ``solve(instance, lookahead=False, progress=False, **ignored)`` runs the deterministic masked
     policy (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the

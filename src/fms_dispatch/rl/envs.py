@@ -23,11 +23,10 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-
 from gymnasium import spaces
 
-from fms_sim.env import (OBS_HIGH, AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
-                         JOB_FEATURES, MACHINE_FEATURES, TOOL_FEATURES, ShopEnv)
+from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
+                         JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH, TOOL_FEATURES, ShopEnv)
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 

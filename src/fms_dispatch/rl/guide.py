@@ -13,7 +13,8 @@ memory of how the state was reached, so the lookahead's twins and a drifting liv
   ``FastShopEnv(..., guide="list")`` appends to the observation (:mod:`fms_dispatch.rl.envs`);
 * :class:`GuideFollower` — the policy that does what the heads say (dispatch, tool take-up, start, the planned
   vehicles) and holds otherwise; on the plan's own run it is the replay but for the replay's empty
-  pre-positioning trips, so it reaches the list schedule's makespan or comes within about 1 % of it. It is the expert a guided model is cloned from
+  pre-positioning trips, so it reaches the list schedule's makespan or comes within about 1 % of it
+  (``bench/guide_follower.py``). It is the expert a guided model is cloned from
   (``warm_start.expert = "guide"``), and it labels any state the policy reaches (DAgger).
 
 The guide's plan is the better of the earliest-start and earliest-completion list schedules
