@@ -26,7 +26,9 @@ Solvers (the ``solver`` parameter):
   vehicles offered), and the twin, stepped by the same :class:`~fms_sim.stepping.Stepper`, answers it with
   :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s moves (``reposition:...``) or ``wait``. The run is
   the one the offline ``ppo+lookahead`` solver makes. ``+lookahead-fast`` is the same without retries of
-  rejected moves (the offline ``ppo+lookahead-fast``). Every other solver answers idle states with ``wait``.
+  rejected moves (the offline ``ppo+lookahead-fast``); ``+lookahead-guide`` (a guided model) answers them with
+  the guide plan's empty trips (the offline ``ppo+lookahead-guide``). Every other solver answers idle states
+  with ``wait``.
 
 * ``plan:<SOLVER>[:SECONDS]`` — a whole plan by an offline solver (``cpsat``, ``sos``, ``rules``, ``list``,
   ``rule:...``) computed at the first state within SECONDS, then executed through a twin of the full-decision
@@ -60,7 +62,8 @@ __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision
 
 SOURCE = "fms_agent"
 AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
-                 "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast", "plan:<SOLVER>[:SECONDS]")
+                 "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast", "ppo[:<model>]+lookahead-guide",
+                 "plan:<SOLVER>[:SECONDS]")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]
@@ -653,7 +656,15 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     agent = load_ppo_agent(model, instance)
     canonical = f"ppo:{agent.name}"
     planner = None
-    if lookahead:
+    if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":
+        if agent.guide is None:
+            raise UnavailableSolver(f"solver {name!r}: model {agent.name} has no plan guide; +lookahead-guide needs "
+                                    "a guided model (e.g. ppo:guided)")
+        from .rl.guide import GuideMoves
+
+        planner = GuideMoves(agent.guide_of)  # the guide plan's empty trips, read from the twin's state
+        canonical += suffix
+    elif lookahead:
         from .rl.lookahead import LookaheadPlanner, nominal_twin
 
         # a twin that mirrors a disrupted shop knows its scenario: the planner's twins are nominal copies then

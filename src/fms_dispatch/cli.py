@@ -78,10 +78,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if a.replan <= 0:
             raise CliError("--replan must be positive (seconds per re-plan)")
         opts["replan"] = a.replan
-    if a.lookahead or a.lookahead_fast:
+    if a.lookahead or a.lookahead_fast or a.lookahead_guide:
         if not a.solver.lower().startswith("ppo"):
-            raise CliError("--lookahead and --lookahead-fast apply to the ppo solver only")
-        opts["lookahead"] = "fast" if a.lookahead_fast else True
+            raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
+        opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
@@ -208,6 +208,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lookahead-fast", action="store_true",
                    help="ppo: the lookahead without retrying rejected moves (several times faster on 50-100 "
                         "jobs, other schedules; never worse than plain ppo either)")
+    s.add_argument("--lookahead-guide", action="store_true",
+                   help="ppo with a guided model: idle vehicles make the guide plan's empty trips (no trial runs; "
+                        "fast on any size, not verified)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

@@ -106,16 +106,18 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
 
 #: solver-name suffixes of the PPO lookahead, each with the ``lookahead`` option it stands for (offline solvers
 #: here, the agent node in :mod:`fms_dispatch.agent_logic`, and the names that schedules carry)
-LOOKAHEAD_SUFFIXES: dict[str, bool | str] = {"+lookahead": True, "+lookahead-fast": "fast"}
+LOOKAHEAD_SUFFIXES: dict[str, bool | str] = {"+lookahead": True, "+lookahead-fast": "fast",
+                                             "+lookahead-guide": "guide"}
 
 
 def lookahead_suffix(mode: bool | str) -> str:
     """The solver-name suffix of a ``lookahead`` option: ``""`` for False, ``"+lookahead"`` for True,
-    ``"+lookahead-fast"`` for ``"fast"``; raises ValueError for anything else."""
+    ``"+lookahead-fast"`` for ``"fast"``, ``"+lookahead-guide"`` for ``"guide"``; raises ValueError for anything
+    else."""
     for suffix, m in {"": False, **LOOKAHEAD_SUFFIXES}.items():
-        if mode == m:
+        if mode == m and type(mode) is type(m):
             return suffix
-    raise ValueError(f"lookahead must be False, True or 'fast', got {mode!r}")
+    raise ValueError(f"lookahead must be False, True, 'fast' or 'guide', got {mode!r}")
 
 
 def solver_names() -> list[str]:
@@ -157,12 +159,13 @@ def get_solver(name: str) -> Solver:
         base, plus, flag = name.partition("+")
         mode = LOOKAHEAD_SUFFIXES.get(plus + flag.lower())
         if plus and mode is None:
-            raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead or +lookahead-fast)")
+            raise UnknownSolver(f"unknown ppo option {flag!r} in {name!r} (only +lookahead, +lookahead-fast or "
+                                "+lookahead-guide)")
         try:
             fn = ppo_solver(base)
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
-        if plus:  # "ppo[:MODEL]+lookahead[-fast]": names for benches, same as the lookahead=True / "fast" option
+        if plus:  # "ppo[:MODEL]+lookahead[-fast|-guide]": names for benches, as the lookahead option
             return lambda inst, **kw: fn(inst, **{**kw, "lookahead": mode})
         return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")

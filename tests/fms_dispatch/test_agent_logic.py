@@ -391,3 +391,19 @@ def test_guided_default_model_follows_orders_and_disruptions_on_the_full_net() -
                   (Outage(kind="agv", vehicle=0, start=10, duration=50),), 0.1, 5)
     s = ppo_solver("ppo")(inst, scenario=sc)
     assert s.meta["model"] == "guided" and validate(inst, s) == []
+
+
+def test_lookahead_guide_over_messages_equals_the_offline_solver() -> None:
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin("ra01")
+    ref = ppo_solver("ppo")(inst, lookahead="guide")
+    svc, (agent,) = ppo_run(inst, solver="ppo+lookahead-guide", idle_stops=True, decisions="full")
+    assert agent.name == "ppo:guided+lookahead-guide" == svc.final_schedule.meta["solver"]
+    assert any(lab.startswith("reposition:") for lab in svc._applied)  # the plan's empty trips were made
+    got = svc.final_schedule.to_dict()
+    for key in ("operations", "agv_trips", "tool_trips", "makespan"):
+        assert got[key] == ref.to_dict()[key], key
+    assert validate(inst, svc.final_schedule) == []
+    with pytest.raises(UnavailableSolver, match="has no plan guide"):
+        AgentLogic("ppo:bu+lookahead-guide", instance=builtin("EX12"))

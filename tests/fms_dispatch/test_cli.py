@@ -113,7 +113,7 @@ def test_ppo_solver_names(capsys):
     plain, ahead = solve(inst, "ppo"), solve(inst, "ppo+lookahead")
     assert validate(inst, plain) == [] and validate(inst, ahead) == []
     assert ahead.makespan <= plain.makespan
-    with pytest.raises(UnknownSolver, match="only \\+lookahead or \\+lookahead-fast"):
+    with pytest.raises(UnknownSolver, match="only \\+lookahead, \\+lookahead-fast or \\+lookahead-guide"):
         get_solver("ppo+magic")
     assert run(["solve", "EX22", "--solver", "ppo", "--lookahead", "-q"], capsys)[0] == 0
     fast = solve(inst, "ppo+lookahead-fast")
@@ -123,8 +123,8 @@ def test_ppo_solver_names(capsys):
     code, out, _ = run(["solve", "EX22", "--solver", "ppo", "--lookahead-fast", "-q"], capsys)
     assert code == 0 and f"makespan {fast.makespan} " in out
     code, _, err = run(["solve", "EX22", "--solver", "first", "--lookahead-fast", "-q"], capsys)
-    assert code == 2 and "--lookahead and --lookahead-fast apply to the ppo solver only" in err
-    with pytest.raises(ValueError, match="lookahead must be False, True or 'fast'"):
+    assert code == 2 and "--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only" in err
+    with pytest.raises(ValueError, match="lookahead must be False, True, 'fast' or 'guide'"):
         solve(inst, "ppo", lookahead="quick")
 
 

@@ -38,6 +38,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     6-8 times on 100-job ones with tools, other schedules (docs/benchmarks.md §2).
     ``scenario`` (breakdowns, outages, noise) disrupts the run of a full-net model; with the lookahead its twins
     are then nominal copies of the shop (:func:`~fms_dispatch.rl.lookahead.nominal_twin`), which know only the past.
+    ``lookahead="guide"`` (a guided model only): idle vehicles make the guide plan's empty trips
+    (:class:`~fms_dispatch.rl.guide.GuideMoves`; unverified, no trial runs).
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -67,10 +69,18 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
                              "full-net model (ppo:full)")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
+        planner = None
+        if lookahead == "guide":
+            if agent.guide is None:
+                raise ValueError(f"model {agent.name} has no plan guide: +lookahead-guide needs a guided model "
+                                 "(e.g. guided)")
+            from .guide import GuideMoves
+
+            planner = GuideMoves(agent.guide_of)
         shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
         # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
         sched = run_agent(shop, agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
-                          twin=nominal_twin)
+                          twin=nominal_twin, planner=planner)
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["decisions"] = agent.decisions

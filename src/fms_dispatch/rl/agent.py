@@ -168,6 +168,13 @@ class Agent:
         out[~mask] = -np.inf
         return out, mask
 
+    def guide_of(self, shop: Shop) -> Any:
+        """The plan guide the model reads in ``shop`` (:class:`fms_dispatch.rl.guide.PlanGuide`); raises
+        ValueError for a model without a guide."""
+        if self.guide is None:
+            raise ValueError(f"model {self.name} has no plan guide")
+        return self._env(shop).plan_guide()
+
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
         legal = shop.legal_actions()

@@ -139,6 +139,12 @@ class FastShopEnv(ShopEnv):
                                       self.max_tts)
         return np.concatenate([obs] + [r.ravel() for r in rows])
 
+    def plan_guide(self) -> PlanGuide:
+        """The guide of the observed shop (see :meth:`_guide`); raises ValueError for an env without a guide."""
+        if self.guide is None:
+            raise ValueError("this env has no plan guide (guide=None)")
+        return self._guide()
+
     def _guide(self) -> PlanGuide:
         """The guide of the observed shop: this env's own, or the one a twin adopted with the real shop's tables
         (:meth:`adopt_tables`), if it describes this run; else a new one for the shop. A guide describes a run

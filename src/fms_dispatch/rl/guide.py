@@ -25,7 +25,7 @@ live order).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,7 +36,7 @@ from fms_sim.schedule import Schedule
 from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
-           "GuideFollower", "guide_plan"]
+           "GuideFollower", "GuideMoves", "guide_plan"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -136,6 +136,9 @@ class PlanGuide:
             if t.loaded and t.from_ != t.to:
                 rq.setdefault(t.transporter, []).append((t.job, t.op))
                 self.tool_carrier[t.job, t.op] = t.transporter
+        #: where each planned carry starts ((kind, job, op) -> location): the end of the vehicle's empty trip
+        self.carry_start = {("agv", t.job, t.op): t.from_ for t in plan.agv_trips if t.loaded and t.from_ != t.to}
+        self.carry_start.update({("tt", t.job, t.op): t.from_ for t in plan.tool_trips if t.loaded and t.from_ != t.to})
         self.machines = _Orders(mq, range(1, inst.n_machines + 1))
         self.tools = _Orders(tq, range(1, (inst.n_tools if inst.has_tools else 0) + 1))
         self.agvs = _Orders(aq, range(inst.n_agvs if inst.has_agvs else 0))
@@ -224,6 +227,22 @@ class PlanGuide:
             return self.part_carrier.get((req[0], req[1])) if req is not None else None
         req = shop.awaiting_transporter()
         return self.tool_carrier.get((req[2], req[3])) if req is not None else None
+
+    def empty_trips(self, shop: FullShop, idle: list[tuple[str, int, int]]) -> list[tuple[str, int, int]]:
+        """The plan's empty trips for the idle vehicles ``(kind, vehicle, location)``: each to where its next
+        planned carry starts, when that is elsewhere, as ``(kind, vehicle, destination)``."""
+        inst = self.instance
+        started = np.asarray(shop.started, dtype=np.int64)
+        sent = np.asarray(shop.job_started_ops, dtype=np.int64)
+        heads = {"agv": self.agvs.heads(sent[self.agvs.J] > self.agvs.K) if inst.has_agvs else {},
+                 "tt": self.tts.heads(self._served(shop, self.tts, started)) if inst.has_tools else {}}
+        out = []
+        for kind, v, here in idle:
+            head = heads[kind].get(v)
+            to = self.carry_start.get((kind,) + head) if head is not None else None
+            if to is not None and to != here:
+                out.append((kind, v, to))
+        return out
 
     @staticmethod
     def vehicle_target(shop: FullShop, kind: str) -> int:
@@ -344,3 +363,29 @@ class GuideFollower:
             return (float("inf"), a)
 
         return min(legal, key=planned)
+
+
+class GuideMoves:
+    """Answers a :class:`~fms_sim.stepping.Stepper`'s idle stops with the guide's empty trips
+    (:meth:`PlanGuide.empty_trips`): the pre-positioning of a guided model (``+lookahead-guide``). A policy's
+    plain run has no idle stops, so its vehicles wait where they are until dispatched; the plan's replay sends
+    them ahead, and a run that follows the plan with these trips ends no later than the plan
+    (``bench/guide_follower.py``: the follower reaches the plan on sl00-sl70). The moves are not verified by
+    trial runs (the lookahead's verification costs a full run per idle stop, minutes on 100 jobs), so a run
+    that departs from its plan is not guaranteed to gain by them.
+
+    ``guide_of(shop)`` gives the shop's guide (:meth:`fms_dispatch.rl.agent.Agent.guide_of`). The counters match
+    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s for progress lines (nothing is verified)."""
+
+    def __init__(self, guide_of: Callable[[FullShop], PlanGuide]):
+        self.guide_of = guide_of
+        self.verified = self.accepted = self.rejoined = self.skipped = 0
+
+    def reset(self) -> None:
+        """Nothing to forget: the moves are read from each state."""
+
+    def plan(self, stepper: Any) -> list[Any]:
+        from fms_sim.stepping import Move
+
+        shop = stepper.shop
+        return [Move(k, v, to) for k, v, to in self.guide_of(shop).empty_trips(shop, stepper.idle)]

@@ -60,11 +60,11 @@ DEFAULT_HORIZON = 200
 
 def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int = DEFAULT_HORIZON,
               verify: bool = True, progress: Callable[[str], None] | None = None, retry: bool = True,
-              twin: TwinMaker | None = None) -> Schedule:
+              twin: TwinMaker | None = None, planner: Any = None) -> Schedule:
     """Run ``shop`` to completion with ``choose(shop) -> net action``; pre-position idle vehicles if asked
-    (``progress``, ``retry``, ``twin``: see :func:`run_with_lookahead`)."""
+    (``progress``, ``retry``, ``twin``, ``planner``: see :func:`run_with_lookahead`)."""
     if lookahead:
-        return run_with_lookahead(shop, choose, horizon, verify, progress, retry=retry, twin=twin)
+        return run_with_lookahead(shop, choose, horizon, verify, progress, retry=retry, twin=twin, planner=planner)
     while not shop.done:
         shop.act(choose(shop))
     return shop.schedule()
@@ -338,7 +338,7 @@ class LookaheadPlanner:
 def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
                        progress: Callable[[str], None] | None = None, every_s: float = 2.0,
                        reference: bool = False, decisions: list[tuple[list[int], int]] | None = None,
-                       retry: bool = True, twin: TwinMaker | None = None) -> Schedule:
+                       retry: bool = True, twin: TwinMaker | None = None, planner: Any = None) -> Schedule:
     """The lookahead loop of :func:`run_agent`: decisions by ``choose``, idle stops by a
     :class:`LookaheadPlanner` (verified by default, so the makespan is never worse than the plain policy's).
 
@@ -347,9 +347,11 @@ def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZO
     :class:`LookaheadPlanner`. ``decisions`` (a list, if given) receives ``(legal actions, action)`` for each
     decision of the run itself, not of its twins (the lookahead search mutates them). ``retry=False``: the
     fast lookahead; ``twin``: how twins are made (nominal copies in a disrupted shop; see
-    :class:`LookaheadPlanner`)."""
+    :class:`LookaheadPlanner`). ``planner``: another answer to idle stops (an object with ``plan(stepper)`` and
+    the counters, e.g. :class:`fms_dispatch.rl.guide.GuideMoves`) instead of a :class:`LookaheadPlanner`."""
     stepper = Stepper(shop, idle_stops=True)
-    planner = LookaheadPlanner(choose, horizon, verify, reference, retry, twin)
+    if planner is None:
+        planner = LookaheadPlanner(choose, horizon, verify, reference, retry, twin)
     t0 = last = time.perf_counter()
     total = sum(len(ops) for ops in shop.instance.jobs)
     stops = moved = 0
