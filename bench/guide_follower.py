@@ -16,14 +16,12 @@ import json
 import time
 
 from fms_dispatch.full_rules import run_full
-from fms_dispatch.rl.guide import GuideFollower, PlanGuide, guide_plan
+from fms_dispatch.rl.guide import GuideFollower, GuideMoves, PlanGuide, guide_plan
+from fms_dispatch.rl.lookahead import run_with_lookahead
 from fms_dispatch.rl.plan_expert import PlanPriorityPolicy
 from fms_sim.benchmarks import builtin
-import numpy as np
-
 from fms_sim.full_shop import FullShop
 from fms_sim.replay import replay
-from fms_sim.stepping import Move, Stepper
 from fms_sim.validate import validate
 
 
@@ -35,29 +33,11 @@ def _valid(inst, s):
 
 
 def follower_with_empty_trips(inst) -> int:
-    """The follower, and at every idle stop each idle vehicle sent to the start of its next planned carry."""
+    """The follower, and at every idle stop each idle vehicle sent to the start of its next planned carry
+    (:class:`GuideMoves`, the ``+lookahead-guide`` of a guided model)."""
     shop = FullShop(inst)
     guide = PlanGuide(inst, guide_plan(shop))
-    follower = GuideFollower(guide)
-    start = {("agv", t.job, t.op): t.from_ for t in guide.plan.agv_trips if t.loaded and t.from_ != t.to}
-    start.update({("tt", t.job, t.op): t.from_ for t in guide.plan.tool_trips if t.loaded and t.from_ != t.to})
-    stepper = Stepper(shop, idle_stops=True)
-    stop = stepper.advance()
-    while stop != "done":
-        if stop == "decision":
-            stop = stepper.decide(follower(shop))
-            continue
-        started, sent = np.asarray(shop.started), np.asarray(shop.job_started_ops)
-        heads = {"agv": guide.agvs.heads(sent[guide.agvs.J] > guide.agvs.K) if inst.has_agvs else {},
-                 "tt": guide.tts.heads(guide._served(shop, guide.tts, started)) if inst.has_tools else {}}
-        moves = []
-        for kind, v, here in stepper.idle:
-            head = heads[kind].get(v)
-            to = start.get((kind,) + head) if head is not None else None
-            if to is not None and to != here:
-                moves.append(Move(kind, v, to))
-        stop = stepper.move(moves)
-    return _valid(inst, shop.schedule())
+    return _valid(inst, run_with_lookahead(shop, GuideFollower(guide), planner=GuideMoves(lambda _: guide)))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -657,12 +657,12 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":
-        if agent.guide is None:
-            raise UnavailableSolver(f"solver {name!r}: model {agent.name} has no plan guide; +lookahead-guide needs "
-                                    "a guided model (e.g. ppo:guided)")
         from .rl.guide import GuideMoves
 
-        planner = GuideMoves(agent.guide_of)  # the guide plan's empty trips, read from the twin's state
+        try:
+            planner = GuideMoves.for_agent(agent)  # the guide plan's empty trips, read from the twin's state
+        except ValueError as exc:
+            raise UnavailableSolver(f"solver {name!r}: {exc}") from None
         canonical += suffix
     elif lookahead:
         from .rl.lookahead import LookaheadPlanner, nominal_twin

@@ -71,12 +71,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
         planner = None
         if lookahead == "guide":
-            if agent.guide is None:
-                raise ValueError(f"model {agent.name} has no plan guide: +lookahead-guide needs a guided model "
-                                 "(e.g. guided)")
             from .guide import GuideMoves
 
-            planner = GuideMoves(agent.guide_of)
+            planner = GuideMoves.for_agent(agent)
         shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
         # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
         sched = run_agent(shop, agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,

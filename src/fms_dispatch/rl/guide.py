@@ -124,27 +124,30 @@ class PlanGuide:
             tool = inst.jobs[r.job][r.op].tool if inst.has_tools else None
             if tool is not None:
                 tq.setdefault(tool, []).append((r.job, r.op))
-        aq: dict[int, list[tuple[int, int]]] = {}
-        self.part_carrier: dict[tuple[int, int], int] = {}
-        for t in sorted(plan.agv_trips, key=lambda t: (t.start, t.end)):
-            if t.loaded and t.from_ != t.to:
-                aq.setdefault(t.agv, []).append((t.job, t.op))
-                self.part_carrier[t.job, t.op] = t.agv
-        rq: dict[int, list[tuple[int, int]]] = {}
-        self.tool_carrier: dict[tuple[int, int], int] = {}
-        for t in sorted(plan.tool_trips, key=lambda t: (t.start, t.end)):
-            if t.loaded and t.from_ != t.to:
-                rq.setdefault(t.transporter, []).append((t.job, t.op))
-                self.tool_carrier[t.job, t.op] = t.transporter
         #: where each planned carry starts ((kind, job, op) -> location): the end of the vehicle's empty trip
-        self.carry_start = {("agv", t.job, t.op): t.from_ for t in plan.agv_trips if t.loaded and t.from_ != t.to}
-        self.carry_start.update({("tt", t.job, t.op): t.from_ for t in plan.tool_trips if t.loaded and t.from_ != t.to})
+        self.carry_start: dict[tuple[str, int, int], int] = {}
+        aq, self.part_carrier = self._routes("agv", [(t.agv, t) for t in plan.agv_trips])
+        rq, self.tool_carrier = self._routes("tt", [(t.transporter, t) for t in plan.tool_trips])
         self.machines = _Orders(mq, range(1, inst.n_machines + 1))
         self.tools = _Orders(tq, range(1, (inst.n_tools if inst.has_tools else 0) + 1))
         self.agvs = _Orders(aq, range(inst.n_agvs if inst.has_agvs else 0))
         self.tts = _Orders(rq, range(inst.n_tool_transporters if inst.has_tools else 0))
         ops = sum(len(o) for o in inst.jobs)
         self.mean_duration = max(1.0, sum(op.duration for o in inst.jobs for op in o) / max(1, ops))
+
+    def _routes(self, kind: str, trips: list[tuple[int, Any]]
+                ) -> tuple[dict[int, list[tuple[int, int]]], dict[tuple[int, int], int]]:
+        """Each vehicle's planned carries in time order and each carry's vehicle, from ``(vehicle, trip)``
+        pairs; records where each carry starts in :attr:`carry_start`. Empty trips and legs from a place to
+        itself carry nothing."""
+        routes: dict[int, list[tuple[int, int]]] = {}
+        carrier: dict[tuple[int, int], int] = {}
+        for v, t in sorted(trips, key=lambda vt: (vt[1].start, vt[1].end)):
+            if t.loaded and t.from_ != t.to:
+                routes.setdefault(v, []).append((t.job, t.op))
+                carrier[t.job, t.op] = v
+                self.carry_start[kind, t.job, t.op] = t.from_
+        return routes, carrier
 
     @classmethod
     def for_shop(cls, shop: FullShop) -> "PlanGuide":
@@ -163,6 +166,16 @@ class PlanGuide:
                     done[i] = True
         return done
 
+    def agv_heads(self, shop: FullShop) -> dict[int, tuple[int, int]]:
+        """Each AGV's next planned carry not yet dispatched."""
+        sent = np.asarray(shop.job_started_ops, dtype=np.int64)
+        return self.agvs.heads(sent[self.agvs.J] > self.agvs.K)
+
+    def tt_heads(self, shop: FullShop, started: np.ndarray) -> dict[int, tuple[int, int]]:
+        """Each transporter's next planned carry whose tool use is not yet served (``started``: the shop's
+        next operation to start per job, as an array)."""
+        return self.tts.heads(self._served(shop, self.tts, started))
+
     def view(self, shop: FullShop, tools: bool = True) -> dict[str, Any]:
         """The heads of every order in ``shop``'s state and what follows for each job (see the module
         docstring); the input of :meth:`features` and :class:`GuideFollower`. ``tools=False`` skips the tools'
@@ -170,7 +183,6 @@ class PlanGuide:
         inst = self.instance
         n = inst.n_jobs
         started = np.asarray(shop.started, dtype=np.int64)
-        dispatched = np.asarray(shop.job_started_ops, dtype=np.int64)
         m_heads = self.machines.heads(started[self.machines.J] > self.machines.K)
         start_head = np.zeros(n, dtype=bool)
         for m, (j, k) in m_heads.items():
@@ -178,9 +190,9 @@ class PlanGuide:
                 start_head[j] = True
         dispatch_head = np.zeros(n, dtype=bool)
         carrier_idle = np.zeros(n, dtype=bool)
-        idle_agvs = {v for v, _ in shop.idle_agvs()} if inst.has_agvs else set()
         if inst.has_agvs:
-            for v, (j, k) in self.agvs.heads(dispatched[self.agvs.J] > self.agvs.K).items():
+            idle_agvs = {v for v, _ in shop.idle_agvs()}
+            for v, (j, k) in self.agv_heads(shop).items():
                 if shop.next_op(j) == k:
                     dispatch_head[j] = True
                     carrier_idle[j] = v in idle_agvs
@@ -188,9 +200,9 @@ class PlanGuide:
         r_heads: dict[int, tuple[int, int]] = {}
         if inst.has_tools and tools:
             t_heads = self.tools.heads(self._served(shop, self.tools, started))
-            r_heads = self.tts.heads(self._served(shop, self.tts, started))
+            r_heads = self.tt_heads(shop, started)
         return dict(shop=shop, started=started, start_head=start_head, dispatch_head=dispatch_head,
-                    carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_agvs=idle_agvs)
+                    carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads)
 
     def use_head(self, v: dict[str, Any]) -> int | None:
         """The job whose request the chosen tool serves next in the plan (None: no choice open, or the plan's
@@ -232,10 +244,8 @@ class PlanGuide:
         """The plan's empty trips for the idle vehicles ``(kind, vehicle, location)``: each to where its next
         planned carry starts, when that is elsewhere, as ``(kind, vehicle, destination)``."""
         inst = self.instance
-        started = np.asarray(shop.started, dtype=np.int64)
-        sent = np.asarray(shop.job_started_ops, dtype=np.int64)
-        heads = {"agv": self.agvs.heads(sent[self.agvs.J] > self.agvs.K) if inst.has_agvs else {},
-                 "tt": self.tts.heads(self._served(shop, self.tts, started)) if inst.has_tools else {}}
+        heads = {"agv": self.agv_heads(shop) if inst.has_agvs else {},
+                 "tt": self.tt_heads(shop, np.asarray(shop.started, dtype=np.int64)) if inst.has_tools else {}}
         out = []
         for kind, v, here in idle:
             head = heads[kind].get(v)
@@ -380,6 +390,15 @@ class GuideMoves:
     def __init__(self, guide_of: Callable[[FullShop], PlanGuide]):
         self.guide_of = guide_of
         self.verified = self.accepted = self.rejoined = self.skipped = 0
+
+    @classmethod
+    def for_agent(cls, agent: Any) -> "GuideMoves":
+        """The empty trips of ``agent``'s guide (:class:`fms_dispatch.rl.agent.Agent`); ValueError for a model
+        without a guide."""
+        if agent.guide is None:
+            raise ValueError(f"model {agent.name} has no plan guide: +lookahead-guide needs a guided model "
+                             "(e.g. guided)")
+        return cls(agent.guide_of)
 
     def reset(self) -> None:
         """Nothing to forget: the moves are read from each state."""
