@@ -3,9 +3,12 @@ the optima (issue 19's BU goal: a policy trained without any EX instance, with l
 <= the best rule pair on at least 36 of 40, <= 0.1 s per instance)::
 
     python bench/bu_all.py [--model bu] [--json results/bu_all.json]
+    python bench/bu_all.py --model guided --lookahead-guide [--guide-restarts N --guide-budget S]
 
 The best rule pair is the best of the 36 paper-net pairs (12 job rules x first / least-work / nearest) per
-instance. Every schedule is validated.
+instance. Every schedule is validated. With ``--lookahead-guide`` a guided model's lookahead is its guide's empty
+trips (``lookahead="guide"``); ``--guide-restarts``/``--guide-budget`` set its plan search
+(:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's ``DEFAULT_EFFORT``).
 """
 
 from __future__ import annotations
@@ -27,8 +30,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="bu", help="model name or folder (default bu)")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--lookahead-guide", action="store_true", help="guided model: lookahead = the guide's empty trips")
+    ap.add_argument("--guide-restarts", type=int, help="guided model: restarts of the guide's plan search")
+    ap.add_argument("--guide-budget", type=float, help="guided model: seconds of that search (0: no limit)")
     a = ap.parse_args(argv)
     solver = ppo_solver(f"ppo:{a.model}")
+    kw = {}
+    if a.guide_restarts is not None or a.guide_budget is not None:
+        from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort
+
+        kw["guide_effort"] = PlanEffort(DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
+                                        DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
     rows = []
     for s in range(1, 11):
         for lay in range(1, 5):
@@ -41,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
             row["rules"] = best
             for la in (False, True):
                 t0 = time.perf_counter()
-                sched = solver(inst, lookahead=la)
+                sched = solver(inst, lookahead=("guide" if a.lookahead_guide else True) if la else False, **kw)
                 dt = time.perf_counter() - t0
                 assert validate(inst, sched) == [], inst.name
                 key = "ppo+la" if la else "ppo"

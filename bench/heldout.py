@@ -12,7 +12,10 @@ earliest-completion list schedules executed through the full net (``list``, ``li
 (``rule``), and each model plain and with the lookahead (``+la``; without retries from 50 jobs on). Every schedule
 is validated. The summary gives each method's mean gap to CP-SAT and, per model, on how many shops it is at most
 the list schedule. With ``--lookahead-guide`` a guided model's ``+la`` is its guide's empty trips
-(``lookahead="guide"``, on every size) instead of the verified lookahead. A model that does not fit a shop (padding) is skipped there and the count says so.
+(``lookahead="guide"``, on every size) instead of the verified lookahead. ``--guide-restarts N --guide-budget S``
+set a guided model's plan search (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's
+``DEFAULT_EFFORT``) and label its columns ``SPEC~rN``. A model that does not fit a shop (padding) is skipped there
+and the count says so.
 """
 
 from __future__ import annotations
@@ -53,8 +56,17 @@ def _has_guide(spec: str, inst) -> bool:
     return resolve_model(name).guide is not None
 
 
+def label(spec: str, effort) -> str:
+    """The column of a model spec run with ``effort`` (None: the solver's default)."""
+    return spec if effort is None else f"{spec}~r{effort.restarts}"
+
+
+def spec_of(label: str) -> str:
+    return label.split("~r", 1)[0]
+
+
 def measure(inst, models: list[str], cpsat_s: float, known: dict | None = None, la_max_jobs: int = 100,
-            guide_moves: bool = False) -> dict:
+            guide_moves: bool = False, effort=None) -> dict:
     row: dict = {"shop": inst.name, "size": f"{inst.n_jobs}x{inst.n_machines}", "tools": inst.has_tools,
                  "agvs": inst.n_agvs, "tts": inst.n_tool_transporters if inst.has_tools else 0}
     if known:  # the references of an earlier run (--reference): the same CP-SAT figures for every model
@@ -69,17 +81,19 @@ def measure(inst, models: list[str], cpsat_s: float, known: dict | None = None, 
                                    j).makespan for j in JOB_RULES)
     for spec in models:
         solver = ppo_solver(spec)
+        guided = _has_guide(spec, inst)
+        kw = {"guide_effort": effort} if guided and effort is not None else {}
         for la in (False, True):
-            key = spec + ("+la" if la else "")
+            key = label(spec, effort) + ("+la" if la else "")
             mode: bool | str = ("fast" if inst.n_jobs >= 50 else True) if la else False
-            if la and guide_moves and _has_guide(spec, inst):  # the guide's empty trips: cheap on any size
+            if la and guide_moves and guided:  # the guide's empty trips: cheap on any size
                 mode = "guide"
             elif la and inst.n_jobs > la_max_jobs:
                 row[key] = None
                 row[key + "_why"] = f"lookahead not run above {la_max_jobs} jobs (--lookahead-max-jobs)"
                 continue
             try:
-                s, dt = _timed(lambda: solver(inst, lookahead=mode))
+                s, dt = _timed(lambda: solver(inst, lookahead=mode, **kw))
             except ValueError as exc:  # larger than the model's padding
                 row[key] = None
                 row[key + "_why"] = str(exc)
@@ -111,11 +125,12 @@ def write_metrics(rows: list[dict], models: list[str], command: str) -> None:
     from fms_dispatch.rl.models import resolve_model
 
     folders: dict[Path, dict] = {}
-    for spec in models:
+    for lab in models:
+        spec = spec_of(lab)
         if spec.endswith(".zip"):  # other weights of a folder (e.g. warm_start.zip): not the folder's model
             continue
         for suffix in ("", "+la"):
-            key = spec + suffix
+            key = lab + suffix
             for r in rows:
                 name = r.get(key + "_model")
                 if r.get(key) is None or not name:
@@ -149,6 +164,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the lookahead only on shops with at most this many jobs (it takes minutes on 100)")
     ap.add_argument("--lookahead-guide", action="store_true",
                     help="'+la' of a guided model is its guide's empty trips (lookahead='guide', every size)")
+    ap.add_argument("--guide-restarts", type=int, help="guided models: restarts of the guide's plan search")
+    ap.add_argument("--guide-budget", type=float, help="guided models: seconds of that search (0: no limit)")
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
     ap.add_argument("--json", help="write the rows and the summary here")
     ap.add_argument("--write-metrics", action="store_true",
@@ -161,18 +178,26 @@ def main(argv: list[str] | None = None) -> int:
         shops = [s for s in shops if s.name in set(a.only)]
     shops = shops[:a.limit] if a.limit else shops
     earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
+    effort = None
+    if a.guide_restarts is not None or a.guide_budget is not None:
+        from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort
+
+        effort = PlanEffort(DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
+                            DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
     rows = []
     t0 = time.perf_counter()
     for inst in shops:
-        row = measure(inst, a.models, a.cpsat, earlier.get(inst.name), a.lookahead_max_jobs, a.lookahead_guide)
+        row = measure(inst, a.models, a.cpsat, earlier.get(inst.name), a.lookahead_max_jobs, a.lookahead_guide,
+                      effort)
         for k, v in earlier.get(inst.name, {}).items():  # keep the earlier run's model figures too
             row.setdefault(k, v)
         rows.append(row)
         cols = " ".join(f"{k}={row[k]}" for k in row if k in ("cpsat", "list", "rule") or
                         (k.startswith("ppo") and not k.endswith(("_s", "_why", "_model"))))
         print(f"{inst.name} {row['size']}{' tools' if row['tools'] else ''}: {cols}", file=sys.stderr, flush=True)
-    models = a.models + [m for m in (json.loads(Path(a.reference).read_text())["models"] if a.reference else [])
-                         if m not in a.models]
+    models = [label(m, effort) for m in a.models]
+    models += [m for m in (json.loads(Path(a.reference).read_text())["models"] if a.reference else [])
+               if m not in models]
     lines = summary(rows, models)
     print("\n".join(lines))
     print(f"({time.perf_counter() - t0:.0f} s)")

@@ -7,7 +7,8 @@ are checked like training specs), never on the shops the reported figures come f
     python bench/validation.py --models ppo:guided ppo:large --shops 'gen:20x10x10*2@216' ... [--lookahead]
 
 Per shop: the list schedule (the better of ``list`` and ``list:ect``, executed through the full net) and each
-model (plain, and with ``--lookahead`` also with the lookahead); every schedule validated. The summary gives
+model (plain, and with ``--lookahead`` also with the lookahead: a guided model's guide empty trips with
+``--lookahead-guide``); guided models plan with the solver's default effort; every schedule validated. The summary gives
 each method's mean ratio to the list schedule, with and without tools.
 """
 
@@ -20,6 +21,7 @@ import sys
 import time
 
 from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import check_training_specs
@@ -42,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", nargs="+", required=True, help="PPO solver specs (ppo:NAME, ppo:FOLDER)")
     ap.add_argument("--shops", nargs="+", default=DEFAULT_SHOPS, help="generated shop specs (not held out)")
     ap.add_argument("--lookahead", action="store_true", help="also each model with the lookahead")
+    ap.add_argument("--lookahead-guide", action="store_true",
+                    help="with --lookahead: a guided model's lookahead is its guide's empty trips")
     ap.add_argument("--json", help="write the rows and the summary here")
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
@@ -54,7 +58,10 @@ def main(argv: list[str] | None = None) -> int:
                 key = spec + ("+la" if la else "")
                 t0 = time.perf_counter()
                 try:
-                    s = ppo_solver(spec)(inst, lookahead=("fast" if inst.n_jobs >= 50 else True) if la else False)
+                    mode: bool | str = ("fast" if inst.n_jobs >= 50 else True) if la else False
+                    if la and a.lookahead_guide and load_agent(spec.split(":", 1)[1]).guide is not None:
+                        mode = "guide"
+                    s = ppo_solver(spec)(inst, lookahead=mode)
                 except ValueError as exc:  # the model does not fit the shop or its net
                     row[key] = None
                     row[key + "_why"] = str(exc)

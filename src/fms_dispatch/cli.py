@@ -82,6 +82,17 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
         opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
+    if a.guide_restarts is not None or a.guide_budget is not None:
+        if not a.solver.lower().startswith("ppo"):
+            raise CliError("--guide-restarts and --guide-budget apply to the ppo solver only")
+        from .rl.guide import DEFAULT_EFFORT, PlanEffort
+
+        try:
+            opts["guide_effort"] = PlanEffort(
+                restarts=DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
+                budget=DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
+        except ValueError as e:
+            raise CliError(f"--guide-restarts/--guide-budget: {e}") from None
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
@@ -211,6 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lookahead-guide", action="store_true",
                    help="ppo with a guided model: idle vehicles make the guide plan's empty trips (no trial runs; "
                         "fast on any size, not verified)")
+    s.add_argument("--guide-restarts", type=int, metavar="N",
+                   help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
+                        "(default 256; 0: the plain list schedule, as in training)")
+    s.add_argument("--guide-budget", type=float, metavar="SECONDS",
+                   help="ppo with a guided model: time limit of those restarts (default 1; 0: no limit)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

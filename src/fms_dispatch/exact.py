@@ -67,6 +67,7 @@ __all__ = [
     "solve_exact",
     "cpsat",
     "greedy_schedule",
+    "restart_list_plan",
     "simple_lower_bound",
     "relaxation_bound",
     "FULL_MODEL_MAX_TASKS",
@@ -1003,11 +1004,12 @@ def _solve_fallback(inst: Instance, incumbent: Schedule, lb: int, t0: float, tim
 
 def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[int, int], int] | None, bound: int,
                            deadline: float, seed: int, progress: Progress | None, t0: float,
-                           max_stall: int | None = None, origin: Snapshot | None = None) -> Schedule:
+                           max_stall: int | None = None, origin: Snapshot | None = None,
+                           max_tries: int | None = None) -> Schedule:
     """Randomised greedy restarts, keeping the best schedule, until ``deadline`` (or ``max_stall`` attempts
-    in a row without improvement): first a schedule guided by the relaxation's start times (if given), then
-    earliest-start list schedules whose start times are perturbed by random offsets (two in three attempts)
-    and schedules guided by the best schedule's start times plus noise. With ``origin`` every schedule is a
+    in a row without improvement, or ``max_tries`` attempts in all): first a schedule guided by the
+    relaxation's start times (if given), then earliest-start list schedules whose start times are perturbed by
+    random offsets (two in three attempts) and schedules guided by the best schedule's start times plus noise. With ``origin`` every schedule is a
     residual plan from that snapshot (see :func:`greedy_schedule`)."""
     rng = random.Random(seed)
     first = origin.next_op if origin is not None else (0,) * inst.n_jobs
@@ -1016,7 +1018,8 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
         return best
     mean_p = max(1.0, sum(inst.jobs[j][k].duration for j, k in keys) / len(keys))
     it = stall = 0
-    while best.makespan > bound and (max_stall is None or stall < max_stall):
+    while (best.makespan > bound and (max_stall is None or stall < max_stall)
+           and (max_tries is None or it < max_tries)):
         t1 = time.monotonic()
         scale = mean_p * rng.choice((0.05, 0.2, 0.5))
         if it == 0 and starts is not None:
@@ -1037,6 +1040,23 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
         if now + (now - t1) > deadline:
             break
     return best
+
+
+def restart_list_plan(inst: Instance, plan: Schedule, *, tries: int, budget: float | None = None, seed: int = 0,
+                      origin: Snapshot | None = None) -> Schedule:
+    """``plan`` or a better list schedule found by at most ``tries`` randomised restarts of it within ``budget``
+    seconds (None: no time limit): perturbed earliest-start schedules and schedules guided by the best one's
+    start times (:func:`_improve_by_priorities`). Deterministic for a given ``seed`` while the time limit does
+    not cut the restarts short. With ``origin`` every schedule is a residual plan from that snapshot."""
+    if tries < 0:
+        raise ValueError(f"tries must be >= 0, got {tries}")
+    if budget is not None and budget < 0:
+        raise ValueError(f"budget must be >= 0 seconds, got {budget}")
+    if tries == 0 or budget == 0:
+        return plan
+    t0 = time.monotonic()
+    deadline = math.inf if budget is None else t0 + budget
+    return _improve_by_priorities(inst, plan, None, 0, deadline, seed, None, t0, origin=origin, max_tries=tries)
 
 
 def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **kw: object) -> Schedule:

@@ -180,7 +180,8 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
     return svc, agents
 
 
-@pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo", "bu", "paper"),
+@pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo:bu", "bu", "paper"),
+                                                      ("EX12", "ppo", "guided", "full"),
                                                       ("ra01", "ppo:large", "large", "paper"),
                                                       ("ra01", "ppo", "guided", "full")])
 def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, solver: str, model: str, net: str) -> None:
@@ -208,7 +209,7 @@ def test_ppo_agent_restarted_mid_run_replays_the_history() -> None:
 
 def test_ppo_twin_follows_orders() -> None:
     inst = builtin("EX12")
-    svc, (agent,) = ppo_run(inst, order_at=6)
+    svc, (agent,) = ppo_run(inst, solver="ppo:bu", order_at=6)
     assert svc.instance.n_jobs == 6 and agent.decide.twin.instance.n_jobs == 6
     assert agent.decide.rebuilds == 1
     assert validate(svc.instance, svc.final_schedule) == []
@@ -217,7 +218,7 @@ def test_ppo_twin_follows_orders() -> None:
 def test_ppo_without_history_or_with_another_instance_is_an_error() -> None:
     inst = builtin("EX12")
     svc = ShopService(inst, run_id="p")                      # no history
-    agent = AgentLogic("ppo", instance=inst)
+    agent = AgentLogic("ppo:bu", instance=inst)
     svc.start()
     (err,) = agent.on_state(encode(state := svc.state))
     assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "bad_schema"
@@ -232,7 +233,7 @@ def test_ppo_without_history_or_with_another_instance_is_an_error() -> None:
 def test_ppo_twin_mismatch_rebuilds_then_falls_back_to_the_first_action() -> None:
     inst = builtin("EX12")
     svc = ShopService(inst, run_id="p", history=True)
-    agent = AgentLogic("ppo", instance=inst)
+    agent = AgentLogic("ppo:bu", instance=inst)
     svc.start()
     for _ in range(4):
         (cmd,) = agent.on_state(encode(svc.state))
@@ -327,20 +328,23 @@ def test_first_and_random_decide_on_the_full_net_and_rules_refuse_it() -> None:
 def test_lookahead_moves_vehicles_over_messages_and_restarts() -> None:
     from fms_dispatch.rl import ppo_solver
 
-    inst = builtin("EX12")  # the lookahead improves EX12 (pre-positioning pays off)
-    plain = ppo_solver("ppo")(inst)
-    svc, agents = ppo_run(inst, solver="lookahead", idle_stops=True, restart_at=9)
+    inst = builtin("EX12")  # the lookahead improves bu on EX12 (pre-positioning pays off)
+    plain = ppo_solver("ppo:bu")(inst)
+    svc, agents = ppo_run(inst, solver="ppo:bu+lookahead", idle_stops=True, restart_at=9)
     assert any(lab.startswith("reposition:") for lab in svc._applied)  # the agent moved a vehicle
     assert len(agents) == 2 and agents[1].decide.rebuilds == 1
     assert svc.final_schedule.makespan < plain.makespan
-    assert svc.final_schedule.makespan == ppo_solver("ppo")(inst, lookahead=True).makespan
+    assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst, lookahead=True).makespan
     assert validate(inst, svc.final_schedule) == []
+    # ``lookahead`` alone is the default model with the lookahead: guided, on the full net
+    svc, (agent,) = ppo_run(inst, solver="lookahead", idle_stops=True, decisions="full")
+    assert agent.name == "ppo:guided+lookahead" and validate(inst, svc.final_schedule) == []
 
 
 def test_lookahead_twin_follows_orders_at_idle_stops() -> None:
     inst = builtin("EX12")
     svc = ShopService(inst, run_id="p", history=True, idle_stops=True)
-    agent = AgentLogic("ppo+lookahead", instance=inst)
+    agent = AgentLogic("ppo:bu+lookahead", instance=inst)
     svc.start()
     ordered = False
     while not svc.done:
@@ -369,7 +373,7 @@ def test_other_solvers_wait_at_idle_stops(solver: str) -> None:
 def test_lookahead_needs_a_shop_with_idle_stops() -> None:
     inst = builtin("EX12")
     svc = ShopService(inst, run_id="p", history=True)        # no idle stops
-    agent = AgentLogic("ppo+lookahead", instance=inst)
+    agent = AgentLogic("ppo:bu+lookahead", instance=inst)
     svc.start()
     (err,) = agent.on_state(encode(svc.state))
     assert err.topic == m.TOPIC_ERRORS and "has no 'idle' field" in err.msg["message"]

@@ -209,12 +209,13 @@ def test_a_run_at_its_start_never_inherits_a_plan_made_from_another_runs_state()
 def test_the_guides_empty_trips_bring_the_guided_model_to_its_plan(name):
     # the guided model's plain run lacks the plan's empty trips (ra01: 111 against 110); with them at its idle
     # stops it reaches the plan
+    from fms_dispatch.rl.guide import PlanEffort
     from fms_dispatch.solvers import solve
 
     inst = builtin(name)
-    plan = guide_plan(FullShop(inst))
-    plain = solve(inst, "ppo:guided")
-    moved = solve(inst, "ppo:guided+lookahead-guide")
+    plan = guide_plan(FullShop(inst))  # the plain list schedule: no restarts
+    plain = solve(inst, "ppo:guided", guide_effort=PlanEffort())
+    moved = solve(inst, "ppo:guided+lookahead-guide", guide_effort=PlanEffort())
     assert validate(inst, moved) == [] and moved.meta["solver"] == "ppo:guided+lookahead-guide"
     assert moved.makespan == plan.makespan <= plain.makespan
     assert (name == "ra01") == (plain.makespan > plan.makespan)
@@ -225,6 +226,96 @@ def test_lookahead_guide_needs_a_guided_model(capsys):
     from fms_dispatch.solvers import solve
 
     with pytest.raises(ValueError, match="has no plan guide"):
-        solve(builtin("EX12"), "ppo+lookahead-guide")  # the default there is bu (paper net, no guide)
+        solve(builtin("EX12"), "ppo:bu+lookahead-guide")  # bu: the paper's net, no guide
     assert main(["solve", "ra01", "--solver", "ppo", "--lookahead-guide", "-q"]) == 0
     assert main(["solve", "ra01", "--solver", "rules", "--lookahead-guide", "-q"]) == 2
+
+
+def test_the_cli_sets_the_guides_search(capsys, tmp_path):
+    from fms_dispatch.cli import main
+
+    out = tmp_path / "s.json"
+    assert main(["solve", "EX104", "--solver", "ppo", "--guide-restarts", "64", "--guide-budget", "0", "-q",
+                 "--out", str(out)]) == 0
+    meta = json.loads(out.read_text())["meta"]
+    assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0}
+    capsys.readouterr()
+    assert main(["solve", "EX104", "--solver", "rules", "--guide-restarts", "4", "-q"]) == 2
+    assert "apply to the ppo solver only" in capsys.readouterr().err
+    assert main(["solve", "EX104", "--solver", "ppo", "--guide-restarts", "-3", "-q"]) == 2
+    assert "restarts must be" in capsys.readouterr().err
+    assert main(["solve", "EX104", "--solver", "ppo:bu", "--guide-restarts", "4", "-q"]) == 2
+    assert "no plan guide" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- the plan's search effort
+def test_restarts_improve_the_list_plan_reproducibly():
+    from fms_dispatch.exact import restart_list_plan
+
+    inst = builtin("EX104")
+    plan = min((greedy_schedule(inst, rule=r) for r in ("est", "ect")), key=lambda p: p.makespan)
+    better = restart_list_plan(inst, plan, tries=64, seed=3)
+    assert validate(inst, better) == []
+    assert better.makespan < plan.makespan  # 199 -> 177 on this shop
+    assert restart_list_plan(inst, plan, tries=64, seed=3).makespan == better.makespan  # no time limit: reproducible
+    # more tries continue the same sequence of restarts: never worse
+    assert restart_list_plan(inst, plan, tries=256, seed=3).makespan <= better.makespan
+    assert restart_list_plan(inst, plan, tries=0) is plan
+    assert restart_list_plan(inst, plan, tries=64, budget=0.0) is plan
+    with pytest.raises(ValueError, match="tries"):
+        restart_list_plan(inst, plan, tries=-1)
+    with pytest.raises(ValueError, match="budget"):
+        restart_list_plan(inst, plan, tries=1, budget=-1.0)
+
+
+def test_plan_effort_is_validated():
+    from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort
+
+    assert PlanEffort() == PlanEffort(0, None, 0)
+    assert DEFAULT_EFFORT.restarts > 0 and DEFAULT_EFFORT.budget is not None
+    for bad in (dict(restarts=-1), dict(restarts=1.5), dict(budget=-0.1), dict(budget=float("nan"))):
+        with pytest.raises(ValueError, match="plan"):
+            PlanEffort(**bad)
+
+
+def test_a_searched_plan_guides_from_scratch_and_from_a_state():
+    from fms_dispatch.rl.guide import PlanEffort
+
+    inst = builtin("ra01")
+    effort = PlanEffort(restarts=48, seed=1)
+    plain, searched = guide_plan(FullShop(inst)), guide_plan(FullShop(inst), effort)
+    assert validate(inst, searched) == [] and searched.makespan <= plain.makespan
+    assert PlanGuide.for_shop(FullShop(inst), effort).effort == effort
+    shop = FullShop(inst)
+    for _ in range(27):
+        shop.act(shop.legal_actions()[0])
+    residual = guide_plan(shop, effort)
+    assert residual.meta.get("residual") is not None
+    assert residual.makespan <= guide_plan(shop).makespan
+    assert {(r.job, r.op) for r in residual.operations} == {
+        (j, k) for j in range(inst.n_jobs) for k in range(shop.started[j], len(inst.jobs[j]))}
+
+
+def test_the_guided_model_follows_a_searched_plan():
+    # the guide's features only say what heads the plan's orders: the model trained on plain list schedules
+    # follows a better plan as well, and an env never reuses a plan searched with another effort
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import PlanEffort
+
+    inst = builtin("EX104")
+    solve = ppo_solver("ppo:guided")
+    plain = solve(inst, guide_effort=PlanEffort())
+    searched = solve(inst, guide_effort=PlanEffort(restarts=64))
+    again = solve(inst, guide_effort=PlanEffort())
+    for s in (plain, searched, again):
+        assert validate(inst, s) == []
+    plan = guide_plan(FullShop(inst), PlanEffort(restarts=64))
+    assert searched.makespan < plain.makespan
+    assert searched.makespan <= plan.makespan * 1.02
+    assert again.makespan == plain.makespan  # the searched plan of the run before is not reused
+    assert searched.meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0}
+    assert solve(inst).meta["guide_effort"]["restarts"] > 0  # the default searches
+    with pytest.raises(ValueError, match="no plan guide"):
+        ppo_solver("ppo:bu")(inst, guide_effort=PlanEffort(restarts=4))
+    with pytest.raises(TypeError, match="PlanEffort"):
+        solve(inst, guide_effort=64)

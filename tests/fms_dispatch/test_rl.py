@@ -439,7 +439,7 @@ def test_solver_spec_errors():
 
 
 def test_default_model_choice():
-    assert default_model_name(builtin("EX12")) == "bu"
+    assert default_model_name(builtin("EX12")) == "guided"  # chosen on BU-size validation shops over bu
     assert default_model_name(builtin("ra01")) == "guided"  # tools: the guided full-net model
     assert default_model_name(builtin("sl00")) == "guided"
     assert default_model_name(builtin("sl00").without_tools()) == "guided"
@@ -477,7 +477,7 @@ def test_solving_with_a_shipped_model_does_not_import_torch():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     makespan, model, torch_loaded, sb3_loaded = res.stdout.split()
-    assert model == "bu" and torch_loaded == "False" and sb3_loaded == "False"
+    assert model == "guided" and torch_loaded == "False" and sb3_loaded == "False"
     assert int(makespan) == ppo_solver("ppo")(builtin("EX12"), lookahead=True).makespan
 
 
@@ -506,8 +506,8 @@ def test_stale_or_broken_export_falls_back_to_torch(tmp_path):
 
 def test_shipped_bu_model_valid_on_ex12():
     inst = builtin("EX12")
-    s = ppo_solver("ppo")(inst)
-    assert s.meta["model"] == "bu"
+    s = ppo_solver("ppo:bu")(inst)
+    assert s.meta["model"] == "bu" and s.meta["decisions"] == "paper"
     assert validate(inst, s) == []
 
 

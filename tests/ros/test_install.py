@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -83,7 +84,7 @@ def test_ament_index_finds_the_packages_and_executables(prefix: Path, monkeypatc
     for script in ("fms", "fms-shop", "fms-agent", "fms-recorder"):
         assert (prefix / "bin" / script).is_file()
     models = prefix / "share" / "fms_dispatch" / "models"   # what solving needs; model.zip stays in the repo
-    for name in ("bu", "large", "large-agv"):
+    for name in ("bu", "large", "large-agv", "guided"):
         assert {p.name for p in (models / name).iterdir()} == {"config.json", "metrics.json", "best_model.zip",
                                                                "best_model.actor.npz"}
     with pytest.raises(ament.PackageNotFoundError):
@@ -108,7 +109,7 @@ def test_node_starts_from_the_found_path(prefix: Path, ros_env: dict[str, str], 
                                   STARTUP_S, "the installed shop's first state")
         assert state["seq"] == 0 and state["instance"] == "EX12" and state["actions"][0] == "job:0"
         # the agent finds the installed model (the prefix's share/fms_dispatch/models, not the repository's)
-        ppo = procs.start("agent", [str(agent), "--ros-args", "-p", "solver:=ppo", "-p", "instance:=EX12"])
+        ppo = procs.start("agent", [str(agent), "--ros-args", "-p", "solver:=ppo:bu", "-p", "instance:=EX12"])
         model = prefix / "share" / "fms_dispatch" / "models" / "bu" / "best_model.zip"
         observer.wait_for(lambda g: [s for s in g["state"] if s["run_id"] == "installed" and s["seq"] >= 3],
                           STARTUP_S, "the installed agent's commands")
@@ -126,16 +127,17 @@ def _installed_env(prefix: Path, ros_env: dict[str, str]) -> dict[str, str]:
 
 def test_fms_up_best_runs_the_installed_model(prefix: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
     """The issue's case: after a non-editable install ``fms up EX62 --solver best`` runs the shipped PPO model
-    with lookahead (121), not silently the best rule pair (123)."""
+    (the default, guided), not silently the best rule pair (123)."""
     out = tmp_path / "EX62.json"
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "best", "--out", str(out),
                           "--db", str(tmp_path / "fms.sqlite"), "--log-dir", str(tmp_path / "logs")],
                          env=_installed_env(prefix, ros_env), capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr
-    assert ("best on EX62: ppo:bu+lookahead (makespan 121 in simulation; best rule pair rule:SPTN+least-work: 123)"
-            in res.stderr)
+    found = re.search(r"best on EX62: (ppo:guided\S*) \(makespan (\d+) in simulation; best rule pair "
+                      r"rule:SPTN\+least-work: 123\)", res.stderr)
+    assert found and int(found[2]) < 123, res.stderr
     assert str(prefix) in (tmp_path / "logs" / "agent.log").read_text()    # the installed model was used
-    assert json.loads(out.read_text())["makespan"] == 121
+    assert json.loads(out.read_text())["makespan"] == int(found[2])
 
 
 def test_missing_models_are_an_error_naming_the_places(prefix: Path, ros_env: dict[str, str]) -> None:
@@ -152,7 +154,7 @@ def test_missing_models_are_an_error_naming_the_places(prefix: Path, ros_env: di
     finally:
         hidden.rename(models)
     assert best.returncode == 2 and best.stderr.startswith("fms up: error: --solver best needs the shipped PPO models")
-    assert ppo.returncode == 2 and "fms-agent: error: solver 'ppo:bu': no model named 'bu'" in ppo.stderr
+    assert ppo.returncode == 2 and "fms-agent: error: solver 'ppo:guided': no model named 'guided'" in ppo.stderr
     for res in (best, ppo):
         assert f"searched {models}" in res.stderr and str(Path(sys.prefix, "share", "fms_dispatch", "models")) \
             in res.stderr

@@ -40,6 +40,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     are then nominal copies of the shop (:func:`~fms_dispatch.rl.lookahead.nominal_twin`), which know only the past.
     ``lookahead="guide"`` (a guided model only): idle vehicles make the guide plan's empty trips
     (:class:`~fms_dispatch.rl.guide.GuideMoves`; unverified, no trial runs).
+    ``guide_effort`` (a guided model only; :class:`~fms_dispatch.rl.guide.PlanEffort`, default
+    :data:`~fms_dispatch.rl.guide.DEFAULT_EFFORT`) is how hard the guide's plan is searched when the run starts.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -50,7 +52,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
-              **_: Any) -> Schedule:
+              guide_effort: Any = None, **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
@@ -64,6 +66,13 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if not agent.fits(instance):
             raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
                              f"({agent.padding})")
+        from .guide import DEFAULT_EFFORT, PlanEffort
+
+        if guide_effort is not None and not isinstance(guide_effort, PlanEffort):
+            raise TypeError(f"guide_effort must be a PlanEffort, not {type(guide_effort).__name__}")
+        if guide_effort is not None and agent.guide is None:
+            raise ValueError(f"model {agent.name} reads no plan guide: a guide effort does not apply to it")
+        agent.guide_effort = guide_effort or DEFAULT_EFFORT  # a cached agent: set for every run
         disrupted = scenario is not None and not scenario.empty
         if disrupted and agent.decisions != "full":
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
@@ -82,6 +91,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         sched.meta["model"] = agent.name
         sched.meta["decisions"] = agent.decisions
         sched.meta["lookahead"] = bool(lookahead)
+        if agent.guide is not None:
+            e = agent.guide_effort
+            sched.meta["guide_effort"] = {"restarts": e.restarts, "budget": e.budget, "seed": e.seed}
         if lookahead:
             sched.meta["lookahead_fast"] = fast
         return sched

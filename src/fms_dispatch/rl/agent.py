@@ -67,6 +67,11 @@ class Agent:
         check_guide(guide, decisions)
         self.guide = guide
         """The observation's plan guide (its config's ``guide``; :mod:`fms_dispatch.rl.envs`)."""
+        from .guide import DEFAULT_EFFORT
+
+        self.guide_effort = DEFAULT_EFFORT
+        """How hard the guide's plan of a new run is searched (:class:`~fms_dispatch.rl.guide.PlanEffort`);
+        read when the run's first observation is made."""
         self.path = path
         self.padding = dict(padding)
         self.policy: Any = None  # the torch policy, when loaded
@@ -135,7 +140,8 @@ class Agent:
             if isinstance(shop, FullShop) != (self.decisions == "full"):
                 raise ValueError(f"model {self.name} decides through the {self.decisions} net, not through a "
                                  f"{type(shop).__name__}")
-            env = FastShopEnv(shop.instance, decisions=self.decisions, guide=self.guide, **self.padding)
+            env = FastShopEnv(shop.instance, decisions=self.decisions, guide=self.guide,
+                              guide_effort=self.guide_effort, **self.padding)
             env.attach(shop)
             if self._last is not None:
                 env.adopt_tables(self._last)  # twins share the real shop's instance tables

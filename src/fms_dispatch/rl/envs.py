@@ -9,11 +9,12 @@ machines x 20 tools, 10 AGVs, 5 transporters: every large-benchmark instance) an
 2 AGVs, no tools: the Bilge-Ulusoy sets).
 
 Guide (``guide="list"``, full net only): when a run starts the better of the earliest-start and
-earliest-completion list schedules is planned once
-(:func:`fms_dispatch.rl.guide.guide_plan`), and every observation ends with that plan's orders as read from the
-state (:class:`fms_dispatch.rl.guide.PlanGuide`): per job, tool, AGV and transporter whether its planned next
-order can be carried out now, and each job's rank and lateness in the plan (``GUIDE_*_FEATURES``). A policy can
-then follow the plan, which replayed through the net is the list schedule, and learn where to depart from it.
+earliest-completion list schedules is planned once, improved by ``guide_effort``'s randomised restarts
+(:func:`fms_dispatch.rl.guide.guide_plan`; none by default, as in training), and every observation ends with
+that plan's orders as read from the state (:class:`fms_dispatch.rl.guide.PlanGuide`): per job, tool, AGV and
+transporter whether its planned next order can be carried out now, and each job's rank and lateness in the plan
+(``GUIDE_*_FEATURES``). A policy can then follow the plan, which replayed through the net is the plan's list
+schedule, and learn where to depart from it.
 Twins of a shop share its guide (:meth:`FastShopEnv.adopt_tables`); a shop first seen after it started, or
 after its jobs changed (a live order), gets a plan from its state.
 """
@@ -30,7 +31,8 @@ from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, 
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-from .guide import GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanGuide
+from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanEffort,
+                    PlanGuide)
 
 __all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
 
@@ -118,10 +120,11 @@ class FastShopEnv(ShopEnv):
     """:class:`ShopEnv` that can observe a live shop, optionally with a plan's guide; see the module
     docstring."""
 
-    def __init__(self, instances, *, guide: str | None = None, **kwargs):
+    def __init__(self, instances, *, guide: str | None = None, guide_effort: PlanEffort = PlanEffort(), **kwargs):
         super().__init__(instances, **kwargs)
         check_guide(guide, self.decisions)
         self.guide = guide
+        self.guide_effort = guide_effort
         self._plan_guide: PlanGuide | None = None
         self._guide_for: Instance | None = None  # the instance the guide was last checked against
         if guide is not None:
@@ -149,7 +152,7 @@ class FastShopEnv(ShopEnv):
         """The guide of the observed shop: this env's own, or the one a twin adopted with the real shop's tables
         (:meth:`adopt_tables`), if it describes this run; else a new one for the shop. A guide describes a run
         of the same jobs, fleet and travel times, planned from scratch for a run at its start, or from a state
-        of the run for shops at or after that state's time."""
+        of the run for shops at or after that state's time, with this env's ``guide_effort`` (or given whole)."""
         shop, inst = self.shop, self.instance
         guide = self._plan_guide
         if guide is not None and self._guide_for is not inst:
@@ -157,11 +160,13 @@ class FastShopEnv(ShopEnv):
             self._guide_for = inst if same else None
             if not same:
                 guide = None
+        if guide is not None and guide.effort not in (None, self.guide_effort):
+            guide = None  # planned with another search effort than this env's
         if guide is not None:
             fresh = shop.now == 0 and not any(shop.job_started_ops)
             if (guide.origin is None) if fresh else (guide.origin is None or shop.now >= guide.origin):
                 return guide
-        guide = self._plan_guide = PlanGuide.for_shop(shop)
+        guide = self._plan_guide = PlanGuide.for_shop(shop, self.guide_effort)
         self._guide_for = inst
         return guide
 

@@ -25,6 +25,7 @@ live order).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -36,7 +37,7 @@ from fms_sim.schedule import Schedule
 from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
-           "GuideFollower", "GuideMoves", "guide_plan"]
+           "GuideFollower", "GuideMoves", "guide_plan", "PlanEffort", "DEFAULT_EFFORT"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -49,17 +50,41 @@ GUIDE_AGV_FEATURES = ("planned",)
 GUIDE_TT_FEATURES = ("planned",)
 
 
-def guide_plan(shop: FullShop) -> Schedule:
+@dataclass(frozen=True)
+class PlanEffort:
+    """How hard the guide's plan is searched: the better list schedule, then up to ``restarts`` randomised
+    restarts of it (:func:`fms_dispatch.exact.restart_list_plan`, seeded with ``seed``) within ``budget``
+    seconds (None: no time limit). ``PlanEffort()`` is the plain list schedule, the plan the guided models were
+    trained with; a better plan needs no retraining, since the guide's features only say what heads its
+    orders. Results are reproducible while ``budget`` does not cut the restarts short."""
+
+    restarts: int = 0
+    budget: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.restarts, int) or self.restarts < 0:
+            raise ValueError(f"plan restarts must be an integer >= 0, got {self.restarts!r}")
+        if self.budget is not None and not self.budget >= 0:
+            raise ValueError(f"plan budget must be >= 0 seconds (or None), got {self.budget!r}")
+
+
+#: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget``):
+#: on shops of up to about 20 jobs the restarts finish within the budget (reproducible), larger ones are cut
+DEFAULT_EFFORT = PlanEffort(restarts=256, budget=1.0)
+
+
+def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
-    (the project's ``list`` reference; earliest start on ties), from scratch when the run has not started, else
-    from its state (residual plans). A state with a vehicle or tool-use choice pending cannot be snapshot; the
-    plans then start from a copy that answers those choices (first offered) and stops at the next state that
-    can."""
+    (the project's ``list`` reference; earliest start on ties), improved by ``effort``'s restarts, from scratch
+    when the run has not started, else from its state (residual plans). A state with a vehicle or tool-use choice
+    pending cannot be snapshot; the plans then start from a copy that answers those choices (first offered) and
+    stops at the next state that can."""
     import copy
 
     from fms_sim.snapshot import can_snapshot, snapshot
 
-    from ..exact import greedy_schedule
+    from ..exact import greedy_schedule, restart_list_plan
 
     origin = None
     if shop.now > 0 or any(shop.job_started_ops):
@@ -69,7 +94,11 @@ def guide_plan(shop: FullShop) -> Schedule:
                 shop.act(shop.legal_actions()[0])
         origin = snapshot(shop)
     plans = [greedy_schedule(shop.instance, rule=rule, origin=origin) for rule in ("est", "ect")]
-    return min(plans, key=lambda p: p.makespan)
+    best = min(plans, key=lambda p: p.makespan)
+    if effort.restarts:
+        best = restart_list_plan(shop.instance, best, tries=effort.restarts, budget=effort.budget, seed=effort.seed,
+                                 origin=origin)
+    return best
 
 
 class _Orders:
@@ -108,9 +137,11 @@ class PlanGuide:
     """The orders of ``plan`` (a schedule of ``instance``, or a residual plan) read from shop states; see the
     module docstring."""
 
-    def __init__(self, instance: Instance, plan: Schedule):
+    def __init__(self, instance: Instance, plan: Schedule, effort: PlanEffort | None = None):
         self.instance = instance
         self.plan = plan
+        #: the search that made the plan (:meth:`for_shop`); None for a plan given from elsewhere
+        self.effort = effort
         #: the time a residual plan starts from (a run's state); None for a plan from scratch
         self.origin: int | None = plan.meta.get("residual")
         inst = instance
@@ -150,9 +181,9 @@ class PlanGuide:
         return routes, carrier
 
     @classmethod
-    def for_shop(cls, shop: FullShop) -> "PlanGuide":
+    def for_shop(cls, shop: FullShop, effort: PlanEffort = PlanEffort()) -> "PlanGuide":
         """The guide of :func:`guide_plan` for ``shop``."""
-        return cls(shop.instance, guide_plan(shop))
+        return cls(shop.instance, guide_plan(shop, effort), effort)
 
     # ------------------------------------------------------------------ the heads of a state
     @staticmethod
@@ -309,10 +340,11 @@ class GuideFollower:
     tool take-up or a start that heads its orders, and ``hold`` when none does. When nothing planned is possible
     and the net may not hold (a run that left the plan), the legal action of the earliest planned operation.
 
-    ``guide`` is fixed, or made per shop by :meth:`PlanGuide.for_shop` (``guide=None``)."""
+    ``guide`` is fixed, or made per shop by :meth:`PlanGuide.for_shop` with ``effort`` (``guide=None``)."""
 
-    def __init__(self, guide: PlanGuide | None = None):
+    def __init__(self, guide: PlanGuide | None = None, effort: PlanEffort = PlanEffort()):
         self.guide = guide
+        self.effort = effort
         self._made: dict[int, PlanGuide] = {}
 
     @property
@@ -324,7 +356,7 @@ class GuideFollower:
             return self.guide
         g = self._made.get(id(shop))
         if g is None or g.instance is not shop.instance:
-            g = self._made[id(shop)] = PlanGuide.for_shop(shop)
+            g = self._made[id(shop)] = PlanGuide.for_shop(shop, self.effort)
         return g
 
     def __call__(self, shop: FullShop) -> int:
