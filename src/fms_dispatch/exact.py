@@ -333,6 +333,37 @@ def greedy_schedule(
     ops: list[OperationRecord] = []
     agv_trips: list[AgvTrip] = []
     tool_trips: list[ToolTrip] = []
+    # per job, the earliest vehicle for its next carry (part / tool) as (start, empty travel, vehicle, from, not
+    # before): the minimum over the fleet, kept up to date as one vehicle changes per step (None: recompute)
+    agv_best: list[tuple[int, int, int, int, int] | None] = [None] * nj
+    tt_best: list[tuple[int, int, int, int, int] | None] = [None] * nj
+
+    def earliest(cache: list, j: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]], src: int,
+                 rdy: int) -> tuple[int, int]:
+        c = cache[j]
+        if c is None:
+            v, st = _earliest_vehicle(locs, free, travel, src, rdy)
+            c = cache[j] = (st, travel[locs[v]][src] if v >= 0 else 0, v, src, rdy)
+        return c[2], c[0]
+
+    def moved(cache: list, v: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]]) -> None:
+        """Vehicle ``v`` got a new place and time: update every job's earliest vehicle (and its plan)."""
+        for i, c in enumerate(cache):
+            if c is None:
+                continue
+            if c[2] == v:
+                cache[i] = planned[i] = None
+                continue
+            src, rdy = c[3], c[4]
+            e = travel[locs[v]][src]
+            key = (max(free[v] + e, rdy), e, v)
+            if key < c[:3]:
+                cache[i] = key + (src, rdy)
+                planned[i] = None
+
+    # per job, plan(j) as of the current state; None: recompute (a job's plan changes only with its machine, its
+    # tool, its earliest vehicles or itself)
+    planned: list[tuple[tuple[int, int, int, int, int, int] | None] | None] = [None] * nj
 
     def plan(j: int) -> tuple[int, int, int, int, int, int] | None:
         """(start, agv, loaded start, transporter, tool loaded start, end) for the next operation of j; None
@@ -346,7 +377,7 @@ def greedy_schedule(
         elif atr is not None:
             pick = jobs[j][k - 1].machine if k else 0
             if pick != m:
-                best_a, ls = _earliest_vehicle(agv_loc, agv_free, atr, pick, ready[j])
+                best_a, ls = earliest(agv_best, j, agv_loc, agv_free, atr, pick, ready[j])
                 arrive = ls + atr[pick][m]
         tool_at, best_r, tls = 0, -1, 0
         if ttr is not None and op.tool is not None:
@@ -360,7 +391,7 @@ def greedy_schedule(
                 tool_at = tool_free[t]
             else:
                 src = tool_loc[t]
-                best_r, tls = _earliest_vehicle(tr_loc, tr_free, ttr, src, tool_free[t])
+                best_r, tls = earliest(tt_best, j, tr_loc, tr_free, ttr, src, tool_free[t])
                 tool_at = tls + ttr[src][m]
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration
@@ -371,7 +402,10 @@ def greedy_schedule(
         for j in range(nj):
             if nxt[j] >= len(jobs[j]):
                 continue
-            p = plan(j)
+            cached = planned[j]
+            if cached is None:
+                cached = planned[j] = (plan(j),)
+            p = cached[0]
             if p is None:
                 continue
             tie = rng.random() if rng is not None else -remaining[j]
@@ -398,6 +432,7 @@ def greedy_schedule(
                 agv_trips.append(AgvTrip(a, None, None, agv_loc[a], pick, e0, e0 + atr[agv_loc[a]][pick], False))
             agv_trips.append(AgvTrip(a, j, k, pick, m, ls, ls + atr[pick][m], True))
             agv_loc[a], agv_free[a] = m, ls + atr[pick][m]
+            moved(agv_best, a, agv_loc, agv_free, atr)
         if r >= 0:
             assert ttr is not None and op.tool is not None
             src = tool_loc[op.tool]
@@ -406,10 +441,18 @@ def greedy_schedule(
                 tool_trips.append(ToolTrip(r, None, None, None, tr_loc[r], src, e0, e0 + ttr[tr_loc[r]][src], False))
             tool_trips.append(ToolTrip(r, op.tool, j, k, src, m, tls, tls + ttr[src][m], True))
             tr_loc[r], tr_free[r] = m, tls + ttr[src][m]
+            moved(tt_best, r, tr_loc, tr_free, ttr)
         if ttr is not None and op.tool is not None:
             tool_loc[op.tool], tool_free[op.tool] = m, end
             if reserved:
                 reserved.pop(op.tool, None)
+            for i in range(nj):  # the tool's next carry starts elsewhere, later
+                if nxt[i] < len(jobs[i]) and jobs[i][nxt[i]].tool == op.tool:
+                    tt_best[i] = planned[i] = None
+        for i in range(nj):  # the machine is free later
+            if nxt[i] < len(jobs[i]) and jobs[i][nxt[i]].machine == m:
+                planned[i] = None
+        agv_best[j] = tt_best[j] = planned[j] = None  # j's next operation: another carry
         if arrival:
             arrival.pop(j, None)
         mach_free[m] = end

@@ -314,3 +314,20 @@ def test_infeasible_hint_is_refused():
     bad = Schedule(instance="EX12", makespan=1, n_agvs=2)
     with pytest.raises(ValueError, match="hint is not a feasible schedule"):
         solve_exact(inst, hint=bad, time_limit=1.0)
+
+
+@pytest.mark.parametrize("name, est, ect, tie3, no_tools", [("ra05", 98, 127, 117, 89),
+                                                            ("sl13", 2586, 3033, 2589, 1813),
+                                                            ("sl21", 2780, 3173, 2834, 2091),
+                                                            ("sl40", 3621, 4526, 3457, 2527)])
+def test_list_schedules_keep_their_makespans(name, est, ect, tie3, no_tools):
+    """A regression guard for the list scheduler's incremental bookkeeping (each job's earliest vehicles and plan
+    are updated as one vehicle, machine or tool changes per step, instead of recomputed): the makespans it had
+    when it recomputed everything at every step, for both rules, random ties and without tools."""
+    from fms_dispatch.exact import greedy_schedule
+
+    inst = builtin(name)
+    got = [greedy_schedule(inst, rule="est"), greedy_schedule(inst, rule="ect"),
+           greedy_schedule(inst, rule="est", rng=random.Random(3)), greedy_schedule(inst.without_tools())]
+    assert [s.makespan for s in got] == [est, ect, tie3, no_tools]
+    assert all(validate(i, s) == [] for i, s in zip([inst] * 3 + [inst.without_tools()], got))
