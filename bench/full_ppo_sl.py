@@ -9,7 +9,8 @@ this script only runs the model::
         --reference 'results/dec_sl_*/bench_cache.jsonl' [--json results/full_ppo_sl.json]
 
 Per group and mode it prints the model's mean makespan and seconds, the reference means over the same instances,
-the gap to CP-SAT and whether PPO beats the best full-net rule. Every schedule is validated.
+the gap to CP-SAT and whether PPO beats the best full-net rule. Every schedule is validated. ``--lookahead-guide``
+runs a guided model with its plan's empty trips (``lookahead="guide"``).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-group", type=int, default=10, help="instances per group (the first N)")
     ap.add_argument("--reference", default="results/dec_sl_*/bench_cache.jsonl", help="glob of fms bench caches")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--lookahead-guide", action="store_true", help="a guided model with its plan's empty trips")
     a = ap.parse_args(argv)
     ref = references(a.reference)
     solve = ppo_solver(f"ppo:{a.model}")
@@ -58,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
                 inst = builtin(f"sl{g}{k}")
                 inst = inst.without_tools() if strip else inst
                 t0 = time.perf_counter()
-                sched = solve(inst)
+                sched = solve(inst, lookahead="guide" if a.lookahead_guide else False)
                 dt = time.perf_counter() - t0
                 assert validate(inst, sched) == [], (inst.name, variant)
                 row = {"group": g, "instance": f"sl{g}{k}", "variant": variant, "ppo": sched.makespan,

@@ -120,8 +120,10 @@ def summary(rows: list[dict], models: list[str]) -> list[str]:
     return out
 
 
-def write_metrics(rows: list[dict], models: list[str], command: str) -> None:
-    """Store, per model folder, its held-out figures (per shop and means) in its ``metrics.json``."""
+def write_metrics(rows: list[dict], models: list[str], command: str, effort=None) -> None:
+    """Store, per model folder, its held-out figures (per shop and means) in its ``metrics.json``; a guided
+    model's entry says how its plan was searched (``guide_effort``)."""
+    from fms_dispatch.rl.guide import DEFAULT_EFFORT
     from fms_dispatch.rl.models import resolve_model
 
     folders: dict[Path, dict] = {}
@@ -135,9 +137,12 @@ def write_metrics(rows: list[dict], models: list[str], command: str) -> None:
                 name = r.get(key + "_model")
                 if r.get(key) is None or not name:
                     continue
-                folder = resolve_model(name if spec == "ppo" else spec.split(":", 1)[1]).folder
-                entry = folders.setdefault(folder, {"command": command, "date": time.strftime("%Y-%m-%d"),
-                                                    "shops": {}})
+                ref = resolve_model(name if spec == "ppo" else spec.split(":", 1)[1])
+                entry = folders.setdefault(ref.folder, {"command": command, "date": time.strftime("%Y-%m-%d"),
+                                                        "shops": {}})
+                if ref.guide is not None:
+                    e = effort or DEFAULT_EFFORT
+                    entry["guide_effort"] = {"restarts": e.restarts, "budget": e.budget, "seed": e.seed}
                 shop = entry["shops"].setdefault(r["shop"], {"cpsat": r["cpsat"], "list": r["list"],
                                                              "rule": r["rule"]})
                 shop["ppo+lookahead" if suffix else "ppo"] = r[key]
@@ -202,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(lines))
     print(f"({time.perf_counter() - t0:.0f} s)")
     if a.write_metrics:
-        write_metrics(rows, models, " ".join(["python", "bench/heldout.py"] + (argv or sys.argv[1:])))
+        write_metrics(rows, models, " ".join(["python", "bench/heldout.py"] + (argv or sys.argv[1:])), effort)
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({"cpsat_seconds": a.cpsat, "models": models, "rows": rows,
