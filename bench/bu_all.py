@@ -33,14 +33,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lookahead-guide", action="store_true", help="guided model: lookahead = the guide's empty trips")
     ap.add_argument("--guide-restarts", type=int, help="guided model: restarts of the guide's plan search")
     ap.add_argument("--guide-budget", type=float, help="guided model: seconds of that search (0: no limit)")
+    ap.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
+                    help="guided model: also try the rule pairs' schedules as the plan")
     a = ap.parse_args(argv)
     solver = ppo_solver(f"ppo:{a.model}")
     kw = {}
-    if a.guide_restarts is not None or a.guide_budget is not None:
-        from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort
+    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
+        from fms_dispatch.rl.guide import effort_from
 
-        kw["guide_effort"] = PlanEffort(DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
-                                        DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
+        kw["guide_effort"] = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
     rows = []
     for s in range(1, 11):
         for lay in range(1, 5):

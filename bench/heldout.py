@@ -58,7 +58,7 @@ def _has_guide(spec: str, inst) -> bool:
 
 def label(spec: str, effort) -> str:
     """The column of a model spec run with ``effort`` (None: the solver's default)."""
-    return spec if effort is None else f"{spec}~r{effort.restarts}"
+    return spec if effort is None else f"{spec}~r{effort.restarts}" + ("" if effort.rules else "-norules")
 
 
 def spec_of(label: str) -> str:
@@ -141,8 +141,7 @@ def write_metrics(rows: list[dict], models: list[str], command: str, effort=None
                 entry = folders.setdefault(ref.folder, {"command": command, "date": time.strftime("%Y-%m-%d"),
                                                         "shops": {}})
                 if ref.guide is not None:
-                    e = effort or DEFAULT_EFFORT
-                    entry["guide_effort"] = {"restarts": e.restarts, "budget": e.budget, "seed": e.seed}
+                    entry["guide_effort"] = (effort or DEFAULT_EFFORT).as_dict()
                 shop = entry["shops"].setdefault(r["shop"], {"cpsat": r["cpsat"], "list": r["list"],
                                                              "rule": r["rule"]})
                 shop["ppo+lookahead" if suffix else "ppo"] = r[key]
@@ -171,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="'+la' of a guided model is its guide's empty trips (lookahead='guide', every size)")
     ap.add_argument("--guide-restarts", type=int, help="guided models: restarts of the guide's plan search")
     ap.add_argument("--guide-budget", type=float, help="guided models: seconds of that search (0: no limit)")
+    ap.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
+                    help="guided models: also try the rule pairs' schedules as the plan")
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
     ap.add_argument("--json", help="write the rows and the summary here")
     ap.add_argument("--write-metrics", action="store_true",
@@ -184,11 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     shops = shops[:a.limit] if a.limit else shops
     earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
     effort = None
-    if a.guide_restarts is not None or a.guide_budget is not None:
-        from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort
+    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
+        from fms_dispatch.rl.guide import effort_from
 
-        effort = PlanEffort(DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
-                            DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
+        effort = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
     rows = []
     t0 = time.perf_counter()
     for inst in shops:

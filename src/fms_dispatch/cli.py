@@ -82,15 +82,13 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
         opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
-    if a.guide_restarts is not None or a.guide_budget is not None:
+    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
         if not a.solver.lower().startswith("ppo"):
-            raise CliError("--guide-restarts and --guide-budget apply to the ppo solver only")
-        from .rl.guide import DEFAULT_EFFORT, PlanEffort
+            raise CliError("--guide-restarts, --guide-budget and --[no-]guide-rules apply to the ppo solver only")
+        from .rl.guide import effort_from
 
         try:
-            opts["guide_effort"] = PlanEffort(
-                restarts=DEFAULT_EFFORT.restarts if a.guide_restarts is None else a.guide_restarts,
-                budget=DEFAULT_EFFORT.budget if a.guide_budget is None else a.guide_budget or None)
+            opts["guide_effort"] = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
         except ValueError as e:
             raise CliError(f"--guide-restarts/--guide-budget: {e}") from None
     if not a.quiet:
@@ -224,9 +222,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "fast on any size, not verified)")
     s.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
-                        "(default 256; 0: the plain list schedule, as in training)")
+                        "(default 64; 0: none)")
     s.add_argument("--guide-budget", type=float, metavar="SECONDS",
-                   help="ppo with a guided model: time limit of those restarts (default 1; 0: no limit)")
+                   help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
+    s.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
+                   help="ppo with a guided model: also try the 36 rule pairs' schedules as its plan on shops "
+                        "without tools (default: yes)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

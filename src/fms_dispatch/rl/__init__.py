@@ -92,8 +92,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         sched.meta["decisions"] = agent.decisions
         sched.meta["lookahead"] = bool(lookahead)
         if agent.guide is not None:
-            e = agent.guide_effort
-            sched.meta["guide_effort"] = {"restarts": e.restarts, "budget": e.budget, "seed": e.seed}
+            sched.meta["guide_effort"] = agent.guide_effort.as_dict()
         if lookahead:
             sched.meta["lookahead_fast"] = fast
         return sched

@@ -17,10 +17,12 @@ memory of how the state was reached, so the lookahead's twins and a drifting liv
   (``bench/guide_follower.py``). It is the expert a guided model is cloned from
   (``warm_start.expert = "guide"``), and it labels any state the policy reaches (DAgger).
 
-The guide's plan is the better of the earliest-start and earliest-completion list schedules
-(:func:`fms_dispatch.exact.greedy_schedule`, 1.2 s for both on a 100-job shop), planned when a run starts, or
-from the shop's state (residual plans) when a shop is first seen after it started or after its jobs changed (a
-live order).
+The guide's plan (:func:`guide_plan`) is the better of the earliest-start and earliest-completion list schedules
+(:func:`fms_dispatch.exact.greedy_schedule`, 0.7 s for both on a 100-job shop), searched further as a
+:class:`PlanEffort` says: the 36 rule pairs' schedules (without tools) and randomised restarts within a time budget
+(:data:`DEFAULT_EFFORT` when solving; none in training, where the plan is the plain list schedule). It is planned
+when a run starts, or from the shop's state (residual plans) when a shop is first seen after it started or after
+its jobs changed (a live order).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from fms_sim.schedule import Schedule
 from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
-           "GuideFollower", "GuideMoves", "guide_plan", "PlanEffort", "DEFAULT_EFFORT"]
+           "GuideFollower", "GuideMoves", "guide_plan", "PlanEffort", "DEFAULT_EFFORT", "effort_from"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -52,15 +54,19 @@ GUIDE_TT_FEATURES = ("planned",)
 
 @dataclass(frozen=True)
 class PlanEffort:
-    """How hard the guide's plan is searched: the better list schedule, then up to ``restarts`` randomised
-    restarts of it (:func:`fms_dispatch.exact.restart_list_plan`, seeded with ``seed``) within ``budget``
-    seconds (None: no time limit). ``PlanEffort()`` is the plain list schedule, the plan the guided models were
-    trained with; a better plan needs no retraining, since the guide's features only say what heads its
-    orders. Results are reproducible while ``budget`` does not cut the restarts short."""
+    """How hard the guide's plan is searched: the better list schedule; with ``rules``, for a run at its start on
+    a shop without tools, the schedules of the 36 paper-net rule pairs (:func:`fms_dispatch.rules.all_rule_pairs`)
+    if better (with tools the rules are far behind the list schedules, docs/benchmarks.md §7); then up to
+    ``restarts`` randomised restarts of the best (:func:`fms_dispatch.exact.restart_list_plan`, seeded with
+    ``seed``; they search around its start times too). The rules stop when the next would end after half of
+    ``budget`` seconds, the restarts after all of it (None: no time limit). ``PlanEffort()`` is the plain list schedule, the plan the guided
+    models were trained with; a better plan needs no retraining, since the guide's features only say what heads
+    its orders. Results are reproducible while ``budget`` does not cut the search short."""
 
     restarts: int = 0
     budget: float | None = None
     seed: int = 0
+    rules: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.restarts, int) or self.restarts < 0:
@@ -68,10 +74,29 @@ class PlanEffort:
         if self.budget is not None and not self.budget >= 0:
             raise ValueError(f"plan budget must be >= 0 seconds (or None), got {self.budget!r}")
 
+    def as_dict(self) -> dict[str, Any]:
+        return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules}
 
-#: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget``):
-#: on shops of up to about 20 jobs the restarts finish within the budget (reproducible), larger ones are cut
-DEFAULT_EFFORT = PlanEffort(restarts=256, budget=1.0)
+
+#: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget/
+#: --no-guide-rules``): on shops of up to about 20 jobs the search finishes within the budget (reproducible),
+#: on larger ones it is cut
+DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=True)
+
+
+def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None) -> PlanEffort:
+    """:data:`DEFAULT_EFFORT` with the given settings replaced (the command-line options): ``budget=0`` means no
+    time limit. Raises ValueError for a negative count or budget."""
+    import dataclasses
+
+    changes: dict[str, Any] = {}
+    if restarts is not None:
+        changes["restarts"] = restarts
+    if budget is not None:
+        changes["budget"] = budget or None
+    if rules is not None:
+        changes["rules"] = rules
+    return dataclasses.replace(DEFAULT_EFFORT, **changes)
 
 
 def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
@@ -86,6 +111,9 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
 
     from ..exact import greedy_schedule, restart_list_plan
 
+    import time
+
+    t0 = time.monotonic()
     origin = None
     if shop.now > 0 or any(shop.job_started_ops):
         if not can_snapshot(shop):
@@ -93,11 +121,32 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             while not can_snapshot(shop) and not shop.done:
                 shop.act(shop.legal_actions()[0])
         origin = snapshot(shop)
-    plans = [greedy_schedule(shop.instance, rule=rule, origin=origin) for rule in ("est", "ect")]
+    inst = shop.instance
+    plans = [greedy_schedule(inst, rule=rule, origin=origin) for rule in ("est", "ect")]
     best = min(plans, key=lambda p: p.makespan)
+    deadline = None if effort.budget is None else t0 + effort.budget
+    if effort.rules and origin is None and not inst.has_tools:
+        from fms_sim.shop import run_policy
+
+        from ..rules import all_rule_pairs, parse_rule_name
+
+        # a rule run costs 1-8 list schedules (8 on small shops); then about what the last run cost. The rules get
+        # half the budget, the restarts the rest
+        run_s = 8 * (time.monotonic() - t0) / len(plans)
+        half = None if deadline is None else t0 + effort.budget / 2
+        names = all_rule_pairs(True)
+        for name in sorted(names, key=lambda n: not n.endswith("+nearest")):  # the nearest vehicle first
+            t1 = time.monotonic()
+            if half is not None and t1 + run_s > half:
+                break
+            plans.append(run_policy(inst, parse_rule_name(name)))
+            run_s = time.monotonic() - t1
+            if plans[-1].makespan < best.makespan:
+                best = plans[-1]
     if effort.restarts:
-        best = restart_list_plan(shop.instance, best, tries=effort.restarts, budget=effort.budget, seed=effort.seed,
-                                 origin=origin)
+        left = None if deadline is None else max(0.0, deadline - time.monotonic())
+        if left != 0.0:
+            best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
     return best
 
 
