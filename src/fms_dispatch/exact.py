@@ -1052,8 +1052,8 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
     """Randomised greedy restarts, keeping the best schedule, until ``deadline`` (or ``max_stall`` attempts
     in a row without improvement, or ``max_tries`` attempts in all): first a schedule guided by the
     relaxation's start times (if given), then earliest-start list schedules whose start times are perturbed by
-    random offsets (two in three attempts) and schedules guided by the best schedule's start times plus noise. With ``origin`` every schedule is a
-    residual plan from that snapshot (see :func:`greedy_schedule`)."""
+    random offsets (two in three attempts) and schedules guided by the best schedule's start times plus noise.
+    With ``origin`` every schedule is a residual plan from that snapshot (see :func:`greedy_schedule`)."""
     rng = random.Random(seed)
     first = origin.next_op if origin is not None else (0,) * inst.n_jobs
     keys = [(j, k) for j, job in enumerate(inst.jobs) for k in range(first[j], len(job))]

@@ -27,7 +27,9 @@ its jobs changed (a live order).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+import dataclasses
+import time
 from typing import Any, Callable
 
 import numpy as np
@@ -52,16 +54,17 @@ GUIDE_AGV_FEATURES = ("planned",)
 GUIDE_TT_FEATURES = ("planned",)
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class PlanEffort:
     """How hard the guide's plan is searched: the better list schedule; with ``rules``, for a run at its start on
     a shop without tools, the schedules of the 36 paper-net rule pairs (:func:`fms_dispatch.rules.all_rule_pairs`)
     if better (with tools the rules are far behind the list schedules, docs/benchmarks.md §7); then up to
     ``restarts`` randomised restarts of the best (:func:`fms_dispatch.exact.restart_list_plan`, seeded with
     ``seed``; they search around its start times too). The rules stop when the next would end after half of
-    ``budget`` seconds, the restarts after all of it (None: no time limit). ``PlanEffort()`` is the plain list schedule, the plan the guided
-    models were trained with; a better plan needs no retraining, since the guide's features only say what heads
-    its orders. Results are reproducible while ``budget`` does not cut the search short."""
+    ``budget`` seconds, the restarts after all of it (None: no time limit). ``PlanEffort()`` is the plain list
+    schedule, the plan the guided models were trained with; a better plan needs no retraining, since the guide's
+    features only say what heads its orders. Results are reproducible while ``budget`` does not cut the search
+    short."""
 
     restarts: int = 0
     budget: float | None = None
@@ -87,8 +90,6 @@ DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=True)
 def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None) -> PlanEffort:
     """:data:`DEFAULT_EFFORT` with the given settings replaced (the command-line options): ``budget=0`` means no
     time limit. Raises ValueError for a negative count or budget."""
-    import dataclasses
-
     changes: dict[str, Any] = {}
     if restarts is not None:
         changes["restarts"] = restarts
@@ -101,17 +102,13 @@ def effort_from(restarts: int | None = None, budget: float | None = None, rules:
 
 def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
-    (the project's ``list`` reference; earliest start on ties), improved by ``effort``'s restarts, from scratch
-    when the run has not started, else from its state (residual plans). A state with a vehicle or tool-use choice
-    pending cannot be snapshot; the plans then start from a copy that answers those choices (first offered) and
-    stops at the next state that can."""
-    import copy
-
+    (the project's ``list`` reference; earliest start on ties), searched further as ``effort`` says (rule pairs,
+    restarts), from scratch when the run has not started, else from its state (residual plans, restarts only). A
+    state with a vehicle or tool-use choice pending cannot be snapshot; the plans then start from a copy that
+    answers those choices (first offered) and stops at the next state that can."""
     from fms_sim.snapshot import can_snapshot, snapshot
 
     from ..exact import greedy_schedule, restart_list_plan
-
-    import time
 
     t0 = time.monotonic()
     origin = None
