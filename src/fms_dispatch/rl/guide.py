@@ -119,7 +119,9 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
                 shop.act(shop.legal_actions()[0])
         origin = snapshot(shop)
     inst = shop.instance
+    t1 = time.monotonic()
     plans = [greedy_schedule(inst, rule=rule, origin=origin) for rule in ("est", "ect")]
+    one_list = (time.monotonic() - t1) / 2  # what a restart costs
     best = min(plans, key=lambda p: p.makespan)
     deadline = None if effort.budget is None else t0 + effort.budget
     if effort.rules and origin is None and not inst.has_tools:
@@ -141,8 +143,8 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
     if effort.restarts:
-        left = None if deadline is None else max(0.0, deadline - time.monotonic())
-        if left != 0.0:
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
     return best
 
