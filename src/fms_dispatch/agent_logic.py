@@ -637,9 +637,10 @@ def needs_idle_stops(solver: str) -> bool:
     return low == "lookahead" or low.endswith(tuple(LOOKAHEAD_SUFFIXES))
 
 
-def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
+def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None) -> tuple[Decider, str]:
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
-    ``ppo+lookahead``) over a twin of ``instance``."""
+    ``ppo+lookahead``) over a twin of ``instance``; a guided model searches its plan with ``guide_effort``
+    (:class:`fms_dispatch.rl.guide.PlanEffort`; None: the default)."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
     suffix = next((s for s in LOOKAHEAD_SUFFIXES if low.endswith(s)), "+lookahead")
@@ -654,6 +655,13 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
         raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it replays the "
                                 "shop into a twin; give the agent the parameter instance (the same as the shop's)")
     agent = load_ppo_agent(model, instance)
+    if agent.guide is not None:
+        from .rl.guide import DEFAULT_EFFORT
+
+        agent.guide_effort = guide_effort or DEFAULT_EFFORT  # a cached agent: set for every decider
+    elif guide_effort is not None:
+        raise UnavailableSolver(f"solver {name!r}: model {agent.name} reads no plan guide, so a guide search "
+                                "(guide_restarts, guide_budget, guide_rules) does not apply")
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":
@@ -677,15 +685,19 @@ def _ppo_decider(name: str, instance: Instance | None) -> tuple[Decider, str]:
 
 
 def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *, replan: float = 0.0,
-                 drift: float | None = None) -> tuple[Decider, str]:
+                 drift: float | None = None, guide_effort: Any = None) -> tuple[Decider, str]:
     """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
 
     ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off)
-    and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`)."""
+    and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`); ``guide_effort`` the
+    plan search of a guided PPO model."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
     low = name.lower()
+    if guide_effort is not None and not needs_twin(name):
+        raise UnavailableSolver(f"a guide search (guide_restarts, guide_budget, guide_rules) applies to ppo solvers "
+                                f"only, not to {name!r}")
     if low == "first":
         return (lambda state: _legal(state)[0][2]), "first"
     if low == "random":
@@ -699,7 +711,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
         decider = RuleDecider(policy.job_rule, policy.vehicle_rule)
         return decider, decider.name
     if needs_twin(name):
-        return _ppo_decider(name, instance)
+        return _ppo_decider(name, instance, guide_effort)
     if needs_full_net(name):
         if instance is None:
             raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it plans the "
@@ -729,8 +741,10 @@ class AgentLogic:
     """
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
-                 instance: Instance | None = None, replan: float = 0.0, drift: float | None = None) -> None:
-        self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift)
+                 instance: Instance | None = None, replan: float = 0.0, drift: float | None = None,
+                 guide_effort: Any = None) -> None:
+        self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift,
+                                              guide_effort=guide_effort)
         self.source = source
         self.run_id: str | None = None
         self.last_seq = -1           # the newest state seq seen in run_id

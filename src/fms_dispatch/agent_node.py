@@ -15,7 +15,10 @@ as the shop node's; needed by ``ppo`` solvers, which replay the states' ``histor
 start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahead), ``delay_s`` (think time before each command, for demos and tests),
 ``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
 re-planning off) and ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
-default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``).
+default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
+``guided``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
+limit) and ``guide_rules`` (the rule pairs' schedules, shops without tools; default true) say; -1: the solver's
+default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`).
 """
 
 from __future__ import annotations
@@ -50,8 +53,19 @@ class AgentNode(FmsNode):
         replan = float(param(n, "replan", 2.0))
         drift = float(param(n, "drift", 0.05))
         inst = self._instance()
+        restarts = int(param(n, "guide_restarts", -1))
+        budget = float(param(n, "guide_budget", -1.0))
+        rules = bool(param(n, "guide_rules", True))  # true: DEFAULT_EFFORT's
+        effort = None
+        if restarts != -1 or budget != -1.0 or not rules:
+            from .rl.guide import effort_from
+
+            try:
+                effort = effort_from(None if restarts == -1 else restarts, None if budget == -1.0 else budget, rules)
+            except ValueError as exc:
+                raise StartupError(f"parameters guide_restarts / guide_budget: {exc}") from None
         try:
-            self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift)
+            self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:

@@ -88,6 +88,12 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replan", type=float, default=2.0, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
+    p.add_argument("--guide-restarts", type=int, metavar="N",
+                   help="ppo with a guided model (the default): restarts of its plan search (default 64)")
+    p.add_argument("--guide-budget", type=float, metavar="SECONDS",
+                   help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
+    p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
+                   help="ppo with a guided model: also try the rule pairs' schedules as its plan (default: yes)")
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
     p.add_argument("--gantt-dir", help="folder for the Gantt PNG (default: the database's folder)")
@@ -114,8 +120,9 @@ def best_rule(instance: Instance) -> tuple[str, int]:
     return best[1], best[0]
 
 
-def best_solver(instance: Instance) -> tuple[str, int, str]:
-    """The solver ``fms up --solver best`` runs: ``(name, simulated makespan, one-line reason)``.
+def best_solver(instance: Instance, guide_effort: Any = None) -> tuple[str, int, str]:
+    """The solver ``fms up --solver best`` runs: ``(name, simulated makespan, one-line reason)``; a guided model
+    plans with ``guide_effort`` (None: its default).
 
     The shipped PPO model (the default one for the instance) is preferred when its simulated makespan is
     strictly smaller than the best rule pair's; if it cannot run on this instance (larger than the model
@@ -129,8 +136,9 @@ def best_solver(instance: Instance) -> tuple[str, int, str]:
         from .rl import ppo_solver
 
         solve = ppo_solver("ppo")
-        plain = solve(instance)
-        ahead = solve(instance, lookahead=True)
+        kw = {} if guide_effort is None else {"guide_effort": guide_effort}
+        plain = solve(instance, **kw)
+        ahead = solve(instance, lookahead=True, **kw)
     except ModelNotFoundError as exc:
         raise UpError(f"--solver best needs the shipped PPO models: {exc}") from None
     except (ImportError, ValueError, OSError) as exc:
@@ -247,11 +255,19 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
     inst = _load(a)
     solver = a.solver
+    effort = None
+    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
+        from .rl.guide import effort_from
+
+        try:
+            effort = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
+        except ValueError as exc:
+            raise UpError(f"--guide-restarts/--guide-budget: {exc}") from None
     if solver.lower() == "best":
-        solver, _, reason = best_solver(inst)
+        solver, _, reason = best_solver(inst, effort)
         say(reason)
     try:
-        decider, _ = make_decider(solver, a.seed, inst)
+        decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
         raise UpError(str(exc)) from None
     # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
@@ -309,6 +325,9 @@ def cmd_up(a: argparse.Namespace) -> int:
         agent_params["replan"] = float(a.replan)
     if twin:
         agent_params["instance"] = str(inst_in)
+    if effort is not None:
+        agent_params.update(guide_restarts=effort.restarts, guide_budget=float(effort.budget or 0.0),
+                            guide_rules=effort.rules)
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

@@ -411,3 +411,25 @@ def test_lookahead_guide_over_messages_equals_the_offline_solver() -> None:
     assert validate(inst, svc.final_schedule) == []
     with pytest.raises(UnavailableSolver, match="has no plan guide"):
         AgentLogic("ppo:bu+lookahead-guide", instance=builtin("EX12"))
+
+
+def test_a_guided_agent_searches_its_plan_as_told() -> None:
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import PlanEffort
+
+    inst = builtin("EX44")
+    effort = PlanEffort(restarts=8)  # no rules: the list schedule and 8 restarts
+    ref = ppo_solver("ppo")(inst, guide_effort=effort)
+    assert ref.makespan != ppo_solver("ppo")(inst).makespan  # the default search plans otherwise here
+    svc = ShopService(inst, run_id="g", history=True, decisions="full")
+    agent = AgentLogic("ppo", instance=inst, guide_effort=effort)
+    svc.start()
+    while not svc.done:
+        (cmd,) = agent.on_state(encode(svc.state))
+        assert not [o for o in svc.handle_command(encode(cmd.msg)) if o.topic == m.TOPIC_ERRORS]
+    assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"]
+    assert validate(inst, svc.final_schedule) == []
+    with pytest.raises(UnavailableSolver, match="applies to ppo solvers only"):
+        AgentLogic("first", guide_effort=effort)
+    with pytest.raises(UnavailableSolver, match="reads no plan guide"):
+        AgentLogic("ppo:bu", instance=builtin("EX12"), guide_effort=effort)

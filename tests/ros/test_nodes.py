@@ -124,6 +124,31 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
 
 
+def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """``--guide-restarts 0 --no-guide-rules`` reaches the agent node: it acts out the plain list schedule, as the
+    offline solver with that search does, not the default search's better plan."""
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import effort_from
+
+    out, db = tmp_path / "EX62.json", tmp_path / "fms.sqlite"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "ppo", "--guide-restarts",
+                          "0", "--no-guide-rules", "--out", str(out), "--db", str(db), "--run-id", "up-plain",
+                          "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
+                         env=ros_env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr + res.stdout
+    inst = builtin("EX62")
+    plain = ppo_solver("ppo")(inst, guide_effort=effort_from(0, None, False))
+    searched = ppo_solver("ppo")(inst)
+    sched = Schedule.load(out)
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"
+    assert sched.makespan == plain.makespan > searched.makespan
+    assert sched.to_dict()["operations"] == plain.to_dict()["operations"]
+    bad = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "first", "--guide-restarts",
+                          "3", "--domain-id", ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True,
+                         text=True, timeout=60)
+    assert bad.returncode == 2 and "applies to ppo solvers only" in bad.stderr
+
+
 def test_fms_up_ppo_lookahead_equals_the_offline_solver(ros_env: dict[str, str], tmp_path: Path) -> None:
     from fms_dispatch.rl import ppo_solver
 
