@@ -144,8 +144,9 @@ def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tm
     assert sched.makespan == plain.makespan > searched.makespan
     assert sched.to_dict()["operations"] == plain.to_dict()["operations"]
     bad = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "first", "--guide-restarts",
-                          "3", "--domain-id", ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True,
-                         text=True, timeout=60)
+                          "3", "--out", str(tmp_path / "bad.json"), "--db", str(tmp_path / "bad.sqlite"),
+                          "--domain-id", ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True, text=True,
+                         timeout=60)
     assert bad.returncode == 2 and "applies to ppo solvers only" in bad.stderr
 
 
