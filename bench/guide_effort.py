@@ -1,0 +1,68 @@
+"""How hard to search the guide's plan: plan quality and time per plan search effort, on validation shops.
+
+The default search (``fms_dispatch.rl.guide.DEFAULT_EFFORT``) is a choice, so it is made on generated validation
+shops that no model trains on and no reported figure comes from (the specs are checked like training specs)::
+
+    python bench/guide_effort.py [--shops 'genbu:**3@31' ...] [--efforts 0 64+rules 256+rules ...]
+
+An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules; every effort runs without a time
+limit, so the figures show what each costs. Per effort: the mean ratio of the planned makespan to the list
+schedule's, the mean and largest seconds of the search, and the same for the guided model acting the plan out
+(plain ``ppo:guided``), every schedule validated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rl.guide import PlanEffort, guide_plan
+from fms_dispatch.rl.train import expand_instances
+from fms_sim.full_shop import FullShop
+from fms_sim.shopsets import check_training_specs
+from fms_sim.validate import validate
+
+
+def parse_effort(text: str) -> PlanEffort:
+    n, _, rules = text.partition("+")
+    if rules not in ("", "rules"):
+        raise SystemExit(f"bad effort {text!r}: use N or N+rules")
+    return PlanEffort(restarts=int(n), rules=bool(rules))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--shops", nargs="+", default=["genbu:**3@31"], help="generated shop specs (not held out)")
+    ap.add_argument("--efforts", nargs="+", default=["0", "64", "0+rules", "64+rules", "256+rules", "1024+rules"])
+    a = ap.parse_args(argv)
+    check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
+    shops = list(expand_instances(a.shops))
+    solve = ppo_solver("ppo:guided")
+    solve(shops[0])  # load the model before timing
+    base = {inst.name: guide_plan(FullShop(inst)).makespan for inst in shops}
+    print(f"{len(shops)} shops; ratio to the list schedule, seconds (mean / max)")
+    for text in a.efforts:
+        effort = parse_effort(text)
+        plan_r, run_r, plan_s, run_s = [], [], [], []
+        for inst in shops:
+            t0 = time.perf_counter()
+            plan = guide_plan(FullShop(inst), effort)
+            plan_s.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            sched = solve(inst, guide_effort=effort)
+            run_s.append(time.perf_counter() - t0)
+            for s in (plan, sched):
+                if validate(inst, s):
+                    raise SystemExit(f"INFEASIBLE {inst.name} ({text})")
+            plan_r.append(plan.makespan / base[inst.name])
+            run_r.append(sched.makespan / base[inst.name])
+        print(f"{text:12s} plan {statistics.mean(plan_r):.4f} ({statistics.mean(plan_s):.3f} / {max(plan_s):.3f} s)"
+              f"  guided {statistics.mean(run_r):.4f} ({statistics.mean(run_s):.3f} / {max(run_s):.3f} s)",
+              flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
