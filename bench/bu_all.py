@@ -19,6 +19,7 @@ import statistics
 import time
 from pathlib import Path
 
+from fms_dispatch.cli import add_guide_args, guide_effort_from_args
 from fms_dispatch.rl import ppo_solver
 from fms_dispatch.rules import all_rule_pairs, parse_rule_name
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
@@ -31,17 +32,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", default="bu", help="model name or folder (default bu)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--lookahead-guide", action="store_true", help="guided model: lookahead = the guide's empty trips")
-    ap.add_argument("--guide-restarts", type=int, help="guided model: restarts of the guide's plan search")
-    ap.add_argument("--guide-budget", type=float, help="guided model: seconds of that search (0: no limit)")
-    ap.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
-                    help="guided model: also try the rule pairs' schedules as the plan")
+    add_guide_args(ap)
     a = ap.parse_args(argv)
     solver = ppo_solver(f"ppo:{a.model}")
-    kw = {}
-    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
-        from fms_dispatch.rl.guide import effort_from
-
-        kw["guide_effort"] = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
+    effort = guide_effort_from_args(a)
+    kw = {} if effort is None else {"guide_effort": effort}
     rows = []
     for s in range(1, 11):
         for lay in range(1, 5):

@@ -27,6 +27,7 @@ import sys
 import time
 from pathlib import Path
 
+from fms_dispatch.cli import add_guide_args, guide_effort_from_args
 from fms_dispatch.full_rules import FullRulePolicy, run_full
 from fms_dispatch.rl import ppo_solver
 from fms_dispatch.rules import JOB_RULES
@@ -168,10 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the lookahead only on shops with at most this many jobs (it takes minutes on 100)")
     ap.add_argument("--lookahead-guide", action="store_true",
                     help="'+la' of a guided model is its guide's empty trips (lookahead='guide', every size)")
-    ap.add_argument("--guide-restarts", type=int, help="guided models: restarts of the guide's plan search")
-    ap.add_argument("--guide-budget", type=float, help="guided models: seconds of that search (0: no limit)")
-    ap.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
-                    help="guided models: also try the rule pairs' schedules as the plan")
+    add_guide_args(ap)
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
     ap.add_argument("--json", help="write the rows and the summary here")
     ap.add_argument("--write-metrics", action="store_true",
@@ -184,11 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         shops = [s for s in shops if s.name in set(a.only)]
     shops = shops[:a.limit] if a.limit else shops
     earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
-    effort = None
-    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
-        from fms_dispatch.rl.guide import effort_from
-
-        effort = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
+    effort = guide_effort_from_args(a)
     rows = []
     t0 = time.perf_counter()
     for inst in shops:

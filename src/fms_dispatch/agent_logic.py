@@ -655,13 +655,10 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None)
         raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it replays the "
                                 "shop into a twin; give the agent the parameter instance (the same as the shop's)")
     agent = load_ppo_agent(model, instance)
-    if agent.guide is not None:
-        from .rl.guide import DEFAULT_EFFORT
-
-        agent.guide_effort = guide_effort or DEFAULT_EFFORT  # a cached agent: set for every decider
-    elif guide_effort is not None:
-        raise UnavailableSolver(f"solver {name!r}: model {agent.name} reads no plan guide, so a guide search "
-                                "(guide_restarts, guide_budget, guide_rules) does not apply")
+    try:
+        agent.use_guide_effort(guide_effort)  # a cached agent: set for every decider
+    except ValueError as exc:
+        raise UnavailableSolver(f"solver {name!r}: {exc} (guide_restarts, guide_budget, guide_rules)") from None
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":

@@ -17,6 +17,8 @@ from fms_sim.schedule import Schedule, ScheduleError
 if TYPE_CHECKING:
     from fms_sim.disruptions import Scenario
 
+    from .rl.guide import PlanEffort
+
 EXIT_BAD_INPUT = 2
 EXIT_INFEASIBLE = 1
 
@@ -33,6 +35,29 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tool-transporters", type=int, metavar="N", help="override the number of tool transporters")
     p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
     p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly; plain job shop without tools)")
+
+
+def add_guide_args(p: argparse.ArgumentParser) -> None:
+    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``: a guided model's plan search (``fms solve``,
+    ``fms up`` and the benches); :func:`guide_effort_from_args` reads them."""
+    p.add_argument("--guide-restarts", type=int, metavar="N",
+                   help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
+                        "(default 64; 0: none)")
+    p.add_argument("--guide-budget", type=float, metavar="SECONDS",
+                   help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
+    p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
+                   help="ppo with a guided model: also try the 36 rule pairs' schedules as its plan on shops "
+                        "without tools (default: yes)")
+
+
+def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
+    """The plan search of :func:`add_guide_args`' options (None: none given, the solver's default); raises
+    ValueError for a negative count or budget."""
+    if a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None:
+        return None
+    from .rl.guide import effort_from
+
+    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
 
 
 def load_from_args(a: argparse.Namespace) -> Instance:
@@ -82,15 +107,14 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
         opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
-    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
+    try:
+        effort = guide_effort_from_args(a)
+    except ValueError as e:
+        raise CliError(f"--guide-restarts/--guide-budget: {e}") from None
+    if effort is not None:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--guide-restarts, --guide-budget and --[no-]guide-rules apply to the ppo solver only")
-        from .rl.guide import effort_from
-
-        try:
-            opts["guide_effort"] = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
-        except ValueError as e:
-            raise CliError(f"--guide-restarts/--guide-budget: {e}") from None
+        opts["guide_effort"] = effort
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
@@ -220,14 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lookahead-guide", action="store_true",
                    help="ppo with a guided model: idle vehicles make the guide plan's empty trips (no trial runs; "
                         "fast on any size, not verified)")
-    s.add_argument("--guide-restarts", type=int, metavar="N",
-                   help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
-                        "(default 64; 0: none)")
-    s.add_argument("--guide-budget", type=float, metavar="SECONDS",
-                   help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
-    s.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
-                   help="ppo with a guided model: also try the 36 rule pairs' schedules as its plan on shops "
-                        "without tools (default: yes)")
+    add_guide_args(s)
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
     s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

@@ -446,12 +446,14 @@ def greedy_schedule(
             tool_loc[op.tool], tool_free[op.tool] = m, end
             if reserved:
                 reserved.pop(op.tool, None)
-            for i in range(nj):  # the tool's next carry starts elsewhere, later
-                if nxt[i] < len(jobs[i]) and jobs[i][nxt[i]].tool == op.tool:
+        tool = op.tool if ttr is not None else None
+        for i in range(nj):  # the machine is free later; the tool's next carry starts elsewhere, later
+            if nxt[i] < len(jobs[i]):
+                nop = jobs[i][nxt[i]]
+                if nop.machine == m:
+                    planned[i] = None
+                if tool is not None and nop.tool == tool:
                     tt_best[i] = planned[i] = None
-        for i in range(nj):  # the machine is free later
-            if nxt[i] < len(jobs[i]) and jobs[i][nxt[i]].machine == m:
-                planned[i] = None
         agv_best[j] = tt_best[j] = planned[j] = None  # j's next operation: another carry
         if arrival:
             arrival.pop(j, None)

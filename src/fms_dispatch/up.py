@@ -72,7 +72,7 @@ def add_up_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import add_instance_args  # late: cli imports this module when it builds its parser
+    from .cli import add_guide_args, add_instance_args  # late: cli imports this module when it builds its parser
 
     add_instance_args(p)
     p.add_argument("--solver", default="first",
@@ -88,12 +88,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replan", type=float, default=2.0, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
-    p.add_argument("--guide-restarts", type=int, metavar="N",
-                   help="ppo with a guided model (the default): restarts of its plan search (default 64)")
-    p.add_argument("--guide-budget", type=float, metavar="SECONDS",
-                   help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
-    p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
-                   help="ppo with a guided model: also try the rule pairs' schedules as its plan (default: yes)")
+    add_guide_args(p)
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
     p.add_argument("--gantt-dir", help="folder for the Gantt PNG (default: the database's folder)")
@@ -255,14 +250,12 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
     inst = _load(a)
     solver = a.solver
-    effort = None
-    if a.guide_restarts is not None or a.guide_budget is not None or a.guide_rules is not None:
-        from .rl.guide import effort_from
+    from .cli import guide_effort_from_args
 
-        try:
-            effort = effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
-        except ValueError as exc:
-            raise UpError(f"--guide-restarts/--guide-budget: {exc}") from None
+    try:
+        effort = guide_effort_from_args(a)
+    except ValueError as exc:
+        raise UpError(f"--guide-restarts/--guide-budget: {exc}") from None
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort)
         say(reason)

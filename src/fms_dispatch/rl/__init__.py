@@ -27,8 +27,8 @@ __all__ = ["ppo_solver", "add_train_parser"]
 
 
 def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
-    """Solver for ``"ppo"`` (the shipped default for the instance: ``bu`` on Bilge-Ulusoy-size shops without tools,
-    else ``guided``) or ``"ppo:MODEL"`` (name, folder, .zip).
+    """Solver for ``"ppo"`` (the shipped default, ``guided``: :func:`~fms_dispatch.rl.models.default_model_name`)
+    or ``"ppo:MODEL"`` (name, folder, .zip).
 
     The returned ``solve(instance, lookahead=False, progress=False, **ignored)`` runs the deterministic masked
     policy (``seed`` and ``time_limit`` are ignored); ``lookahead=True`` pre-positions idle vehicles with the
@@ -66,13 +66,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if not agent.fits(instance):
             raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
                              f"({agent.padding})")
-        from .guide import DEFAULT_EFFORT, PlanEffort
-
-        if guide_effort is not None and not isinstance(guide_effort, PlanEffort):
-            raise TypeError(f"guide_effort must be a PlanEffort, not {type(guide_effort).__name__}")
-        if guide_effort is not None and agent.guide is None:
-            raise ValueError(f"model {agent.name} reads no plan guide: a guide effort does not apply to it")
-        agent.guide_effort = guide_effort or DEFAULT_EFFORT  # a cached agent: set for every run
+        agent.use_guide_effort(guide_effort)  # a cached agent: set for every run
         disrupted = scenario is not None and not scenario.empty
         if disrupted and agent.decisions != "full":
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "

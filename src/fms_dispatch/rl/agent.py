@@ -174,6 +174,19 @@ class Agent:
         out[~mask] = -np.inf
         return out, mask
 
+    def use_guide_effort(self, effort: Any = None) -> None:
+        """Search the plans of the next runs with ``effort`` (a :class:`~fms_dispatch.rl.guide.PlanEffort`; None:
+        :data:`~fms_dispatch.rl.guide.DEFAULT_EFFORT`). Loaded agents are shared (cached), so every caller sets it
+        for its own runs. Raises TypeError for another type and ValueError for an effort given to a model without
+        a guide."""
+        from .guide import DEFAULT_EFFORT, PlanEffort
+
+        if effort is not None and not isinstance(effort, PlanEffort):
+            raise TypeError(f"guide_effort must be a PlanEffort, not {type(effort).__name__}")
+        if effort is not None and self.guide is None:
+            raise ValueError(f"model {self.name} reads no plan guide: a guide effort does not apply to it")
+        self.guide_effort = effort or DEFAULT_EFFORT
+
     def guide_of(self, shop: Shop) -> Any:
         """The plan guide the model reads in ``shop`` (:class:`fms_dispatch.rl.guide.PlanGuide`); raises
         ValueError for a model without a guide."""

@@ -131,7 +131,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
 
         # a rule run costs 1-8 list schedules (8 on small shops); then about what the last run cost. The rules get
         # half the budget, the restarts the rest
-        run_s = 8 * (time.monotonic() - t0) / len(plans)
+        run_s = 8 * one_list
         half = None if deadline is None else t0 + effort.budget / 2
         names = all_rule_pairs(True)
         for name in sorted(names, key=lambda n: not n.endswith("+nearest")):  # the nearest vehicle first

@@ -11,9 +11,9 @@ A model folder (``models/NAME``) holds:
 * ``best_model.actor.npz`` / ``model.actor.npz`` — the actor in numpy for inference without torch, with the
   SHA-256 of the weights it was exported from (:mod:`fms_dispatch.rl.actors`; ignored when stale).
 
-Shipped models: ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools; the paper's net; the default there),
-``guided`` (the full-decision net with the list schedule's guide, any shop up to 100 x 20 x 20; the default
-everywhere else), and, chosen by name, ``large`` and ``large-agv`` (the paper's net; large shops with and
+Shipped models: ``guided`` (the full-decision net with a list-schedule plan's guide, any shop up to
+100 x 20 x 20; the default), and, chosen by name, ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools; the paper's
+net), ``large`` and ``large-agv`` (the paper's net; large shops with and
 without tools) and ``full`` (the full net without a guide). A model name is looked up in :func:`model_dirs`,
 one list of places for every caller (``fms solve``, ``fms up``, the agent node):
 
