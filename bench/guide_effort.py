@@ -3,12 +3,12 @@
 The default search (``fms_dispatch.rl.guide.DEFAULT_EFFORT``) is a choice, so it is made on generated validation
 shops that no model trains on and no reported figure comes from (the specs are checked like training specs)::
 
-    python bench/guide_effort.py [--shops 'genbu:**3@31' ...] [--efforts 0 64+rules 256+rules ...]
+    python bench/guide_effort.py [--shops 'genbu:**3@31' 'genbu:**5@33' ...] [--efforts 0 64+rules ...]
 
-An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules; every effort runs without a time
-limit, so the figures show what each costs. Per effort: the mean ratio of the planned makespan to the list
-schedule's, the mean and largest seconds of the search, and the same for the guided model acting the plan out
-(plain ``ppo:guided``), every schedule validated.
+An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules and ``+exactS`` for S seconds of
+CP-SAT polish; every effort runs without an overall time limit, so the figures show what each costs. Per effort:
+the mean ratio of the planned makespan to the list schedule's, the mean and largest seconds of the search, and the
+same for the guided model acting the plan out (plain ``ppo:guided``), every schedule validated.
 """
 
 from __future__ import annotations
@@ -26,16 +26,25 @@ from fms_sim.validate import validate
 
 
 def parse_effort(text: str) -> PlanEffort:
-    n, _, rules = text.partition("+")
-    if rules not in ("", "rules"):
-        raise SystemExit(f"bad effort {text!r}: use N or N+rules")
-    return PlanEffort(restarts=int(n), rules=bool(rules))
+    """``N[+rules][+exactS]``: N restarts, the rule pairs, S seconds of CP-SAT polish."""
+    n, *extra = text.split("+")
+    rules, exact = False, 0.0
+    for part in extra:
+        if part == "rules":
+            rules = True
+        elif part.startswith("exact"):
+            exact = float(part[5:])
+        else:
+            raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS]")
+    return PlanEffort(restarts=int(n), rules=rules, exact=exact)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--shops", nargs="+", default=["genbu:**3@31"], help="generated shop specs (not held out)")
-    ap.add_argument("--efforts", nargs="+", default=["0", "64", "0+rules", "64+rules", "256+rules", "1024+rules"])
+    ap.add_argument("--shops", nargs="+", default=["genbu:**3@31", "genbu:**5@33"],
+                    help="generated shop specs (not held out)")
+    ap.add_argument("--efforts", nargs="+", default=["0", "64", "0+rules", "64+rules", "256+rules", "1024+rules",
+                                                     "64+rules+exact0.1", "64+rules+exact0.25", "64+rules+exact0.5"])
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     shops = list(expand_instances(a.shops))

@@ -12,10 +12,10 @@ earliest-completion list schedules executed through the full net (``list``, ``li
 (``rule``), and each model plain and with the lookahead (``+la``; without retries from 50 jobs on). Every schedule
 is validated. The summary gives each method's mean gap to CP-SAT and, per model, on how many shops it is at most
 the list schedule. With ``--lookahead-guide`` a guided model's ``+la`` is its guide's empty trips
-(``lookahead="guide"``, on every size) instead of the verified lookahead. ``--guide-restarts N --guide-budget S``
-set a guided model's plan search (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's
-``DEFAULT_EFFORT``) and label its columns ``SPEC~rN``. A model that does not fit a shop (padding) is skipped there
-and the count says so.
+(``lookahead="guide"``, on every size) instead of the verified lookahead. ``--guide-restarts N --guide-budget S
+--guide-exact S`` set a guided model's plan search (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the
+solver's ``DEFAULT_EFFORT``) and label its columns ``SPEC~rN[-norules]-xS`` (S: seconds of CP-SAT polish). A model
+that does not fit a shop (padding) is skipped there and the count says so.
 """
 
 from __future__ import annotations
@@ -59,7 +59,9 @@ def _has_guide(spec: str, inst) -> bool:
 
 def label(spec: str, effort) -> str:
     """The column of a model spec run with ``effort`` (None: the solver's default)."""
-    return spec if effort is None else f"{spec}~r{effort.restarts}" + ("" if effort.rules else "-norules")
+    if effort is None:
+        return spec
+    return f"{spec}~r{effort.restarts}" + ("" if effort.rules else "-norules") + f"-x{effort.exact:g}"
 
 
 def spec_of(label: str) -> str:

@@ -38,8 +38,8 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_guide_args(p: argparse.ArgumentParser) -> None:
-    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``: a guided model's plan search (``fms solve``,
-    ``fms up`` and the benches); :func:`guide_effort_from_args` reads them."""
+    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-exact``: a guided model's plan
+    search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads them."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
                         "(default 64; 0: none)")
@@ -48,16 +48,19 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
                    help="ppo with a guided model: also try the 36 rule pairs' schedules as its plan on shops "
                         "without tools (default: yes)")
+    p.add_argument("--guide-exact", type=float, metavar="SECONDS",
+                   help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
+                        "the full model, within the budget (default 0.25; 0: no polish)")
 
 
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
     """The plan search of :func:`add_guide_args`' options (None: none given, the solver's default); raises
-    ValueError for a negative count or budget."""
-    if a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None:
+    ValueError for a negative count, budget or polish."""
+    if a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None and a.guide_exact is None:
         return None
     from .rl.guide import effort_from
 
-    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules)
+    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact)
 
 
 def load_from_args(a: argparse.Namespace) -> Instance:

@@ -68,9 +68,11 @@ __all__ = [
     "cpsat",
     "greedy_schedule",
     "restart_list_plan",
+    "polish_plan",
     "simple_lower_bound",
     "relaxation_bound",
     "FULL_MODEL_MAX_TASKS",
+    "n_transport_tasks",
 ]
 
 FULL_MODEL_MAX_TASKS = 100
@@ -930,7 +932,8 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
 
 
 # ====================================================================================== entry points
-def _n_transport_tasks(inst: Instance) -> int:
+def n_transport_tasks(inst: Instance) -> int:
+    """AGV carries plus tool uses of ``inst``: the size that decides between the full and the relaxed model."""
     return len(_agv_tasks(inst)) + sum(len(u) for u in _tool_uses(inst).values())
 
 
@@ -964,7 +967,7 @@ def solve_exact(
         problems = validate(instance, hint)
         if problems:
             raise ValueError(f"the hint is not a feasible schedule for {instance.name}: {problems[0]}")
-    n_tasks = _n_transport_tasks(instance)
+    n_tasks = n_transport_tasks(instance)
     full = model == "full" or (model == "auto" and (n_tasks <= FULL_MODEL_MAX_TASKS or instance.mode == "jobshop"))
     greedy_budget = min(2.0, 0.05 * time_limit) if full else min(10.0, 0.15 * time_limit)
     incumbent = _best_greedy(instance, greedy_budget, seed)
@@ -985,7 +988,7 @@ def _copy_schedule(s: Schedule) -> Schedule:
 
 def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_limit: float, workers: int,
                 seed: int, log: bool, progress: Progress | None,
-                cp_params: Mapping[str, object] | None) -> ExactResult:
+                cp_params: Mapping[str, object] | None, min_time: float = 0.1) -> ExactResult:
     ub = incumbent.makespan
     if lb >= ub:
         if progress is not None:
@@ -995,7 +998,7 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
     fm.add_hint(incumbent)
     solver = cp_model.CpSolver()
     p = solver.parameters
-    p.max_time_in_seconds = max(0.1, time_limit - (time.monotonic() - t0))
+    p.max_time_in_seconds = max(min_time, time_limit - (time.monotonic() - t0), 1e-3)
     p.num_workers = workers
     p.random_seed = seed
     # CP-SAT's own SIGINT handler would outlive the solve: a node that planned with it then dies of the SIGINT
@@ -1102,6 +1105,32 @@ def restart_list_plan(inst: Instance, plan: Schedule, *, tries: int, budget: flo
     t0 = time.monotonic()
     deadline = math.inf if budget is None else t0 + budget
     return _improve_by_priorities(inst, plan, None, 0, deadline, seed, None, t0, origin=origin, max_tries=tries)
+
+
+def polish_plan(inst: Instance, plan: Schedule, *, time_limit: float, workers: int = 2, seed: int = 0) -> Schedule:
+    """``plan`` or a better schedule that CP-SAT's full model finds from it within ``time_limit`` seconds (``plan``
+    as its hint and upper bound; model building counted): a short exact polish of a heuristic plan on small
+    shops, where a tenth of a second of CP-SAT from a good hint closes most of a list schedule's gap
+    (docs/benchmarks.md §9). ``plan`` comes back unchanged when the shop is beyond the full model (more than
+    :data:`FULL_MODEL_MAX_TASKS` transport tasks), when it meets the simple lower bound, or when nothing better is
+    found in time. ``plan`` must be a whole schedule of ``inst`` (not a residual plan). Not reproducible in
+    general: CP-SAT's parallel search depends on timing."""
+    if time_limit < 0:
+        raise ValueError(f"time_limit must be >= 0 seconds, got {time_limit}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if "residual" in plan.meta:
+        raise ValueError("polish_plan needs a whole schedule; a residual plan (meta['residual']) cannot be polished")
+    if time_limit == 0 or not (inst.mode == "jobshop" or n_transport_tasks(inst) <= FULL_MODEL_MAX_TASKS):
+        return plan
+    t0 = time.monotonic()
+    res = _solve_full(inst, plan, simple_lower_bound(inst), t0, time_limit, workers, seed, False, None, None,
+                      min_time=0.0)
+    if res.schedule is None or res.schedule.makespan >= plan.makespan:
+        return plan
+    best = res.schedule
+    best.meta = {"solver": "cpsat", "polished": plan.meta.get("solver"), "wall_time": round(res.wall_time, 3)}
+    return best
 
 
 def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **kw: object) -> Schedule:

@@ -320,7 +320,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         agent_params["instance"] = str(inst_in)
     if effort is not None:
         agent_params.update(guide_restarts=effort.restarts, guide_budget=float(effort.budget or 0.0),
-                            guide_rules=effort.rules)
+                            guide_rules=effort.rules, guide_exact=float(effort.exact))
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

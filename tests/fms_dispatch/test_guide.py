@@ -238,14 +238,19 @@ def test_the_cli_sets_the_guides_search(capsys, tmp_path):
     assert main(["solve", "EX104", "--solver", "ppo", "--guide-restarts", "64", "--guide-budget", "0", "-q",
                  "--out", str(out)]) == 0
     meta = json.loads(out.read_text())["meta"]
-    assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": True}  # rules: default
-    assert main(["solve", "EX104", "--solver", "ppo", "--no-guide-rules", "-q", "--out", str(out)]) == 0
-    assert json.loads(out.read_text())["meta"]["guide_effort"]["rules"] is False
+    # rules and polish: the defaults
+    assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": True, "exact": 0.25}
+    assert main(["solve", "EX104", "--solver", "ppo", "--no-guide-rules", "--guide-exact", "0", "-q",
+                 "--out", str(out)]) == 0
+    meta = json.loads(out.read_text())["meta"]["guide_effort"]
+    assert meta["rules"] is False and meta["exact"] == 0.0
     capsys.readouterr()
     assert main(["solve", "EX104", "--solver", "rules", "--guide-restarts", "4", "-q"]) == 2
     assert "apply to the ppo solver only" in capsys.readouterr().err
     assert main(["solve", "EX104", "--solver", "ppo", "--guide-restarts", "-3", "-q"]) == 2
     assert "restarts must be" in capsys.readouterr().err
+    assert main(["solve", "EX104", "--solver", "ppo", "--guide-exact", "-1", "-q"]) == 2
+    assert "exact" in capsys.readouterr().err
     assert main(["solve", "EX104", "--solver", "ppo:bu", "--guide-restarts", "4", "-q"]) == 2
     assert "no plan guide" in capsys.readouterr().err
 
@@ -276,10 +281,13 @@ def test_plan_effort_is_validated():
     assert PlanEffort() == PlanEffort(0, None, 0, False)
     assert DEFAULT_EFFORT.restarts > 0 and DEFAULT_EFFORT.budget is not None and DEFAULT_EFFORT.rules
     assert effort_from() == DEFAULT_EFFORT
-    assert effort_from(restarts=5, budget=0, rules=False) == PlanEffort(5, None, DEFAULT_EFFORT.seed, False)
+    assert effort_from(restarts=5, budget=0, rules=False) == PlanEffort(5, None, DEFAULT_EFFORT.seed, False,
+                                                                        DEFAULT_EFFORT.exact)
+    assert effort_from(exact=0).exact == 0.0 and DEFAULT_EFFORT.exact > 0
     with pytest.raises(ValueError, match="restarts"):
         effort_from(restarts=-2)
-    for bad in (dict(restarts=-1), dict(restarts=1.5), dict(budget=-0.1), dict(budget=float("nan"))):
+    for bad in (dict(restarts=-1), dict(restarts=1.5), dict(budget=-0.1), dict(budget=float("nan")),
+                dict(exact=-0.5), dict(exact=float("nan"))):
         with pytest.raises(ValueError, match="plan"):
             PlanEffort(**bad)
 
@@ -319,7 +327,7 @@ def test_the_guided_model_follows_a_searched_plan():
     assert searched.makespan < plain.makespan
     assert searched.makespan <= plan.makespan * 1.02
     assert again.makespan == plain.makespan  # the searched plan of the run before is not reused
-    assert searched.meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False}
+    assert searched.meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False, "exact": 0.0}
     assert solve(inst).meta["guide_effort"]["restarts"] > 0  # the default searches
     with pytest.raises(ValueError, match="no plan guide"):
         ppo_solver("ppo:bu")(inst, guide_effort=PlanEffort(restarts=4))
@@ -351,3 +359,57 @@ def test_the_rule_pairs_schedules_compete_for_the_plan():
     # a zero budget leaves the plain list schedule
     assert guide_plan(FullShop(inst), PlanEffort(restarts=64, budget=0.0, rules=True)).makespan == \
         guide_plan(FullShop(inst)).makespan
+
+
+def test_cp_sat_polishes_the_plan_of_a_small_shop():
+    # EX44 (long travel times): the list search and the rule pairs stop at 153, CP-SAT's full model from that
+    # hint finds better within a second (the optimum is 121); the guided model acts the polished plan out
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import PlanEffort, small_enough_to_polish
+
+    inst = builtin("EX44")
+    searched = guide_plan(FullShop(inst), PlanEffort(restarts=64, rules=True))
+    polished = guide_plan(FullShop(inst), PlanEffort(restarts=64, rules=True, exact=1.0))
+    assert validate(inst, polished) == []
+    assert polished.makespan < searched.makespan
+    assert polished.meta["solver"] == "cpsat" and polished.makespan >= 121
+    s = ppo_solver("ppo:guided")(inst, guide_effort=PlanEffort(restarts=64, rules=True, exact=1.0),
+                                 lookahead="guide")
+    assert validate(inst, s) == [] and s.makespan < searched.makespan
+    # the polish gets no more than what the budget leaves: none at all here
+    assert guide_plan(FullShop(inst), PlanEffort(restarts=64, budget=0.0, rules=True, exact=1.0)).makespan == \
+        guide_plan(FullShop(inst)).makespan
+    # a run seen after its start plans from its state (a residual plan): no polish there
+    shop = FullShop(inst)
+    for _ in range(6):
+        shop.act(shop.legal_actions()[0])
+    residual = guide_plan(shop, PlanEffort(exact=1.0))
+    assert residual.meta.get("residual") is not None and residual.meta["solver"] == "greedy"
+    # shops beyond CP-SAT's full model are not polished
+    assert small_enough_to_polish(inst) and not small_enough_to_polish(builtin("sl00"))
+    big = builtin("sl00")
+    assert guide_plan(FullShop(big), PlanEffort(exact=5.0)).meta["solver"] == "greedy"
+
+
+def test_polish_plan_keeps_or_improves_a_whole_plan():
+    from fms_dispatch.exact import FULL_MODEL_MAX_TASKS, n_transport_tasks, polish_plan
+
+    inst = builtin("EX104")
+    plan = greedy_schedule(inst)
+    better = polish_plan(inst, plan, time_limit=1.0)
+    assert validate(inst, better) == [] and better.makespan < plan.makespan
+    assert better.meta["polished"] == "greedy"
+    assert polish_plan(inst, plan, time_limit=0) is plan
+    big = builtin("sl00")
+    assert n_transport_tasks(big) > FULL_MODEL_MAX_TASKS
+    big_plan = greedy_schedule(big)
+    assert polish_plan(big, big_plan, time_limit=5.0) is big_plan  # beyond the full model: untouched, at once
+    with pytest.raises(ValueError, match="time_limit"):
+        polish_plan(inst, plan, time_limit=-1)
+    with pytest.raises(ValueError, match="workers"):
+        polish_plan(inst, plan, time_limit=1, workers=0)
+    shop = FullShop(inst)
+    for _ in range(6):
+        shop.act(shop.legal_actions()[0])
+    with pytest.raises(ValueError, match="residual"):
+        polish_plan(inst, guide_plan(shop), time_limit=1)

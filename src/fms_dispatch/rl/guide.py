@@ -19,8 +19,9 @@ memory of how the state was reached, so the lookahead's twins and a drifting liv
 
 The guide's plan (:func:`guide_plan`) is the better of the earliest-start and earliest-completion list schedules
 (:func:`fms_dispatch.exact.greedy_schedule`, 0.7 s for both on a 100-job shop), searched further as a
-:class:`PlanEffort` says: the 36 rule pairs' schedules (without tools) and randomised restarts within a time budget
-(:data:`DEFAULT_EFFORT` when solving; none in training, where the plan is the plain list schedule). It is planned
+:class:`PlanEffort` says: the 36 rule pairs' schedules (without tools), randomised restarts and, on shops small
+enough for CP-SAT's full model, a CP-SAT polish, within a time budget (:data:`DEFAULT_EFFORT` when solving; none in
+training, where the plan is the plain list schedule). It is planned
 when a run starts, or from the shop's state (residual plans) when a shop is first seen after it started or after
 its jobs changed (a live order).
 """
@@ -61,36 +62,47 @@ class PlanEffort:
     if better (with tools the rules are far behind the list schedules, docs/benchmarks.md §7); then up to
     ``restarts`` randomised restarts of the best (:func:`fms_dispatch.exact.restart_list_plan`, seeded with
     ``seed``; they search around its start times too). The rules stop when the next would end after half of
-    ``budget`` seconds, the restarts after all of it (None: no time limit). ``PlanEffort()`` is the plain list
-    schedule, the plan the guided models were trained with; a better plan needs no retraining, since the guide's
-    features only say what heads its orders. Results are reproducible while ``budget`` does not cut the search
-    short."""
+    ``budget`` seconds, the restarts after all of it (None: no time limit). Last, with ``exact`` seconds, for a run
+    at its start on a shop small enough for CP-SAT's full model (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS`
+    transport tasks), CP-SAT polishes the best plan for that long (:func:`fms_dispatch.exact.polish_plan`); the
+    restarts then leave it that much of the budget, and it gets no more than what is left. ``PlanEffort()`` is
+    the plain list schedule, the plan the guided models were trained with; a better plan needs no retraining,
+    since the guide's features only say what heads its orders. Results are reproducible while ``budget`` does
+    not cut the search short and no CP-SAT polish runs (its parallel search depends on timing)."""
 
     restarts: int = 0
     budget: float | None = None
     seed: int = 0
     rules: bool = False
+    exact: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.restarts, int) or self.restarts < 0:
             raise ValueError(f"plan restarts must be an integer >= 0, got {self.restarts!r}")
         if self.budget is not None and not self.budget >= 0:
             raise ValueError(f"plan budget must be >= 0 seconds (or None), got {self.budget!r}")
+        if not self.exact >= 0:
+            raise ValueError(f"plan polish (exact) must be >= 0 seconds, got {self.exact!r}")
 
     def as_dict(self) -> dict[str, Any]:
-        return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules}
+        return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules,
+                "exact": self.exact}
 
 
 #: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget/
-#: --no-guide-rules``): on shops of up to about 20 jobs the search finishes within the budget (reproducible),
-#: on larger ones it is cut
-DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=True)
+#: --no-guide-rules/--guide-exact``): on shops of up to about 20 jobs the list search finishes within the budget;
+#: on shops within CP-SAT's full model a quarter second of CP-SAT polishes its plan; on larger shops the budget
+#: cuts the restarts
+DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=True, exact=0.25)
 
 
-def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None) -> PlanEffort:
+def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None,
+                exact: float | None = None) -> PlanEffort:
     """:data:`DEFAULT_EFFORT` with the given settings replaced (the command-line options): ``budget=0`` means no
-    time limit. Raises ValueError for a negative count or budget."""
+    time limit, ``exact=0`` no CP-SAT polish. Raises ValueError for a negative count, budget or polish."""
     changes: dict[str, Any] = {}
+    if exact is not None:
+        changes["exact"] = exact
     if restarts is not None:
         changes["restarts"] = restarts
     if budget is not None:
@@ -108,7 +120,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     answers those choices (first offered) and stops at the next state that can."""
     from fms_sim.snapshot import can_snapshot, snapshot
 
-    from ..exact import greedy_schedule, restart_list_plan
+    from ..exact import greedy_schedule, polish_plan, restart_list_plan
 
     t0 = time.monotonic()
     origin = None
@@ -142,11 +154,24 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             run_s = time.monotonic() - t1
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
+    polish = effort.exact if origin is None and small_enough_to_polish(inst) else 0.0
     if effort.restarts:
-        left = None if deadline is None else deadline - time.monotonic()
+        left = None if deadline is None else deadline - time.monotonic() - polish
         if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
+    if polish:
+        left = polish if deadline is None else min(polish, deadline - time.monotonic())
+        if left > 0:
+            best = polish_plan(inst, best, time_limit=left, seed=effort.seed)
     return best
+
+
+def small_enough_to_polish(inst: Instance) -> bool:
+    """Whether :attr:`PlanEffort.exact` polishes plans of ``inst``: CP-SAT's full model takes it (at most
+    :data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks, or a plain job shop)."""
+    from ..exact import FULL_MODEL_MAX_TASKS, n_transport_tasks
+
+    return inst.mode == "jobshop" or n_transport_tasks(inst) <= FULL_MODEL_MAX_TASKS
 
 
 class _Orders:
