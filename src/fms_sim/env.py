@@ -403,22 +403,26 @@ class ShopEnv(gym.Env):
         else:
             on_way = buffered | (k > 0) | (loc >= 0)
         on_way &= k < tb.nops
-        due_count = np.zeros(inst.n_tools + 1 if inst.has_tools else 1)
+        due_count = [0] * (inst.n_tools + 1 if inst.has_tools else 1)
         if inst.has_tools:  # due tool requests (FullShop.due_tool_request), read from the pending requests
+            nxt, way = k.tolist(), on_way.tolist()  # plain lists: this loop runs over every pending request
+            treq = s.treq
             for t in range(1, inst.n_tools + 1):
-                if not s.treq[t] or not s._servable(t):
+                req = treq[t]
+                if not req or not s._servable(t):
                     continue
-                for j, ks in s.treq[t].items():
-                    if ks[0] == k[j] and on_way[j] and s._candidate(t, j):
+                for j, ks in req.items():
+                    if ks[0] == nxt[j] and way[j] and s._candidate(t, j):
                         J[j, 5] = 1.0
                         due_count[t] += 1
         J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done, loc) / self._scale
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
             T[tools - 1, 0] = 1.0
-            for t in range(1, inst.n_tools + 1):
-                T[t - 1, 1:] = (s.tool_user[t] is not None, s.tool_running[t], s.tool_next[t] is not None,
-                                chosen == t, len(s.treq[t]) / max(1, inst.n_jobs), due_count[t] / inst.n_jobs)
+            nt, nj = inst.n_tools, inst.n_jobs
+            user, running, nxt_use, treq = s.tool_user, s.tool_running, s.tool_next, s.treq
+            T[:nt, 1:] = [(user[t] is not None, running[t], nxt_use[t] is not None, chosen == t,
+                           len(treq[t]) / max(1, nj), due_count[t] / nj) for t in range(1, nt + 1)]
         return [g, J.ravel(), T.ravel()]
 
     @staticmethod

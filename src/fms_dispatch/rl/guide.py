@@ -203,7 +203,10 @@ class _Orders:
         pos = np.searchsorted(undone, self.lo)
         first = undone[np.minimum(pos, undone.size - 1)]
         ok = (pos < undone.size) & (first < self.hi)
-        return {self.ids[s]: (int(self.J[first[s]]), int(self.K[first[s]])) for s in np.flatnonzero(ok)}
+        seg = np.flatnonzero(ok)
+        at = first[seg]
+        ids = self.ids
+        return {ids[s]: jk for s, jk in zip(seg.tolist(), zip(self.J[at].tolist(), self.K[at].tolist()))}
 
 
 class PlanGuide:
