@@ -274,14 +274,14 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
 
 # ====================================================================================== greedy
 def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]], src: int,
-                      ready: int) -> tuple[int, int]:
+                      ready: int, nearest: bool = False) -> tuple[int, int]:
     """``(vehicle, start)``: the vehicle (AGV or transporter) that can start the loaded trip from ``src``
     earliest, not before ``ready`` (ties: the shorter empty trip, then the lowest number); ``(-1, 0)`` if
     there is none."""
     best, best_v, start = None, -1, 0
     for v in range(len(locs)):
         s = max(free[v] + travel[locs[v]][src], ready)
-        key = (s, travel[locs[v]][src])
+        key = (travel[locs[v]][src], s) if nearest else (s, travel[locs[v]][src])
         if best is None or key < best:
             best, best_v, start = key, v, s
     return best_v, start
@@ -295,6 +295,7 @@ def greedy_schedule(
     priority: dict[tuple[int, int], float] | None = None,
     noise: dict[tuple[int, int], float] | None = None,
     origin: Snapshot | None = None,
+    vehicle: str = "earliest",
 ) -> Schedule:
     """A feasible schedule by list scheduling, appending every activity to the end of its resources.
 
@@ -303,8 +304,10 @@ def greedy_schedule(
     earliest start (``rule="est"``) or completion (``"ect"``), ties broken by the most remaining work (or
     randomly when ``rng`` is given), or the smallest ``priority`` value (``rule="guided"``); ``noise`` adds a
     per-operation offset to the start times compared by ``"est"`` (randomised restarts). Empty trips
-    start as soon as the vehicle is free; vehicles then wait for the part or tool. Always valid, never
-    optimal in general; it gives the solver its first upper bound and the fallback its schedule.
+    start as soon as the vehicle is free; vehicles then wait for the part or tool. Each carry goes to the
+    vehicle that can start it earliest (``vehicle="earliest"``; ties: the shorter empty trip) or to the one with
+    the shortest empty trip (``"nearest"``, as the nearest-vehicle rules do; ties: the earliest start). Always
+    valid, never optimal in general; it gives the solver its first upper bound and the fallback its schedule.
 
     ``origin`` (a :class:`fms_sim.snapshot.Snapshot` of a running shop) plans only what has not started, from
     that state: committed moves and tool reservations are kept (they get no trip record), a reserved tool serves
@@ -315,6 +318,9 @@ def greedy_schedule(
     """
     if rule not in ("est", "ect", "guided"):
         raise ValueError(f"unknown greedy rule {rule!r}; use 'est', 'ect' or 'guided'")
+    if vehicle not in ("earliest", "nearest"):
+        raise ValueError(f"unknown vehicle choice {vehicle!r}; use 'earliest' or 'nearest'")
+    near = vehicle == "nearest"
     if rule == "guided" and priority is None:
         raise ValueError("greedy rule 'guided' needs a priority for every operation")
     if origin is not None and origin.instance.n_jobs != inst.n_jobs:
@@ -344,9 +350,10 @@ def greedy_schedule(
                  rdy: int) -> tuple[int, int]:
         c = cache[j]
         if c is None:
-            v, st = _earliest_vehicle(locs, free, travel, src, rdy)
-            c = cache[j] = (st, travel[locs[v]][src] if v >= 0 else 0, v, src, rdy)
-        return c[2], c[0]
+            v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
+            e = travel[locs[v]][src] if v >= 0 else 0
+            c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
+        return c[2], c[5]
 
     def moved(cache: list, v: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]]) -> None:
         """Vehicle ``v`` got a new place and time: update every job's earliest vehicle (and its plan)."""
@@ -358,9 +365,10 @@ def greedy_schedule(
                 continue
             src, rdy = c[3], c[4]
             e = travel[locs[v]][src]
-            key = (max(free[v] + e, rdy), e, v)
+            st = max(free[v] + e, rdy)
+            key = (e, st, v) if near else (st, e, v)
             if key < c[:3]:
-                cache[i] = key + (src, rdy)
+                cache[i] = key + (src, rdy, st)
                 planned[i] = None
 
     # per job, plan(j) as of the current state; None: recompute (a job's plan changes only with its machine, its

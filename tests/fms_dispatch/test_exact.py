@@ -331,3 +331,27 @@ def test_list_schedules_keep_their_makespans(name, est, ect, tie3, no_tools):
            greedy_schedule(inst, rule="est", rng=random.Random(3)), greedy_schedule(inst.without_tools())]
     assert [s.makespan for s in got] == [est, ect, tie3, no_tools]
     assert all(validate(i, s) == [] for i, s in zip([inst] * 3 + [inst.without_tools()], got))
+
+
+@pytest.mark.parametrize("name", ["sl00", "ra01", "EX44"])
+def test_the_nearest_vehicle_list_schedule_sends_a_nearest_vehicle(name):
+    """``vehicle="nearest"``: replaying the carries in the order they were planned, every loaded carry of a part
+    (and of a tool) goes to a vehicle with the shortest empty trip to its pickup at that moment."""
+    from fms_dispatch.exact import greedy_schedule
+
+    inst = builtin(name)
+    for rule in ("est", "ect"):
+        s = greedy_schedule(inst, rule=rule, vehicle="nearest")
+        assert validate(inst, s) == []
+        for trips, n, travel, who in ((s.agv_trips, inst.n_agvs, inst.agv_travel, "agv"),
+                                      (s.tool_trips, inst.n_tool_transporters, inst.tool_travel, "transporter")):
+            loc = [0] * n  # where each vehicle ends its last carry (each carry's empty trip comes just before it)
+            for t in trips:
+                if t.loaded:
+                    v = getattr(t, who)
+                    assert travel[loc[v]][t.from_] == min(travel[loc[u]][t.from_] for u in range(n)), (name, t)
+                    loc[v] = t.to
+    # the default stays the earliest vehicle; an unknown choice is refused
+    assert greedy_schedule(inst).makespan == greedy_schedule(inst, vehicle="earliest").makespan
+    with pytest.raises(ValueError, match="vehicle"):
+        greedy_schedule(inst, vehicle="closest")
