@@ -61,8 +61,10 @@ class PlanEffort:
     a shop without tools, the schedules of the 36 paper-net rule pairs (:func:`fms_dispatch.rules.all_rule_pairs`)
     if better (with tools the rules are far behind the list schedules, docs/benchmarks.md §7); then up to
     ``restarts`` randomised restarts of the best (:func:`fms_dispatch.exact.restart_list_plan`, seeded with
-    ``seed``; they search around its start times too). The rules stop when the next would end after half of
-    ``budget`` seconds, the restarts after all of it (None: no time limit). Last, with ``exact`` seconds, for a run
+    ``seed``; they search around its start times too), the restarts preceded by the two list schedules that send
+    each carry to the nearest vehicle (:func:`fms_dispatch.exact.greedy_schedule`'s ``vehicle="nearest"``) if
+    better. The rules stop when the next would end after half of ``budget`` seconds, the nearest-vehicle schedules
+    and the restarts after all of it (None: no time limit). Last, with ``exact`` seconds, for a run
     at its start on a shop small enough for CP-SAT's full model (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS`
     transport tasks), CP-SAT polishes the best plan for that long (:func:`fms_dispatch.exact.polish_plan`); the
     restarts then leave it that much of the budget, and it gets no more than what is left. ``PlanEffort()`` is
@@ -156,6 +158,13 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
                 best = plans[-1]
     polish = effort.exact if origin is None and small_enough_to_polish(inst) else 0.0
     if effort.restarts:
+        # the same two list schedules with the nearest vehicle for each carry, where they end within the budget
+        for rule in ("est", "ect"):
+            if deadline is not None and time.monotonic() + one_list > deadline - polish:
+                break
+            cand = greedy_schedule(inst, rule=rule, origin=origin, vehicle="nearest")
+            if cand.makespan < best.makespan:
+                best = cand
         left = None if deadline is None else deadline - time.monotonic() - polish
         if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
