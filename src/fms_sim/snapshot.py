@@ -93,7 +93,7 @@ def _all(shop: FullShop, place) -> list[tuple]:
 def can_snapshot(shop: FullShop) -> bool:
     """Whether ``shop`` stands where a snapshot can be taken: no vehicle or tool-use choice is pending (an idle
     stop, or a decision among the base actions)."""
-    return shop.tool_choice is None and not len(shop.p_awaiting_agv) and not (
+    return shop.tool_choice is None and not (shop.instance.has_agvs and len(shop.p_awaiting_agv)) and not (
         shop.instance.has_tools and len(shop.p_awaiting_tt))
 
 

@@ -413,3 +413,22 @@ def test_polish_plan_keeps_or_improves_a_whole_plan():
         shop.act(shop.legal_actions()[0])
     with pytest.raises(ValueError, match="residual"):
         polish_plan(inst, guide_plan(shop), time_limit=1)
+
+
+def test_a_plain_job_shop_is_planned_from_scratch_and_polished():
+    # without AGVs the first parts stand at their machines from time 0 without a decision: the run has not
+    # started, so the guide plans from scratch (and may polish), and the snapshot check needs no AGV places
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import PlanEffort, at_start
+    from fms_sim.snapshot import can_snapshot
+
+    inst = builtin("EX12").without_agvs().without_tools()
+    shop = FullShop(inst)
+    assert any(shop.job_started_ops) and at_start(shop) and can_snapshot(shop)
+    plan = guide_plan(shop, PlanEffort(restarts=8, exact=1.0))
+    assert "residual" not in plan.meta and validate(inst, plan) == []
+    assert plan.makespan <= guide_plan(FullShop(inst)).makespan
+    shop.act(shop.legal_actions()[0])
+    assert not at_start(shop) and guide_plan(shop).meta.get("residual") is not None
+    s = ppo_solver("ppo:guided")(builtin("ta01"))  # the default search on Taillard's plain job shop
+    assert validate(builtin("ta01"), s) == [] and s.makespan >= 1231

@@ -32,7 +32,7 @@ from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
 from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanEffort,
-                    PlanGuide)
+                    PlanGuide, at_start)
 
 __all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
 
@@ -163,7 +163,7 @@ class FastShopEnv(ShopEnv):
         if guide is not None and guide.effort not in (None, self.guide_effort):
             guide = None  # planned with another search effort than this env's
         if guide is not None:
-            fresh = shop.now == 0 and not any(shop.job_started_ops)
+            fresh = at_start(shop)
             if (guide.origin is None) if fresh else (guide.origin is None or shop.now >= guide.origin):
                 return guide
         guide = self._plan_guide = PlanGuide.for_shop(shop, self.guide_effort)

@@ -126,7 +126,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
 
     t0 = time.monotonic()
     origin = None
-    if shop.now > 0 or any(shop.job_started_ops):
+    if not at_start(shop):
         if not can_snapshot(shop):
             shop = copy.deepcopy(shop)
             while not can_snapshot(shop) and not shop.done:
@@ -173,6 +173,14 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
         if left > 0:
             best = polish_plan(inst, best, time_limit=left, seed=effort.seed)
     return best
+
+
+def at_start(shop: FullShop) -> bool:
+    """Whether ``shop``'s run has not started: time 0, no operation started and, with AGVs, no part dispatched (a
+    shop without AGVs has its first parts at their machines from time 0, without a decision)."""
+    if shop.now > 0 or any(shop.started):
+        return False
+    return not (shop.instance.has_agvs and any(shop.job_started_ops))
 
 
 def small_enough_to_polish(inst: Instance) -> bool:
