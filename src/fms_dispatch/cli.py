@@ -113,10 +113,11 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as e:
-        raise CliError(f"--guide-restarts/--guide-budget: {e}") from None
+        raise CliError(f"--guide-restarts/--guide-budget/--guide-exact: {e}") from None
     if effort is not None:
         if not a.solver.lower().startswith("ppo"):
-            raise CliError("--guide-restarts, --guide-budget and --[no-]guide-rules apply to the ppo solver only")
+            raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules and --guide-exact apply to the ppo "
+                           "solver only")
         opts["guide_effort"] = effort
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)

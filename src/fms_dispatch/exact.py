@@ -73,6 +73,7 @@ __all__ = [
     "relaxation_bound",
     "FULL_MODEL_MAX_TASKS",
     "n_transport_tasks",
+    "fits_full_model",
 ]
 
 FULL_MODEL_MAX_TASKS = 100
@@ -945,6 +946,12 @@ def n_transport_tasks(inst: Instance) -> int:
     return len(_agv_tasks(inst)) + sum(len(u) for u in _tool_uses(inst).values())
 
 
+def fits_full_model(inst: Instance) -> bool:
+    """Whether ``solve_exact(model="auto")`` and :func:`polish_plan` use the full model on ``inst``: a plain job
+    shop, or at most :data:`FULL_MODEL_MAX_TASKS` transport tasks."""
+    return inst.mode == "jobshop" or n_transport_tasks(inst) <= FULL_MODEL_MAX_TASKS
+
+
 def solve_exact(
     instance: Instance,
     *,
@@ -975,8 +982,7 @@ def solve_exact(
         problems = validate(instance, hint)
         if problems:
             raise ValueError(f"the hint is not a feasible schedule for {instance.name}: {problems[0]}")
-    n_tasks = n_transport_tasks(instance)
-    full = model == "full" or (model == "auto" and (n_tasks <= FULL_MODEL_MAX_TASKS or instance.mode == "jobshop"))
+    full = model == "full" or (model == "auto" and fits_full_model(instance))
     greedy_budget = min(2.0, 0.05 * time_limit) if full else min(10.0, 0.15 * time_limit)
     incumbent = _best_greedy(instance, greedy_budget, seed)
     if hint is not None and hint.makespan <= incumbent.makespan:
@@ -1129,7 +1135,7 @@ def polish_plan(inst: Instance, plan: Schedule, *, time_limit: float, workers: i
         raise ValueError(f"workers must be >= 1, got {workers}")
     if "residual" in plan.meta:
         raise ValueError("polish_plan needs a whole schedule; a residual plan (meta['residual']) cannot be polished")
-    if time_limit == 0 or not (inst.mode == "jobshop" or n_transport_tasks(inst) <= FULL_MODEL_MAX_TASKS):
+    if time_limit == 0 or not fits_full_model(inst):
         return plan
     t0 = time.monotonic()
     res = _solve_full(inst, plan, simple_lower_bound(inst), t0, time_limit, workers, seed, False, None, None,

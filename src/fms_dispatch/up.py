@@ -255,7 +255,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as exc:
-        raise UpError(f"--guide-restarts/--guide-budget: {exc}") from None
+        raise UpError(f"--guide-restarts/--guide-budget/--guide-exact: {exc}") from None
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort)
         say(reason)

@@ -365,7 +365,8 @@ def test_cp_sat_polishes_the_plan_of_a_small_shop():
     # EX44 (long travel times): the list search and the rule pairs stop at 153, CP-SAT's full model from that
     # hint finds better within a second (the optimum is 121); the guided model acts the polished plan out
     from fms_dispatch.rl import ppo_solver
-    from fms_dispatch.rl.guide import PlanEffort, small_enough_to_polish
+    from fms_dispatch.exact import fits_full_model
+    from fms_dispatch.rl.guide import PlanEffort
 
     inst = builtin("EX44")
     searched = guide_plan(FullShop(inst), PlanEffort(restarts=64, rules=True))
@@ -386,7 +387,7 @@ def test_cp_sat_polishes_the_plan_of_a_small_shop():
     residual = guide_plan(shop, PlanEffort(exact=1.0))
     assert residual.meta.get("residual") is not None and residual.meta["solver"] == "greedy"
     # shops beyond CP-SAT's full model are not polished
-    assert small_enough_to_polish(inst) and not small_enough_to_polish(builtin("sl00"))
+    assert fits_full_model(inst) and not fits_full_model(builtin("sl00"))
     big = builtin("sl00")
     assert guide_plan(FullShop(big), PlanEffort(exact=5.0)).meta["solver"] == "greedy"
 

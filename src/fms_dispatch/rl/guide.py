@@ -122,7 +122,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     answers those choices (first offered) and stops at the next state that can."""
     from fms_sim.snapshot import can_snapshot, snapshot
 
-    from ..exact import greedy_schedule, polish_plan, restart_list_plan
+    from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan
 
     t0 = time.monotonic()
     origin = None
@@ -156,7 +156,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             run_s = time.monotonic() - t1
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
-    polish = effort.exact if origin is None and small_enough_to_polish(inst) else 0.0
+    polish = effort.exact if origin is None and fits_full_model(inst) else 0.0
     if effort.restarts:
         # the same two list schedules with the nearest vehicle for each carry, where they end within the budget
         for rule in ("est", "ect"):
@@ -182,13 +182,6 @@ def at_start(shop: FullShop) -> bool:
         return False
     return not (shop.instance.has_agvs and any(shop.job_started_ops))
 
-
-def small_enough_to_polish(inst: Instance) -> bool:
-    """Whether :attr:`PlanEffort.exact` polishes plans of ``inst``: CP-SAT's full model takes it (at most
-    :data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks, or a plain job shop)."""
-    from ..exact import FULL_MODEL_MAX_TASKS, n_transport_tasks
-
-    return inst.mode == "jobshop" or n_transport_tasks(inst) <= FULL_MODEL_MAX_TASKS
 
 
 class _Orders:
