@@ -3,11 +3,12 @@ the optima (issue 19's BU goal: a policy trained without any EX instance, with l
 <= the best rule pair on at least 36 of 40, <= 0.1 s per instance)::
 
     python bench/bu_all.py [--model bu] [--json results/bu_all.json]
-    python bench/bu_all.py --model guided --lookahead-guide [--guide-restarts N --guide-budget S --guide-exact S]
+    python bench/bu_all.py --model guided --lookahead-guide [--guide-restarts N --guide-budget S --guide-tabu S ...]
 
 The best rule pair is the best of the 36 paper-net pairs (12 job rules x first / least-work / nearest) per
 instance. Every schedule is validated. With ``--lookahead-guide`` a guided model's lookahead is its guide's empty
-trips (``lookahead="guide"``); ``--guide-restarts``/``--guide-budget``/``--guide-exact`` set its plan search
+trips (``lookahead="guide"``); ``--guide-restarts``/``--guide-budget``/``--[no-]guide-rules``/``--guide-tabu``/
+``--guide-exact`` set its plan search
 (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's ``DEFAULT_EFFORT``).
 """
 

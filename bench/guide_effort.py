@@ -5,8 +5,9 @@ shops that no model trains on and no reported figure comes from (the specs are c
 
     python bench/guide_effort.py [--shops 'genbu:**3@31' 'genbu:**5@33' ...] [--efforts 0 64+rules ...]
 
-An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules and ``+exactS`` for S seconds of
-CP-SAT polish; every effort runs without an overall time limit, so the figures show what each costs. Per effort:
+An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules, ``+tabuS`` for S seconds of tabu search
+per operation and ``+exactS`` for S seconds of CP-SAT polish; every effort runs without an overall time limit, so
+the figures show what each costs. Per effort:
 the mean ratio of the planned makespan to the list schedule's, the mean and largest seconds of the search, and the
 same for the guided model acting the plan out (plain ``ppo:guided``), every schedule validated.
 """
@@ -26,25 +27,30 @@ from fms_sim.validate import validate
 
 
 def parse_effort(text: str) -> PlanEffort:
-    """``N[+rules][+exactS]``: N restarts, the rule pairs, S seconds of CP-SAT polish."""
+    """``N[+rules][+exactS][+tabuS]``: N restarts, the rule pairs, S seconds of CP-SAT polish, S seconds of tabu
+    search per operation."""
     n, *extra = text.split("+")
-    rules, exact = False, 0.0
+    rules, exact, tabu = False, 0.0, 0.0
     for part in extra:
         if part == "rules":
             rules = True
         elif part.startswith("exact"):
             exact = float(part[5:])
+        elif part.startswith("tabu"):
+            tabu = float(part[4:])
         else:
-            raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS]")
-    return PlanEffort(restarts=int(n), rules=rules, exact=exact)
+            raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS][+tabuS]")
+    return PlanEffort(restarts=int(n), rules=rules, exact=exact, tabu=tabu)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--shops", nargs="+", default=["genbu:**3@31", "genbu:**5@33"],
                     help="generated shop specs (not held out)")
-    ap.add_argument("--efforts", nargs="+", default=["0", "64", "0+rules", "64+rules", "256+rules", "1024+rules",
-                                                     "64+rules+exact0.1", "64+rules+exact0.25", "64+rules+exact0.5"])
+    ap.add_argument("--efforts", nargs="+", default=["0", "32", "64+rules", "1024+rules", "64+rules+exact0.25",
+                                                     "32+exact0.25", "0+tabu0.003", "32+tabu0.001", "32+tabu0.002",
+                                                     "32+tabu0.003", "32+tabu0.005", "32+tabu0.01",
+                                                     "32+tabu0.003+exact0.25"])
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     shops = list(expand_instances(a.shops))

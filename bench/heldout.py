@@ -13,8 +13,9 @@ earliest-completion list schedules executed through the full net (``list``, ``li
 is validated. The summary gives each method's mean gap to CP-SAT and, per model, on how many shops it is at most
 the list schedule. With ``--lookahead-guide`` a guided model's ``+la`` is its guide's empty trips
 (``lookahead="guide"``, on every size) instead of the verified lookahead. ``--guide-restarts N --guide-budget S
---guide-exact S`` set a guided model's plan search (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the
-solver's ``DEFAULT_EFFORT``) and label its columns ``SPEC~rN[-norules]-xS`` (S: seconds of CP-SAT polish). A model
+--[no-]guide-rules --guide-tabu S --guide-exact S`` set a guided model's plan search
+(:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's ``DEFAULT_EFFORT``) and label its columns
+``SPEC~rN[-rules]-tT-xS`` (T: seconds of tabu search per operation, S: seconds of CP-SAT polish). A model
 that does not fit a shop (padding) is skipped there and the count says so.
 """
 
@@ -61,7 +62,7 @@ def label(spec: str, effort) -> str:
     """The column of a model spec run with ``effort`` (None: the solver's default)."""
     if effort is None:
         return spec
-    return f"{spec}~r{effort.restarts}" + ("" if effort.rules else "-norules") + f"-x{effort.exact:g}"
+    return f"{spec}~r{effort.restarts}" + ("-rules" if effort.rules else "") + f"-t{effort.tabu:g}-x{effort.exact:g}"
 
 
 def spec_of(label: str) -> str:

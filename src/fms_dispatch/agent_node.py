@@ -17,9 +17,9 @@ start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahe
 re-planning off) and ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
 default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
 ``guided``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
-limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default true) and ``guide_exact`` (seconds
-of CP-SAT polish on small shops; 0: none) say; -1: the solver's default
-(:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`).
+limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
+tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
+the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`).
 """
 
 from __future__ import annotations
@@ -56,17 +56,19 @@ class AgentNode(FmsNode):
         inst = self._instance()
         restarts = int(param(n, "guide_restarts", -1))
         budget = float(param(n, "guide_budget", -1.0))
-        rules = bool(param(n, "guide_rules", True))  # true: DEFAULT_EFFORT's
+        rules = bool(param(n, "guide_rules", False))  # false: DEFAULT_EFFORT's
         exact = float(param(n, "guide_exact", -1.0))
+        tabu = float(param(n, "guide_tabu", -1.0))
         effort = None
-        if restarts != -1 or budget != -1.0 or not rules or exact != -1.0:
+        if restarts != -1 or budget != -1.0 or rules or exact != -1.0 or tabu != -1.0:
             from .rl.guide import effort_from
 
             try:
                 effort = effort_from(None if restarts == -1 else restarts, None if budget == -1.0 else budget, rules,
-                                     None if exact == -1.0 else exact)
+                                     None if exact == -1.0 else exact, None if tabu == -1.0 else tabu)
             except ValueError as exc:
-                raise StartupError(f"parameters guide_restarts / guide_budget / guide_exact: {exc}") from None
+                raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact: {exc}"
+                                   ) from None
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort)
         except UnavailableSolver as exc:

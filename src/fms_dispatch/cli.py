@@ -38,29 +38,34 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_guide_args(p: argparse.ArgumentParser) -> None:
-    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-exact``: a guided model's plan
-    search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads them."""
+    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``: a
+    guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
+    them."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
-                        "(default 64; 0: none)")
+                        "(default 32; 0: none)")
     p.add_argument("--guide-budget", type=float, metavar="SECONDS",
                    help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
     p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
                    help="ppo with a guided model: also try the 36 rule pairs' schedules as its plan on shops "
-                        "without tools (default: yes)")
+                        "without tools (default: no)")
+    p.add_argument("--guide-tabu", type=float, metavar="SECONDS",
+                   help="ppo with a guided model: tabu search improves its plan for this many seconds per operation "
+                        "of the shop, within the budget (default 0.003; 0: none)")
     p.add_argument("--guide-exact", type=float, metavar="SECONDS",
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
-                        "the full model, within the budget (default 0.25; 0: no polish)")
+                        "the full model, within the budget (default 0: no polish)")
 
 
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
     """The plan search of :func:`add_guide_args`' options (None: none given, the solver's default); raises
-    ValueError for a negative count, budget or polish."""
-    if a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None and a.guide_exact is None:
+    ValueError for a negative count, budget, tabu search or polish."""
+    if (a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None and a.guide_exact is None
+            and a.guide_tabu is None):
         return None
     from .rl.guide import effort_from
 
-    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact)
+    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu)
 
 
 def load_from_args(a: argparse.Namespace) -> Instance:
@@ -113,11 +118,11 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as e:
-        raise CliError(f"--guide-restarts/--guide-budget/--guide-exact: {e}") from None
+        raise CliError(f"--guide-restarts/--guide-budget/--guide-tabu/--guide-exact: {e}") from None
     if effort is not None:
         if not a.solver.lower().startswith("ppo"):
-            raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules and --guide-exact apply to the ppo "
-                           "solver only")
+            raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu and --guide-exact "
+                           "apply to the ppo solver only")
         opts["guide_effort"] = effort
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)

@@ -255,7 +255,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as exc:
-        raise UpError(f"--guide-restarts/--guide-budget/--guide-exact: {exc}") from None
+        raise UpError(f"--guide-restarts/--guide-budget/--guide-tabu/--guide-exact: {exc}") from None
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort)
         say(reason)
@@ -320,7 +320,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         agent_params["instance"] = str(inst_in)
     if effort is not None:
         agent_params.update(guide_restarts=effort.restarts, guide_budget=float(effort.budget or 0.0),
-                            guide_rules=effort.rules, guide_exact=float(effort.exact))
+                            guide_rules=effort.rules, guide_exact=float(effort.exact),
+                            guide_tabu=float(effort.tabu))
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

@@ -238,12 +238,13 @@ def test_the_cli_sets_the_guides_search(capsys, tmp_path):
     assert main(["solve", "EX104", "--solver", "ppo", "--guide-restarts", "64", "--guide-budget", "0", "-q",
                  "--out", str(out)]) == 0
     meta = json.loads(out.read_text())["meta"]
-    # rules and polish: the defaults
-    assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": True, "exact": 0.25}
-    assert main(["solve", "EX104", "--solver", "ppo", "--no-guide-rules", "--guide-exact", "0", "-q",
-                 "--out", str(out)]) == 0
+    # rules, tabu search and polish: the defaults
+    assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False, "exact": 0.0,
+                                    "tabu": 0.003}
+    assert main(["solve", "EX104", "--solver", "ppo", "--guide-rules", "--guide-exact", "0.1", "--guide-tabu", "0",
+                 "-q", "--out", str(out)]) == 0
     meta = json.loads(out.read_text())["meta"]["guide_effort"]
-    assert meta["rules"] is False and meta["exact"] == 0.0
+    assert meta["rules"] is True and meta["exact"] == 0.1 and meta["tabu"] == 0.0
     capsys.readouterr()
     assert main(["solve", "EX104", "--solver", "rules", "--guide-restarts", "4", "-q"]) == 2
     assert "apply to the ppo solver only" in capsys.readouterr().err
@@ -251,6 +252,10 @@ def test_the_cli_sets_the_guides_search(capsys, tmp_path):
     assert "restarts must be" in capsys.readouterr().err
     assert main(["solve", "EX104", "--solver", "ppo", "--guide-exact", "-1", "-q"]) == 2
     assert "exact" in capsys.readouterr().err
+    assert main(["solve", "EX104", "--solver", "ppo", "--guide-tabu", "-0.1", "-q"]) == 2
+    assert "tabu" in capsys.readouterr().err
+    assert main(["solve", "EX104", "--solver", "list", "--guide-tabu", "0", "-q"]) == 2
+    assert "--guide-tabu" in capsys.readouterr().err
     assert main(["solve", "EX104", "--solver", "ppo:bu", "--guide-restarts", "4", "-q"]) == 2
     assert "no plan guide" in capsys.readouterr().err
 
@@ -279,15 +284,15 @@ def test_plan_effort_is_validated():
     from fms_dispatch.rl.guide import DEFAULT_EFFORT, PlanEffort, effort_from
 
     assert PlanEffort() == PlanEffort(0, None, 0, False)
-    assert DEFAULT_EFFORT.restarts > 0 and DEFAULT_EFFORT.budget is not None and DEFAULT_EFFORT.rules
+    assert DEFAULT_EFFORT.restarts > 0 and DEFAULT_EFFORT.budget is not None and DEFAULT_EFFORT.tabu > 0
     assert effort_from() == DEFAULT_EFFORT
-    assert effort_from(restarts=5, budget=0, rules=False) == PlanEffort(5, None, DEFAULT_EFFORT.seed, False,
-                                                                        DEFAULT_EFFORT.exact)
-    assert effort_from(exact=0).exact == 0.0 and DEFAULT_EFFORT.exact > 0
+    assert effort_from(restarts=5, budget=0, rules=True) == PlanEffort(5, None, DEFAULT_EFFORT.seed, True,
+                                                                       DEFAULT_EFFORT.exact, DEFAULT_EFFORT.tabu)
+    assert effort_from(exact=0.5).exact == 0.5 and effort_from(tabu=0).tabu == 0.0
     with pytest.raises(ValueError, match="restarts"):
         effort_from(restarts=-2)
     for bad in (dict(restarts=-1), dict(restarts=1.5), dict(budget=-0.1), dict(budget=float("nan")),
-                dict(exact=-0.5), dict(exact=float("nan"))):
+                dict(exact=-0.5), dict(exact=float("nan")), dict(tabu=-0.001), dict(tabu=float("nan"))):
         with pytest.raises(ValueError, match="plan"):
             PlanEffort(**bad)
 
@@ -327,7 +332,8 @@ def test_the_guided_model_follows_a_searched_plan():
     assert searched.makespan < plain.makespan
     assert searched.makespan <= plan.makespan * 1.02
     assert again.makespan == plain.makespan  # the searched plan of the run before is not reused
-    assert searched.meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False, "exact": 0.0}
+    assert searched.meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False, "exact": 0.0,
+                                             "tabu": 0.0}
     assert solve(inst).meta["guide_effort"]["restarts"] > 0  # the default searches
     with pytest.raises(ValueError, match="no plan guide"):
         ppo_solver("ppo:bu")(inst, guide_effort=PlanEffort(restarts=4))
@@ -390,6 +396,33 @@ def test_cp_sat_polishes_the_plan_of_a_small_shop():
     assert fits_full_model(inst) and not fits_full_model(builtin("sl00"))
     big = builtin("sl00")
     assert guide_plan(FullShop(big), PlanEffort(exact=5.0)).meta["solver"] == "greedy"
+
+
+def test_the_tabu_search_improves_the_guides_plan():
+    # EX44: the list search stops above the optimum 121; the tabu search over the plan's orders goes further, and
+    # the guided model acts its plan out (with its empty trips)
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import PlanEffort
+
+    inst = builtin("EX44")
+    searched = guide_plan(FullShop(inst), PlanEffort(restarts=32))
+    tabu = guide_plan(FullShop(inst), PlanEffort(restarts=32, tabu=0.02))
+    assert validate(inst, tabu) == [] and tabu.meta["solver"] == "tabu"
+    assert 121 <= tabu.makespan < searched.makespan
+    s = ppo_solver("ppo:guided")(inst, guide_effort=PlanEffort(restarts=32, tabu=0.02), lookahead="guide")
+    assert validate(inst, s) == [] and s.makespan < searched.makespan
+    # it gets no more than what the budget leaves: none at all here
+    assert guide_plan(FullShop(inst), PlanEffort(restarts=32, budget=0.0, tabu=1.0)).makespan == \
+        guide_plan(FullShop(inst)).makespan
+    # a residual plan (a run seen after its start) is not searched by it
+    shop = FullShop(inst)
+    for _ in range(6):
+        shop.act(shop.legal_actions()[0])
+    assert guide_plan(shop, PlanEffort(tabu=1.0)).meta["solver"] == "greedy"
+    # with tools too: ra01 within the default effort's budget
+    ra = builtin("ra01")
+    plan = guide_plan(FullShop(ra), PlanEffort(restarts=0, budget=1.0, tabu=0.01))
+    assert validate(ra, plan) == [] and plan.makespan <= guide_plan(FullShop(ra)).makespan
 
 
 def test_polish_plan_keeps_or_improves_a_whole_plan():

@@ -108,16 +108,16 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
 
     from fms_dispatch.rl.guide import effort_from
 
-    # the default search but no CP-SAT polish, whose parallel search is not reproducible: the node's run and the
-    # offline solver's must match decision for decision
+    # the default search but no tabu search, whose time limit makes it not reproducible in general: the node's
+    # run and the offline solver's must match decision for decision
     out, db = tmp_path / "ra01.json", tmp_path / "fms.sqlite"
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-exact", "0",
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-tabu", "0",
                           "--out", str(out), "--db", str(db), "--run-id", "up-ppo", "--domain-id",
                           ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr + res.stdout
     inst = builtin("ra01")
-    ref = ppo_solver("ppo")(inst, guide_effort=effort_from(exact=0))
+    ref = ppo_solver("ppo")(inst, guide_effort=effort_from(tabu=0))
     sched = Schedule.load(out)
     # the default model of a tool shop decides on the full net: fms up runs the shop on it
     assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"
@@ -129,19 +129,20 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
 
 
 def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """``--guide-restarts 0 --no-guide-rules --guide-exact 0`` reaches the agent node: it acts out the plain list
+    """``--guide-restarts 0 --no-guide-rules --guide-tabu 0`` reaches the agent node: it acts out the plain list
     schedule, as the offline solver with that search does, not the default search's better plan."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
 
     out, db = tmp_path / "EX62.json", tmp_path / "fms.sqlite"
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "ppo", "--guide-restarts",
-                          "0", "--no-guide-rules", "--guide-exact", "0", "--out", str(out), "--db", str(db), "--run-id", "up-plain",
+                          "0", "--no-guide-rules", "--guide-tabu", "0", "--out", str(out), "--db", str(db),
+                          "--run-id", "up-plain",
                           "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr + res.stdout
     inst = builtin("EX62")
-    plain = ppo_solver("ppo")(inst, guide_effort=effort_from(0, None, False, 0))
+    plain = ppo_solver("ppo")(inst, guide_effort=effort_from(0, None, False, 0, 0))
     searched = ppo_solver("ppo")(inst)
     sched = Schedule.load(out)
     assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"

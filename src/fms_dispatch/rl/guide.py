@@ -19,9 +19,10 @@ memory of how the state was reached, so the lookahead's twins and a drifting liv
 
 The guide's plan (:func:`guide_plan`) is the better of the earliest-start and earliest-completion list schedules
 (:func:`fms_dispatch.exact.greedy_schedule`, 0.7 s for both on a 100-job shop), searched further as a
-:class:`PlanEffort` says: the 36 rule pairs' schedules (without tools), randomised restarts and, on shops small
-enough for CP-SAT's full model, a CP-SAT polish, within a time budget (:data:`DEFAULT_EFFORT` when solving; none in
-training, where the plan is the plain list schedule). It is planned
+:class:`PlanEffort` says: the 36 rule pairs' schedules (without tools), randomised restarts, a tabu search over
+the plan's resource orders (:mod:`fms_dispatch.tabu`) and, on shops small enough for CP-SAT's full model, a CP-SAT
+polish, within a time budget (:data:`DEFAULT_EFFORT` when solving; none in training, where the plan is the plain
+list schedule). It is planned
 when a run starts, or from the shop's state (residual plans) when a shop is first seen after it started or after
 its jobs changed (a live order).
 """
@@ -64,19 +65,22 @@ class PlanEffort:
     ``seed``; they search around its start times too), the restarts preceded by the two list schedules that send
     each carry to the nearest vehicle (:func:`fms_dispatch.exact.greedy_schedule`'s ``vehicle="nearest"``) if
     better. The rules stop when the next would end after half of ``budget`` seconds, the nearest-vehicle schedules
-    and the restarts after all of it (None: no time limit). Last, with ``exact`` seconds, for a run
-    at its start on a shop small enough for CP-SAT's full model (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS`
-    transport tasks), CP-SAT polishes the best plan for that long (:func:`fms_dispatch.exact.polish_plan`); the
-    restarts then leave it that much of the budget, and it gets no more than what is left. ``PlanEffort()`` is
-    the plain list schedule, the plan the guided models were trained with; a better plan needs no retraining,
-    since the guide's features only say what heads its orders. Results are reproducible while ``budget`` does
-    not cut the search short and no CP-SAT polish runs (its parallel search depends on timing)."""
+    and the restarts after all of it (None: no time limit). Then, for a run at its start: with ``tabu`` seconds
+    per operation of the shop, a tabu search over the plan's resource orders (:func:`fms_dispatch.tabu.tabu_plan`);
+    with ``exact`` seconds, on a shop small enough for CP-SAT's full model
+    (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks), a CP-SAT polish of the best plan
+    (:func:`fms_dispatch.exact.polish_plan`). The restarts leave both their time; each gets no more than what the
+    budget has left. ``PlanEffort()`` is the plain list schedule, the plan the guided models were trained with; a
+    better plan needs no retraining, since the guide's features only say what heads its orders. Results are
+    reproducible while ``budget`` does not cut the search short and neither a tabu search (its time limit) nor a
+    CP-SAT polish (its parallel search) runs."""
 
     restarts: int = 0
     budget: float | None = None
     seed: int = 0
     rules: bool = False
     exact: float = 0.0
+    tabu: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.restarts, int) or self.restarts < 0:
@@ -85,24 +89,30 @@ class PlanEffort:
             raise ValueError(f"plan budget must be >= 0 seconds (or None), got {self.budget!r}")
         if not self.exact >= 0:
             raise ValueError(f"plan polish (exact) must be >= 0 seconds, got {self.exact!r}")
+        if not self.tabu >= 0:
+            raise ValueError(f"plan tabu search must be >= 0 seconds per operation, got {self.tabu!r}")
 
     def as_dict(self) -> dict[str, Any]:
         return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules,
-                "exact": self.exact}
+                "exact": self.exact, "tabu": self.tabu}
 
 
 #: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget/
-#: --no-guide-rules/--guide-exact``): on shops of up to about 20 jobs the list search finishes within the budget;
-#: on shops within CP-SAT's full model a quarter second of CP-SAT polishes its plan; on larger shops the budget
-#: cuts the restarts
-DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=True, exact=0.25)
+#: --[no-]guide-rules/--guide-tabu/--guide-exact``), chosen on validation shops (docs/benchmarks.md §9): 32
+#: restarts, then 3 ms of tabu search per operation (0.06 s on a 20-operation shop), within 1 s; on shops of more
+#: than about 150 operations the budget cuts the restarts, on larger ones the tabu search gets what the list
+#: schedules leave
+DEFAULT_EFFORT = PlanEffort(restarts=32, budget=1.0, rules=False, exact=0.0, tabu=0.003)
 
 
 def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None,
-                exact: float | None = None) -> PlanEffort:
+                exact: float | None = None, tabu: float | None = None) -> PlanEffort:
     """:data:`DEFAULT_EFFORT` with the given settings replaced (the command-line options): ``budget=0`` means no
-    time limit, ``exact=0`` no CP-SAT polish. Raises ValueError for a negative count, budget or polish."""
+    time limit, ``exact=0`` no CP-SAT polish, ``tabu=0`` no tabu search. Raises ValueError for a negative count,
+    budget, polish or tabu search."""
     changes: dict[str, Any] = {}
+    if tabu is not None:
+        changes["tabu"] = tabu
     if exact is not None:
         changes["exact"] = exact
     if restarts is not None:
@@ -117,12 +127,14 @@ def effort_from(restarts: int | None = None, budget: float | None = None, rules:
 def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
     (the project's ``list`` reference; earliest start on ties), searched further as ``effort`` says (rule pairs,
-    restarts), from scratch when the run has not started, else from its state (residual plans, restarts only). A
+    restarts, tabu search, polish), from scratch when the run has not started, else from its state (residual plans,
+    restarts only). A
     state with a vehicle or tool-use choice pending cannot be snapshot; the plans then start from a copy that
     answers those choices (first offered) and stops at the next state that can."""
     from fms_sim.snapshot import can_snapshot, snapshot
 
-    from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan
+    from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan, simple_lower_bound
+    from ..tabu import n_operations, tabu_plan
 
     t0 = time.monotonic()
     origin = None
@@ -156,6 +168,9 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             run_s = time.monotonic() - t1
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
+    # at the run's start: the tabu search (its time grows with the shop), then CP-SAT's polish on shops within its
+    # full model; the restarts leave them their time
+    tabu_s = effort.tabu * n_operations(inst) if origin is None else 0.0
     polish = effort.exact if origin is None and fits_full_model(inst) else 0.0
     if effort.restarts:
         # the same two list schedules with the nearest vehicle for each carry, where they end within the budget
@@ -165,9 +180,13 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             cand = greedy_schedule(inst, rule=rule, origin=origin, vehicle="nearest")
             if cand.makespan < best.makespan:
                 best = cand
-        left = None if deadline is None else deadline - time.monotonic() - polish
+        left = None if deadline is None else deadline - time.monotonic() - tabu_s - polish
         if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
+    if tabu_s:
+        left = tabu_s if deadline is None else min(tabu_s, deadline - time.monotonic() - polish)
+        if left > 0:
+            best = tabu_plan(inst, best, budget=left, seed=effort.seed, bound=simple_lower_bound(inst))
     if polish:
         left = polish if deadline is None else min(polish, deadline - time.monotonic())
         if left > 0:

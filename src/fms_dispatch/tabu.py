@@ -1,0 +1,668 @@
+"""Tabu search over a schedule's resource orders: a fast improver of the guide's plans.
+
+The list schedules (:func:`fms_dispatch.exact.greedy_schedule`) append every activity to the end of its resources
+and pick a vehicle by a fixed rule, and their randomised restarts stall a few per cent above the best known
+schedules (docs/benchmarks.md §9). This module searches a space that holds every semi-active schedule instead:
+the order of the operations on each machine, of the loaded trips on each AGV, of the uses of each tool and of the
+tool deliveries on each transporter (which vehicle carries what is part of the orders). Given the orders, the
+earliest times follow in one pass over the *disjunctive graph*: job chains; machine orders; AGV routes, whose empty
+legs run from one drop-off to the next pickup; tool orders, where a use on another machine than the tool's previous
+use needs a delivery (after that use ended) and a use on the same machine needs none; transporter routes over the
+deliveries. Its critical path says which changes can shorten the makespan:
+
+* swap two adjacent operations of a machine (with their tool uses if they share a tool) that follow each other
+  on the critical path;
+* swap two adjacent trips of an AGV or a transporter that follow each other on it;
+* move a critical trip to another vehicle, next to the place its start time gives it there;
+* swap two adjacent uses of a tool that follow each other on the critical path (the deliveries this creates are
+  given to the vehicle free earliest; those it makes unneeded are dropped).
+
+Vehicle and machine moves are ranked by an estimate of the makespan after them (the longest path through the
+nodes they change, from the current heads and tails); tool moves, which change the origins of later deliveries,
+by a full evaluation. Each iteration takes the best move not forbidden by the tabu list (the reverse of a recent
+move, unless it beats the best schedule) whose orders have no cycle, until the time budget, the iteration limit,
+the stall limit or the lower bound. The result is rebuilt as a :class:`~fms_sim.schedule.Schedule` (empty trips
+leave as soon as the vehicle is free) that the validator accepts; it is never worse than the start.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from typing import Sequence
+
+from fms_sim.instance import Instance
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+
+__all__ = ["tabu_plan", "n_operations"]
+
+#: how many iterations a move's reverse stays forbidden: this many plus a random 0..TENURE_SPREAD-1
+TENURE = 6
+TENURE_SPREAD = 5
+
+
+def n_operations(inst: Instance) -> int:
+    """How many operations ``inst`` has (what the guide's tabu search time is scaled by)."""
+    return sum(len(job) for job in inst.jobs)
+
+
+Orders = tuple[list[list[int]], list[list[int]], list[list[int]], list[list[int]]]
+"""Machine orders (index = machine), AGV orders, tool orders (index = tool), transporter orders; entries are
+operation numbers (a trip or delivery is named by the operation it serves)."""
+
+
+class _Graph:
+    """The fixed part of an instance's disjunctive graph. Operations are numbered job by job; node ``i`` is
+    operation ``i``, node ``n + i`` its loaded AGV trip (when ``carried[i]``: ``pick[i] -> mach[i]``), node
+    ``2n + i`` the delivery of its tool (when the tool comes from elsewhere)."""
+
+    def __init__(self, inst: Instance):
+        self.inst = inst
+        self.key: list[tuple[int, int]] = []
+        self.dur: list[int] = []
+        self.mach: list[int] = []
+        self.tool: list[int] = []
+        self.jpred: list[int] = []
+        self.jsucc: list[int] = []
+        self.pick: list[int] = []
+        tools = inst.has_tools
+        for j, job in enumerate(inst.jobs):
+            for k, op in enumerate(job):
+                i = len(self.key)
+                self.key.append((j, k))
+                self.dur.append(op.duration)
+                self.mach.append(op.machine)
+                self.tool.append(op.tool if tools and op.tool is not None else -1)
+                self.jpred.append(i - 1 if k else -1)
+                self.jsucc.append(i + 1 if k + 1 < len(job) else -1)
+                self.pick.append(job[k - 1].machine if k else 0)
+        n = self.n = len(self.key)
+        self.index = {key: i for i, key in enumerate(self.key)}
+        tr = self.travel = inst.agv_travel
+        self.ttravel = inst.tool_travel
+        self.carried = [tr is not None and self.pick[i] != self.mach[i] for i in range(n)]
+        self.loaded = [tr[self.pick[i]][self.mach[i]] if self.carried[i] else 0 for i in range(n)]
+        self.P2 = self.dur + self.loaded
+        self.n_tools = inst.n_tools if tools else 0
+        self.n_vehicles = (inst.n_agvs, inst.n_tool_transporters if tools else 0)
+
+    def deliveries(self, tseq: Sequence[Sequence[int]]) -> tuple[list[int], list[int]]:
+        """Per operation, the previous use of its tool (-1: none) and where its tool comes from (-1: no delivery,
+        the tool is at the machine already or the operation needs none)."""
+        n, mach = self.n, self.mach
+        tpred = [-1] * n
+        src = [-1] * n
+        for seq in tseq:
+            prev = -1
+            for i in seq:
+                tpred[i] = prev
+                here = mach[prev] if prev >= 0 else 0
+                if here != mach[i]:
+                    src[i] = here
+                prev = i
+        return tpred, src
+
+    def evaluate(self, o: Orders) -> "_Eval | None":
+        """The semi-active schedule of these orders (earliest start of every node and the node whose end fixed
+        it), or None if they form a cycle."""
+        mseq, aseq, tseq, rseq = o
+        n = self.n
+        mpred, msucc, vpred, vsucc = [-1] * n, [-1] * n, [-1] * (3 * n), [-1] * (3 * n)
+        for seq in mseq:
+            for a, b in zip(seq, seq[1:]):
+                mpred[b] = a
+                msucc[a] = b
+        for seq in aseq:
+            for a, b in zip(seq, seq[1:]):
+                vpred[n + b] = n + a
+                vsucc[n + a] = n + b
+        for seq in rseq:
+            for a, b in zip(seq, seq[1:]):
+                vpred[2 * n + b] = 2 * n + a
+                vsucc[2 * n + a] = 2 * n + b
+        tpred, src = self.deliveries(tseq)
+        tsucc = [-1] * n
+        for i in range(n):
+            if tpred[i] >= 0:
+                tsucc[tpred[i]] = i
+        carried, jpred, jsucc, mach, pick, dur = self.carried, self.jpred, self.jsucc, self.mach, self.pick, self.dur
+        tr, ttr = self.travel, self.ttravel
+        n2 = 2 * n
+        # node durations: operations, loaded trips, deliveries (from where the tool order says)
+        P = self.P2 + ([ttr[src[i]][mach[i]] if src[i] >= 0 else 0 for i in range(n)] if ttr is not None
+                       else [0] * n)
+        indeg = [0] * (3 * n)
+        nodes = 0
+        stack = []
+        for i in range(n):
+            d = (mpred[i] >= 0) + (carried[i] or jpred[i] >= 0) + (src[i] >= 0 or tpred[i] >= 0)
+            indeg[i] = d
+            if not d:
+                stack.append(i)
+            nodes += 1
+            if carried[i]:
+                d = (jpred[i] >= 0) + (vpred[n + i] >= 0)
+                indeg[n + i] = d
+                if not d:
+                    stack.append(n + i)
+                nodes += 1
+            if src[i] >= 0:
+                d = (tpred[i] >= 0) + (vpred[n2 + i] >= 0)
+                indeg[n2 + i] = d
+                if not d:
+                    stack.append(n2 + i)
+                nodes += 1
+        start = [0] * (3 * n)
+        crit = [-1] * (3 * n)
+        order: list[int] = []
+        append, pop = stack.append, stack.pop
+        while stack:
+            v = pop()
+            order.append(v)
+            if v < n:
+                end = start[v] + dur[v]
+                s = jsucc[v]
+                if s >= 0:
+                    w = n + s if carried[s] else s
+                    if end > start[w] or (end == start[w] and crit[w] < 0):
+                        start[w] = end
+                        crit[w] = v
+                    indeg[w] -= 1
+                    if not indeg[w]:
+                        append(w)
+                w = msucc[v]
+                if w >= 0:
+                    if end > start[w] or (end == start[w] and crit[w] < 0):
+                        start[w] = end
+                        crit[w] = v
+                    indeg[w] -= 1
+                    if not indeg[w]:
+                        append(w)
+                s = tsucc[v]
+                if s >= 0:
+                    w = n2 + s if src[s] >= 0 else s
+                    if end > start[w] or (end == start[w] and crit[w] < 0):
+                        start[w] = end
+                        crit[w] = v
+                    indeg[w] -= 1
+                    if not indeg[w]:
+                        append(w)
+                continue
+            if v < n2:
+                i = v - n
+                if vpred[v] < 0:  # first trip of its AGV: the empty trip from L/U at time 0
+                    e = tr[0][pick[i]]
+                    if e > start[v]:
+                        start[v], crit[v] = e, -1
+                end = start[v] + P[v]
+                w = vsucc[v]
+                if w >= 0:
+                    t = end + tr[mach[i]][pick[w - n]]
+                    if t > start[w] or (t == start[w] and crit[w] < 0):
+                        start[w] = t
+                        crit[w] = v
+                    indeg[w] -= 1
+                    if not indeg[w]:
+                        append(w)
+            else:
+                i = v - n2
+                if vpred[v] < 0:  # first delivery of its transporter: the empty trip from the magazine
+                    e = ttr[0][src[i]]
+                    if e > start[v]:
+                        start[v], crit[v] = e, -1
+                end = start[v] + P[v]
+                w = vsucc[v]
+                if w >= 0:
+                    t = end + ttr[mach[i]][src[w - n2]]
+                    if t > start[w] or (t == start[w] and crit[w] < 0):
+                        start[w] = t
+                        crit[w] = v
+                    indeg[w] -= 1
+                    if not indeg[w]:
+                        append(w)
+            if end > start[i] or (end == start[i] and crit[i] < 0):  # the operation the trip serves
+                start[i] = end
+                crit[i] = v
+            indeg[i] -= 1
+            if not indeg[i]:
+                append(i)
+        if len(order) != nodes:
+            return None
+        last = max(range(n), key=lambda i: start[i] + dur[i])
+        return _Eval(start[last] + dur[last], start, crit, order, mpred, msucc, vpred, vsucc, tpred, tsucc, src, P,
+                     last)
+
+    def tails(self, ev: "_Eval") -> list[int]:
+        """Per node, the longest path from its end to the end of the schedule (its tail)."""
+        n = self.n
+        q = [0] * (3 * n)
+        P, src = ev.P, ev.src
+        carried, jsucc, tr, ttr, mach, pick = self.carried, self.jsucc, self.travel, self.ttravel, self.mach, self.pick
+        msucc, vsucc, tsucc = ev.msucc, ev.vsucc, ev.tsucc
+        for v in reversed(ev.order):
+            if v < n:
+                t = 0
+                s = jsucc[v]
+                if s >= 0:
+                    w = n + s if carried[s] else s
+                    t = P[w] + q[w]
+                s = msucc[v]
+                if s >= 0 and P[s] + q[s] > t:
+                    t = P[s] + q[s]
+                s = tsucc[v]
+                if s >= 0:
+                    w = 2 * n + s if src[s] >= 0 else s
+                    if P[w] + q[w] > t:
+                        t = P[w] + q[w]
+                q[v] = t
+            else:
+                i = v - n if v < 2 * n else v - 2 * n
+                t = P[i] + q[i]
+                w = vsucc[v]
+                if w >= 0:
+                    x = (tr[mach[i]][pick[w - n]] if v < 2 * n else ttr[mach[i]][src[w - 2 * n]]) + P[w] + q[w]
+                    if x > t:
+                        t = x
+                q[v] = t
+        return q
+
+    def critical_path(self, ev: "_Eval") -> list[int]:
+        """The nodes of one critical path, first to last (it ends at an operation that ends last)."""
+        crit = ev.crit
+        path = [ev.last]
+        while crit[path[-1]] >= 0:
+            path.append(crit[path[-1]])
+        path.reverse()
+        return path
+
+
+class _Eval:
+    """One evaluation of the orders: makespan, node starts, critical predecessors, a topological order, each
+    node's resource neighbours, each use's previous and next use of its tool and its delivery origin (-1: none),
+    the node durations and the operation that ends last."""
+
+    __slots__ = ("makespan", "start", "crit", "order", "mpred", "msucc", "vpred", "vsucc", "tpred", "tsucc", "src",
+                 "P", "last")
+
+    def __init__(self, makespan: int, start: list[int], crit: list[int], order: list[int], mpred: list[int],
+                 msucc: list[int], vpred: list[int], vsucc: list[int], tpred: list[int], tsucc: list[int],
+                 src: list[int], P: list[int], last: int):
+        self.makespan, self.start, self.crit, self.order, self.last = makespan, start, crit, order, last
+        self.mpred, self.msucc, self.vpred, self.vsucc = mpred, msucc, vpred, vsucc
+        self.tpred, self.tsucc, self.src, self.P = tpred, tsucc, src, P
+
+
+_Move = tuple[int, tuple, tuple, str, tuple]
+
+
+def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int]) -> list[_Move]:
+    """The moves around the critical path: ``(estimate, attribute, reverse, kind, args)``; tool moves carry the
+    estimate -1 (evaluated in full)."""
+    n = g.n
+    start, P, dur = ev.start, ev.P, g.dur
+    carried, jpred, jsucc, mach, pick, tool = g.carried, g.jpred, g.jsucc, g.mach, g.pick, g.tool
+    mpred, msucc, vpred, vsucc, src = ev.mpred, ev.msucc, ev.vpred, ev.vsucc, ev.src
+    tr, ttr = g.travel, g.ttravel
+
+    tpred, tsucc = ev.tpred, ev.tsucc
+
+    def head_part(x: int) -> int:  # when operation x's part is at its machine, from the job's side
+        if carried[x]:
+            return start[n + x] + P[n + x]
+        y = jpred[x]
+        return start[y] + dur[y] if y >= 0 else 0
+
+    def head_tool(x: int) -> int:  # when operation x's tool is at its machine (0: no tool)
+        if src[x] >= 0:
+            return start[2 * n + x] + P[2 * n + x]
+        y = tpred[x]
+        return start[y] + dur[y] if y >= 0 else 0
+
+    def tail_job(x: int) -> int:  # the longest path after operation x along its job
+        s = jsucc[x]
+        if s < 0:
+            return 0
+        w = n + s if carried[s] else s
+        return P[w] + q[w]
+
+    def tail_tool(x: int) -> int:  # the longest path after operation x along its tool's uses
+        s = tsucc[x]
+        if s < 0:
+            return 0
+        w = 2 * n + s if src[s] >= 0 else s
+        return P[w] + q[w]
+
+    def move_tool(a: int, b: int) -> int:  # a delivery of operation b's tool from operation a's machine (a = -1:
+        here = mach[a] if a >= 0 else 0  # from the magazine)
+        return ttr[here][mach[b]] if here != mach[b] else 0
+
+    def ready(v: int) -> int:  # when trip or delivery v may start, from its load's side
+        i = v - n if v < 2 * n else v - 2 * n
+        if v < 2 * n:
+            y = jpred[i]
+            return start[y] + dur[y] if y >= 0 else 0
+        y = ev.tpred[i]
+        return start[y] + dur[y] if y >= 0 else 0
+
+    def leg(a: int, b: int) -> int:  # the empty leg of a vehicle from the drop-off of a to the pickup of b
+        if b < 2 * n:
+            return tr[mach[a - n]][pick[b - n]] if a >= 0 else tr[0][pick[b - n]]
+        return ttr[mach[a - 2 * n]][src[b - 2 * n]] if a >= 0 else ttr[0][src[b - 2 * n]]
+
+    def free(a: int, b: int) -> int:  # when a vehicle whose last load was a (-1: none) can start b
+        return (start[a] + P[a] if a >= 0 else 0) + leg(a, b)
+
+    def tool_swap(u: int, v: int) -> int:
+        """The estimate for serving v before u (adjacent uses of a tool): deliveries as the new order needs them,
+        without waiting for a transporter."""
+        a, b = tpred[u], tsucc[v]
+        ta = start[a] + dur[a] if a >= 0 else 0
+        rv = max(head_part(v), start[mpred[v]] + dur[mpred[v]] if mpred[v] >= 0 else 0, ta + move_tool(a, v))
+        ru = max(head_part(u), start[mpred[u]] + dur[mpred[u]] if mpred[u] >= 0 else 0,
+                 rv + dur[v] + move_tool(v, u))
+        qu = max(tail_job(u), P[msucc[u]] + q[msucc[u]] if msucc[u] >= 0 else 0,
+                 move_tool(u, b) + dur[b] + q[b] if b >= 0 else 0)
+        qv = max(tail_job(v), P[msucc[v]] + q[msucc[v]] if msucc[v] >= 0 else 0, move_tool(v, u) + dur[u] + qu)
+        return max(rv + dur[v] + qv, ru + dur[u] + qu)
+
+    moves: list[_Move] = []
+    path = g.critical_path(ev)
+    for u, v in zip(path, path[1:]):
+        if u < n and v < n:
+            if msucc[u] == v:
+                a, b = mpred[u], msucc[v]
+                joint = tsucc[u] == v
+                if joint:
+                    est = -1  # the tool's deliveries change too: evaluated in full
+                else:
+                    rv = max(head_part(v), head_tool(v), start[a] + dur[a] if a >= 0 else 0)
+                    ru = max(head_part(u), head_tool(u), rv + dur[v])
+                    qu = max(tail_job(u), tail_tool(u), P[b] + q[b] if b >= 0 else 0)
+                    qv = max(tail_job(v), tail_tool(v), qu + dur[u])
+                    est = max(rv + dur[v] + qv, ru + dur[u] + qu)
+                moves.append((est, ("m", v, u), ("m", u, v), "m", (u, v, joint)))
+            elif tsucc[u] == v:
+                moves.append((tool_swap(u, v), ("t", v, u), ("t", u, v), "t", (u, v)))
+        elif u < n and v >= 2 * n and tsucc[u] == v - 2 * n:
+            w = v - 2 * n
+            moves.append((tool_swap(u, w), ("t", w, u), ("t", u, w), "t", (u, w)))
+        elif u >= n and v >= n and vsucc[u] == v:
+            x, y = vpred[u], vsucc[v]
+            rb = max(ready(v), free(x, v))
+            ra = max(ready(u), rb + P[v] + leg(v, u))
+            iu, iv = (u - n, v - n) if u < 2 * n else (u - 2 * n, v - 2 * n)
+            qa = max(P[iu] + q[iu], leg(u, y) + P[y] + q[y] if y >= 0 else 0)
+            qb = max(P[iv] + q[iv], leg(v, u) + P[u] + qa)
+            est = max(rb + P[v] + qb, ra + P[u] + qa)
+            kind = "a" if u < 2 * n else "r"
+            moves.append((est, (kind, iv, iu), (kind, iu, iv), kind, (iu, iv)))
+    for node in path:
+        if node < n:
+            t = tool[node]
+            if t < 0:
+                continue
+            # the tool's nearest uses on the same machine before and after: serve this use next to them (no
+            # delivery between them)
+            seq = o[2][t]
+            p = seq.index(node)
+            m = mach[node]
+            before = next((x for x in range(p - 1, -1, -1) if mach[seq[x]] == m), -1)
+            after = next((x for x in range(p + 1, len(seq)) if mach[seq[x]] == m), -1)
+            if before >= 0 and before < p - 1:
+                moves.append((-1, ("i", node), ("i", node), "i", (node, p, before + 1)))
+            if after > p + 1:
+                moves.append((-1, ("i", node), ("i", node), "i", (node, p, after - 1)))
+            continue
+        agv = node < 2 * n
+        i = node - n if agv else node - 2 * n
+        fleet = o[1] if agv else o[3]
+        if len(fleet) < 2:
+            continue
+        base = n if agv else 2 * n
+        v = where[node]
+        x, y = vpred[node], vsucc[node]
+        rest = max(ready(y), free(x, y)) + P[y] + q[y] if y >= 0 else 0
+        ti = start[node]
+        rdy = ready(node)
+        for w in range(len(fleet)):
+            if w == v:
+                continue
+            other = fleet[w]
+            p = 0
+            while p < len(other) and start[base + other[p]] <= ti:
+                p += 1
+            for pos in {max(0, p - 1), p, min(len(other), p + 1)}:
+                before = base + other[pos - 1] if pos > 0 else -1
+                after = base + other[pos] if pos < len(other) else -1
+                ri = max(rdy, free(before, node))
+                qi = P[i] + q[i]
+                if after >= 0:
+                    qi = max(qi, leg(node, after) + P[after] + q[after])
+                est = max(ri + P[node] + qi, rest)
+                kind = "v" if agv else "w"
+                moves.append((est, (kind, i, w), (kind, i, v), kind, (i, v, w, pos)))
+    return moves
+
+
+def _with(seqs: list[list[int]], k: int, seq: list[int]) -> list[list[int]]:
+    out = list(seqs)
+    out[k] = seq
+    return out
+
+
+def _swap(seq: list[int], a: int, b: int) -> list[int]:
+    """``seq`` with its adjacent entries ``a, b`` swapped."""
+    out = list(seq)
+    p = out.index(a)
+    out[p], out[p + 1] = b, a
+    return out
+
+
+def _apply(kind: str, args: tuple, g: _Graph, o: Orders, ev: _Eval, where: list[int]) -> Orders:
+    """The orders after a move (new lists where they change; the others shared)."""
+    mseq, aseq, tseq, rseq = o
+    n = g.n
+    if kind == "m":
+        u, v, joint = args
+        mseq = _with(mseq, g.mach[u], _swap(mseq[g.mach[u]], u, v))
+        if not joint:
+            return mseq, aseq, tseq, rseq
+        kind, args = "t", (u, v)
+    if kind == "t":
+        u, v = args
+        tseq = _with(tseq, g.tool[u], _swap(tseq[g.tool[u]], u, v))
+        return mseq, aseq, tseq, _fix_deliveries(g, tseq, rseq, ev)
+    if kind == "i":
+        u, p, q = args
+        seq = list(tseq[g.tool[u]])
+        del seq[p]
+        seq.insert(q if q < p else q, u)
+        tseq = _with(tseq, g.tool[u], seq)
+        return mseq, aseq, tseq, _fix_deliveries(g, tseq, rseq, ev)
+    if kind in ("a", "r"):
+        a, b = args
+        fleet, base = (aseq, n) if kind == "a" else (rseq, 2 * n)
+        w = where[base + a]
+        fleet = _with(fleet, w, _swap(fleet[w], a, b))
+        return (mseq, fleet, tseq, rseq) if kind == "a" else (mseq, aseq, tseq, fleet)
+    i, v, w, pos = args
+    fleet = list(aseq if kind == "v" else rseq)
+    fleet[v] = [x for x in fleet[v] if x != i]
+    fleet[w] = fleet[w][:pos] + [i] + fleet[w][pos:]
+    return (mseq, fleet, tseq, rseq) if kind == "v" else (mseq, aseq, tseq, fleet)
+
+
+def _fix_deliveries(g: _Graph, tseq: list[list[int]], rseq: list[list[int]], ev: _Eval) -> list[list[int]]:
+    """The transporter orders for the tool orders ``tseq``: deliveries no longer needed are dropped; a new one
+    joins the transporter free earliest at the time its tool is free in ``ev`` (the schedule before the move)."""
+    _, src = g.deliveries(tseq)
+    need = {i for i in range(g.n) if src[i] >= 0}
+    have = {i for seq in rseq for i in seq}
+    if need == have:
+        return rseq
+    n2 = 2 * g.n
+    start, P = ev.start, ev.P
+    out = [[i for i in seq if i in need] for seq in rseq]
+    for i in sorted(need - have):
+        y = ev.tpred[i]
+        t = start[y] + g.dur[y] if y >= 0 else 0
+        best = None
+        for r, seq in enumerate(out):
+            p = 0
+            while p < len(seq) and start[n2 + seq[p]] <= t:
+                p += 1
+            free = start[n2 + seq[p - 1]] + P[n2 + seq[p - 1]] if p else 0
+            if best is None or free < best[0]:
+                best = (free, r, p)
+        assert best is not None
+        _, r, p = best
+        out[r] = out[r][:p] + [i] + out[r][p:]
+    return out
+
+
+def _orders(g: _Graph, plan: Schedule) -> Orders:
+    """Each resource's operations, trips or deliveries in ``plan``'s order of start times."""
+    mseq: list[list[int]] = [[] for _ in range(g.inst.n_machines + 1)]
+    tseq: list[list[int]] = [[] for _ in range(g.n_tools + 1)]
+    for o in sorted(plan.operations, key=lambda o: (o.start, o.end)):
+        i = g.index[o.job, o.op]
+        mseq[o.machine].append(i)
+        if g.tool[i] >= 0:
+            tseq[g.tool[i]].append(i)
+    aseq: list[list[int]] = [[] for _ in range(g.n_vehicles[0])]
+    for t in sorted(plan.agv_trips, key=lambda t: (t.start, t.end)):
+        if t.loaded:
+            assert t.job is not None and t.op is not None
+            aseq[t.agv].append(g.index[t.job, t.op])
+    rseq: list[list[int]] = [[] for _ in range(g.n_vehicles[1])]
+    for tt in sorted(plan.tool_trips, key=lambda t: (t.start, t.end)):
+        if tt.loaded:
+            assert tt.job is not None and tt.op is not None
+            rseq[tt.transporter].append(g.index[tt.job, tt.op])
+    return mseq, aseq, tseq, rseq
+
+
+def _schedule(g: _Graph, plan: Schedule, o: Orders, ev: _Eval) -> Schedule:
+    inst, n, start = g.inst, g.n, ev.start
+    ops = [OperationRecord(j, k, g.mach[i], g.tool[i] if g.tool[i] >= 0 else None, start[i], start[i] + g.dur[i])
+           for i, (j, k) in enumerate(g.key)]
+    trips: list[AgvTrip] = []
+    for v, seq in enumerate(o[1]):
+        here, free = 0, 0
+        for i in seq:
+            j, k = g.key[i]
+            if here != g.pick[i]:
+                trips.append(AgvTrip(v, None, None, here, g.pick[i], free, free + g.travel[here][g.pick[i]], False))
+            s = start[n + i]
+            trips.append(AgvTrip(v, j, k, g.pick[i], g.mach[i], s, s + ev.P[n + i], True))
+            here, free = g.mach[i], s + ev.P[n + i]
+    deliveries: list[ToolTrip] = []
+    for r, seq in enumerate(o[3]):
+        here, free = 0, 0
+        for i in seq:
+            j, k = g.key[i]
+            origin = ev.src[i]
+            if here != origin:
+                deliveries.append(ToolTrip(r, None, None, None, here, origin, free,
+                                           free + g.ttravel[here][origin], False))
+            s = start[2 * n + i]
+            deliveries.append(ToolTrip(r, g.tool[i], j, k, origin, g.mach[i], s, s + ev.P[2 * n + i], True))
+            here, free = g.mach[i], s + ev.P[2 * n + i]
+    return Schedule(instance=inst.name, makespan=ev.makespan, n_agvs=inst.n_agvs,
+                    n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=trips,
+                    tool_trips=deliveries, meta={"solver": "tabu", "improved": plan.meta.get("solver")})
+
+
+def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, max_iters: int | None = None,
+              max_stall: int | None = None, seed: int = 0, bound: int = 0) -> Schedule:
+    """``plan`` or a better schedule of ``inst`` found by tabu search over its resource orders within ``budget``
+    seconds (None: no time limit), ``max_iters`` iterations and ``max_stall`` iterations without a better schedule
+    (None: no limit; a budget or an iteration limit must be set), stopping at ``bound`` (pass
+    :func:`fms_dispatch.exact.simple_lower_bound`). Reproducible for a given ``seed`` while the time limit does not
+    cut it short. ``plan`` must be a whole schedule of ``inst``, not a residual plan."""
+    if budget is None and max_iters is None:
+        raise ValueError("tabu_plan needs a time budget or an iteration limit")
+    if budget is not None and budget < 0:
+        raise ValueError(f"budget must be >= 0 seconds, got {budget}")
+    if max_iters is not None and max_iters < 0:
+        raise ValueError(f"max_iters must be >= 0, got {max_iters}")
+    if "residual" in plan.meta:
+        raise ValueError("tabu_plan needs a whole schedule; a residual plan (meta['residual']) cannot be improved")
+    if budget == 0 or max_iters == 0 or plan.makespan <= bound:
+        return plan
+    t0 = time.monotonic()
+    deadline = None if budget is None else t0 + budget
+    g = _Graph(inst)
+    n = g.n
+    rng = random.Random(seed)
+    o = _orders(g, plan)
+    _, src = g.deliveries(o[2])
+    if {i for i in range(n) if src[i] >= 0} != {i for seq in o[3] for i in seq}:
+        return plan  # a delivery the tool order does not need (a trip to where the tool is): not this search's form
+    cur = g.evaluate(o)
+    if cur is None:  # cannot happen for a valid plan: its start times order every resource
+        return plan
+    best_val = cur.makespan
+    best = (o, cur)
+    tabu: dict[tuple, int] = {}
+    it = last = 0
+    where = [-1] * (3 * n)  # the vehicle of each trip and delivery node
+    while (max_iters is None or it < max_iters) and (deadline is None or time.monotonic() < deadline):
+        if max_stall is not None and it - last >= max_stall:
+            break
+        it += 1
+        for v, seq in enumerate(o[1]):
+            for i in seq:
+                where[n + i] = v
+        for v, seq in enumerate(o[3]):
+            for i in seq:
+                where[2 * n + i] = v
+        q = g.tails(cur)
+        moves = _neighbours(g, cur, q, o, where)
+        # full evaluations first for the moves without an estimate, then the estimates in order
+        exact: list[tuple[int, float, tuple, tuple, Orders, _Eval]] = []
+        ranked: list[tuple[int, float, _Move]] = []
+        for mv in moves:
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            if mv[0] >= 0:
+                ranked.append((mv[0], rng.random(), mv))
+                continue
+            o2 = _apply(mv[3], mv[4], g, o, cur, where)
+            res = g.evaluate(o2)
+            if res is None or (tabu.get(mv[1], 0) >= it and res.makespan >= best_val):
+                continue
+            exact.append((res.makespan, rng.random(), mv[1], mv[2], o2, res))
+        ranked.sort(key=lambda r: (r[0], r[1]))
+        chosen = min(exact, key=lambda e: (e[0], e[1])) if exact else None
+        for est, _, (_, attr, reverse, kind, args) in ranked:
+            if chosen is not None and est >= chosen[0]:
+                break
+            if tabu.get(attr, 0) >= it and est >= best_val:
+                continue
+            o2 = _apply(kind, args, g, o, cur, where)
+            res = g.evaluate(o2)
+            if res is None or (tabu.get(attr, 0) >= it and res.makespan >= best_val):
+                continue
+            if chosen is None or res.makespan < chosen[0]:
+                chosen = (res.makespan, 0.0, attr, reverse, o2, res)
+            break
+        if chosen is None:
+            if not tabu or not moves:
+                break  # no move at all, or only moves into cycles
+            tabu.clear()  # every move is forbidden: forget them
+            continue
+        _, _, _, reverse, o, cur = chosen
+        tabu[reverse] = it + TENURE + rng.randrange(TENURE_SPREAD)
+        if cur.makespan < best_val:
+            best_val, last = cur.makespan, it
+            best = (o, cur)
+            if best_val <= bound:
+                break
+    if best_val >= plan.makespan:
+        return plan
+    out = _schedule(g, plan, *best)
+    out.meta["wall_time"] = round(time.monotonic() - t0, 3)
+    out.meta["iterations"] = it
+    out.meta["best_at"] = last
+    return out
