@@ -6,15 +6,19 @@ shops that no model trains on and no reported figure comes from (the specs are c
     python bench/guide_effort.py [--shops 'genbu:**3@31' 'genbu:**5@33' ...] [--efforts 0 64+rules ...]
 
 An effort is ``N`` (restarts) with ``+rules`` for the rule pairs' schedules, ``+tabuS`` for S seconds of tabu search
-per operation and ``+exactS`` for S seconds of CP-SAT polish; every effort runs without an overall time limit, so
-the figures show what each costs. Per effort:
-the mean ratio of the planned makespan to the list schedule's, the mean and largest seconds of the search, and the
-same for the guided model acting the plan out (plain ``ppo:guided``), every schedule validated.
+per operation and ``+exactS`` for S seconds of CP-SAT polish; every effort runs without an overall time limit (so
+the figures show what each costs) unless ``--budget`` sets one, as the solver does (1 s), for larger shops::
+
+    python bench/guide_effort.py --shops 'gen:8x5x5*4@216' 'gen:20x10x10*2@216' --budget 1 --efforts 64+tabu0.0025 ...
+
+Per effort: the mean ratio of the planned makespan to the list schedule's, the mean and largest seconds of the
+search, and the same for the guided model acting the plan out (plain ``ppo:guided``), every schedule validated.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 
@@ -47,10 +51,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--shops", nargs="+", default=["genbu:**3@31", "genbu:**5@33"],
                     help="generated shop specs (not held out)")
-    ap.add_argument("--efforts", nargs="+", default=["0", "32", "64+rules", "1024+rules", "64+rules+exact0.25",
-                                                     "32+exact0.25", "0+tabu0.003", "32+tabu0.001", "32+tabu0.002",
-                                                     "32+tabu0.003", "32+tabu0.005", "32+tabu0.01",
-                                                     "32+tabu0.003+exact0.25"])
+    ap.add_argument("--efforts", nargs="+", default=["0", "64", "64+rules", "1024+rules", "64+rules+exact0.25",
+                                                     "64+exact0.25", "0+tabu0.0025", "32+tabu0.003", "64+tabu0.001",
+                                                     "64+tabu0.002", "64+tabu0.0025", "64+tabu0.003", "64+tabu0.005",
+                                                     "64+tabu0.01", "64+tabu0.0025+exact0.25"])
+    ap.add_argument("--budget", type=float, default=None,
+                    help="overall time limit of each plan search in seconds (default: none; larger shops: give the "
+                         "solver's 1 s, where the budget shapes the search)")
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     shops = list(expand_instances(a.shops))
@@ -59,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     base = {inst.name: guide_plan(FullShop(inst)).makespan for inst in shops}
     print(f"{len(shops)} shops; ratio to the list schedule, seconds (mean / max)")
     for text in a.efforts:
-        effort = parse_effort(text)
+        effort = dataclasses.replace(parse_effort(text), budget=a.budget)
         plan_r, run_r, plan_s, run_s = [], [], [], []
         for inst in shops:
             t0 = time.perf_counter()

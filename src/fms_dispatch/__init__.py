@@ -1,13 +1,14 @@
-"""fms_dispatch: dispatching rules, the SOS metaheuristic, the exact CP-SAT model, RL agent and lookahead.
+"""fms_dispatch: dispatching rules, the SOS metaheuristic, tabu search, the exact CP-SAT model, RL agent and lookahead.
 
 Every method shares one signature, ``solver(instance, **options) -> Schedule``, selected by name through
 :func:`solve` / :func:`get_solver` (``"first"``, ``"random"``, ``"rule:<JOB>+<vehicle>"``, ``"sos"``,
-``"cpsat"``, ``"list"``, ``"rules"``, ``"plan:cpsat:10"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
+``"tabu"``, ``"cpsat"``, ``"list"``, ``"rules"``, ``"plan:cpsat:10"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
 """
 
 from .full_rules import TOOL_RULES, FullRulePolicy, full_rule_names, run_full, solve_best_rules, solve_list
 from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, all_rule_pairs, parse_rule_name, solve_rule
 from .solvers import UnknownSolver, get_solver, solve, solver_names
+from .tabu import solve_tabu, tabu_plan
 
 # these load OR-Tools (the function replan stays in fms_dispatch.replan: the module has its name)
 _LAZY = {"Replanner": "replan", "solve_with_replanning": "replan"}
@@ -16,6 +17,7 @@ __all__ = [
     "solve", "get_solver", "solver_names", "UnknownSolver", "Replanner", "solve_with_replanning",
     "RulePolicy", "JOB_RULES", "VEHICLE_RULES", "all_rule_pairs", "parse_rule_name", "solve_rule",
     "FullRulePolicy", "TOOL_RULES", "full_rule_names", "run_full", "solve_list", "solve_best_rules",
+    "tabu_plan", "solve_tabu",
 ]
 
 

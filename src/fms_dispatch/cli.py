@@ -43,7 +43,7 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
     them."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
-                        "(default 32; 0: none)")
+                        "(default 64; 0: none)")
     p.add_argument("--guide-budget", type=float, metavar="SECONDS",
                    help="ppo with a guided model: time limit of its plan search (default 1; 0: no limit)")
     p.add_argument("--guide-rules", action=argparse.BooleanOptionalAction, default=None,
@@ -51,7 +51,7 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
                         "without tools (default: no)")
     p.add_argument("--guide-tabu", type=float, metavar="SECONDS",
                    help="ppo with a guided model: tabu search improves its plan for this many seconds per operation "
-                        "of the shop, within the budget (default 0.003; 0: none)")
+                        "of the shop, within the budget (default 0.0025; 0: none)")
     p.add_argument("--guide-exact", type=float, metavar="SECONDS",
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
                         "the full model, within the budget (default 0: no polish)")

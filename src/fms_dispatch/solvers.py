@@ -8,7 +8,7 @@ which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the 
 full-net rule combination or list schedule), ``rules:paper`` (the best of the paper net's 36 rule pairs),
 ``plan:<SOLVER>[:SECONDS]`` (solve offline within SECONDS, then execute the plan through the full net),
 ``sos`` (symbiotic
-organisms search), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
+organisms search), ``tabu`` (tabu search over the list schedule's resource orders), ``cpsat`` (exact model) and ``ppo[:MODEL]`` (a shipped or trained MaskablePPO policy;
 option ``lookahead=True`` pre-positions idle vehicles, ``lookahead="fast"`` does it without retries), each
 honouring ``time_limit`` where it searches. Every schedule leaves here with ``meta["solver"]`` and
 ``meta["wall_time"]`` filled in.
@@ -121,7 +121,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]", "rules[:full|:paper]", "sos", "cpsat",
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]", "rules[:full|:paper]", "sos", "tabu", "cpsat",
             "plan:<SOLVER>[:SECONDS]",
             "ppo[:MODEL][+lookahead|+lookahead-fast]"]
 
@@ -151,6 +151,10 @@ def get_solver(name: str) -> Solver:
         return lambda inst, **kw: solve_best_rules(inst, **{**kw, "decisions": net})
     if low == "sos":
         return _sos
+    if low == "tabu":
+        from .tabu import solve_tabu
+
+        return solve_tabu
     if low == "cpsat":
         return _cpsat
     if low == "ppo" or low.startswith(("ppo:", "ppo+")):

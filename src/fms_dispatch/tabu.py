@@ -14,12 +14,13 @@ deliveries. Its critical path says which changes can shorten the makespan:
   on the critical path;
 * swap two adjacent trips of an AGV or a transporter that follow each other on it;
 * move a critical trip to another vehicle, next to the place its start time gives it there;
-* swap two adjacent uses of a tool that follow each other on the critical path (the deliveries this creates are
-  given to the vehicle free earliest; those it makes unneeded are dropped).
+* swap two adjacent uses of a tool that follow each other on the critical path, or move a critical use next to the
+  nearest use of its tool on the same machine (no delivery between them); the deliveries this creates go to the
+  transporter free earliest, those it makes unneeded are dropped.
 
-Vehicle and machine moves are ranked by an estimate of the makespan after them (the longest path through the
-nodes they change, from the current heads and tails); tool moves, which change the origins of later deliveries,
-by a full evaluation. Each iteration takes the best move not forbidden by the tabu list (the reverse of a recent
+Moves are ranked by an estimate of the makespan after them (the longest path through the nodes they change, from
+the current heads and tails; a tool swap's ignores the transporters); tool insertions and swaps of two operations
+of one machine that also share a tool are evaluated in full. Each iteration takes the best move not forbidden by the tabu list (the reverse of a recent
 move, unless it beats the best schedule) whose orders have no cycle, until the time budget, the iteration limit,
 the stall limit or the lower bound. The result is rebuilt as a :class:`~fms_sim.schedule.Schedule` (empty trips
 leave as soon as the vehicle is free) that the validator accepts; it is never worse than the start.
@@ -34,7 +35,7 @@ from typing import Sequence
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 
-__all__ = ["tabu_plan", "n_operations"]
+__all__ = ["tabu_plan", "solve_tabu", "n_operations"]
 
 #: how many iterations a move's reverse stays forbidden: this many plus a random 0..TENURE_SPREAD-1
 TENURE = 6
@@ -296,8 +297,8 @@ _Move = tuple[int, tuple, tuple, str, tuple]
 
 
 def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int]) -> list[_Move]:
-    """The moves around the critical path: ``(estimate, attribute, reverse, kind, args)``; tool moves carry the
-    estimate -1 (evaluated in full)."""
+    """The moves around the critical path: ``(estimate, attribute, reverse, kind, args)``; the estimate -1 means
+    "evaluate in full"."""
     n = g.n
     start, P, dur = ev.start, ev.P, g.dur
     carried, jpred, jsucc, mach, pick, tool = g.carried, g.jpred, g.jsucc, g.mach, g.pick, g.tool
@@ -571,6 +572,31 @@ def _schedule(g: _Graph, plan: Schedule, o: Orders, ev: _Eval) -> Schedule:
     return Schedule(instance=inst.name, makespan=ev.makespan, n_agvs=inst.n_agvs,
                     n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=trips,
                     tool_trips=deliveries, meta={"solver": "tabu", "improved": plan.meta.get("solver")})
+
+
+def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int = 0, progress: bool = False,
+               **_: object) -> Schedule:
+    """The ``tabu`` solver: the best of the four list schedules (earliest start or completion, earliest or nearest
+    vehicle; :func:`fms_dispatch.exact.greedy_schedule`), improved by :func:`tabu_plan` for the rest of
+    ``time_limit`` seconds (None: 10 s), stopping at the simple lower bound. ``progress`` prints the start and the
+    result."""
+    from .exact import greedy_schedule, simple_lower_bound
+
+    t0 = time.monotonic()
+    limit = 10.0 if time_limit is None else time_limit
+    if not limit > 0:
+        raise ValueError(f"time_limit must be positive, got {time_limit}")
+    plans = [greedy_schedule(instance, rule=rule, vehicle=vehicle) for rule in ("est", "ect")
+             for vehicle in ("earliest", "nearest")]
+    start = min(plans, key=lambda p: p.makespan)
+    if progress:
+        print(f"  tabu: list schedule {start.makespan}", flush=True)
+    best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
+                     bound=simple_lower_bound(instance))
+    if progress:
+        print(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations", flush=True)
+    best.meta["solver"] = "tabu"
+    return best
 
 
 def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, max_iters: int | None = None,

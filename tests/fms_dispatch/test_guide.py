@@ -240,7 +240,7 @@ def test_the_cli_sets_the_guides_search(capsys, tmp_path):
     meta = json.loads(out.read_text())["meta"]
     # rules, tabu search and polish: the defaults
     assert meta["guide_effort"] == {"restarts": 64, "budget": None, "seed": 0, "rules": False, "exact": 0.0,
-                                    "tabu": 0.003}
+                                    "tabu": 0.0025}
     assert main(["solve", "EX104", "--solver", "ppo", "--guide-rules", "--guide-exact", "0.1", "--guide-tabu", "0",
                  "-q", "--out", str(out)]) == 0
     meta = json.loads(out.read_text())["meta"]["guide_effort"]

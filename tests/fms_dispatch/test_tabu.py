@@ -102,3 +102,21 @@ def test_tabu_search_refuses_what_it_cannot_do():
     residual = greedy_schedule(inst, origin=snapshot(shop))
     with pytest.raises(ValueError, match="residual"):
         tabu_plan(inst, residual, budget=0.1)
+
+
+def test_the_tabu_solver_by_name(capsys):
+    from fms_dispatch import solve
+    from fms_dispatch.cli import main
+    from fms_dispatch.solvers import solver_names
+
+    assert "tabu" in solver_names()
+    inst = builtin("EX44")
+    s = solve(inst, "tabu", time_limit=0.3)
+    assert validate(inst, s) == [] and s.meta["solver"] == "tabu"
+    assert s.makespan < min(greedy_schedule(inst, rule=r).makespan for r in ("est", "ect"))
+    executed = solve(inst, "plan:tabu:0.3")  # its plan through the full net: never later than the plan
+    assert validate(inst, executed) == [] and executed.makespan <= executed.meta["plan_makespan"]
+    with pytest.raises(ValueError, match="time_limit"):
+        solve(inst, "tabu", time_limit=0)
+    assert main(["solve", "ra01", "--solver", "tabu", "--time-limit", "0.2", "-q"]) == 0
+    assert "makespan" in capsys.readouterr().out

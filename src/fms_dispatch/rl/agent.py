@@ -187,6 +187,12 @@ class Agent:
             raise ValueError(f"model {self.name} reads no plan guide: a guide effort does not apply to it")
         self.guide_effort = effort or DEFAULT_EFFORT
 
+    def forget(self) -> None:
+        """Drop what earlier runs left behind (their envs, instance tables and plan guides): the next run of the same
+        shop plans from scratch instead of adopting the last run's plan (benchmarks that time each run)."""
+        self._envs.clear()
+        self._last = None
+
     def guide_of(self, shop: Shop) -> Any:
         """The plan guide the model reads in ``shop`` (:class:`fms_dispatch.rl.guide.PlanGuide`); raises
         ValueError for a model without a guide."""

@@ -69,8 +69,8 @@ class PlanEffort:
     per operation of the shop, a tabu search over the plan's resource orders (:func:`fms_dispatch.tabu.tabu_plan`);
     with ``exact`` seconds, on a shop small enough for CP-SAT's full model
     (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks), a CP-SAT polish of the best plan
-    (:func:`fms_dispatch.exact.polish_plan`). The restarts leave both their time; each gets no more than what the
-    budget has left. ``PlanEffort()`` is the plain list schedule, the plan the guided models were trained with; a
+    (:func:`fms_dispatch.exact.polish_plan`). The restarts leave both their time, but keep at least half of what the
+    budget has left after the polish's; each gets no more than what the budget has left. ``PlanEffort()`` is the plain list schedule, the plan the guided models were trained with; a
     better plan needs no retraining, since the guide's features only say what heads its orders. Results are
     reproducible while ``budget`` does not cut the search short and neither a tabu search (its time limit) nor a
     CP-SAT polish (its parallel search) runs."""
@@ -98,11 +98,10 @@ class PlanEffort:
 
 
 #: what a guided model's solver plans with unless told otherwise (``fms solve --guide-restarts/--guide-budget/
-#: --[no-]guide-rules/--guide-tabu/--guide-exact``), chosen on validation shops (docs/benchmarks.md §9): 32
-#: restarts, then 3 ms of tabu search per operation (0.06 s on a 20-operation shop), within 1 s; on shops of more
-#: than about 150 operations the budget cuts the restarts, on larger ones the tabu search gets what the list
-#: schedules leave
-DEFAULT_EFFORT = PlanEffort(restarts=32, budget=1.0, rules=False, exact=0.0, tabu=0.003)
+#: --[no-]guide-rules/--guide-tabu/--guide-exact``), chosen on validation shops (docs/benchmarks.md §9): 64
+#: restarts, then 2.5 ms of tabu search per operation (0.05 s on a 20-operation shop), within 1 s; on larger shops
+#: the budget cuts both, the restarts keeping at least half of it
+DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=False, exact=0.0, tabu=0.0025)
 
 
 def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None,
@@ -169,7 +168,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
     # at the run's start: the tabu search (its time grows with the shop), then CP-SAT's polish on shops within its
-    # full model; the restarts leave them their time
+    # full model
     tabu_s = effort.tabu * n_operations(inst) if origin is None else 0.0
     polish = effort.exact if origin is None and fits_full_model(inst) else 0.0
     if effort.restarts:
@@ -180,7 +179,12 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             cand = greedy_schedule(inst, rule=rule, origin=origin, vehicle="nearest")
             if cand.makespan < best.makespan:
                 best = cand
-        left = None if deadline is None else deadline - time.monotonic() - tabu_s - polish
+        left = None
+        if deadline is not None:
+            now = time.monotonic()
+            # the restarts leave the polish its time and the tabu search its time, but keep at least half of what is
+            # left (on large shops the tabu search's time would take it all; restarts do better there with tools)
+            left = deadline - now - polish - min(tabu_s, (deadline - now - polish) / 2)
         if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
     if tabu_s:
