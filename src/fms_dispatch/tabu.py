@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import random
 import time
-from typing import Sequence
+from typing import Callable, Sequence
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
@@ -589,10 +589,17 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     plans = [greedy_schedule(instance, rule=rule, vehicle=vehicle) for rule in ("est", "ect")
              for vehicle in ("earliest", "nearest")]
     start = min(plans, key=lambda p: p.makespan)
+    shown = [time.monotonic()]
+
+    def report(makespan: int, iteration: int, seconds: float) -> None:
+        if time.monotonic() - shown[0] >= 1.0:  # at most one line a second
+            shown[0] = time.monotonic()
+            print(f"  tabu: makespan {makespan} at iteration {iteration}, {seconds:.1f} s", flush=True)
+
     if progress:
         print(f"  tabu: list schedule {start.makespan}", flush=True)
     best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
-                     bound=simple_lower_bound(instance))
+                     bound=simple_lower_bound(instance), progress=report if progress else None)
     if progress:
         print(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations", flush=True)
     best.meta["solver"] = "tabu"
@@ -600,12 +607,14 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
 
 
 def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, max_iters: int | None = None,
-              max_stall: int | None = None, seed: int = 0, bound: int = 0) -> Schedule:
+              max_stall: int | None = None, seed: int = 0, bound: int = 0,
+              progress: Callable[[int, int, float], None] | None = None) -> Schedule:
     """``plan`` or a better schedule of ``inst`` found by tabu search over its resource orders within ``budget``
     seconds (None: no time limit), ``max_iters`` iterations and ``max_stall`` iterations without a better schedule
     (None: no limit; a budget or an iteration limit must be set), stopping at ``bound`` (pass
     :func:`fms_dispatch.exact.simple_lower_bound`). Reproducible for a given ``seed`` while the time limit does not
-    cut it short. ``plan`` must be a whole schedule of ``inst``, not a residual plan."""
+    cut it short. ``plan`` must be a whole schedule of ``inst``, not a residual plan. ``progress(makespan,
+    iteration, seconds)`` is called at every better schedule."""
     if budget is None and max_iters is None:
         raise ValueError("tabu_plan needs a time budget or an iteration limit")
     if budget is not None and budget < 0:
@@ -683,6 +692,8 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
         if cur.makespan < best_val:
             best_val, last = cur.makespan, it
             best = (o, cur)
+            if progress is not None:
+                progress(best_val, it, time.monotonic() - t0)
             if best_val <= bound:
                 break
     if best_val >= plan.makespan:

@@ -78,6 +78,10 @@ def test_tabu_search_stops_at_its_limits():
     assert tabu_plan(inst, plan, budget=0.0) is plan
     assert tabu_plan(inst, plan, budget=None, max_iters=0) is plan
     assert tabu_plan(inst, plan, budget=None, max_iters=50, bound=plan.makespan) is plan  # at the bound already
+    seen: list[tuple[int, int, float]] = []
+    reported = tabu_plan(inst, plan, budget=None, max_iters=300, progress=lambda *a: seen.append(a))
+    assert seen and seen[-1][0] == reported.makespan  # every better schedule, the last one the result
+    assert [m for m, _, _ in seen] == sorted((m for m, _, _ in seen), reverse=True)
     stalled = tabu_plan(inst, plan, budget=None, max_iters=10**6, max_stall=20)
     assert stalled.meta["iterations"] < 10**6
     timed = tabu_plan(inst, plan, budget=0.05)
