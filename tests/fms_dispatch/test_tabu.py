@@ -3,6 +3,8 @@ shops, every mode (AGVs, AGVs + tools, tools only, plain job shop), reproducible
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from fms_dispatch.exact import greedy_schedule, simple_lower_bound
@@ -84,8 +86,9 @@ def test_tabu_search_stops_at_its_limits():
     assert [m for m, _, _ in seen] == sorted((m for m, _, _ in seen), reverse=True)
     stalled = tabu_plan(inst, plan, budget=None, max_iters=10**6, max_stall=20)
     assert stalled.meta["iterations"] < 10**6
+    t0 = time.monotonic()
     timed = tabu_plan(inst, plan, budget=0.05)
-    assert timed.meta["wall_time"] < 0.5 and validate(inst, timed) == []
+    assert time.monotonic() - t0 < 1.0 and validate(inst, timed) == [] and timed.makespan <= plan.makespan
     assert n_operations(inst) == sum(len(job) for job in inst.jobs)
 
 
