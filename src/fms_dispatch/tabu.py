@@ -13,14 +13,16 @@ deliveries. Its critical path says which changes can shorten the makespan:
 * swap two adjacent operations of a machine (with their tool uses if they share a tool) that follow each other
   on the critical path;
 * swap two adjacent trips of an AGV or a transporter that follow each other on it;
-* move a critical trip to another vehicle, next to the place its start time gives it there;
-* swap two adjacent uses of a tool that follow each other on the critical path, or move a critical use next to the
-  nearest use of its tool on the same machine (no delivery between them); the deliveries this creates go to the
-  transporter free earliest, those it makes unneeded are dropped.
+* move a critical trip that waits for its vehicle to another vehicle, next to the place its start time gives it
+  there (a trip may not move again for a few iterations);
+* swap two adjacent uses of a tool that follow each other on the critical path, move a critical use next to the
+  nearest use of its tool on the same machine (no delivery between them), or move a use of a critical block of a
+  tool's uses to the block's front or back; the deliveries this creates go to the transporter free earliest, those
+  it makes unneeded are dropped.
 
 Moves are ranked by an estimate of the makespan after them (the longest path through the nodes they change, from
-the current heads and tails; a tool swap's ignores the transporters); tool insertions and swaps of two operations
-of one machine that also share a tool are evaluated in full. Each iteration takes the best move not forbidden by the tabu list (the reverse of a recent
+the current heads and tails; a tool swap's ignores the transporters); tool insertions and block moves, and swaps of
+two operations of one machine that also share a tool, are evaluated in full. Each iteration takes the best move not forbidden by the tabu list (the reverse of a recent
 move, unless it beats the best schedule) whose orders have no cycle, until the time budget, the iteration limit,
 the stall limit or the lower bound. The result is rebuilt as a :class:`~fms_sim.schedule.Schedule` (empty trips
 leave as soon as the vehicle is free) that the validator accepts; it is never worse than the start.
@@ -397,6 +399,25 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
             est = max(rb + P[v] + qb, ra + P[u] + qa)
             kind = "a" if u < 2 * n else "r"
             moves.append((est, (kind, iv, iu), (kind, iu, iv), kind, (iu, iv)))
+    # critical blocks of a tool (its uses in a row on the critical path): move one of the last two uses to the
+    # block's front or one of the first two to its back (as N7 does for machines), evaluated in full
+    blocks: list[list[int]] = []
+    for u in path:
+        if u >= n or tool[u] < 0:
+            continue
+        if blocks and tsucc[blocks[-1][-1]] == u:
+            blocks[-1].append(u)
+        else:
+            blocks.append([u])
+    for blk in blocks:
+        if len(blk) < 3:
+            continue
+        seq = o[2][tool[blk[0]]]
+        first, last = seq.index(blk[0]), seq.index(blk[-1])
+        for x in (blk[-1], blk[-2]):
+            moves.append((-1, ("b", x), ("b", x), "i", (x, seq.index(x), first)))
+        for x in (blk[0], blk[1]):
+            moves.append((-1, ("b", x), ("b", x), "i", (x, seq.index(x), last)))
     for node in path:
         if node < n:
             t = tool[node]
@@ -422,6 +443,8 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
         base = n if agv else 2 * n
         v = where[node]
         x, y = vpred[node], vsucc[node]
+        if ev.crit[node] != x and not (x < 0 and ev.crit[node] < 0 and start[node] > 0):
+            continue  # it waits for its load, not for its vehicle: another vehicle cannot start it earlier
         rest = max(ready(y), free(x, y)) + P[y] + q[y] if y >= 0 else 0
         ti = start[node]
         rdy = ready(node)
@@ -441,7 +464,7 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
                     qi = max(qi, leg(node, after) + P[after] + q[after])
                 est = max(ri + P[node] + qi, rest)
                 kind = "v" if agv else "w"
-                moves.append((est, (kind, i, w), (kind, i, v), kind, (i, v, w, pos)))
+                moves.append((est, (kind, i), (kind, i), kind, (i, v, w, pos)))  # the trip stays a while
     return moves
 
 
