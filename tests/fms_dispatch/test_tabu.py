@@ -8,7 +8,7 @@ import time
 import pytest
 
 from fms_dispatch.exact import greedy_schedule, simple_lower_bound
-from fms_dispatch.tabu import _Graph, _orders, n_operations, tabu_plan
+from fms_dispatch.tabu import _Graph, _orders, tabu_plan
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
@@ -89,7 +89,6 @@ def test_tabu_search_stops_at_its_limits():
     t0 = time.monotonic()
     timed = tabu_plan(inst, plan, budget=0.05)
     assert time.monotonic() - t0 < 1.0 and validate(inst, timed) == [] and timed.makespan <= plan.makespan
-    assert n_operations(inst) == sum(len(job) for job in inst.jobs)
 
 
 def test_tabu_search_refuses_what_it_cannot_do():

@@ -70,10 +70,10 @@ class PlanEffort:
     with ``exact`` seconds, on a shop small enough for CP-SAT's full model
     (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks), a CP-SAT polish of the best plan
     (:func:`fms_dispatch.exact.polish_plan`). The restarts leave both their time, but keep at least half of what the
-    budget has left after the polish's; each gets no more than what the budget has left. ``PlanEffort()`` is the plain list schedule, the plan the guided models were trained with; a
-    better plan needs no retraining, since the guide's features only say what heads its orders. Results are
-    reproducible while ``budget`` does not cut the search short and neither a tabu search (its time limit) nor a
-    CP-SAT polish (its parallel search) runs."""
+    budget has left after the polish's; each gets no more than what the budget has left. ``PlanEffort()`` is the
+    plain list schedule, the plan the guided models were trained with; a better plan needs no retraining, since the
+    guide's features only say what heads its orders. Results are reproducible while ``budget`` does not cut the
+    search short and neither a tabu search (its time limit) nor a CP-SAT polish (its parallel search) runs."""
 
     restarts: int = 0
     budget: float | None = None
@@ -133,7 +133,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     from fms_sim.snapshot import can_snapshot, snapshot
 
     from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan, simple_lower_bound
-    from ..tabu import n_operations, tabu_plan
+    from ..tabu import tabu_plan
 
     t0 = time.monotonic()
     origin = None
@@ -169,7 +169,7 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
                 best = plans[-1]
     # at the run's start: the tabu search (its time grows with the shop), then CP-SAT's polish on shops within its
     # full model
-    tabu_s = effort.tabu * n_operations(inst) if origin is None else 0.0
+    tabu_s = effort.tabu * inst.n_operations if origin is None else 0.0
     polish = effort.exact if origin is None and fits_full_model(inst) else 0.0
     if effort.restarts:
         # the same two list schedules with the nearest vehicle for each carry, where they end within the budget
