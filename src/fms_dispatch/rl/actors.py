@@ -61,6 +61,59 @@ class NumpyEntityActor:
         self.hidden = int(hidden)
         self.nets = nets
         self.heads = heads
+        self._prepare()
+
+    def _prepare(self) -> None:
+        """Precompute what every call needs (a decision costs a fraction of a millisecond, so the per-call
+        bookkeeping matters): where each block's rows lie in the flat observation (its base, full-net and guide
+        parts), and the embedding nets' first layers split into the rows' part and the global part, the
+        global parts of all blocks stacked so that one product serves them all."""
+        L = self.lay
+        parts: dict[str, list[tuple[int, int]]] = {}  # block -> [(offset, features)] of its parts, in order
+        i = L["n_global"]
+        for name, nr, f in (("jobs", "jobs", "job_f"), ("machines", "machines", "machine_f"),
+                            ("tools", "tools", "tool_f"), ("agvs", "agvs", "agv_f"), ("tts", "tts", "tt_f")):
+            parts[name] = [(i, L[f])]
+            i += L[nr] * L[f]
+        self._g = [(0, L["n_global"])]
+        if L.get("full"):  # the full net's features join the rows they describe (as in EntityNet._split)
+            self._g.append((i, L["full_g"]))
+            i += L["full_g"]
+            for name, f in (("jobs", "full_job_f"), ("tools", "full_tool_f")):
+                parts[name].append((i, L[f]))
+                i += L[name] * L[f]
+        if L.get("guide"):  # the guide's features join the rows they describe (as in EntityNet._split)
+            for name, f in (("jobs", "guide_job_f"), ("tools", "guide_tool_f"), ("agvs", "guide_agv_f"),
+                            ("tts", "guide_tt_f")):
+                parts[name].append((i, L[f]))
+                i += L[name] * L[f]
+        self._parts = parts
+        h = self.hidden
+        first = []
+        self._row_w: dict[str, np.ndarray] = {}
+        for b in self.blocks:
+            w, bias, _ = self.nets[b][0]
+            k = w.shape[0] - sum(f for _, f in self._g)  # the rows' features come first, then the global ones
+            self._row_w[b] = w[:k]
+            first.append((w[k:], bias))
+        self._g_w = np.concatenate([w for w, _ in first], axis=1)
+        self._g_b = np.concatenate([b for _, b in first])
+        self._h = h
+        paper = L["jobs"] + L["agvs"] + L["tts"]
+        # head -> (first action slot, slots, embedded block it scores)
+        self._where = {"jobs": (0, L["jobs"], "jobs"), "agvs": (L["jobs"], L["agvs"], "agvs"),
+                       "tts": (L["jobs"] + L["agvs"], L["tts"], "tts"), "start": (paper, L["jobs"], "jobs"),
+                       "tool": (paper + L["jobs"], L["tools"], "tools"),
+                       "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
+        self._hold = paper + 2 * L["jobs"] + L["tools"]
+
+    def _rows(self, obs: np.ndarray, b: str, n: int) -> np.ndarray:
+        """The first ``n`` rows of block ``b``: its base, full-net and guide features side by side."""
+        ps = self._parts[b]
+        if len(ps) == 1:
+            i, f = ps[0]
+            return obs[i:i + n * f].reshape(n, f)
+        return np.concatenate([obs[i:i + n * f].reshape(n, f) for i, f in ps], axis=1)
 
     @staticmethod
     def _run(layers: Layers, x: np.ndarray, shared: np.ndarray) -> np.ndarray:
@@ -76,58 +129,43 @@ class NumpyEntityActor:
     def logits(self, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Logits over the padded actions; -inf where ``mask`` is False."""
         L = self.lay
-        g = obs[:L["n_global"]]
-        i = L["n_global"]
-        rows: dict[str, np.ndarray] = {}
-        for name, nr, f in (("jobs", "jobs", "job_f"), ("machines", "machines", "machine_f"),
-                            ("tools", "tools", "tool_f"), ("agvs", "agvs", "agv_f"), ("tts", "tts", "tt_f")):
-            size = L[nr] * L[f]
-            rows[name] = obs[i:i + size].reshape(L[nr], L[f])
-            i += size
-        full = bool(L.get("full"))
-        if full:  # the full net's features join the rows they describe (as in EntityNet._split)
-            g = np.concatenate([g, obs[i:i + L["full_g"]]])
-            i += L["full_g"]
-            for name, f in (("jobs", "full_job_f"), ("tools", "full_tool_f")):
-                size = L[name] * L[f]
-                rows[name] = np.concatenate([rows[name], obs[i:i + size].reshape(L[name], L[f])], axis=1)
-                i += size
-        if L.get("guide"):  # the guide's features join the rows they describe (as in EntityNet._split)
-            for name, f in (("jobs", "guide_job_f"), ("tools", "guide_tool_f"), ("agvs", "guide_agv_f"),
-                            ("tts", "guide_tt_f")):
-                size = L[name] * L[f]
-                rows[name] = np.concatenate([rows[name], obs[i:i + size].reshape(L[name], L[f])], axis=1)
-                i += size
-        # rows that exist: the 'present' feature is 1 exactly for them, and they come first
-        n = {b: int(rows[b][:, 0].sum()) if L[b] else 0 for b in rows}
-        jobs = rows["jobs"][:n["jobs"]]
-        idx = np.rint(jobs[:, 3] * L["machines"]).astype(np.int64) - 1
-        valid = (idx >= 0).astype(np.float32)[:, None]
-        nxt = rows["machines"][np.clip(idx, 0, L["machines"] - 1)] * valid
-        h = self.hidden
-
-        def embed(b: str, x: np.ndarray) -> np.ndarray:
-            return self._run(self.nets[b], x, g)
-
-        emb = {"jobs": embed("jobs", np.concatenate([jobs, nxt], axis=1))}
-        for b in self.blocks[1:]:
-            emb[b] = embed(b, rows[b][:n[b]])
-        ctx = np.concatenate([emb[b].mean(axis=0) if emb[b].shape[0] else np.zeros(h, np.float32)
-                              for b in self.blocks])
+        g = obs[:L["n_global"]] if len(self._g) == 1 else np.concatenate([obs[i:i + f] for i, f in self._g])
+        h = self._h
+        gw = g @ self._g_w + self._g_b  # every block's first layer, global part
+        # rows that exist: the 'present' feature (each block's first) is 1 exactly for them, and they come first
+        n = {}
+        for b in self.blocks:
+            i, f = self._parts[b][0]
+            n[b] = int(np.count_nonzero(obs[i:i + L[b] * f:f])) if L[b] else 0
+        nj = n["jobs"]
+        i, f = self._parts["jobs"][0]
+        idx = np.rint(obs[i + 3:i + nj * f:f] * L["machines"]).astype(np.int64) - 1  # next machine (0: none)
+        i, f = self._parts["machines"][0]
+        nxt = np.take(obs[i:i + L["machines"] * f].reshape(L["machines"], f), np.maximum(idx, 0), axis=0)
+        nxt[idx < 0] = 0.0
+        emb: dict[str, np.ndarray] = {}
+        ctx = np.zeros(h * len(self.blocks), np.float32)
+        for k, b in enumerate(self.blocks):
+            if b == "jobs":  # a job's row is joined by the row of the machine of its next operation
+                x = np.concatenate([obs[i:i + nj * f].reshape(nj, f) for i, f in self._parts[b]] + [nxt], axis=1)
+            else:
+                x = self._rows(obs, b, n[b])
+            layers = self.nets[b]
+            e = x @ self._row_w[b] + gw[k * h:(k + 1) * h]
+            if layers[0][2]:
+                e = np.tanh(e)
+            e = _run_layers(layers[1:], e)
+            emb[b] = e
+            if e.shape[0]:
+                ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
         out = np.full(mask.shape[0], -np.inf)
-        paper = L["jobs"] + L["agvs"] + L["tts"]
-        # head -> (first action slot, slots, embedded block it scores)
-        where = {"jobs": (0, L["jobs"], "jobs"), "agvs": (L["jobs"], L["agvs"], "agvs"),
-                 "tts": (L["jobs"] + L["agvs"], L["tts"], "tts"), "start": (paper, L["jobs"], "jobs"),
-                 "tool": (paper + L["jobs"], L["tools"], "tools"),
-                 "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
         for b, head in self.heads.items():
             if b == "hold":
-                lo = paper + 2 * L["jobs"] + L["tools"]
+                lo = self._hold
                 if mask[lo]:
                     out[lo] = _run_layers(head, np.concatenate([ctx, g]))[0]
                 continue
-            lo, slots, src = where[b]
+            lo, slots, src = self._where[b]
             if not mask[lo:lo + slots].any():
                 continue
             e = emb[src]
