@@ -13,8 +13,9 @@ deliveries. Its critical path says which changes can shorten the makespan:
 * swap two adjacent operations of a machine (with their tool uses if they share a tool) that follow each other
   on the critical path;
 * swap two adjacent trips of an AGV or a transporter that follow each other on it;
-* move a critical trip that waits for its vehicle to another vehicle, next to the place its start time gives it
-  there (a trip may not move again for a few iterations);
+* move a critical trip that waits for its vehicle (any critical trip in a shop without tools and two AGVs) to
+  another vehicle, next to the place its start time gives it there (a trip may not move again for a few
+  iterations);
 * swap two adjacent uses of a tool that follow each other on the critical path, move a critical use next to the
   nearest use of its tool on the same machine (no delivery between them), or move a use of a critical block of a
   tool's uses to the block's front or back; the deliveries this creates go to the transporter free earliest, those
@@ -431,7 +432,10 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
         base = n if agv else 2 * n
         v = where[node]
         x, y = vpred[node], vsucc[node]
-        if ev.crit[node] != x and not (x < 0 and ev.crit[node] < 0 and start[node] > 0):
+        # a trip that waits for its load is moved too where the fleet is two AGVs without tools (chosen on
+        # validation shops: better on BU-size shops, where the search has time to spare, level elsewhere)
+        waits_load = ev.crit[node] != x and not (x < 0 and ev.crit[node] < 0 and start[node] > 0)
+        if waits_load and (len(fleet) > 2 or g.inst.has_tools):
             continue  # it waits for its load, not for its vehicle: another vehicle cannot start it earlier
         rest = max(ready(y), free(x, y)) + P[y] + q[y] if y >= 0 else 0
         ti = start[node]
