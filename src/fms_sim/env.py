@@ -25,16 +25,27 @@ Rewards (``reward=``):
   work still to come on it, max over jobs of the time their part is free plus remaining work, and the clock):
   reward ``-(LB_after - LB_before) / scale``. The episode sum is ``-(makespan - LB_0) / scale``, so it ranks
   schedules exactly as the makespan does while giving a signal at every step.
+
+Disruptions (``disruptions=``, full net only): every episode runs in a shop disrupted by a scenario
+(:class:`fms_sim.disruptions.Scenario`: noise on every duration, machine breakdowns), so that a policy can be
+trained and judged where plans go stale. ``{"noise": spread, "breakdowns": n}`` draws a fresh scenario per
+episode from the env's random generator (breakdowns start within the instance's work per machine); with
+``"fixed": true`` the scenario depends only on the instance's name (and ``"seed"``), so evaluation rounds compare
+like with like. ``reset(options={"scenario": sc})`` gives one explicitly. The policy learns a duration only when
+the activity ends, as a live dispatcher does.
 """
 
 from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
+import zlib
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from .disruptions import Scenario
 from .full_shop import DECISIONS, FullShop, make_shop
 from .instance import Instance
 from .petri import InvalidAction
@@ -42,7 +53,8 @@ from .shop import Shop
 
 __all__ = ["ShopEnv", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
            "AGV_FEATURES", "TT_FEATURES", "REWARDS", "FULL_GLOBAL_FEATURES", "FULL_JOB_FEATURES",
-           "FULL_TOOL_FEATURES", "FULL_BLOCKS"]
+           "FULL_TOOL_FEATURES", "FULL_BLOCKS", "DISRUPTION_KEYS", "check_disruptions",
+           "episode_scenario"]
 
 REWARDS = ("idle", "makespan", "shaped")
 OBS_HIGH = 1000.0  # features are normalised; clipped here so the box is finite
@@ -62,6 +74,47 @@ FULL_TOOL_FEATURES = ("legal_tool", "reserved", "running", "queued", "chosen", "
 FULL_BLOCKS = ("start", "tool", "use", "hold")
 #: every kind of full-net action
 FULL_KINDS = ("job", "agv", "tt") + FULL_BLOCKS
+
+
+DISRUPTION_KEYS = ("noise", "breakdowns", "fixed", "seed")
+
+
+def check_disruptions(disruptions: dict[str, Any] | None, decisions: str = "full") -> dict[str, Any] | None:
+    """The validated ``disruptions`` of an env (see the module docstring); None or an empty dict: none. Raises
+    ValueError for an unknown key, a negative noise or breakdown count, or disruptions on the paper's net."""
+    if not disruptions:
+        return None
+    if not isinstance(disruptions, dict):
+        raise ValueError(f"disruptions must be a dict ({', '.join(DISRUPTION_KEYS)}), not {disruptions!r}")
+    unknown = sorted(set(disruptions) - set(DISRUPTION_KEYS))
+    if unknown:
+        raise ValueError(f"unknown disruption keys {unknown}; use {', '.join(DISRUPTION_KEYS)}")
+    noise, bds = disruptions.get("noise", 0.0), disruptions.get("breakdowns", 0)
+    if not isinstance(noise, (int, float)) or isinstance(noise, bool) or not noise >= 0:
+        raise ValueError(f"disruption noise must be a spread >= 0, got {noise!r}")
+    if not isinstance(bds, int) or isinstance(bds, bool) or bds < 0:
+        raise ValueError(f"disruption breakdowns must be an integer >= 0, got {bds!r}")
+    if not isinstance(disruptions.get("seed", 0), int):
+        raise ValueError(f"disruption seed must be an integer, got {disruptions['seed']!r}")
+    if decisions != "full":
+        raise ValueError("disruptions run on the full-decision net only (decisions='full')")
+    return {"noise": float(noise), "breakdowns": bds, "fixed": bool(disruptions.get("fixed", False)),
+            "seed": disruptions.get("seed", 0)}
+
+
+def episode_scenario(inst: Instance, disruptions: dict[str, Any], rng: np.random.Generator | None = None
+                     ) -> Scenario:
+    """An episode's scenario on ``inst`` under validated ``disruptions`` (:func:`check_disruptions`): drawn from
+    ``rng``, or with ``fixed`` (or without ``rng``) from the instance's name and the ``seed``; breakdowns start
+    within the instance's work per machine."""
+    d = disruptions
+    if d.get("fixed") or rng is None:
+        seed = zlib.crc32(f"{d.get('seed', 0)}:{inst.name}".encode())
+    else:
+        seed = int(rng.integers(2 ** 31))
+    horizon = max(1, sum(o.duration for ops in inst.jobs for o in ops) // inst.n_machines)
+    return Scenario.draw(inst, noise=d.get("noise", 0.0), breakdowns=d.get("breakdowns", 0), horizon=horizon,
+                         seed=seed)
 
 
 class _Tables:
@@ -104,10 +157,12 @@ class ShopEnv(gym.Env):
     def __init__(self, instances: Instance | Sequence[Instance] | Callable[[np.random.Generator], Instance],
                  *, reward: str = "shaped", max_jobs: int | None = None, max_machines: int | None = None,
                  max_tools: int | None = None, max_agvs: int | None = None, max_tts: int | None = None,
-                 invalid_action: str = "penalty", invalid_penalty: float = -10.0, decisions: str = "paper"):
+                 invalid_action: str = "penalty", invalid_penalty: float = -10.0, decisions: str = "paper",
+                 disruptions: dict[str, Any] | None = None):
         if decisions not in DECISIONS:
             raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")
         self.decisions = decisions
+        self.disruptions = check_disruptions(disruptions, decisions)
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; choose from {', '.join(REWARDS)}")
         if invalid_action not in ("raise", "penalty"):
@@ -168,13 +223,20 @@ class ShopEnv(gym.Env):
         inst = (options or {}).get("instance") or self._sample(self.np_random)
         self._check_fits(inst)
         self.instance = inst
-        self.shop = make_shop(inst, self.decisions)
+        scenario = (options or {}).get("scenario")
+        if scenario is None and self.disruptions is not None:
+            scenario = self.draw_scenario(inst)
+        self.shop = make_shop(inst, self.decisions, scenario)
         self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
         self._lb = self._lower_bound()
         self._lb0 = self._lb
         return self._obs(), self._info()
+
+    def draw_scenario(self, inst: Instance) -> Scenario:
+        """The scenario of an episode on ``inst`` under this env's ``disruptions`` (see the module docstring)."""
+        return episode_scenario(inst, self.disruptions or {}, self.np_random)
 
     def step(self, action: int):
         shop = self.shop

@@ -157,3 +157,60 @@ def test_full_net_training_refuses_experts_of_the_other_net(tmp_path):
         train({**base, "warm_start": {"expert": "plan:list"}}, tmp_path / "b", progress=False)
     with pytest.raises(ValueError, match="unknown decisions"):
         train({**base, "decisions": "fifo", "warm_start": {"expert": "plan:list"}}, tmp_path / "c", progress=False)
+
+
+def test_ppo_fine_tuning_from_a_trained_model_in_disrupted_shops(tmp_path):
+    """``init`` starts PPO from another model's weights (kept as warm_start.zip, the baseline PPO must beat);
+    ``disruptions`` trains in disrupted shops and evaluates each evaluation shop in a fixed scenario;
+    ``guide_effort`` searches the guided plans."""
+    from sb3_contrib import MaskablePPO
+
+    from fms_dispatch.rl.train import expand_instances, evaluate_model, train
+    from fms_sim.env import episode_scenario
+
+    base = {"train": ["gen:6x3x3*2@7"], "eval": ["gen:6x3x3*1@8"], "decisions": "full", "guide": "list",
+            "n_envs": 1, "vec_env": "dummy", "hidden": 16, "eval_freq": 64, "save_freq": 64,
+            "ppo": {"n_steps": 64, "batch_size": 32, "n_epochs": 1}}
+    first = tmp_path / "first"
+    train({**base, "steps": 64}, first, progress=False)
+    out = tmp_path / "tuned"
+    disruptions = {"noise": 0.3, "breakdowns": 1}
+    m = train({**base, "steps": 128, "init": str(first), "disruptions": disruptions,
+               "guide_effort": {"restarts": 2}}, out, progress=False)
+    assert m["warm_start"]["init"] == str(first) and m["ppo_steps"] == m["training"]["timesteps"] >= 128
+    start = MaskablePPO.load(str(out / "warm_start.zip"), device="cpu").policy.state_dict()
+    src = MaskablePPO.load(str(first / "best_model.zip"), device="cpu").policy.state_dict()
+    assert all(torch.equal(start[k], src[k]) for k in src)  # PPO started from the given weights
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["disruptions"] == disruptions and saved["init"] == str(first)
+    # the evaluation makespans are those of the fixed scenarios (validated against them)
+    (inst,) = expand_instances(["gen:6x3x3*1@8"])
+    pad = padding_for("auto", expand_instances(base["train"] + base["eval"]))
+    again = evaluate_model(out / m["training"]["weights"], pad, [inst], decisions="full", guide="list",
+                           disruptions=disruptions)
+    assert again == m["training"]["eval_makespan"]
+    fixed = episode_scenario(inst, {"noise": 0.3, "breakdowns": 1, "fixed": True, "seed": 0})
+    assert fixed.noise == 0.3 and len(fixed.breakdowns) == 1
+
+
+def test_fine_tuning_options_are_checked(tmp_path):
+    from fms_dispatch.rl.train import train
+
+    base = {"train": ["gen:6x3x3*1@7"], "decisions": "full", "guide": "list", "steps": 64, "n_envs": 1,
+            "vec_env": "dummy", "hidden": 16}
+    with pytest.raises(ValueError, match="replaces a warm-start expert"):
+        train({**base, "init": str(tmp_path), "warm_start": {"expert": "guide"}}, tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match="no weights"):
+        train({**base, "init": str(tmp_path / "none")}, tmp_path / "b", progress=False)
+    with pytest.raises(ValueError, match="bad guide_effort"):
+        train({**base, "guide_effort": {"restarts": -1}}, tmp_path / "c", progress=False)
+    with pytest.raises(ValueError, match="bad guide_effort"):
+        train({**base, "guide_effort": {"tries": 3}}, tmp_path / "d", progress=False)
+    with pytest.raises(ValueError, match="set guide to list"):
+        train({**base, "guide": None, "guide_effort": {"restarts": 2}}, tmp_path / "e", progress=False)
+    with pytest.raises(ValueError, match="unknown disruption keys"):
+        train({**base, "disruptions": {"storms": 1}}, tmp_path / "f", progress=False)
+    other = tmp_path / "other"  # weights of another layout (more jobs) do not fit
+    train({**base, "train": ["gen:9x3x3*1@7"]}, other, progress=False)
+    with pytest.raises(ValueError, match="another layout"):
+        train({**base, "init": str(other)}, tmp_path / "g", progress=False)

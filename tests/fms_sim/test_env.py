@@ -342,3 +342,53 @@ def test_full_features_match_the_shops_own_per_job_answers(name, steps):
         mask = env.action_masks()
         obs, _, done, _, _ = env.step(int(rng.choice(np.flatnonzero(mask))))
     assert checked > 20 and (due_seen > 0) == builtin(name).has_tools
+
+
+def _run_first_legal(env: ShopEnv, **reset) -> tuple[float, dict]:
+    env.reset(**reset)
+    total, done, info = 0.0, False, {}
+    while not done:
+        _, r, done, _, info = env.step(int(np.flatnonzero(env.action_masks())[0]))
+        total += r
+    return total, info
+
+
+def test_disrupted_episodes_draw_scenarios_and_stay_valid():
+    from fms_sim.disruptions import Scenario
+    from fms_sim.env import episode_scenario
+
+    inst = builtin("ra01")
+    env = ShopEnv(inst, decisions="full", disruptions={"noise": 0.2, "breakdowns": 1})
+    ret, info = _run_first_legal(env, seed=3)
+    sc = env.shop.scenario
+    assert sc is not None and sc.noise == 0.2 and len(sc.breakdowns) == 1
+    sched = env.shop.schedule()
+    assert validate(inst, sched, sc) == [] and info["makespan"] == sched.makespan
+    nominal = ShopEnv(inst, decisions="full")
+    _, nom = _run_first_legal(nominal, seed=3)
+    assert nominal.shop.scenario is None and nom["makespan"] != info["makespan"]  # the noise changed the run
+    # a fresh scenario per episode from the env's generator; a fixed one depends on the instance only
+    env.reset()
+    assert env.shop.scenario != sc
+    fixed = ShopEnv(inst, decisions="full", disruptions={"noise": 0.2, "breakdowns": 1, "fixed": True})
+    fixed.reset(seed=1)
+    first = fixed.shop.scenario
+    fixed.reset(seed=2)
+    assert fixed.shop.scenario == first == episode_scenario(inst, fixed.disruptions)
+    # an explicit scenario wins
+    given = Scenario(noise=0.1, seed=9)
+    env.reset(options={"scenario": given})
+    assert env.shop.scenario == given
+
+
+@pytest.mark.parametrize("bad, match", [({"noise": -1}, "noise"), ({"breakdowns": 1.5}, "breakdowns"),
+                                        ({"jitter": 1}, "unknown disruption keys"), ("noise", "must be a dict")])
+def test_bad_disruptions_are_refused(bad, match):
+    with pytest.raises(ValueError, match=match):
+        ShopEnv(builtin("EX12"), decisions="full", disruptions=bad)
+
+
+def test_disruptions_need_the_full_net():
+    with pytest.raises(ValueError, match="full-decision net only"):
+        ShopEnv(builtin("EX12"), disruptions={"noise": 0.1})
+    assert ShopEnv(builtin("EX12"), disruptions={}).disruptions is None  # empty: none

@@ -20,6 +20,13 @@ not be trained or selected on (:func:`fms_sim.shopsets.check_training_specs`): `
 that names one in ``train``, ``eval`` or a refine stage unless it sets ``allow_benchmarks`` (``--allow-benchmarks``,
 for reproducing the paper's own setting; the flag is saved in ``config.json``).
 
+``init`` (``--init MODEL``) starts from a trained model's weights instead of a warm start (PPO fine-tuning; they
+are evaluated first and kept as ``warm_start.zip``, so PPO must beat them to replace ``best_model.zip``).
+``guide_effort`` (a dict of :class:`~fms_dispatch.rl.guide.PlanEffort` fields; default the plain list schedule)
+sets how a guided model's plans are searched in training and evaluation. ``disruptions`` (full net; e.g.
+``{"noise": 0.2, "breakdowns": 1}``) trains in disrupted shops, a fresh scenario per episode, and evaluates each
+evaluation shop in a fixed scenario (:mod:`fms_sim.env`).
+
 ``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
 ``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
 :mod:`fms_dispatch.rl.plan_expert`). ``guide`` (full net only; ``--guide list``) adds the earliest-start list
@@ -51,6 +58,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "padding": "auto",
     "decisions": "paper",
     "guide": None,
+    "guide_effort": None,
+    "disruptions": None,
+    "init": None,
     "allow_benchmarks": False,
     "reward": "shaped",
     "steps": 100_000,
@@ -89,16 +99,18 @@ class _Cycle:
 
 
 def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int,
-              decisions: str = "paper", guide: str | None = None):
+              decisions: str = "paper", guide: str | None = None, guide_effort: Any = None,
+              disruptions: dict[str, Any] | None = None):
     def make():
         import torch
         from stable_baselines3.common.monitor import Monitor
 
         from .envs import FastShopEnv
+        from .guide import PlanEffort
 
         torch.set_num_threads(1)
         env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, guide=guide,
-                          **padding)
+                          guide_effort=guide_effort or PlanEffort(), disruptions=disruptions, **padding)
         env.reset(seed=seed)
         return Monitor(env)
 
@@ -118,8 +130,12 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequence[Instance],
-                   lookahead: bool = False, decisions: str = "paper", guide: str | None = None) -> dict[str, int]:
-    """Makespan per instance of the deterministic policy on the net ``decisions`` (schedules validated)."""
+                   lookahead: bool = False, decisions: str = "paper", guide: str | None = None,
+                   guide_effort: Any = None, disruptions: dict[str, Any] | None = None) -> dict[str, int]:
+    """Makespan per instance of the deterministic policy on the net ``decisions`` (schedules validated), a guided
+    model planning with ``guide_effort`` (default: the plain list schedule, as in training); with
+    ``disruptions``, each instance in its fixed scenario (as the training's evaluation draws it)."""
+    from fms_sim.env import check_disruptions, episode_scenario
     from fms_sim.full_shop import make_shop
     from fms_sim.validate import validate
 
@@ -127,14 +143,65 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     from .agent import Agent
 
     agent = Agent(weights, padding, decisions=decisions, guide=guide)
+    if guide is not None:
+        agent.use_guide_effort(guide_effort or _plain_effort())
+    fixed = check_disruptions(dict(disruptions, fixed=True) if disruptions else None, decisions)
     out = {}
     for inst in instances:
-        s = run_agent(make_shop(inst, decisions), agent.act, lookahead=lookahead)
-        problems = validate(inst, s)
+        scenario = episode_scenario(inst, fixed) if fixed else None
+        s = run_agent(make_shop(inst, decisions, scenario), agent.act, lookahead=lookahead)
+        problems = validate(inst, s, scenario)
         if problems:
             raise RuntimeError(f"invalid schedule for {inst.name}: {problems[0]}")
         out[inst.name] = s.makespan
     return out
+
+
+def _load_init(model: Any, init: str | Path) -> None:
+    """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
+    ``model.zip``) into ``model``;
+    raises ValueError if they do not fit (another padding, net, guide or architecture)."""
+    from sb3_contrib import MaskablePPO
+
+    path = Path(init)
+    if path.is_dir():
+        path = path / "best_model.zip" if (path / "best_model.zip").is_file() else path / "model.zip"
+    if not path.is_file():
+        raise ValueError(f"init: no weights at {init}")
+    src = MaskablePPO.load(str(path), device="cpu")
+    if (src.observation_space.shape != model.observation_space.shape
+            or src.action_space.n != model.action_space.n):
+        raise ValueError(f"init: the weights in {path} were trained for another layout (observation "
+                         f"{src.observation_space.shape}, {src.action_space.n} actions; this model: "
+                         f"{model.observation_space.shape}, {model.action_space.n})")
+    try:
+        model.policy.load_state_dict(src.policy.state_dict())
+    except RuntimeError as exc:
+        raise ValueError(f"init: the weights in {path} do not fit this architecture: {exc}") from None
+
+
+def _plain_effort() -> Any:
+    from .guide import PlanEffort
+
+    return PlanEffort()
+
+
+def _effort(cfg: dict[str, Any]) -> Any:
+    """The config's ``guide_effort`` as a :class:`~fms_dispatch.rl.guide.PlanEffort` (None: the plain list
+    schedule); raises ValueError for unknown fields or bad values."""
+    from .guide import PlanEffort
+
+    d = cfg.get("guide_effort")
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise ValueError(f"guide_effort must be a dict of PlanEffort fields, not {d!r}")
+    if not cfg.get("guide"):
+        raise ValueError("guide_effort searches the plan of a guided model: set guide to list")
+    try:
+        return PlanEffort(**d)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"bad guide_effort {d!r}: {exc}") from None
 
 
 def _refine_stages(stages: Any, fleet: dict[str, Any], seed: int
@@ -226,10 +293,19 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     check_guide(guide, decisions)
     cfg["guide"] = guide
+    effort = _effort(cfg)
+    from fms_sim.env import check_disruptions
+
+    disruptions = check_disruptions(cfg.get("disruptions"), decisions)
+    eval_disruptions = dict(disruptions, fixed=True) if disruptions else None
     if cfg["reward"] not in ("idle", "makespan", "shaped"):
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
+    init = cfg.get("init") or None
+    if init and not resume and warm["expert"]:
+        raise ValueError("init starts from a trained model's weights: it replaces a warm-start expert (unset "
+                         "warm_start.expert)")
     from .imitation import EXPERTS, RULE_EXPERTS
     from .plan_expert import GUIDE_EXPERT, is_plan_expert
 
@@ -272,9 +348,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     n_envs = max(1, int(cfg["n_envs"]))
     seed = int(cfg["seed"])
-    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide) for i in range(n_envs)]
+    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide, effort, disruptions)
+           for i in range(n_envs)]
     venv = SubprocVecEnv(fns) if n_envs > 1 and cfg["vec_env"] == "subproc" else DummyVecEnv(fns)
-    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions, guide)])
+    eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions, guide,
+                                      effort, eval_disruptions)])
 
     ppo = dict(cfg["ppo"])
     if resume:
@@ -291,6 +369,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             raise ValueError(f"unknown arch {cfg['arch']!r}; choose entity or mlp")
         model = MaskablePPO(policy, venv, policy_kwargs=pkw, seed=seed, device="cpu", verbose=verbose,
                             tensorboard_log=str(tb), **ppo)
+        if init:
+            _load_init(model, init)
     (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
 
     metrics_path = out / METRICS_FILE
@@ -373,6 +453,16 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if verbose or progress:
             print(f"warm start ({warm['expert']}, {len(history)} DAgger rounds): {bc or history[-1]}; "
                   f"eval mean reward {mean_r:.4f}", flush=True)
+    if init and not resume:  # the starting weights are the baseline PPO must beat, as after a warm start
+        from sb3_contrib.common.maskable.evaluation import evaluate_policy
+
+        mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
+        eval_cb.best_mean_reward = float(mean_r)
+        for name in ("best_model.zip", "model.zip", "warm_start.zip"):
+            model.save(str(out / name))
+        warm_metrics = {"init": str(init), "mean_reward": round(float(mean_r), 4)}
+        if verbose or progress:
+            print(f"initial weights {init}: eval mean reward {mean_r:.4f}", flush=True)
     interrupted = False
     if steps:
         try:
@@ -391,7 +481,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if (out / saved).is_file():
             export_actor(out / saved)
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
-    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions, guide=guide)
+    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions, guide=guide, guide_effort=effort,
+                               disruptions=disruptions)
     prev = old.get("training", {})
     metrics = dict(old)
     if warm_metrics is not None:
@@ -444,6 +535,9 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--dagger", type=int, default=0, metavar="N",
                    help="with --resume: N more DAgger rounds (label the policy's own states with the rule-pair "
                         "expert and clone again) before the PPO steps; --steps 0 runs DAgger only")
+    s.add_argument("--init", metavar="MODEL", help="start PPO from the weights of a trained model (a folder or "
+                                                  ".zip with the same padding, net and guide) instead of a "
+                                                  "warm start; they are kept as warm_start.zip")
     s.add_argument("--tensorboard", help="TensorBoard log folder (default runs/NAME)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(fn=cmd_train)
@@ -463,7 +557,7 @@ def cmd_train(a: argparse.Namespace) -> int:
                             "arch": a.arch, "n_envs": a.n_envs, "eval_freq": a.eval_freq,
                             "train": a.instances or None, "eval": a.eval, "decisions": a.decisions,
                             "guide": {"none": "", "list": "list"}.get(a.guide) if a.guide else None,
-                            "allow_benchmarks": True if a.allow_benchmarks else None}
+                            "allow_benchmarks": True if a.allow_benchmarks else None, "init": a.init}
     fleet = {"agvs": a.agvs, "tool_transporters": a.tool_transporters, "no_tools": True if a.no_tools else None}
     over["fleet"] = {k: v for k, v in fleet.items() if v is not None} or None
     cfg = _merge(cfg, over)

@@ -1,0 +1,103 @@
+"""Models in disrupted shops: every shop in the same fixed scenarios for every method, and nominal.
+
+What a PPO phase adds to a model that acts out a plan is judged where the plan goes stale: noise on every
+duration and machine breakdowns, learnt by the decider only as they happen. This runs models (and the list
+schedule's plan executed live, ``plan:list``, as the baseline) on generated shops, each in ``--scenarios`` fixed
+scenarios per disruption level (``fms_sim.env.episode_scenario``: seeded by the shop's name and the scenario's
+number, breakdowns within the shop's work per machine), the same for every method::
+
+    python bench/disrupted.py --models ppo:guided ppo:FOLDER [--shops SPEC ...] [--noise 0 0.2] [--breakdowns 1]
+                              [--scenarios 3] [--guide-tabu S] [--heldout] [--json FILE]
+
+Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops instead, for
+reported figures only (never for choosing). Guided models plan with the solver's default effort unless
+``--guide-*`` options say otherwise. Per level: each method's mean makespan, its mean ratio to ``plan:list``, and
+in how many runs it is below the first model. Every schedule is validated against its scenario.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+from fms_dispatch.cli import add_guide_args, guide_effort_from_args
+from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rl.train import expand_instances
+from fms_dispatch.solvers import solve
+from fms_sim.env import check_disruptions, episode_scenario
+from fms_sim.shopsets import check_training_specs, heldout_shops
+from fms_sim.validate import validate
+
+#: validation shops (seeds no model trains or is selected on): BU size, small and mid-size with and without tools
+DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
+                 "gen:20x10x10*2@219/notools"]
+
+
+def _checked(inst, sched, scenario, what: str) -> int:
+    problems = validate(inst, sched, scenario)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
+    return sched.makespan
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", nargs="+", required=True, help="PPO solver specs (ppo:NAME, ppo:FOLDER)")
+    ap.add_argument("--shops", nargs="+", default=DEFAULT_SHOPS, help="generated validation shop specs")
+    ap.add_argument("--heldout", action="store_true", help="the 50 held-out shops instead (reported figures only)")
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
+                    help="disruption levels: spread of the lognormal noise on durations (0 with --breakdowns 0: "
+                         "nominal)")
+    ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
+    ap.add_argument("--scenarios", type=int, default=3, help="scenarios per shop and disrupted level")
+    ap.add_argument("--json", help="write the rows and the summary here")
+    add_guide_args(ap)
+    a = ap.parse_args(argv)
+    if a.heldout:
+        insts = heldout_shops()
+    else:
+        check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
+        insts = expand_instances(a.shops)
+    effort = guide_effort_from_args(a)
+    methods = ["plan:list"] + list(a.models)
+    rows = []
+    t_start = time.perf_counter()
+    for noise in a.noise:
+        nominal = noise == 0
+        for inst in insts:
+            for k in range(1 if nominal else a.scenarios):
+                sc = None if nominal else episode_scenario(inst, check_disruptions(
+                    {"noise": noise, "breakdowns": a.breakdowns, "fixed": True, "seed": k}))
+                row: dict = {"shop": inst.name, "tools": inst.has_tools, "noise": noise, "scenario": k}
+                for m in methods:
+                    t0 = time.perf_counter()
+                    s = (solve(inst, m, scenario=sc) if m == "plan:list"
+                         else ppo_solver(m)(inst, scenario=sc, guide_effort=effort))
+                    row[m] = _checked(inst, s, sc, m)
+                    row[m + "_s"] = round(time.perf_counter() - t0, 2)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    lines = []
+    first = a.models[0]
+    for noise in a.noise:
+        part = [r for r in rows if r["noise"] == noise]
+        for m in methods:
+            mean = statistics.mean(r[m] for r in part)
+            ratio = statistics.mean(r[m] / r["plan:list"] for r in part)
+            below = sum(r[m] < r[first] for r in part)
+            above = sum(r[m] > r[first] for r in part)
+            lines.append(f"noise {noise:g}: {m:28s} mean {mean:9.1f}  {ratio:.4f} x plan:list  "
+                         f"below / above {first}: {below} / {above} of {len(part)}")
+    lines.append(f"({time.perf_counter() - t_start:.0f} s)")
+    print("\n".join(lines))
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
