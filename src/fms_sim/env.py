@@ -358,10 +358,15 @@ class ShopEnv(gym.Env):
         n = tb.n
         mm = self.max_machines
         legal = s.legal_actions()
-        kinds = s.decision_kind() or ""
-        g = np.array((now / sc, sum(s.job_done_ops) / self._total_ops, "job" in kinds, "agv" in kinds,
-                      "tt" in kinds, inst.n_jobs / self.max_jobs, inst.n_machines / self.max_machines),
-                     dtype=np.float32)
+        if self.decisions == "full":  # the decision's kinds from the action table (no kind lookup per action)
+            open_ = np.zeros(len(FULL_KINDS), dtype=bool)
+            open_[self._kind_code[legal]] = True
+            job, agv, tt = open_[0], open_[1], open_[2]
+        else:
+            kinds = s.decision_kind() or ""
+            job, agv, tt = "job" in kinds, "agv" in kinds, "tt" in kinds
+        g = np.array((now / sc, sum(s.job_done_ops) / self._total_ops, job, agv, tt, inst.n_jobs / self.max_jobs,
+                      inst.n_machines / self.max_machines), dtype=np.float32)
         req = s.awaiting_agv()
 
         k = np.asarray(s.job_started_ops, dtype=np.int64)

@@ -338,11 +338,13 @@ class PlanGuide:
                     carrier_idle[j] = v in idle_agvs
         t_heads: dict[int, tuple[int, int]] = {}
         r_heads: dict[int, tuple[int, int]] = {}
+        idle_tts: set[int] = set()
         if inst.has_tools and tools:
             t_heads = self.tools.heads(self._served(shop, self.tools, started))
             r_heads = self.tt_heads(shop, started)
+            idle_tts = {u for u, _ in shop.idle_transporters()}
         return dict(shop=shop, started=started, start_head=start_head, dispatch_head=dispatch_head,
-                    carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads)
+                    carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_tts=idle_tts)
 
     def use_head(self, v: dict[str, Any]) -> int | None:
         """The job whose request the chosen tool serves next in the plan (None: no choice open, or the plan's
@@ -366,7 +368,7 @@ class PlanGuide:
             return False
         r = self.tool_carrier.get((j, k))
         if r is not None:
-            if v["r_heads"].get(r) != (j, k) or r not in {u for u, _ in shop.idle_transporters()}:
+            if v["r_heads"].get(r) != (j, k) or r not in v["idle_tts"]:
                 return False
         elif shop.tool_loc[t] != self.instance.jobs[j][k].machine:
             return False
