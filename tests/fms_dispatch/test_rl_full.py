@@ -186,8 +186,10 @@ def test_ppo_fine_tuning_from_a_trained_model_in_disrupted_shops(tmp_path):
     # the evaluation makespans are those of the fixed scenarios (validated against them)
     (inst,) = expand_instances(["gen:6x3x3*1@8"])
     pad = padding_for("auto", expand_instances(base["train"] + base["eval"]))
+    from fms_dispatch.rl.guide import PlanEffort
+
     again = evaluate_model(out / m["training"]["weights"], pad, [inst], decisions="full", guide="list",
-                           disruptions=disruptions)
+                           guide_effort=PlanEffort(restarts=2), disruptions=disruptions)
     assert again == m["training"]["eval_makespan"]
     fixed = episode_scenario(inst, {"noise": 0.3, "breakdowns": 1, "fixed": True, "seed": 0})
     assert fixed.noise == 0.3 and len(fixed.breakdowns) == 1

@@ -133,7 +133,7 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
                    lookahead: bool = False, decisions: str = "paper", guide: str | None = None,
                    guide_effort: Any = None, disruptions: dict[str, Any] | None = None) -> dict[str, int]:
     """Makespan per instance of the deterministic policy on the net ``decisions`` (schedules validated), a guided
-    model planning with ``guide_effort`` (default: the plain list schedule, as in training); with
+    model planning with ``guide_effort`` (default: the solver's default search); with
     ``disruptions``, each instance in its fixed scenario (as the training's evaluation draws it)."""
     from fms_sim.env import check_disruptions, episode_scenario
     from fms_sim.full_shop import make_shop
@@ -143,8 +143,8 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     from .agent import Agent
 
     agent = Agent(weights, padding, decisions=decisions, guide=guide)
-    if guide is not None:
-        agent.use_guide_effort(guide_effort or _plain_effort())
+    if guide is not None and guide_effort is not None:
+        agent.use_guide_effort(guide_effort)
     fixed = check_disruptions(dict(disruptions, fixed=True) if disruptions else None, decisions)
     out = {}
     for inst in instances:
@@ -159,8 +159,8 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
 
 def _load_init(model: Any, init: str | Path) -> None:
     """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
-    ``model.zip``) into ``model``;
-    raises ValueError if they do not fit (another padding, net, guide or architecture)."""
+    ``model.zip``) into ``model``; raises ValueError if they do not fit (another padding, net, guide or
+    architecture)."""
     from sb3_contrib import MaskablePPO
 
     path = Path(init)
@@ -178,12 +178,6 @@ def _load_init(model: Any, init: str | Path) -> None:
         model.policy.load_state_dict(src.policy.state_dict())
     except RuntimeError as exc:
         raise ValueError(f"init: the weights in {path} do not fit this architecture: {exc}") from None
-
-
-def _plain_effort() -> Any:
-    from .guide import PlanEffort
-
-    return PlanEffort()
 
 
 def _effort(cfg: dict[str, Any]) -> Any:
