@@ -48,14 +48,16 @@ every schedule returned passes :func:`fms_sim.validate.validate`.
 
 from __future__ import annotations
 
+import functools
 import math
 import random
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Callable, Mapping, Sequence
 
-from ortools.sat.python import cp_model
+if TYPE_CHECKING:
+    from ortools.sat.python import cp_model
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
@@ -81,6 +83,14 @@ FULL_MODEL_MAX_TASKS = 100
 
 Progress = Callable[[int, int, float], None]
 
+
+
+def _cp():  # type: ignore[no-untyped-def]
+    """OR-Tools' CP-SAT module, imported when a model is first built: the list schedules, restarts and bounds of
+    this module do not need it, and importing it takes about 0.25 s (a guided solve, the agent node's start)."""
+    from ortools.sat.python import cp_model
+
+    return cp_model
 
 @dataclass
 class ExactResult:
@@ -509,6 +519,7 @@ class _FullModel:
     """The exact CP-SAT model (see the module docstring); ``extract`` turns a solution into a Schedule."""
 
     def __init__(self, inst: Instance, lb: int, ub: int):
+        cp_model = _cp()
         self.inst = inst
         self.model = m = cp_model.CpModel()
         self.ub = ub
@@ -856,25 +867,32 @@ def _routes(arcs: Sequence[tuple[int, int, cp_model.IntVar]], bool_value: Callab
     return routes
 
 
-class _Callback(cp_model.CpSolverSolutionCallback):
-    """Keeps the latest (best) solution as a Schedule and reports progress."""
+@functools.lru_cache(maxsize=1)
+def _callback_class() -> type:
+    """The solution callback's class (it subclasses CP-SAT's, so it is made once CP-SAT is imported)."""
 
-    def __init__(self, fm: _FullModel, progress: Progress | None, t0: float):
-        super().__init__()
-        self.fm, self.progress, self.t0 = fm, progress, t0
-        self.best: Schedule | None = None
+    class _Callback(_cp().CpSolverSolutionCallback):
+        """Keeps the latest (best) solution as a Schedule and reports progress."""
 
-    def on_solution_callback(self) -> None:
-        sch = self.fm.extract(self.value, self.boolean_value)
-        self.best = sch
-        if self.progress is not None:
-            self.progress(int(self.objective_value), int(self.best_objective_bound), time.monotonic() - self.t0)
+        def __init__(self, fm: _FullModel, progress: Progress | None, t0: float):
+            super().__init__()
+            self.fm, self.progress, self.t0 = fm, progress, t0
+            self.best: Schedule | None = None
+
+        def on_solution_callback(self) -> None:
+            sch = self.fm.extract(self.value, self.boolean_value)
+            self.best = sch
+            if self.progress is not None:
+                self.progress(int(self.objective_value), int(self.best_objective_bound), time.monotonic() - self.t0)
+
+    return _Callback
 
 
 # ====================================================================================== relaxation
 def _relaxation_model(inst: Instance, ub: int) -> tuple[cp_model.CpModel, dict[tuple[int, int], cp_model.IntVar]]:
     """Job shop with loaded-travel lags, tool no-overlaps, tool release dates and an AGV cumulative: every
     feasible schedule satisfies it, so its optimum (or proven bound) bounds the true makespan from below."""
+    cp_model = _cp()
     m = cp_model.CpModel()
     heads, tails = _heads_tails(inst)
     jobs = inst.jobs
@@ -923,6 +941,7 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
     if time_limit <= 0 or lb >= ub:
         return lb, None
     model, s = _relaxation_model(inst, ub)
+    cp_model = _cp()
     solver = cp_model.CpSolver()
     solver.parameters.max_time_in_seconds = time_limit
     solver.parameters.num_workers = max(1, workers)
@@ -1010,6 +1029,7 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
         return ExactResult(incumbent, ub, "OPTIMAL", time.monotonic() - t0)
     fm = _FullModel(inst, lb, ub)
     fm.add_hint(incumbent)
+    cp_model = _cp()
     solver = cp_model.CpSolver()
     p = solver.parameters
     p.max_time_in_seconds = max(min_time, time_limit - (time.monotonic() - t0), 1e-3)
@@ -1026,7 +1046,7 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
             getattr(p, key).extend(val)
         else:
             setattr(p, key, val)
-    cb = _Callback(fm, progress, t0)
+    cb = _callback_class()(fm, progress, t0)
     status = solver.solve(fm.model, cb)
     bound = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6))) if status != cp_model.INFEASIBLE else lb
     best = incumbent

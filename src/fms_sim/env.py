@@ -526,7 +526,14 @@ class ShopEnv(gym.Env):
     def _vehicles(cap: int, n: int, loc: list[int], free_at: list[int], work: list[int], idle: set[int],
                   travel, target: int | None, now: int, sc: float, mm: int) -> np.ndarray:
         V = np.zeros((cap, len(AGV_FEATURES)), dtype=np.float32)
-        for v in range(n):
-            V[v] = (1.0, v in idle, loc[v] / mm, max(0, free_at[v] - now) / sc, work[v] / sc,
-                    travel[loc[v]][target] / sc if target is not None else 0.0)
+        if n:
+            at = loc[:n]
+            rows = V[:n]
+            rows[:, 0] = 1.0
+            rows[:, 1] = [v in idle for v in range(n)]
+            rows[:, 2] = np.divide(at, mm)
+            rows[:, 3] = np.maximum(0, np.subtract(free_at[:n], now)) / sc
+            rows[:, 4] = np.divide(work[:n], sc)
+            if target is not None:
+                rows[:, 5] = [travel[x][target] / sc for x in at]
         return V

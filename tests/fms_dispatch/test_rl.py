@@ -145,6 +145,24 @@ def test_shipped_models_train_apart():
         assert held and all(name.startswith("ho") and "ppo" in row for name, row in held.items())
 
 
+def test_bench_training_configs_train_apart():
+    """The training configs of the benches' experiments (bench/configs) train and select on generated shops only,
+    and start from a shipped model that exists."""
+    from pathlib import Path
+
+    from fms_sim.shopsets import check_training_specs
+
+    root = Path(__file__).resolve().parents[2]
+    configs = sorted((root / "bench" / "configs").glob("*.json"))
+    assert configs
+    for path in configs:
+        cfg = json.loads(path.read_text())
+        assert not cfg.get("allow_benchmarks"), path.name
+        check_training_specs(cfg)
+        if cfg.get("init"):
+            assert (root / cfg["init"] / "best_model.zip").is_file(), path.name
+
+
 @pytest.mark.parametrize("expert,nearest", [("rules", False), ("rules+nearest", True)])
 def test_rule_experts_replay_the_best_pair(expert, nearest):
     """The rule experts' demonstrations replay, through the env, the best pair of their set (24 or 36)."""

@@ -32,6 +32,7 @@ A name found in none of them raises :class:`ModelNotFoundError`, which names eve
 from __future__ import annotations
 
 import functools
+import gc
 import json
 import os
 import sys
@@ -167,11 +168,31 @@ def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisio
                   guide: str | None = None) -> Any:
     from .agent import Agent
 
-    return Agent(weights, dict(padding), name=name, decisions=decisions, guide=guide)
+    agent = Agent(weights, dict(padding), name=name, decisions=decisions, guide=guide)
+    _settle_heap()
+    return agent
+
+
+_settled = False
+
+
+def _settle_heap() -> None:
+    """Once per process, after the first model load: collect, then freeze what is alive (``gc.freeze``). The
+    modules, the model and the instance tables stay for the process's life; without this every full collection
+    of the cyclic garbage collector scans them all (15-25 ms with the solvers imported), a pause that lands on
+    whichever decision or plan search triggers it (docs/benchmarks.md §9). Objects created later are collected
+    as usual."""
+    global _settled
+    if not _settled:
+        _settled = True
+        gc.collect()
+        gc.freeze()
 
 
 def load_agent(spec: str) -> Any:
-    """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file)."""
+    """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file). The first load
+    freezes the process's heap as it is then (see :func:`_settle_heap`), so that later full garbage collections
+    do not pause decisions to scan the modules and the model."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
                          ref.name, ref.decisions, ref.guide)
