@@ -54,6 +54,7 @@ import random
 import time
 import warnings
 from dataclasses import dataclass
+from types import ModuleType
 from typing import TYPE_CHECKING, Callable, Mapping, Sequence
 
 if TYPE_CHECKING:
@@ -84,13 +85,13 @@ FULL_MODEL_MAX_TASKS = 100
 Progress = Callable[[int, int, float], None]
 
 
-
-def _cp():  # type: ignore[no-untyped-def]
+def _cp() -> ModuleType:
     """OR-Tools' CP-SAT module, imported when a model is first built: the list schedules, restarts and bounds of
     this module do not need it, and importing it takes about 0.25 s (a guided solve, the agent node's start)."""
     from ortools.sat.python import cp_model
 
     return cp_model
+
 
 @dataclass
 class ExactResult:

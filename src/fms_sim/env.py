@@ -37,9 +37,8 @@ the activity ends, as a live dispatcher does.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
-
 import zlib
+from typing import Any, Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
