@@ -216,3 +216,48 @@ def test_fine_tuning_options_are_checked(tmp_path):
     train({**base, "train": ["gen:9x3x3*1@7"]}, other, progress=False)
     with pytest.raises(ValueError, match="another layout"):
         train({**base, "init": str(other)}, tmp_path / "g", progress=False)
+
+
+def test_relative_returns_score_the_reference_zero_and_fine_tuning_uses_them(tmp_path):
+    """With ``baseline: init`` an episode's return is (reference makespan - makespan) / scale: the reference
+    weights themselves score exactly 0 on every episode, disrupted or not."""
+    from fms_dispatch.rl.agent import Agent
+    from fms_dispatch.rl.envs import FastShopEnv
+    from fms_dispatch.rl.guide import PlanEffort
+    from fms_dispatch.rl.relative import RelativeReturn
+    from fms_dispatch.rl.train import expand_instances, train
+
+    base = {"train": ["gen:6x3x3*2@7"], "eval": ["gen:6x3x3*1@8"], "decisions": "full", "guide": "list",
+            "n_envs": 1, "vec_env": "dummy", "hidden": 16, "eval_freq": 64, "save_freq": 64,
+            "ppo": {"n_steps": 64, "batch_size": 32, "n_epochs": 1}}
+    first = tmp_path / "first"
+    train({**base, "steps": 64}, first, progress=False)
+    insts = expand_instances(base["train"] + base["eval"])
+    pad = padding_for("auto", insts)
+    ref = Agent(first / "model.zip", pad, decisions="full", guide="list")
+    ref.use_guide_effort(PlanEffort(restarts=2))
+    me = Agent(first / "model.zip", pad, decisions="full", guide="list")
+    me.use_guide_effort(PlanEffort(restarts=2))
+    for disruptions in (None, {"noise": 0.3, "breakdowns": 1}):
+        env = RelativeReturn(FastShopEnv(insts, decisions="full", guide="list", guide_effort=PlanEffort(restarts=2),
+                                         disruptions=disruptions, **pad), ref)
+        for seed in (1, 2):
+            _, info = env.reset(seed=seed)
+            total, done = 0.0, False
+            while not done:
+                a = env.unwrapped.from_net_action(me.act(env.unwrapped.shop))
+                _, r, done, _, step_info = env.step(a)
+                total += r
+            assert step_info["makespan"] == info["reference_makespan"]  # the same weights, the same episode
+            assert abs(total) < 1e-9
+    with pytest.raises(ValueError, match="shaped reward"):
+        RelativeReturn(FastShopEnv(insts, decisions="full", reward="makespan", **pad), ref)
+    # in training: the initial weights are the baseline, so their evaluation reward is 0
+    out = tmp_path / "tuned"
+    m = train({**base, "steps": 64, "init": str(first), "baseline": "init",
+               "disruptions": {"noise": 0.3, "breakdowns": 1}}, out, progress=False)
+    assert m["warm_start"]["mean_reward"] == 0.0
+    with pytest.raises(ValueError, match="set init"):
+        train({**base, "steps": 64, "baseline": "init"}, tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="unknown baseline"):
+        train({**base, "steps": 64, "init": str(first), "baseline": "rules"}, tmp_path / "y", progress=False)

@@ -25,7 +25,9 @@ are evaluated first and kept as ``warm_start.zip``, so PPO must beat them to rep
 ``guide_effort`` (a dict of :class:`~fms_dispatch.rl.guide.PlanEffort` fields; default the plain list schedule)
 sets how a guided model's plans are searched in training and evaluation. ``disruptions`` (full net; e.g.
 ``{"noise": 0.2, "breakdowns": 1}``) trains in disrupted shops, a fresh scenario per episode, and evaluates each
-evaluation shop in a fixed scenario (:mod:`fms_sim.env`).
+evaluation shop in a fixed scenario (:mod:`fms_sim.env`). ``baseline: "init"`` (with ``init``) makes every
+episode's return relative to the initial weights' run of the same episode (:mod:`fms_dispatch.rl.relative`), so
+that the scenario's luck cancels and the initial weights score 0 in evaluation.
 
 ``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
 ``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
@@ -61,6 +63,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "guide_effort": None,
     "disruptions": None,
     "init": None,
+    "baseline": None,
     "allow_benchmarks": False,
     "reward": "shaped",
     "steps": 100_000,
@@ -100,7 +103,7 @@ class _Cycle:
 
 def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], reward: str, seed: int,
               decisions: str = "paper", guide: str | None = None, guide_effort: Any = None,
-              disruptions: dict[str, Any] | None = None):
+              disruptions: dict[str, Any] | None = None, reference: Path | None = None):
     def make():
         import torch
         from stable_baselines3.common.monitor import Monitor
@@ -109,8 +112,17 @@ def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], r
         from .guide import PlanEffort
 
         torch.set_num_threads(1)
+        effort = guide_effort or PlanEffort()
         env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, guide=guide,
-                          guide_effort=guide_effort or PlanEffort(), disruptions=disruptions, **padding)
+                          guide_effort=effort, disruptions=disruptions, **padding)
+        if reference is not None:  # returns relative to the reference weights' run of the same episode
+            from .agent import Agent
+            from .relative import RelativeReturn
+
+            ref = Agent(reference, padding, decisions=decisions, guide=guide)
+            if guide is not None:
+                ref.use_guide_effort(effort)
+            env = RelativeReturn(env, ref)
         env.reset(seed=seed)
         return Monitor(env)
 
@@ -157,17 +169,24 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     return out
 
 
+def _init_weights(init: str | Path) -> Path:
+    """The weights file of ``init``: a ``.zip``, or a model folder's ``best_model.zip`` (else its ``model.zip``);
+    raises ValueError if there is none."""
+    path = Path(init)
+    if path.is_dir():
+        path = path / "best_model.zip" if (path / "best_model.zip").is_file() else path / "model.zip"
+    if not path.is_file():
+        raise ValueError(f"init: no weights at {init}")
+    return path
+
+
 def _load_init(model: Any, init: str | Path) -> None:
     """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
     ``model.zip``) into ``model``; raises ValueError if they do not fit (another padding, net, guide or
     architecture)."""
     from sb3_contrib import MaskablePPO
 
-    path = Path(init)
-    if path.is_dir():
-        path = path / "best_model.zip" if (path / "best_model.zip").is_file() else path / "model.zip"
-    if not path.is_file():
-        raise ValueError(f"init: no weights at {init}")
+    path = _init_weights(init)
     src = MaskablePPO.load(str(path), device="cpu")
     if (src.observation_space.shape != model.observation_space.shape
             or src.action_space.n != model.action_space.n):
@@ -300,6 +319,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     if init and not resume and warm["expert"]:
         raise ValueError("init starts from a trained model's weights: it replaces a warm-start expert (unset "
                          "warm_start.expert)")
+    baseline = cfg.get("baseline") or None
+    if baseline not in (None, "init"):
+        raise ValueError(f"unknown baseline {baseline!r}; the only one is init (returns relative to the initial "
+                         "weights' run of the same episode)")
+    if baseline and not init:
+        raise ValueError("baseline init compares with the weights a run starts from: set init")
+    if baseline and cfg["reward"] != "shaped":
+        raise ValueError("baseline init needs the shaped reward")
+    reference = _init_weights(init) if baseline else None
     from .imitation import EXPERTS, RULE_EXPERTS
     from .plan_expert import GUIDE_EXPERT, is_plan_expert
 
@@ -342,11 +370,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     n_envs = max(1, int(cfg["n_envs"]))
     seed = int(cfg["seed"])
-    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide, effort, disruptions)
+    fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide, effort, disruptions, reference)
            for i in range(n_envs)]
     venv = SubprocVecEnv(fns) if n_envs > 1 and cfg["vec_env"] == "subproc" else DummyVecEnv(fns)
     eval_env = DummyVecEnv([_make_env(_Cycle(eval_set), padding, cfg["reward"], seed + 10_000, decisions, guide,
-                                      effort, eval_disruptions)])
+                                      effort, eval_disruptions, reference)])
 
     ppo = dict(cfg["ppo"])
     if resume:
