@@ -44,7 +44,7 @@ from fms_sim.instance import Instance
 __all__ = ["ModelRef", "ModelNotFoundError", "model_dirs", "models_dir", "resolve_model", "default_model_name",
            "load_config", "SHIPPED", "SHARE_SUBDIR", "load_agent"]
 
-SHIPPED = ("bu", "large", "large-agv", "full", "guided")
+SHIPPED = ("bu", "large", "large-agv", "full", "guided", "guided-ppo")
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 
