@@ -2,7 +2,8 @@
 
 What a PPO phase adds to a model that acts out a plan is judged where the plan goes stale: noise on every
 duration and machine breakdowns, learnt by the decider only as they happen. This runs models (and the list
-schedule's plan executed live, ``plan:list``, as the baseline) on generated shops, each in ``--scenarios`` fixed
+schedule's plan executed live, ``plan:list``, as the baseline; with ``--follower`` also the guide follower, the
+expert the guided models are cloned from) on generated shops, each in ``--scenarios`` fixed
 scenarios per disruption level (``fms_sim.env.episode_scenario``: seeded by the shop's name and the scenario's
 number, breakdowns within the shop's work per machine), the same for every method::
 
@@ -24,7 +25,9 @@ import sys
 import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
+from fms_dispatch.full_rules import run_full
 from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rl.guide import DEFAULT_EFFORT, GuideFollower
 from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.env import check_disruptions, episode_scenario
@@ -53,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
                          "nominal)")
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
     ap.add_argument("--scenarios", type=int, default=3, help="scenarios per shop and disrupted level")
+    ap.add_argument("--follower", action="store_true",
+                    help="also the guide follower (the expert the guided models are cloned from) on the same plans")
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
@@ -62,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
         insts = expand_instances(a.shops)
     effort = guide_effort_from_args(a)
-    methods = ["plan:list"] + list(a.models)
+    methods = ["plan:list"] + (["guide-follower"] if a.follower else []) + list(a.models)
     rows = []
     t_start = time.perf_counter()
     for noise in a.noise:
@@ -74,8 +79,12 @@ def main(argv: list[str] | None = None) -> int:
                 row: dict = {"shop": inst.name, "tools": inst.has_tools, "noise": noise, "scenario": k}
                 for m in methods:
                     t0 = time.perf_counter()
-                    s = (solve(inst, m, scenario=sc) if m == "plan:list"
-                         else ppo_solver(m)(inst, scenario=sc, guide_effort=effort))
+                    if m == "plan:list":
+                        s = solve(inst, m, scenario=sc)
+                    elif m == "guide-follower":
+                        s = run_full(inst, GuideFollower(effort=effort or DEFAULT_EFFORT), sc)
+                    else:
+                        s = ppo_solver(m)(inst, scenario=sc, guide_effort=effort)
                     row[m] = _checked(inst, s, sc, m)
                     row[m + "_s"] = round(time.perf_counter() - t0, 2)
                 rows.append(row)
