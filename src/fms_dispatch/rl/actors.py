@@ -88,7 +88,6 @@ class NumpyEntityActor:
                 parts[name].append((i, L[f]))
                 i += L[name] * L[f]
         self._parts = parts
-        h = self.hidden
         first = []
         self._row_w: dict[str, np.ndarray] = {}
         for b in self.blocks:
@@ -98,7 +97,6 @@ class NumpyEntityActor:
             first.append((w[k:], bias))
         self._g_w = np.concatenate([w for w, _ in first], axis=1)
         self._g_b = np.concatenate([b for _, b in first])
-        self._h = h
         paper = L["jobs"] + L["agvs"] + L["tts"]
         # head -> (first action slot, slots, embedded block it scores)
         self._where = {"jobs": (0, L["jobs"], "jobs"), "agvs": (L["jobs"], L["agvs"], "agvs"),
@@ -130,7 +128,7 @@ class NumpyEntityActor:
         """Logits over the padded actions; -inf where ``mask`` is False."""
         L = self.lay
         g = obs[:L["n_global"]] if len(self._g) == 1 else np.concatenate([obs[i:i + f] for i, f in self._g])
-        h = self._h
+        h = self.hidden
         gw = g @ self._g_w + self._g_b  # every block's first layer, global part
         # rows that exist: the 'present' feature (each block's first) is 1 exactly for them, and they come first
         n = {}

@@ -53,8 +53,8 @@ class RelativeReturn(gym.Wrapper):
     def reset(self, **kwargs: Any):
         obs, info = self.env.reset(**kwargs)
         base = self.env.unwrapped
-        self._bonus = (self._reference_makespan() - base._lb0) / base._scale
-        info["reference_makespan"] = self._reference_makespan()
+        ref = info["reference_makespan"] = self._reference_makespan()
+        self._bonus = (ref - base._lb0) / base._scale
         return obs, info
 
     def step(self, action: Any):
