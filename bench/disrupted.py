@@ -32,18 +32,12 @@ from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.shopsets import check_training_specs, heldout_shops
-from fms_sim.validate import validate
+
+from checks import checked
 
 #: validation shops (seeds no model trains or is selected on): BU size, small and mid-size with and without tools
 DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
                  "gen:20x10x10*2@219/notools"]
-
-
-def _checked(inst, sched, scenario, what: str) -> int:
-    problems = validate(inst, sched, scenario)
-    if problems:
-        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
-    return sched.makespan
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                         s = run_full(inst, GuideFollower(effort=effort or DEFAULT_EFFORT), sc)
                     else:
                         s = ppo_solver(m)(inst, scenario=sc, guide_effort=effort)
-                    row[m] = _checked(inst, s, sc, m)
+                    row[m] = checked(inst, s, m, sc)
                     row[m + "_s"] = round(time.perf_counter() - t0, 2)
                 rows.append(row)
                 print(json.dumps(row), flush=True)

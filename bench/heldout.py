@@ -34,14 +34,8 @@ from fms_dispatch.rl import ppo_solver
 from fms_dispatch.rules import JOB_RULES
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import heldout_shops
-from fms_sim.validate import validate
 
-
-def _checked(inst, sched, what: str):
-    problems = validate(inst, sched)
-    if problems:
-        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
-    return sched
+from checks import checked
 
 
 def _timed(fn):
@@ -77,12 +71,12 @@ def measure(inst, models: list[str], cpsat_s: float, known: dict | None = None, 
         row.update({k: known[k] for k in ("cpsat", "cpsat_s", "list", "rule")})
     else:
         s, dt = _timed(lambda: solve(inst, "cpsat", time_limit=cpsat_s, workers=2))
-        row["cpsat"] = _checked(inst, s, "cpsat").makespan
+        row["cpsat"] = checked(inst, s, "cpsat")
         row["cpsat_s"] = round(dt, 2)
-        lists = [_checked(inst, solve(inst, name), name).makespan for name in ("list", "list:ect")]
+        lists = [checked(inst, solve(inst, name), name) for name in ("list", "list:ect")]
         row["list"] = min(lists)
-        row["rule"] = min(_checked(inst, run_full(inst, FullRulePolicy(j, "nearest", "earliest-start")),
-                                   j).makespan for j in JOB_RULES)
+        row["rule"] = min(checked(inst, run_full(inst, FullRulePolicy(j, "nearest", "earliest-start")), j)
+                          for j in JOB_RULES)
     for spec in models:
         solver = ppo_solver(spec)
         guided = _has_guide(spec, inst)
@@ -102,7 +96,7 @@ def measure(inst, models: list[str], cpsat_s: float, known: dict | None = None, 
                 row[key] = None
                 row[key + "_why"] = str(exc)
                 continue
-            row[key] = _checked(inst, s, key).makespan
+            row[key] = checked(inst, s, key)
             row[key + "_s"] = round(dt, 2)
             row[key + "_model"] = s.meta.get("model")
     return row

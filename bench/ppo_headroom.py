@@ -30,7 +30,8 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
-from fms_sim.validate import validate
+
+from checks import checked
 
 
 def _run(agent, inst, scenario, temperature: float, rng: np.random.Generator, stats: list[int]) -> int:
@@ -52,11 +53,7 @@ def _run(agent, inst, scenario, temperature: float, rng: np.random.Generator, st
             stats[1] += pick != best
         return agent._env(shop).to_net_action(pick)
 
-    sched = run_full(inst, choose, scenario)
-    problems = validate(inst, sched, scenario)
-    if problems:
-        raise SystemExit(f"INFEASIBLE {inst.name}: {problems[0]}")
-    return sched.makespan
+    return checked(inst, run_full(inst, choose, scenario), f"T={temperature:g}", scenario)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,18 +25,12 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import check_training_specs
-from fms_sim.validate import validate
+
+from checks import checked
 
 #: the validation shops of the default choice in docs/benchmarks.md §9 (seeds used by no model's config)
 DEFAULT_SHOPS = ["gen:20x10x10*2@216", "gen:50x15x15*2@217", "gen:100x20x20*1@218", "gen:20x10x10*2@219/notools",
                  "gen:50x15x15*2@220/notools", "gen:100x20x20*1@221/notools"]
-
-
-def _checked(inst, sched, what: str) -> int:
-    problems = validate(inst, sched)
-    if problems:
-        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
-    return sched.makespan
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for inst in expand_instances(a.shops):
         row: dict = {"shop": inst.name, "tools": inst.has_tools, "jobs": inst.n_jobs}
-        row["list"] = min(_checked(inst, solve(inst, n), n) for n in ("list", "list:ect"))
+        row["list"] = min(checked(inst, solve(inst, n), n) for n in ("list", "list:ect"))
         for spec in a.models:
             for la in ((False, True) if a.lookahead else (False,)):
                 key = spec + ("+la" if la else "")
@@ -66,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
                     row[key] = None
                     row[key + "_why"] = str(exc)
                     continue
-                row[key] = _checked(inst, s, key)
+                row[key] = checked(inst, s, key)
                 row[key + "_s"] = round(time.perf_counter() - t0, 2)
         rows.append(row)
         print(json.dumps(row), flush=True)

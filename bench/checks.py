@@ -1,0 +1,21 @@
+"""What the benches share: every schedule a bench reports passes the project's validator, or the bench stops.
+
+The bench scripts run as ``python bench/NAME.py``, which puts this folder on the import path (``from checks import
+checked``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fms_sim.validate import validate
+
+
+def checked(inst: Any, sched: Any, what: str, scenario: Any = None) -> int:
+    """The makespan of ``sched``, once :func:`fms_sim.validate.validate` accepts it as a schedule of ``inst`` (in
+    the disrupted run of ``scenario``, if given); a schedule it rejects ends the bench with a message naming the
+    shop, ``what`` produced it and the first violation."""
+    problems = validate(inst, sched, scenario)
+    if problems:
+        raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
+    return sched.makespan
