@@ -571,3 +571,24 @@ def test_models_record_the_net_they_were_trained_on_and_load_with_it(tmp_path):
     (folder / "config.json").write_text(json.dumps({**cfg, "decisions": "fifo"}))
     with pytest.raises(ValueError, match="unknown decisions"):
         load_agent(str(folder))
+
+
+def test_guided_ppo_is_a_ppo_model_of_guided_that_solves_nominal_and_disrupted_shops():
+    """guided-ppo: PPO steps from guided's weights (its card says so); its schedules pass the validator, in a
+    nominal shop and in a disrupted one (checked against the scenario)."""
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_config
+    from fms_sim.disruptions import Scenario
+
+    ref = resolve_model("guided-ppo")
+    cfg = load_config(ref.folder)
+    metrics = json.loads((ref.folder / "metrics.json").read_text())
+    assert cfg["init"] == "models/guided" and cfg["baseline"] == "init" and cfg["disruptions"]
+    assert metrics["ppo_steps"] > 0 and metrics["warm_start"]["init"] == "models/guided"
+    inst = builtin("EX42")
+    solve = ppo_solver("ppo:guided-ppo")
+    plain = solve(inst, guide_effort=effort_from(tabu=0.0))
+    assert plain.meta["model"] == "guided-ppo" and validate(inst, plain) == []
+    sc = Scenario.draw(inst, noise=0.2, breakdowns=1, horizon=40, seed=3)
+    disrupted = solve(inst, scenario=sc, guide_effort=effort_from(tabu=0.0))
+    assert validate(inst, disrupted, sc) == []
