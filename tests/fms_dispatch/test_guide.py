@@ -165,7 +165,7 @@ def test_dagger_labels_of_the_follower_on_the_policys_states():
                         policy_kwargs={"layout": obs_layout(pad, "full", "list"), "hidden": 16})
     plans: dict = {}
     demos, _ = plan_demonstrations([inst], pad, "shaped", "guide", plans=plans, guide="list")
-    rows, ms = plan_dagger_round(model, [inst], plans, pad, "shaped", guide="list", follow=True)
+    rows, ms, _ = plan_dagger_round(model, [inst], plans, pad, "shaped", guide="list", follow=True)
     assert len(rows["obs"]) > 0 and rows["obs"].shape[1] == demos["obs"].shape[1]
     assert all(rows["mask"][i][rows["action"][i]] for i in range(len(rows["obs"])))  # labels are legal
 

@@ -112,9 +112,60 @@ def test_dagger_labels_every_state_of_the_policy_with_a_legal_plan_action(name):
     pad = padding_for(None, [inst])
     plans: dict = {}
     plan_demonstrations([inst], pad, "shaped", "plan:list", plans=plans)
-    rows, pm = plan_dagger_round(_FirstLegal(), [inst], plans, pad, "shaped")
+    rows, pm, _ = plan_dagger_round(_FirstLegal(), [inst], plans, pad, "shaped")
     assert len(rows["obs"]) > 0 and all(rows["mask"][i][rows["action"][i]] for i in range(len(rows["obs"])))
     assert pm[name] > 0
+
+
+def test_dagger_in_disrupted_runs_labels_the_policys_states_and_runs_the_expert_in_the_same_scenario():
+    from fms_dispatch.rl.plan_expert import expert_policy
+    from fms_sim.env import check_disruptions, episode_scenario
+
+    insts = [builtin("ra01"), builtin("EX12")]
+    pad = padding_for(None, insts)
+    plans: dict = {}
+    _, nominal = plan_demonstrations(insts, pad, "shaped", "plan:list", plans=plans)
+    d = check_disruptions({"noise": 0.3, "breakdowns": 1})
+    rows, pm, em = plan_dagger_round(_FirstLegal(), insts, plans, pad, "shaped", disruptions=d,
+                                     rng=np.random.default_rng(5))
+    assert all(rows["mask"][i][rows["action"][i]] for i in range(len(rows["obs"])))
+    again, pm2, em2 = plan_dagger_round(_FirstLegal(), insts, plans, pad, "shaped", disruptions=d,
+                                        rng=np.random.default_rng(5))
+    assert pm2 == pm and em2 == em and np.array_equal(again["action"], rows["action"])  # seeded scenarios
+    rng = np.random.default_rng(5)
+    for inst in insts:  # the expert's makespan is its run in the policy's scenario, which differs from nominal
+        sc = episode_scenario(inst, d, rng)
+        shop = FullShop(inst, scenario=sc)
+        expert = expert_policy(inst, plans[inst.name])
+        while not shop.done:
+            shop.act(expert(shop))
+        assert em[inst.name] == shop.makespan
+    assert em != nominal
+    _, _, none = plan_dagger_round(_FirstLegal(), insts, plans, pad, "shaped")
+    assert none == {}  # nominal rounds compare with the demonstrations' makespans
+
+
+def test_dagger_from_a_trained_models_weights_in_disrupted_shops(tmp_path):
+    """``init`` with a warm-start expert and DAgger rounds: no fresh clone, the rounds start from the given
+    weights in disrupted runs; the model records the initial model's training shops and no PPO steps."""
+    from sb3_contrib import MaskablePPO
+
+    from fms_dispatch.rl.train import train
+
+    base = {"eval": ["gen:6x3x3*1@8"], "decisions": "full", "guide": "list", "n_envs": 1, "vec_env": "dummy",
+            "hidden": 16, "eval_freq": 64, "save_freq": 64, "ppo": {"n_steps": 64, "batch_size": 32, "n_epochs": 1}}
+    first = tmp_path / "first"
+    train({**base, "train": ["gen:6x3x3*2@7"], "steps": 64}, first, progress=False)
+    out = tmp_path / "dagger"
+    m = train({**base, "train": ["gen:6x3x3*2@9"], "steps": 0, "init": str(first),
+               "disruptions": {"noise": 0.3, "breakdowns": 1},
+               "warm_start": {"expert": "guide", "dagger": 1, "dagger_epochs": 1}}, out, progress=False)
+    assert m["ppo_steps"] == 0 and m["warm_start"]["init"] == str(first)
+    assert len(m["warm_start"]["dagger_rounds"]) == 1 and "accuracy" not in m["warm_start"]  # no fresh clone
+    assert set(m["training_shops"]) == {"gen6x3s7_00", "gen6x3s7_01", "gen6x3s9_00", "gen6x3s9_01"}
+    src = MaskablePPO.load(str(first / "best_model.zip"), device="cpu").policy.state_dict()
+    after = MaskablePPO.load(str(out / "warm_start.zip"), device="cpu").policy.state_dict()
+    assert any(not torch.equal(after[k], src[k]) for k in src)  # the DAgger round trained the initial weights
 
 
 def test_train_on_the_full_net_with_a_plan_expert_dagger_and_ppo(tmp_path, capsys):
@@ -200,8 +251,11 @@ def test_fine_tuning_options_are_checked(tmp_path):
 
     base = {"train": ["gen:6x3x3*1@7"], "decisions": "full", "guide": "list", "steps": 64, "n_envs": 1,
             "vec_env": "dummy", "hidden": 16}
-    with pytest.raises(ValueError, match="replaces a warm-start expert"):
+    with pytest.raises(ValueError, match="replaces the cloning of a warm-start expert"):
         train({**base, "init": str(tmp_path), "warm_start": {"expert": "guide"}}, tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match="run the DAgger rounds first"):
+        train({**base, "init": str(tmp_path), "baseline": "init", "warm_start": {"expert": "guide", "dagger": 1}},
+              tmp_path / "a2", progress=False)
     with pytest.raises(ValueError, match="no weights"):
         train({**base, "init": str(tmp_path / "none")}, tmp_path / "b", progress=False)
     with pytest.raises(ValueError, match="bad guide_effort"):

@@ -440,20 +440,23 @@ def dagger_round(model: Any, instances: Sequence[Instance], pairs: dict[str, str
 
 
 def dagger_rounds(model: Any, demos: dict[str, np.ndarray],
-                  label_round: Callable[[], tuple[dict[str, np.ndarray], dict[str, int]]], expert_ms: dict[str, int],
+                  label_round: Callable[[], tuple[Any, ...]], expert_ms: dict[str, int],
                   rounds: int, epochs: int = 10, lr: float = 1e-3, seed: int = 0,
                   progress: Callable[[str], None] | None = None, experts: str = "experts"
                   ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """``rounds`` DAgger rounds after :func:`clone`: each runs ``label_round()`` (the current policy's states
-    with the expert's labels, and the policy's makespans), adds the rows to ``demos`` and clones the aggregate
+    with the expert's labels, the policy's makespans and optionally the expert's makespans of this round's runs,
+    which replace ``expert_ms``'s: a disrupted round's scenarios), adds the rows to ``demos`` and clones the aggregate
     for ``epochs`` more epochs. Returns the aggregate and per round the policy's mean makespan *before* that
     round's cloning (relative to the experts' makespans ``expert_ms``; ``experts`` names them in the progress
     lines) and the cloning figures."""
     history: list[dict[str, Any]] = []
     for r in range(rounds):
-        new, policy_ms = label_round()
+        got = label_round()
+        new, policy_ms = got[0], got[1]
+        ref = dict(expert_ms, **(got[2] if len(got) > 2 else {}))
         demos = concat_demos(demos, new)
-        ratio = float(np.mean([policy_ms[k] / expert_ms[k] for k in policy_ms]))
+        ratio = float(np.mean([policy_ms[k] / ref[k] for k in policy_ms]))
         if progress is not None:
             progress(f"  dagger round {r + 1}/{rounds}: policy makespan {100 * (ratio - 1):+.2f} % against the "
                      f"{experts}; cloning {len(demos['obs'])} states")

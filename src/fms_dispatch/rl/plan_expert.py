@@ -10,7 +10,10 @@ best schedules the project can compute become experts:
   the plan's priorities (planned start times, planned carriers). Every decision with a choice is a
   demonstration ``(observation, mask, action)``.
 * :func:`plan_dagger_round` — DAgger (Ross et al., 2011): the current policy drives, and every state it reaches
-  is labelled by the same :class:`PlanPriorityPolicy` (the plan's priorities apply in any state).
+  is labelled by the same :class:`PlanPriorityPolicy` (the plan's priorities apply in any state). With
+  ``disruptions`` the policy drives disrupted shops (a fresh scenario per shop and round,
+  :func:`fms_sim.env.episode_scenario`), where the offline plan goes stale: the states a live run meets, which
+  nominal demonstrations never show, labelled by the expert acting on the same plan.
 * expert ``guide`` — the earliest-start list schedule acted out by :class:`fms_dispatch.rl.guide.GuideFollower`
   (the replay read from states, so it labels any state too). It is the expert of a guided model
   (``guide="list"``), whose observation shows the same plan's orders: its decisions are a function of what the
@@ -171,12 +174,17 @@ def plan_demonstrations(instances: Sequence[Instance], padding: dict[str, int], 
 
 def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str, Schedule],
                       padding: dict[str, int], reward: str, progress: Callable[[str], None] | None = None,
-                      guide: str | None = None, follow: bool = False
-                      ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                      guide: str | None = None, follow: bool = False, disruptions: dict[str, Any] | None = None,
+                      rng: np.random.Generator | None = None
+                      ) -> tuple[dict[str, np.ndarray], dict[str, int], dict[str, int]]:
     """One DAgger round on the full net: the deterministic policy ``model`` runs each instance, and every state
     with a choice is labelled by the instance's plan (``plans``, from :func:`plan_demonstrations`) as the module
-    docstring says. Returns the labelled rows (``ret``: the policy's own return-to-go) and the policy's
-    makespans."""
+    docstring says. With ``disruptions`` (validated, :func:`fms_sim.env.check_disruptions`) each run is in a
+    scenario drawn with ``rng``, and the expert runs the same scenario for comparison. Returns the labelled rows
+    (``ret``: the policy's own return-to-go), the policy's makespans and, with ``disruptions``, the expert's in
+    the round's scenarios (else none: :func:`plan_demonstrations` measured them)."""
+    from fms_sim.env import episode_scenario
+
     from .imitation import _as_demos
 
     obs: list = []
@@ -184,10 +192,14 @@ def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str
     actions: list = []
     rets: list = []
     makespans: dict[str, int] = {}
+    expert_ms: dict[str, int] = {}
+    if disruptions and rng is None:
+        rng = np.random.default_rng(0)
     for n, inst in enumerate(instances):
         if inst.name not in plans:
             raise ValueError(f"no expert plan for {inst.name}")
-        shop = FullShop(inst)
+        scenario = episode_scenario(inst, disruptions, rng) if disruptions else None
+        shop = FullShop(inst, scenario=scenario)
         env = _env(inst, shop, padding, reward, guide)
         label = expert_policy(inst, plans[inst.name], follow)
         lbs: list[int] = []
@@ -204,22 +216,33 @@ def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str
             shop.act(a)
         rets.extend(_ret(env, reward, lb, shop.makespan) for lb in lbs)
         makespans[inst.name] = shop.makespan
+        if scenario is not None:
+            ref = FullShop(inst, scenario=scenario)
+            expert = expert_policy(inst, plans[inst.name], follow)
+            while not ref.done:
+                ref.act(expert(ref))
+            expert_ms[inst.name] = ref.makespan
         if progress is not None:
             progress(f"  dagger: {n + 1}/{len(instances)} shops ({inst.name}: policy makespan {shop.makespan}, "
-                     f"plan {plans[inst.name].makespan}, {len(obs)} states labelled)")
-    return _as_demos(obs, masks, actions, rets), makespans
+                     f"expert {expert_ms.get(inst.name, plans[inst.name].makespan)}"
+                     f"{' in the same disrupted run' if scenario is not None else ' planned'}, "
+                     f"{len(obs)} states labelled)")
+    return _as_demos(obs, masks, actions, rets), makespans, expert_ms
 
 
 def plan_dagger(model: Any, demos: dict[str, np.ndarray], plans: dict[str, Schedule], expert_ms: dict[str, int],
                 instances: Sequence[Instance], padding: dict[str, int], reward: str, rounds: int,
                 epochs: int = 10, lr: float = 1e-3, seed: int = 0,
-                progress: Callable[[str], None] | None = None, guide: str | None = None, follow: bool = False
+                progress: Callable[[str], None] | None = None, guide: str | None = None, follow: bool = False,
+                disruptions: dict[str, Any] | None = None
                 ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """:func:`fms_dispatch.rl.imitation.dagger_rounds` with plan labels (:func:`plan_dagger_round`); the policy's
-    makespans are compared with the plans as executed."""
+    makespans are compared with the plans as executed (``expert_ms``), with ``disruptions`` with the expert's
+    runs in the same scenarios (drawn from ``seed``: the same seed, the same scenarios)."""
     from .imitation import dagger_rounds
 
+    rng = np.random.default_rng(seed) if disruptions else None
     return dagger_rounds(model, demos,
                          lambda: plan_dagger_round(model, instances, plans, padding, reward, progress=progress,
-                                                   guide=guide, follow=follow),
+                                                   guide=guide, follow=follow, disruptions=disruptions, rng=rng),
                          expert_ms, rounds, epochs=epochs, lr=lr, seed=seed, progress=progress, experts="plans")

@@ -21,11 +21,14 @@ that names one in ``train``, ``eval`` or a refine stage unless it sets ``allow_b
 for reproducing the paper's own setting; the flag is saved in ``config.json``).
 
 ``init`` (``--init MODEL``) starts from a trained model's weights instead of a warm start (PPO fine-tuning; they
-are evaluated first and kept as ``warm_start.zip``, so PPO must beat them to replace ``best_model.zip``).
+are evaluated first and kept as ``warm_start.zip``, so PPO must beat them to replace ``best_model.zip``); with a
+warm-start expert and ``warm_start.dagger`` rounds, those rounds run from the initial weights (no fresh clone). The
+model's ``training_shops`` include the initial model's.
 ``guide_effort`` (a dict of :class:`~fms_dispatch.rl.guide.PlanEffort` fields; default the plain list schedule)
 sets how a guided model's plans are searched in training and evaluation. ``disruptions`` (full net; e.g.
 ``{"noise": 0.2, "breakdowns": 1}``) trains in disrupted shops, a fresh scenario per episode, and evaluates each
-evaluation shop in a fixed scenario (:mod:`fms_sim.env`). ``baseline: "init"`` (with ``init``) makes every
+evaluation shop in a fixed scenario (:mod:`fms_sim.env`); plan experts' DAgger rounds then label the policy's
+states in disrupted runs (:func:`fms_dispatch.rl.plan_expert.plan_dagger_round`). ``baseline: "init"`` (with ``init``) makes every
 episode's return relative to the initial weights' run of the same episode (:mod:`fms_dispatch.rl.relative`), so
 that the scenario's luck cancels and the initial weights score 0 in evaluation.
 
@@ -180,6 +183,17 @@ def _init_weights(init: str | Path) -> Path:
     return path
 
 
+def _init_shops(init: str | Path) -> list[str]:
+    """The training shops recorded in the metrics of ``init``'s model folder (the folder of a ``.zip``): a
+    fine-tuned model has seen them too."""
+    path = Path(init)
+    folder = path if path.is_dir() else path.parent
+    try:
+        return list(json.loads((folder / METRICS_FILE).read_text()).get("training_shops", []))
+    except (OSError, json.JSONDecodeError):
+        return []
+
+
 def _load_init(model: Any, init: str | Path) -> None:
     """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
     ``model.zip``) into ``model``; raises ValueError if they do not fit (another padding, net, guide or
@@ -260,11 +274,12 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
 
     A fresh run with a warm-start expert first clones the expert, then runs the ``warm_start.refine`` stages
-    (each clones one rule pair on its own instances), then ``warm_start.dagger`` DAgger rounds (rule experts
-    only), then ``steps`` PPO steps.
+    (each clones one rule pair on its own instances), then ``warm_start.dagger`` DAgger rounds (rule-pair or
+    plan experts), then ``steps`` PPO steps. With ``init`` and a warm-start expert the DAgger rounds start from
+    the initial weights, without the clone.
 
     With ``resume``, the config is read from ``out/config.json`` (``config`` may override ``steps``) and
-    training continues from ``out/model.zip``: first ``dagger`` more DAgger rounds (rule experts only; the
+    training continues from ``out/model.zip``: first ``dagger`` more DAgger rounds (rule-pair or plan experts; the
     expert demonstrations are made again to aggregate with), then ``steps`` more PPO steps.
     """
     import torch
@@ -316,9 +331,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
     init = cfg.get("init") or None
-    if init and not resume and warm["expert"]:
-        raise ValueError("init starts from a trained model's weights: it replaces a warm-start expert (unset "
-                         "warm_start.expert)")
+    if init and not resume and warm["expert"] and not int(warm["dagger"]):
+        raise ValueError("init starts from a trained model's weights: it replaces the cloning of a warm-start "
+                         "expert (unset warm_start.expert, or set warm_start.dagger for DAgger rounds from the "
+                         "initial weights)")
     baseline = cfg.get("baseline") or None
     if baseline not in (None, "init"):
         raise ValueError(f"unknown baseline {baseline!r}; the only one is init (returns relative to the initial "
@@ -327,6 +343,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError("baseline init compares with the weights a run starts from: set init")
     if baseline and cfg["reward"] != "shaped":
         raise ValueError("baseline init needs the shaped reward")
+    if baseline and warm["expert"] and not resume:
+        raise ValueError("baseline init compares with the initial weights, which DAgger rounds would change: run "
+                         "the DAgger rounds first (steps 0), then PPO with init set to their model")
     reference = _init_weights(init) if baseline else None
     from .imitation import EXPERTS, RULE_EXPERTS
     from .plan_expert import GUIDE_EXPERT, is_plan_expert
@@ -439,7 +458,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                               starts=int(warm["search_starts"]), workers=int(warm["workers"]))
         bc: dict[str, Any] = {}
         refined: list[dict[str, Any]] = []
-        if not resume:
+        if not resume and not init:  # with init the DAgger rounds start from its weights
             bc = clone(model, demos, epochs=int(warm["epochs"]), lr=float(warm["lr"]), seed=seed, progress=say)
             refined = _refine(model, refine, padding, cfg["reward"], say)
         history: list[dict[str, Any]] = []
@@ -449,7 +468,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                 _, history = plan_dagger(model, demos, plans, expert_ms, warm_set, padding, cfg["reward"], rounds,
                                          epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]),
                                          seed=dagger_seed, progress=say, guide=guide,
-                                         follow=str(warm["expert"]).lower() == GUIDE_EXPERT)
+                                         follow=str(warm["expert"]).lower() == GUIDE_EXPERT, disruptions=disruptions)
             else:
                 _, history = run_dagger(model, demos, pairs, expert_ms, warm_set, padding, cfg["reward"], rounds,
                                         epochs=int(warm["dagger_epochs"]), lr=float(warm["lr"]), seed=dagger_seed,
@@ -469,13 +488,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
         else:
             warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, refine=refined)  # stages with figures
+            if init:
+                warm_metrics["init"] = str(init)
         warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
                             seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
         if verbose or progress:
             print(f"warm start ({warm['expert']}, {len(history)} DAgger rounds): {bc or history[-1]}; "
                   f"eval mean reward {mean_r:.4f}", flush=True)
-    if init and not resume:  # the starting weights are the baseline PPO must beat, as after a warm start
+    if init and not resume and warm_metrics is None:  # the starting weights are the baseline PPO must beat
         from sb3_contrib.common.maskable.evaluation import evaluate_policy
 
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
@@ -520,7 +541,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     }
     metrics["training_shops"] = list(dict.fromkeys([inst.name for inst in train_set]
                                                    + [inst.name for st in refine for inst in st[1]]
-                                                   + list(old.get("training_shops", []))))
+                                                   + list(old.get("training_shops", []))
+                                                   + (_init_shops(init) if init else [])))
     metrics["ppo_steps"] = int(model.num_timesteps)  # 0: a clone (DAgger included), not a PPO-trained model
     metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
