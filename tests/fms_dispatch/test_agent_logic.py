@@ -181,9 +181,9 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
 
 
 @pytest.mark.parametrize("name, solver, model, net", [("EX12", "ppo:bu", "bu", "paper"),
-                                                      ("EX12", "ppo", "guided", "full"),
+                                                      ("EX12", "ppo", "guided-dagger", "full"),
                                                       ("ra01", "ppo:large", "large", "paper"),
-                                                      ("ra01", "ppo", "guided", "full")])
+                                                      ("ra01", "ppo", "guided-dagger", "full")])
 def test_ppo_over_messages_equals_the_offline_ppo_solver(name: str, solver: str, model: str, net: str) -> None:
     from fms_dispatch.rl import ppo_solver
 
@@ -336,9 +336,9 @@ def test_lookahead_moves_vehicles_over_messages_and_restarts() -> None:
     assert svc.final_schedule.makespan < plain.makespan
     assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst, lookahead=True).makespan
     assert validate(inst, svc.final_schedule) == []
-    # ``lookahead`` alone is the default model with the lookahead: guided, on the full net
+    # ``lookahead`` alone is the default model with the lookahead: guided-dagger, on the full net
     svc, (agent,) = ppo_run(inst, solver="lookahead", idle_stops=True, decisions="full")
-    assert agent.name == "ppo:guided+lookahead" and validate(inst, svc.final_schedule) == []
+    assert agent.name == "ppo:guided-dagger+lookahead" and validate(inst, svc.final_schedule) == []
 
 
 def test_lookahead_twin_follows_orders_at_idle_stops() -> None:
@@ -381,20 +381,20 @@ def test_lookahead_needs_a_shop_with_idle_stops() -> None:
 
 
 def test_guided_default_model_follows_orders_and_disruptions_on_the_full_net() -> None:
-    """The default model of a tool shop (``guided``) re-plans its guide from the live state when an order
+    """The default model of a tool shop (``guided-dagger``) re-plans its guide from the live state when an order
     arrives, and runs a shop with a breakdown and an outage; both schedules are valid."""
     from fms_dispatch.rl import ppo_solver
     from fms_sim.disruptions import Breakdown, Outage, Scenario
 
     inst = builtin("ra01")
     svc, (agent,) = ppo_run(inst, order_at=20, decisions="full")
-    assert agent.name == "ppo:guided" and svc.instance.n_jobs == inst.n_jobs + 1
+    assert agent.name == "ppo:guided-dagger" and svc.instance.n_jobs == inst.n_jobs + 1
     assert agent.decide.twin.instance.n_jobs == inst.n_jobs + 1
     assert validate(svc.instance, svc.final_schedule) == []
     sc = Scenario((Breakdown(machine=2, start=20, duration=40),),
                   (Outage(kind="agv", vehicle=0, start=10, duration=50),), 0.1, 5)
     s = ppo_solver("ppo")(inst, scenario=sc)
-    assert s.meta["model"] == "guided" and validate(inst, s) == []
+    assert s.meta["model"] == "guided-dagger" and validate(inst, s) == []
 
 
 def test_lookahead_guide_over_messages_equals_the_offline_solver() -> None:
@@ -403,7 +403,7 @@ def test_lookahead_guide_over_messages_equals_the_offline_solver() -> None:
     inst = builtin("ra01")
     ref = ppo_solver("ppo")(inst, lookahead="guide")
     svc, (agent,) = ppo_run(inst, solver="ppo+lookahead-guide", idle_stops=True, decisions="full")
-    assert agent.name == "ppo:guided+lookahead-guide" == svc.final_schedule.meta["solver"]
+    assert agent.name == "ppo:guided-dagger+lookahead-guide" == svc.final_schedule.meta["solver"]
     assert any(lab.startswith("reposition:") for lab in svc._applied)  # the plan's empty trips were made
     got = svc.final_schedule.to_dict()
     for key in ("operations", "agv_trips", "tool_trips", "makespan"):

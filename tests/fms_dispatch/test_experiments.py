@@ -46,7 +46,7 @@ def test_partition_and_lower_bound() -> None:
 def test_dynamic_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     doc = run_dynamic(quick=True, results_dir=tmp_path)
     rows, saved = _outputs(tmp_path, "dynamic", DYNAMIC_COLUMNS)
-    assert saved["instance"] == "sl00" and saved["model"] == "guided" and saved["partitions"] == 10
+    assert saved["instance"] == "sl00" and saved["model"] == "guided-dagger" and saved["partitions"] == 10
     inst = builtin("sl00")
     assert saved["lower_bound"] == lower_bound(inst)
     assert [int(r["partition"]) for r in rows] == list(range(10))

@@ -65,5 +65,5 @@ def test_best_refuses_to_fall_back_when_the_models_are_missing(tmp_path: Path,
     name, span, _ = best_solver(inst)
     assert span <= best_rule(inst)[1] and (name.startswith("ppo:guided") or name == best_rule(inst)[0])
     monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path))
-    with pytest.raises(UpError, match=f"--solver best needs the shipped PPO models: no model named 'guided'.*{tmp_path}"):
+    with pytest.raises(UpError, match=f"--solver best needs the shipped PPO models: no model named 'guided-dagger'.*{tmp_path}"):
         best_solver(inst)

@@ -139,7 +139,10 @@ def test_shipped_models_train_apart():
         # each model card lists its training shops, its PPO steps and its held-out results
         metrics = json.loads((folder / "metrics.json").read_text())
         specs = cfg["train"] + [x for st in cfg["warm_start"].get("refine", []) for x in st["train"]]
-        assert metrics["training_shops"] == list(dict.fromkeys(i.name for i in expand_specs(specs, cfg["fleet"])))
+        own = [i.name for i in expand_specs(specs, cfg["fleet"])]
+        if cfg.get("init"):  # a fine-tuned model has seen its initial model's shops too
+            own += json.loads((root.parent / cfg["init"] / "metrics.json").read_text())["training_shops"]
+        assert metrics["training_shops"] == list(dict.fromkeys(own))
         assert metrics["ppo_steps"] == metrics["training"]["timesteps"]
         held = metrics["heldout"]["shops"]
         assert held and all(name.startswith("ho") and "ppo" in row for name, row in held.items())
@@ -457,13 +460,13 @@ def test_solver_spec_errors():
 
 
 def test_default_model_choice():
-    assert default_model_name(builtin("EX12")) == "guided"  # chosen on BU-size validation shops over bu
-    assert default_model_name(builtin("ra01")) == "guided"  # tools: the guided full-net model
-    assert default_model_name(builtin("sl00")) == "guided"
-    assert default_model_name(builtin("sl00").without_tools()) == "guided"
+    assert default_model_name(builtin("EX12")) == "guided-dagger"  # chosen on BU-size validation shops over bu
+    assert default_model_name(builtin("ra01")) == "guided-dagger"  # tools: the guided full-net model
+    assert default_model_name(builtin("sl00")) == "guided-dagger"
+    assert default_model_name(builtin("sl00").without_tools()) == "guided-dagger"
     import dataclasses
 
-    assert default_model_name(dataclasses.replace(builtin("EX12"), n_agvs=3)) == "guided"  # more AGVs than BU
+    assert default_model_name(dataclasses.replace(builtin("EX12"), n_agvs=3)) == "guided-dagger"  # more AGVs
 
 
 # ---------------------------------------------------------------------- shipped models
@@ -495,7 +498,7 @@ def test_solving_with_a_shipped_model_does_not_import_torch():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     makespan, model, torch_loaded, sb3_loaded = res.stdout.split()
-    assert model == "guided" and torch_loaded == "False" and sb3_loaded == "False"
+    assert model == "guided-dagger" and torch_loaded == "False" and sb3_loaded == "False"
     assert int(makespan) == ppo_solver("ppo")(builtin("EX12"), lookahead=True).makespan
 
 
@@ -592,3 +595,26 @@ def test_guided_ppo_is_a_ppo_model_of_guided_that_solves_nominal_and_disrupted_s
     sc = Scenario.draw(inst, noise=0.2, breakdowns=1, horizon=40, seed=3)
     disrupted = solve(inst, scenario=sc, guide_effort=effort_from(tabu=0.0))
     assert validate(inst, disrupted, sc) == []
+
+
+def test_guided_dagger_acts_as_its_expert_in_a_disrupted_shop_where_guided_does_not():
+    """guided-dagger (the default): two DAgger rounds in disrupted runs from guided's weights and no PPO step (its
+    card says so). In a disrupted validation shop where guided leaves the guide follower's run, it makes the
+    follower's run (valid against the scenario)."""
+    from fms_dispatch.full_rules import run_full
+    from fms_dispatch.rl.guide import GuideFollower, effort_from
+    from fms_dispatch.rl.models import load_config
+    from fms_sim.env import check_disruptions, episode_scenario
+
+    ref = resolve_model("guided-dagger")
+    cfg = load_config(ref.folder)
+    metrics = json.loads((ref.folder / "metrics.json").read_text())
+    assert cfg["init"] == "models/guided" and cfg["disruptions"] and cfg["warm_start"]["dagger"] == 2
+    assert metrics["ppo_steps"] == 0 and len(metrics["warm_start"]["dagger_rounds"]) == 2
+    (inst,) = [i for i in expand_instances(["genbu:**3@31"]) if i.name == "bu3s31_01"]
+    sc = episode_scenario(inst, check_disruptions({"noise": 0.2, "breakdowns": 1, "fixed": True, "seed": 0}))
+    effort = effort_from(tabu=0.0)
+    follower = run_full(inst, GuideFollower(effort=effort), sc)
+    dagger = ppo_solver("ppo:guided-dagger")(inst, scenario=sc, guide_effort=effort)
+    clone = ppo_solver("ppo:guided")(inst, scenario=sc, guide_effort=effort)
+    assert validate(inst, dagger, sc) == [] and dagger.makespan == follower.makespan < clone.makespan

@@ -162,6 +162,7 @@ def test_dagger_from_a_trained_models_weights_in_disrupted_shops(tmp_path):
                "warm_start": {"expert": "guide", "dagger": 1, "dagger_epochs": 1}}, out, progress=False)
     assert m["ppo_steps"] == 0 and m["warm_start"]["init"] == str(first)
     assert len(m["warm_start"]["dagger_rounds"]) == 1 and "accuracy" not in m["warm_start"]  # no fresh clone
+    assert "epochs" not in m["warm_start"]
     assert set(m["training_shops"]) == {"gen6x3s7_00", "gen6x3s7_01", "gen6x3s9_00", "gen6x3s9_01"}
     src = MaskablePPO.load(str(first / "best_model.zip"), device="cpu").policy.state_dict()
     after = MaskablePPO.load(str(out / "warm_start.zip"), device="cpu").policy.state_dict()

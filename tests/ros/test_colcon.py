@@ -99,7 +99,7 @@ def test_ament_index_finds_the_colcon_packages(ws: Path, install: str, ros_env: 
         lib = prefix / "lib" / pkg                            # what ros2run lists: executables in lib/<pkg>
         assert {p.name for p in lib.iterdir() if p.is_file() and os.access(p, os.X_OK)} == exes
     models = ws / install / "fms_dispatch" / "share" / "fms_dispatch" / "models"
-    for name in ("bu", "large", "large-agv", "guided"):
+    for name in ("bu", "large", "large-agv", "guided", "guided-dagger"):
         assert {p.name for p in (models / name).iterdir()} == MODEL_FILES
 
 
@@ -126,15 +126,15 @@ def test_nodes_from_the_plain_build_run_ex12_with_the_installed_model(ws: Path, 
     procs = NodeProcs(env, tmp_path)
     try:
         procs.start("recorder", node_cmd(ws, "install", "fms_sim", "recorder", env, db=db))
-        # the default model (guided) decides through the full net
+        # the default model (guided-dagger) decides through the full net
         procs.start("shop", node_cmd(ws, "install", "fms_sim", "shop", env, instance="EX12", run_id="colcon",
                                      history=True, features=False, schedule_out=out, decisions="full"))
         procs.start("agent", node_cmd(ws, "install", "fms_dispatch", "agent", env, solver="ppo",
                                       instance="EX12"))
         wait_file(out, STARTUP_S + RUN_S, procs)
         wait_file(gantt_path(tmp_path, "colcon"), RUN_S, procs)
-        model = ws / "install" / "fms_dispatch" / "share" / "fms_dispatch" / "models" / "guided" / "best_model.zip"
-        assert f"deciding with ppo:guided (model {model})" in procs.log("agent")
+        model = ws / "install" / "fms_dispatch" / "share" / "fms_dispatch" / "models" / "guided-dagger" / "best_model.zip"
+        assert f"deciding with ppo:guided-dagger (model {model})" in procs.log("agent")
         codes = procs.stop_all()
     finally:
         procs.stop_all()
@@ -142,7 +142,7 @@ def test_nodes_from_the_plain_build_run_ex12_with_the_installed_model(ws: Path, 
     from fms_dispatch.rl import ppo_solver
 
     sched, inst = Schedule.load(out), builtin("EX12")
-    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided-dagger"
     assert sched.makespan == ppo_solver("ppo")(inst).makespan
     (stored,) = sqlite3.connect(db).execute("SELECT makespan FROM schedules WHERE run_id = 'colcon'").fetchone()
     assert stored == sched.makespan
@@ -156,8 +156,8 @@ def test_symlink_install_finds_the_models_of_the_source(ws: Path, ros_env: dict[
     try:
         agent = procs.start("agent", node_cmd(ws, "install-sym", "fms_dispatch", "agent", env, solver="ppo",
                                               instance="EX12"))
-        model = ws / "src" / "fms" / "models" / "guided" / "best_model.zip"
-        line = f"deciding with ppo:guided (model {model})"
+        model = ws / "src" / "fms" / "models" / "guided-dagger" / "best_model.zip"
+        line = f"deciding with ppo:guided-dagger (model {model})"
         deadline = time.monotonic() + STARTUP_S
         while line not in procs.log("agent") and time.monotonic() < deadline and agent.poll() is None:
             time.sleep(0.1)

@@ -84,7 +84,7 @@ def test_ament_index_finds_the_packages_and_executables(prefix: Path, monkeypatc
     for script in ("fms", "fms-shop", "fms-agent", "fms-recorder"):
         assert (prefix / "bin" / script).is_file()
     models = prefix / "share" / "fms_dispatch" / "models"   # what solving needs; model.zip stays in the repo
-    for name in ("bu", "large", "large-agv", "guided"):
+    for name in ("bu", "large", "large-agv", "guided", "guided-dagger"):
         assert {p.name for p in (models / name).iterdir()} == {"config.json", "metrics.json", "best_model.zip",
                                                                "best_model.actor.npz"}
     with pytest.raises(ament.PackageNotFoundError):
@@ -127,7 +127,7 @@ def _installed_env(prefix: Path, ros_env: dict[str, str]) -> dict[str, str]:
 
 def test_fms_up_best_runs_the_installed_model(prefix: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
     """The issue's case: after a non-editable install ``fms up EX62 --solver best`` runs the shipped PPO model
-    (the default, guided), not silently the best rule pair (123)."""
+    (the default, guided-dagger), not silently the best rule pair (123)."""
     out = tmp_path / "EX62.json"
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "best", "--out", str(out),
                           "--db", str(tmp_path / "fms.sqlite"), "--log-dir", str(tmp_path / "logs")],
@@ -154,7 +154,7 @@ def test_missing_models_are_an_error_naming_the_places(prefix: Path, ros_env: di
     finally:
         hidden.rename(models)
     assert best.returncode == 2 and best.stderr.startswith("fms up: error: --solver best needs the shipped PPO models")
-    assert ppo.returncode == 2 and "fms-agent: error: solver 'ppo:guided': no model named 'guided'" in ppo.stderr
+    assert ppo.returncode == 2 and "fms-agent: error: solver 'ppo:guided-dagger': no model named 'guided-dagger'" in ppo.stderr
     for res in (best, ppo):
         assert f"searched {models}" in res.stderr and str(Path(sys.prefix, "share", "fms_dispatch", "models")) \
             in res.stderr

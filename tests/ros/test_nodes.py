@@ -80,7 +80,7 @@ def test_fms_up_runs_ex62_end_to_end(ros_env: dict[str, str], tmp_path: Path) ->
                          env=ros_env, capture_output=True, text=True, timeout=120)
     wall = time.perf_counter() - t0
     assert res.returncode == 0, res.stderr + res.stdout
-    # the shipped default model (guided) beats the best rule pair (123) in simulation, so best runs it over the
+    # the shipped default model (guided-dagger) beats the best rule pair (123) in simulation, so best runs it over the
     # topics, on the full net, and gets what the simulation got
     from fms_dispatch.up import best_solver
 
@@ -120,9 +120,9 @@ def test_fms_up_ppo_on_ra01(ros_env: dict[str, str], tmp_path: Path) -> None:
     ref = ppo_solver("ppo")(inst, guide_effort=effort_from(tabu=0))
     sched = Schedule.load(out)
     # the default model of a tool shop decides on the full net: fms up runs the shop on it
-    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided-dagger"
     assert sched.to_dict()["operations"] == ref.to_dict()["operations"] and sched.makespan == ref.makespan
-    assert res.stdout.startswith(f"ra01: makespan {ref.makespan} (ppo:guided over ROS 2 topics")
+    assert res.stdout.startswith(f"ra01: makespan {ref.makespan} (ppo:guided-dagger over ROS 2 topics")
     check_log(db, "up-ppo", sched, inst)
     for name in ("shop", "agent"):
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
@@ -145,7 +145,7 @@ def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tm
     plain = ppo_solver("ppo")(inst, guide_effort=effort_from(0, None, False, 0, 0))
     searched = ppo_solver("ppo")(inst)
     sched = Schedule.load(out)
-    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided"
+    assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:guided-dagger"
     assert sched.makespan == plain.makespan > searched.makespan
     assert sched.to_dict()["operations"] == plain.to_dict()["operations"]
     bad = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "first", "--guide-restarts",

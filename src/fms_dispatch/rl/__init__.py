@@ -27,7 +27,7 @@ __all__ = ["ppo_solver", "add_train_parser"]
 
 
 def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
-    """Solver for ``"ppo"`` (the shipped default, ``guided``: :func:`~fms_dispatch.rl.models.default_model_name`)
+    """Solver for ``"ppo"`` (the shipped default, ``guided-dagger``: :func:`~fms_dispatch.rl.models.default_model_name`)
     or ``"ppo:MODEL"`` (name, folder, .zip).
 
     The returned ``solve(instance, lookahead=False, progress=False, **ignored)`` runs the deterministic masked

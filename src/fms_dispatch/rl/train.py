@@ -488,8 +488,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
         else:
             warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, refine=refined)  # stages with figures
-            if init:
+            if init:  # the rounds started from these weights: no clone ran, so no clone epochs either
                 warm_metrics["init"] = str(init)
+                warm_metrics.pop("epochs", None)
         warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
                             seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
