@@ -446,8 +446,8 @@ def dagger_rounds(model: Any, demos: dict[str, np.ndarray],
                   ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """``rounds`` DAgger rounds after :func:`clone`: each runs ``label_round()`` (the current policy's states
     with the expert's labels, the policy's makespans and optionally the expert's makespans of this round's runs,
-    which replace ``expert_ms``'s: a disrupted round's scenarios), adds the rows to ``demos`` and clones the aggregate
-    for ``epochs`` more epochs. Returns the aggregate and per round the policy's mean makespan *before* that
+    which replace ``expert_ms``'s: a disrupted round's scenarios), adds the rows to ``demos`` and clones the
+    aggregate for ``epochs`` more epochs. Returns the aggregate and per round the policy's mean makespan *before* that
     round's cloning (relative to the experts' makespans ``expert_ms``; ``experts`` names them in the progress
     lines) and the cloning figures."""
     history: list[dict[str, Any]] = []

@@ -13,8 +13,8 @@ A model folder (``models/NAME``) holds:
 
 Shipped models: ``guided-dagger`` (the full-decision net with a list-schedule plan's guide, any shop up to
 100 x 20 x 20; the default: ``guided`` with DAgger rounds in disrupted runs), and, chosen by name, ``guided`` (the
-clone it started from), ``guided-ppo`` (``guided`` fine-tuned by PPO in disrupted shops), ``bu`` (Bilge-Ulusoy-size shops, 2 AGVs, no tools; the paper's
-net), ``large`` and ``large-agv`` (the paper's net; large shops with and
+clone it started from), ``guided-ppo`` (``guided`` fine-tuned by PPO in disrupted shops), ``bu`` (Bilge-Ulusoy-size
+shops, 2 AGVs, no tools; the paper's net), ``large`` and ``large-agv`` (the paper's net; large shops with and
 without tools) and ``full`` (the full net without a guide). A model name is looked up in :func:`model_dirs`,
 one list of places for every caller (``fms solve``, ``fms up``, the agent node):
 

@@ -38,7 +38,7 @@ from fms_sim.full_shop import FullShop
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
 
-from ..full_rules import FullRulePolicy
+from ..full_rules import FullRulePolicy, run_full
 
 __all__ = ["GUIDE_EXPERT", "is_plan_expert", "expert_plan", "expert_policy", "PlanPriorityPolicy",
            "plan_trajectory", "plan_demonstrations",
@@ -216,12 +216,8 @@ def plan_dagger_round(model: Any, instances: Sequence[Instance], plans: dict[str
             shop.act(a)
         rets.extend(_ret(env, reward, lb, shop.makespan) for lb in lbs)
         makespans[inst.name] = shop.makespan
-        if scenario is not None:
-            ref = FullShop(inst, scenario=scenario)
-            expert = expert_policy(inst, plans[inst.name], follow)
-            while not ref.done:
-                ref.act(expert(ref))
-            expert_ms[inst.name] = ref.makespan
+        if scenario is not None:  # the expert in the same scenario: what the policy is measured against
+            expert_ms[inst.name] = run_full(inst, expert_policy(inst, plans[inst.name], follow), scenario).makespan
         if progress is not None:
             progress(f"  dagger: {n + 1}/{len(instances)} shops ({inst.name}: policy makespan {shop.makespan}, "
                      f"expert {expert_ms.get(inst.name, plans[inst.name].makespan)}"

@@ -28,9 +28,10 @@ model's ``training_shops`` include the initial model's.
 sets how a guided model's plans are searched in training and evaluation. ``disruptions`` (full net; e.g.
 ``{"noise": 0.2, "breakdowns": 1}``) trains in disrupted shops, a fresh scenario per episode, and evaluates each
 evaluation shop in a fixed scenario (:mod:`fms_sim.env`); plan experts' DAgger rounds then label the policy's
-states in disrupted runs (:func:`fms_dispatch.rl.plan_expert.plan_dagger_round`). ``baseline: "init"`` (with ``init``) makes every
-episode's return relative to the initial weights' run of the same episode (:mod:`fms_dispatch.rl.relative`), so
-that the scenario's luck cancels and the initial weights score 0 in evaluation.
+states in disrupted runs (:func:`fms_dispatch.rl.plan_expert.plan_dagger_round`). ``baseline: "init"`` (with
+``init``) makes every episode's return relative to the initial weights' run of the same episode
+(:mod:`fms_dispatch.rl.relative`), so that the scenario's luck cancels and the initial weights score 0 in
+evaluation.
 
 ``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
 ``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
