@@ -466,3 +466,35 @@ def test_a_plain_job_shop_is_planned_from_scratch_and_polished():
     assert not at_start(shop) and guide_plan(shop).meta.get("residual") is not None
     s = ppo_solver("ppo:guided")(builtin("ta01"))  # the default search on Taillard's plain job shop
     assert validate(builtin("ta01"), s) == [] and s.makespan >= 1231
+
+
+def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
+    """``Agent.replan_guide``: when a machine breaks down the guide is planned again from the shop's state (a
+    residual plan), or the old order continued from that state where it ends no later; the model then reads the
+    new plan, and the run stays valid in its scenario."""
+    from fms_dispatch.rl.guide import effort_from, retimed_plan
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    inst = builtin("ra01")
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5)
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(tabu=0.0))
+    agent.forget()
+    shop = FullShop(inst, scenario=sc)
+    new = None
+    while not shop.done:
+        if new is None and shop.now >= 20:
+            old = agent.guide_of(shop)
+            assert old.origin is None  # planned at the start
+            kept = retimed_plan(shop, old.plan)
+            fresh = guide_plan(shop, agent.guide_effort)
+            assert kept.meta["residual"] == fresh.meta["residual"] >= 20
+            new = agent.replan_guide(shop)
+            assert new.origin >= 20 and new.plan.makespan == min(kept.makespan, fresh.makespan)
+            assert agent.guide_of(shop) is new  # the observation reads the new plan from now on
+            assert agent.replan_guide(shop, keep_order=False).plan.makespan == fresh.makespan
+        shop.act(agent.act(shop))
+    assert new is not None and validate(inst, shop.schedule(), sc) == []
+    with pytest.raises(ValueError, match="no plan guide"):
+        load_agent("full").replan_guide(FullShop(inst))

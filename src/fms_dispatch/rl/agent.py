@@ -200,6 +200,14 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).plan_guide()
 
+    def replan_guide(self, shop: Shop, keep_order: bool = True) -> Any:
+        """Re-plan the guide the model reads in ``shop`` from its state now
+        (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`); returns the new guide. Raises ValueError for a
+        model without a guide."""
+        if self.guide is None:
+            raise ValueError(f"model {self.name} has no plan guide")
+        return self._env(shop).replan_guide(keep_order)
+
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
         legal = shop.legal_actions()

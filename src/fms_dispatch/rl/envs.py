@@ -32,7 +32,7 @@ from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
 from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanEffort,
-                    PlanGuide, at_start)
+                    PlanGuide, at_start, guide_plan, retimed_plan)
 
 __all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
 
@@ -169,6 +169,21 @@ class FastShopEnv(ShopEnv):
         guide = self._plan_guide = PlanGuide.for_shop(shop, self.guide_effort)
         self._guide_for = inst
         return guide
+
+    def replan_guide(self, keep_order: bool = True) -> PlanGuide:
+        """Re-plan the observed shop's guide from its state now (a residual plan searched with this env's
+        ``guide_effort``), e.g. when a machine breaks down and the plan goes stale; the observation then shows the
+        new plan's heads. With ``keep_order`` the current plan's order continued from the state
+        (:func:`~fms_dispatch.rl.guide.retimed_plan`) is kept instead when it ends no later. Raises ValueError for
+        an env without a guide."""
+        old = self.plan_guide()
+        plan = guide_plan(self.shop, self.guide_effort)
+        if keep_order:
+            kept = retimed_plan(self.shop, old.plan)
+            if kept.makespan <= plan.makespan:
+                plan = kept
+        self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
+        return self._plan_guide
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:

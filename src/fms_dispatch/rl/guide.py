@@ -43,7 +43,7 @@ from fms_sim.schedule import Schedule
 from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
-           "GuideFollower", "GuideMoves", "guide_plan", "PlanEffort", "DEFAULT_EFFORT", "effort_from"]
+           "GuideFollower", "GuideMoves", "guide_plan", "retimed_plan", "PlanEffort", "DEFAULT_EFFORT", "effort_from"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -130,19 +130,11 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     restarts only). A
     state with a vehicle or tool-use choice pending cannot be snapshot; the plans then start from a copy that
     answers those choices (first offered) and stops at the next state that can."""
-    from fms_sim.snapshot import can_snapshot, snapshot
-
     from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan, simple_lower_bound
     from ..tabu import tabu_plan
 
     t0 = time.monotonic()
-    origin = None
-    if not at_start(shop):
-        if not can_snapshot(shop):
-            shop = copy.deepcopy(shop)
-            while not can_snapshot(shop) and not shop.done:
-                shop.act(shop.legal_actions()[0])
-        origin = snapshot(shop)
+    origin = None if at_start(shop) else _state(shop)
     inst = shop.instance
     t1 = time.monotonic()
     plans = [greedy_schedule(inst, rule=rule, origin=origin) for rule in ("est", "ect")]
@@ -196,6 +188,28 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
         if left > 0:
             best = polish_plan(inst, best, time_limit=left, seed=effort.seed)
     return best
+
+
+def _state(shop: FullShop) -> Any:
+    """The snapshot residual plans start from: of ``shop`` now, or, when a vehicle or tool-use choice is pending
+    (no snapshot), of a copy that answers those choices (first offered) up to the next state that has one."""
+    from fms_sim.snapshot import can_snapshot, snapshot
+
+    if not can_snapshot(shop):
+        shop = copy.deepcopy(shop)
+        while not can_snapshot(shop) and not shop.done:
+            shop.act(shop.legal_actions()[0])
+    return snapshot(shop)
+
+
+def retimed_plan(shop: FullShop, plan: Schedule) -> Schedule:
+    """``plan``'s order continued from ``shop``'s state: a residual list schedule that takes the unfinished
+    operations in the order of their planned starts (:func:`fms_dispatch.exact.greedy_schedule` with
+    ``rule="guided"``), so its makespan is what keeping the plan's order now promises."""
+    from ..exact import greedy_schedule
+
+    priority = {(r.job, r.op): float(r.start) for r in plan.operations}
+    return greedy_schedule(shop.instance, rule="guided", priority=priority, origin=_state(shop))
 
 
 def at_start(shop: FullShop) -> bool:
