@@ -24,7 +24,8 @@ the plan's resource orders (:mod:`fms_dispatch.tabu`) and, on shops small enough
 polish, within a time budget (:data:`DEFAULT_EFFORT` when solving; none in training, where the plan is the plain
 list schedule). It is planned
 when a run starts, or from the shop's state (residual plans) when a shop is first seen after it started or after
-its jobs changed (a live order).
+its jobs changed (a live order), or on demand (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`, e.g. when a
+machine breaks down; :func:`retimed_plan` continues the old plan's order from a state, for comparison).
 """
 
 from __future__ import annotations
