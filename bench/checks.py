@@ -1,4 +1,5 @@
-"""What the benches share: every schedule a bench reports passes the project's validator, or the bench stops.
+"""What the benches share: every schedule a bench reports passes the project's validator, or the bench stops; the
+summary is printed and, on request, written with the rows and the command that made them.
 
 The bench scripts run as ``python bench/NAME.py``, which puts this folder on the import path (``from checks import
 checked``).
@@ -6,6 +7,8 @@ checked``).
 
 from __future__ import annotations
 
+import json
+import sys
 from typing import Any
 
 from fms_sim.validate import validate
@@ -19,3 +22,11 @@ def checked(inst: Any, sched: Any, what: str, scenario: Any = None) -> int:
     if problems:
         raise SystemExit(f"INFEASIBLE {inst.name} ({what}): {problems[0]}")
     return sched.makespan
+
+
+def report(lines: list[str], rows: list[dict], path: str | None) -> None:
+    """Print the summary ``lines``; with ``path``, write them there as JSON with the ``rows`` and the command."""
+    print("\n".join(lines))
+    if path:
+        with open(path, "w") as f:
+            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
@@ -33,7 +32,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked
+from checks import checked, report
 
 #: validation shops (seeds no model trains or is selected on): BU size, small and mid-size with and without tools
 DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -95,10 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"noise {noise:g}: {m:28s} mean {mean:9.1f}  {ratio:.4f} x plan:list  "
                          f"below / above {first}: {below} / {above} of {len(part)}")
     lines.append(f"({time.perf_counter() - t_start:.0f} s)")
-    print("\n".join(lines))
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+    report(lines, rows, a.json)
     return 0
 
 

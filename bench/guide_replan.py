@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
@@ -29,7 +28,7 @@ from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked
+from checks import checked, report
 
 #: validation shops (seeds no model trains or is selected on), as bench/disrupted.py's selection run
 DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -90,10 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"  {way:12s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
                      f"below / above plan: {below} / {above}")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
-    print("\n".join(lines))
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+    report(lines, rows, a.json)
     return 0
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 
 from fms_dispatch.rl import ppo_solver
@@ -26,7 +25,7 @@ from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked
+from checks import checked, report
 
 #: the validation shops of the default choice in docs/benchmarks.md §9 (seeds used by no model's config)
 DEFAULT_SHOPS = ["gen:20x10x10*2@216", "gen:50x15x15*2@217", "gen:100x20x20*1@218", "gen:20x10x10*2@219/notools",
@@ -73,10 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             if got:
                 ratio = statistics.mean(r[k] / r["list"] for r in got)
                 lines.append(f"{'tools' if tools else 'AGVs only'}: {k:28s} {ratio:.4f} x list ({len(got)} shops)")
-    print("\n".join(lines))
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+    report(lines, rows, a.json)
     return 0
 
 
