@@ -64,6 +64,11 @@ class NodeProcs:
     def log(self, name: str) -> str:
         return (self.log_dir / f"{name}.log").read_text(errors="replace")
 
+    def report(self, codes: dict[str, int], tail: int = 4000) -> str:
+        """Each node's exit code and the end of its log, as one string: an assertion message that pytest
+        prints whole (a list or dict would be cut to a short repr, hiding the log of the node that failed)."""
+        return "\n".join(f"--- {name}: exit {code}\n{self.log(name)[-tail:]}" for name, code in codes.items())
+
     @staticmethod
     def kill(proc: subprocess.Popen) -> None:
         """SIGKILL the node's process group (a crash)."""

@@ -138,7 +138,7 @@ def test_nodes_from_the_plain_build_run_ex12_with_the_installed_model(ws: Path, 
         codes = procs.stop_all()
     finally:
         procs.stop_all()
-    assert codes == {"recorder": 0, "shop": 0, "agent": 0}, [procs.log(n) for n in codes]
+    assert codes == {"recorder": 0, "shop": 0, "agent": 0}, procs.report(codes)
     from fms_dispatch.rl import ppo_solver
 
     sched, inst = Schedule.load(out), builtin("EX12")
@@ -164,4 +164,4 @@ def test_symlink_install_finds_the_models_of_the_source(ws: Path, ros_env: dict[
         assert line in procs.log("agent"), procs.log("agent")
     finally:
         codes = procs.stop_all()
-    assert codes == {"agent": 0}
+    assert codes == {"agent": 0}, procs.report(codes)

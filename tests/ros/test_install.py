@@ -114,7 +114,8 @@ def test_node_starts_from_the_found_path(prefix: Path, ros_env: dict[str, str], 
         observer.wait_for(lambda g: [s for s in g["state"] if s["run_id"] == "installed" and s["seq"] >= 3],
                           STARTUP_S, "the installed agent's commands")
         assert f"deciding with ppo:bu (model {model})" in procs.log("agent")
-        assert procs.stop(ppo) == 0 and procs.stop(proc) == 0
+        codes = {"agent": procs.stop(ppo), "shop": procs.stop(proc)}
+        assert codes == {"agent": 0, "shop": 0}, procs.report(codes)
     finally:
         procs.stop_all()
 

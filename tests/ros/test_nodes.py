@@ -356,7 +356,8 @@ def test_bad_commands_are_rejected_and_the_shop_keeps_running(nodes: NodeProcs, 
     log = nodes.log("shop")
     for code in ("malformed_json", "bad_schema", "unknown_run", "stale_state", "forbidden_action"):
         assert f"[{code}]" in log
-    assert nodes.stop(nodes.procs[0][1]) == 0
+    code = nodes.stop(nodes.procs[0][1])
+    assert code == 0, nodes.report({"shop": code})
 
 
 def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
