@@ -12,7 +12,8 @@ number, breakdowns within the shop's work per machine), the same for every metho
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops instead, for
 reported figures only (never for choosing). Guided models plan with the solver's default effort unless
-``--guide-*`` options say otherwise. Per level: each method's mean makespan, its mean ratio to ``plan:list``, and
+``--guide-*`` options say otherwise, and re-plan at breakdowns as the solver does unless ``--no-guide-replan``
+(the guide follower never re-plans: compare models with it under ``--no-guide-replan``). Per level: each method's mean makespan, its mean ratio to ``plan:list``, and
 in how many runs it is below the first model. Every schedule is validated against its scenario.
 """
 
@@ -60,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
         insts = expand_instances(a.shops)
     effort = guide_effort_from_args(a)
+    replan = {} if a.guide_replan is None else {"guide_replan": a.guide_replan}
     methods = ["plan:list"] + (["guide-follower"] if a.follower else []) + list(a.models)
     rows = []
     t_start = time.perf_counter()
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                     elif m == "guide-follower":
                         s = run_full(inst, GuideFollower(effort=effort or DEFAULT_EFFORT), sc)
                     else:
-                        s = ppo_solver(m)(inst, scenario=sc, guide_effort=effort)
+                        s = ppo_solver(m)(inst, scenario=sc, guide_effort=effort, **replan)
                     row[m] = checked(inst, s, m, sc)
                     row[m + "_s"] = round(time.perf_counter() - t0, 2)
                 rows.append(row)

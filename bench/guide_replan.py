@@ -1,14 +1,15 @@
 """Re-planning a guided model's plan when a machine breaks down, against acting the stale plan out.
 
-A guided model acts out the plan it made at the start of the run; a breakdown (with noise on every duration) makes
-that plan stale. This runs a guided model on generated shops in fixed disrupted scenarios
-(``fms_sim.env.episode_scenario``, as ``bench/disrupted.py``), three ways in the same scenario: as it is (``plan``),
-re-planning its guide from the shop's state when each breakdown starts (``replan``:
-``Agent.replan_guide(shop, keep_order=False)``), and the same but keeping the old plan's order when, continued from
-that state, it ends no later than the new plan (``replan-keep``: ``keep_order=True``)::
+A guided model plans at the start of the run; a breakdown (with noise on every duration) makes that plan stale.
+This runs a guided model on generated shops in fixed disrupted scenarios (``fms_sim.env.episode_scenario``, as
+``bench/disrupted.py``), three ways in the same scenario: acting the start's plan out (``plan``: ``fms solve
+--no-guide-replan``), re-planning its guide from the shop's state when each breakdown begins and always adopting
+the new plan (``replan``: ``GuideReplanner(agent, margin=None)``), and adopting it only where it ends ``--margin``
+earlier than the plan in force continued from that state (``replan-margin``: the solver's and the agent node's
+default, ``REPLAN_MARGIN``). ``--margins`` adds a ``replan-margin`` way per margin, for choosing one::
 
     python bench/guide_replan.py [--model guided-dagger] [--shops SPEC ...] [--noise 0.2] [--breakdowns 1]
-                                 [--scenarios 2] [--guide-tabu S] [--heldout] [--json FILE]
+                                 [--scenarios 2] [--margins M ...] [--guide-tabu S] [--heldout] [--json FILE]
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops, for reported
 figures only. Prints the total makespan of each way and in how many runs each re-planning way is below / above the
@@ -22,6 +23,8 @@ import json
 import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
+from fms_dispatch.rl.agent import GuideReplanner
+from fms_dispatch.rl.guide import REPLAN_MARGIN
 from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.env import check_disruptions, episode_scenario
@@ -33,20 +36,15 @@ from checks import checked, report
 #: validation shops (seeds no model trains or is selected on), as bench/disrupted.py's selection run
 DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
                  "gen:20x10x10*2@219/notools", "gen:50x15x15*1@217", "gen:50x15x15*1@220/notools"]
-WAYS = ("plan", "replan", "replan-keep")
 
 
-def run(agent, inst, scenario, way: str):
-    """One disrupted run of ``agent``: the guide re-planned at each breakdown's start as ``way`` says."""
+def run(agent, inst, scenario, margin: float | None, replan: bool = True):
+    """One disrupted run of ``agent``, re-planning at each breakdown with ``margin`` (unless not ``replan``)."""
     agent.forget()  # every run plans from scratch
     shop = FullShop(inst, scenario=scenario)
-    starts = sorted({b.start for b in scenario.breakdowns}) if way != "plan" else []
+    choose = GuideReplanner(agent, margin) if replan else agent.act
     while not shop.done:
-        if starts and shop.now >= starts[0]:
-            while starts and shop.now >= starts[0]:
-                starts.pop(0)
-            agent.replan_guide(shop, keep_order=way == "replan-keep")
-        shop.act(agent.act(shop))
+        shop.act(choose(shop))
     return shop.schedule()
 
 
@@ -58,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", type=float, default=0.2, help="spread of the lognormal noise on durations")
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per scenario")
     ap.add_argument("--scenarios", type=int, default=2, help="fixed scenarios per shop")
+    ap.add_argument("--margins", type=float, nargs="+", default=[REPLAN_MARGIN],
+                    help=f"the margins of the replan-margin ways (default {REPLAN_MARGIN}, the default's)")
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     if agent.guide is None:
         raise SystemExit(f"model {a.model} has no plan guide: nothing to re-plan")
     agent.use_guide_effort(guide_effort_from_args(a))
+    ways = {"plan": None, "replan": None, **{f"replan-margin {m:g}": m for m in a.margins}}
     rows = []
     t0 = time.perf_counter()
     for inst in insts:
@@ -77,12 +78,12 @@ def main(argv: list[str] | None = None) -> int:
             sc = episode_scenario(inst, check_disruptions(
                 {"noise": a.noise, "breakdowns": a.breakdowns, "fixed": True, "seed": k}))
             row: dict = {"shop": inst.name, "tools": inst.has_tools, "scenario": k}
-            for way in WAYS:
-                row[way] = checked(inst, run(agent, inst, sc, way), way, sc)
+            for way, margin in ways.items():
+                row[way] = checked(inst, run(agent, inst, sc, margin, way != "plan"), way, sc)
             rows.append(row)
             print(json.dumps(row), flush=True)
     lines = [f"{len(rows)} runs, noise {a.noise:g}, {a.breakdowns} breakdown(s), model {a.model}:"]
-    for way in WAYS:
+    for way in ways:
         total = sum(r[way] for r in rows)
         below = sum(r[way] < r["plan"] for r in rows)
         above = sum(r[way] > r["plan"] for r in rows)

@@ -203,17 +203,24 @@ class TwinDecider:
     It is rebuilt from ``instance`` when a state belongs to another run or its history does not extend the
     one replayed so far; otherwise only the new entries are replayed. See the module docstring for the checks
     and the fallback.
+
+    A ``choose`` with a ``check(shop)`` method (:class:`fms_dispatch.rl.agent.GuideReplanner`: a guided model that
+    re-plans its guide when a machine breaks down) is checked before every answer; each re-plan it reports is
+    published as an ``fms/replan/v1`` (:meth:`drain`).
     """
 
     handles_idle = True
     decisions = "paper"
     """The net of the twin (and of the shop it follows)."""
 
-    def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str, planner: Any = None) -> None:
+    def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str, planner: Any = None,
+                 source: str = SOURCE) -> None:
         self.instance = instance
         self.choose = choose
         self.name = name
         self.planner = planner
+        self.source = source
+        self._outbox: list[Outgoing] = []  # messages to publish after the next answer (drain)
         self.stepper: Stepper | None = None
         self._run_id: str | None = None
         self._idle_stops = False
@@ -345,11 +352,30 @@ class TwinDecider:
         raise FallbackDecision(f"state {state['seq']}: the twin of the shop disagrees with the state ({problem}); "
                                f"sending {_fallback(state)!r}", _fallback(state))
 
+    def drain(self) -> list[Outgoing]:
+        """The messages (``fms/replan/v1``) to publish after the last answer."""
+        out, self._outbox = self._outbox, []
+        return out
+
+    def _check_replan(self, state: dict[str, Any], shop: "Shop") -> None:
+        """Let a re-planning ``choose`` look at the synced twin (a breakdown begun re-plans the guide); report."""
+        check = getattr(self.choose, "check", None)
+        event = None if check is None else check(shop)
+        if event is None:
+            return
+        from fms_msgs_json import TOPIC_REPLANS, make_replan
+
+        self._outbox.append(Outgoing(TOPIC_REPLANS, make_replan(
+            state["run_id"], self.source, state["seq"], event["time"], event["reason"], event["status"],
+            budget_s=event["budget"] or event["wall_time"], wall_s=event["wall_time"], before=event["before"],
+            after=event["after"], method=event["method"])))
+
     def __call__(self, state: dict[str, Any]) -> str:
         self.sync(state)
         st = self.stepper
         assert st is not None
         try:
+            self._check_replan(state, st.shop)
             if st.kind == "idle":
                 return WAIT if self.planner is None else moves_label(self.planner.plan(st))
             legal = _legal(state)
@@ -385,7 +411,7 @@ class PlanDecider(TwinDecider):
 
         from .replan import DEFAULT_DRIFT
 
-        super().__init__(instance, lambda shop: 0, name)
+        super().__init__(instance, lambda shop: 0, name, source=source)
         from .solvers import parse_plan_name
 
         if replan < 0:
@@ -397,7 +423,6 @@ class PlanDecider(TwinDecider):
         self.drift = DEFAULT_DRIFT if drift is None else float(drift)
         if not self.drift > 0:
             raise UnavailableSolver(f"the re-planning drift must be positive, got {self.drift}")
-        self.source = source
         self.plan: Any = None
         self.policy: Any = None
         self.replanner: Any = None
@@ -405,7 +430,6 @@ class PlanDecider(TwinDecider):
         self.plan_error: str | None = None      # why no plan could be made (the fallback rule decides then)
         self.on_fallback = False
         self._job: _ReplanJob | None = None
-        self._outbox: list[Outgoing] = []
         self._answered: str | None = None  # the plan's last answer, not yet seen in the history
         if self.base.lower().startswith("file:"):
             self._make_plan()  # a given plan is checked at once: a bad file stops the agent before the run
@@ -475,11 +499,6 @@ class PlanDecider(TwinDecider):
 
             rp.policy = PlanPolicy.resume(self.stepper.shop, rp.plan)
             rp._off_plan = False
-
-    def drain(self) -> list[Outgoing]:
-        """The messages (``fms/replan/v1``) to publish after the last answer."""
-        out, self._outbox = self._outbox, []
-        return out
 
     def __call__(self, state: dict[str, Any]) -> str:
         if state.get("idle") is None:
@@ -637,10 +656,12 @@ def needs_idle_stops(solver: str) -> bool:
     return low == "lookahead" or low.endswith(tuple(LOOKAHEAD_SUFFIXES))
 
 
-def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None) -> tuple[Decider, str]:
+def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
+                 guide_replan: bool = True) -> tuple[Decider, str]:
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
     ``ppo+lookahead``) over a twin of ``instance``; a guided model searches its plan with ``guide_effort``
-    (:class:`fms_dispatch.rl.guide.PlanEffort`; None: the default)."""
+    (:class:`fms_dispatch.rl.guide.PlanEffort`; None: the default) and, with ``guide_replan``, re-plans it when a
+    machine breaks down (:class:`fms_dispatch.rl.agent.GuideReplanner`)."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
     suffix = next((s for s in LOOKAHEAD_SUFFIXES if low.endswith(s)), "+lookahead")
@@ -676,19 +697,25 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None)
         # a twin that mirrors a disrupted shop knows its scenario: the planner's twins are nominal copies then
         planner = LookaheadPlanner(agent.act, retry=LOOKAHEAD_SUFFIXES[suffix] != "fast", twin=nominal_twin)
         canonical += suffix
-    decider = TwinDecider(instance, agent.act, canonical, planner)
+    choose: Callable[["Shop"], int] = agent.act
+    if guide_replan and agent.guide is not None:
+        from .rl.agent import GuideReplanner
+
+        choose = GuideReplanner(agent)
+    decider = TwinDecider(instance, choose, canonical, planner)
     decider.decisions = agent.decisions  # a full-net model follows a full-net shop
     decider.model_path = agent.path
     return decider, canonical
 
 
 def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *, replan: float = 0.0,
-                 drift: float | None = None, guide_effort: Any = None) -> tuple[Decider, str]:
+                 drift: float | None = None, guide_effort: Any = None, guide_replan: bool = True
+                 ) -> tuple[Decider, str]:
     """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
 
     ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off)
     and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`); ``guide_effort`` the
-    plan search of a guided PPO model."""
+    plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
@@ -709,7 +736,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
         decider = RuleDecider(policy.job_rule, policy.vehicle_rule)
         return decider, decider.name
     if needs_twin(name):
-        return _ppo_decider(name, instance, guide_effort)
+        return _ppo_decider(name, instance, guide_effort, guide_replan)
     if needs_full_net(name):
         if instance is None:
             raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it plans the "
@@ -740,9 +767,9 @@ class AgentLogic:
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
                  instance: Instance | None = None, replan: float = 0.0, drift: float | None = None,
-                 guide_effort: Any = None) -> None:
+                 guide_effort: Any = None, guide_replan: bool = True) -> None:
         self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift,
-                                              guide_effort=guide_effort)
+                                              guide_effort=guide_effort, guide_replan=guide_replan)
         self.source = source
         self.run_id: str | None = None
         self.last_seq = -1           # the newest state seq seen in run_id

@@ -16,10 +16,12 @@ start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahe
 ``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
 re-planning off) and ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
 default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
-``guided``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
+``guided-dagger``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
 tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
-the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`).
+the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`); with ``guide_replan`` (default true) it re-plans
+its guide when a machine breakdown begins, adopting the new plan where it ends 2 % earlier than the plan in force
+(:class:`fms_dispatch.rl.agent.GuideReplanner`), and publishes each re-plan on ``fms/replans``.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ class AgentNode(FmsNode):
         rules = bool(param(n, "guide_rules", False))  # false: DEFAULT_EFFORT's
         exact = float(param(n, "guide_exact", -1.0))
         tabu = float(param(n, "guide_tabu", -1.0))
+        guide_replan = bool(param(n, "guide_replan", True))
         effort = None
         if restarts != -1 or budget != -1.0 or rules or exact != -1.0 or tabu != -1.0:
             from .rl.guide import effort_from
@@ -70,7 +73,8 @@ class AgentNode(FmsNode):
                 raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact: {exc}"
                                    ) from None
         try:
-            self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort)
+            self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
+                                    guide_replan=guide_replan)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:

@@ -40,7 +40,7 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
 def add_guide_args(p: argparse.ArgumentParser) -> None:
     """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``: a
     guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
-    them."""
+    them. ``--[no-]guide-replan``: whether it re-plans at breakdowns (``a.guide_replan``, None: the default)."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
                         "(default 64; 0: none)")
@@ -55,6 +55,9 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guide-exact", type=float, metavar="SECONDS",
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
                         "the full model, within the budget (default 0: no polish)")
+    p.add_argument("--guide-replan", action=argparse.BooleanOptionalAction, default=None,
+                   help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down, "
+                        "adopting the new plan where it ends 2 %% earlier than the plan in force (default: yes)")
 
 
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
@@ -124,6 +127,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
             raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu and --guide-exact "
                            "apply to the ppo solver only")
         opts["guide_effort"] = effort
+    if a.guide_replan is not None:
+        if not a.solver.lower().startswith("ppo"):
+            raise CliError("--[no-]guide-replan applies to the ppo solver only")
+        opts["guide_replan"] = a.guide_replan
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True

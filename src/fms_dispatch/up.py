@@ -259,6 +259,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort)
         say(reason)
+    if a.guide_replan is not None and not needs_twin(solver):
+        raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
     try:
         decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
@@ -322,6 +324,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         agent_params.update(guide_restarts=effort.restarts, guide_budget=float(effort.budget or 0.0),
                             guide_rules=effort.rules, guide_exact=float(effort.exact),
                             guide_tabu=float(effort.tabu))
+    if a.guide_replan is not None:
+        agent_params["guide_replan"] = a.guide_replan
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(domain)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

@@ -433,3 +433,37 @@ def test_a_guided_agent_searches_its_plan_as_told() -> None:
         AgentLogic("first", guide_effort=effort)
     with pytest.raises(UnavailableSolver, match="reads no plan guide"):
         AgentLogic("ppo:bu", instance=builtin("EX12"), guide_effort=effort)
+
+
+def test_a_guided_agent_re_plans_at_a_breakdown_over_messages_as_the_offline_solver() -> None:
+    """The agent's twin learns of the breakdown from the history and re-plans the guide as the offline solver does
+    (the same run), publishing the re-plan on fms/replans; with guide_replan off it acts the start's plan out."""
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import effort_from
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    inst = builtin("ra01")
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5)
+    effort = effort_from(tabu=0.0)  # a search the clock does not cut: the same plans in both runs
+    for replan in (True, False):
+        ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort, guide_replan=replan)
+        svc = ShopService(inst, run_id="b", history=True, decisions="full", scenario=sc)
+        agent = AgentLogic("ppo", instance=inst, guide_effort=effort, guide_replan=replan)
+        replans = []
+        svc.start()
+        while not svc.done:
+            out = agent.on_state(encode(svc.state))
+            replans += [m.decode(encode(o.msg), expect="replan") for o in out if o.topic == m.TOPIC_REPLANS]
+            cmd = out[-1]
+            assert cmd.topic == m.TOPIC_COMMAND
+            assert not [o for o in svc.handle_command(encode(cmd.msg)) if o.topic == m.TOPIC_ERRORS]
+        got = svc.final_schedule
+        assert got.to_dict()["operations"] == ref.to_dict()["operations"] and got.makespan == ref.makespan
+        assert validate(inst, got, sc) == []
+        if replan:
+            (msg,) = replans
+            (ev,) = ref.meta["replans"]
+            assert (msg["run_id"], msg["reason"], msg["status"], msg["method"]) == ("b", "breakdown", "adopted", "guide")
+            assert (msg["time"], msg["before"], msg["after"]) == (ev["time"], ev["before"], ev["after"])
+        else:
+            assert replans == [] and "replans" not in ref.meta

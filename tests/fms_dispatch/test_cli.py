@@ -215,3 +215,25 @@ def test_solve_replans_a_plan_under_disruptions_and_refuses_bad_replan_options(t
     assert code == 2 and "plan: solvers only" in err
     code, _, err = run(["solve", "EX12", "--solver", "plan:list", "--replan", "0", "-q"], capsys)
     assert code == 2 and "--replan must be positive" in err
+
+
+def test_solve_re_plans_a_guided_models_guide_at_a_breakdown(tmp_path, capsys):
+    """A guided model re-plans its guide when the breakdown begins (adopted here: 126 against 135 kept), the
+    re-plans in the schedule's meta; --no-guide-replan acts the start's plan out; only ppo solvers take it."""
+    sc, out = tmp_path / "sc.json", tmp_path / "s.json"
+    sc.write_text(json.dumps({"schema": "fms/scenario/v1", "noise": 0.1, "seed": 5,
+                              "breakdowns": [{"machine": 2, "start": 20, "duration": 40}]}))
+    base = ["solve", "ra01", "--solver", "ppo", "--scenario", str(sc), "--guide-tabu", "0", "--out", str(out), "-q"]
+    code, stdout, _ = run(base, capsys)
+    assert code == 0 and "1 re-plans (1 adopted)" in stdout
+    s = Schedule.load(out)
+    (ev,) = s.meta["replans"]
+    assert (ev["reason"], ev["time"], ev["status"], ev["method"]) == ("breakdown", 20, "adopted", "guide")
+    assert ev["after"] < ev["before"] * (1 - 0.02)
+    assert run(["validate", "ra01", str(out)], capsys)[0] == 0
+    code, stdout, _ = run(base + ["--no-guide-replan"], capsys)
+    kept = Schedule.load(out)
+    assert code == 0 and "re-plans" not in stdout and "replans" not in kept.meta
+    assert kept.makespan > s.makespan  # on this run the re-planned guide ends earlier (126 against 137)
+    code, _, err = run(["solve", "ra01", "--solver", "list", "--no-guide-replan", "-q"], capsys)
+    assert code == 2 and "--[no-]guide-replan applies to the ppo solver only" in err

@@ -470,9 +470,9 @@ def test_a_plain_job_shop_is_planned_from_scratch_and_polished():
 
 def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
     """``Agent.replan_guide``: when a machine breaks down the guide is planned again from the shop's state (a
-    residual plan), or the old order continued from that state where it ends no later; the model then reads the
-    new plan, and the run stays valid in its scenario."""
-    from fms_dispatch.rl.guide import effort_from, retimed_plan
+    residual plan) and adopted where it ends the margin earlier than the plan in force continued from that state
+    (else the plan in force stays); the model then reads the new plan, and the run stays valid in its scenario."""
+    from fms_dispatch.rl.guide import REPLAN_MARGIN, effort_from, retimed_plan
     from fms_dispatch.rl.models import load_agent
     from fms_sim.disruptions import Breakdown, Scenario
 
@@ -482,19 +482,60 @@ def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
     agent.use_guide_effort(effort_from(tabu=0.0))
     agent.forget()
     shop = FullShop(inst, scenario=sc)
-    new = None
+    res = None
     while not shop.done:
-        if new is None and shop.now >= 20:
+        if res is None and shop.now >= 20:
             old = agent.guide_of(shop)
             assert old.origin is None  # planned at the start
             kept = retimed_plan(shop, old.plan)
             fresh = guide_plan(shop, agent.guide_effort)
             assert kept.meta["residual"] == fresh.meta["residual"] >= 20
-            new = agent.replan_guide(shop)
-            assert new.origin >= 20 and new.plan.makespan == min(kept.makespan, fresh.makespan)
-            assert agent.guide_of(shop) is new  # the observation reads the new plan from now on
-            assert agent.replan_guide(shop, keep_order=False).plan.makespan == fresh.makespan
+            # a margin the new plan cannot beat keeps the plan in force
+            res = agent.replan_guide(shop, margin=0.99)
+            assert (res.adopted, res.before, res.after) == (False, kept.makespan, fresh.makespan)
+            assert agent.guide_of(shop) is old
+            res = agent.replan_guide(shop)
+            assert res.adopted == (fresh.makespan < kept.makespan * (1 - REPLAN_MARGIN)) and res.adopted  # 126 < 135
+            new = agent.guide_of(shop)
+            assert new is not old and new.origin >= 20 and new.plan.makespan == fresh.makespan  # the model reads it
+            assert agent.replan_guide(shop, margin=None).adopted  # None: adopted whatever it promises
         shop.act(agent.act(shop))
-    assert new is not None and validate(inst, shop.schedule(), sc) == []
+    assert res is not None and validate(inst, shop.schedule(), sc) == []
     with pytest.raises(ValueError, match="no plan guide"):
         load_agent("full").replan_guide(FullShop(inst))
+    with pytest.raises(ValueError, match="margin"):
+        agent.replan_guide(FullShop(inst, scenario=sc), margin=-0.1)
+
+
+def test_the_guide_replanner_answers_each_breakdown_once_per_run():
+    """``GuideReplanner`` re-plans once per breakdown begun: not again on another shop object of the same run (a
+    twin, a rebuilt replay), again in a new run (a shop at its start); refused for a model without a guide."""
+    import copy
+
+    from fms_dispatch.rl.agent import GuideReplanner
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    inst = builtin("ra01")
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40), Breakdown(machine=3, start=60, duration=10)),
+                  (), 0.1, 5)
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(tabu=0.0))
+    rp = GuideReplanner(agent)
+    for run in range(2):
+        agent.forget()
+        shop = FullShop(inst, scenario=sc)
+        while not shop.done:
+            n = len(rp.events)
+            a = rp(shop)
+            if len(rp.events) > n:  # a twin of this state re-plans nothing again
+                assert rp.check(copy.deepcopy(shop)) is None
+            shop.act(a)
+        assert validate(inst, shop.schedule(), sc) == []
+        assert [(e["reason"], e["time"] >= b.start) for e, b in zip(rp.events[2 * run:], sc.breakdowns)] == [
+            ("breakdown", True)] * 2
+    same = [{k: v for k, v in e.items() if k != "wall_time"} for e in rp.events]
+    assert len(same) == 4 and same[:2] == same[2:]  # the second run as the first
+    with pytest.raises(ValueError, match="no plan guide"):
+        GuideReplanner(load_agent("full"))

@@ -42,6 +42,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     (:class:`~fms_dispatch.rl.guide.GuideMoves`; unverified, no trial runs).
     ``guide_effort`` (a guided model only; :class:`~fms_dispatch.rl.guide.PlanEffort`, default
     :data:`~fms_dispatch.rl.guide.DEFAULT_EFFORT`) is how hard the guide's plan is searched when the run starts.
+    ``guide_replan`` (default True; a guided model in a disrupted run): re-plan the guide when a machine breakdown
+    begins, adopting the new plan where it ends :data:`~fms_dispatch.rl.guide.REPLAN_MARGIN` earlier than the plan
+    in force (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -52,7 +55,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
-              guide_effort: Any = None, **_: Any) -> Schedule:
+              guide_effort: Any = None, guide_replan: bool = True, **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
@@ -78,9 +81,16 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
 
             planner = GuideMoves.for_agent(agent)
         shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
+        replanner = None
+        if disrupted and guide_replan and agent.guide is not None:
+            from .agent import GuideReplanner
+
+            replanner = GuideReplanner(agent)
         # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
-        sched = run_agent(shop, agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
+        sched = run_agent(shop, replanner or agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
                           twin=nominal_twin, planner=planner)
+        if replanner is not None:
+            sched.meta["replans"] = replanner.events
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
         sched.meta["model"] = agent.name
         sched.meta["decisions"] = agent.decisions

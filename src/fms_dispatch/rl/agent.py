@@ -20,8 +20,9 @@ from fms_sim.shop import Shop
 
 from .actors import Actor, actor_path, file_sha256, load_actor, save_actor
 from .envs import FastShopEnv
+from .guide import REPLAN_MARGIN, GuideReplan, at_start
 
-__all__ = ["Agent", "export_actor", "load_torch_policy"]
+__all__ = ["Agent", "GuideReplanner", "export_actor", "load_torch_policy"]
 
 
 def load_torch_policy(weights: str | Path) -> Any:
@@ -200,13 +201,13 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).plan_guide()
 
-    def replan_guide(self, shop: Shop, keep_order: bool = True) -> Any:
-        """Re-plan the guide the model reads in ``shop`` from its state now
-        (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`); returns the new guide. Raises ValueError for a
-        model without a guide."""
+    def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN) -> GuideReplan:
+        """Re-plan the guide the model reads in ``shop`` from its state now, adopting the new plan if it ends
+        ``margin`` earlier than the plan in force (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises
+        ValueError for a model without a guide."""
         if self.guide is None:
             raise ValueError(f"model {self.name} has no plan guide")
-        return self._env(shop).replan_guide(keep_order)
+        return self._env(shop).replan_guide(margin)
 
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
@@ -219,3 +220,45 @@ class Agent:
         if a is None or a not in legal:  # cannot happen with a correct mask; never hand out an illegal action
             raise RuntimeError(f"policy chose a masked action at time {shop.now}")
         return a
+
+
+class GuideReplanner:
+    """``choose(shop) -> net action`` of a guided agent that re-plans its guide when a machine breakdown begins.
+
+    Before each decision it looks for breakdowns of ``shop``'s scenario that have begun and were not yet answered;
+    for those it calls :meth:`Agent.replan_guide` once (with ``margin``) and records the re-plan in
+    :attr:`events` (``{reason, time, wall_time, budget, before, after, status, method}``, as plan re-planning
+    records them). A shop seen at its start begins a new run (nothing answered yet); another shop object of the
+    same run (a twin rebuilt from the history, a lookahead's twin) keeps what was answered, so a twin knowing only
+    the past re-plans nothing again. Outages and live orders do not trigger it (a live order re-plans the guide by
+    itself: the jobs changed)."""
+
+    def __init__(self, agent: Agent, margin: float | None = REPLAN_MARGIN) -> None:
+        if agent.guide is None:
+            raise ValueError(f"model {agent.name} has no plan guide to re-plan")
+        self.agent, self.margin = agent, margin
+        self.events: list[dict[str, Any]] = []
+        self._shop: Shop | None = None
+        self._answered: set[tuple[int, int]] = set()  # (machine, start) of the breakdowns re-planned for
+
+    def check(self, shop: Shop) -> dict[str, Any] | None:
+        """Re-plan if a breakdown has begun in ``shop`` since the last check; returns the event or None."""
+        if shop is not self._shop:
+            if self._shop is None or at_start(shop):
+                self._answered = set()
+            self._shop = shop
+        scenario = getattr(shop, "scenario", None)
+        if scenario is None:
+            return None
+        begun = {(b.machine, b.start) for b in scenario.breakdowns if b.start <= shop.now} - self._answered
+        if not begun:
+            return None
+        self._answered |= begun
+        result = self.agent.replan_guide(shop, self.margin)
+        event = result.event("breakdown", shop.now, self.agent.guide_effort.budget)
+        self.events.append(event)
+        return event
+
+    def __call__(self, shop: Shop) -> int:
+        self.check(shop)
+        return self.agent.act(shop)

@@ -21,6 +21,7 @@ after its jobs changed (a live order), gets a plan from its state.
 
 from __future__ import annotations
 
+import time
 from typing import Sequence
 
 import numpy as np
@@ -31,8 +32,8 @@ from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, 
 from fms_sim.instance import Instance
 from fms_sim.shop import Shop
 
-from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, PlanEffort,
-                    PlanGuide, at_start, guide_plan, retimed_plan)
+from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, REPLAN_MARGIN,
+                    GuideReplan, PlanEffort, PlanGuide, at_start, guide_plan, retimed_plan)
 
 __all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
 
@@ -170,20 +171,25 @@ class FastShopEnv(ShopEnv):
         self._guide_for = inst
         return guide
 
-    def replan_guide(self, keep_order: bool = True) -> PlanGuide:
+    def replan_guide(self, margin: float | None = REPLAN_MARGIN) -> GuideReplan:
         """Re-plan the observed shop's guide from its state now (a residual plan searched with this env's
-        ``guide_effort``), e.g. when a machine breaks down and the plan goes stale; the observation then shows the
-        new plan's heads. With ``keep_order`` the current plan's order continued from the state
-        (:func:`~fms_dispatch.rl.guide.retimed_plan`) is kept instead when it ends no later. Raises ValueError for
-        an env without a guide."""
+        ``guide_effort``), e.g. when a machine breaks down and the plan goes stale. The new plan is adopted (the
+        observation then shows its heads) if it ends at least ``margin`` (a fraction) earlier than the plan in force
+        continued from the state (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it
+        whatever it promises. Raises ValueError for an env without a guide or a negative margin."""
+        if margin is not None and not 0 <= margin < 1:
+            raise ValueError(f"the re-planning margin must be in [0, 1) or None, got {margin!r}")
         old = self.plan_guide()
+        t0 = time.perf_counter()
         plan = guide_plan(self.shop, self.guide_effort)
-        if keep_order:
-            kept = retimed_plan(self.shop, old.plan)
-            if kept.makespan <= plan.makespan:
-                plan = kept
-        self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
-        return self._plan_guide
+        try:
+            before: int | None = retimed_plan(self.shop, old.plan).makespan
+        except (KeyError, ValueError):  # the plan in force does not cover the shop's work: it cannot go on
+            before = None
+        adopted = margin is None or before is None or plan.makespan < before * (1 - margin)
+        if adopted:
+            self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
+        return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:
