@@ -1,19 +1,23 @@
-"""Re-planning a guided model's plan when a machine breaks down, against acting the stale plan out.
+"""Re-planning a guided model's plan when it goes stale, against acting the start's plan out.
 
-A guided model plans at the start of the run; a breakdown (with noise on every duration) makes that plan stale.
+A guided model plans at the start of the run; noise on every duration and machine breakdowns make that plan stale.
 This runs a guided model on generated shops in fixed disrupted scenarios (``fms_sim.env.episode_scenario``, as
-``bench/disrupted.py``), three ways in the same scenario: acting the start's plan out (``plan``: ``fms solve
---no-guide-replan``), re-planning its guide from the shop's state when each breakdown begins and always adopting
-the new plan (``replan``: ``GuideReplanner(agent, margin=None)``), and adopting it only where it ends ``--margin``
-earlier than the plan in force continued from that state (``replan-margin``: the solver's and the agent node's
-default, ``REPLAN_MARGIN``). ``--margins`` adds a ``replan-margin`` way per margin, for choosing one::
+``bench/disrupted.py``), several ways in the same scenario: acting the start's plan out (``plan``: ``fms solve
+--no-guide-replan``), re-planning its guide when each breakdown begins and always adopting the new plan
+(``replan``: ``GuideReplanner(agent, margin=None, drift=None)``), and the ways ``margin M, drift D, budget B`` of
+``GuideReplanner``: re-planned at breakdowns and (with a drift) when an operation starts late against the forecast,
+within B seconds, the new plan adopted where it ends M earlier than the plan in force continued from the state.
+By default only the solver's and the agent node's setting (``REPLAN_MARGIN``, ``REPLAN_DRIFT``,
+``REPLAN_BUDGET``); ``--margins``, ``--drifts`` (``none``: breakdowns only) and ``--budgets`` (``none``: the plan
+search's own) add one way per combination, for choosing them::
 
     python bench/guide_replan.py [--model guided-dagger] [--shops SPEC ...] [--noise 0.2] [--breakdowns 1]
-                                 [--scenarios 2] [--margins M ...] [--guide-tabu S] [--heldout] [--json FILE]
+                                 [--scenarios 2] [--margins M ...] [--drifts D ...] [--budgets B ...]
+                                 [--guide-tabu S] [--heldout] [--json FILE]
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops, for reported
-figures only. Prints the total makespan of each way and in how many runs each re-planning way is below / above the
-plan acted out. Every schedule is validated against its scenario.
+figures only. Prints each way's total makespan, in how many runs it is below / above the plan acted out, its
+re-plans and their wall time. Every schedule is validated against its scenario.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
 from fms_dispatch.rl.agent import GuideReplanner
-from fms_dispatch.rl.guide import REPLAN_MARGIN
+from fms_dispatch.rl.guide import REPLAN_BUDGET, REPLAN_DRIFT, REPLAN_MARGIN
 from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.env import check_disruptions, episode_scenario
@@ -38,14 +42,19 @@ DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x
                  "gen:20x10x10*2@219/notools", "gen:50x15x15*1@217", "gen:50x15x15*1@220/notools"]
 
 
-def run(agent, inst, scenario, margin: float | None, replan: bool = True):
-    """One disrupted run of ``agent``, re-planning at each breakdown with ``margin`` (unless not ``replan``)."""
+def run(agent, inst, scenario, setting: tuple | None):
+    """One disrupted run of ``agent``: re-planned by ``GuideReplanner(agent, *setting)``, or not (None); returns
+    the schedule and the re-plan events."""
     agent.forget()  # every run plans from scratch
     shop = FullShop(inst, scenario=scenario)
-    choose = GuideReplanner(agent, margin) if replan else agent.act
+    rp = None if setting is None else GuideReplanner(agent, *setting)
     while not shop.done:
-        shop.act(choose(shop))
-    return shop.schedule()
+        shop.act(rp(shop) if rp is not None else agent.act(shop))
+    return shop.schedule(), ([] if rp is None else rp.events)
+
+
+def _opt(text: str) -> float | None:
+    return None if text.lower() == "none" else float(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,7 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per scenario")
     ap.add_argument("--scenarios", type=int, default=2, help="fixed scenarios per shop")
     ap.add_argument("--margins", type=float, nargs="+", default=[REPLAN_MARGIN],
-                    help=f"the margins of the replan-margin ways (default {REPLAN_MARGIN}, the default's)")
+                    help=f"margins to try (default {REPLAN_MARGIN}, the solver's)")
+    ap.add_argument("--drifts", type=_opt, nargs="+", default=[REPLAN_DRIFT],
+                    help=f"drifts to try ('none': breakdowns only; default {REPLAN_DRIFT}, the solver's)")
+    ap.add_argument("--budgets", type=_opt, nargs="+", default=[REPLAN_BUDGET],
+                    help=f"re-plan budgets in seconds to try ('none': the plan search's; default {REPLAN_BUDGET})")
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
@@ -70,7 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     if agent.guide is None:
         raise SystemExit(f"model {a.model} has no plan guide: nothing to re-plan")
     agent.use_guide_effort(guide_effort_from_args(a))
-    ways = {"plan": None, "replan": None, **{f"replan-margin {m:g}": m for m in a.margins}}
+    ways: dict[str, tuple | None] = {"plan": None, "replan": (None, None, None)}
+    for m in a.margins:
+        for d in a.drifts:
+            for b in a.budgets:
+                ways[f"margin {m:g}, drift {d}, budget {b}"] = (m, d, b)
     rows = []
     t0 = time.perf_counter()
     for inst in insts:
@@ -78,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
             sc = episode_scenario(inst, check_disruptions(
                 {"noise": a.noise, "breakdowns": a.breakdowns, "fixed": True, "seed": k}))
             row: dict = {"shop": inst.name, "tools": inst.has_tools, "scenario": k}
-            for way, margin in ways.items():
-                row[way] = checked(inst, run(agent, inst, sc, margin, way != "plan"), way, sc)
+            for way, setting in ways.items():
+                sched, events = run(agent, inst, sc, setting)
+                row[way] = checked(inst, sched, way, sc)
+                row[way + " replans"] = [len(events), round(sum(e["wall_time"] for e in events), 3)]
             rows.append(row)
             print(json.dumps(row), flush=True)
     lines = [f"{len(rows)} runs, noise {a.noise:g}, {a.breakdowns} breakdown(s), model {a.model}:"]
@@ -87,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         total = sum(r[way] for r in rows)
         below = sum(r[way] < r["plan"] for r in rows)
         above = sum(r[way] > r["plan"] for r in rows)
-        lines.append(f"  {way:12s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
-                     f"below / above plan: {below} / {above}")
+        n, wall = (sum(r[way + " replans"][i] for r in rows) for i in (0, 1))
+        lines.append(f"  {way:36s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
+                     f"below / above plan: {below:2d} / {above:2d}   {n} re-plans, {wall:.1f} s")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
     return 0

@@ -205,7 +205,7 @@ class TwinDecider:
     and the fallback.
 
     A ``choose`` with a ``check(shop)`` method (:class:`fms_dispatch.rl.agent.GuideReplanner`: a guided model that
-    re-plans its guide when a machine breaks down) is checked before every answer; each re-plan it reports is
+    re-plans its guide when a machine breaks down or its plan runs late) is checked before every answer; each re-plan it reports is
     published as an ``fms/replan/v1`` (:meth:`drain`).
     """
 
@@ -661,7 +661,7 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
     ``ppo+lookahead``) over a twin of ``instance``; a guided model searches its plan with ``guide_effort``
     (:class:`fms_dispatch.rl.guide.PlanEffort`; None: the default) and, with ``guide_replan``, re-plans it when a
-    machine breaks down (:class:`fms_dispatch.rl.agent.GuideReplanner`)."""
+    machine breaks down or its plan runs late (:class:`fms_dispatch.rl.agent.GuideReplanner`)."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
     suffix = next((s for s in LOOKAHEAD_SUFFIXES if low.endswith(s)), "+lookahead")

@@ -20,8 +20,9 @@ default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A 
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
 tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
 the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`); with ``guide_replan`` (default true) it re-plans
-its guide when a machine breakdown begins, adopting the new plan where it ends 2 % earlier than the plan in force
-(:class:`fms_dispatch.rl.agent.GuideReplanner`), and publishes each re-plan on ``fms/replans``.
+its guide in a disrupted shop when a machine breakdown begins or an operation starts late against its plan, adopting
+the new plan where it ends 2 % earlier than the plan in force (:class:`fms_dispatch.rl.agent.GuideReplanner`), and
+publishes each re-plan on ``fms/replans``.
 """
 
 from __future__ import annotations

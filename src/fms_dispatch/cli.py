@@ -56,8 +56,9 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
                         "the full model, within the budget (default 0: no polish)")
     p.add_argument("--guide-replan", action=argparse.BooleanOptionalAction, default=None,
-                   help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down, "
-                        "adopting the new plan where it ends 2 %% earlier than the plan in force (default: yes)")
+                   help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down "
+                        "or an operation starts later than planned by 5 %% of the plan's makespan, adopting the new "
+                        "plan where it ends 2 %% earlier than the plan in force (default: yes)")
 
 
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:

@@ -508,8 +508,9 @@ def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
 
 
 def test_the_guide_replanner_answers_each_breakdown_once_per_run():
-    """``GuideReplanner`` re-plans once per breakdown begun: not again on another shop object of the same run (a
-    twin, a rebuilt replay), again in a new run (a shop at its start); refused for a model without a guide."""
+    """``GuideReplanner`` (breakdowns only: ``drift=None``) re-plans once per breakdown begun: not again on another
+    shop object of the same run (a twin, a rebuilt replay), again in a new run (a shop at its start); refused for a
+    model without a guide or with a drift that is not positive."""
     import copy
 
     from fms_dispatch.rl.agent import GuideReplanner
@@ -522,7 +523,7 @@ def test_the_guide_replanner_answers_each_breakdown_once_per_run():
                   (), 0.1, 5)
     agent = load_agent("guided-dagger")
     agent.use_guide_effort(effort_from(tabu=0.0))
-    rp = GuideReplanner(agent)
+    rp = GuideReplanner(agent, drift=None)
     for run in range(2):
         agent.forget()
         shop = FullShop(inst, scenario=sc)
@@ -539,3 +540,48 @@ def test_the_guide_replanner_answers_each_breakdown_once_per_run():
     assert len(same) == 4 and same[:2] == same[2:]  # the second run as the first
     with pytest.raises(ValueError, match="no plan guide"):
         GuideReplanner(load_agent("full"))
+    with pytest.raises(ValueError, match="drift must be positive"):
+        GuideReplanner(agent, drift=0.0)
+
+
+def test_the_guide_replanner_re_plans_a_late_plan_at_most_once_per_drift():
+    """With ``drift`` the guide is re-planned exactly when an operation started since the last decision is later
+    than the plan in force says by more than drift x its makespan, and, after a re-plan that kept the plan, the
+    clock has moved on by that much since. A drift no delay reaches re-plans nothing; the runs stay valid."""
+    from fms_dispatch.rl.agent import GuideReplanner
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.disruptions import Scenario
+
+    inst = builtin("ra01")
+    sc = Scenario((), (), 0.4, 2)  # noise only: no breakdown
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(tabu=0.0))
+    for drift in (0.05, 0.99):
+        agent.forget()
+        rp = GuideReplanner(agent, drift=drift)
+        shop = FullShop(inst, scenario=sc)
+        seen, quiet, statuses = 0, 0.0, []
+        while not shop.done:
+            expect = False
+            if shop.rec.ops[seen:]:
+                plan = agent.guide_of(shop).plan
+                planned = {(r.job, r.op): r.start for r in plan.operations}
+                tol = max(1.0, drift * plan.makespan)
+                expect = shop.now >= quiet and any(r.start - planned[r.job, r.op] > tol for r in shop.rec.ops[seen:])
+            seen = len(shop.rec.ops)
+            n = len(rp.events)
+            now = shop.now
+            shop.act(rp(shop))
+            assert (len(rp.events) > n) == expect
+            if expect:
+                ev = rp.events[-1]
+                assert ev["reason"] == "late" and ev["time"] == now
+                statuses.append(ev["status"])
+                if ev["status"] == "kept":
+                    quiet = now + tol
+        assert validate(inst, shop.schedule(), sc) == []
+        if drift == 0.99:
+            assert rp.events == []
+        else:
+            assert statuses.index("adopted") < len(statuses) - 1  # re-plans go on after a new plan is adopted

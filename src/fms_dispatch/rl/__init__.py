@@ -43,8 +43,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     ``guide_effort`` (a guided model only; :class:`~fms_dispatch.rl.guide.PlanEffort`, default
     :data:`~fms_dispatch.rl.guide.DEFAULT_EFFORT`) is how hard the guide's plan is searched when the run starts.
     ``guide_replan`` (default True; a guided model in a disrupted run): re-plan the guide when a machine breakdown
-    begins, adopting the new plan where it ends :data:`~fms_dispatch.rl.guide.REPLAN_MARGIN` earlier than the plan
-    in force (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``.
+    begins or an operation starts late against the forecast, adopting the new plan where it ends
+    :data:`~fms_dispatch.rl.guide.REPLAN_MARGIN` earlier than the plan in force
+    (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -86,6 +87,10 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             from .agent import GuideReplanner
 
             replanner = GuideReplanner(agent)
+            if lookahead and planner is None:  # the lookahead's twins roll the plain policy out: they re-plan nothing
+                from .lookahead import LookaheadPlanner
+
+                planner = LookaheadPlanner(agent.act, retry=not fast, twin=nominal_twin)
         # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
         sched = run_agent(shop, replanner or agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
                           twin=nominal_twin, planner=planner)

@@ -20,7 +20,7 @@ from fms_sim.shop import Shop
 
 from .actors import Actor, actor_path, file_sha256, load_actor, save_actor
 from .envs import FastShopEnv
-from .guide import REPLAN_MARGIN, GuideReplan, at_start
+from .guide import REPLAN_BUDGET, REPLAN_DRIFT, REPLAN_MARGIN, GuideReplan, at_start
 
 __all__ = ["Agent", "GuideReplanner", "export_actor", "load_torch_policy"]
 
@@ -201,13 +201,14 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).plan_guide()
 
-    def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN) -> GuideReplan:
-        """Re-plan the guide the model reads in ``shop`` from its state now, adopting the new plan if it ends
-        ``margin`` earlier than the plan in force (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises
-        ValueError for a model without a guide."""
+    def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN, budget: float | None = None
+                     ) -> GuideReplan:
+        """Re-plan the guide the model reads in ``shop`` from its state now (within ``budget`` seconds if shorter
+        than its plan search's), adopting the new plan if it ends ``margin`` earlier than the plan in force
+        (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises ValueError for a model without a guide."""
         if self.guide is None:
             raise ValueError(f"model {self.name} has no plan guide")
-        return self._env(shop).replan_guide(margin)
+        return self._env(shop).replan_guide(margin, budget)
 
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
@@ -223,39 +224,77 @@ class Agent:
 
 
 class GuideReplanner:
-    """``choose(shop) -> net action`` of a guided agent that re-plans its guide when a machine breakdown begins.
+    """``choose(shop) -> net action`` of a guided agent that re-plans its guide when its plan goes stale.
 
-    Before each decision it looks for breakdowns of ``shop``'s scenario that have begun and were not yet answered;
-    for those it calls :meth:`Agent.replan_guide` once (with ``margin``) and records the re-plan in
+    Before each decision in a disrupted shop (one with a scenario: noise, breakdowns, outages; a nominal shop keeps
+    to the plan and is never re-planned) it checks two triggers, as plan re-planning does
+    (:mod:`fms_dispatch.replan`): a machine breakdown of ``shop``'s scenario that has begun and was not yet answered (reason ``breakdown``), and, with
+    ``drift``, an operation started since the last check later than the plan in force says by more than ``drift``
+    times that plan's makespan (``late``). After a re-plan that kept the plan in force, lateness is not a trigger
+    again until the shop's clock has moved on by that much (so a stale plan is re-planned at most about
+    ``1 / drift`` times over its horizon, not at every late operation). Each trigger calls
+    :meth:`Agent.replan_guide` once (with ``margin``, within ``budget`` seconds) and records the re-plan in
     :attr:`events` (``{reason, time, wall_time, budget, before, after, status, method}``, as plan re-planning
-    records them). A shop seen at its start begins a new run (nothing answered yet); another shop object of the
-    same run (a twin rebuilt from the history, a lookahead's twin) keeps what was answered, so a twin knowing only
-    the past re-plans nothing again. Outages and live orders do not trigger it (a live order re-plans the guide by
-    itself: the jobs changed)."""
+    records them). A shop seen at its start begins a new run; another shop object of the same run (a twin rebuilt
+    from the history) keeps what was answered and checks the operations it starts from then on. Only the run's own
+    shop should be checked (lookahead twins are not: pass them the agent's ``act``). Outages do not trigger it; a
+    live order re-plans the guide by itself (the jobs changed), and the lateness check follows the new plan."""
 
-    def __init__(self, agent: Agent, margin: float | None = REPLAN_MARGIN) -> None:
+    def __init__(self, agent: Agent, margin: float | None = REPLAN_MARGIN, drift: float | None = REPLAN_DRIFT,
+                 budget: float | None = REPLAN_BUDGET) -> None:
         if agent.guide is None:
             raise ValueError(f"model {agent.name} has no plan guide to re-plan")
-        self.agent, self.margin = agent, margin
+        if drift is not None and not drift > 0:
+            raise ValueError(f"the re-planning drift must be positive or None, got {drift!r}")
+        self.agent, self.margin, self.drift, self.budget = agent, margin, drift, budget
         self.events: list[dict[str, Any]] = []
         self._shop: Shop | None = None
         self._answered: set[tuple[int, int]] = set()  # (machine, start) of the breakdowns re-planned for
+        self._guide: Any = None  # the guide whose plan the lateness check reads
+        self._planned: dict[tuple[int, int], int] = {}
+        self._tol = 0.0
+        self._quiet_until = 0.0  # no lateness trigger before this time (after a re-plan that kept the plan)
+        self._seen = 0  # operations of the shop's record checked for lateness
+
+    def _late(self, shop: Shop) -> bool:
+        """Whether an operation started since the last check is late against the plan in force (advances the
+        check)."""
+        guide = self.agent.guide_of(shop)
+        if guide is not self._guide:  # a new run, a re-plan adopted, or the guide re-planned for an order
+            self._guide = guide
+            self._planned = {(r.job, r.op): r.start for r in guide.plan.operations}
+            self._tol = max(1.0, (self.drift or 0.0) * guide.plan.makespan)
+        ops = shop.rec.ops  # type: ignore[attr-defined]  # a guided model runs a FullShop
+        late = shop.now >= self._quiet_until and any(
+            r.start - self._planned.get((r.job, r.op), r.start) > self._tol for r in ops[self._seen:])
+        self._seen = len(ops)
+        return late
 
     def check(self, shop: Shop) -> dict[str, Any] | None:
-        """Re-plan if a breakdown has begun in ``shop`` since the last check; returns the event or None."""
+        """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
         if shop is not self._shop:
             if self._shop is None or at_start(shop):
-                self._answered = set()
+                self._answered, self._guide, self._quiet_until = set(), None, 0.0
             self._shop = shop
+            self._seen = len(shop.rec.ops)  # type: ignore[attr-defined]
         scenario = getattr(shop, "scenario", None)
-        if scenario is None:
+        if scenario is None:  # a nominal shop keeps to the plan: nothing to re-plan (a live order re-plans anyway)
             return None
+        reason = None
         begun = {(b.machine, b.start) for b in scenario.breakdowns if b.start <= shop.now} - self._answered
-        if not begun:
+        if begun:
+            self._answered |= begun
+            reason = "breakdown"
+        if self.drift is not None and self._late(shop) and reason is None:
+            reason = "late"
+        if reason is None:
             return None
-        self._answered |= begun
-        result = self.agent.replan_guide(shop, self.margin)
-        event = result.event("breakdown", shop.now, self.agent.guide_effort.budget)
+        result = self.agent.replan_guide(shop, self.margin, self.budget)
+        if not result.adopted:
+            self._quiet_until = shop.now + self._tol
+        budget = self.agent.guide_effort.budget
+        event = result.event(reason, shop.now, budget if self.budget is None or budget is None
+                             else min(budget, self.budget))
         self.events.append(event)
         return event
 

@@ -21,6 +21,7 @@ after its jobs changed (a live order), gets a plan from its state.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Sequence
 
@@ -171,23 +172,30 @@ class FastShopEnv(ShopEnv):
         self._guide_for = inst
         return guide
 
-    def replan_guide(self, margin: float | None = REPLAN_MARGIN) -> GuideReplan:
+    def replan_guide(self, margin: float | None = REPLAN_MARGIN, budget: float | None = None) -> GuideReplan:
         """Re-plan the observed shop's guide from its state now (a residual plan searched with this env's
-        ``guide_effort``), e.g. when a machine breaks down and the plan goes stale. The new plan is adopted (the
-        observation then shows its heads) if it ends at least ``margin`` (a fraction) earlier than the plan in force
-        continued from the state (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it
-        whatever it promises. Raises ValueError for an env without a guide or a negative margin."""
+        ``guide_effort``, within ``budget`` seconds if that is shorter than its own), e.g. when a machine breaks
+        down and the plan goes stale. The new plan is adopted (the observation then shows its heads) if it ends at
+        least ``margin`` (a fraction) earlier than the plan in force continued from the state
+        (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it whatever it promises. Raises
+        ValueError for an env without a guide, a margin outside [0, 1) or a negative budget."""
         if margin is not None and not 0 <= margin < 1:
             raise ValueError(f"the re-planning margin must be in [0, 1) or None, got {margin!r}")
+        if budget is not None and not budget >= 0:
+            raise ValueError(f"the re-planning budget must be >= 0 seconds or None, got {budget!r}")
         old = self.plan_guide()
         t0 = time.perf_counter()
-        plan = guide_plan(self.shop, self.guide_effort)
+        effort = self.guide_effort
+        if budget is not None and (effort.budget is None or budget < effort.budget):
+            effort = dataclasses.replace(effort, budget=budget)
+        plan = guide_plan(self.shop, effort)
         try:
             before: int | None = retimed_plan(self.shop, old.plan).makespan
         except (KeyError, ValueError):  # the plan in force does not cover the shop's work: it cannot go on
             before = None
         adopted = margin is None or before is None or plan.makespan < before * (1 - margin)
         if adopted:
+            # labelled with the env's effort (what the guide is searched with), whatever the re-plan's budget
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
         return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0)
 

@@ -25,7 +25,8 @@ polish, within a time budget (:data:`DEFAULT_EFFORT` when solving; none in train
 list schedule). It is planned
 when a run starts, or from the shop's state (residual plans) when a shop is first seen after it started or after
 its jobs changed (a live order), or on demand (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`: when a
-machine breaks down, solving and the agent node re-plan, :class:`fms_dispatch.rl.agent.GuideReplanner`); a new plan
+machine breaks down or the plan runs :data:`REPLAN_DRIFT` late in a disrupted run, solving and the agent node
+re-plan, :class:`fms_dispatch.rl.agent.GuideReplanner`); a new plan
 replaces the one in force only if it ends :data:`REPLAN_MARGIN` earlier than that one's order continued from the
 state (:func:`retimed_plan`).
 """
@@ -47,7 +48,7 @@ from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
            "GuideFollower", "GuideMoves", "guide_plan", "retimed_plan", "PlanEffort", "DEFAULT_EFFORT", "effort_from",
-           "REPLAN_MARGIN", "GuideReplan"]
+           "REPLAN_MARGIN", "REPLAN_DRIFT", "REPLAN_BUDGET", "GuideReplan"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -132,6 +133,15 @@ def effort_from(restarts: int | None = None, budget: float | None = None, rules:
 #: stays. Chosen on the validation shops in disrupted runs (docs/benchmarks.md §9): the forecasts are nominal and
 #: the noise still to come decides, so a new plan that promises only a little loses about as often as it gains
 REPLAN_MARGIN = 0.02
+
+#: a guided model also re-plans when an operation starts later than its plan in force says by more than this fraction
+#: of that plan's makespan (None: only at breakdowns); plan re-planning's ``DEFAULT_DRIFT``, confirmed on the
+#: validation shops (docs/benchmarks.md §9)
+REPLAN_DRIFT: float | None = 0.05
+
+#: seconds a re-plan from a state may search (None: the plan search's own budget, 1 s by default; 0.1 s lost half the
+#: gain on the validation shops)
+REPLAN_BUDGET: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
