@@ -205,8 +205,8 @@ class TwinDecider:
     and the fallback.
 
     A ``choose`` with a ``check(shop)`` method (:class:`fms_dispatch.rl.agent.GuideReplanner`: a guided model that
-    re-plans its guide when a machine breaks down or its plan runs late) is checked before every answer; each re-plan it reports is
-    published as an ``fms/replan/v1`` (:meth:`drain`).
+    re-plans its guide when a machine breaks down or its plan runs late) is checked before every answer; each
+    re-plan it reports is published as an ``fms/replan/v1`` (:meth:`drain`).
     """
 
     handles_idle = True
@@ -715,7 +715,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
 
     ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off)
     and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`); ``guide_effort`` the
-    plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns."""
+    plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns and delays."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()

@@ -228,11 +228,11 @@ class GuideReplanner:
 
     Before each decision in a disrupted shop (one with a scenario: noise, breakdowns, outages; a nominal shop keeps
     to the plan and is never re-planned) it checks two triggers, as plan re-planning does
-    (:mod:`fms_dispatch.replan`): a machine breakdown of ``shop``'s scenario that has begun and was not yet answered (reason ``breakdown``), and, with
-    ``drift``, an operation started since the last check later than the plan in force says by more than ``drift``
-    times that plan's makespan (``late``). After a re-plan that kept the plan in force, lateness is not a trigger
-    again until the shop's clock has moved on by that much (so a stale plan is re-planned at most about
-    ``1 / drift`` times over its horizon, not at every late operation). Each trigger calls
+    (:mod:`fms_dispatch.replan`): a machine breakdown of ``shop``'s scenario that has begun and was not yet
+    answered (reason ``breakdown``), and, with ``drift``, an operation started since the last check later than the
+    plan in force says by more than ``drift`` times that plan's makespan (``late``). After a re-plan that kept the
+    plan in force, lateness is not a trigger again until the shop's clock has moved on by that much (so a stale plan
+    is re-planned at most about ``1 / drift`` times over its horizon, not at every late operation). Each trigger calls
     :meth:`Agent.replan_guide` once (with ``margin``, within ``budget`` seconds) and records the re-plan in
     :attr:`events` (``{reason, time, wall_time, budget, before, after, status, method}``, as plan re-planning
     records them). A shop seen at its start begins a new run; another shop object of the same run (a twin rebuilt
