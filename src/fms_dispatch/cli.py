@@ -40,7 +40,8 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
 def add_guide_args(p: argparse.ArgumentParser) -> None:
     """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``: a
     guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
-    them. ``--[no-]guide-replan``: whether it re-plans at breakdowns (``a.guide_replan``, None: the default)."""
+    them. ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays (``a.guide_replan``; None: the
+    default)."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
                         "(default 64; 0: none)")

@@ -43,7 +43,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     ``guide_effort`` (a guided model only; :class:`~fms_dispatch.rl.guide.PlanEffort`, default
     :data:`~fms_dispatch.rl.guide.DEFAULT_EFFORT`) is how hard the guide's plan is searched when the run starts.
     ``guide_replan`` (default True; a guided model in a disrupted run): re-plan the guide when a machine breakdown
-    begins or an operation starts late against the forecast, adopting the new plan where it ends
+    begins or an operation starts late against the plan in force, adopting the new plan where it ends
     :data:`~fms_dispatch.rl.guide.REPLAN_MARGIN` earlier than the plan in force
     (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``.
     """
