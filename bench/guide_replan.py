@@ -5,7 +5,7 @@ This runs a guided model on generated shops in fixed disrupted scenarios (``fms_
 ``bench/disrupted.py``), several ways in the same scenario: acting the start's plan out (``plan``: ``fms solve
 --no-guide-replan``), re-planning its guide when each breakdown begins and always adopting the new plan
 (``replan``: ``GuideReplanner(agent, margin=None, drift=None)``), and the ways ``margin M, drift D, budget B`` of
-``GuideReplanner``: re-planned at breakdowns and (with a drift) when an operation starts late against the forecast,
+``GuideReplanner``: re-planned at breakdowns and (with a drift) when an operation starts late against the plan,
 within B seconds, the new plan adopted where it ends M earlier than the plan in force continued from the state.
 By default only the solver's and the agent node's setting (``REPLAN_MARGIN``, ``REPLAN_DRIFT``,
 ``REPLAN_BUDGET``); ``--margins``, ``--drifts`` (``none``: breakdowns only) and ``--budgets`` (``none``: the plan
