@@ -399,12 +399,34 @@ def cmd_up(a: argparse.Namespace) -> int:
     if not keep_logs:
         shutil.rmtree(log_dir, ignore_errors=True)
     meta = sched.meta
+    replans = _recorded_replans(db, run_id)
+    extra = (f", {len(replans)} re-plans ({sum(r.get('status') == 'adopted' for r in replans)} adopted)"
+             if replans else "")
     print(f"{inst.name}: makespan {sched.makespan} ({meta.get('solver', solver)} over ROS 2 topics, "
-          f"{meta.get('decisions', '?')} decisions, valid) in {wall:.2f} s")
+          f"{meta.get('decisions', '?')} decisions{extra}, valid) in {wall:.2f} s")
     print(f"schedule: {out}")
     print(f"sqlite:   {db} (run {run_id})")
     print(f"gantt:    {png}")
     return EXIT_OK
+
+
+def _recorded_replans(db: Path, run_id: str) -> list[dict[str, Any]]:
+    """The agent's re-plans of the run as the recorder stored them (``fms/replans``); none if they cannot be read
+    (the summary line only counts them)."""
+    import sqlite3
+
+    from fms_sim.recorder_store import RecorderStore
+
+    try:
+        store = RecorderStore(db)
+    except (OSError, ValueError):
+        return []
+    try:
+        return store.replans(run_id)
+    except sqlite3.Error:
+        return []
+    finally:
+        store.close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

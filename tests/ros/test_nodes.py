@@ -171,6 +171,7 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
                           "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr + res.stdout
+    assert ", 1 re-plans (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
     inst = builtin("ra01")
     sc = Scenario.load(sc_file)
     ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort_from(tabu=0))
