@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
@@ -88,6 +88,14 @@ def cmd_instances(a: argparse.Namespace) -> int:
     return 0
 
 
+def replans_summary(events: list[dict[str, Any]] | None) -> str:
+    """``", R re-plans (A adopted)"`` for a run's re-plan events (``fms solve`` and ``fms up`` summary lines); ""
+    for None (a run that does not re-plan)."""
+    if events is None:
+        return ""
+    return f", {len(events)} re-plans ({sum(e.get('status') == 'adopted' for e in events)} adopted)"
+
+
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
@@ -141,9 +149,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if problems:  # a solver bug: never hand out an infeasible schedule silently
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
         return EXIT_INFEASIBLE
-    replans = sched.meta.get("replans")
-    extra = "" if replans is None else (f", {len(replans)} re-plans "
-                                        f"({sum(e['status'] == 'adopted' for e in replans)} adopted)")
+    extra = replans_summary(sched.meta.get("replans"))
     print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     _write_outputs(sched, inst, a.out, a.gantt)
     return 0

@@ -399,9 +399,9 @@ def cmd_up(a: argparse.Namespace) -> int:
     if not keep_logs:
         shutil.rmtree(log_dir, ignore_errors=True)
     meta = sched.meta
-    replans = _recorded_replans(db, run_id)
-    extra = (f", {len(replans)} re-plans ({sum(r.get('status') == 'adopted' for r in replans)} adopted)"
-             if replans else "")
+    from .cli import replans_summary
+
+    extra = replans_summary(_recorded_replans(db, run_id) or None)  # nothing recorded: the agent does not re-plan
     print(f"{inst.name}: makespan {sched.makespan} ({meta.get('solver', solver)} over ROS 2 topics, "
           f"{meta.get('decisions', '?')} decisions{extra}, valid) in {wall:.2f} s")
     print(f"schedule: {out}")

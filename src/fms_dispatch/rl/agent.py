@@ -292,9 +292,7 @@ class GuideReplanner:
         result = self.agent.replan_guide(shop, self.margin, self.budget)
         if not result.adopted:
             self._quiet_until = shop.now + self._tol
-        budget = self.agent.guide_effort.budget
-        event = result.event(reason, shop.now, budget if self.budget is None or budget is None
-                             else min(budget, self.budget))
+        event = result.event(reason, shop.now)
         self.events.append(event)
         return event
 

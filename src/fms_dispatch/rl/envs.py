@@ -197,7 +197,7 @@ class FastShopEnv(ShopEnv):
         if adopted:
             # labelled with the env's effort (what the guide is searched with), whatever the re-plan's budget
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
-        return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0)
+        return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0, effort.budget)
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:

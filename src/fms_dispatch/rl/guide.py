@@ -148,16 +148,17 @@ REPLAN_BUDGET: float | None = None
 class GuideReplan:
     """What re-planning a guide found: the predicted makespans of the plan in force continued from the state
     (``before``; None where it cannot be continued) and of the new plan (``after``), whether the new plan was
-    adopted, and the wall time in seconds."""
+    adopted, the wall time and the search's budget in seconds (None: no limit)."""
 
     adopted: bool
     before: int | None
     after: int
     wall_time: float
+    budget: float | None
 
-    def event(self, reason: str, time: int, budget: float | None) -> dict[str, Any]:
+    def event(self, reason: str, time: int) -> dict[str, Any]:
         """The re-plan as a run's event (``meta["replans"]``, as :mod:`fms_dispatch.replan` records them)."""
-        return {"reason": reason, "time": time, "wall_time": round(self.wall_time, 4), "budget": budget,
+        return {"reason": reason, "time": time, "wall_time": round(self.wall_time, 4), "budget": self.budget,
                 "before": self.before, "after": self.after, "status": "adopted" if self.adopted else "kept",
                 "method": "guide"}
 
