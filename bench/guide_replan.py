@@ -9,11 +9,13 @@ This runs a guided model on generated shops in fixed disrupted scenarios (``fms_
 within B seconds, the new plan adopted where it ends M earlier than the plan in force continued from the state.
 By default only the solver's and the agent node's setting (``REPLAN_MARGIN``, ``REPLAN_DRIFT``,
 ``REPLAN_BUDGET``); ``--margins``, ``--drifts`` (``none``: breakdowns only) and ``--budgets`` (``none``: the plan
-search's own) add one way per combination, for choosing them::
+search's own) add one way per combination, for choosing them; ``--replan-tabu`` adds the default way with re-plans
+searched with other tabu search times than the start's plan (``--guide-tabu``; with ``0`` every way starts from the
+same plan), to measure what the tabu search brings to re-plans::
 
     python bench/guide_replan.py [--model guided-dagger] [--shops SPEC ...] [--noise 0.2] [--breakdowns 1]
                                  [--scenarios 2] [--margins M ...] [--drifts D ...] [--budgets B ...]
-                                 [--guide-tabu S] [--heldout] [--json FILE]
+                                 [--guide-tabu S] [--replan-tabu S ...] [--heldout] [--json FILE]
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops, for reported
 figures only. Prints each way's total makespan, in how many runs it is below / above the plan acted out, its
@@ -23,6 +25,7 @@ re-plans and their wall time. Every schedule is validated against its scenario.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -71,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"drifts to try ('none': breakdowns only; default {REPLAN_DRIFT}, the solver's)")
     ap.add_argument("--budgets", type=_opt, nargs="+", default=[REPLAN_BUDGET],
                     help=f"re-plan budgets in seconds to try ('none': the plan search's; default {REPLAN_BUDGET})")
+    ap.add_argument("--replan-tabu", type=float, nargs="+", default=[],
+                    help="also re-plan with these tabu search times (s per operation; the default margin, drift and "
+                         "budget) while the start's plan keeps --guide-tabu's: the tabu search's share of re-plans")
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
@@ -88,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
         for d in a.drifts:
             for b in a.budgets:
                 ways[f"margin {m:g}, drift {d}, budget {b}"] = (m, d, b)
+    for s in a.replan_tabu:
+        ways[f"re-planned with tabu {s:g}"] = (REPLAN_MARGIN, REPLAN_DRIFT, REPLAN_BUDGET,
+                                              dataclasses.replace(agent.guide_effort, tabu=s))
     rows = []
     t0 = time.perf_counter()
     for inst in insts:

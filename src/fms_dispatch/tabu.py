@@ -28,6 +28,12 @@ forbidden by the tabu list (the reverse of a recent move, unless it beats the be
 cycle, until the time budget, the iteration limit, the stall limit or the lower bound. The result is rebuilt as a
 :class:`~fms_sim.schedule.Schedule` (empty trips leave as soon as the vehicle is free) that the validator accepts;
 it is never worse than the start.
+
+It improves residual plans too (re-planning from a running shop's state, :class:`~fms_sim.snapshot.Snapshot`):
+the operations that have started are fixed, and the graph's sources are the state's instead of the depot at time
+0: when each part is free to move (or at its machine, when its move is done or committed), each machine and tool
+is free, where and when each vehicle is free, and a tool reserved for an operation serves it first without a
+delivery (a move that puts another use before it is refused, as a cycle is).
 """
 
 from __future__ import annotations
@@ -38,8 +44,9 @@ from typing import Callable, Iterator, Sequence
 
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.snapshot import Snapshot
 
-__all__ = ["tabu_plan", "solve_tabu"]
+__all__ = ["tabu_plan", "solve_tabu", "residual_lower_bound"]
 
 #: how many iterations a move's reverse stays forbidden: this many plus a random 0..TENURE_SPREAD-1
 TENURE = 6
@@ -56,8 +63,9 @@ class _Graph:
     operation ``i``, node ``n + i`` its loaded AGV trip (when ``carried[i]``: ``pick[i] -> mach[i]``), node
     ``2n + i`` the delivery of its tool (when the tool comes from elsewhere)."""
 
-    def __init__(self, inst: Instance):
+    def __init__(self, inst: Instance, origin: Snapshot | None = None):
         self.inst = inst
+        self.origin = origin
         self.key: list[tuple[int, int]] = []
         self.dur: list[int] = []
         self.mach: list[int] = []
@@ -66,6 +74,11 @@ class _Graph:
         self.jsucc: list[int] = []
         self.pick: list[int] = []
         tools = inst.has_tools
+        first = origin.next_op if origin is not None else (0,) * inst.n_jobs  # each job's first operation to plan
+        arrival = origin.arrival if origin is not None else {}
+        ready = origin.ready if origin is not None else (0,) * inst.n_jobs
+        live: list[int] = []
+        head0: list[bool] = []  # the job's first operation to plan
         for j, job in enumerate(inst.jobs):
             for k, op in enumerate(job):
                 i = len(self.key)
@@ -73,32 +86,63 @@ class _Graph:
                 self.dur.append(op.duration)
                 self.mach.append(op.machine)
                 self.tool.append(op.tool if tools and op.tool is not None else -1)
-                self.jpred.append(i - 1 if k else -1)
+                self.jpred.append(i - 1 if k > first[j] else -1)
                 self.jsucc.append(i + 1 if k + 1 < len(job) else -1)
                 self.pick.append(job[k - 1].machine if k else 0)
+                head0.append(k == first[j])
+                if k >= first[j]:
+                    live.append(i)
         n = self.n = len(self.key)
+        #: the operations planned (all of them for a whole schedule; those not started for a residual plan)
+        self.live = live
         self.index = {key: i for i, key in enumerate(self.key)}
         tr = self.travel = inst.agv_travel
         self.ttravel = inst.tool_travel
-        self.carried = [tr is not None and self.pick[i] != self.mach[i] for i in range(n)]
+        # a part whose move to its machine is done or committed (``arrival``) needs no trip
+        self.carried = [tr is not None and self.pick[i] != self.mach[i]
+                        and not (head0[i] and self.key[i][0] in arrival) for i in range(n)]
         self.loaded = [tr[self.pick[i]][self.mach[i]] if self.carried[i] else 0 for i in range(n)]
         self.P2 = self.dur + self.loaded
         self.pick0 = [0] * n + self.pick  # node n + i picks up at pick[i] (nodes below n: operations, unused)
         self.n_tools = inst.n_tools if tools else 0
         self.n_vehicles = (inst.n_agvs, inst.n_tool_transporters if tools else 0)
+        # where a plan starts from (all zero for a whole schedule: the depot at time 0): when each job's part is free
+        # to move (or at its machine, where it needs no trip), each machine is free, each tool is free (and for a tool
+        # reserved for an operation, when it is there: that use comes first and needs no delivery), each vehicle is
+        # where and free when
+        self.prel = [(arrival.get(self.key[i][0], ready[self.key[i][0]]) if head0[i] else 0) for i in range(n)]
+        mfree = origin.machine_free if origin is not None else (0,) * (inst.n_machines + 1)
+        self.mrel = [mfree[m] for m in self.mach]
+        tfree = origin.tool_free if origin is not None and tools else (0,) * (self.n_tools + 1)
+        self.tloc0 = list(origin.tool_loc) if origin is not None and tools else [0] * (self.n_tools + 1)
+        self.reserved: dict[int, int] = {}
+        self.trel = [tfree[t] if t >= 0 else 0 for t in self.tool]
+        if origin is not None and tools:
+            for t, (j, k, at) in origin.tool_reserved.items():
+                i = self.index[j, k]
+                self.reserved[t] = i
+                self.trel[i] = max(self.trel[i], at)
+        o = origin
+        self.v0 = ((list(o.agv_loc), list(o.agv_free)) if o is not None else ([0] * inst.n_agvs, [0] * inst.n_agvs),
+                   (list(o.tt_loc), list(o.tt_free)) if o is not None and tools
+                   else ([0] * self.n_vehicles[1], [0] * self.n_vehicles[1]))
+        self.base = o.makespan if o is not None else 0  # when the operations already started end
+        # the earliest start of every node from the start state alone (0 throughout for a whole schedule)
+        self.rel = ([max(self.mrel[i], self.trel[i], 0 if self.carried[i] else self.prel[i]) for i in range(n)]
+                    + [self.prel[i] if self.carried[i] else 0 for i in range(n)] + self.trel)
 
     def deliveries(self, tseq: Sequence[Sequence[int]]) -> tuple[list[int], list[int]]:
         """Per operation, the previous use of its tool (-1: none) and where its tool comes from (-1: no delivery,
         the tool is at the machine already or the operation needs none)."""
-        n, mach = self.n, self.mach
+        n, mach, tloc0, reserved = self.n, self.mach, self.tloc0, self.reserved
         tpred = [-1] * n
         src = [-1] * n
-        for seq in tseq:
+        for t, seq in enumerate(tseq):
             prev = -1
             for i in seq:
                 tpred[i] = prev
-                here = mach[prev] if prev >= 0 else 0
-                if here != mach[i]:
+                here = mach[prev] if prev >= 0 else tloc0[t]
+                if here != mach[i] and not (prev < 0 and reserved.get(t) == i):
                     src[i] = here
                 prev = i
         return tpred, src
@@ -108,6 +152,9 @@ class _Graph:
         it), or None if they form a cycle."""
         mseq, aseq, tseq, rseq = o
         n = self.n
+        for t, i in self.reserved.items():  # a reserved tool serves its operation first
+            if not tseq[t] or tseq[t][0] != i:
+                return None
         mpred, msucc, vpred, vsucc = [-1] * n, [-1] * n, [-1] * (3 * n), [-1] * (3 * n)
         for seq in mseq:
             for a, b in zip(seq, seq[1:]):
@@ -133,10 +180,17 @@ class _Graph:
         P = self.P2 + ([ttr[src[i]][mach[i]] if src[i] >= 0 else 0 for i in range(n)] if ttr is not None
                        else [0] * n)
         org = self.pick0 + src  # where each trip (node n + i) and delivery (node 2n + i) picks its load up
+        # when each vehicle's first load can start: its empty trip from where it stands, once free
+        vstart: dict[int, int] = {}
+        for seqs, base, mat, (loc0, free0) in ((aseq, n, tr, self.v0[0]), (rseq, n2, ttr, self.v0[1])):
+            for v, seq in enumerate(seqs):
+                if seq:
+                    node = base + seq[0]
+                    vstart[node] = free0[v] + mat[loc0[v]][org[node]]
         indeg = [0] * (3 * n)
         nodes = 0
         stack = []
-        for i in range(n):
+        for i in self.live:
             d = (mpred[i] >= 0) + (carried[i] or jpred[i] >= 0) + (src[i] >= 0 or tpred[i] >= 0)
             indeg[i] = d
             if not d:
@@ -154,7 +208,7 @@ class _Graph:
                 if not d:
                     stack.append(n2 + i)
                 nodes += 1
-        start = [0] * (3 * n)
+        start = list(self.rel)
         crit = [-1] * (3 * n)
         order: list[int] = []
         append, pop = stack.append, stack.pop
@@ -196,8 +250,8 @@ class _Graph:
                 i, mat = v - n, tr
             else:
                 i, mat = v - n2, ttr
-            if vpred[v] < 0:  # the vehicle's first load: the empty trip from location 0
-                e = mat[0][org[v]]
+            if vpred[v] < 0:  # the vehicle's first load: the empty trip from where it stands
+                e = vstart[v]
                 if e > start[v]:
                     start[v], crit[v] = e, -1
             end = start[v] + P[v]
@@ -218,8 +272,8 @@ class _Graph:
                 append(i)
         if len(order) != nodes:
             return None
-        last = max(range(n), key=lambda i: start[i] + dur[i])
-        return _Eval(start[last] + dur[last], start, crit, order, mpred, msucc, vpred, vsucc, tpred, tsucc, src, org,
+        last = max(self.live, key=lambda i: start[i] + dur[i])
+        return _Eval(max(start[last] + dur[last], self.base), start, crit, order, mpred, msucc, vpred, vsucc, tpred, tsucc, src, org,
                      P, last)
 
     def tails(self, ev: "_Eval") -> list[int]:
@@ -296,18 +350,24 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
     tr, ttr = g.travel, g.ttravel
 
     tpred, tsucc = ev.tpred, ev.tsucc
+    # where the plan starts from (zeros for a whole schedule): part, machine and tool release times, vehicles
+    prel, mrel, trel, tloc0, v0 = g.prel, g.mrel, g.trel, g.tloc0, g.v0
 
     def head_part(x: int) -> int:  # when operation x's part is at its machine, from the job's side
         if carried[x]:
             return start[n + x] + P[n + x]
         y = jpred[x]
-        return start[y] + dur[y] if y >= 0 else 0
+        return start[y] + dur[y] if y >= 0 else prel[x]
 
     def head_tool(x: int) -> int:  # when operation x's tool is at its machine (0: no tool)
         if src[x] >= 0:
             return start[2 * n + x] + P[2 * n + x]
         y = tpred[x]
-        return start[y] + dur[y] if y >= 0 else 0
+        return start[y] + dur[y] if y >= 0 else trel[x]
+
+    def head_machine(x: int) -> int:  # when operation x's machine is free, from the machine's side
+        y = mpred[x]
+        return start[y] + dur[y] if y >= 0 else mrel[x]
 
     def tail_job(x: int) -> int:  # the longest path after operation x along its job
         s = jsucc[x]
@@ -324,34 +384,34 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
         return P[w] + q[w]
 
     def move_tool(a: int, b: int) -> int:  # a delivery of operation b's tool from operation a's machine (a = -1:
-        here = mach[a] if a >= 0 else 0  # from the magazine)
+        here = mach[a] if a >= 0 else tloc0[tool[b]]  # from where the tool starts)
         return ttr[here][mach[b]] if here != mach[b] else 0
 
     def ready(v: int) -> int:  # when trip or delivery v may start, from its load's side
         i = v - n if v < 2 * n else v - 2 * n
         if v < 2 * n:
             y = jpred[i]
-            return start[y] + dur[y] if y >= 0 else 0
+            return start[y] + dur[y] if y >= 0 else prel[i]
         y = ev.tpred[i]
-        return start[y] + dur[y] if y >= 0 else 0
+        return start[y] + dur[y] if y >= 0 else trel[i]
 
     org = ev.org
 
-    def leg(a: int, b: int) -> int:  # the empty leg of a vehicle from the drop-off of a (-1: none) to the pickup of b
-        mat = tr if b < 2 * n else ttr
-        return mat[mach[a - n if a < 2 * n else a - 2 * n] if a >= 0 else 0][org[b]]
+    def leg(a: int, b: int, veh: int) -> int:  # the empty leg of vehicle veh from the drop-off of a (-1: none: from
+        agv = b < 2 * n  # where the vehicle starts) to the pickup of b
+        mat = tr if agv else ttr
+        return mat[mach[a - n if a < 2 * n else a - 2 * n] if a >= 0 else v0[0 if agv else 1][0][veh]][org[b]]
 
-    def free(a: int, b: int) -> int:  # when a vehicle whose last load was a (-1: none) can start b
-        return (start[a] + P[a] if a >= 0 else 0) + leg(a, b)
+    def free(a: int, b: int, veh: int) -> int:  # when vehicle veh, whose last load was a (-1: none), can start b
+        return (start[a] + P[a] if a >= 0 else v0[0 if b < 2 * n else 1][1][veh]) + leg(a, b, veh)
 
     def tool_swap(u: int, v: int) -> int:
         """The estimate for serving v before u (adjacent uses of a tool): deliveries as the new order needs them,
         without waiting for a transporter."""
         a, b = tpred[u], tsucc[v]
-        ta = start[a] + dur[a] if a >= 0 else 0
-        rv = max(head_part(v), start[mpred[v]] + dur[mpred[v]] if mpred[v] >= 0 else 0, ta + move_tool(a, v))
-        ru = max(head_part(u), start[mpred[u]] + dur[mpred[u]] if mpred[u] >= 0 else 0,
-                 rv + dur[v] + move_tool(v, u))
+        ta = start[a] + dur[a] if a >= 0 else trel[u]
+        rv = max(head_part(v), head_machine(v), ta + move_tool(a, v))
+        ru = max(head_part(u), head_machine(u), rv + dur[v] + move_tool(v, u))
         qu = max(tail_job(u), P[msucc[u]] + q[msucc[u]] if msucc[u] >= 0 else 0,
                  move_tool(u, b) + dur[b] + q[b] if b >= 0 else 0)
         qv = max(tail_job(v), P[msucc[v]] + q[msucc[v]] if msucc[v] >= 0 else 0, move_tool(v, u) + dur[u] + qu)
@@ -367,7 +427,7 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
                 if joint:
                     est = -1  # the tool's deliveries change too: evaluated in full
                 else:
-                    rv = max(head_part(v), head_tool(v), start[a] + dur[a] if a >= 0 else 0)
+                    rv = max(head_part(v), head_tool(v), start[a] + dur[a] if a >= 0 else mrel[u])
                     ru = max(head_part(u), head_tool(u), rv + dur[v])
                     qu = max(tail_job(u), tail_tool(u), P[b] + q[b] if b >= 0 else 0)
                     qv = max(tail_job(v), tail_tool(v), qu + dur[u])
@@ -380,11 +440,12 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
             moves.append((tool_swap(u, w), ("t", w, u), ("t", u, w), "t", (u, w)))
         elif u >= n and v >= n and vsucc[u] == v:
             x, y = vpred[u], vsucc[v]
-            rb = max(ready(v), free(x, v))
-            ra = max(ready(u), rb + P[v] + leg(v, u))
+            veh = where[u]
+            rb = max(ready(v), free(x, v, veh))
+            ra = max(ready(u), rb + P[v] + leg(v, u, veh))
             iu, iv = (u - n, v - n) if u < 2 * n else (u - 2 * n, v - 2 * n)
-            qa = max(P[iu] + q[iu], leg(u, y) + P[y] + q[y] if y >= 0 else 0)
-            qb = max(P[iv] + q[iv], leg(v, u) + P[u] + qa)
+            qa = max(P[iu] + q[iu], leg(u, y, veh) + P[y] + q[y] if y >= 0 else 0)
+            qb = max(P[iv] + q[iv], leg(v, u, veh) + P[u] + qa)
             est = max(rb + P[v] + qb, ra + P[u] + qa)
             kind = "a" if u < 2 * n else "r"
             moves.append((est, (kind, iv, iu), (kind, iu, iv), kind, (iu, iv)))
@@ -437,7 +498,7 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
         waits_load = ev.crit[node] != x and not (x < 0 and ev.crit[node] < 0 and start[node] > 0)
         if waits_load and (len(fleet) > 2 or g.inst.has_tools):
             continue  # it waits for its load, not for its vehicle: another vehicle cannot start it earlier
-        rest = max(ready(y), free(x, y)) + P[y] + q[y] if y >= 0 else 0
+        rest = max(ready(y), free(x, y, v)) + P[y] + q[y] if y >= 0 else 0
         ti = start[node]
         rdy = ready(node)
         for w in range(len(fleet)):
@@ -450,10 +511,10 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
             for pos in {max(0, p - 1), p, min(len(other), p + 1)}:
                 before = base + other[pos - 1] if pos > 0 else -1
                 after = base + other[pos] if pos < len(other) else -1
-                ri = max(rdy, free(before, node))
+                ri = max(rdy, free(before, node, w))
                 qi = P[i] + q[i]
                 if after >= 0:
-                    qi = max(qi, leg(node, after) + P[after] + q[after])
+                    qi = max(qi, leg(node, after, w) + P[after] + q[after])
                 est = max(ri + P[node] + qi, rest)
                 kind = "v" if agv else "w"
                 moves.append((est, (kind, i), (kind, i), kind, (i, v, w, pos)))  # the trip stays a while
@@ -519,15 +580,16 @@ def _fix_deliveries(g: _Graph, tseq: list[list[int]], rseq: list[list[int]], ev:
     n2 = 2 * g.n
     start, P = ev.start, ev.P
     out = [[i for i in seq if i in need] for seq in rseq]
+    free0 = g.v0[1][1]
     for i in sorted(need - have):
         y = ev.tpred[i]
-        t = start[y] + g.dur[y] if y >= 0 else 0
+        t = start[y] + g.dur[y] if y >= 0 else g.trel[i]
         best = None
         for r, seq in enumerate(out):
             p = 0
             while p < len(seq) and start[n2 + seq[p]] <= t:
                 p += 1
-            free = start[n2 + seq[p - 1]] + P[n2 + seq[p - 1]] if p else 0
+            free = start[n2 + seq[p - 1]] + P[n2 + seq[p - 1]] if p else free0[r]
             if best is None or free < best[0]:
                 best = (free, r, p)
         assert best is not None
@@ -558,12 +620,13 @@ def _orders(g: _Graph, plan: Schedule) -> Orders:
     return mseq, aseq, tseq, rseq
 
 
-def _legs(g: _Graph, ev: _Eval, routes: list[list[int]], base: int, mat: Sequence[Sequence[int]]
-          ) -> Iterator[tuple[int, int | None, int, int, int, int]]:
+def _legs(g: _Graph, ev: _Eval, routes: list[list[int]], base: int, mat: Sequence[Sequence[int]],
+          start: tuple[list[int], list[int]]) -> Iterator[tuple[int, int | None, int, int, int, int]]:
     """Each vehicle's legs as ``(vehicle, operation or None for an empty leg, from, to, start, end)``: routes of the
-    nodes ``base + i`` (AGV trips or deliveries); empty legs leave as soon as the vehicle is free."""
+    nodes ``base + i`` (AGV trips or deliveries) of vehicles that start where and when ``start`` says; empty legs
+    leave as soon as the vehicle is free."""
     for v, seq in enumerate(routes):
-        here, free = 0, 0
+        here, free = start[0][v], start[1][v]
         for i in seq:
             node = base + i
             origin = ev.org[node]
@@ -576,16 +639,38 @@ def _legs(g: _Graph, ev: _Eval, routes: list[list[int]], base: int, mat: Sequenc
 
 def _schedule(g: _Graph, plan: Schedule, o: Orders, ev: _Eval) -> Schedule:
     inst, n, start, key = g.inst, g.n, ev.start, g.key
-    ops = [OperationRecord(j, k, g.mach[i], g.tool[i] if g.tool[i] >= 0 else None, start[i], start[i] + g.dur[i])
-           for i, (j, k) in enumerate(key)]
+    ops = [OperationRecord(*key[i], g.mach[i], g.tool[i] if g.tool[i] >= 0 else None, start[i], start[i] + g.dur[i])
+           for i in g.live]
     trips = [AgvTrip(v, None, None, a, b, s, e, False) if i is None else AgvTrip(v, *key[i], a, b, s, e, True)
-             for v, i, a, b, s, e in _legs(g, ev, o[1], n, g.travel)]
+             for v, i, a, b, s, e in _legs(g, ev, o[1], n, g.travel, g.v0[0])]
     deliveries = [ToolTrip(r, None, None, None, a, b, s, e, False) if i is None
                   else ToolTrip(r, g.tool[i], *key[i], a, b, s, e, True)
-                  for r, i, a, b, s, e in _legs(g, ev, o[3], 2 * n, g.ttravel)]
+                  for r, i, a, b, s, e in _legs(g, ev, o[3], 2 * n, g.ttravel, g.v0[1])]
+    meta: dict[str, object] = {"solver": "tabu", "improved": plan.meta.get("solver")}
+    if g.origin is not None:
+        meta["residual"] = g.origin.now
     return Schedule(instance=inst.name, makespan=ev.makespan, n_agvs=inst.n_agvs,
                     n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=trips,
-                    tool_trips=deliveries, meta={"solver": "tabu", "improved": plan.meta.get("solver")})
+                    tool_trips=deliveries, meta=meta)
+
+
+def residual_lower_bound(origin: Snapshot) -> int:
+    """A lower bound on the makespan of any run continued from ``origin``: what has started ends as it says, each
+    job's remaining operations follow one another from when its part is free, each machine's remaining work follows
+    when it is free."""
+    inst = origin.instance
+    bound = origin.makespan
+    load = [0] * (inst.n_machines + 1)
+    for j, job in enumerate(inst.jobs):
+        rest = job[origin.next_op[j]:]
+        if rest:
+            bound = max(bound, origin.ready[j] + sum(op.duration for op in rest))
+        for op in rest:
+            load[op.machine] += op.duration
+    for m in range(1, inst.n_machines + 1):
+        if load[m]:
+            bound = max(bound, origin.machine_free[m] + load[m])
+    return bound
 
 
 def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int = 0, progress: bool = False,
@@ -622,29 +707,43 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
 
 def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, max_iters: int | None = None,
               max_stall: int | None = None, seed: int = 0, bound: int = 0,
-              progress: Callable[[int, int, float], None] | None = None) -> Schedule:
+              progress: Callable[[int, int, float], None] | None = None, origin: Snapshot | None = None) -> Schedule:
     """``plan`` or a better schedule of ``inst`` found by tabu search over its resource orders within ``budget``
     seconds (None: no time limit), ``max_iters`` iterations and ``max_stall`` iterations without a better schedule
     (None: no limit; a budget or an iteration limit must be set), stopping at ``bound`` (pass
-    :func:`fms_dispatch.exact.simple_lower_bound`). Reproducible for a given ``seed`` while the time limit does not
-    cut it short. ``plan`` must be a whole schedule of ``inst``, not a residual plan. ``progress(makespan,
-    iteration, seconds)`` is called at every better schedule."""
+    :func:`fms_dispatch.exact.simple_lower_bound`, or :func:`residual_lower_bound` for a residual plan).
+    Reproducible for a given ``seed`` while the time limit does not cut it short. ``progress(makespan, iteration,
+    seconds)`` is called at every better schedule.
+
+    ``plan`` is a whole schedule of ``inst``, or, with ``origin`` (the :class:`~fms_sim.snapshot.Snapshot` of a
+    running shop), a residual plan from that state (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``):
+    then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
+    when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
+    is a residual plan from the same state."""
     if budget is None and max_iters is None:
         raise ValueError("tabu_plan needs a time budget or an iteration limit")
     if budget is not None and budget < 0:
         raise ValueError(f"budget must be >= 0 seconds, got {budget}")
     if max_iters is not None and max_iters < 0:
         raise ValueError(f"max_iters must be >= 0, got {max_iters}")
-    if "residual" in plan.meta:
-        raise ValueError("tabu_plan needs a whole schedule; a residual plan (meta['residual']) cannot be improved")
-    if budget == 0 or max_iters == 0 or plan.makespan <= bound:
+    if origin is None and "residual" in plan.meta:
+        raise ValueError("tabu_plan improves a residual plan (meta['residual']) only with the snapshot it starts "
+                         "from (origin)")
+    if origin is not None and plan.meta.get("residual") != origin.now:
+        raise ValueError(f"the plan does not start from the snapshot at time {origin.now} (its meta['residual']: "
+                         f"{plan.meta.get('residual')!r})")
+    if origin is not None and origin.instance.jobs != inst.jobs:
+        raise ValueError(f"the snapshot is of other jobs than {inst.name}'s")
+    if budget == 0 or max_iters == 0 or plan.makespan <= bound or (origin is not None and not origin.remaining):
         return plan
     t0 = time.monotonic()
     deadline = None if budget is None else t0 + budget
-    g = _Graph(inst)
+    g = _Graph(inst, origin)
     n = g.n
     rng = random.Random(seed)
     o = _orders(g, plan)
+    if sorted(i for seq in o[0] for i in seq) != g.live:
+        return plan  # the plan does not hold exactly the operations to plan (a residual plan of another state)
     _, src = g.deliveries(o[2])
     if {i for i in range(n) if src[i] >= 0} != {i for seq in o[3] for i in seq}:
         return plan  # a delivery the tool order does not need (a trip to where the tool is): not this search's form

@@ -414,11 +414,14 @@ def test_the_tabu_search_improves_the_guides_plan():
     # it gets no more than what the budget leaves: none at all here
     assert guide_plan(FullShop(inst), PlanEffort(restarts=32, budget=0.0, tabu=1.0)).makespan == \
         guide_plan(FullShop(inst)).makespan
-    # a residual plan (a run seen after its start) is not searched by it
+    # a residual plan (a run seen after its start) is searched by it too, from the state, and ends no later
     shop = FullShop(inst)
     for _ in range(6):
         shop.act(shop.legal_actions()[0])
-    assert guide_plan(shop, PlanEffort(tabu=1.0)).meta["solver"] == "greedy"
+    listed = guide_plan(shop)
+    residual = guide_plan(shop, PlanEffort(tabu=0.05))
+    assert residual.meta["solver"] == "tabu" and residual.meta["residual"] == listed.meta["residual"] == shop.now
+    assert residual.makespan < listed.makespan
     # with tools too: ra01 within the default effort's budget
     ra = builtin("ra01")
     plan = guide_plan(FullShop(ra), PlanEffort(restarts=0, budget=1.0, tabu=0.01))
@@ -472,7 +475,7 @@ def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
     """``Agent.replan_guide``: when a machine breaks down the guide is planned again from the shop's state (a
     residual plan) and adopted where it ends the margin earlier than the plan in force continued from that state
     (else the plan in force stays); the model then reads the new plan, and the run stays valid in its scenario."""
-    from fms_dispatch.rl.guide import REPLAN_MARGIN, effort_from, retimed_plan
+    from fms_dispatch.rl.guide import REPLAN_MARGIN, PlanEffort, effort_from, retimed_plan
     from fms_dispatch.rl.models import load_agent
     from fms_sim.disruptions import Breakdown, Scenario
 
@@ -499,6 +502,13 @@ def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
             new = agent.guide_of(shop)
             assert new is not old and new.origin >= 20 and new.plan.makespan == fresh.makespan  # the model reads it
             assert agent.replan_guide(shop, margin=None).adopted  # None: adopted whatever it promises
+            # a re-plan may be searched with another effort than the model's (here the plain list schedule): the
+            # guide then reads that plan, labelled with the model's own effort (what its guide is searched with)
+            plain = guide_plan(shop, PlanEffort())
+            res = agent.replan_guide(shop, margin=None, effort=PlanEffort())
+            assert res.adopted and res.after == plain.makespan != fresh.makespan
+            assert agent.guide_of(shop).plan.makespan == plain.makespan
+            assert agent.guide_of(shop).effort == agent.guide_effort
         shop.act(agent.act(shop))
     assert res is not None and validate(inst, shop.schedule(), sc) == []
     with pytest.raises(ValueError, match="no plan guide"):
@@ -538,6 +548,14 @@ def test_the_guide_replanner_answers_each_breakdown_once_per_run():
             ("breakdown", True)] * 2
     same = [{k: v for k, v in e.items() if k != "wall_time"} for e in rp.events]
     assert len(same) == 4 and same[:2] == same[2:]  # the second run as the first
+    assert all(e["budget"] == agent.guide_effort.budget == 1.0 for e in rp.events)
+    # re-plans searched with another effort than the model's (here without a time limit) say so
+    other = GuideReplanner(agent, drift=None, effort=effort_from(tabu=0.0, budget=0))
+    agent.forget()
+    shop = FullShop(inst, scenario=sc)
+    while not shop.done:
+        shop.act(other(shop))
+    assert [e["reason"] for e in other.events] == ["breakdown"] * 2 and all(e["budget"] is None for e in other.events)
     with pytest.raises(ValueError, match="no plan guide"):
         GuideReplanner(load_agent("full"))
     with pytest.raises(ValueError, match="drift must be positive"):

@@ -7,11 +7,17 @@ import time
 
 import pytest
 
+import random
+
 from fms_dispatch.exact import greedy_schedule, simple_lower_bound
-from fms_dispatch.tabu import _Graph, _orders, tabu_plan
+from fms_dispatch.tabu import _Graph, _orders, residual_lower_bound, tabu_plan
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
+from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
+from fms_sim.replay import PlanPolicy
+from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
+from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
 
 
@@ -105,9 +111,16 @@ def test_tabu_search_refuses_what_it_cannot_do():
         shop.act(shop.legal_actions()[0])
     from fms_sim.snapshot import snapshot
 
-    residual = greedy_schedule(inst, origin=snapshot(shop))
+    snap = snapshot(shop)
+    residual = greedy_schedule(inst, origin=snap)
     with pytest.raises(ValueError, match="residual"):
         tabu_plan(inst, residual, budget=0.1)
+    with pytest.raises(ValueError, match="does not start from the snapshot"):
+        tabu_plan(inst, plan, budget=0.1, origin=snap)  # a whole schedule is not a plan from this state
+    with pytest.raises(ValueError, match="does not start from the snapshot"):
+        tabu_plan(inst, greedy_schedule(inst, origin=Snapshot.initial(inst)), budget=0.1, origin=snap)
+    with pytest.raises(ValueError, match="jobs"):
+        tabu_plan(builtin("EX11"), residual, budget=0.1, origin=snap)
 
 
 def test_the_tabu_solver_by_name(capsys):
@@ -126,3 +139,89 @@ def test_the_tabu_solver_by_name(capsys):
         solve(inst, "tabu", time_limit=0)
     assert main(["solve", "ra01", "--solver", "tabu", "--time-limit", "0.2", "-q"]) == 0
     assert "makespan" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------------------------- residual plans
+def _run_until(inst, plan, cut, scenario=None):
+    """Replay ``plan`` for ``cut`` answers, then on to the next stop where a snapshot can be taken."""
+    shop = FullShop(inst, scenario=scenario)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    pol = PlanPolicy(inst, plan)
+    n = 0
+    while st.kind != "done":
+        if n >= cut and can_snapshot(shop):
+            break
+        label = pol.answer(st)
+        pol.apply(st, label)
+        st.apply(label)
+        n += 1
+    return shop, st
+
+
+def _finish(shop, residual):
+    """Run ``shop`` to its end by ``residual`` (resumed from its state); its schedule."""
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    pol = PlanPolicy.resume(shop, residual)
+    while st.kind != "done":
+        label = pol.answer(st)  # never stuck: the residual plan fits the state
+        pol.apply(st, label)
+        st.apply(label)
+    return shop.schedule()
+
+
+def test_from_the_initial_state_the_residual_search_is_the_whole_one():
+    for name in ("EX74", "ra05"):
+        inst = builtin(name)
+        start = Snapshot.initial(inst)
+        whole = tabu_plan(inst, greedy_schedule(inst), budget=None, max_iters=100)
+        residual = tabu_plan(inst, greedy_schedule(inst, origin=start), budget=None, max_iters=100, origin=start)
+        assert residual.meta["residual"] == 0 and residual.makespan == whole.makespan < greedy_schedule(inst).makespan
+        assert (residual.operations, residual.agv_trips, residual.tool_trips) == (
+            whole.operations, whole.agv_trips, whole.tool_trips)
+
+
+@pytest.mark.parametrize("name", ["EX74", "ra05", "ra05/no-agvs", "tools"])
+def test_residual_plans_from_running_shops_are_searched_and_run_to_a_valid_end(name):
+    # from states of nominal and disrupted runs (parts on their way, tools reserved and carried, machines down):
+    # only what has not started is planned, from the state; never later than the list schedule's residual plan
+    # nor below the bound; and the shop runs to a valid end by it (a nominal copy, and the disrupted shop itself)
+    inst = _tool_shop() if name == "tools" else builtin(name[:4])
+    if name.endswith("no-agvs"):
+        inst = inst.without_agvs()
+    plan = greedy_schedule(inst, rule="ect")
+    rng = random.Random(2)
+    gains = reserved = 0
+    for cut in sorted(rng.sample(range(1, 4 * inst.n_operations), 6)):
+        for sc in (None, Scenario(breakdowns=(Breakdown(1, 5, 30),), noise=0.3, seed=cut)):
+            shop, st = _run_until(inst, plan, cut, sc)
+            if st.kind == "done":
+                continue
+            snap = snapshot(shop)
+            reserved += bool(snap.tool_reserved)
+            listed = greedy_schedule(inst, origin=snap)
+            bound = residual_lower_bound(snap)
+            better = tabu_plan(inst, listed, budget=None, max_iters=150, bound=bound, origin=snap)
+            assert better.meta["residual"] == snap.now
+            assert {(r.job, r.op) for r in better.operations} == {
+                (j, k) for j, job in enumerate(inst.jobs) for k in range(snap.next_op[j], len(job))}
+            assert all(r.start >= snap.now for r in better.operations)
+            assert bound <= better.makespan <= listed.makespan
+            assert better.makespan == max([r.end for r in better.operations] + [snap.makespan])
+            gains += better.makespan < listed.makespan
+            out = _finish(nominal_copy(shop) if sc is None else shop, better)
+            assert validate(inst, out) == [], (name, cut, sc)
+    assert gains > 0  # the search improves residual plans
+    if inst.has_tools and inst.has_agvs:
+        assert reserved > 0  # states with a tool reserved for an operation were searched from
+
+
+def test_the_residual_lower_bound_holds_what_has_started_and_what_remains():
+    inst = builtin("EX74")
+    assert residual_lower_bound(Snapshot.initial(inst)) >= max(sum(o.duration for o in job) for job in inst.jobs)
+    shop, _ = _run_until(inst, greedy_schedule(inst), 20)
+    snap = snapshot(shop)
+    assert snap.now > 0 and residual_lower_bound(snap) >= snap.makespan
+    # every continuation ends at or after it: the list schedule's residual plan, run to its end
+    assert _finish(nominal_copy(shop), greedy_schedule(inst, origin=snap)).makespan >= residual_lower_bound(snap)

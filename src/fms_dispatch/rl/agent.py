@@ -201,14 +201,14 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).plan_guide()
 
-    def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN, budget: float | None = None
-                     ) -> GuideReplan:
-        """Re-plan the guide the model reads in ``shop`` from its state now (within ``budget`` seconds if shorter
-        than its plan search's), adopting the new plan if it ends ``margin`` earlier than the plan in force
+    def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN, budget: float | None = None,
+                     effort: Any = None) -> GuideReplan:
+        """Re-plan the guide the model reads in ``shop`` from its state now (searched with ``effort``, by default the
+        model's, within ``budget`` seconds if shorter than its plan search's), adopting the new plan if it ends ``margin`` earlier than the plan in force
         (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises ValueError for a model without a guide."""
         if self.guide is None:
             raise ValueError(f"model {self.name} has no plan guide")
-        return self._env(shop).replan_guide(margin, budget)
+        return self._env(shop).replan_guide(margin, budget, effort)
 
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
@@ -233,7 +233,8 @@ class GuideReplanner:
     plan in force says by more than ``drift`` times that plan's makespan (``late``). After a re-plan that kept the
     plan in force, lateness is not a trigger again until the shop's clock has moved on by that much (so a stale plan
     is re-planned at most about ``1 / drift`` times over its horizon, not at every late operation). Each trigger calls
-    :meth:`Agent.replan_guide` once (with ``margin``, within ``budget`` seconds) and records the re-plan in
+    :meth:`Agent.replan_guide` once (with ``margin``, within ``budget`` seconds, searched with ``effort``: None, the
+    model's plan search) and records the re-plan in
     :attr:`events` (``{reason, time, wall_time, budget, before, after, status, method}``, as plan re-planning
     records them). A shop seen at its start begins a new run; another shop object of the same run (a twin rebuilt
     from the history) keeps what was answered and checks the operations it starts from then on. Only the run's own
@@ -241,12 +242,12 @@ class GuideReplanner:
     live order re-plans the guide by itself (the jobs changed), and the lateness check follows the new plan."""
 
     def __init__(self, agent: Agent, margin: float | None = REPLAN_MARGIN, drift: float | None = REPLAN_DRIFT,
-                 budget: float | None = REPLAN_BUDGET) -> None:
+                 budget: float | None = REPLAN_BUDGET, effort: Any = None) -> None:
         if agent.guide is None:
             raise ValueError(f"model {agent.name} has no plan guide to re-plan")
         if drift is not None and not drift > 0:
             raise ValueError(f"the re-planning drift must be positive or None, got {drift!r}")
-        self.agent, self.margin, self.drift, self.budget = agent, margin, drift, budget
+        self.agent, self.margin, self.drift, self.budget, self.effort = agent, margin, drift, budget, effort
         self.events: list[dict[str, Any]] = []
         self._shop: Shop | None = None
         self._answered: set[tuple[int, int]] = set()  # (machine, start) of the breakdowns re-planned for
@@ -289,7 +290,7 @@ class GuideReplanner:
             reason = "late"
         if reason is None:
             return None
-        result = self.agent.replan_guide(shop, self.margin, self.budget)
+        result = self.agent.replan_guide(shop, self.margin, self.budget, self.effort)
         if not result.adopted:
             self._quiet_until = shop.now + self._tol
         event = result.event(reason, shop.now)

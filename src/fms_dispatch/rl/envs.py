@@ -172,10 +172,11 @@ class FastShopEnv(ShopEnv):
         self._guide_for = inst
         return guide
 
-    def replan_guide(self, margin: float | None = REPLAN_MARGIN, budget: float | None = None) -> GuideReplan:
-        """Re-plan the observed shop's guide from its state now (a residual plan searched with this env's
-        ``guide_effort``, within ``budget`` seconds if that is shorter than its own), e.g. when a machine breaks
-        down and the plan goes stale. The new plan is adopted (the observation then shows its heads) if it ends at
+    def replan_guide(self, margin: float | None = REPLAN_MARGIN, budget: float | None = None,
+                     effort: PlanEffort | None = None) -> GuideReplan:
+        """Re-plan the observed shop's guide from its state now (a residual plan searched with ``effort``, by default
+        this env's ``guide_effort``, within ``budget`` seconds if that is shorter than its own), e.g. when a machine
+        breaks down and the plan goes stale. The new plan is adopted (the observation then shows its heads) if it ends at
         least ``margin`` (a fraction) earlier than the plan in force continued from the state
         (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it whatever it promises. Raises
         ValueError for an env without a guide, a margin outside [0, 1) or a negative budget."""
@@ -185,7 +186,7 @@ class FastShopEnv(ShopEnv):
             raise ValueError(f"the re-planning budget must be >= 0 seconds or None, got {budget!r}")
         old = self.plan_guide()
         t0 = time.perf_counter()
-        effort = self.guide_effort
+        effort = self.guide_effort if effort is None else effort
         if budget is not None and (effort.budget is None or budget < effort.budget):
             effort = dataclasses.replace(effort, budget=budget)
         plan = guide_plan(self.shop, effort)

@@ -70,9 +70,10 @@ class PlanEffort:
     ``seed``; they search around its start times too), the restarts preceded by the two list schedules that send
     each carry to the nearest vehicle (:func:`fms_dispatch.exact.greedy_schedule`'s ``vehicle="nearest"``) if
     better. The rules stop when the next would end after half of ``budget`` seconds, the nearest-vehicle schedules
-    and the restarts after all of it (None: no time limit). Then, for a run at its start: with ``tabu`` seconds
-    per operation of the shop, a tabu search over the plan's resource orders (:func:`fms_dispatch.tabu.tabu_plan`);
-    with ``exact`` seconds, on a shop small enough for CP-SAT's full model
+    and the restarts after all of it (None: no time limit). Then, with ``tabu`` seconds per operation to plan (all of
+    the shop's at a run's start; from a state, those not started), a tabu search over the plan's resource orders
+    (:func:`fms_dispatch.tabu.tabu_plan`); for a run at its start, with ``exact`` seconds, on a shop small enough for
+    CP-SAT's full model
     (:data:`fms_dispatch.exact.FULL_MODEL_MAX_TASKS` transport tasks), a CP-SAT polish of the best plan
     (:func:`fms_dispatch.exact.polish_plan`). The restarts leave both their time, but keep at least half of what the
     budget has left after the polish's; each gets no more than what the budget has left. ``PlanEffort()`` is the
@@ -166,12 +167,12 @@ class GuideReplan:
 def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
     (the project's ``list`` reference; earliest start on ties), searched further as ``effort`` says (rule pairs,
-    restarts, tabu search, polish), from scratch when the run has not started, else from its state (residual plans,
-    restarts only). A
+    restarts, tabu search, polish), from scratch when the run has not started, else from its state (residual plans:
+    no rule pairs and no polish). A
     state with a vehicle or tool-use choice pending cannot be snapshot; the plans then start from a copy that
     answers those choices (first offered) and stops at the next state that can."""
     from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan, simple_lower_bound
-    from ..tabu import tabu_plan
+    from ..tabu import residual_lower_bound, tabu_plan
 
     t0 = time.monotonic()
     origin = None if at_start(shop) else _state(shop)
@@ -199,9 +200,9 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
             run_s = time.monotonic() - t1
             if plans[-1].makespan < best.makespan:
                 best = plans[-1]
-    # at the run's start: the tabu search (its time grows with the shop), then CP-SAT's polish on shops within its
-    # full model
-    tabu_s = effort.tabu * inst.n_operations if origin is None else 0.0
+    # the tabu search (its time grows with the operations to plan: all of them at the run's start, those not started
+    # from a state), then, at the run's start, CP-SAT's polish on shops within its full model
+    tabu_s = effort.tabu * (inst.n_operations if origin is None else origin.remaining)
     polish = effort.exact if origin is None and fits_full_model(inst) else 0.0
     if effort.restarts:
         # the same two list schedules with the nearest vehicle for each carry, where they end within the budget
@@ -222,7 +223,8 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     if tabu_s:
         left = tabu_s if deadline is None else min(tabu_s, deadline - time.monotonic() - polish)
         if left > 0:
-            best = tabu_plan(inst, best, budget=left, seed=effort.seed, bound=simple_lower_bound(inst))
+            bound = simple_lower_bound(inst) if origin is None else residual_lower_bound(origin)
+            best = tabu_plan(inst, best, budget=left, seed=effort.seed, bound=bound, origin=origin)
     if polish:
         left = polish if deadline is None else min(polish, deadline - time.monotonic())
         if left > 0:
