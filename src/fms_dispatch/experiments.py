@@ -58,9 +58,10 @@ from fms_sim.benchmarks import SL_GROUPS
 from fms_sim.shopsets import expand_specs
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
+from fms_sim.shop import Shop
 from fms_sim.validate import validate
 
-__all__ = ["run_ablation", "run_generalization", "run_dynamic", "add_experiment_parser", "lower_bound",
+__all__ = ["run_ablation", "run_generalization", "run_dynamic", "run_arrivals", "add_experiment_parser", "lower_bound",
            "partition_jobs", "ABLATION_STUDIES", "ABLATION_COLUMNS", "GENERALIZATION_COLUMNS", "DYNAMIC_COLUMNS"]
 
 ABLATION_COLUMNS = ("study", "variant", "instance", "makespan", "valid", "wall_time", "timesteps",
@@ -455,6 +456,45 @@ def _sub_instance(inst: Instance, jobs: Sequence[int], label: str) -> Instance:
     return dataclasses.replace(inst, name=f"{inst.name}{label}", jobs=tuple(inst.jobs[j] for j in jobs))
 
 
+def run_arrivals(agent: Any, inst: Instance, groups: Sequence[Sequence[int]], arrival: Sequence[float],
+                 on_arrival: Callable[[Shop, int, bool, float], None] | None = None) -> tuple[Shop, float]:
+    """``agent`` runs one live shop (its net: ``agent.decisions``) to the end while job partitions arrive:
+    partition p (``groups[p]``, jobs of ``inst``) is added with :meth:`~fms_sim.shop.Shop.add_jobs` at the first
+    decision moment at or after ``arrival[p]``, or at the last decision before the shop would run dry (early).
+    ``on_arrival(shop, p, early, decision_seconds_so_far)`` is called after each partition enters (partition 0 is
+    the shop's start). Returns the finished shop and the agent's decision time in seconds."""
+    from fms_sim.full_shop import make_shop
+
+    shop = make_shop(_sub_instance(inst, groups[0], "-dyn"), agent.decisions)
+    decide = 0.0
+    nxt = 1
+    if on_arrival is not None:
+        on_arrival(shop, 0, False, decide)
+    while True:
+        while nxt < len(groups) and shop.now >= arrival[nxt]:
+            shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
+            if on_arrival is not None:
+                on_arrival(shop, nxt, False, decide)
+            nxt += 1
+        if shop.done:
+            break
+        t0 = time.perf_counter()
+        a = agent.act(shop)
+        decide += time.perf_counter() - t0
+        if nxt < len(groups) and shop.instance.n_operations - sum(shop.job_started_ops) <= 2:
+            with shop.trial():
+                shop.act(a)
+                runs_dry = shop.done
+            if runs_dry:  # the shop would run dry before the next arrival: the partition enters now (early)
+                shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
+                if on_arrival is not None:
+                    on_arrival(shop, nxt, True, decide)
+                nxt += 1
+                continue  # decide again with the new jobs in view
+        shop.act(a)
+    return shop, decide
+
+
 def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                 instance: str | None = None, model: str | None = None, sos_time: float | None = None,
                 parts: int = 10, echo: bool = True) -> dict[str, Any]:
@@ -482,11 +522,8 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         raise ValueError(f"instance {inst.name} does not fit model {agent.name} ({agent.padding})")
 
     rows: list[dict[str, Any]] = []
-    shop = make_shop(_sub_instance(inst, groups[0], "-dyn"), agent.decisions)
-    decide = 0.0
-    nxt = 1
 
-    def arrive(p: int, early: bool) -> None:
+    def arrive(shop: Shop, p: int, early: bool, decide: float) -> None:
         """Record partition p (already in the shop): project the RL makespan, re-solve with SOS."""
         t0 = time.perf_counter()
         proj = finish(shop, agent.act) if not shop.done else shop.makespan
@@ -502,27 +539,7 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
                      "rl_projection_time": round(proj_t, 4), "sos_makespan": s.makespan,
                      "sos_time_cum": round(prev + sos_t, 3), "sos_valid": _checked(sub, s)})
 
-    arrive(0, False)
-    while True:
-        while nxt < len(groups) and shop.now >= arrival[nxt]:
-            shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
-            arrive(nxt, False)
-            nxt += 1
-        if shop.done:
-            break
-        t0 = time.perf_counter()
-        a = agent.act(shop)
-        decide += time.perf_counter() - t0
-        if nxt < len(groups) and shop.instance.n_operations - sum(shop.job_started_ops) <= 2:
-            with shop.trial():
-                shop.act(a)
-                runs_dry = shop.done
-            if runs_dry:  # the shop would run dry before the next arrival: the partition enters now (early)
-                shop.add_jobs([inst.jobs[j] for j in groups[nxt]])
-                arrive(nxt, True)
-                nxt += 1
-                continue  # decide again with the new jobs in view
-        shop.act(a)
+    shop, decide = run_arrivals(agent, inst, groups, arrival, arrive)
     final = shop.schedule()
     _checked(shop.instance, final)
     static_ms = run_agent(make_shop(inst, agent.decisions), agent.act).makespan  # reference: all jobs at 0
