@@ -12,7 +12,8 @@ A plan (a schedule from ``cpsat``, ``sos``, ...) is executed through the full-de
   the state (the prediction *before*), earliest-start and earliest-completion list schedules from the state, a
   CP-SAT model of the remaining work (machines, tools, job precedences with their loaded trips; vehicles are
   left to the list scheduler) *hinted with the remaining plan* whose start times then guide a list schedule,
-  and randomised list-scheduling restarts around the best plan until the budget is spent; optionally
+  randomised list-scheduling restarts around the best plan, then a tabu search over its resource orders
+  (:func:`fms_dispatch.tabu.tabu_plan` from the state) until the budget is spent; optionally
   (``rules``) the continuations of full-net rules, each run to the end on a nominal copy. The best predicted
   makespan (*after*) wins; if it is no better than *before*, the current plan stays in force (an order always
   needs a new plan: the old one does not cover its jobs);
@@ -46,12 +47,17 @@ from fms_sim.stepping import Stepper
 
 from .exact import _improve_by_priorities, greedy_schedule
 from .full_rules import parse_full_rule
+from .tabu import residual_lower_bound, tabu_plan
 
 __all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS",
-           "DEFAULT_DRIFT"]
+           "DEFAULT_DRIFT", "REPLAN_TABU"]
 
 DEFAULT_DRIFT = 0.05
 """Re-plan when an operation starts later than planned by more than this fraction of the plan's makespan."""
+
+REPLAN_TABU = 0.0025
+"""Seconds of tabu search per operation left to plan, after the restarts (at most half of what the budget has left
+then): the guided models' plan search's share (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`)."""
 
 
 @dataclass
@@ -236,9 +242,19 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
             cands.append((greedy_schedule(inst, rule="guided", priority=starts, origin=snap), "cpsat"))
     best = min(cands, key=lambda c: c[0].makespan)[0]
     if time.monotonic() + one <= deadline - reserve:
-        improved = _improve_by_priorities(inst, best, None, 0, deadline - reserve, seed, None, t0, origin=snap)
+        # the restarts, then the tabu search from the best plan (its time grows with the work left; at most half of
+        # what is left)
+        tabu_s = min(REPLAN_TABU * snap.remaining, (deadline - reserve - time.monotonic()) / 2)
+        improved = _improve_by_priorities(inst, best, None, 0, deadline - reserve - tabu_s, seed, None, t0,
+                                          origin=snap)
         if improved.makespan < best.makespan:
             cands.append((improved, "restarts"))
+            best = improved
+    left = deadline - reserve - time.monotonic()
+    if left > 0:
+        searched = tabu_plan(inst, best, budget=left, seed=seed, bound=residual_lower_bound(snap), origin=snap)
+        if searched.makespan < best.makespan:
+            cands.append((searched, "tabu"))
     cands.sort(key=lambda c: c[0].makespan)
     if sim is None:
         plan, method = cands[0]
