@@ -187,7 +187,7 @@ def _rule_plan(sim: FullShop, rule: Any) -> Schedule:
 
 def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: FullShop | None = None,
            policy: PlanPolicy | None = None, seed: int = 0, workers: int = 1,
-           rules: Sequence[tuple[str, Any]] = ()) -> ReplanResult:
+           rules: Sequence[tuple[str, Any]] = (), tabu: float = REPLAN_TABU) -> ReplanResult:
     """Re-optimise the work left in ``snap`` within ``budget`` seconds (module docstring), warm-started from
     ``current`` (the plan in force: a whole schedule or a residual plan).
 
@@ -244,14 +244,14 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     if time.monotonic() + one <= deadline - reserve:
         # the restarts, then the tabu search from the best plan (its time grows with the work left; at most half of
         # what is left)
-        tabu_s = min(REPLAN_TABU * snap.remaining, (deadline - reserve - time.monotonic()) / 2)
+        tabu_s = min(tabu * snap.remaining, (deadline - reserve - time.monotonic()) / 2)
         improved = _improve_by_priorities(inst, best, None, 0, deadline - reserve - tabu_s, seed, None, t0,
                                           origin=snap)
         if improved.makespan < best.makespan:
             cands.append((improved, "restarts"))
             best = improved
     left = deadline - reserve - time.monotonic()
-    if left > 0:
+    if tabu > 0 and left > 0:
         searched = tabu_plan(inst, best, budget=left, seed=seed, bound=residual_lower_bound(snap), origin=snap)
         if searched.makespan < best.makespan:
             cands.append((searched, "tabu"))
@@ -290,12 +290,16 @@ class Replanner:
     events: list[dict[str, Any]] = field(default_factory=list)
     #: full-net rules (names, e.g. ``rule:LPSR+nearest+fifo``) whose continuations each re-plan also weighs
     rules: Sequence[str] = ()
+    #: seconds of tabu search per operation left to plan in each re-plan (0: none; :data:`REPLAN_TABU`)
+    tabu: float = REPLAN_TABU
 
     def __post_init__(self) -> None:
         if not self.budget > 0:
             raise ValueError(f"the re-planning budget must be positive, got {self.budget}")
         if not self.drift > 0:
             raise ValueError(f"the re-planning drift must be positive, got {self.drift}")
+        if not self.tabu >= 0:
+            raise ValueError(f"the re-planning tabu search must be >= 0 seconds per operation, got {self.tabu}")
         self._rules = [(name, parse_full_rule(name)) for name in self.rules]
         self.policy: PlanPolicy | None = None
         self._pending: str | None = None
@@ -354,7 +358,7 @@ class Replanner:
         policy then), all taken by the caller: this touches nothing of the running shop, so it is safe in another
         thread (see :meth:`take`)."""
         return replan(snap, self.plan, self.budget, sim=sim, policy=policy, seed=self.seed + len(self.events),
-                      workers=self.workers, rules=self._rules)
+                      workers=self.workers, rules=self._rules, tabu=self.tabu)
 
     def take(self, shop: FullShop) -> tuple[Snapshot, FullShop, PlanPolicy | None]:
         """What :meth:`compute` needs, taken from ``shop`` now (in the thread that runs the shop)."""
@@ -460,12 +464,13 @@ class Replanner:
 
 def solve_with_replanning(instance: Instance, plan: Schedule, *, budget: float = 2.0, drift: float = DEFAULT_DRIFT,
                           scenario: Scenario | None = None, seed: int = 0,
-                          fallback: str = "rule:MTWR+nearest+fifo", rules: Sequence[str] = ()) -> Schedule:
+                          fallback: str = "rule:MTWR+nearest+fifo", rules: Sequence[str] = (),
+                          tabu: float = REPLAN_TABU) -> Schedule:
     """Execute ``plan`` through the full-decision net in a shop disrupted by ``scenario``, re-planning on the
-    triggers (module docstring; ``rules``: see :class:`Replanner`); the realised schedule, with
+    triggers (module docstring; ``rules``, ``tabu``: see :class:`Replanner`); the realised schedule, with
     ``meta["replans"]`` the events."""
     shop = FullShop(instance, scenario=scenario)
-    rp = Replanner(instance, plan, budget=budget, drift=drift, seed=seed, rules=tuple(rules))
+    rp = Replanner(instance, plan, budget=budget, drift=drift, seed=seed, rules=tuple(rules), tabu=tabu)
     rule = parse_full_rule(fallback)
     stepper = Stepper(shop, idle_stops=True)
     stepper.advance()

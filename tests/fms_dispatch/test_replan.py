@@ -111,6 +111,8 @@ def test_bad_replanning_options_are_refused():
         Replanner(inst, plan, budget=0)
     with pytest.raises(ValueError, match="drift"):
         Replanner(inst, plan, drift=-1)
+    with pytest.raises(ValueError, match="tabu"):
+        Replanner(inst, plan, tabu=-0.001)
     with pytest.raises(ValueError, match="budget"):
         solve(inst, "plan:list", replan=-1.0)
 
@@ -215,6 +217,7 @@ def test_a_replan_searches_its_best_plan_further_with_the_tabu_search():
     listed = min(greedy_schedule(inst, rule=r, origin=snap).makespan for r in ("est", "ect"))
     assert res.method == "tabu" == res.plan.meta["method"]
     assert residual_lower_bound(snap) <= res.after < listed and res.after < res.before
+    assert replan(snap, plan, 0.3, tabu=0.0).method != "tabu"  # tabu=0: the list search alone
     sim = nominal_copy(shop)
     st = Stepper(sim, idle_stops=True)
     st.advance()
