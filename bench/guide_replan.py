@@ -11,11 +11,12 @@ By default only the solver's and the agent node's setting (``REPLAN_MARGIN``, ``
 ``REPLAN_BUDGET``); ``--margins``, ``--drifts`` (``none``: breakdowns only) and ``--budgets`` (``none``: the plan
 search's own) add one way per combination, for choosing them; ``--replan-tabu`` adds the default way with re-plans
 searched with other tabu search times than the start's plan (``--guide-tabu``; with ``0`` every way starts from the
-same plan), to measure what the tabu search brings to re-plans::
+same plan), to measure what the tabu search brings to re-plans (``--replan-margins``: with these margins)::
 
     python bench/guide_replan.py [--model guided-dagger] [--shops SPEC ...] [--noise 0.2] [--breakdowns 1]
                                  [--scenarios 2] [--margins M ...] [--drifts D ...] [--budgets B ...]
-                                 [--guide-tabu S] [--replan-tabu S ...] [--heldout] [--json FILE]
+                                 [--guide-tabu S] [--replan-tabu S ...] [--replan-margins M ...] [--heldout]
+                                 [--json FILE]
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops, for reported
 figures only. Prints each way's total makespan, in how many runs it is below / above the plan acted out, its
@@ -77,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--replan-tabu", type=float, nargs="+", default=[],
                     help="also re-plan with these tabu search times (s per operation; the default margin, drift and "
                          "budget) while the start's plan keeps --guide-tabu's: the tabu search's share of re-plans")
+    ap.add_argument("--replan-margins", type=float, nargs="+", default=[],
+                    help="with --replan-tabu: these margins for its ways (default: the solver's)")
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
@@ -95,8 +98,9 @@ def main(argv: list[str] | None = None) -> int:
             for b in a.budgets:
                 ways[f"margin {m:g}, drift {d}, budget {b}"] = (m, d, b)
     for s in a.replan_tabu:
-        ways[f"re-planned with tabu {s:g}"] = (REPLAN_MARGIN, REPLAN_DRIFT, REPLAN_BUDGET,
-                                              dataclasses.replace(agent.guide_effort, tabu=s))
+        for m in a.replan_margins or [REPLAN_MARGIN]:
+            label = f"re-planned with tabu {s:g}" + (f", margin {m:g}" if a.replan_margins else "")
+            ways[label] = (m, REPLAN_DRIFT, REPLAN_BUDGET, dataclasses.replace(agent.guide_effort, tabu=s))
     rows = []
     t0 = time.perf_counter()
     for inst in insts:
@@ -116,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         below = sum(r[way] < r["plan"] for r in rows)
         above = sum(r[way] > r["plan"] for r in rows)
         n, wall = (sum(r[way + " replans"][i] for r in rows) for i in (0, 1))
-        lines.append(f"  {way:36s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
+        lines.append(f"  {way:44s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
                      f"below / above plan: {below:2d} / {above:2d}   {n} re-plans, {wall:.1f} s")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
