@@ -273,8 +273,8 @@ class _Graph:
         if len(order) != nodes:
             return None
         last = max(self.live, key=lambda i: start[i] + dur[i])
-        return _Eval(max(start[last] + dur[last], self.base), start, crit, order, mpred, msucc, vpred, vsucc, tpred, tsucc, src, org,
-                     P, last)
+        return _Eval(max(start[last] + dur[last], self.base), start, crit, order, mpred, msucc, vpred, vsucc, tpred,
+                     tsucc, src, org, P, last)
 
     def tails(self, ev: "_Eval") -> list[int]:
         """Per node, the longest path from its end to the end of the schedule (its tail)."""
@@ -422,12 +422,12 @@ def _neighbours(g: _Graph, ev: _Eval, q: list[int], o: Orders, where: list[int])
     for u, v in zip(path, path[1:]):
         if u < n and v < n:
             if msucc[u] == v:
-                a, b = mpred[u], msucc[v]
+                b = msucc[v]
                 joint = tsucc[u] == v
                 if joint:
                     est = -1  # the tool's deliveries change too: evaluated in full
                 else:
-                    rv = max(head_part(v), head_tool(v), start[a] + dur[a] if a >= 0 else mrel[u])
+                    rv = max(head_part(v), head_tool(v), head_machine(u))
                     ru = max(head_part(u), head_tool(u), rv + dur[v])
                     qu = max(tail_job(u), tail_tool(u), P[b] + q[b] if b >= 0 else 0)
                     qv = max(tail_job(v), tail_tool(v), qu + dur[u])

@@ -204,8 +204,9 @@ class Agent:
     def replan_guide(self, shop: Shop, margin: float | None = REPLAN_MARGIN, budget: float | None = None,
                      effort: Any = None) -> GuideReplan:
         """Re-plan the guide the model reads in ``shop`` from its state now (searched with ``effort``, by default the
-        model's, within ``budget`` seconds if shorter than its plan search's), adopting the new plan if it ends ``margin`` earlier than the plan in force
-        (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises ValueError for a model without a guide."""
+        model's, within ``budget`` seconds if shorter than its plan search's), adopting the new plan if it ends
+        ``margin`` earlier than the plan in force (:meth:`fms_dispatch.rl.envs.FastShopEnv.replan_guide`). Raises
+        ValueError for a model without a guide."""
         if self.guide is None:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).replan_guide(margin, budget, effort)

@@ -176,8 +176,8 @@ class FastShopEnv(ShopEnv):
                      effort: PlanEffort | None = None) -> GuideReplan:
         """Re-plan the observed shop's guide from its state now (a residual plan searched with ``effort``, by default
         this env's ``guide_effort``, within ``budget`` seconds if that is shorter than its own), e.g. when a machine
-        breaks down and the plan goes stale. The new plan is adopted (the observation then shows its heads) if it ends at
-        least ``margin`` (a fraction) earlier than the plan in force continued from the state
+        breaks down and the plan goes stale. The new plan is adopted (the observation then shows its heads) if it ends
+        at least ``margin`` (a fraction) earlier than the plan in force continued from the state
         (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it whatever it promises. Raises
         ValueError for an env without a guide, a margin outside [0, 1) or a negative budget."""
         if margin is not None and not 0 <= margin < 1:
