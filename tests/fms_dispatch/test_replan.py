@@ -8,13 +8,15 @@ from fms_sim.benchmarks import builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.instance import Operation
-from fms_sim.snapshot import can_snapshot, nominal_copy, snapshot
+from fms_sim.snapshot import nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
 from fms_dispatch.exact import greedy_schedule
 from fms_dispatch.full_rules import parse_full_rule
 from fms_dispatch.replan import REPLAN_REASONS, Replanner, replan, solve_with_replanning
 from fms_dispatch.solvers import solve
+
+from ..conftest import finish_by, run_plan_until
 
 EVENT_KEYS = {"reason", "time", "budget", "wall_time", "status", "before", "after"}
 
@@ -196,34 +198,15 @@ def test_a_replan_searches_its_best_plan_further_with_the_tabu_search():
     # on EX74 the list schedules and restarts from a mid-run state leave room that the tabu search over the residual
     # plan's orders takes (159 kept, about 135-140 after); the plan it makes runs from the state to a valid end
     from fms_dispatch.tabu import residual_lower_bound
-    from fms_sim.replay import PlanPolicy
 
     inst = builtin("EX74")
     plan = greedy_schedule(inst)
-    shop = FullShop(inst)
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-    pol = PlanPolicy(inst, plan)
-    for _ in range(inst.n_operations):
-        label = pol.answer(st)
-        pol.apply(st, label)
-        st.apply(label)
-    while not can_snapshot(shop):
-        label = pol.answer(st)
-        pol.apply(st, label)
-        st.apply(label)
+    shop, st = run_plan_until(inst, plan, inst.n_operations)
+    assert st.kind != "done"
     snap = snapshot(shop)
     res = replan(snap, plan, 1.0)
     listed = min(greedy_schedule(inst, rule=r, origin=snap).makespan for r in ("est", "ect"))
     assert res.method == "tabu" == res.plan.meta["method"]
     assert residual_lower_bound(snap) <= res.after < listed and res.after < res.before
     assert replan(snap, plan, 0.3, tabu=0.0).method != "tabu"  # tabu=0: the list search alone
-    sim = nominal_copy(shop)
-    st = Stepper(sim, idle_stops=True)
-    st.advance()
-    pol = PlanPolicy.resume(sim, res.plan)
-    while st.kind != "done":
-        label = pol.answer(st)
-        pol.apply(st, label)
-        st.apply(label)
-    assert validate(inst, sim.schedule()) == []
+    assert validate(inst, finish_by(nominal_copy(shop), res.plan)) == []

@@ -15,10 +15,10 @@ from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
-from fms_sim.replay import PlanPolicy
-from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
-from fms_sim.stepping import Stepper
+from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
 from fms_sim.validate import validate
+
+from ..conftest import finish_by, run_plan_until
 
 
 def _tool_shop():
@@ -142,35 +142,6 @@ def test_the_tabu_solver_by_name(capsys):
 
 
 # ---------------------------------------------------------------------------------------------- residual plans
-def _run_until(inst, plan, cut, scenario=None):
-    """Replay ``plan`` for ``cut`` answers, then on to the next stop where a snapshot can be taken."""
-    shop = FullShop(inst, scenario=scenario)
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-    pol = PlanPolicy(inst, plan)
-    n = 0
-    while st.kind != "done":
-        if n >= cut and can_snapshot(shop):
-            break
-        label = pol.answer(st)
-        pol.apply(st, label)
-        st.apply(label)
-        n += 1
-    return shop, st
-
-
-def _finish(shop, residual):
-    """Run ``shop`` to its end by ``residual`` (resumed from its state); its schedule."""
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-    pol = PlanPolicy.resume(shop, residual)
-    while st.kind != "done":
-        label = pol.answer(st)  # never stuck: the residual plan fits the state
-        pol.apply(st, label)
-        st.apply(label)
-    return shop.schedule()
-
-
 def test_from_the_initial_state_the_residual_search_is_the_whole_one():
     for name in ("EX74", "ra05"):
         inst = builtin(name)
@@ -195,7 +166,7 @@ def test_residual_plans_from_running_shops_are_searched_and_run_to_a_valid_end(n
     gains = reserved = 0
     for cut in sorted(rng.sample(range(1, 4 * inst.n_operations), 6)):
         for sc in (None, Scenario(breakdowns=(Breakdown(1, 5, 30),), noise=0.3, seed=cut)):
-            shop, st = _run_until(inst, plan, cut, sc)
+            shop, st = run_plan_until(inst, plan, cut, sc)
             if st.kind == "done":
                 continue
             snap = snapshot(shop)
@@ -210,7 +181,7 @@ def test_residual_plans_from_running_shops_are_searched_and_run_to_a_valid_end(n
             assert bound <= better.makespan <= listed.makespan
             assert better.makespan == max([r.end for r in better.operations] + [snap.makespan])
             gains += better.makespan < listed.makespan
-            out = _finish(nominal_copy(shop) if sc is None else shop, better)
+            out = finish_by(nominal_copy(shop) if sc is None else shop, better)
             assert validate(inst, out) == [], (name, cut, sc)
     assert gains > 0  # the search improves residual plans
     if inst.has_tools and inst.has_agvs:
@@ -220,8 +191,8 @@ def test_residual_plans_from_running_shops_are_searched_and_run_to_a_valid_end(n
 def test_the_residual_lower_bound_holds_what_has_started_and_what_remains():
     inst = builtin("EX74")
     assert residual_lower_bound(Snapshot.initial(inst)) >= max(sum(o.duration for o in job) for job in inst.jobs)
-    shop, _ = _run_until(inst, greedy_schedule(inst), 20)
+    shop, _ = run_plan_until(inst, greedy_schedule(inst), 20)
     snap = snapshot(shop)
     assert snap.now > 0 and residual_lower_bound(snap) >= snap.makespan
     # every continuation ends at or after it: the list schedule's residual plan, run to its end
-    assert _finish(nominal_copy(shop), greedy_schedule(inst, origin=snap)).makespan >= residual_lower_bound(snap)
+    assert finish_by(nominal_copy(shop), greedy_schedule(inst, origin=snap)).makespan >= residual_lower_bound(snap)

@@ -8,32 +8,16 @@ from fms_sim.benchmarks import builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.generate import generate_instances
-from fms_sim.replay import PlanPolicy
-from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
+from fms_sim.snapshot import Snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
 from fms_dispatch.exact import greedy_schedule
 
+from ..conftest import finish_by, run_plan_until
+
 
 def _small_tools():
     return generate_instances(8, 5, 4, 1, n_agvs=2, n_tool_transporters=2, name_prefix="snap")[0]
-
-
-def _run_until(inst, plan, cut, scenario=None):
-    """Replay ``plan`` for ``cut`` answers, then on to the next stop where a snapshot can be taken."""
-    shop = FullShop(inst, scenario=scenario)
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-    pol = PlanPolicy(inst, plan)
-    n = 0
-    while st.kind != "done":
-        if n >= cut and can_snapshot(shop):
-            break
-        label = pol.answer(st)
-        pol.apply(st, label)
-        st.apply(label)
-        n += 1
-    return shop, st
 
 
 def test_the_snapshot_of_a_fresh_shop_is_the_initial_state():
@@ -59,7 +43,7 @@ def test_residual_plans_from_any_state_run_to_a_valid_end(name):
     plan = greedy_schedule(inst, rule="ect")
     rng = random.Random(1)
     for cut in sorted(rng.sample(range(1, 4 * inst.n_operations), 12)):
-        shop, st = _run_until(inst, plan, cut)
+        shop, st = run_plan_until(inst, plan, cut)
         if st.kind == "done":
             continue
         snap = snapshot(shop)
@@ -71,14 +55,7 @@ def test_residual_plans_from_any_state_run_to_a_valid_end(name):
             assert {(r.job, r.op) for r in residual.operations} == {
                 (j, k) for j, job in enumerate(inst.jobs) for k in range(snap.next_op[j], len(job))}
             assert all(r.start >= snap.now for r in residual.operations)
-            st2 = Stepper(sim, idle_stops=True)
-            st2.advance()
-            pol = PlanPolicy.resume(sim, residual)
-            while st2.kind != "done":
-                label = pol.answer(st2)  # never stuck: the residual plan fits the state
-                pol.apply(st2, label)
-                st2.apply(label)
-            out = sim.schedule()
+            out = finish_by(sim, residual)  # never stuck: the residual plan fits the state
             assert validate(inst, out) == [], (name, cut, rule)
 
 
@@ -95,7 +72,7 @@ def test_the_nominal_copy_forgets_noise_and_future_breakdowns_but_not_the_presen
     inst = builtin("ra05")
     plan = greedy_schedule(inst)
     sc = Scenario(breakdowns=(Breakdown(1, 1, 6), Breakdown(2, plan.makespan, 9)), noise=0.3, seed=4)
-    shop, st = _run_until(inst, plan, 2 * inst.n_operations, scenario=sc)
+    shop, st = run_plan_until(inst, plan, 2 * inst.n_operations, scenario=sc)
     assert shop.now > 1
     sim = nominal_copy(shop)
     assert sim.scenario is not None and sim.scenario.noise == 0
