@@ -24,7 +24,7 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, report
+from checks import checked, report, versus
 
 DEFAULT_SHOPS = ["gen:10x5x5*3@216", "gen:20x10x10*3@216", "gen:20x10x10*2@219/notools", "gen:50x15x15*1@217",
                  "gen:50x15x15*1@220/notools"]
@@ -62,11 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"{len(rows)} shops, {a.parts} partitions, model {a.model}:"]
     for s in a.tabu:
         k = f"tabu {s:g}"
-        total = sum(r[k] for r in rows)
-        below = sum(r[k] < r[first] for r in rows)
-        above = sum(r[k] > r[first] for r in rows)
-        lines.append(f"  {k:12s} total {total:7d}  {total / sum(r[first] for r in rows):.4f} x {first}   "
-                     f"below / above: {below} / {above}")
+        total, ratio, below, above = versus(rows, k, first)
+        lines.append(f"  {k:12s} total {total:7d}  {ratio:.4f} x {first}   below / above: {below} / {above}")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
     return 0

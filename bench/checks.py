@@ -30,3 +30,11 @@ def report(lines: list[str], rows: list[dict], path: str | None) -> None:
     if path:
         with open(path, "w") as f:
             json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+
+
+def versus(rows: list[dict], key: str, ref: str) -> tuple[int, float, int, int]:
+    """Column ``key`` of ``rows`` against column ``ref``: its total, the ratio of the totals, and in how many rows
+    it is below / above ``ref``."""
+    total = sum(r[key] for r in rows)
+    return (total, total / sum(r[ref] for r in rows), sum(r[key] < r[ref] for r in rows),
+            sum(r[key] > r[ref] for r in rows))

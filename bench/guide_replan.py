@@ -39,7 +39,7 @@ from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked, report
+from checks import checked, report, versus
 
 #: validation shops (seeds no model trains or is selected on), as bench/disrupted.py's selection run
 DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -116,11 +116,9 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(row), flush=True)
     lines = [f"{len(rows)} runs, noise {a.noise:g}, {a.breakdowns} breakdown(s), model {a.model}:"]
     for way in ways:
-        total = sum(r[way] for r in rows)
-        below = sum(r[way] < r["plan"] for r in rows)
-        above = sum(r[way] > r["plan"] for r in rows)
+        total, ratio, below, above = versus(rows, way, "plan")
         n, wall = (sum(r[way + " replans"][i] for r in rows) for i in (0, 1))
-        lines.append(f"  {way:44s} total {total:8d}  {total / sum(r['plan'] for r in rows):.4f} x plan   "
+        lines.append(f"  {way:44s} total {total:8d}  {ratio:.4f} x plan   "
                      f"below / above plan: {below:2d} / {above:2d}   {n} re-plans, {wall:.1f} s")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
