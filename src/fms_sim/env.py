@@ -141,6 +141,7 @@ class _Tables:
                 self.load_suffix[j, k] = self.load_suffix[j, k + 1]
                 self.load_suffix[j, k, ops[k].machine] += ops[k].duration
         self.rows = np.arange(n)
+        self.dur_list: list[list[int]] = self.dur.tolist()  # the same, for reads of one item at a time
         self.travel: np.ndarray | None = None  # the AGV travel matrix as an array, made when first needed
 
 
@@ -267,6 +268,9 @@ class ShopEnv(gym.Env):
         m = np.zeros(self.n_actions, dtype=bool)
         if self.shop is None or self.shop.done:
             return m
+        if self.decisions == "full":  # one table lookup for all legal actions
+            m[self._net_to_env_arr[self.shop.legal_actions()]] = True
+            return m
         for a in self.shop.legal_actions():
             m[self._from_net(a)] = True
         return m
@@ -280,6 +284,7 @@ class ShopEnv(gym.Env):
             raise ValueError("an env with decisions='full' observes a FullShop, not the paper's Shop")
         kinds = [self.shop.action_kind(a) for a in range(self.shop.n_actions)]
         self._net_to_env = [self._offset[k] + n for k, n in kinds]
+        self._net_to_env_arr = np.array(self._net_to_env, dtype=np.int64)
         self._env_to_net = {e: a for a, e in enumerate(self._net_to_env)}
         # each net action's kind (index in FULL_KINDS) and number, for reading legal actions by kind at once
         self._kind_code = np.array([FULL_KINDS.index(k) for k, _ in kinds], dtype=np.int64)
@@ -369,10 +374,12 @@ class ShopEnv(gym.Env):
         req = s.awaiting_agv()
 
         k = np.asarray(s.job_started_ops, dtype=np.int64)
-        loc = np.full(n, -1, dtype=np.int64)
-        for tok in s.p_parts.tokens():
-            c = tok.colour
-            loc[c[0]] = c[2]
+        at = [-1] * n  # each part's location, read into a list (a numpy item write per token costs several times more)
+        for bucket in s.p_parts.buckets.values():
+            for tok in bucket:
+                c = tok.colour
+                at[c[0]] = c[2]
+        loc = np.array(at, dtype=np.int64)
         present = loc >= 0
         has_next = k < tb.nops
         kk = np.minimum(k, tb.nops)  # tables are padded with zeros past the last operation
@@ -400,14 +407,16 @@ class ShopEnv(gym.Env):
         Mn[:, 0] = 1.0
         Mn[:, 1] = until > now
         Mn[:, 2] = np.maximum(0, until - now) / sc
-        count = np.zeros(nm + 1, dtype=np.int64)
-        work = np.zeros(nm + 1, dtype=np.int64)
-        for tok in s.p_buffer.tokens():
-            j, kop, m = tok.colour[:3]
-            count[m] += 1
-            work[m] += tb.dur[j, kop]
-        Mn[:, 3] = count[1:] / inst.n_jobs
-        Mn[:, 4] = work[1:] / sc
+        count = [0] * (nm + 1)
+        work = [0] * (nm + 1)
+        dur = tb.dur_list
+        for bucket in s.p_buffer.buckets.values():
+            for tok in bucket:
+                j, kop, m = tok.colour[:3]
+                count[m] += 1
+                work[m] += dur[j][kop]
+        Mn[:, 3] = np.array(count[1:], dtype=np.int64) / inst.n_jobs
+        Mn[:, 4] = np.array(work[1:], dtype=np.int64) / sc
 
         T = np.zeros((self.max_tools, len(TOOL_FEATURES)), dtype=np.float64)
         if inst.has_tools:
@@ -452,8 +461,7 @@ class ShopEnv(gym.Env):
         k = np.asarray(s.started, dtype=np.int64)             # each job's next operation to start
         kk = np.minimum(k, tb.nops)
         buffered = np.zeros(n, dtype=bool)
-        for tok in s.p_buffer.tokens():
-            buffered[tok.colour[0]] = True
+        buffered[list(s.p_buffer.buckets)] = True  # the full net's buffer is keyed by job
         J[:n, 1] = buffered
         if chosen is not None:
             for j, ks in s.treq[chosen].items():
@@ -475,8 +483,9 @@ class ShopEnv(gym.Env):
             # every pending request of every tool: hundreds on a 100-job shop)
             treq, nxt, tk = s.treq, k.tolist(), tb.tool[rows, kk]
             servable: dict[int, bool] = {}
+            tkl = tk.tolist()
             for j in np.flatnonzero(on_way & (tk > 0)).tolist():
-                t = int(tk[j])
+                t = tkl[j]
                 ks = treq[t].get(j)
                 if not ks or ks[0] != nxt[j]:
                     continue
@@ -492,8 +501,14 @@ class ShopEnv(gym.Env):
             T[tools - 1, 0] = 1.0
             nt, nj = inst.n_tools, inst.n_jobs
             user, running, nxt_use, treq = s.tool_user, s.tool_running, s.tool_next, s.treq
-            T[:nt, 1:] = [(user[t] is not None, running[t], nxt_use[t] is not None, chosen == t,
-                           len(treq[t]) / max(1, nj), due_count[t] / nj) for t in range(1, nt + 1)]
+            # column by column (numpy converts a flat list of numbers much faster than a list of rows)
+            T[:nt, 1] = [u is not None for u in user[1:nt + 1]]
+            T[:nt, 2] = running[1:nt + 1]
+            T[:nt, 3] = [u is not None for u in nxt_use[1:nt + 1]]
+            if chosen is not None and 1 <= chosen <= nt:
+                T[chosen - 1, 4] = 1.0
+            T[:nt, 5] = [len(q) / max(1, nj) for q in treq[1:nt + 1]]
+            T[:nt, 6] = [c / nj for c in due_count[1:nt + 1]]
         return [g, J.ravel(), T.ravel()]
 
     @staticmethod

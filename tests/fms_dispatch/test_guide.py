@@ -58,6 +58,33 @@ def test_the_guide_reads_any_state_the_same_way():
     assert shop.makespan == plan.makespan
 
 
+def test_a_guide_read_from_states_in_turn_reads_each_as_a_fresh_guide_does():
+    # a guide keeps the last heads and ranks it read with the state they came from; reading two runs' states in
+    # turn (a shop and a copy left behind at an earlier state) must give what a guide made afresh reads in each
+    inst = builtin("sl00")
+    shop = FullShop(inst)
+    plan = guide_plan(shop)
+    guide = PlanGuide(inst, plan)
+    follower = GuideFollower(PlanGuide(inst, plan))
+    env = FastShopEnv(inst, decisions="full", max_jobs=100, max_machines=20, max_tools=20, max_agvs=10, max_tts=5)
+    env.attach(shop)  # for the legal tool take-ups
+    behind = copy.deepcopy(shop)
+    checked = 0
+    while not shop.done:
+        legal = shop.legal_actions()
+        if len(legal) > 1:
+            tools = env.legal_of_kind(legal, "tool").tolist()
+            for state, tl in ((shop, tools), (behind, []), (shop, tools)):
+                a = guide.features(state, tl, 100, 20, 10, 5)
+                b = PlanGuide(inst, plan).features(state, tl, 100, 20, 10, 5)
+                assert all(np.array_equal(x, y) for x, y in zip(a, b))
+            checked += 1
+            if checked % 50 == 0:
+                behind = copy.deepcopy(shop)
+        shop.act(follower(shop))
+    assert checked > 500 and shop.makespan == plan.makespan
+
+
 @pytest.mark.parametrize("steps", [27, 29])  # a state that can be snapshot, and one with a vehicle choice pending
 def test_a_started_shop_gets_a_residual_plan(steps):
     from fms_sim.snapshot import can_snapshot

@@ -330,6 +330,18 @@ class PlanGuide:
         self.tts = _Orders(rq, range(inst.n_tool_transporters if inst.has_tools else 0))
         ops = sum(len(o) for o in inst.jobs)
         self.mean_duration = max(1.0, sum(op.duration for o in inst.jobs for op in o) / max(1, ops))
+        # the last value of each order's heads and of the plan ranks, with the state they were read from: most
+        # decisions change none of what they read (an operation starts at about one decision in seven)
+        self._memo: dict[str, tuple[Any, Any]] = {}
+
+    def _cached(self, name: str, key: Any, compute: Any) -> Any:
+        """``compute()``, or its last value if it was computed for the same ``key`` (the state it reads)."""
+        hit = self._memo.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        value = compute()
+        self._memo[name] = (key, value)
+        return value
 
     def _routes(self, kind: str, trips: list[tuple[int, Any]]
                 ) -> tuple[dict[int, list[tuple[int, int]]], dict[tuple[int, int], int]]:
@@ -364,13 +376,20 @@ class PlanGuide:
 
     def agv_heads(self, shop: FullShop) -> dict[int, tuple[int, int]]:
         """Each AGV's next planned carry not yet dispatched."""
-        sent = np.asarray(shop.job_started_ops, dtype=np.int64)
-        return self.agvs.heads(sent[self.agvs.J] > self.agvs.K)
+        sent = shop.job_started_ops
+        return self._cached("agvs", tuple(sent), lambda: self.agvs.heads(
+            np.asarray(sent, dtype=np.int64)[self.agvs.J] > self.agvs.K))
 
     def tt_heads(self, shop: FullShop, started: np.ndarray) -> dict[int, tuple[int, int]]:
         """Each transporter's next planned carry whose tool use is not yet served (``started``: the shop's
         next operation to start per job, as an array)."""
-        return self.tts.heads(self._served(shop, self.tts, started))
+        return self._cached("tts", self._tool_state(shop),
+                            lambda: self.tts.heads(self._served(shop, self.tts, started)))
+
+    @staticmethod
+    def _tool_state(shop: FullShop) -> tuple:
+        """What the tool and transporter heads read: the operations started and the tools' reservations."""
+        return tuple(shop.started), tuple(shop.tool_user), tuple(shop.tool_next)
 
     def view(self, shop: FullShop, tools: bool = True) -> dict[str, Any]:
         """The heads of every order in ``shop``'s state and what follows for each job (see the module
@@ -379,7 +398,8 @@ class PlanGuide:
         inst = self.instance
         n = inst.n_jobs
         started = np.asarray(shop.started, dtype=np.int64)
-        m_heads = self.machines.heads(started[self.machines.J] > self.machines.K)
+        m_heads = self._cached("machines", tuple(shop.started),
+                               lambda: self.machines.heads(started[self.machines.J] > self.machines.K))
         start_head = np.zeros(n, dtype=bool)
         for m, (j, k) in m_heads.items():
             if shop.buffered_op(j) == (k, m):
@@ -396,7 +416,8 @@ class PlanGuide:
         r_heads: dict[int, tuple[int, int]] = {}
         idle_tts: set[int] = set()
         if inst.has_tools and tools:
-            t_heads = self.tools.heads(self._served(shop, self.tools, started))
+            t_heads = self._cached("tools", self._tool_state(shop),
+                                   lambda: self.tools.heads(self._served(shop, self.tools, started)))
             r_heads = self.tt_heads(shop, started)
             idle_tts = {u for u, _ in shop.idle_transporters()}
         return dict(shop=shop, started=started, start_head=start_head, dispatch_head=dispatch_head,
@@ -458,6 +479,23 @@ class PlanGuide:
         return shop.awaiting_agv()[2] if kind == "agv" else shop.awaiting_transporter()[1]
 
     # ------------------------------------------------------------------ features
+    def _ranks(self, started: np.ndarray, now: int) -> np.ndarray:
+        """Per job, the rank of its next operation's planned start among the jobs' (over the jobs; 1 for none
+        planned) and how far ahead of ``now`` that start is (tanh, in mean durations; 0 for none)."""
+        n = self.instance.n_jobs
+        rows = np.arange(n)
+        nops = self.start.shape[1] - 1
+        k = np.minimum(started, nops)
+        ps = self.start[rows, k]
+        fin = np.isfinite(ps)
+        order = np.lexsort((rows, np.where(fin, ps, np.inf)))
+        rank = np.empty(n, dtype=np.float64)
+        rank[order] = np.arange(n)
+        out = np.empty((n, 2), dtype=np.float64)
+        out[:, 0] = np.where(fin, rank / n, 1.0)
+        out[:, 1] = np.where(fin, np.tanh((np.where(fin, ps, 0.0) - now) / self.mean_duration), 0.0)
+        return out
+
     def features(self, shop: FullShop, legal_tools: list[int], max_jobs: int, max_tools: int, max_agvs: int,
                  max_tts: int) -> list[np.ndarray]:
         """The guide's rows (jobs, tools, AGVs, transporters; padded), for the observation."""
@@ -472,16 +510,7 @@ class PlanGuide:
         u = self.use_head(v)
         if u is not None:
             J[u, 3] = 1.0
-        rows = np.arange(n)
-        nops = self.start.shape[1] - 1
-        k = np.minimum(started, nops)
-        ps = self.start[rows, k]
-        fin = np.isfinite(ps)
-        order = np.lexsort((rows, np.where(fin, ps, np.inf)))
-        rank = np.empty(n, dtype=np.float64)
-        rank[order] = np.arange(n)
-        J[:n, 4] = np.where(fin, rank / n, 1.0)
-        J[:n, 5] = np.where(fin, np.tanh((np.where(fin, ps, 0.0) - shop.now) / self.mean_duration), 0.0)
+        J[:n, 4:6] = self._cached("ranks", (tuple(shop.started), shop.now), lambda: self._ranks(started, shop.now))
         T = np.zeros((max_tools, len(GUIDE_TOOL_FEATURES)), dtype=np.float32)
         for t in legal_tools:
             T[t - 1, 0] = self.take_up(v, t)
