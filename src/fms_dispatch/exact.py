@@ -290,12 +290,21 @@ def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence
     """``(vehicle, start)``: the vehicle (AGV or transporter) that can start the loaded trip from ``src``
     earliest, not before ``ready`` (ties: the shorter empty trip, then the lowest number); ``(-1, 0)`` if
     there is none."""
-    best, best_v, start = None, -1, 0
-    for v in range(len(locs)):
-        s = max(free[v] + travel[locs[v]][src], ready)
-        key = (travel[locs[v]][src], s) if nearest else (s, travel[locs[v]][src])
-        if best is None or key < best:
-            best, best_v, start = key, v, s
+    # compared field by field rather than as (start, empty trip) tuples: this runs for every job a vehicle's move
+    # touches, and is most of a list schedule's time on 100-job shops
+    best_v, start, empty = -1, 0, 0
+    for v, loc in enumerate(locs):
+        e = travel[loc][src]
+        s = free[v] + e
+        if s < ready:
+            s = ready
+        if best_v < 0:
+            best_v, start, empty = v, s, e
+        elif nearest:
+            if e < empty or (e == empty and s < start):
+                best_v, start, empty = v, s, e
+        elif s < start or (s == start and e < empty):
+            best_v, start, empty = v, s, e
     return best_v, start
 
 
@@ -369,6 +378,7 @@ def greedy_schedule(
 
     def moved(cache: list, v: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]]) -> None:
         """Vehicle ``v`` got a new place and time: update every job's earliest vehicle (and its plan)."""
+        here, fv = travel[locs[v]], free[v]
         for i, c in enumerate(cache):
             if c is None:
                 continue
@@ -376,11 +386,14 @@ def greedy_schedule(
                 cache[i] = planned[i] = None
                 continue
             src, rdy = c[3], c[4]
-            e = travel[locs[v]][src]
-            st = max(free[v] + e, rdy)
-            key = (e, st, v) if near else (st, e, v)
-            if key < c[:3]:
-                cache[i] = key + (src, rdy, st)
+            e = here[src]
+            st = fv + e
+            if st < rdy:
+                st = rdy
+            # (e, st, v) if near else (st, e, v), against the cached key c[:3], without building either
+            a, b = (e, st) if near else (st, e)
+            if a < c[0] or (a == c[0] and (b < c[1] or (b == c[1] and v < c[2]))):
+                cache[i] = (a, b, v, src, rdy, st)
                 planned[i] = None
 
     # per job, plan(j) as of the current state; None: recompute (a job's plan changes only with its machine, its
@@ -418,11 +431,16 @@ def greedy_schedule(
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration
 
+    n_ops = [len(job) for job in jobs]
+    ect, guided = rule == "ect", rule == "guided"
+    # the keys are compared field by field, as the tuples (start or end [+ noise], tie) and, guided, (priority,
+    # start, tie) would be, without building them: this loop runs over every job at every step
     for _ in range(o.remaining):
-        best_key = None
         best_j, best_plan = -1, None
+        b0 = b1 = b2 = 0.0
         for j in range(nj):
-            if nxt[j] >= len(jobs[j]):
+            k = nxt[j]
+            if k >= n_ops[j]:
                 continue
             cached = planned[j]
             if cached is None:
@@ -431,15 +449,15 @@ def greedy_schedule(
             if p is None:
                 continue
             tie = rng.random() if rng is not None else -remaining[j]
-            if rule == "est":
-                key: tuple = (p[0] + noise[j, nxt[j]] if noise is not None else p[0], tie)
-            elif rule == "ect":
-                key = (p[5], tie)
-            else:
+            if guided:
                 assert priority is not None
-                key = (priority[j, nxt[j]], p[0], tie)
-            if best_key is None or key < best_key:
-                best_key, best_j, best_plan = key, j, p
+                k0, k1 = priority[j, k], p[0]
+                if best_j < 0 or k0 < b0 or (k0 == b0 and (k1 < b1 or (k1 == b1 and tie < b2))):
+                    b0, b1, b2, best_j, best_plan = k0, k1, tie, j, p
+                continue
+            k0 = p[5] if ect else (p[0] + noise[j, k] if noise is not None else p[0])
+            if best_j < 0 or k0 < b0 or (k0 == b0 and tie < b1):
+                b0, b1, best_j, best_plan = k0, tie, j, p
         if best_plan is None:  # every next operation waits for a reservation: the snapshot had a circular wait
             raise ValueError(f"no operation of {inst.name} can be planned: the tool reservations wait on each other")
         j, k = best_j, nxt[best_j]
