@@ -433,6 +433,19 @@ def greedy_schedule(
 
     n_ops = [len(job) for job in jobs]
     ect, guided = rule == "ect", rule == "guided"
+    # the jobs whose next operation is on each machine, and (with tools) needs each tool: the plans a step changes
+    on_machine: list[set[int]] = [set() for _ in range(inst.n_machines + 1)]
+    on_tool: dict[int, set[int]] = {}
+
+    def enter(j: int) -> None:
+        if nxt[j] < n_ops[j]:
+            nop = jobs[j][nxt[j]]
+            on_machine[nop.machine].add(j)
+            if ttr is not None and nop.tool is not None:
+                on_tool.setdefault(nop.tool, set()).add(j)
+
+    for j in range(nj):
+        enter(j)
     # the keys are compared field by field, as the tuples (start or end [+ noise], tie) and, guided, (priority,
     # start, tie) would be, without building them: this loop runs over every job at every step
     for _ in range(o.remaining):
@@ -487,13 +500,13 @@ def greedy_schedule(
             if reserved:
                 reserved.pop(op.tool, None)
         tool = op.tool if ttr is not None else None
-        for i in range(nj):  # the machine is free later; the tool's next carry starts elsewhere, later
-            if nxt[i] < len(jobs[i]):
-                nop = jobs[i][nxt[i]]
-                if nop.machine == m:
-                    planned[i] = None
-                if tool is not None and nop.tool == tool:
-                    tt_best[i] = planned[i] = None
+        for i in on_machine[m]:  # the machine is free later
+            planned[i] = None
+        if tool is not None:  # the tool's next carry starts elsewhere, later
+            for i in on_tool[tool]:
+                tt_best[i] = planned[i] = None
+            on_tool[tool].discard(j)
+        on_machine[m].discard(j)
         agv_best[j] = tt_best[j] = planned[j] = None  # j's next operation: another carry
         if arrival:
             arrival.pop(j, None)
@@ -501,6 +514,7 @@ def greedy_schedule(
         ready[j] = end
         remaining[j] -= op.duration
         nxt[j] += 1
+        enter(j)
         ops.append(OperationRecord(j, k, m, op.tool if inst.has_tools else None, start, end))
     meta: dict[str, object] = {"solver": "greedy", "rule": rule}
     if origin is not None:
