@@ -1,0 +1,141 @@
+"""Decision speed of a trained model: the time its run takes once the plan is made (observation, numpy actor and
+the full net's own steps), per decision; and the time of one list schedule (the guide's plan search is made of
+them: ``fms_dispatch.exact.greedy_schedule``, earliest start).
+
+Each shop is run by the model (default ``ppo``, the shipped guided model) with a reproducible plan (the plain list
+schedule: ``--guide-restarts 0 --guide-tabu 0``, so the plan search's budget does not enter the time), first once to
+plan, then ``--repeat`` times more, each timed; the best of them is reported. Only the run is timed. Every schedule
+is validated. With ``--baseline REV`` the same measurement runs on the source of git revision REV (a temporary
+worktree), alternating with this checkout's run by run, so both see the same machine load; the baseline must
+make the same schedules (the same decisions), or the bench stops.
+
+Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3]
+                                    [--baseline REV] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from checks import checked, report
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def measure(names: list[str], model: str, repeat: int) -> list[dict]:
+    """Per shop: decisions with a choice, makespan, and the best of ``repeat`` timed runs (seconds); the same for
+    one earliest-start list schedule."""
+    from fms_sim.formats import load_instance
+    from fms_dispatch.exact import greedy_schedule
+    from fms_sim.full_shop import make_shop
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import default_model_name, load_agent
+
+    rows = []
+    for name in names:
+        inst = load_instance(name)
+        agent = load_agent(model if model != "ppo" else default_model_name(inst))
+        if agent.guide is not None:
+            agent.use_guide_effort(effort_from(restarts=0, budget=0, tabu=0))
+        best = None
+        for rep in range(repeat + 1):  # the first run makes the plan; the others adopt it
+            shop = make_shop(inst, agent.decisions)
+            choices = 0
+            t0 = time.perf_counter()
+            while not shop.done:
+                choices += len(shop.legal_actions()) > 1
+                shop.act(agent.act(shop))
+            dt = time.perf_counter() - t0
+            if rep:
+                best = dt if best is None else min(best, dt)
+        row = {"instance": name, "decisions": choices, "seconds": best,
+               "makespan": checked(inst, shop.schedule(), agent.name)}
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            plan = greedy_schedule(inst, rule="est")
+            dt = time.perf_counter() - t0
+            row["list_seconds"] = min(dt, row.get("list_seconds", dt))
+        row["list_makespan"] = checked(inst, plan, "list schedule")
+        rows.append(row)
+    return rows
+
+
+def _worker(src: Path, names: list[str], model: str, repeat: int) -> list[dict]:
+    """:func:`measure` in a fresh interpreter on the package source at ``src``."""
+    env = dict(os.environ, PYTHONPATH=str(src))
+    out = subprocess.run([sys.executable, __file__, "--worker", "--model", model, "--repeat", str(repeat),
+                          "--instances", *names], env=env, capture_output=True, text=True, cwd=src.parent)
+    if out.returncode:
+        raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--instances", nargs="+", default=["EX104", "sl00", "sl31", "sl70"])
+    ap.add_argument("--model", default="ppo", help="ppo (the default per shop) or a model name")
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs per shop (best reported)")
+    ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
+    ap.add_argument("--json", help="write the rows and summary here")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.repeat < 1:
+        raise SystemExit("--repeat must be >= 1")
+    if a.worker:
+        print(json.dumps(measure(a.instances, a.model, a.repeat)))
+        return
+    here = ROOT / "src"
+    if not a.baseline:
+        rows = _worker(here, a.instances, a.model, a.repeat)
+        lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, model {a.model}, best of {a.repeat}"]
+        for r in rows:
+            lines.append(f"{r['instance']}: {r['decisions']} decisions, {r['seconds']:.3f} s, "
+                         f"{1000 * r['seconds'] / max(1, r['decisions']):.3f} ms per decision, makespan {r['makespan']}; "
+                         f"list schedule {1000 * r['list_seconds']:.1f} ms")
+        report(lines, rows, a.json)
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "baseline"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), a.baseline], check=True,
+                       capture_output=True)
+        try:
+            best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}
+            for _ in range(a.repeat):  # alternating, one timed run each, so both see the same load
+                for who, src in (("base", tree / "src"), ("new", here)):
+                    for r in _worker(src, a.instances, a.model, 1):
+                        old = best[who].get(r["instance"])
+                        if old is None or r["seconds"] < old["seconds"]:
+                            best[who][r["instance"]] = r
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False,
+                           capture_output=True)
+    rows = []
+    lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, model {a.model}, best of {a.repeat} alternating runs, "
+             f"baseline {a.baseline}"]
+    for name in a.instances:
+        n, b = best["new"][name], best["base"][name]
+        if (n["makespan"], n["decisions"], n["list_makespan"]) != (b["makespan"], b["decisions"], b["list_makespan"]):
+            raise SystemExit(f"{name}: the baseline decides or plans differently (makespan {b['makespan']} against "
+                             f"{n['makespan']}, decisions {b['decisions']} against {n['decisions']}, list schedule "
+                             f"{b['list_makespan']} against {n['list_makespan']})")
+        rows.append({"instance": name, "decisions": n["decisions"], "makespan": n["makespan"],
+                     "seconds": n["seconds"], "baseline_seconds": b["seconds"], "list_makespan": n["list_makespan"],
+                     "list_seconds": n["list_seconds"], "baseline_list_seconds": b["list_seconds"]})
+        lines.append(f"{name}: {n['decisions']} decisions, {n['seconds']:.3f} s "
+                     f"({1000 * n['seconds'] / max(1, n['decisions']):.3f} ms per decision) against "
+                     f"{b['seconds']:.3f} s, {b['seconds'] / n['seconds']:.2f}x; makespan {n['makespan']} (same); list "
+                     f"schedule {1000 * n['list_seconds']:.1f} ms against {1000 * b['list_seconds']:.1f} ms, "
+                     f"{b['list_seconds'] / n['list_seconds']:.2f}x")
+    report(lines, rows, a.json)
+
+
+if __name__ == "__main__":
+    main()
