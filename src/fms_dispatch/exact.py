@@ -247,15 +247,35 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
     for i, t in enumerate(tasks):
         by_job.setdefault(t.job, []).append(i)
         drop_jobs.setdefault(t.drop, set()).add(t.job)
+    # per job, the processing and the loaded travel before each operation, summed: :func:`_agv_gap` in O(1) (the
+    # pairs of a job's tasks are many on long jobs: 38,000 on a 100 x 20 shop)
+    dsum: dict[int, list[int]] = {}
+    lsum: dict[int, list[int]] = {}
+    for j in by_job:
+        d, lt = [0], [0]
+        for k, op in enumerate(inst.jobs[j]):
+            d.append(d[-1] + op.duration)
+            lt.append(lt[-1] + _loaded_time(inst, j, k))
+        dsum[j], lsum[j] = d, lt
+
+    def gap(a: _Task, b: _Task) -> int:  # _agv_gap(inst, a, b)
+        g = tr[a.drop][b.pickup]
+        if a.job == b.job and a.op < b.op:
+            d, lt = dsum[a.job], lsum[a.job]
+            g = max(g, d[b.op] - d[a.op] + lt[b.op] - lt[a.op + 1])
+        return g
+
+    # the drop-off places of each job's tasks, for 'a task of another job ends here'
+    only_job = {loc: next(iter(js)) if len(js) == 1 else None for loc, js in drop_jobs.items()}
     before = []
     for i, t in enumerate(tasks):
         best = tr[0][t.pickup]
-        for loc, js in drop_jobs.items():
-            if js - {t.job}:
+        for loc, j1 in only_job.items():
+            if j1 != t.job:  # some job other than t's drops a part here
                 best = min(best, tr[loc][t.pickup])
         for i2 in by_job[t.job]:
             if tasks[i2].op < t.op:
-                best = min(best, _agv_gap(inst, tasks[i2], t))
+                best = min(best, gap(tasks[i2], t))
         before.append(best)
     # per pickup location: the two smallest `before` values from different jobs
     INF = 1 << 60
@@ -269,17 +289,23 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
             first = cur[0]
             other = next((x for x in cur[1:] if x[1] != first[1]), None)
             best2[t.pickup] = [first] + ([other] if other else [])
+    # per place: the smallest 'before' there, its job, and the smallest of another job (INF: none)
+    lead = {loc: (c[0][0], c[0][1], next((b for b, job in c[1:] if job != c[0][1]), INF))
+            for loc, c in best2.items() if c}
     after = []
     for i, t in enumerate(tasks):
         best = inst.jobs[t.job][t.op].duration + tails[t.job, t.op]
+        here = tr[t.drop]
         for loc in locs:
-            cand = best2.get(loc, [])
-            bj = next((b for b, job in cand if job != t.job), INF)
+            c = lead.get(loc)
+            if c is None:
+                continue
+            bj = c[0] if c[1] != t.job else c[2]
             if bj < INF:
-                best = min(best, tr[t.drop][loc] - bj)
+                best = min(best, here[loc] - bj)
         for i2 in by_job[t.job]:
             if tasks[i2].op > t.op:
-                best = min(best, _agv_gap(inst, t, tasks[i2]) - before[i2])
+                best = min(best, gap(t, tasks[i2]) - before[i2])
         after.append(max(0, best))
     return before, after
 
