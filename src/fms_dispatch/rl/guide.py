@@ -221,9 +221,10 @@ def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
         if left is None or left >= one_list:  # the first restart would end within the budget
             best = restart_list_plan(inst, best, tries=effort.restarts, budget=left, seed=effort.seed, origin=origin)
     if tabu_s:
+        # the bound first: its time (tens of ms on a 100-job shop) counts against the budget too
+        bound = simple_lower_bound(inst) if origin is None else residual_lower_bound(origin)
         left = tabu_s if deadline is None else min(tabu_s, deadline - time.monotonic() - polish)
         if left > 0:
-            bound = simple_lower_bound(inst) if origin is None else residual_lower_bound(origin)
             best = tabu_plan(inst, best, budget=left, seed=effort.seed, bound=bound, origin=origin)
     if polish:
         left = polish if deadline is None else min(polish, deadline - time.monotonic())
