@@ -11,7 +11,11 @@ from ortools.sat.python import cp_model
 
 from fms_dispatch.exact import (
     ExactResult,
+    _agv_gap,
+    _agv_slacks,
+    _agv_tasks,
     _FullModel,
+    _heads_tails,
     cpsat,
     greedy_schedule,
     relaxation_bound,
@@ -31,6 +35,27 @@ def _solve(inst: Instance, **kw) -> ExactResult:
     assert validate(inst, res.schedule) == []
     assert res.lower_bound <= res.schedule.makespan
     return res
+
+
+@pytest.mark.parametrize("name", ["EX24", "EX104", "ra10", "sl10", "sl31"])
+def test_agv_slacks_are_a_feasible_dual(name):
+    # the fleet bound of simple_lower_bound and of the CP-SAT model rests on these amounts: one AGV's intervals
+    # [start - before, end + after) never overlap, so for every pair of tasks one AGV could do in a row, the end's
+    # 'after' plus the next start's 'before' fits in the gap between them; 'before' fits the trip from the depot and
+    # 'after' the task's processing and tail
+    inst = builtin(name)
+    tasks = _agv_tasks(inst)
+    tails = _heads_tails(inst)[1]
+    before, after = _agv_slacks(inst, tasks, tails)
+    assert len(before) == len(after) == len(tasks) > 10
+    for i, a in enumerate(tasks):
+        assert 0 <= before[i] <= inst.agv_travel[0][a.pickup]
+        assert 0 <= after[i] <= inst.jobs[a.job][a.op].duration + tails[a.job, a.op]
+        for j, b in enumerate(tasks):
+            if i != j and not (a.job == b.job and b.op < a.op):  # b may follow a on one AGV
+                assert after[i] + before[j] <= _agv_gap(inst, a, b), (a, b)
+    if inst.n_jobs < 10:  # on the large shops most pickups are another job's drop-off, where the dual is 0
+        assert sum(before) + sum(after) > 0
 
 
 # ---------------------------------------------------------------------------------- hand-computed optima
