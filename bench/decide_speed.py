@@ -9,7 +9,12 @@ is validated. With ``--baseline REV`` the same measurement runs on the source of
 worktree), alternating with this checkout's run by run, so both see the same machine load; the baseline must
 make the same schedules (the same decisions), or the bench stops.
 
-Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3]
+``--solve`` times the whole solve instead, as ``fms solve NAME --solver ppo`` reports it (``meta["wall_time"]``: the
+model's load, the default plan search within its 1 s budget and the run), each run in a fresh process; a name
+ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This is how the large benchmark's sl70 time
+goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``.
+
+Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3] [--solve]
                                     [--baseline REV] [--json PATH]
 """
 
@@ -19,6 +24,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -68,14 +74,32 @@ def measure(names: list[str], model: str, repeat: int) -> list[dict]:
     return rows
 
 
-def _worker(src: Path, names: list[str], model: str, repeat: int) -> list[dict]:
-    """:func:`measure` in a fresh interpreter on the package source at ``src``."""
+def solve_once(name: str, model: str) -> dict:
+    """One default solve of ``name`` (``/notools``: without tools), timed as ``fms solve`` times it."""
+    from fms_sim.formats import load_instance
+    from fms_dispatch.solvers import solve
+
+    base, _, flag = name.partition("/")
+    inst = load_instance(base, no_tools=flag == "notools")
+    solver = model if model.lower().startswith("ppo") else f"ppo:{model}"
+    sched = solve(inst, solver)
+    return {"instance": name, "decisions": 0, "seconds": sched.meta["wall_time"],
+            "makespan": checked(inst, sched, solver)}
+
+
+def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = False) -> list[dict]:
+    """:func:`measure` (or, ``whole``, :func:`solve_once` per shop, each in its own interpreter) in a fresh
+    interpreter on the package source at ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src))
-    out = subprocess.run([sys.executable, __file__, "--worker", "--model", model, "--repeat", str(repeat),
-                          "--instances", *names], env=env, capture_output=True, text=True, cwd=src.parent)
-    if out.returncode:
-        raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    rows = []
+    for group in ([[n] for n in names] if whole else [names]):
+        out = subprocess.run([sys.executable, __file__, "--worker", "--model", model, "--repeat", str(repeat),
+                              "--instances", *group] + (["--solve"] if whole else []), env=env,
+                             capture_output=True, text=True, cwd=src.parent)
+        if out.returncode:
+            raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
+        rows += json.loads(out.stdout.strip().splitlines()[-1])
+    return rows
 
 
 def main() -> None:
@@ -84,15 +108,20 @@ def main() -> None:
     ap.add_argument("--model", default="ppo", help="ppo (the default per shop) or a model name")
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per shop (best reported)")
     ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
+    ap.add_argument("--solve", action="store_true", help="time the whole default solve (fresh process per run)")
     ap.add_argument("--json", help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.repeat < 1:
         raise SystemExit("--repeat must be >= 1")
     if a.worker:
-        print(json.dumps(measure(a.instances, a.model, a.repeat)))
+        print(json.dumps([solve_once(n, a.model) for n in a.instances] if a.solve
+                         else measure(a.instances, a.model, a.repeat)))
         return
     here = ROOT / "src"
+    if a.solve:
+        _solve_report(a, here)
+        return
     if not a.baseline:
         rows = _worker(here, a.instances, a.model, a.repeat)
         lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, model {a.model}, best of {a.repeat}"]
@@ -134,6 +163,46 @@ def main() -> None:
                      f"{b['seconds']:.3f} s, {b['seconds'] / n['seconds']:.2f}x; makespan {n['makespan']} (same); list "
                      f"schedule {1000 * n['list_seconds']:.1f} ms against {1000 * b['list_seconds']:.1f} ms, "
                      f"{b['list_seconds'] / n['list_seconds']:.2f}x")
+    report(lines, rows, a.json)
+
+
+def _solve_report(a: argparse.Namespace, here: Path) -> None:
+    """``--solve``: every run of every shop in a fresh process, alternating with the baseline's when given; all
+    times reported (the search's clock makes the plan, and so the makespan, vary a little between runs)."""
+    times: dict[str, dict[str, list[float]]] = {"new": {}, "base": {}}
+    spans: dict[str, dict[str, list[int]]] = {"new": {}, "base": {}}
+    tree = None
+    tmp = tempfile.TemporaryDirectory() if a.baseline else None
+    try:
+        if tmp is not None:
+            tree = Path(tmp.name) / "baseline"
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), a.baseline], check=True,
+                           capture_output=True)
+        for _ in range(a.repeat):
+            for who, src in ((("base", tree / "src"),) if tree is not None else ()) + (("new", here),):
+                for r in _worker(src, a.instances, a.model, 1, whole=True):
+                    times[who].setdefault(r["instance"], []).append(r["seconds"])
+                    spans[who].setdefault(r["instance"], []).append(r["makespan"])
+    finally:
+        if tree is not None:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False,
+                           capture_output=True)
+        if tmp is not None:
+            tmp.cleanup()
+    lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, {a.model}, whole solves, {a.repeat} each, fresh processes"
+             + (f", baseline {a.baseline} alternating" if a.baseline else "")]
+    rows = []
+    for name in a.instances:
+        t = times["new"][name]
+        row = {"instance": name, "seconds": t, "makespans": spans["new"][name]}
+        line = f"{name}: {min(t):.2f}-{max(t):.2f} s (makespans {sorted(set(spans['new'][name]))})"
+        if a.baseline:
+            b = times["base"][name]
+            row.update(baseline_seconds=b, baseline_makespans=spans["base"][name])
+            line += (f" against {min(b):.2f}-{max(b):.2f} s (makespans {sorted(set(spans['base'][name]))}), "
+                     f"{statistics.mean(b) / statistics.mean(t):.2f}x on the means")
+        rows.append(row)
+        lines.append(line)
     report(lines, rows, a.json)
 
 
