@@ -75,6 +75,10 @@ FULL_BLOCKS = ("start", "tool", "use", "hold")
 FULL_KINDS = ("job", "agv", "tt") + FULL_BLOCKS
 
 
+#: where the full net's start, tool and use actions, and hold, are in :data:`FULL_KINDS`
+_START_TOOL_USE = tuple(FULL_KINDS.index(k) for k in ("start", "tool", "use"))
+_FULL_G = np.array(_START_TOOL_USE + (FULL_KINDS.index("hold"),))
+
 DISRUPTION_KEYS = ("noise", "breakdowns", "fixed", "seed")
 
 
@@ -208,6 +212,7 @@ class ShopEnv(gym.Env):
         self.instance: Instance | None = None
         self._tables: _Tables | None = None
         self._tables_for: Instance | None = None
+        self._scaled: tuple | None = None  # see _scaled_tables
 
     def _check_fits(self, inst: Instance) -> None:
         limits = [("jobs", inst.n_jobs, self.max_jobs), ("machines", inst.n_machines, self.max_machines),
@@ -338,6 +343,18 @@ class ShopEnv(gym.Env):
             self._tables, self._tables_for = tb, inst
         return self._tables
 
+    def _scaled_tables(self, tb: _Tables) -> tuple[np.ndarray, np.ndarray]:
+        """The job features read from the instance tables, scaled once per instance and padding: per (job,
+        operation) its machine / max machines, duration / scale and remaining work / scale side by side, and its
+        tool / max tools (the same divisions the observation made per decision)."""
+        key = (tb, self.max_machines, self._scale, self.max_tools)
+        if self._scaled is None or self._scaled[0] != key:
+            sc = self._scale
+            both = (np.stack([tb.mach / self.max_machines, tb.dur / sc, tb.suffix / sc], axis=-1),
+                    tb.tool / max(1, self.max_tools))
+            self._scaled = (key, both)
+        return self._scaled[1]
+
     def _lower_bound(self) -> int:
         s = self.shop
         tb = self._t()
@@ -381,7 +398,6 @@ class ShopEnv(gym.Env):
                 at[c[0]] = c[2]
         loc = np.array(at, dtype=np.int64)
         present = loc >= 0
-        has_next = k < tb.nops
         kk = np.minimum(k, tb.nops)  # tables are padded with zeros past the last operation
         J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float64)
         Jn = J[:n]
@@ -389,10 +405,11 @@ class ShopEnv(gym.Env):
         legal_jobs = [a for a in legal if a < n]
         Jn[legal_jobs, 1] = 1.0
         Jn[:, 2] = present
-        Jn[:, 3] = np.where(has_next, tb.mach[tb.rows, kk] / mm, 0.0)
-        Jn[:, 4] = np.where(has_next, tb.dur[tb.rows, kk] / sc, 0.0)
-        Jn[:, 9] = np.where(has_next, tb.tool[tb.rows, kk] / max(1, self.max_tools), 0.0)
-        Jn[:, 5] = tb.suffix[tb.rows, kk] / sc
+        # the next operation's machine, duration and remaining work, and its tool, scaled (0 past the last operation:
+        # the tables are padded with zeros there)
+        scaled, scaled_tool = self._scaled_tables(tb)
+        Jn[:, 3:6] = scaled[tb.rows, kk]
+        Jn[:, 9] = scaled_tool[tb.rows, kk]
         Jn[:, 6] = (tb.nops - k) / np.maximum(1, tb.nops)
         Jn[:, 7] = loc / mm
         ready = np.asarray(s.job_ready_since, dtype=np.int64)
@@ -437,20 +454,25 @@ class ShopEnv(gym.Env):
         parts = [g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(), T.astype(np.float32).ravel(),
                  A.ravel(), R.ravel()]
         if isinstance(s, FullShop):
-            parts += self._full_features(s, legal, loc)
+            parts += self._full_features(s, legal, loc, open_ if self.decisions == "full" else None)
         obs = np.concatenate(parts)
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
 
-    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray) -> list[np.ndarray]:
+    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray,
+                       open_: np.ndarray | None = None) -> list[np.ndarray]:
         """The full net's decision points: which starts, tool take-ups and request choices are offered, where
         the parts and tools stand in their reservations. ``loc``: each job's part location (-1: none or on a
-        vehicle), as :meth:`_obs` read it."""
+        vehicle), as :meth:`_obs` read it; ``open_``: which kinds of action are legal (indexed as
+        :data:`FULL_KINDS`), if :meth:`_obs` read them."""
         inst = self.instance
         la = np.asarray(legal, dtype=np.int64)
         codes, nums = self._kind_code[la], self._kind_num[la]
-        starts, tools, uses = (nums[codes == FULL_KINDS.index(k)] for k in ("start", "tool", "use"))
-        g = np.array((starts.size > 0, tools.size > 0, uses.size > 0, (codes == FULL_KINDS.index("hold")).any()),
-                     dtype=np.float32)
+        if open_ is None:
+            open_ = np.zeros(len(FULL_KINDS), dtype=bool)
+            open_[codes] = True
+        empty = nums[:0]
+        starts, tools, uses = (nums[codes == i] if open_[i] else empty for i in _START_TOOL_USE)
+        g = open_[_FULL_G].astype(np.float32)
         J = np.zeros((self.max_jobs, len(FULL_JOB_FEATURES)), dtype=np.float32)
         J[starts, 0] = 1.0
         J[uses, 2] = 1.0
@@ -533,7 +555,7 @@ class ShopEnv(gym.Env):
             free_part = np.full(tb.n, now, dtype=np.int64)
             run_part = np.maximum(now, busy[prev_m])
         part = np.where(buffered, now, np.where(free, free_part, run_part))
-        est = np.maximum(np.maximum(part, busy[m]), now) - now
+        est = np.maximum(part, busy[m]) - now  # part >= now in every case above
         return np.where(k < tb.nops, est, 0).astype(np.float64)
 
     @staticmethod
