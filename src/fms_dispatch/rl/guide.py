@@ -336,7 +336,8 @@ class PlanGuide:
         self._memo: dict[str, tuple[Any, Any]] = {}
 
     def _cached(self, name: str, key: Any, compute: Any) -> Any:
-        """``compute()``, or its last value if it was computed for the same ``key`` (the state it reads)."""
+        """``compute()``, or its last value if it was computed for the same ``key`` (the state it reads). The value
+        is shared between the calls that get it: callers read it, never change it."""
         hit = self._memo.get(name)
         if hit is not None and hit[0] == key:
             return hit[1]
@@ -376,14 +377,14 @@ class PlanGuide:
         return done
 
     def agv_heads(self, shop: FullShop) -> dict[int, tuple[int, int]]:
-        """Each AGV's next planned carry not yet dispatched."""
+        """Each AGV's next planned carry not yet dispatched (a dict shared with later calls: read it only)."""
         sent = shop.job_started_ops
         return self._cached("agvs", tuple(sent), lambda: self.agvs.heads(
             np.asarray(sent, dtype=np.int64)[self.agvs.J] > self.agvs.K))
 
     def tt_heads(self, shop: FullShop, started: np.ndarray) -> dict[int, tuple[int, int]]:
         """Each transporter's next planned carry whose tool use is not yet served (``started``: the shop's
-        next operation to start per job, as an array)."""
+        next operation to start per job, as an array; a dict shared with later calls: read it only)."""
         return self._cached("tts", self._tool_state(shop),
                             lambda: self.tts.heads(self._served(shop, self.tts, started)))
 
