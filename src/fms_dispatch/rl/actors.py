@@ -144,6 +144,9 @@ class NumpyEntityActor:
         emb: dict[str, np.ndarray] = {}
         ctx = np.zeros(h * len(self.blocks), np.float32)
         for k, b in enumerate(self.blocks):
+            if b != "jobs" and not n[b]:  # no rows (a shop without tools): no embedding, its context stays 0
+                emb[b] = np.zeros((0, self.nets[b][-1][0].shape[1]), np.float32)
+                continue
             if b == "jobs":  # a job's row is joined by the row of the machine of its next operation
                 x = np.concatenate([obs[i:i + nj * f].reshape(nj, f) for i, f in self._parts[b]] + [nxt], axis=1)
             else:
