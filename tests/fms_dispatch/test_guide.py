@@ -630,3 +630,31 @@ def test_the_guide_replanner_re_plans_a_late_plan_at_most_once_per_drift():
             assert rp.events == []
         else:
             assert statuses.index("adopted") < len(statuses) - 1  # re-plans go on after a new plan is adopted
+
+
+@pytest.mark.parametrize("no_tools", [False, True])
+def test_the_default_models_numpy_actor_computes_its_torch_policys_logits(no_tools):
+    # the shipped default decides with its numpy actor; on a shop without tools its padded tools and transporter
+    # blocks have no rows (no embedding, a zero context), as the torch policy's masked mean makes them
+    from fms_dispatch.rl.agent import Agent
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import default_model_name, load_agent
+    from fms_sim.formats import load_instance
+
+    inst = load_instance("ra01", no_tools=no_tools)
+    assert inst.has_tools != no_tools
+    agent = load_agent(default_model_name(inst))
+    ref = Agent(agent.path, agent.padding, torch=True, decisions=agent.decisions, guide=agent.guide)
+    effort = effort_from(restarts=0, tabu=0)
+    agent.use_guide_effort(effort)
+    ref.use_guide_effort(effort)
+    shop = FullShop(inst)
+    compared = 0
+    while not shop.done:
+        if len(shop.legal_actions()) > 1:
+            fast, mask = agent.logits(shop, fast=True)
+            slow, _ = ref.logits(shop, fast=False)
+            assert np.array_equal(np.isfinite(fast), mask) and np.allclose(fast[mask], slow[mask], atol=1e-4)
+            compared += 1
+        shop.act(agent.act(shop))
+    assert compared > 20
