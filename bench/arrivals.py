@@ -24,7 +24,7 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, report, versus
+from checks import checked, report, versus_line
 
 DEFAULT_SHOPS = ["gen:10x5x5*3@216", "gen:20x10x10*3@216", "gen:20x10x10*2@219/notools", "gen:50x15x15*1@217",
                  "gen:50x15x15*1@220/notools"]
@@ -60,10 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         print(row, flush=True)
     first = f"tabu {a.tabu[0]:g}"
     lines = [f"{len(rows)} shops, {a.parts} partitions, model {a.model}:"]
-    for s in a.tabu:
-        k = f"tabu {s:g}"
-        total, ratio, below, above = versus(rows, k, first)
-        lines.append(f"  {k:12s} total {total:7d}  {ratio:.4f} x {first}   below / above: {below} / {above}")
+    lines += [versus_line(rows, f"tabu {s:g}", first) for s in a.tabu]
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
     return 0

@@ -38,3 +38,9 @@ def versus(rows: list[dict], key: str, ref: str) -> tuple[int, float, int, int]:
     total = sum(r[key] for r in rows)
     return (total, total / sum(r[ref] for r in rows), sum(r[key] < r[ref] for r in rows),
             sum(r[key] > r[ref] for r in rows))
+
+
+def versus_line(rows: list[dict], key: str, ref: str) -> str:
+    """The summary line of column ``key`` against ``ref`` (:func:`versus`): total, ratio, below / above."""
+    total, ratio, below, above = versus(rows, key, ref)
+    return f"  {key:12s} total {total:7d}  {ratio:.4f} x {ref}   below / above: {below} / {above}"

@@ -24,7 +24,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, report, versus
+from checks import checked, report, versus_line
 
 DEFAULT_SHOPS = ["genbu:**1@31", "gen:10x5x5*2@216", "gen:10x5x5*2@219/notools", "gen:20x10x10*2@216",
                  "gen:20x10x10*2@219/notools"]
@@ -60,9 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"{len(rows)} runs, noise {a.noise:g}, {a.breakdowns} breakdowns, {a.budget:g} s per re-plan:"]
     for s in a.tabu:
         k = f"tabu {s:g}"
-        total, ratio, below, above = versus(rows, k, first)
-        lines.append(f"  {k:12s} total {total:7d}  {ratio:.4f} x {first}   below / above: {below} / {above}   "
-                     f"{sum(r[k + ' replans'] for r in rows)} re-plans")
+        lines.append(versus_line(rows, k, first) + f"   {sum(r[k + ' replans'] for r in rows)} re-plans")
     lines.append(f"({time.perf_counter() - t0:.0f} s)")
     report(lines, rows, a.json)
     return 0
