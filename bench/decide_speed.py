@@ -21,6 +21,7 @@ Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -30,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Iterator
 
 from checks import checked, report
 
@@ -102,6 +104,35 @@ def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = 
     return rows
 
 
+@contextlib.contextmanager
+def _sources(here: Path, baseline: str | None) -> Iterator[list[tuple[str, Path]]]:
+    """``[("base", its src), ("new", here)]``, the baseline revision checked out in a temporary git worktree for
+    the while (removed afterwards); ``[("new", here)]`` without a baseline."""
+    if not baseline:
+        yield [("new", here)]
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "baseline"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), baseline], check=True,
+                       capture_output=True)
+        try:
+            yield [("base", tree / "src"), ("new", here)]
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False,
+                           capture_output=True)
+
+
+def _alternating(a: argparse.Namespace, here: Path, whole: bool) -> dict[str, list[dict]]:
+    """Per source ("base", "new"), the rows of ``a.repeat`` rounds of one run per shop each, the sources taking turns
+    round by round so that both see the same machine load."""
+    out: dict[str, list[dict]] = {"new": [], "base": []}
+    with _sources(here, a.baseline) as sources:
+        for _ in range(a.repeat):
+            for who, src in sources:
+                out[who] += _worker(src, a.instances, a.model, 1, whole=whole)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--instances", nargs="+", default=["EX104", "sl00", "sl31", "sl70"])
@@ -131,21 +162,12 @@ def main() -> None:
                          f"decision, makespan {r['makespan']}; list schedule {1000 * r['list_seconds']:.1f} ms")
         report(lines, rows, a.json)
         return
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "baseline"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), a.baseline], check=True,
-                       capture_output=True)
-        try:
-            best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}
-            for _ in range(a.repeat):  # alternating, one timed run each, so both see the same load
-                for who, src in (("base", tree / "src"), ("new", here)):
-                    for r in _worker(src, a.instances, a.model, 1):
-                        old = best[who].get(r["instance"])
-                        if old is None or r["seconds"] < old["seconds"]:
-                            best[who][r["instance"]] = r
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False,
-                           capture_output=True)
+    best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}
+    for who, runs in _alternating(a, here, whole=False).items():
+        for r in runs:
+            old = best[who].get(r["instance"])
+            if old is None or r["seconds"] < old["seconds"]:
+                best[who][r["instance"]] = r
     rows = []
     lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, model {a.model}, best of {a.repeat} alternating runs, "
              f"baseline {a.baseline}"]
@@ -171,24 +193,10 @@ def _solve_report(a: argparse.Namespace, here: Path) -> None:
     times reported (the search's clock makes the plan, and so the makespan, vary a little between runs)."""
     times: dict[str, dict[str, list[float]]] = {"new": {}, "base": {}}
     spans: dict[str, dict[str, list[int]]] = {"new": {}, "base": {}}
-    tree = None
-    tmp = tempfile.TemporaryDirectory() if a.baseline else None
-    try:
-        if tmp is not None:
-            tree = Path(tmp.name) / "baseline"
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), a.baseline], check=True,
-                           capture_output=True)
-        for _ in range(a.repeat):
-            for who, src in ((("base", tree / "src"),) if tree is not None else ()) + (("new", here),):
-                for r in _worker(src, a.instances, a.model, 1, whole=True):
-                    times[who].setdefault(r["instance"], []).append(r["seconds"])
-                    spans[who].setdefault(r["instance"], []).append(r["makespan"])
-    finally:
-        if tree is not None:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False,
-                           capture_output=True)
-        if tmp is not None:
-            tmp.cleanup()
+    for who, runs in _alternating(a, here, whole=True).items():
+        for r in runs:
+            times[who].setdefault(r["instance"], []).append(r["seconds"])
+            spans[who].setdefault(r["instance"], []).append(r["makespan"])
     lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, {a.model}, whole solves, {a.repeat} each, fresh processes"
              + (f", baseline {a.baseline} alternating" if a.baseline else "")]
     rows = []
