@@ -454,22 +454,18 @@ class ShopEnv(gym.Env):
         parts = [g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(), T.astype(np.float32).ravel(),
                  A.ravel(), R.ravel()]
         if isinstance(s, FullShop):
-            parts += self._full_features(s, legal, loc, open_ if self.decisions == "full" else None)
+            parts += self._full_features(s, legal, loc, open_)  # a FullShop is observed with decisions='full'
         obs = np.concatenate(parts)
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
 
-    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray,
-                       open_: np.ndarray | None = None) -> list[np.ndarray]:
+    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray, open_: np.ndarray) -> list[np.ndarray]:
         """The full net's decision points: which starts, tool take-ups and request choices are offered, where
         the parts and tools stand in their reservations. ``loc``: each job's part location (-1: none or on a
         vehicle), as :meth:`_obs` read it; ``open_``: which kinds of action are legal (indexed as
-        :data:`FULL_KINDS`), if :meth:`_obs` read them."""
+        :data:`FULL_KINDS`), as :meth:`_obs` read them."""
         inst = self.instance
         la = np.asarray(legal, dtype=np.int64)
         codes, nums = self._kind_code[la], self._kind_num[la]
-        if open_ is None:
-            open_ = np.zeros(len(FULL_KINDS), dtype=bool)
-            open_[codes] = True
         empty = nums[:0]
         starts, tools, uses = (nums[codes == i] if open_[i] else empty for i in _START_TOOL_USE)
         g = open_[_FULL_G].astype(np.float32)
