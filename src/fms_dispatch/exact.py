@@ -213,21 +213,41 @@ def simple_lower_bound(inst: Instance) -> int:
     return lb
 
 
-def _same_job_lag(inst: Instance, a: _Task, b: _Task) -> int:
+JobSums = tuple[list[list[int]], list[list[int]]]
+"""Per job, the processing and the loaded AGV travel of its operations before each one, summed (entry ``k``: of
+operations ``0 .. k-1``; one more entry than the job has operations): :func:`_job_sums`."""
+
+
+def _job_sums(inst: Instance) -> JobSums:
+    """The :data:`JobSums` of ``inst``: any stretch of a job's processing or loaded travel in O(1) (a 100 x 20 shop
+    has 38,000 pairs of tasks of one job)."""
+    dsum, lsum = [], []
+    for j, job in enumerate(inst.jobs):
+        d, lt = [0], [0]
+        for k, op in enumerate(job):
+            d.append(d[-1] + op.duration)
+            lt.append(lt[-1] + _loaded_time(inst, j, k))
+        dsum.append(d)
+        lsum.append(lt)
+    return dsum, lsum
+
+
+def _same_job_lag(sums: JobSums, a: _Task, b: _Task) -> int:
     """Minimum time from the end of task ``a`` to the start of the later task ``b`` of the same job: the
-    operations from ``a.op`` to ``b.op - 1`` and the loaded trips between them must run in between."""
-    job = inst.jobs[a.job]
-    return sum(job[k].duration for k in range(a.op, b.op)) + sum(
-        _loaded_time(inst, a.job, k) for k in range(a.op + 1, b.op))
+    operations from ``a.op`` to ``b.op - 1`` and the loaded trips between them must run in between (``sums``: the
+    instance's :func:`_job_sums`)."""
+    d, lt = sums[0][a.job], sums[1][a.job]
+    return d[b.op] - d[a.op] + lt[b.op] - lt[a.op + 1]
 
 
-def _agv_gap(inst: Instance, a: _Task, b: _Task) -> int:
+def _agv_gap(inst: Instance, a: _Task, b: _Task, sums: JobSums) -> int:
     """Minimum time between the end of ``a`` and the start of ``b`` when one AGV does ``b`` right after
-    ``a``: the empty trip, or (for a later task of the same job) the job's own lag if longer."""
+    ``a``: the empty trip, or (for a later task of the same job) the job's own lag if longer (``sums``: the
+    instance's :func:`_job_sums`)."""
     assert inst.agv_travel is not None
     gap = inst.agv_travel[a.drop][b.pickup]
     if a.job == b.job and a.op < b.op:
-        gap = max(gap, _same_job_lag(inst, a, b))
+        gap = max(gap, _same_job_lag(sums, a, b))
     return gap
 
 
@@ -247,24 +267,7 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
     for i, t in enumerate(tasks):
         by_job.setdefault(t.job, []).append(i)
         drop_jobs.setdefault(t.drop, set()).add(t.job)
-    # per job, the processing and the loaded travel before each operation, summed: :func:`_agv_gap` in O(1) (the
-    # pairs of a job's tasks are many on long jobs: 38,000 on a 100 x 20 shop)
-    dsum: dict[int, list[int]] = {}
-    lsum: dict[int, list[int]] = {}
-    for j in by_job:
-        d, lt = [0], [0]
-        for k, op in enumerate(inst.jobs[j]):
-            d.append(d[-1] + op.duration)
-            lt.append(lt[-1] + _loaded_time(inst, j, k))
-        dsum[j], lsum[j] = d, lt
-
-    def gap(a: _Task, b: _Task) -> int:  # _agv_gap(inst, a, b)
-        g = tr[a.drop][b.pickup]
-        if a.job == b.job and a.op < b.op:
-            d, lt = dsum[a.job], lsum[a.job]
-            g = max(g, d[b.op] - d[a.op] + lt[b.op] - lt[a.op + 1])
-        return g
-
+    sums = _job_sums(inst)
     # the drop-off places of each job's tasks, for 'a task of another job ends here'
     only_job = {loc: next(iter(js)) if len(js) == 1 else None for loc, js in drop_jobs.items()}
     before = []
@@ -275,7 +278,7 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
                 best = min(best, tr[loc][t.pickup])
         for i2 in by_job[t.job]:
             if tasks[i2].op < t.op:
-                best = min(best, gap(tasks[i2], t))
+                best = min(best, _agv_gap(inst, tasks[i2], t, sums))
         before.append(best)
     # per pickup location: the two smallest `before` values from different jobs
     INF = 1 << 60
@@ -305,7 +308,7 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
                 best = min(best, here[loc] - bj)
         for i2 in by_job[t.job]:
             if tasks[i2].op > t.op:
-                best = min(best, gap(t, tasks[i2]) - before[i2])
+                best = min(best, _agv_gap(inst, t, tasks[i2], sums) - before[i2])
         after.append(max(0, best))
     return before, after
 
@@ -636,6 +639,7 @@ class _FullModel:
         tasks, ts = self.tasks, self.ts
         out_of_depot = []
         gap: dict[tuple[int, int], int] = {}
+        sums = _job_sums(inst)
         for i, t in enumerate(tasks):
             gap[0, i + 1] = tr[0][t.pickup]
             lit = m.new_bool_var(f"a0_{i}")
@@ -648,7 +652,7 @@ class _FullModel:
                 if i == jj or (a.job == b.job and b.op < a.op):
                     continue  # a later task of the same job never comes first
                 lit = m.new_bool_var(f"a{i}_{jj}")
-                gap[i + 1, jj + 1] = g = _agv_gap(inst, a, b)
+                gap[i + 1, jj + 1] = g = _agv_gap(inst, a, b, sums)
                 m.add(ts[jj] >= ts[i] + a.dur + g).only_enforce_if(lit)
                 self.agv_arcs.append((i + 1, jj + 1, lit))
         m.add_multiple_circuit(self.agv_arcs)
