@@ -145,8 +145,8 @@ class Scenario:
         return f
 
     def op_duration(self, job: int, op: int, nominal: int) -> int:
-        """The realised duration of operation (job, op)."""
-        if not self.noise:
+        """The realised duration of operation (job, op); a zero duration stays zero, as a zero-length trip does."""
+        if not self.noise or nominal == 0:
             return nominal
         return max(1, round(nominal * self._factor(f"op:{job}:{op}")))
 

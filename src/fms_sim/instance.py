@@ -84,7 +84,8 @@ class Instance:
     ``jobs[j][k]`` is operation ``k`` of job ``j``. ``agv_travel[a][b]`` and ``tool_travel[a][b]`` are
     travel times from location ``a`` to ``b`` ((m+1)x(m+1), index 0 = L/U / tool magazine); loaded and empty
     trips use the same matrix. ``n_machines`` is derived from the matrices (or from the operations of a plain
-    job shop) unless given; ``n_tools`` likewise from the operations.
+    job shop) unless given; ``n_tools`` likewise from the operations. A given count smaller than what an operation
+    uses is refused.
     """
 
     name: str
@@ -117,15 +118,24 @@ class Instance:
         m = self.n_machines
         if not _is_int(m) or m < 0:
             raise InstanceError(f"n_machines must be a non-negative integer, got {m!r}")
-        for name in ("agv_travel", "tool_travel"):
-            rows = getattr(self, name)
-            if rows is not None and not m:
-                if not isinstance(rows, (list, tuple)) or len(rows) < 2:
-                    raise InstanceError(f"{name} must be an (m+1)x(m+1) matrix")
-                m = len(rows) - 1
+        derived = ""  # where the machine count came from, when it was not given
+        if not m:
+            sizes = {}
+            for name in ("agv_travel", "tool_travel"):
+                rows = getattr(self, name)
+                if rows is not None:
+                    if not isinstance(rows, (list, tuple)) or len(rows) < 2:
+                        raise InstanceError(f"{name} must be an (m+1)x(m+1) matrix")
+                    sizes[name] = len(rows)
+            if len(set(sizes.values())) > 1:
+                raise InstanceError(f"agv_travel has {sizes['agv_travel']} rows and tool_travel "
+                                    f"{sizes['tool_travel']}: both must be (m+1)x(m+1) for the same m machines")
+            if sizes:
+                name, rows_n = next(iter(sizes.items()))
+                m, derived = rows_n - 1, f" (from the {rows_n} rows of {name}: L/U + {rows_n - 1} machines)"
         m = m or used_m
         if used_m > m:
-            raise InstanceError(f"an operation uses machine {used_m} but the instance has only {m} machines")
+            raise InstanceError(f"an operation uses machine {used_m} but the instance has only {m} machines{derived}")
         set_(self, "n_machines", m)
         for name in ("agv_travel", "tool_travel"):
             rows = getattr(self, name)
@@ -134,9 +144,9 @@ class Instance:
         t = self.n_tools
         if not _is_int(t) or t < 0:
             raise InstanceError(f"n_tools must be a non-negative integer, got {t!r}")
-        if used_t > t:
-            t = used_t
-        set_(self, "n_tools", t)
+        if t and used_t > t:
+            raise InstanceError(f"an operation uses tool {used_t} but the instance has only {t} tools (n_tools)")
+        set_(self, "n_tools", t or used_t)
         for name in ("n_agvs", "n_tool_transporters"):
             v = getattr(self, name)
             if not _is_int(v) or v < 0:
@@ -231,6 +241,9 @@ class Instance:
         for key in ("name", "jobs"):
             if key not in data:
                 raise InstanceError(f"instance is missing the field {key!r}")
+        unknown = sorted(set(data) - set(_FIELDS))
+        if unknown:  # a misspelt field would otherwise be dropped without a word (n_agv: no AGVs)
+            raise InstanceError(f"unknown instance field {unknown[0]!r}; the fields are {', '.join(_FIELDS)}")
         return cls(
             name=data["name"],
             jobs=data["jobs"],
@@ -254,6 +267,10 @@ class Instance:
         Path(path).write_text(self.to_json(indent=1) + "\n")
 
 
+#: the fields of an instance's JSON object (:meth:`Instance.to_dict`)
+_FIELDS = ("name", "jobs", "agv_travel", "tool_travel", "n_agvs", "n_tool_transporters", "n_machines", "n_tools")
+
+
 def _seq(x: Any, what: str) -> Sequence[Any]:
     if not isinstance(x, (list, tuple)):
         raise InstanceError(f"{what} must be a list")
@@ -268,6 +285,9 @@ def _op(j: int, k: int, op: Any) -> Operation:
             missing = [f for f in ("machine", "duration") if f not in op]
             if missing:
                 raise InstanceError(f"missing field {missing[0]!r}")
+            unknown = sorted(set(op) - {"machine", "tool", "duration"})
+            if unknown:  # a misspelt tool would otherwise make an operation that needs none
+                raise InstanceError(f"unknown field {unknown[0]!r}; an operation has machine, tool and duration")
             return Operation(op["machine"], op.get("tool"), op["duration"])
         if isinstance(op, (list, tuple)) and len(op) in (2, 3):
             # [machine, duration] or [machine, tool, duration]

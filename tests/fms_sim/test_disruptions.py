@@ -104,6 +104,20 @@ def test_noise_is_reproducible_and_checked_by_the_validator():
     assert any("realised duration" in v for v in validate(inst, dataclasses.replace(a, operations=ops)))
 
 
+def test_noise_keeps_zero_durations_zero():
+    """A zero-length operation stays zero under noise, as a zero-length trip does (semantics.md), in the shop
+    and in the validator alike."""
+    base = builtin("ra01")
+    jobs = [list(job) for job in base.jobs]
+    jobs[0][0] = dataclasses.replace(jobs[0][0], duration=0)
+    inst = dataclasses.replace(base, jobs=tuple(tuple(j) for j in jobs))
+    sc = Scenario(noise=0.3, seed=1)
+    assert sc.op_duration(0, 0, 0) == 0 and sc.op_duration(0, 0, 5) >= 1
+    s = _run(inst, sc)
+    first = next(r for r in s.operations if (r.job, r.op) == (0, 0))
+    assert first.end == first.start and validate(inst, s) == []
+
+
 def test_a_breakdown_suspends_the_running_operation_and_blocks_starts():
     inst = builtin("EX12")
     nominal = _run(inst, None)

@@ -1,0 +1,72 @@
+"""The instance data model refuses what breaks it, with a message that names the field."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from fms_sim.benchmarks import builtin
+from fms_sim.instance import Instance, InstanceError
+
+Z3 = [[0, 1, 2], [1, 0, 1], [2, 1, 0]]  # L/U + 2 machines
+Z4 = [[0, 1, 2, 3], [1, 0, 1, 2], [2, 1, 0, 1], [3, 2, 1, 0]]  # L/U + 3 machines
+
+
+def _inst(**kw: Any) -> Instance:
+    base: dict[str, Any] = dict(name="x", jobs=[[{"machine": 1, "tool": 1, "duration": 3}]])
+    base.update(kw)
+    return Instance(**base)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(jobs=[]), "instance has no jobs"),
+    (dict(jobs=[[]]), "job 0 has no operations"),
+    (dict(jobs=[[{"machine": 0, "duration": 3}]]), "job 0 operation 0: machine must be an integer >= 1"),
+    (dict(jobs=[[{"machine": 1, "duration": -1}]]), "duration must be a non-negative integer"),
+    (dict(jobs=[[{"machine": 1}]]), "missing field 'duration'"),
+    (dict(jobs=[[{"machine": 1, "duration": 3, "tol": 1}]]), "job 0 operation 0: unknown field 'tol'"),
+    # a tool above the declared count, as a machine above the machine count
+    (dict(tool_travel=Z3, n_tool_transporters=1, jobs=[[{"machine": 1, "tool": 2, "duration": 3}]], n_tools=1),
+     "an operation uses tool 2 but the instance has only 1 tools"),
+    (dict(agv_travel=Z3, n_agvs=1, jobs=[[{"machine": 3, "duration": 3}]]),
+     r"uses machine 3 but the instance has only 2 machines \(from the 3 rows of agv_travel"),
+    (dict(agv_travel=Z4, n_agvs=1, tool_travel=Z3, n_tool_transporters=1),
+     r"agv_travel has 4 rows and tool_travel 3: both must be \(m\+1\)x\(m\+1\)"),
+    (dict(agv_travel=Z4, n_agvs=1, tool_travel=Z3, n_tool_transporters=1, n_machines=3),
+     "tool_travel must be a 4x4 matrix"),
+    (dict(agv_travel=[[0, 1, 2], [1, 1, 1], [2, 1, 0]], n_agvs=1), r"agv_travel\[1\]\[1\] must be 0"),
+    (dict(agv_travel=[[0, -1, 2], [1, 0, 1], [2, 1, 0]], n_agvs=1), r"agv_travel\[0\]\[1\] is negative"),
+    (dict(agv_travel=Z3), "AGV travel matrix but no AGVs"),
+    (dict(tool_travel=Z3), "tool travel matrix but no tool transporters"),
+    (dict(), "operations need tools but tool_travel is null"),
+])
+def test_refused(kw: dict, match: str) -> None:
+    with pytest.raises(InstanceError, match=match):
+        _inst(**kw)
+
+
+def test_counts_derived_or_given() -> None:
+    a = _inst(tool_travel=Z3, n_tool_transporters=1)
+    assert (a.n_machines, a.n_tools) == (2, 1)  # machines from the matrix, tools from the operations
+    b = _inst(tool_travel=Z3, n_tool_transporters=1, n_tools=4)
+    assert b.n_tools == 4  # more tools than the operations use is fine (an idle tool)
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda d: d.update(n_agv=5), "unknown instance field 'n_agv'"),
+    (lambda d: d["jobs"][0][0].update(tol=1), "unknown field 'tol'"),
+    (lambda d: d.pop("jobs"), "missing the field 'jobs'"),
+])
+def test_json_refuses_misspelt_fields(change: Any, match: str) -> None:
+    data = builtin("EX12").to_dict()
+    change(data)
+    with pytest.raises(InstanceError, match=match):
+        Instance.from_json(json.dumps(data))
+
+
+def test_json_round_trip() -> None:
+    for name in ("EX12", "ra01", "sl00"):
+        inst = builtin(name)
+        assert Instance.from_json(inst.to_json()) == inst
