@@ -34,7 +34,8 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--agvs", type=int, metavar="N", help="override the number of AGVs")
     p.add_argument("--tool-transporters", type=int, metavar="N", help="override the number of tool transporters")
     p.add_argument("--no-tools", action="store_true", help="drop tools (AGVs only)")
-    p.add_argument("--no-agvs", action="store_true", help="drop AGVs (parts move instantly; plain job shop without tools)")
+    p.add_argument("--no-agvs", action="store_true",
+                   help="drop AGVs (parts move instantly; with --no-tools too, a plain job shop)")
 
 
 def add_guide_args(p: argparse.ArgumentParser) -> None:
@@ -82,9 +83,14 @@ def load_from_args(a: argparse.Namespace) -> Instance:
 
 def cmd_instances(a: argparse.Namespace) -> int:
     from fms_sim.benchmarks import builtin, builtin_names
+    from fms_sim.formats import load_instance
+    from fms_sim.shopsets import heldout_names
 
     for name in builtin_names():
         print(builtin(name).describe() if a.details else name)
+    # the held-out shops load by name too (never trained on: the generalisation figures are measured on them)
+    for name in heldout_names():
+        print(load_instance(name).describe() + " (held out)" if a.details else name)
     return 0
 
 
@@ -96,17 +102,39 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
     return f", {len(events)} re-plans ({sum(e.get('status') == 'adopted' for e in events)} adopted)"
 
 
+def search_summary(sched: Schedule) -> str:
+    """What the summary line adds about the search: CP-SAT's proof (``", optimal"`` or ``", bound B"``) and the
+    rule combinations a time limit left untried."""
+    m = sched.meta
+    out = ""
+    if m.get("status") == "OPTIMAL":
+        out += ", optimal"
+    elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
+        out += f", bound {m['lower_bound']}"
+    if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
+        out += f", {m['tried']} of {m['combinations']} rule combinations within the time limit"
+    return out
+
+
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
-    from .solvers import get_solver, solve
+    from .solvers import get_solver, searches_time, solve
 
     get_solver(a.solver)  # unknown names fail before any work or output
+    check_output(a.out, "--out")
+    check_output(a.gantt, "--gantt")
     inst = load_from_args(a)
     opts: dict = {"seed": a.seed}
     if a.time_limit is not None:
         if a.time_limit <= 0:
             raise CliError("--time-limit must be positive")
+        low = a.solver.lower()
+        if low.startswith("ppo"):
+            raise CliError("--time-limit does not apply to ppo (a policy's run); its plan search's limit is "
+                           "--guide-budget")
+        if not low.startswith("rules") and not searches_time(low):
+            raise CliError(f"--time-limit does not apply to {a.solver}: it runs once, without a search")
         opts["time_limit"] = a.time_limit
     from .solvers import DECISION_SOLVERS
 
@@ -117,7 +145,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
         raise CliError(f"--decisions applies to the first, random and rule: solvers, not {a.solver} "
-                       "(list and rules always use the full net; sos and ppo the paper's)")
+                       "(rules:paper runs the paper net's rule pairs; a ppo model decides through the net it was "
+                       "trained on)")
     if a.replan is not None:
         if not a.solver.lower().startswith("plan:"):
             raise CliError("--replan applies to the plan: solvers only")
@@ -125,6 +154,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
             raise CliError("--replan must be positive (seconds per re-plan)")
         opts["replan"] = a.replan
     if a.lookahead or a.lookahead_fast or a.lookahead_guide:
+        if a.lookahead + a.lookahead_fast + a.lookahead_guide > 1:
+            raise CliError("give one of --lookahead, --lookahead-fast and --lookahead-guide")
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
         opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
@@ -149,7 +180,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if problems:  # a solver bug: never hand out an infeasible schedule silently
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
         return EXIT_INFEASIBLE
-    extra = replans_summary(sched.meta.get("replans"))
+    extra = replans_summary(sched.meta.get("replans")) + search_summary(sched)
     print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     _write_outputs(sched, inst, a.out, a.gantt)
     return 0
@@ -170,6 +201,18 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
     if scenario is not None:
         scenario.check(inst)
     return scenario
+
+
+def check_output(path: str | None, what: str) -> None:
+    """Refuse an output file that cannot be written, before any work: a folder, or one inside a file."""
+    if not path:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise CliError(f"{what} {path} is a folder; name a file")
+    parent = next((q for q in p.parents if q.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise CliError(f"{what} {path}: {parent} is a file, not a folder")
 
 
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
@@ -212,8 +255,13 @@ def cmd_validate(a: argparse.Namespace) -> int:
 def cmd_replay(a: argparse.Namespace) -> int:
     from fms_sim.replay import ReplayError, replay
 
+    check_output(a.out, "--out")
+    check_output(a.gantt, "--gantt")
     inst = load_from_args(a)
     given = _load_schedule(a.schedule)
+    if given.meta.get("scenario"):  # the orders are replayed; the disruptions they answered are not
+        print("note: the schedule was made in a disrupted shop (meta.scenario); the replay runs the nominal shop",
+              file=sys.stderr)
     try:
         out = replay(inst, given)
     except ReplayError as exc:
@@ -232,11 +280,23 @@ def cmd_replay(a: argparse.Namespace) -> int:
 def cmd_generate(a: argparse.Namespace) -> int:
     from fms_sim import generate as g
 
-    insts = g.generate_instances(
-        a.jobs, a.machines, a.tools, a.count, time_seed=a.time_seed, route_seed=a.route_seed,
-        tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed, n_agvs=a.agvs,
-        n_tool_transporters=a.tool_transporters, tools=not a.no_tools, agvs=not a.no_agvs, name_prefix=a.prefix)
+    if Path(a.prefix).name != a.prefix or a.prefix in ("", ".", ".."):
+        raise CliError(f"--prefix {a.prefix!r} must be a plain name (the files go into --out-dir)")
     out = Path(a.out_dir)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out-dir {a.out_dir} is a file, not a folder")
+    if a.no_tools and (a.tools is not None or a.tool_transporters is not None):
+        raise CliError("--tools/--tool-transporters and --no-tools contradict each other")
+    if a.no_agvs and a.agvs is not None:
+        raise CliError("--agvs and --no-agvs contradict each other")
+    for flag, v in (("--jobs", a.jobs), ("--machines", a.machines), ("--count", a.count)):
+        if v < 1:
+            raise CliError(f"{flag} must be >= 1")
+    insts = g.generate_instances(
+        a.jobs, a.machines, a.machines if a.tools is None else a.tools, a.count, time_seed=a.time_seed,
+        route_seed=a.route_seed, tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed,
+        n_agvs=10 if a.agvs is None else a.agvs, n_tool_transporters=5 if a.tool_transporters is None
+        else a.tool_transporters, tools=not a.no_tools, agvs=not a.no_agvs, name_prefix=a.prefix)
     out.mkdir(parents=True, exist_ok=True)
     for inst in insts:
         path = out / f"{inst.name}.json"
@@ -249,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fms", description="FMS intralogistics dispatcher (AGVs, shared tools, CTPN).")
     sub = p.add_subparsers(dest="cmd", required=True)
 
-    s = sub.add_parser("instances", help="list the built-in instance names")
+    s = sub.add_parser("instances", help="list the built-in instance names (benchmarks, then the held-out shops)")
     s.add_argument("--details", action="store_true", help="print sizes and fleets too")
     s.set_defaults(fn=cmd_instances)
 
@@ -257,22 +317,25 @@ def build_parser() -> argparse.ArgumentParser:
     add_instance_args(s)
     s.add_argument("--solver", default="first",
                    help="first | random | rule:<JOB>+<first|least-work|nearest>[+<fifo|same-machine-first|"
-                        "nearest|earliest-start>] | list | rules | sos | cpsat | ppo[:MODEL] (default: first)")
+                        "nearest|earliest-start>] | list[:ect|:<JOB>] | rules[:full|:paper] | sos | tabu | cpsat | "
+                        "plan:<SOLVER>[:SECONDS] | plan:file:PATH | ppo[:MODEL] (default: first)")
     s.add_argument("--decisions", choices=("full", "paper"),
                    help="the net that first, random and rule: decide through: full (default; every valid "
                         "schedule reachable) or paper (the paper's FIFO-tool, ready-only net)")
     s.add_argument("--lookahead", action="store_true", help="ppo: pre-position idle vehicles (digital-twin lookahead)")
     s.add_argument("--lookahead-fast", action="store_true",
                    help="ppo: the lookahead without retrying rejected moves (several times faster on 50-100 "
-                        "jobs, other schedules; never worse than plain ppo either)")
+                        "jobs, still minutes on 100; other schedules; never worse than plain ppo either)")
     s.add_argument("--lookahead-guide", action="store_true",
                    help="ppo with a guided model: idle vehicles make the guide plan's empty trips (no trial runs; "
                         "fast on any size, not verified)")
     add_guide_args(s)
-    s.add_argument("--time-limit", type=float, metavar="SECONDS", help="time limit for searching solvers")
+    s.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
+                        "combinations); refused for the solvers that run once")
     s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
-                   "vehicles out of service, noise); first, random, rule: and plan: solvers")
+                   "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
                    "time (sigma, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
     s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
@@ -298,21 +361,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(fn=cmd_replay)
 
     s = sub.add_parser("generate", help="write random instances with Taillard's LCG family")
-    s.add_argument("--jobs", type=int, required=True)
-    s.add_argument("--machines", type=int, required=True)
+    s.add_argument("--jobs", type=int, required=True, help="jobs per instance")
+    s.add_argument("--machines", type=int, required=True, help="machines (each job visits every machine once)")
     s.add_argument("--tools", type=int, default=None, help="number of tools (default: = machines)")
-    s.add_argument("--count", type=int, default=1)
-    s.add_argument("--agvs", type=int, default=10)
-    s.add_argument("--tool-transporters", type=int, default=5)
-    s.add_argument("--no-tools", action="store_true")
-    s.add_argument("--no-agvs", action="store_true")
+    s.add_argument("--count", type=int, default=1, help="instances to write (default 1)")
+    s.add_argument("--agvs", type=int, default=None, help="AGVs (default 10)")
+    s.add_argument("--tool-transporters", type=int, default=None, help="tool transporters (default 5)")
+    s.add_argument("--no-tools", action="store_true", help="no tools (AGVs only)")
+    s.add_argument("--no-agvs", action="store_true", help="no AGVs (parts move instantly)")
     s.add_argument("--time-seed", type=int, default=840612802)
     s.add_argument("--route-seed", type=int, default=398197754)
     s.add_argument("--tool-seed", type=int, default=170719940)
     s.add_argument("--agv-seed", type=int, default=180119550)
     s.add_argument("--tool-travel-seed", type=int, default=280219920)
     s.add_argument("--prefix", default="gen", help="instance name prefix (names: PREFIX00, PREFIX01, ...)")
-    s.add_argument("--out-dir", default="instances", help="folder for the JSON files")
+    s.add_argument("--out-dir", default="instances", help="folder for the JSON files (default: instances; files "
+                   "of the same names are replaced)")
     s.set_defaults(fn=cmd_generate)
 
     from .benchmark import add_bench_parser
@@ -330,12 +394,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     a = parser.parse_args(argv)
-    if a.cmd == "generate" and a.tools is None:
-        a.tools = a.machines
     try:
         return a.fn(a)
     except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        # one line, but all of it: a message of several lines (a list of offending specs) is joined, not cut
+        msg = " ".join(line.strip() for line in str(exc).splitlines()) or type(exc).__name__
         print(f"fms: error: {msg}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
@@ -344,6 +407,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `fms bench bu | head`: the reader left; not an error of ours
         sys.stderr.close()
         return 0
+    except OSError as exc:  # a file that cannot be written or read (a folder where a file was named, no rights)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"fms: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

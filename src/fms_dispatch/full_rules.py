@@ -266,11 +266,16 @@ def solve_list(instance: Instance, order: str = "est", **_: Any) -> Schedule:
     return s
 
 
-def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: str = "full", **_: Any) -> Schedule:
+def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: str = "full",
+                     time_limit: float | None = None, **_: Any) -> Schedule:
     """The best schedule of every rule combination on ``instance`` (ties: the first listed), with
     ``meta["rule"]`` naming the winner. ``decisions="full"``: every full-net combination and ``list`` (solvers
     ``rules``, ``rules:full``); ``"paper"``: the 36 pairs of the paper's net (``rules:paper``). With
-    ``progress`` a line goes to stderr every 10 s."""
+    ``progress`` a line goes to stderr every 10 s. ``time_limit`` (seconds; None: try them all, the default, as
+    the benchmarks do) stops trying new combinations once it has passed, after at least one;
+    ``meta["tried"]`` says how many were run."""
+    if time_limit is not None and not time_limit > 0:
+        raise ValueError(f"the time limit must be positive, got {time_limit}")
     from fms_sim.shop import run_policy
 
     from .rules import all_rule_pairs, parse_rule_name
@@ -283,7 +288,11 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
         raise ValueError(f"unknown decisions {decisions!r}; choose from full, paper")
     best: Schedule | None = None
     t0 = last = time.perf_counter()
+    tried = 0
     for i, name in enumerate(names):
+        if time_limit is not None and best is not None and time.perf_counter() - t0 >= time_limit:
+            break
+        tried += 1
         if name.startswith("list"):
             s = solve_list(instance, name.partition(":")[2] or "est")
         elif decisions == "full":
@@ -301,5 +310,6 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     assert best is not None
     best.meta["solver"] = "rules" if decisions == "full" else "rules:paper"
     best.meta["combinations"] = len(names)
+    best.meta["tried"] = tried
     best.meta["decisions"] = decisions
     return best

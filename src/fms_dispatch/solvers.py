@@ -121,9 +121,9 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]", "rules[:full|:paper]", "sos", "tabu", "cpsat",
-            "plan:<SOLVER>[:SECONDS]",
-            "ppo[:MODEL][+lookahead|+lookahead-fast]"]
+    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]",
+            "rules[:full|:paper]", "sos", "tabu", "cpsat", "plan:<SOLVER>[:SECONDS]", "plan:file:PATH",
+            "ppo[:MODEL][+lookahead|+lookahead-fast|+lookahead-guide]"]
 
 
 def get_solver(name: str) -> Solver:

@@ -192,9 +192,9 @@ class Instance:
     def describe(self) -> str:
         fleet = []
         if self.has_agvs:
-            fleet.append(f"{self.n_agvs} AGVs")
+            fleet.append(_count(self.n_agvs, "AGV"))
         if self.has_tools:
-            fleet.append(f"{self.n_tools} tools, {self.n_tool_transporters} tool transporters")
+            fleet.append(f"{_count(self.n_tools, 'tool')}, {_count(self.n_tool_transporters, 'tool transporter')}")
         return (
             f"{self.name}: {self.n_jobs} jobs x {self.n_machines} machines, {self.n_operations} operations"
             + (f", {', '.join(fleet)}" if fleet else ", plain job shop")
@@ -269,6 +269,10 @@ class Instance:
 
 #: the fields of an instance's JSON object (:meth:`Instance.to_dict`)
 _FIELDS = ("name", "jobs", "agv_travel", "tool_travel", "n_agvs", "n_tool_transporters", "n_machines", "n_tools")
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
 
 
 def _seq(x: Any, what: str) -> Sequence[Any]:

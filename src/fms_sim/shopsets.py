@@ -425,21 +425,25 @@ def check_training_specs(config: dict[str, Any]) -> None:
     Looks at ``config["train"]``, ``config["eval"]`` and ``config["warm_start"]["refine"][*]["train"]``,
     expands every spec (with ``config["fleet"]``) and compares each instance's jobs with those of every
     benchmark and held-out shop (:func:`job_fingerprint`), so a renamed file copy is caught too. The message
-    lists every offending spec and instance; a spec that does not expand (a reserved seed, a typo) is listed
-    with its error.
+    lists every offending spec and instance, on one line; specs that do not expand (a typo) are reported
+    instead, each with its error.
     """
     fleet = config.get("fleet") or None
     problems: list[str] = []
+    bad: list[str] = []
     for where, spec in _config_specs(config):
         try:
             instances = expand_specs([spec], fleet)
         except ValueError as exc:
-            problems.append(f"{where}: {spec!r} does not expand: {exc}")
+            bad.append(f"{where}: {spec!r} does not expand: {exc}")
             continue
         for inst in instances:
             hit = is_reserved(inst)
             if hit:
                 problems.append(f"{where}: {spec!r} gives {inst.name}, which has the jobs of {hit}")
+    # on one line (the command line prints an error as one line); a typo alone is not called a benchmark
     if problems:
         raise ValueError("training must use generated shops only (no benchmark instance, no held-out shop); "
-                         "offending specs:\n  " + "\n  ".join(problems))
+                         "offending specs: " + "; ".join(problems + bad))
+    if bad:
+        raise ValueError("cannot read the shop specs: " + "; ".join(bad))

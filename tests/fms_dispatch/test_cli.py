@@ -52,6 +52,15 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "EX12", "--solver", "rule:FOO"], "unknown job rule"),
     (["solve", "EX12", "--time-limit", "-1"], "time-limit"),
     (["solve", "EX12", "--agvs", "0"], ""),
+    (["solve", "EX12", "--solver", "first", "--time-limit", "3"], "--time-limit does not apply to first"),
+    (["solve", "EX12", "--solver", "list", "--time-limit", "3"], "--time-limit does not apply to list"),
+    (["solve", "EX12", "--solver", "ppo", "--time-limit", "3"], "its plan search's limit is --guide-budget"),
+    (["solve", "EX12", "--solver", "ppo", "--lookahead", "--lookahead-fast"], "give one of --lookahead"),
+    (["solve", "EX12", "--solver", "sos", "--decisions", "paper"], "rules:paper runs the paper net's rule pairs"),
+    (["generate", "--jobs", "3", "--machines", "3", "--no-tools", "--tools", "4"], "contradict each other"),
+    (["generate", "--jobs", "3", "--machines", "3", "--no-agvs", "--agvs", "4"], "contradict each other"),
+    (["generate", "--jobs", "3", "--machines", "3", "--count", "0"], "--count must be >= 1"),
+    (["generate", "--jobs", "3", "--machines", "3", "--prefix", "a/b"], "must be a plain name"),
 ])
 def test_bad_input_one_line_exit_2(args, msg, capsys):
     code, _, err = run(args, capsys)
@@ -237,3 +246,34 @@ def test_solve_re_plans_a_guided_models_guide_at_a_breakdown(tmp_path, capsys):
     assert kept.makespan > s.makespan  # on this run the re-planned guide ends earlier (126 against 137)
     code, _, err = run(["solve", "ra01", "--solver", "list", "--no-guide-replan", "-q"], capsys)
     assert code == 2 and "--[no-]guide-replan applies to the ppo solver only" in err
+
+
+def test_output_paths_are_checked_before_the_work(tmp_path, capsys):
+    """A folder named as the output file, or a file named as a folder, is refused before solving (nothing is
+    computed and then lost), as one line with exit code 2."""
+    (tmp_path / "f").write_text("x")
+    for args, msg in [(["solve", "EX12", "--out", str(tmp_path)], "is a folder; name a file"),
+                      (["solve", "EX12", "--gantt", str(tmp_path / "f" / "g.png")], "is a file, not a folder"),
+                      (["generate", "--jobs", "3", "--machines", "3", "--out-dir", str(tmp_path / "f")],
+                       "is a file, not a folder")]:
+        code, out, err = run(args, capsys)
+        assert code == 2 and msg in err and len(err.strip().splitlines()) == 1 and "makespan" not in out, args
+    # an error of several lines (the offending training specs) is printed whole, on one line
+    code, _, err = run(["train", "EX12", "notapattern", "--steps", "256", "--out", str(tmp_path / "m")], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "'EX12' gives EX12" in err and "'notapattern' does not expand" in err
+
+
+def test_rules_time_limit_and_search_summary(capsys):
+    code, out, _ = run(["solve", "sl00", "--solver", "rules", "--time-limit", "0.01", "-q"], capsys)
+    assert code == 0 and "1 of " in out and "rule combinations within the time limit" in out
+    code, out, _ = run(["solve", "EX12", "--solver", "cpsat", "--time-limit", "20", "-q"], capsys)
+    assert code == 0 and "makespan 82 " in out and ", optimal," in out  # EX12's known optimum, proven
+
+
+def test_instances_lists_the_heldout_shops(capsys):
+    code, out, _ = run(["instances"], capsys)
+    names = out.split()
+    assert code == 0 and names[-50:] == [f"ho{k:02d}" for k in range(50)]
+    code, out, _ = run(["instances", "--details"], capsys)
+    assert out.splitlines()[-1].startswith("ho49: 100 jobs x 20 machines") and "(held out)" in out

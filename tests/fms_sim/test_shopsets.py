@@ -258,3 +258,12 @@ def test_reserved_fingerprints_are_cheap() -> None:
     assert len(table) == 10 + 1 + 10 + 80 + 50
     assert is_reserved(builtin("ra02")) == "benchmark EX21, benchmark EX22, benchmark EX23, benchmark EX24, benchmark ra02"
     assert is_reserved(bu_shop(1, 1)) is None
+
+
+def test_check_training_specs_reports_typos_as_typos_on_one_line() -> None:
+    with pytest.raises(ValueError) as err:
+        check_training_specs({"train": ["gen:6x4x3*1@5", "notapattern"], "eval": ["gen:5x3x3"]})
+    msg = str(err.value)
+    assert msg.startswith("cannot read the shop specs: ") and "\n" not in msg
+    assert "train: 'notapattern' does not expand" in msg and "eval: 'gen:5x3x3' does not expand" in msg
+    assert "benchmark" not in msg.split(":")[0]
