@@ -99,7 +99,27 @@ def test_train_refuses_bad_input(tmp_path):
         train(dict(TINY, train=["EX12"], reward="speed", steps=10), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="unknown warm-start expert 'oracle'"):
         train(dict(TINY, train=["EX12"], steps=10, warm_start={"expert": "oracle"}), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="n_envs must be >= 1, got 0"):
+        train(dict(TINY, train=["EX12"], steps=10, n_envs=0), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="init: no weights at models/nosuchmodel"):
+        train(dict(TINY, train=["EX12"], steps=10, init="models/nosuchmodel"), tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()  # refused before anything was written
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ValueError, match="is a file"):
+        train(dict(TINY, train=["EX12"], steps=10), tmp_path / "f", progress=False)
+
+
+def test_init_names_a_shipped_model_from_any_folder(tmp_path, monkeypatch):
+    """A shipped config's ``init: models/guided`` (and the bare name) finds the shipped model when training runs
+    from another working folder, not only from the repository's root."""
+    from fms_dispatch.rl.models import resolve_model
+    from fms_dispatch.rl.train import _resolve_init
+
+    monkeypatch.chdir(tmp_path)
+    shipped = resolve_model("guided").folder
+    assert _resolve_init("models/guided") == shipped and _resolve_init("guided") == shipped
+    (tmp_path / "models" / "guided").mkdir(parents=True)  # a folder of that name here is what is meant
+    assert (tmp_path / _resolve_init("models/guided")).resolve() == (tmp_path / "models" / "guided").resolve()
 
 
 def _best_rule_makespan(inst, include_nearest):
@@ -121,6 +141,10 @@ def test_training_on_benchmark_or_held_out_shops_is_refused_unless_allowed(tmp_p
                    warm_start={"expert": "rules", "epochs": 1}), tmp_path / "ok", progress=False)
     assert json.loads((tmp_path / "ok" / "config.json").read_text())["allow_benchmarks"] is True
     assert m["training"]["eval_makespan"]["EX12"] > 0
+    # no PPO step, no evaluation: the best reward is null, and the metrics are strict JSON (no -Infinity)
+    strict = json.loads((tmp_path / "ok" / "metrics.json").read_text(),
+                        parse_constant=lambda c: pytest.fail(f"{c} in metrics.json"))
+    assert strict["training"]["best_mean_reward"] is None or abs(strict["training"]["best_mean_reward"]) < 1e9
 
 
 def test_shipped_models_train_apart():

@@ -43,7 +43,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -173,6 +175,23 @@ def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequ
     return out
 
 
+def _resolve_init(init: str | Path) -> Path:
+    """``init`` as a path that exists: a folder or ``.zip`` as given, else a shipped model by name (``guided``),
+    and a shipped config's ``models/NAME`` from any working folder (the shipped models' folder, not the current
+    one); raises ValueError if there is no such model."""
+    path = Path(init)
+    if path.exists():
+        return path
+    from .models import ModelNotFoundError, resolve_model
+
+    for spec in (str(init), path.name) if path.parent.name == "models" else (str(init),):
+        try:
+            return resolve_model(spec).folder
+        except (ModelNotFoundError, ValueError):
+            continue
+    raise ValueError(f"init: no weights at {init} (give a model folder, a .zip or a shipped model's name)")
+
+
 def _init_weights(init: str | Path) -> Path:
     """The weights file of ``init``: a ``.zip``, or a model folder's ``best_model.zip`` (else its ``model.zip``);
     raises ValueError if there is none."""
@@ -293,6 +312,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     torch.set_num_threads(1)
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"the model folder {out} is a file")
     if resume:
         saved = json.loads((out / CONFIG_FILE).read_text()) if (out / CONFIG_FILE).is_file() else None
         if saved is None or not (out / "model.zip").is_file():
@@ -331,7 +352,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
-    init = cfg.get("init") or None
+    init = _resolve_init(cfg["init"]) if cfg.get("init") else None
     if init and not resume and warm["expert"] and not int(warm["dagger"]):
         raise ValueError("init starts from a trained model's weights: it replaces the cloning of a warm-start "
                          "expert (unset warm_start.expert, or set warm_start.dagger for DAgger rounds from the "
@@ -385,10 +406,12 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     padding = padding_for(cfg["padding"], train_set + eval_set + [i for st in refine for i in st[1]])
     if cfg["padding"] in (None, "auto"):
         cfg["padding"] = padding
+    if int(cfg["n_envs"]) < 1:
+        raise ValueError(f"n_envs must be >= 1, got {cfg['n_envs']}")
     out.mkdir(parents=True, exist_ok=True)
     tb = Path(tensorboard) if tensorboard else Path("runs") / cfg["name"]
 
-    n_envs = max(1, int(cfg["n_envs"]))
+    n_envs = int(cfg["n_envs"])
     seed = int(cfg["seed"])
     fns = [_make_env(train_set, padding, cfg["reward"], seed + i, decisions, guide, effort, disruptions, reference)
            for i in range(n_envs)]
@@ -420,7 +443,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     eval_cb = MaskableEvalCallback(eval_env, n_eval_episodes=len(eval_set),
                                    eval_freq=max(1, int(cfg["eval_freq"]) // n_envs),
                                    best_model_save_path=str(out), log_path=None, deterministic=True, verbose=0)
-    if "best_mean_reward" in old.get("training", {}):
+    if old.get("training", {}).get("best_mean_reward") is not None:
         eval_cb.best_mean_reward = float(old["training"]["best_mean_reward"])
 
     class _Saver(BaseCallback):
@@ -509,6 +532,12 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if verbose or progress:
             print(f"initial weights {init}: eval mean reward {mean_r:.4f}", flush=True)
     interrupted = False
+    rollout = int(model.n_steps) * n_envs
+    if steps and steps % rollout:  # PPO learns from whole rollouts
+        print(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
+              f"{-(-steps // rollout) * rollout}", file=sys.stderr, flush=True)
+    # sb3 warns whenever the training envs run in subprocesses and the evaluation env does not; ours is meant so
+    warnings.filterwarnings("ignore", message="Training and eval env are not of the same type", category=UserWarning)
     if steps:
         try:
             model.learn(total_timesteps=steps, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
@@ -535,7 +564,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     metrics["training"] = {
         "timesteps": int(model.num_timesteps),
         "wall_seconds": round(prev.get("wall_seconds", 0.0) + wall, 1),
-        "best_mean_reward": float(eval_cb.best_mean_reward),
+        # None (JSON null) when no evaluation ran: -inf is not JSON
+        "best_mean_reward": float(eval_cb.best_mean_reward) if np.isfinite(eval_cb.best_mean_reward) else None,
         "weights": weights.name,
         "eval_makespan": makespans,
         "eval_mean_makespan": round(float(np.mean(list(makespans.values()))), 2),
