@@ -848,6 +848,10 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _cmd(a: argparse.Namespace) -> int:
+    for flag in ("steps", "seeds", "cpsat_time", "replan_budget", "sos_time"):  # 0 would silently mean the default
+        v = getattr(a, flag, None)
+        if v is not None and not v > 0:
+            raise ValueError(f"--{flag.replace('_', '-')} must be positive, got {v}")
     if a.experiment == "ablation":
         run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies, decisions=a.decisions)
     elif a.experiment == "generalization":

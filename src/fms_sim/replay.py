@@ -47,6 +47,16 @@ class PlanPolicy:
 
     def __init__(self, instance: Instance, schedule: Schedule):
         self.instance = instance
+        # a plan of another shop would run into actions the net does not have: refuse it here, by name
+        jobs = instance.jobs
+        for r in schedule.operations:
+            if not (0 <= r.job < len(jobs) and 0 <= r.op < len(jobs[r.job])):
+                raise ReplayError(f"the plan ({schedule.instance}) has operation ({r.job}, {r.op}), which "
+                                  f"{instance.name} does not have")
+        for trip in (*schedule.agv_trips, *schedule.tool_trips):
+            if trip.job is not None and not (0 <= trip.job < len(jobs) and 0 <= trip.op < len(jobs[trip.job])):
+                raise ReplayError(f"the plan ({schedule.instance}) carries for operation ({trip.job}, {trip.op}), "
+                                  f"which {instance.name} does not have")
         # vehicle routes: ("move", destination) or ("carry", job, op); legs from a place to itself carry nothing
         self.agv: dict[int, Deque[tuple]] = defaultdict(deque)
         for t in sorted(schedule.agv_trips, key=lambda t: (t.start, t.end)):
@@ -249,6 +259,9 @@ def _consume(queue: Deque[tuple], item: tuple) -> None:
 def execute(shop: FullShop, policy: PlanPolicy) -> int:
     """Run ``shop`` to the end with ``policy`` answering every stop of a :class:`~fms_sim.stepping.Stepper`
     (idle stops included); returns the number of answers."""
+    if not isinstance(shop, FullShop):
+        raise ReplayError(f"a plan is executed through the full-decision net (make_shop(instance, 'full')), not "
+                          f"the {shop.decisions!r} one")
     stepper = Stepper(shop, idle_stops=True)
     stepper.advance()
     n = 0

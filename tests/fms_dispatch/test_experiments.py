@@ -155,6 +155,12 @@ def test_bad_options(tmp_path: Path) -> None:
         run_dynamic(quick=True, results_dir=tmp_path, sos_time=0, echo=False)
     with pytest.raises(ValueError, match="--steps"):
         run_ablation(quick=True, results_dir=tmp_path, steps=-5, echo=False)
+    from fms_dispatch.cli import main
+
+    # on the command line a 0 is refused too, not read as "the default"
+    for args in (["ablation", "--steps", "0"], ["disruptions", "--seeds", "0"], ["dynamic", "--sos-time", "0"]):
+        assert main(["experiment", *args, "--quick", "--results-dir", str(tmp_path)]) == 2, args
+    assert not any(tmp_path.iterdir())
 
 
 def test_parser() -> None:

@@ -94,3 +94,21 @@ def test_an_invalid_schedule_is_refused_with_the_validators_errors():
     assert err.value.violations == validate(inst, bad) and err.value.violations
     with pytest.raises(ReplayError):
         replay(builtin("EX13"), good)  # another layout: travel times differ
+
+
+def test_a_plan_policy_refuses_another_shops_plan_and_the_paper_net():
+    """Executing a plan (``PlanPolicy`` + ``execute``, which take residual plans and so do not validate) still
+    refuses a plan naming operations the shop does not have, and a shop of the paper's net, each with a message."""
+    from fms_sim.full_shop import make_shop
+    from fms_sim.replay import PlanPolicy, execute
+
+    big, small = builtin("sl00"), builtin("EX12")
+    plan = run_policy(big, lambda shop: shop.legal_actions()[0])
+    with pytest.raises(ReplayError, match=r"has operation \(\d+, \d+\), which EX12 does not have"):
+        PlanPolicy(small, plan)
+    own = run_policy(small, lambda shop: shop.legal_actions()[0])
+    with pytest.raises(ReplayError, match="executed through the full-decision net"):
+        execute(make_shop(small, "paper"), PlanPolicy(small, own))
+    shop = make_shop(small, "full")
+    execute(shop, PlanPolicy(small, own))
+    assert validate(small, shop.schedule()) == [] and shop.schedule().makespan <= own.makespan
