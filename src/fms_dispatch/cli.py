@@ -316,8 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
     add_instance_args(s)
     s.add_argument("--solver", default="first",
-                   help="first | random | rule:<JOB>+<first|least-work|nearest>[+<fifo|same-machine-first|"
-                        "nearest|earliest-start>] | list[:ect|:<JOB>] | rules[:full|:paper] | sos | tabu | cpsat | "
+                   help="first | random | rule:<JOB>[+<first|least-work|nearest>[+<fifo|same-machine-first|"
+                        "nearest|earliest-start>]] (defaults first, fifo) | list[:ect|:<JOB>] | rules[:full|:paper] | sos | tabu | cpsat | "
                         "plan:<SOLVER>[:SECONDS] | plan:file:PATH | ppo[:MODEL] (default: first)")
     s.add_argument("--decisions", choices=("full", "paper"),
                    help="the net that first, random and rule: decide through: full (default; every valid "

@@ -141,7 +141,13 @@ class Schedule:
 
     @classmethod
     def load(cls, path: str | Path) -> "Schedule":
-        return cls.from_json(Path(path).read_text())
+        """The schedule in a JSON file; OSError if it cannot be read, :class:`ScheduleError` (naming the file) if
+        it is not a schedule."""
+        text = Path(path).read_text()
+        try:
+            return cls.from_json(text)
+        except ScheduleError as exc:
+            raise ScheduleError(f"{path}: {exc}") from None
 
 
 def _list(d: dict, key: str, optional: bool = False) -> list:

@@ -154,3 +154,12 @@ def test_zero_length_legs_keep_their_order():
     d = s.to_dict()
     again = Schedule.from_dict(d)
     assert validate(inst, again) == []
+
+
+def test_a_schedule_file_that_is_not_a_schedule_is_named(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ScheduleError, match=r"bad\.json: malformed JSON"):
+        Schedule.load(bad)
+    with pytest.raises(OSError):
+        Schedule.load(tmp_path / "missing.json")
