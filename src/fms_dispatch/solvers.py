@@ -270,10 +270,19 @@ def searches_time(method: str) -> bool:
 DISRUPTABLE = ("first", "random", "rule:", "plan:", "ppo")
 
 
+#: the options :func:`solve` passes on (every solver takes them all and uses its own; see each solver)
+SOLVE_OPTIONS = ("seed", "time_limit", "progress", "scenario", "decisions", "workers", "population", "iterations",
+                 "initial", "config", "lookahead", "guide_effort", "guide_replan", "replan", "drift")
+
+
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
     """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through.
     ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
-    :data:`DISRUPTABLE`; the others refuse it."""
+    :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
+    ``time_limt``) raises TypeError instead of being ignored."""
+    unknown = sorted(set(options) - set(SOLVE_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown solve() option {unknown[0]!r}; the options are {', '.join(SOLVE_OPTIONS)}")
     fn = get_solver(solver)
     scenario = options.get("scenario")
     if scenario is not None and scenario.empty:
