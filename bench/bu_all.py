@@ -1,6 +1,6 @@
 """PPO on all 40 Bilge–Ulusoy instances (EX11..EX104): plain and with lookahead, against the best rule pair and
 the optima (issue 19's BU goal: a policy trained without any EX instance, with lookahead mean gap <= 3 % and
-<= the best rule pair on at least 36 of 40, <= 0.1 s per instance)::
+<= the best rule pair on at least 36 of 40, <= 0.1 s per instance). Usage:
 
     python bench/bu_all.py [--model bu] [--json results/bu_all.json]
     python bench/bu_all.py --model guided --lookahead-guide [--guide-restarts N --guide-budget S --guide-tabu S ...]
@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", default="bu", help="model name or folder (default bu)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--lookahead-guide", action="store_true", help="guided model: lookahead = the guide's empty trips")
-    add_guide_args(ap)
+    add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
     solver = ppo_solver(f"ppo:{a.model}")
     agent = load_agent(a.model)
@@ -79,4 +79,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -7,9 +7,11 @@ checked``).
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import sys
-from typing import Any
+from typing import Any, Callable
 
 from fms_sim.validate import validate
 
@@ -44,3 +46,27 @@ def versus_line(rows: list[dict], key: str, ref: str) -> str:
     """The summary line of column ``key`` against ``ref`` (:func:`versus`): total, ratio, below / above."""
     total, ratio, below, above = versus(rows, key, ref)
     return f"  {key:12s} total {total:7d}  {ratio:.4f} x {ref}   below / above: {below} / {above}"
+
+
+def positive(text: str) -> int:
+    """An argparse type: an integer >= 1 (a count of shops, scenarios, samples, runs)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
+
+
+def run_main(main: Callable[[], Any]) -> None:
+    """Run a bench's ``main``: a bad input (an unknown instance, model or shop spec, a file that cannot be read, a
+    value a library refuses) ends it with one line ``bench/NAME.py: error: ...`` and exit code 2, not a
+    traceback; what ``main`` returns is the exit code."""
+    try:
+        code = main()
+    except (ValueError, OSError) as exc:  # InstanceError, ModelNotFoundError, ScenarioError are ValueErrors
+        msg = " ".join(str(exc).split("\n")) or type(exc).__name__
+        print(f"bench/{os.path.basename(sys.argv[0])}: error: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    raise SystemExit(code)

@@ -10,7 +10,6 @@ contradicts the known one.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from fms_dispatch.exact import solve_exact
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
@@ -18,7 +17,7 @@ from fms_sim.validate import validate
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("sets", nargs="*", type=int, default=list(range(1, 11)), help="job sets 1..10")
     ap.add_argument("--time-limit", type=float, default=60.0)
     ap.add_argument("--workers", type=int, default=2)
@@ -42,4 +41,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from checks import run_main
+
+    run_main(main)

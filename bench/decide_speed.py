@@ -134,7 +134,7 @@ def _alternating(a: argparse.Namespace, here: Path, whole: bool) -> dict[str, li
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--instances", nargs="+", default=["EX104", "sl00", "sl31", "sl70"])
     ap.add_argument("--model", default="ppo", help="ppo (the default per shop) or a model name")
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per shop (best reported)")
@@ -215,4 +215,6 @@ def _solve_report(a: argparse.Namespace, here: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

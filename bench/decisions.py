@@ -23,6 +23,8 @@ from pathlib import Path
 from fms_dispatch.benchmark import CACHE_NAME, bu_tasks, read_cache, run_bench, sl_tasks
 from fms_sim.benchmarks import SL_GROUPS
 
+from checks import positive
+
 METHODS = ["rules:paper", "rules:full", "list", "cpsat"]
 GOALS = {"bu": 5.0, "agvs+tools": 10.0, "agvs": 8.0}
 
@@ -73,7 +75,7 @@ def summary(results_dir: Path) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--results-dir", default="results/decisions")
-    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--jobs", type=positive, default=1)
     ap.add_argument("--summary", action="store_true", help="only summarise the cache")
     a = ap.parse_args()
     results = Path(a.results_dir)
@@ -85,4 +87,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

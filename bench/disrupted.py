@@ -33,7 +33,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked, report
+from checks import checked, positive, report
 
 #: validation shops (seeds no model trains or is selected on): BU size, small and mid-size with and without tools
 DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="disruption levels: spread of the lognormal noise on durations (0 with --breakdowns 0: "
                          "nominal)")
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
-    ap.add_argument("--scenarios", type=int, default=3, help="scenarios per shop and disrupted level")
+    ap.add_argument("--scenarios", type=positive, default=3, help="scenarios per shop and disrupted level")
     ap.add_argument("--follower", action="store_true",
                     help="also the guide follower (the expert the guided models are cloned from) on the same plans")
     ap.add_argument("--json", help="write the rows and the summary here")
@@ -101,4 +101,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

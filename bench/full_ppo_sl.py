@@ -6,7 +6,7 @@ instance; ``cpsat``: 10 s) are read from ``fms bench`` caches made by ``bench/de
 this script only runs the model::
 
     python bench/full_ppo_sl.py --model full --per-group 3 \\
-        --reference 'results/dec_sl_*/bench_cache.jsonl' [--json results/full_ppo_sl.json]
+        [--reference 'results/decisions/bench_cache.jsonl'] [--json results/full_ppo_sl.json]
 
 Per group and mode it prints the model's mean makespan and seconds, the reference means over the same instances,
 the gap to CP-SAT and whether PPO beats the best full-net rule. Every schedule is validated. ``--lookahead-guide``
@@ -19,12 +19,15 @@ import argparse
 import glob
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
 from fms_dispatch.rl import ppo_solver
 from fms_sim.benchmarks import SL_GROUPS, builtin
 from fms_sim.validate import validate
+
+from checks import positive
 
 MODES = {"agvs+tools": False, "agvs": True}
 
@@ -46,12 +49,17 @@ def references(pattern: str) -> dict[tuple[str, str, str], int]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="full")
-    ap.add_argument("--per-group", type=int, default=10, help="instances per group (the first N)")
-    ap.add_argument("--reference", default="results/dec_sl_*/bench_cache.jsonl", help="glob of fms bench caches")
+    ap.add_argument("--per-group", type=positive, default=10, help="instances per group (the first N)")
+    ap.add_argument("--reference", default="results/decisions/bench_cache.jsonl",
+                    help="glob of fms bench caches (default: where bench/decisions.py writes)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--lookahead-guide", action="store_true", help="a guided model with its plan's empty trips")
     a = ap.parse_args(argv)
+    if a.per_group > 10:
+        ap.error("--per-group: a group has 10 instances")
     ref = references(a.reference)
+    if not ref:
+        print(f"note: no fms bench cache matches {a.reference!r}: the model's rows only, no table", file=sys.stderr)
     solve = ppo_solver(f"ppo:{a.model}")
     rows = []
     for g in range(len(SL_GROUPS)):
@@ -87,4 +95,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -35,16 +35,19 @@ def parse_effort(text: str) -> PlanEffort:
     search per operation."""
     n, *extra = text.split("+")
     rules, exact, tabu = False, 0.0, 0.0
-    for part in extra:
-        if part == "rules":
-            rules = True
-        elif part.startswith("exact"):
-            exact = float(part[5:])
-        elif part.startswith("tabu"):
-            tabu = float(part[4:])
-        else:
-            raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS][+tabuS]")
-    return PlanEffort(restarts=int(n), rules=rules, exact=exact, tabu=tabu)
+    try:
+        for part in extra:
+            if part == "rules":
+                rules = True
+            elif part.startswith("exact"):
+                exact = float(part[5:])
+            elif part.startswith("tabu"):
+                tabu = float(part[4:])
+            else:
+                raise ValueError(part)
+        return PlanEffort(restarts=int(n), rules=rules, exact=exact, tabu=tabu)
+    except ValueError:
+        raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS][+tabuS]") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,4 +90,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -39,7 +39,7 @@ from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked, report, versus
+from checks import checked, positive, report, versus
 
 #: validation shops (seeds no model trains or is selected on), as bench/disrupted.py's selection run
 DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--heldout", action="store_true", help="the 50 held-out shops instead (reported figures only)")
     ap.add_argument("--noise", type=float, default=0.2, help="spread of the lognormal noise on durations")
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per scenario")
-    ap.add_argument("--scenarios", type=int, default=2, help="fixed scenarios per shop")
+    ap.add_argument("--scenarios", type=positive, default=2, help="fixed scenarios per shop")
     ap.add_argument("--margins", type=float, nargs="+", default=[REPLAN_MARGIN],
                     help=f"margins to try (default {REPLAN_MARGIN}, the solver's)")
     ap.add_argument("--drifts", type=_opt, nargs="+", default=[REPLAN_DRIFT],
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--replan-margins", type=float, nargs="+", default=[],
                     help="with --replan-tabu: these margins for its ways (default: the solver's)")
     ap.add_argument("--json", help="write the rows and the summary here")
-    add_guide_args(ap)
+    add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
     if a.heldout:
         insts = heldout_shops()
@@ -126,4 +126,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -35,7 +35,7 @@ from fms_dispatch.rules import JOB_RULES
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import heldout_shops
 
-from checks import checked
+from checks import checked, positive
 
 
 def _timed(fn):
@@ -161,12 +161,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", nargs="*", default=["ppo"], help="PPO solver specs (ppo, ppo:NAME, ppo:FOLDER)")
     ap.add_argument("--cpsat", type=float, default=10.0, help="CP-SAT seconds per shop (reference)")
-    ap.add_argument("--limit", type=int, help="only the first N shops")
+    ap.add_argument("--limit", type=positive, help="only the first N shops")
     ap.add_argument("--lookahead-max-jobs", type=int, default=100,
                     help="run the lookahead only on shops with at most this many jobs (it takes minutes on 100)")
     ap.add_argument("--lookahead-guide", action="store_true",
                     help="'+la' of a guided model is its guide's empty trips (lookahead='guide', every size)")
-    add_guide_args(ap)
+    add_guide_args(ap, replan=False)
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
     ap.add_argument("--json", help="write the rows and the summary here")
     ap.add_argument("--write-metrics", action="store_true",
@@ -176,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     shops = heldout_shops()
     if a.only:
+        unknown = sorted(set(a.only) - {s.name for s in shops})
+        if unknown:
+            ap.error(f"--only: no held-out shop {unknown[0]!r} (ho00..ho49)")
         shops = [s for s in shops if s.name in set(a.only)]
     shops = shops[:a.limit] if a.limit else shops
     earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
@@ -207,4 +210,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

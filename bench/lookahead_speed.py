@@ -25,6 +25,8 @@ from fms_sim.benchmarks import builtin
 from fms_sim.shop import Shop
 from fms_sim.validate import validate
 
+from checks import positive
+
 DEFAULT = ",".join([f"EX{s}2" for s in range(1, 11)] + ["sl00a", "sl10a", "sl00"])
 
 
@@ -51,7 +53,7 @@ def timed(inst, agent, reference: bool, repeat: int, retry: bool = True):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--instances", default=DEFAULT)
-    ap.add_argument("--repeat", type=int, default=1, help="runs per planner (the best time counts)")
+    ap.add_argument("--repeat", type=positive, default=1, help="runs per planner (the best time counts)")
     ap.add_argument("--fast", action="store_true", help="also time the fast lookahead (retry=False)")
     args = ap.parse_args()
     agents: dict[str, object] = {}
@@ -81,4 +83,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

@@ -25,7 +25,6 @@ import argparse
 import fnmatch
 import gzip
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -103,7 +102,7 @@ def entry(name: str, mode: str, method: str, limit: float | None, sch: Schedule)
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--only", metavar="PATTERN", help="redo only the files whose stem matches (fnmatch)")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
@@ -132,4 +131,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -26,6 +26,8 @@ from fms_dispatch.solvers import solve
 from fms_sim.benchmarks import builtin
 from fms_sim.schedule import Schedule
 
+from checks import positive
+
 
 def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
     out = work / f"{name}.json"
@@ -44,8 +46,8 @@ def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--set", choices=("bu", "sl"), default="bu")
-    ap.add_argument("--limit", type=int, help="only the first N instances")
-    ap.add_argument("--per-group", type=int, default=10, help="sl: instances per group (default all 10)")
+    ap.add_argument("--limit", type=positive, help="only the first N instances")
+    ap.add_argument("--per-group", type=positive, default=10, help="sl: instances per group (default all 10)")
     ap.add_argument("--skip", type=int, default=0,
                     help="sl: skip the first K instances of each group (e.g. --skip 5: sl05-sl09, ..., sl75-sl79)")
     ap.add_argument("--time-limit", type=float, default=10.0)
@@ -78,4 +80,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

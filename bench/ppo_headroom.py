@@ -31,7 +31,7 @@ from fms_dispatch.rl.train import expand_instances
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked
+from checks import checked, positive
 
 
 def _run(agent, inst, scenario, temperature: float, rng: np.random.Generator, stats: list[int]) -> int:
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", default="guided")
     ap.add_argument("--shops", nargs="+", default=["genbu:**1@31", "gen:10x5x5*2@216", "gen:10x5x5*2@219/notools"],
                     help="generated validation shop specs (not training or held-out shops)")
-    ap.add_argument("--samples", type=int, default=10, help="sampled runs per shop, scenario and temperature")
+    ap.add_argument("--samples", type=positive, default=10, help="sampled runs per shop, scenario and temperature")
     ap.add_argument("--temperatures", type=float, nargs="+", default=[1.0, 4.0, 8.0])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
                     help="disruption levels: the spread of the lognormal noise on durations (0: nominal)")
@@ -103,4 +103,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -24,14 +24,16 @@ from fms_sim.benchmarks import builtin
 from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
 
+from checks import positive
+
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--instance", default="sl70")
     p.add_argument("--plan", default="plan:list")
     p.add_argument("--budget", type=float, default=2.0)
     p.add_argument("--at", type=int, default=800, help="answered states before the order")
-    p.add_argument("--jobs", type=int, default=3)
+    p.add_argument("--jobs", type=positive, default=3)
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args()
     inst = builtin(a.instance)
@@ -74,4 +76,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

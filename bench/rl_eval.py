@@ -33,6 +33,8 @@ from fms_sim.full_shop import make_shop
 from fms_sim.shop import Shop, run_policy
 from fms_sim.validate import validate
 
+from checks import positive
+
 
 CPU: dict[str, float] = {}  # CPU seconds of the last run_ppo call (wall time suffers on a shared machine)
 
@@ -195,7 +197,7 @@ def main() -> None:
     ap.add_argument("which", choices=("bu", "sl"))
     ap.add_argument("--model", help="model name/folder (default: bu for bu, large / large-agv for sl)")
     ap.add_argument("--no-tools", action="store_true", help="sl without tools (AGV-only)")
-    ap.add_argument("--per-group", type=int, default=10, help="sl instances per group (1-10)")
+    ap.add_argument("--per-group", type=positive, default=10, help="sl instances per group (1-10)")
     ap.add_argument("--groups", default="0-7", help="sl groups, e.g. 0-7 or 0,3,7")
     ap.add_argument("--lookahead", action="store_true", help="sl: also run with lookahead")
     ap.add_argument("--lookahead-fast", action="store_true",
@@ -262,4 +264,6 @@ def run(a: argparse.Namespace) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

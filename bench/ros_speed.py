@@ -38,6 +38,8 @@ from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
 from fms_dispatch.agent_logic import AgentLogic, needs_idle_stops, needs_twin
 
+from checks import positive
+
 
 def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     """Decisions/s of ShopService + AgentLogic exchanging encoded messages in one process."""
@@ -85,10 +87,10 @@ def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedul
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--instances", nargs="+", default=["EX12", "sl00"])
     ap.add_argument("--solver", default="rule:SPTN+nearest", help="agent solver (default rule:SPTN+nearest)")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=positive, default=3)
     a = ap.parse_args()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# ros_speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
@@ -113,4 +115,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from checks import run_main
+
+    run_main(main)

@@ -130,7 +130,7 @@ def ppo_times(rows: list[dict]) -> list[str]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("json", nargs="?", default="results/sl_full/bench_sl.json", type=Path)
     args = ap.parse_args(argv)
     data = json.loads(args.json.read_text())
@@ -152,4 +152,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the rows and the summary here")
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
+    for spec in a.models:  # an unknown model is refused before the runs, not reported as a row of nulls
+        if ":" in spec:
+            load_agent(spec.split(":", 1)[1])
     rows = []
     for inst in expand_instances(a.shops):
         row: dict = {"shop": inst.name, "tools": inst.has_tools, "jobs": inst.n_jobs}
@@ -77,4 +80,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from checks import run_main
+
+    run_main(main)

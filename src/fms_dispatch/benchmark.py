@@ -105,6 +105,11 @@ def check_methods(methods: Sequence[str]) -> list[str]:
     out: list[str] = []
     for m in methods:
         get_solver(m)  # UnknownSolver is a ValueError with the list of names
+        low = m.lower()
+        if low.startswith("ppo:"):  # an unknown model would fail every task, after the others have run
+            from .rl.models import resolve_model
+
+            resolve_model(m[4:].split("+", 1)[0].strip())
         if m not in out:
             out.append(m)
     return out
@@ -700,8 +705,8 @@ def _split_methods(values: Sequence[str] | None, default: Sequence[str], nearest
 
 
 def _positive(name: str, x: float | None) -> None:
-    if x is not None and x <= 0:
-        raise ValueError(f"{name} must be positive, got {x:g}")
+    if x is not None and not (0 < x < float("inf")):  # NaN and inf too: they would reach the caches as non-JSON
+        raise ValueError(f"{name} must be a positive number, got {x:g}")
 
 
 def _finish(rows: list[dict[str, Any]], results_dir: str, stem: str, title: str, meta: dict[str, Any]) -> int:

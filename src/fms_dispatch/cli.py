@@ -38,11 +38,11 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
                    help="drop AGVs (parts move instantly; with --no-tools too, a plain job shop)")
 
 
-def add_guide_args(p: argparse.ArgumentParser) -> None:
+def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
     """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``: a
     guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
-    them. ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays (``a.guide_replan``; None: the
-    default)."""
+    them. With ``replan``, ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays
+    (``a.guide_replan``; None: the default); a bench of nominal runs leaves it out."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
                         "(default 64; 0: none)")
@@ -57,6 +57,8 @@ def add_guide_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guide-exact", type=float, metavar="SECONDS",
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
                         "the full model, within the budget (default 0: no polish)")
+    if not replan:
+        return
     p.add_argument("--guide-replan", action=argparse.BooleanOptionalAction, default=None,
                    help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down "
                         "or an operation starts later than planned by 5 %% of the plan's makespan, adopting the new "

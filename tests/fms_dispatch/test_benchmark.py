@@ -217,14 +217,18 @@ def test_invalid_schedule_is_an_error_row_and_exit_1(tmp_path: Path, monkeypatch
 
 def test_unknown_method_fails_before_any_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     calls = count_solves(monkeypatch)
-    for bad in (["rule:FIFO+first", "ppo-does-not-exist"], ["rule:NOPE+first"], ["rule:FIFO+sideways"]):
+    for bad in (["rule:FIFO+first", "ppo-does-not-exist"], ["rule:NOPE+first"], ["rule:FIFO+sideways"],
+                ["rule:FIFO+first", "ppo:no-such-model"]):
         with pytest.raises(ValueError):
             run_cli(["bench", "bu", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
         with pytest.raises(ValueError):
             run_cli(["bench", "sl", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
     assert calls == [] and not (tmp_path / bm.CACHE_NAME).exists()
-    with pytest.raises(ValueError, match="time-limit must be positive"):
-        run_cli(["bench", "bu", "--time-limit", "0", "-q", "--results-dir", str(tmp_path)])
+    for limit in ("0", "nan", "inf"):  # NaN and inf would reach the caches as non-JSON
+        with pytest.raises(ValueError, match="time-limit must be a positive number"):
+            run_cli(["bench", "bu", "--time-limit", limit, "-q", "--results-dir", str(tmp_path)])
+    with pytest.raises(ValueError, match="cpsat-time-limit must be a positive number"):
+        run_cli(["bench", "sl", "--cpsat-time-limit", "nan", "-q", "--results-dir", str(tmp_path)])
 
 
 @pytest.mark.parametrize("spec", ["8", "0..8", "3..1", "a", "0,,x", "", "-1", "1.5"])
