@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="overall time limit of each plan search in seconds (default: none; larger shops: give the "
                          "solver's 1 s, where the budget shapes the search)")
     a = ap.parse_args(argv)
+    efforts = {text: parse_effort(text) for text in a.efforts}  # a typo fails before the shops are planned
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     shops = list(expand_instances(a.shops))
     solve = ppo_solver("ppo:guided")
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     base = {inst.name: guide_plan(FullShop(inst)).makespan for inst in shops}
     print(f"{len(shops)} shops; ratio to the list schedule, seconds (mean / max)")
     for text in a.efforts:
-        effort = dataclasses.replace(parse_effort(text), budget=a.budget)
+        effort = dataclasses.replace(efforts[text], budget=a.budget)
         plan_r, run_r, plan_s, run_s = [], [], [], []
         for inst in shops:
             t0 = time.perf_counter()
