@@ -82,10 +82,10 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "it beats the best rule pair in simulation, else that pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
-                   "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first or random solvers")
+                   "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a full-net ppo model")
     p.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
                    "time, seeded by --seed (with --scenario it replaces the file's noise)")
-    p.add_argument("--replan", type=float, default=2.0, metavar="SECONDS",
+    p.add_argument("--replan", type=float, default=None, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
     add_guide_args(p)
@@ -261,6 +261,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         say(reason)
     if a.guide_replan is not None and not needs_twin(solver):
         raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
+    if a.replan is not None and not needs_full_net(solver):
+        raise UpError(f"--replan applies to plan: solvers only, not to {solver!r}")
     try:
         decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
@@ -278,9 +280,10 @@ def cmd_up(a: argparse.Namespace) -> int:
         if not (needs_full_net(solver) or full_model or solver.lower() in ("first", "random")):
             raise UpError(f"--scenario and --noise need a solver that decides on the full net (plan:..., first, "
                           f"random, a full-net model such as ppo:full), not {solver}")
-    if a.timeout <= 0:
-        raise UpError("--timeout must be positive")
-    if a.replan < 0:
+    if not 0 < a.timeout < float("inf"):  # NaN would never time out
+        raise UpError("--timeout must be a positive number of seconds")
+    replan = 2.0 if a.replan is None else a.replan
+    if not 0 <= replan < float("inf"):
         raise UpError("--replan must be >= 0 seconds (0: never re-plan)")
     domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
     try:
@@ -295,15 +298,24 @@ def cmd_up(a: argparse.Namespace) -> int:
     db = Path(a.db)
     gantt_dir = Path(a.gantt_dir) if a.gantt_dir else (db.parent if str(db.parent) else Path("."))
     png = gantt_path(gantt_dir, run_id)
+    # every output is checked before the nodes start: a run that cannot be written is not run
     for path, what in ((out, "--out"), (db, "--db")):
         if path.is_dir():
             raise UpError(f"{what} {path} is a directory; give a file path")
+        _check_parent(path, what)
+    for path, what in ((gantt_dir, "--gantt-dir"), (Path(a.log_dir) if a.log_dir else None, "--log-dir")):
+        if path is not None:
+            if path.exists() and not path.is_dir():
+                raise UpError(f"{what} {path} is a file, not a folder")
+            _check_parent(path, what)
     if png.exists():
         raise UpError(f"run id {run_id!r} was already recorded (its chart {png} exists); choose another --run-id")
+    if run_id in _recorded_run_ids(db):
+        raise UpError(f"run id {run_id!r} is already in {db}; choose another --run-id")
     keep_logs = a.log_dir is not None
     log_dir = Path(a.log_dir) if keep_logs else Path(tempfile.mkdtemp(prefix="fms-up-"))
     log_dir.mkdir(parents=True, exist_ok=True)
-    work = log_dir / f"{run_id}.work"
+    work = log_dir / gantt_path("", run_id).name.replace(".gantt.png", ".work")  # the run id made a safe name
     work.mkdir(parents=True, exist_ok=True)
     inst_in, inst_final, sched_tmp = work / "instance.json", work / "final_instance.json", work / "schedule.json"
     inst.save(inst_in)
@@ -317,7 +329,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     twin = needs_twin(solver) or needs_full_net(solver)
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if needs_full_net(solver):
-        agent_params["replan"] = float(a.replan)
+        agent_params["replan"] = float(replan)
     if twin:
         agent_params["instance"] = str(inst_in)
     if effort is not None:
@@ -345,6 +357,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     ]
     say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")
     failure: str | None = None
+    stop_on_term = _TermAsInterrupt()  # `kill` / a supervisor's SIGTERM stops the nodes as Ctrl-C does
     try:
         for node in nodes:
             node.start()
@@ -365,6 +378,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         failure = "interrupted"
     finally:
         codes = stop_all(list(reversed(nodes)), STOP_GRACE_S)
+        stop_on_term.restore()
     wall = time.perf_counter() - t0
     unclean = {k: c for k, c in codes.items() if c not in (0, None)}
     stop_note = ("a node did not stop cleanly: " + ", ".join(f"{k} exit code {c}" for k, c in unclean.items())
@@ -408,6 +422,55 @@ def cmd_up(a: argparse.Namespace) -> int:
     print(f"sqlite:   {db} (run {run_id})")
     print(f"gantt:    {png}")
     return EXIT_OK
+
+
+def _check_parent(path: Path, what: str) -> None:
+    """Refuse an output under a file (its folder could never be made)."""
+    parent = next((q for q in path.parents if q.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise UpError(f"{what} {path}: {parent} is a file, not a folder")
+
+
+def _recorded_run_ids(db: Path) -> set[str]:
+    """The run ids already in the recorder's database (none if there is none yet or it cannot be read: the recorder
+    node reports that itself)."""
+    if not db.is_file():
+        return set()
+    import sqlite3
+
+    from fms_sim.recorder_store import RecorderStore
+
+    try:
+        store = RecorderStore(db)
+    except (OSError, ValueError, sqlite3.Error):
+        return set()
+    try:
+        return set(store.run_ids())
+    except sqlite3.Error:
+        return set()
+    finally:
+        store.close()
+
+
+class _TermAsInterrupt:
+    """While it is installed, SIGTERM raises KeyboardInterrupt in the main thread, so that ``fms up`` stops its
+    nodes (each runs in its own process group and would outlive it) exactly as on Ctrl-C."""
+
+    def __init__(self) -> None:
+        self._old: Any = None
+        try:
+            self._old = signal.signal(signal.SIGTERM, self._raise)
+        except ValueError:  # not the main thread: nothing to install
+            self._old = None
+
+    @staticmethod
+    def _raise(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    def restore(self) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+            self._old = None
 
 
 def _recorded_replans(db: Path, run_id: str) -> list[dict[str, Any]]:

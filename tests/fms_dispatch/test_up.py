@@ -149,3 +149,46 @@ def test_a_full_net_model_runs_the_shop_on_the_full_net(fake_nodes, tmp_path: Pa
     code = up.main(["EX12", "--solver", "ppo:bu", "--noise", "0.1", "--out", str(tmp_path / "out" / "b.json"),
                     "--db", str(tmp_path / "out" / "fms.sqlite")])
     assert code == 2 and not seen and "a full-net model such as ppo:full" in capsys.readouterr().err
+
+
+def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, monkeypatch, capsys) -> None:
+    """What would make a finished run fail to deliver, or never end, is refused first: one line, exit 2, no node."""
+    import sqlite3
+
+    from fms_sim.recorder_store import RecorderStore
+
+    def no_node(*_: Any, **__: Any) -> list[str]:
+        raise AssertionError("a node was started")
+
+    monkeypatch.setattr(up, "node_command", no_node)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    db = tmp_path / "fms.sqlite"
+    RecorderStore(db).close()
+    with sqlite3.connect(db) as con:  # a run of that id is already recorded there (its chart elsewhere)
+        con.execute("INSERT INTO runs (run_id, instance, first_seen) VALUES ('t1', 'EX12', 0)")
+    cases = [(["--gantt-dir", str(afile)], "--gantt-dir"), (["--log-dir", str(afile)], "--log-dir"),
+             (["--out", str(afile / "s.json")], "is a file, not a folder"),
+             (["--timeout", "nan"], "--timeout must be a positive number"),
+             (["--timeout", "inf"], "--timeout must be a positive number"),
+             (["--replan", "5"], "--replan applies to plan: solvers only"),
+             (["--db", str(db)], "run id 't1' is already in")]
+    for extra, msg in cases:
+        code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
+                        "--out", str(tmp_path / "s.json"), *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, (extra, err)
+
+
+def test_sigterm_stops_the_nodes_as_ctrl_c_does() -> None:
+    """While fms up waits for its nodes, SIGTERM raises KeyboardInterrupt (the nodes are then stopped as on Ctrl-C;
+    each runs in its own process group and would outlive fms up); afterwards the old handler is back."""
+    before = signal.getsignal(signal.SIGTERM)
+    guard = up._TermAsInterrupt()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)  # the handler runs at the next bytecode boundary
+    finally:
+        guard.restore()
+    assert signal.getsignal(signal.SIGTERM) == before
