@@ -99,8 +99,16 @@ class TopicIO:
 
 
 def param(node: Any, name: str, default: Any) -> Any:
-    """Declare a parameter and return its value; a value of the wrong type is a :class:`StartupError`."""
+    """Declare a parameter and return its value; a value of the wrong type is a :class:`StartupError`. A number
+    parameter also takes an integer (``resend_s:=2``, which ROS parses as an integer)."""
     try:
+        if isinstance(default, float):
+            from rcl_interfaces.msg import ParameterDescriptor
+
+            value = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"got {value!r}")
+            return float(value)
         return node.declare_parameter(name, default).value
     except Exception as exc:  # rclpy raises several exception types for bad overrides
         kind = {bool: "a boolean (true/false)", int: "an integer", float: "a number", str: "a string"}.get(
@@ -308,11 +316,22 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
 def run_node(prog: str, factory: Callable[[], Any], argv: Sequence[str] | None) -> int:
     """Shared ``main`` of the fms nodes: init rclpy with ``argv``, build the node object (a
     :class:`StartupError` → one line on stderr, exit 2), spin until shutdown."""
+    args = list(sys.argv if argv is None else argv)
+    own = args[1:args.index("--ros-args")] if "--ros-args" in args else args[1:]
+    if "-h" in own or "--help" in own:  # before rclpy starts anything (a recorder would create its database)
+        print(f"usage: {prog} [--ros-args -p NAME:=VALUE ...]\n\nA ROS 2 node of fms; its parameters, topics and "
+              "defaults are in docs/ros.md.")
+        return 0
     problem = ros_unavailable(prog)
     if problem:
         print(problem, file=sys.stderr)
         return 2
-    rclpy.init(args=list(sys.argv if argv is None else argv))
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rclpy's RCLError for malformed --ros-args (e.g. '-p name' without ':=value')
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"{prog}: error: bad ROS arguments: {first}", file=sys.stderr)
+        return 2
     try:
         obj = factory()
     except StartupError as exc:

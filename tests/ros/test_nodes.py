@@ -399,7 +399,16 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (SHOP, ["-p", "instance:=EX99"], "fms-shop: error: unknown built-in instance 'EX99'"),
         (SHOP, [], "fms-shop: error: parameter 'instance' is required"),
         (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
+        # an integer is a number: it reaches the range check (it was refused as "must be a number")
+        (RECORDER, ["-p", "retry_s:=0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
+        (AGENT, ["-p", "resend_s:=abc"], "fms-agent: error: parameter 'resend_s' must be a number"),
+        (SHOP, ["-p", "instance"], "fms-shop: error: bad ROS arguments"),  # malformed: rclpy's RCLError
     ):
         res = subprocess.run([sys.executable, "-m", module, "--ros-args", *args], env=ros_env, capture_output=True,
                              text=True, timeout=60)
         assert res.returncode == 2 and needle in res.stderr and "Traceback" not in res.stderr, res.stderr
+    # --help describes the node and starts nothing (the recorder would create its database here)
+    for module in (AGENT, SHOP, RECORDER):
+        res = subprocess.run([sys.executable, "-m", module, "--help"], env=ros_env, capture_output=True, text=True,
+                             timeout=60)
+        assert res.returncode == 0 and res.stdout.startswith("usage: fms-") and "docs/ros.md" in res.stdout
