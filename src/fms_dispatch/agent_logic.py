@@ -63,7 +63,7 @@ __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision
 SOURCE = "fms_agent"
 AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
                  "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast", "ppo[:<model>]+lookahead-guide",
-                 "plan:<SOLVER>[:SECONDS]")
+                 "plan:<SOLVER>[:SECONDS]", "plan:file:PATH")
 _OFFLINE = {"sos", "cpsat"}
 
 Decider = Callable[[dict[str, Any]], str]

@@ -266,7 +266,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     try:
         decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
-        raise UpError(str(exc)) from None
+        msg = str(exc)
+        raise UpError(msg + ("; fms up also takes best" if msg.startswith("unknown solver") else "")) from None
     # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
     full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
     disrupted = bool(a.scenario) or bool(a.noise)
