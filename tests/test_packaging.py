@@ -21,7 +21,8 @@ ROS = REPO / "ros"
 COLCON_PACKAGES = {"fms_sim": ("fms_sim", "fms_msgs_json"), "fms_dispatch": ("fms_dispatch",)}
 #: third-party module -> the package.xml key that provides it (rosdep: python3-X from Debian, python3-X-pip)
 KEYS = {"numpy": "python3-numpy", "gymnasium": "python3-gymnasium-pip", "matplotlib": "python3-matplotlib",
-        "ortools": "python3-ortools-pip", "rclpy": "rclpy", "std_msgs": "std_msgs"}
+        "ortools": "python3-ortools-pip", "rclpy": "rclpy", "std_msgs": "std_msgs",
+        "rcl_interfaces": "rcl_interfaces"}
 #: modules of the pip extra fms[rl] (training, the torch policy): optional, not in package.xml
 OPTIONAL = {"torch", "stable_baselines3", "sb3_contrib", "tqdm", "tensorboard", "rich"}
 
