@@ -190,7 +190,7 @@ def load_ppo_agent(model: str | None, instance: Instance) -> Any:
         raise UnavailableSolver(f"solver 'ppo:{name}': {str(exc).splitlines()[0]}") from None
     if not agent.fits(instance):
         raise UnavailableSolver(f"instance {instance.name} is larger than model {agent.name} allows "
-                                f"({agent.padding})")
+                                f"({agent.layout()})")
     return agent
 
 

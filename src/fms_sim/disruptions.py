@@ -200,6 +200,8 @@ class Scenario:
             text = Path(path).read_text(encoding="utf-8")
         except OSError as exc:
             raise ScenarioError(f"cannot read scenario {path}: {exc.strerror}") from None
+        except UnicodeDecodeError:
+            raise ScenarioError(f"scenario {path} is not a text (UTF-8 JSON) file") from None
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:

@@ -570,7 +570,7 @@ def test_shipped_large_models_valid_on_sl00(name, no_tools):
 
 
 def test_bu_model_refuses_too_large_instance():
-    with pytest.raises(ValueError, match="larger than model bu"):
+    with pytest.raises(ValueError, match=r"larger than model bu allows \(up to 8 jobs, 4 machines, 0 tools, 2 AGVs"):
         ppo_solver("ppo:bu")(builtin("sl00"))
 
 

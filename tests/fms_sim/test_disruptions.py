@@ -67,6 +67,9 @@ def test_scenario_json_round_trip_and_draw(tmp_path):
     assert Scenario.load(path) == sc
     with pytest.raises(ScenarioError, match="cannot read"):
         Scenario.load(tmp_path / "missing.json")
+    (tmp_path / "bin.json").write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(ScenarioError, match=r"bin\.json is not a text \(UTF-8 JSON\) file"):
+        Scenario.load(tmp_path / "bin.json")
 
 
 # ---------------------------------------------------------------------------------------------- runs

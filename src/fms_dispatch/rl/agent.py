@@ -132,12 +132,19 @@ class Agent:
                 and (inst.n_agvs if inst.has_agvs else 0) <= p["max_agvs"]
                 and (inst.n_tool_transporters if inst.has_tools else 0) <= p["max_tts"])
 
+    def layout(self) -> str:
+        """The padded layout in words, for messages: ``"up to 8 jobs, 4 machines, 0 tools, 2 AGVs, 0 tool
+        transporters"``."""
+        p = self.padding
+        return (f"up to {p['max_jobs']} jobs, {p['max_machines']} machines, {p['max_tools']} tools, "
+                f"{p['max_agvs']} AGVs, {p['max_tts']} tool transporters")
+
     def _env(self, shop: Shop) -> FastShopEnv:
         env = self._envs.get(id(shop))
         if env is None or env.shop is not shop:
             if not self.fits(shop.instance):
                 raise ValueError(f"instance {shop.instance.name} does not fit model {self.name} "
-                                 f"(max {self.padding})")
+                                 f"({self.layout()})")
             if isinstance(shop, FullShop) != (self.decisions == "full"):
                 raise ValueError(f"model {self.name} decides through the {self.decisions} net, not through a "
                                  f"{type(shop).__name__}")
