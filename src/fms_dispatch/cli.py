@@ -205,6 +205,13 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
     return scenario
 
 
+def file_above(path: Path) -> Path | None:
+    """The file that ``path`` would have to lie inside (its nearest existing ancestor, when that is not a folder):
+    no output can be written there. None when ``path`` can be made."""
+    parent = next((q for q in path.parents if q.exists()), None)
+    return parent if parent is not None and not parent.is_dir() else None
+
+
 def check_output(path: str | None, what: str) -> None:
     """Refuse an output file that cannot be written, before any work: a folder, or one inside a file."""
     if not path:
@@ -212,9 +219,9 @@ def check_output(path: str | None, what: str) -> None:
     p = Path(path)
     if p.is_dir():
         raise CliError(f"{what} {path} is a folder; name a file")
-    parent = next((q for q in p.parents if q.exists()), None)
-    if parent is not None and not parent.is_dir():
-        raise CliError(f"{what} {path}: {parent} is a file, not a folder")
+    above = file_above(p)
+    if above is not None:
+        raise CliError(f"{what} {path}: {above} is a file, not a folder")
 
 
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:

@@ -37,10 +37,10 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Sequence
+from typing import IO, Any, Callable, Sequence
 
 from fms_sim.instance import Instance, InstanceError
-from fms_sim.recorder_store import DEFAULT_DB, gantt_path
+from fms_sim.recorder_store import DEFAULT_DB, gantt_path, safe_run_name
 from fms_sim.schedule import Schedule, ScheduleError
 from fms_sim.shop_service import new_run_id
 
@@ -82,7 +82,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "it beats the best rule pair in simulation, else that pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
-                   "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a full-net ppo model")
+                   "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
+                   "full-net ppo model")
     p.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
                    "time, seeded by --seed (with --scenario it replaces the file's noise)")
     p.add_argument("--replan", type=float, default=None, metavar="SECONDS",
@@ -316,7 +317,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     keep_logs = a.log_dir is not None
     log_dir = Path(a.log_dir) if keep_logs else Path(tempfile.mkdtemp(prefix="fms-up-"))
     log_dir.mkdir(parents=True, exist_ok=True)
-    work = log_dir / gantt_path("", run_id).name.replace(".gantt.png", ".work")  # the run id made a safe name
+    work = log_dir / f"{safe_run_name(run_id)}.work"  # a run id such as ../x stays inside the log folder
     work.mkdir(parents=True, exist_ok=True)
     inst_in, inst_final, sched_tmp = work / "instance.json", work / "final_instance.json", work / "schedule.json"
     inst.save(inst_in)
@@ -427,30 +428,37 @@ def cmd_up(a: argparse.Namespace) -> int:
 
 def _check_parent(path: Path, what: str) -> None:
     """Refuse an output under a file (its folder could never be made)."""
-    parent = next((q for q in path.parents if q.exists()), None)
-    if parent is not None and not parent.is_dir():
-        raise UpError(f"{what} {path}: {parent} is a file, not a folder")
+    from .cli import file_above
+
+    above = file_above(path)
+    if above is not None:
+        raise UpError(f"{what} {path}: {above} is a file, not a folder")
 
 
-def _recorded_run_ids(db: Path) -> set[str]:
-    """The run ids already in the recorder's database (none if there is none yet or it cannot be read: the recorder
-    node reports that itself)."""
-    if not db.is_file():
-        return set()
+def _from_store(db: Path, read: Callable[[Any], Any], empty: Any) -> Any:
+    """``read(store)`` of the recorder's database at ``db``; ``empty`` when there is none yet or it cannot be read
+    (the recorder node reports that itself; fms up only counts or checks)."""
     import sqlite3
 
     from fms_sim.recorder_store import RecorderStore
 
+    if not db.is_file():
+        return empty
     try:
         store = RecorderStore(db)
     except (OSError, ValueError, sqlite3.Error):
-        return set()
+        return empty
     try:
-        return set(store.run_ids())
+        return read(store)
     except sqlite3.Error:
-        return set()
+        return empty
     finally:
         store.close()
+
+
+def _recorded_run_ids(db: Path) -> set[str]:
+    """The run ids already in the recorder's database."""
+    return _from_store(db, lambda store: set(store.run_ids()), set())
 
 
 class _TermAsInterrupt:
@@ -477,20 +485,7 @@ class _TermAsInterrupt:
 def _recorded_replans(db: Path, run_id: str) -> list[dict[str, Any]]:
     """The agent's re-plans of the run as the recorder stored them (``fms/replans``); none if they cannot be read
     (the summary line only counts them)."""
-    import sqlite3
-
-    from fms_sim.recorder_store import RecorderStore
-
-    try:
-        store = RecorderStore(db)
-    except (OSError, ValueError):
-        return []
-    try:
-        return store.replans(run_id)
-    except sqlite3.Error:
-        return []
-    finally:
-        store.close()
+    return _from_store(db, lambda store: store.replans(run_id), [])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -34,7 +34,7 @@ from fms_msgs_json import (
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop_service import Outgoing
 
-__all__ = ["RecorderStore", "Recorder", "gantt_path", "DEFAULT_DB"]
+__all__ = ["RecorderStore", "Recorder", "gantt_path", "safe_run_name", "DEFAULT_DB"]
 
 SOURCE = "fms_recorder"
 DEFAULT_DB = "fms_recorder.sqlite"
@@ -87,10 +87,14 @@ CREATE TABLE IF NOT EXISTS errors (
 """
 
 
+def safe_run_name(run_id: str) -> str:
+    """``run_id`` as a file name: unsafe characters (a path separator among them) → ``_``, no leading dot."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", run_id).strip(".") or "run"
+
+
 def gantt_path(gantt_dir: str | Path, run_id: str) -> Path:
-    """Where the Gantt chart of ``run_id`` goes: ``<gantt_dir>/<run_id>.gantt.png`` (unsafe characters → ``_``)."""
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", run_id).strip(".") or "run"
-    return Path(gantt_dir) / f"{safe}.gantt.png"
+    """Where the Gantt chart of ``run_id`` goes: ``<gantt_dir>/<safe run id>.gantt.png`` (:func:`safe_run_name`)."""
+    return Path(gantt_dir) / f"{safe_run_name(run_id)}.gantt.png"
 
 
 class RecorderStore:

@@ -49,14 +49,13 @@ class PlanPolicy:
         self.instance = instance
         # a plan of another shop would run into actions the net does not have: refuse it here, by name
         jobs = instance.jobs
-        for r in schedule.operations:
-            if not (0 <= r.job < len(jobs) and 0 <= r.op < len(jobs[r.job])):
-                raise ReplayError(f"the plan ({schedule.instance}) has operation ({r.job}, {r.op}), which "
+        wanted = [("has", r.job, r.op) for r in schedule.operations]
+        wanted += [("carries for", t.job, t.op) for t in (*schedule.agv_trips, *schedule.tool_trips)
+                   if t.job is not None]
+        for what, j, k in wanted:
+            if not (0 <= j < len(jobs) and 0 <= k < len(jobs[j])):
+                raise ReplayError(f"the plan ({schedule.instance}) {what} operation ({j}, {k}), which "
                                   f"{instance.name} does not have")
-        for trip in (*schedule.agv_trips, *schedule.tool_trips):
-            if trip.job is not None and not (0 <= trip.job < len(jobs) and 0 <= trip.op < len(jobs[trip.job])):
-                raise ReplayError(f"the plan ({schedule.instance}) carries for operation ({trip.job}, {trip.op}), "
-                                  f"which {instance.name} does not have")
         # vehicle routes: ("move", destination) or ("carry", job, op); legs from a place to itself carry nothing
         self.agv: dict[int, Deque[tuple]] = defaultdict(deque)
         for t in sorted(schedule.agv_trips, key=lambda t: (t.start, t.end)):

@@ -425,8 +425,9 @@ def check_training_specs(config: dict[str, Any]) -> None:
     Looks at ``config["train"]``, ``config["eval"]`` and ``config["warm_start"]["refine"][*]["train"]``,
     expands every spec (with ``config["fleet"]``) and compares each instance's jobs with those of every
     benchmark and held-out shop (:func:`job_fingerprint`), so a renamed file copy is caught too. The message
-    lists every offending spec and instance, on one line; specs that do not expand (a typo) are reported
-    instead, each with its error.
+    lists every offending spec and instance on one line, and after them any spec that does not expand (a typo, a
+    reserved seed) with its error; specs that only fail to expand are reported as such ("cannot read the shop
+    specs"), not as benchmarks.
     """
     fleet = config.get("fleet") or None
     problems: list[str] = []

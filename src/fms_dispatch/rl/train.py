@@ -536,12 +536,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     if steps and steps % rollout:  # PPO learns from whole rollouts
         print(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
               f"{-(-steps // rollout) * rollout}", file=sys.stderr, flush=True)
-    # sb3 warns whenever the training envs run in subprocesses and the evaluation env does not; ours is meant so
-    warnings.filterwarnings("ignore", message="Training and eval env are not of the same type", category=UserWarning)
     if steps:
         try:
-            model.learn(total_timesteps=steps, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
-                        reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
+            with warnings.catch_warnings():
+                # sb3 warns whenever the training envs run in subprocesses and the evaluation env does not; ours
+                # is meant so
+                warnings.filterwarnings("ignore", message="Training and eval env are not of the same type",
+                                        category=UserWarning)
+                model.learn(total_timesteps=steps, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
+                            reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
             interrupted = True
     wall = time.perf_counter() - t0
