@@ -130,6 +130,10 @@ def write_atomically(path: str | Path, text: str) -> Path:
     return out
 
 
+#: parameters every rclpy node declares by itself
+_RCLPY_PARAMETERS = {"use_sim_time", "start_type_description_service"}
+
+
 class FmsNode:
     """What every fms node shares: an rclpy node named ``node_name`` (default :attr:`default_name`) that
     :meth:`_setup` fills in; if the setup fails, the node is closed before the error propagates."""
@@ -139,13 +143,35 @@ class FmsNode:
     def __init__(self, node_name: str | None = None) -> None:
         self.node = rclpy.create_node(node_name or self.default_name, start_parameter_services=False)
         try:
-            self._setup()
+            try:
+                self._setup()
+            except StartupError as exc:  # a misspelt parameter is the likely cause of a missing or default one
+                unknown = self.unknown_parameters()
+                if unknown:
+                    raise StartupError(f"{exc} (unknown parameters, ignored: {', '.join(unknown)})") from None
+                raise
         except BaseException:
             try:
                 self.close()
             finally:
                 self.node.destroy_node()
             raise
+        unknown = self.unknown_parameters()
+        if unknown:  # ROS ignores them; say so, or a misspelt one silently runs with its default
+            self.node.get_logger().warning(
+                f"unknown parameters, ignored: {', '.join(unknown)}; this node's parameters are "
+                f"{', '.join(self.declared_parameters())} (docs/ros.md)")
+
+    def declared_parameters(self) -> list[str]:
+        """The parameters the node declared (its own: rclpy's ``use_sim_time`` and
+        ``start_type_description_service`` left out)."""
+        return sorted(set(self.node.get_parameters_by_prefix("")) - _RCLPY_PARAMETERS)
+
+    def unknown_parameters(self) -> list[str]:
+        """Parameters given on the command line or in a parameters file that the node did not declare (a
+        misspelt name): ROS ignores them."""
+        given = getattr(self.node, "_parameter_overrides", None) or {}  # rclpy keeps no public view of them
+        return sorted(name for name in given if not self.node.has_parameter(name))
 
     def _setup(self) -> None:
         raise NotImplementedError

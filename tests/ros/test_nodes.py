@@ -403,6 +403,9 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (RECORDER, ["-p", "retry_s:=0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
         (AGENT, ["-p", "resend_s:=abc"], "fms-agent: error: parameter 'resend_s' must be a number"),
         (SHOP, ["-p", "instance"], "fms-shop: error: bad ROS arguments"),  # malformed: rclpy's RCLError
+        # a misspelt parameter is named where the one it was meant to be is missing
+        (SHOP, ["-p", "instnace:=EX12"], "parameter 'instance' is required (a built-in name such as EX12, or a "
+                                         "file): --ros-args -p instance:=EX12 (unknown parameters, ignored: instnace)"),
     ):
         res = subprocess.run([sys.executable, "-m", module, "--ros-args", *args], env=ros_env, capture_output=True,
                              text=True, timeout=60)
@@ -412,3 +415,18 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         res = subprocess.run([sys.executable, "-m", module, "--help"], env=ros_env, capture_output=True, text=True,
                              timeout=60)
         assert res.returncode == 0 and res.stdout.startswith("usage: fms-") and "docs/ros.md" in res.stdout
+
+
+def test_node_warns_of_unknown_parameters(nodes: NodeProcs) -> None:
+    # ROS ignores a parameter the node does not declare: a misspelt one would run silently with its default
+    proc = nodes.start("agent", AGENT, solvr="ppo", seed=3)
+    deadline = time.monotonic() + STARTUP_S
+    while "unknown parameters" not in nodes.log("agent") and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    log = nodes.log("agent")
+    assert "deciding with first" in log, nodes.report({"agent": proc.poll()})  # the default solver runs
+    warning = next(line for line in log.splitlines() if "unknown parameters" in line)
+    assert "[WARN]" in warning and "ignored: solvr;" in warning
+    params = warning.split("this node's parameters are ", 1)[1]
+    assert "solver" in params and "seed" in params and "use_sim_time" not in params
+    assert nodes.stop(proc) == 0
