@@ -10,7 +10,8 @@ not as a failed run: nothing is lost by then. It imports no rclpy itself: the no
 
 ``--solver best`` simulates every rule pair and the shipped PPO model (with and without lookahead) on the
 instance in-process first and runs the winner over the topics: PPO if its makespan is strictly smaller than the
-best rule pair's, else that pair (:func:`best_solver`; it says which). A ``ppo`` solver makes the launcher
+best rule pair's, else that pair (:func:`best_solver`; it says which; in a disrupted run ``plan:rules`` takes the
+rule pairs' place). A ``ppo`` solver makes the launcher
 start the shop with ``history:=true`` (and ``features:=false``) and give the agent the instance file, so that
 the agent can replay the run into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``, and
 a plan solver (``plan:cpsat:10``: the agent plans at the first state, then executes the plan) runs the shop on
@@ -79,7 +80,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
                         "ppo[:<model>]+lookahead | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
                         "state, then execute the plan) | best (the shipped PPO model, with or without lookahead, if "
-                        "it beats the best rule pair in simulation, else that pair) (default: first)")
+                        "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
+                        "instead of the pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
@@ -116,18 +118,27 @@ def best_rule(instance: Instance) -> tuple[str, int]:
     return best[1], best[0]
 
 
-def best_solver(instance: Instance, guide_effort: Any = None) -> tuple[str, int, str]:
+def best_solver(instance: Instance, guide_effort: Any = None, disrupted: bool = False) -> tuple[str, int, str]:
     """The solver ``fms up --solver best`` runs: ``(name, simulated makespan, one-line reason)``; a guided model
     plans with ``guide_effort`` (None: its default).
 
-    The shipped PPO model (the default one for the instance) is preferred when its simulated makespan is
-    strictly smaller than the best rule pair's; if it cannot run on this instance (larger than the model
-    allows) or here (its dependencies are missing), the best rule pair is used and the reason says why. A
-    shipped model that is not installed is an error (:class:`UpError`, naming the places searched), never a
-    quiet fall-back to a rule."""
+    The shipped PPO model (the default one for the instance, plain or with lookahead) is preferred when its
+    simulated makespan is strictly smaller than the best rule pair's; if it cannot run on this instance (larger
+    than the model allows) or here (its dependencies are missing), the best rule pair is used and the reason says
+    why. A shipped model that is not installed is an error (:class:`UpError`, naming the places searched), never
+    a quiet fall-back to a rule. For a ``disrupted`` run (a scenario or noise: the shop runs the full net, where
+    the paper net's rule pairs cannot decide) the model is compared with ``plan:rules`` instead (the best
+    full-net rule or list schedule, executed as a plan and re-planned); the simulations are nominal, since the
+    disruptions are not known in advance."""
     from .rl.models import ModelNotFoundError  # numpy only: importable without the rl extra
 
-    rule, rule_span = best_rule(instance)
+    if disrupted:
+        from .full_rules import solve_best_rules
+
+        rule, rule_span, what = "plan:rules", solve_best_rules(instance, decisions="full").makespan, \
+            "best full-net rule"
+    else:
+        (rule, rule_span), what = best_rule(instance), "best rule pair"
     try:
         from .rl import ppo_solver
 
@@ -138,13 +149,13 @@ def best_solver(instance: Instance, guide_effort: Any = None) -> tuple[str, int,
     except ModelNotFoundError as exc:
         raise UpError(f"--solver best needs the shipped PPO models: {exc}") from None
     except (ImportError, ValueError, OSError) as exc:
-        return rule, rule_span, (f"best rule pair on {instance.name}: {rule} (makespan {rule_span} in simulation; "
+        return rule, rule_span, (f"{what} on {instance.name}: {rule} (makespan {rule_span} in simulation; "
                                  f"PPO not available: {str(exc).splitlines()[0]})")
     sched = ahead if ahead.makespan < plain.makespan else plain
     ppo = str(sched.meta["solver"])
     if sched.makespan < rule_span:
         return ppo, sched.makespan, (f"best on {instance.name}: {ppo} (makespan {sched.makespan} in simulation; "
-                                     f"best rule pair {rule}: {rule_span})")
+                                     f"{what} {rule}: {rule_span})")
     return rule, rule_span, (f"best on {instance.name}: {rule} (makespan {rule_span} in simulation; "
                              f"{ppo}: {sched.makespan})")
 
@@ -257,9 +268,10 @@ def cmd_up(a: argparse.Namespace) -> int:
         effort = guide_effort_from_args(a)
     except ValueError as exc:
         raise UpError(f"--guide-restarts/--guide-budget/--guide-tabu/--guide-exact: {exc}") from None
+    disrupted = bool(a.scenario) or bool(a.noise)
     if solver.lower() == "best":
-        solver, _, reason = best_solver(inst, effort)
-        say(reason)
+        solver, _, reason = best_solver(inst, effort, disrupted)
+        say(reason + (" (nominal simulations: the disruptions are not known in advance)" if disrupted else ""))
     if a.guide_replan is not None and not needs_twin(solver):
         raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
     if a.replan is not None and not needs_full_net(solver):
@@ -271,7 +283,6 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(msg + ("; fms up also takes best" if msg.startswith("unknown solver") else "")) from None
     # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
     full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
-    disrupted = bool(a.scenario) or bool(a.noise)
     if disrupted:
         from .cli import scenario_from_args
 

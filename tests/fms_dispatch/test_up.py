@@ -151,6 +151,48 @@ def test_a_full_net_model_runs_the_shop_on_the_full_net(fake_nodes, tmp_path: Pa
     assert code == 2 and not seen and "a full-net model such as ppo:full" in capsys.readouterr().err
 
 
+def test_best_in_a_disrupted_run_compares_the_model_with_plan_rules(fake_nodes, tmp_path: Path, monkeypatch,
+                                                                     capsys) -> None:
+    """The paper net's rule pairs cannot run a disrupted shop: `best` with --noise weighs the model against
+    plan:rules (the best full-net rule, simulated nominally) and never picks a pair that would then be refused."""
+    from fms_dispatch.full_rules import solve_best_rules
+
+    inst = load_instance("EX12")
+    rules_span = solve_best_rules(inst, decisions="full").makespan
+    name, span, reason = up.best_solver(inst, disrupted=True)
+    assert name.startswith("ppo:guided") and span < rules_span and f"best full-net rule plan:rules: {rules_span}" \
+        in reason
+    import fms_dispatch.rl as rl
+
+    def unavailable(name: str):
+        def solve(*_: Any, **__: Any) -> Schedule:
+            raise ValueError("instance EX12 does not fit model guided-dagger\n(details)")
+        return solve
+
+    monkeypatch.setattr(rl, "ppo_solver", unavailable)  # the model cannot run: the full-net rule, not a pair
+    assert up.best_solver(inst, disrupted=True) == (
+        "plan:rules", rules_span, f"best full-net rule on EX12: plan:rules (makespan {rules_span} in simulation; "
+        "PPO not available: instance EX12 does not fit model guided-dagger)")
+    assert up.best_solver(inst)[0] == up.best_rule(inst)[0]  # nominal: the best rule pair, as before
+    fake_nodes()
+    seen: dict[str, dict[str, Any]] = {}
+    fake = up.node_command
+
+    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+        seen[module.rsplit(".", 1)[1]] = params
+        return fake(module, params, python)
+
+    monkeypatch.setattr(up, "node_command", command)
+    code = up.main(["EX12", "--solver", "best", "--noise", "0.1", "--out", str(tmp_path / "out" / "s.json"),
+                    "--db", str(tmp_path / "out" / "fms.sqlite"), "--run-id", "t1", "--timeout", "60"])
+    err = capsys.readouterr().err
+    assert code == up.EXIT_OK, err
+    assert "best full-net rule on EX12: plan:rules" in err and "(nominal simulations: the disruptions are not " \
+        "known in advance)" in err
+    assert seen["agent_node"]["solver"] == "plan:rules" and seen["shop_node"]["decisions"] == "full"
+    assert seen["shop_node"]["noise"] == 0.1
+
+
 def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, monkeypatch, capsys) -> None:
     """What would make a finished run fail to deliver, or never end, is refused first: one line, exit 2, no node."""
     import sqlite3
