@@ -39,7 +39,7 @@ def main() -> None:
     inst = builtin(a.instance)
     rng = random.Random(a.seed)
     jobs = [[{"machine": m, "tool": rng.randint(1, inst.n_tools) if inst.has_tools else None,
-              "duration": rng.randint(1, 99)} for m in rng.sample(range(1, inst.n_machines + 1), 5)]
+              "duration": rng.randint(1, 99)} for m in rng.sample(range(1, inst.n_machines + 1), min(5, inst.n_machines))]
             for _ in range(a.jobs)]
     svc = ShopService(inst, run_id="bench", decisions="full", history=True, idle_stops=True, features=False)
     t0 = time.monotonic()
@@ -48,7 +48,10 @@ def main() -> None:
     steps, during, slowest_during, slowest, replans = 0, 0, 0.0, 0.0, []
     while not svc.done:
         if steps == a.at:
-            svc.handle_order(encode(make_order("bench-order", jobs)))
+            refused = [o.msg for o in svc.handle_order(encode(make_order("bench-order", jobs)))
+                       if o.msg["schema"] == "fms/error/v1"]
+            if refused:
+                raise ValueError(f"the shop refused the order: {refused[0]['message']}")
         t1 = time.monotonic()
         out = agent.on_state(encode(svc.state))
         dt = time.monotonic() - t1
