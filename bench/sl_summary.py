@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 from collections import defaultdict
 from pathlib import Path
@@ -33,8 +34,13 @@ def _mean(xs):
     return statistics.fmean(xs) if xs else float("nan")
 
 
+def _num(x: float) -> str:
+    """A mean for a table cell; a dash where nothing was measured (every run of the kind missing)."""
+    return "—" if math.isnan(x) else f"{x:.1f}"
+
+
 def _gap(x: float, bound: float) -> str:
-    return f"{100.0 * (x - bound) / bound:+.1f} %"
+    return "—" if math.isnan(x) or math.isnan(bound) else f"{100.0 * (x - bound) / bound:+.1f} %"
 
 
 def summarize(rows: list[dict], variant: str) -> tuple[list[str], dict]:
@@ -99,7 +105,7 @@ def summarize(rows: list[dict], variant: str) -> tuple[list[str], dict]:
                    and by_inst[inst]["ppo"]["makespan"] < by_inst[inst][best_pair]["makespan"])
         b, c, p, bi = _mean(bounds), _mean(cps), _mean(ppos), _mean(best_inst)
         # gaps of the means, over instances where everything is present (normally all)
-        verdict = "yes" if p < bp_mean else "no"
+        verdict = "—" if math.isnan(p) or math.isnan(bp_mean) else "yes" if p < bp_mean else "no"
         figures[g] = {"n": len(insts), "bound": b, "cpsat": c, "ppo": p, "best_pair": best_pair,
                       "best_pair_mean": bp_mean, "best_per_instance": bi, "ppo_better": p < bp_mean, "ppo_wins": wins, "ties": ties,
                       "missing": dict(missing)}
@@ -107,9 +113,9 @@ def summarize(rows: list[dict], variant: str) -> tuple[list[str], dict]:
         tie = f", {ties + 1} tied" if ties else ""
         note = "" if not missing else " (" + ", ".join(f"{k} missing on {v}" for k, v in missing.items()) + ")"
         lines.append(
-            f"| {g} ({first}–{last}) | {len(insts)}{note} | {b:.1f} | {c:.1f} | {p:.1f} | "
-            f"{best_pair.removeprefix('rule:') if best_pair else '—'} ({bp_mean:.1f}{tie}) | {bi:.1f} | "
-            f"{_gap(p, b)} | {_gap(bp_mean, b)} | {verdict} ({100.0 * (p - bp_mean) / bp_mean:+.1f} %) | "
+            f"| {g} ({first}–{last}) | {len(insts)}{note} | {_num(b)} | {_num(c)} | {_num(p)} | "
+            f"{best_pair.removeprefix('rule:') if best_pair else '—'} ({_num(bp_mean)}{tie}) | {_num(bi)} | "
+            f"{_gap(p, b)} | {_gap(bp_mean, b)} | {verdict} ({_gap(p, bp_mean)}) | "
             f"{wins}/{len(insts)} |")
     return lines, figures
 
@@ -126,7 +132,7 @@ def ppo_times(rows: list[dict]) -> list[str]:
               and _group(r["instance"]) == g and r.get("valid") and r.get("wall_time") is not None]
         if ts:
             lines.append(f"| {label} | {len(ts)} | {_mean(ts):.2f} s | {max(ts):.2f} s |")
-    return lines
+    return lines if len(lines) > 4 else []  # no timed PPO run: no table
 
 
 def main(argv=None) -> int:
