@@ -16,6 +16,8 @@ honouring ``time_limit`` where it searches. Every schedule leaves here with ``me
 
 from __future__ import annotations
 
+import math
+import numbers
 import random
 import time
 from typing import Any, Callable
@@ -275,14 +277,51 @@ SOLVE_OPTIONS = ("seed", "time_limit", "progress", "scenario", "decisions", "wor
                  "initial", "config", "lookahead", "guide_effort", "guide_replan", "replan", "drift")
 
 
+def check_options(options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` with the ones every solver shares checked (TypeError, ValueError: one message, before any solver
+    runs; each solver reads only its own, so a ``time_limit="3"`` or a scenario given as a file name would otherwise
+    fail deep inside one solver and be ignored by another) and numpy numbers made Python ones."""
+    from fms_sim.disruptions import Scenario
+
+    def number(v: Any) -> bool:
+        return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+    unknown = sorted(set(options) - set(SOLVE_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown solve() option {unknown[0]!r}; the options are {', '.join(SOLVE_OPTIONS)}")
+    limit = options.get("time_limit")
+    if limit is not None and not number(limit):
+        raise TypeError(f"time_limit must be a number of seconds or None, got {limit!r}")
+    if limit is not None and not 0 < limit < math.inf:
+        raise ValueError(f"time_limit must be a positive, finite number of seconds, got {limit!r}")
+    seed = options.get("seed")
+    if seed is not None and (not isinstance(seed, numbers.Integral) or isinstance(seed, bool)):
+        raise TypeError(f"seed must be an integer, got {seed!r}")
+    scenario = options.get("scenario")
+    if scenario is not None and not isinstance(scenario, Scenario):
+        raise TypeError(f"scenario must be a fms_sim.disruptions.Scenario (Scenario.load(path) reads a file), "
+                        f"got {type(scenario).__name__}")
+    decisions = options.get("decisions")
+    if decisions is not None and decisions not in ("full", "paper"):
+        raise ValueError(f"decisions must be 'full' or 'paper', got {decisions!r}")
+    for name in ("progress", "guide_replan"):
+        if name in options and not isinstance(options[name], bool):
+            raise TypeError(f"{name} must be True or False, got {options[name]!r}")
+    out = dict(options)
+    if seed is not None:
+        out["seed"] = int(seed)
+    if limit is not None:
+        out["time_limit"] = float(limit) if not isinstance(limit, int) else limit
+    return out
+
+
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
     """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through.
     ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
     :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
-    ``time_limt``) raises TypeError instead of being ignored."""
-    unknown = sorted(set(options) - set(SOLVE_OPTIONS))
-    if unknown:
-        raise TypeError(f"unknown solve() option {unknown[0]!r}; the options are {', '.join(SOLVE_OPTIONS)}")
+    ``time_limt``) raises TypeError instead of being ignored, and the shared options are checked
+    (:func:`check_options`)."""
+    options = check_options(options)
     fn = get_solver(solver)
     scenario = options.get("scenario")
     if scenario is not None and scenario.empty:

@@ -23,9 +23,36 @@ def test_rules_stop_trying_combinations_at_the_time_limit():
     assert cut.meta["tried"] == 1 < cut.meta["combinations"] and validate(inst, cut) == []
     whole = solve(builtin("EX12"), "rules")
     assert whole.meta["tried"] == whole.meta["combinations"]
-    with pytest.raises(ValueError, match="time limit must be positive"):
+    with pytest.raises(ValueError, match="time_limit must be a positive"):
         solve(inst, "rules", time_limit=0)
 
 
 def test_solver_names_list_the_lookahead_suffixes():
     assert any("+lookahead-guide" in n for n in solver_names()) and "plan:file:PATH" in solver_names()
+
+
+@pytest.mark.parametrize("options, error, message", [
+    (dict(time_limit="3"), TypeError, "time_limit must be a number of seconds or None, got '3'"),
+    (dict(time_limit=True), TypeError, "time_limit must be a number"),
+    (dict(time_limit=-1), ValueError, "time_limit must be a positive, finite number of seconds, got -1"),
+    (dict(time_limit=float("nan")), ValueError, "time_limit must be a positive"),
+    (dict(seed="1"), TypeError, "seed must be an integer, got '1'"),
+    (dict(scenario="x.json"), TypeError, "scenario must be a fms_sim.disruptions.Scenario .*got str"),
+    (dict(decisions="fll"), ValueError, "decisions must be 'full' or 'paper', got 'fll'"),
+    (dict(progress="yes"), TypeError, "progress must be True or False"),
+])
+def test_shared_options_of_the_wrong_type_are_refused_by_every_solver(options, error, message):
+    # each solver reads only its own options: before the check, time_limit="3" was a TypeError inside cpsat and
+    # ignored by ppo, and a scenario given as a file name an AttributeError
+    inst = builtin("EX12")
+    for name in ("cpsat", "ppo", "list", "random", "rules"):
+        with pytest.raises(error, match=message):
+            solve(inst, name, **options)
+
+
+def test_shared_options_of_the_right_type_pass():
+    import numpy as np
+
+    inst = builtin("EX12")
+    s = solve(inst, "random", seed=np.int64(4), time_limit=np.float64(2.0), decisions="full", progress=False)
+    assert validate(inst, s) == [] and s.meta["wall_time"] >= 0
