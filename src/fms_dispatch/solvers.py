@@ -303,7 +303,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
                         f"got {type(scenario).__name__}")
     decisions = options.get("decisions")
     if decisions is not None and decisions not in ("full", "paper"):
-        raise ValueError(f"decisions must be 'full' or 'paper', got {decisions!r}")
+        raise UnknownSolver(f"unknown decisions {decisions!r}; choose from full, paper")
     for name in ("progress", "guide_replan"):
         if name in options and not isinstance(options[name], bool):
             raise TypeError(f"{name} must be True or False, got {options[name]!r}")

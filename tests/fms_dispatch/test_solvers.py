@@ -2,7 +2,7 @@
 
 import pytest
 
-from fms_dispatch.solvers import SOLVE_OPTIONS, solve, solver_names
+from fms_dispatch.solvers import SOLVE_OPTIONS, UnknownSolver, solve, solver_names
 from fms_sim.benchmarks import builtin
 from fms_sim.validate import validate
 
@@ -38,7 +38,7 @@ def test_solver_names_list_the_lookahead_suffixes():
     (dict(time_limit=float("nan")), ValueError, "time_limit must be a positive"),
     (dict(seed="1"), TypeError, "seed must be an integer, got '1'"),
     (dict(scenario="x.json"), TypeError, "scenario must be a fms_sim.disruptions.Scenario .*got str"),
-    (dict(decisions="fll"), ValueError, "decisions must be 'full' or 'paper', got 'fll'"),
+    (dict(decisions="fll"), UnknownSolver, "unknown decisions 'fll'; choose from full, paper"),
     (dict(progress="yes"), TypeError, "progress must be True or False"),
 ])
 def test_shared_options_of_the_wrong_type_are_refused_by_every_solver(options, error, message):
