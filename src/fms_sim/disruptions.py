@@ -110,10 +110,10 @@ class Scenario:
 
     def op_end(self, machine: int, start: int, duration: int) -> int:
         """When an operation of realised ``duration`` started at ``start`` on ``machine`` ends: later by every
-        breakdown that begins while it runs (it is suspended until the repair)."""
+        breakdown that begins while it runs, at its first instant included (it is suspended until the repair)."""
         end = start + duration
         for b in self.windows(machine):
-            if start < b.start < end:
+            if start <= b.start < end:
                 end += b.duration
         return end
 

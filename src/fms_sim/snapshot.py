@@ -80,7 +80,7 @@ def _running_end(shop: FullShop, m: int, i: int) -> int:
     sc = shop.scenario
     if sc is not None:
         for b in sc.windows(m):  # repairs of breakdowns that have begun while it runs
-            if b.start <= now and rec.start < b.start < end:
+            if b.start <= now and rec.start <= b.start < end:
                 end += b.duration
     return max(end, now + 1)
 

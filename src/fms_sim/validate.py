@@ -123,7 +123,7 @@ def _check_operations(instance: Instance, schedule: Schedule, errs: list[str],
                 errs.append(f"op ({r.job},{r.op}) ends at {r.end}; with its realised duration {real} and the "
                             f"breakdowns of machine {spec.machine} it ends at {want}")
             for b in scenario.windows(spec.machine):
-                if b.start <= r.start < b.end:
+                if b.start < r.start < b.end:
                     errs.append(f"op ({r.job},{r.op}) starts at {r.start} while machine {spec.machine} is down "
                                 f"[{b.start}, {b.end})")
         if r.start < 0:
@@ -216,7 +216,7 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
                 errs.append(f"{what} {v}: trip {a}->{b} at {s} lasts {e - s}, travel time is {want}"
                             + (" (realised)" if scenario is not None else ""))
             for o in outs:
-                if o.start <= s < o.end and a != b:
+                if o.start < s < o.end and a != b:
                     errs.append(f"{what} {v}: trip {a}->{b} starts at {s} while out of service [{o.start}, {o.end})")
             here, free = b, max(free, e)
 

@@ -165,3 +165,39 @@ def test_a_plan_executed_under_disruptions_keeps_its_orders_and_stays_valid():
         order = lambda sched: [(r.job, r.op) for r in sorted(sched.operations, key=lambda r: r.start)  # noqa: E731
                                if r.machine == m]
         assert order(out) == order(plan)
+
+
+@pytest.mark.parametrize("kind", ["breakdown", "outage"])
+def test_a_disruption_reported_at_the_instant_something_started_suspends_or_finishes_it(kind):
+    # a live shop hears of a breakdown (outage) at the time an operation (trip) has just started on its machine
+    # (vehicle): that operation is running at the breakdown's first instant and is suspended (the trip is under way
+    # and is finished); the validator used to call the start one made while the machine was down
+    inst = builtin("EX12")
+    rng = random.Random(1)
+    shop = FullShop(inst, scenario=None)
+    hit = None
+    while not shop.done:
+        shop.act(rng.choice(shop.legal_actions()))
+        if hit is None and shop.now > 0:
+            if kind == "breakdown":
+                hit = next((r for r in shop.rec.ops if r.start == shop.now and r.end > r.start), None)
+                if hit is not None:
+                    shop.add_disruption(Breakdown(hit.machine, shop.now, 10))
+            else:
+                hit = next((t for t in shop.rec.agv if t.start == shop.now and t.end > t.start), None)
+                if hit is not None:
+                    shop.add_disruption(Outage("agv", hit.agv, shop.now, 10))
+    assert hit is not None
+    s = shop.schedule()
+    assert validate(inst, s) == []
+    if kind == "breakdown":
+        rec = next(r for r in s.operations if (r.job, r.op) == (hit.job, hit.op))
+        assert rec.start == hit.start and rec.end == hit.end + 10  # suspended for the repair
+        late = dataclasses.replace(s, operations=[dataclasses.replace(r, end=r.end - 10) if r is rec else r
+                                                  for r in s.operations])
+        assert validate(inst, late)  # not suspended: wrong
+        others = [r for r in s.operations if r.machine == hit.machine and r is not rec]
+        assert all(not hit.start < r.start < hit.start + 10 for r in others)
+    else:
+        assert any(t.start == hit.start and t.end == hit.end and t.agv == hit.agv for t in s.agv_trips)
+        assert all(not hit.start < t.start < hit.start + 10 for t in s.agv_trips if t.agv == hit.agv)
