@@ -9,6 +9,8 @@ the receiver.
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -162,16 +164,25 @@ def make_replan(run_id: str, source: str, state_seq: int, time: int, reason: str
                 message: str | None = None) -> dict[str, Any]:
     """An ``fms/replan/v1``: the agent ``source`` re-planned at state ``state_seq`` (shop time ``time``) for
     ``reason``; ``status`` adopted, kept, failed or timeout; budget and wall time in seconds (sent as whole
-    milliseconds); predicted makespans ``before`` (keeping the plan) and ``after`` (the new plan)."""
+    milliseconds, a budget of at least 1 ms); predicted makespans ``before`` (keeping the plan) and ``after``
+    (the new plan). A time that is not a finite number of seconds >= 0 is a ``bad_schema`` MessageError."""
     msg: dict[str, Any] = {"schema": SCHEMA_REPLAN, "run_id": run_id, "source": source, "state_seq": state_seq,
                            "time": _plain(time), "reason": reason, "status": status,
-                           "budget_ms": max(1, round(budget_s * 1000)), "wall_ms": max(0, round(wall_s * 1000)),
+                           "budget_ms": max(1, _ms("budget_s", budget_s)), "wall_ms": _ms("wall_s", wall_s),
                            "before": _plain(before), "after": _plain(after)}
     if method is not None:
         msg["method"] = method
     if message is not None:
         msg["message"] = bounded(_one_line(message), ERROR_MAX_CHARS["message"])
     return _checked(msg)
+
+
+def _ms(name: str, seconds: Any) -> int:
+    """``seconds`` as whole milliseconds; a negative, infinite or NaN time, or a non-number, is refused."""
+    if not isinstance(seconds, numbers.Real) or isinstance(seconds, bool) or not 0 <= seconds < math.inf:
+        raise MessageError("bad_schema", f"{SCHEMA_REPLAN}: {name} must be a finite number of seconds >= 0, "
+                                         f"got {seconds!r}", name)
+    return round(float(seconds) * 1000)
 
 
 def _one_line(text: str) -> str:

@@ -200,9 +200,9 @@ DISRUPTION_KINDS: tuple[str, ...] = ("breakdown", "outage")
 _DISRUPTION_BODY = (
     Field("disruption_id", Str()),
     Field("kind", OneOf(DISRUPTION_KINDS)),
-    Field("machine", Int(1), required=False),
-    Field("vehicle_kind", OneOf(("agv", "tt")), required=False),
-    Field("vehicle", Int(0), required=False),
+    Field("machine", Nullable(Int(1)), required=False),
+    Field("vehicle_kind", Nullable(OneOf(("agv", "tt"))), required=False),
+    Field("vehicle", Nullable(Int(0)), required=False),
     Field("start", Nullable(Int(0)), required=False),
     Field("duration", Int(1)),
 )
@@ -347,10 +347,17 @@ _DISRUPTION = _DISRUPTION_BODY + (Field("run_id", _OPTIONAL_STR, required=False)
 
 def _disruption_complete(msg: dict[str, Any], path: str) -> None:
     """A breakdown names its machine; an outage its vehicle's kind and number."""
-    if msg["kind"] == "breakdown" and msg.get("machine") is None:
-        raise FieldError("machine", "a breakdown needs field 'machine' (1..)")
-    if msg["kind"] == "outage" and (msg.get("vehicle_kind") is None or msg.get("vehicle") is None):
-        raise FieldError("vehicle", "an outage needs fields 'vehicle_kind' (agv or tt) and 'vehicle' (0..)")
+    if msg["kind"] == "breakdown":
+        if msg.get("machine") is None:
+            raise FieldError("machine", "a breakdown needs field 'machine' (1..)")
+        for key in ("vehicle_kind", "vehicle"):
+            if msg.get(key) is not None:  # a message that names both: which one is down is not clear
+                raise FieldError(key, f"a breakdown names a machine, not field {key!r}")
+    if msg["kind"] == "outage":
+        if msg.get("vehicle_kind") is None or msg.get("vehicle") is None:
+            raise FieldError("vehicle", "an outage needs fields 'vehicle_kind' (agv or tt) and 'vehicle' (0..)")
+        if msg.get("machine") is not None:
+            raise FieldError("machine", "an outage names a vehicle, not field 'machine'")
 
 
 REPLAN_REASONS: tuple[str, ...] = ("order", "breakdown", "outage", "late", "stuck")
@@ -477,6 +484,8 @@ def kind_of(msg: Any) -> str:
     if version != SCHEMA_VERSION:
         raise MessageError("bad_schema", f"unsupported schema version {sid!r}; this build reads "
                                          f"{schema_id(kind)!r}", "schema")
+    if sid != schema_id(kind):  # 'fms/command/v01': the version read as a number, but the id is compared as text
+        raise MessageError("bad_schema", f"schema {sid[:60]!r} must be written {schema_id(kind)!r}", "schema")
     return kind
 
 
@@ -503,9 +512,21 @@ def encode(msg: dict[str, Any], *, check: bool = True) -> str:
     if check:
         validate(msg)
     try:
-        return json.dumps(msg, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+        text = json.dumps(msg, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     except (TypeError, ValueError) as exc:  # only possible in extra (unknown) fields
         raise MessageError("bad_schema", f"{msg['schema']}: message is not JSON-serialisable: {exc}") from None
+    _check_unicode(text, "bad_schema", f"{msg['schema']}: a string of the message")
+    return text
+
+
+def _check_unicode(text: str, code: str, what: str) -> None:
+    """Raise :class:`MessageError` if ``text`` holds a lone surrogate (a ``\\ud800`` escape in JSON decodes to
+    one): such a str cannot be sent as UTF-8, so a transport would fail on it, long after it was accepted."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        raise MessageError(code, f"{what} holds a lone surrogate (U+{ord(exc.object[exc.start]):04X}), which is "
+                                 f"not Unicode text and cannot be sent as UTF-8") from None
 
 
 def _normalise_expect(expect: str | Iterable[str]) -> set[str]:
@@ -554,6 +575,9 @@ def decode(text: str, expect: str | Iterable[str] | None = None) -> dict[str, An
                                              f"{exc.msg}") from None
     except RecursionError:
         raise MessageError("malformed_json", "malformed JSON: nested too deeply") from None
+    _check_unicode(text, "malformed_json", "the text")
+    if "\\u" in text:  # an escape may decode to a lone surrogate: the decoded strings must be Unicode too
+        _check_unicode(json.dumps(msg, ensure_ascii=False), "malformed_json", "a string of the message")
     kind = kind_of(msg)
     if kinds is not None and kind not in kinds:  # before the field checks: the mismatch is the real problem
         wanted = " or ".join(sorted(SCHEMAS[k] for k in kinds))

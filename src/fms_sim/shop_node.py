@@ -89,7 +89,11 @@ class TopicIO:
     def publish(self, out: Sequence[Outgoing]) -> None:
         log = self.node.get_logger()
         for topic, msg in out:
-            self.pubs[topic].publish(String(data=encode(msg, check=False)))  # built (and checked) by make_*
+            try:
+                self.pubs[topic].publish(String(data=encode(msg, check=False)))  # built (and checked) by make_*
+            except Exception as exc:  # one message that cannot be sent must not take the node down with it
+                log.error(f"cannot publish a {msg.get('schema')} message on {topic}: {exc}")
+                continue
             if msg["schema"] == "fms/error/v1":
                 log.error(f"[{msg['code']}] {msg['message']}")
 

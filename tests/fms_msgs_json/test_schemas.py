@@ -479,3 +479,60 @@ def test_docs_list_every_topic_and_kind() -> None:
         assert f"`{code}`" in text
     for kind in m.EVENT_KINDS:
         assert f"`{kind}`" in text
+
+
+# ------------------------------------------------------------------------------------------------ review fixes
+@pytest.mark.parametrize("text", [
+    '{"schema":"fms/order/v1","order_id":"o\\ud800","jobs":[[{"machine":1,"duration":3}]]}',
+    '{"schema":"fms/command/v1","run_id":"r","state_seq":0,"action":"job:0","agent":"a\\udfff"}',
+])
+def test_a_lone_surrogate_is_malformed(text: str) -> None:
+    # accepted, it made every answer quoting the id impossible to send as UTF-8, and the shop node died on it
+    err = rejected(text)
+    assert err.code == "malformed_json" and "lone surrogate (U+D" in str(err)
+
+
+def test_a_surrogate_pair_is_one_character_and_fine() -> None:
+    msg = decode('{"schema":"fms/order/v1","order_id":"o\\ud83d\\ude00","jobs":[[{"machine":1,"duration":3}]]}')
+    assert msg["order_id"] == "o\U0001F600" and decode(encode(msg)) == msg
+
+
+def test_encode_refuses_a_lone_surrogate() -> None:
+    msg = m.make_command("run-1", 3, "job:0", agent="a\ud800")
+    with pytest.raises(MessageError, match="lone surrogate") as info:
+        encode(msg)
+    assert info.value.code == "bad_schema"
+
+
+def test_a_schema_id_is_compared_as_written() -> None:
+    err = rejected(changed("command", schema="fms/command/v01"))
+    assert err.code == "bad_schema" and "must be written 'fms/command/v1'" in str(err)
+
+
+def test_disruption_optional_fields_may_be_null_but_not_contradict_the_kind() -> None:
+    base = {"schema": "fms/disruption/v1", "disruption_id": "d", "duration": 5}
+    ok = [dict(base, kind="breakdown", machine=2, vehicle_kind=None, vehicle=None, start=None),
+          dict(base, kind="outage", vehicle_kind="agv", vehicle=0, machine=None)]
+    for msg in ok:
+        assert decode(json.dumps(msg)) == msg
+    for msg, field in [(dict(base, kind="breakdown", machine=2, vehicle_kind="agv", vehicle=0), "vehicle_kind"),
+                       (dict(base, kind="outage", vehicle_kind="agv", vehicle=0, machine=2), "machine"),
+                       (dict(base, kind="breakdown", machine=None), "machine")]:
+        err = rejected(msg)
+        assert err.code == "bad_schema" and err.field == field
+
+
+@pytest.mark.parametrize("budget, wall, needle", [
+    (float("nan"), 0.1, "budget_s must be a finite number of seconds >= 0, got nan"),
+    (float("inf"), 0.1, "budget_s must be"),
+    (1.0, -0.5, "wall_s must be a finite number of seconds >= 0, got -0.5"),
+    ("1", 0.1, "budget_s must be"),
+])
+def test_make_replan_refuses_times_that_are_not_seconds(budget: Any, wall: Any, needle: str) -> None:
+    with pytest.raises(MessageError, match=re.escape(needle)) as info:
+        m.make_replan("run-1", "agent", 3, 10, "order", "adopted", budget_s=budget, wall_s=wall, before=None,
+                      after=20)
+    assert info.value.code == "bad_schema"
+    ok = m.make_replan("run-1", "agent", 3, 10, "order", "adopted", budget_s=np.float64(0.0002), wall_s=0,
+                       before=None, after=20)
+    assert ok["budget_ms"] == 1 and ok["wall_ms"] == 0

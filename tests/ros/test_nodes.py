@@ -430,3 +430,42 @@ def test_node_warns_of_unknown_parameters(nodes: NodeProcs) -> None:
     params = warning.split("this node's parameters are ", 1)[1]
     assert "solver" in params and "seed" in params and "use_sim_time" not in params
     assert nodes.stop(proc) == 0
+
+
+def test_topic_io_logs_a_message_it_cannot_send_and_sends_the_rest() -> None:
+    # a message that cannot be encoded (here a lone surrogate) made publish raise inside the subscription
+    # callback, which took the whole shop node down
+    from fms_sim.shop_node import TopicIO
+
+    class Pub:
+        def __init__(self) -> None:
+            self.sent: list[str] = []
+
+        def publish(self, msg: Any) -> None:
+            self.sent.append(msg.data)
+
+    class Log:
+        def __init__(self) -> None:
+            self.errors: list[str] = []
+
+        def error(self, text: str) -> None:
+            self.errors.append(text)
+
+    class Node:
+        def __init__(self) -> None:
+            self.log, self.pub = Log(), Pub()
+
+        def create_publisher(self, *_: Any) -> Pub:
+            return self.pub
+
+        def get_logger(self) -> Log:
+            return self.log
+
+    node = Node()
+    io = TopicIO(node, ["error"])
+    bad = m.make_error("fms_shop", "bad_order", "order 'o\ud800' rejected")
+    good = m.make_error("fms_shop", "bad_order", "order 'o1' rejected")
+    io.publish([(m.TOPIC_ERRORS, bad), (m.TOPIC_ERRORS, good)])
+    assert [json.loads(t)["message"] for t in node.pub.sent] == ["order 'o1' rejected"]
+    assert any("cannot publish a fms/error/v1 message on fms/errors" in e and "lone surrogate" in e
+               for e in node.log.errors)
