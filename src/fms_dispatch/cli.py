@@ -191,13 +191,13 @@ def cmd_solve(a: argparse.Namespace) -> int:
 def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None:
     """The disruptions of ``--scenario FILE`` and ``--noise SPREAD`` (seeded by ``--seed``), checked against the
     instance; None for an undisrupted run."""
-    from fms_sim.disruptions import Scenario
+    from fms_sim.disruptions import MAX_NOISE, Scenario
 
     scenario = Scenario.load(a.scenario) if getattr(a, "scenario", None) else None
     noise = getattr(a, "noise", None)
     if noise is not None:
-        if noise < 0:
-            raise CliError("--noise must be >= 0")
+        if not 0 <= noise <= MAX_NOISE:
+            raise CliError(f"--noise must be a spread from 0 to {MAX_NOISE:g}, got {noise:g}")
         base = scenario or Scenario()
         scenario = Scenario(base.breakdowns, base.outages, noise, a.seed)
     if scenario is not None:
@@ -346,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
-                   "time (sigma, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
+                   "time (sigma from 0 to 1, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
     s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
                    "disrupted shop departs from the plan (breakdown, outage, lateness); default: keep the plan")
     s.add_argument("--out", help="write the schedule JSON here")

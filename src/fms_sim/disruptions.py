@@ -28,10 +28,13 @@ from typing import Any
 
 from .instance import Instance
 
-__all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS"]
+__all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS", "MAX_NOISE"]
 
 SCENARIO_SCHEMA = "fms/scenario/v1"
 VEHICLE_KINDS = ("agv", "tt")
+MAX_NOISE = 1.0
+"""The largest noise spread: at 1 one activity in six already takes 2.7 times its nominal time or more; beyond,
+factors overflow into meaningless makespans (a spread of 50 gave one of 3e47, 1000 an OverflowError)."""
 
 
 class ScenarioError(ValueError):
@@ -45,11 +48,20 @@ def _int(d: dict[str, Any], key: str, where: str) -> int:
     return v
 
 
+def _whole(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 class _Window:
     """A time window ``[start, start + duration)``."""
 
     start: int
     duration: int
+
+    def _check(self, what: str, ids: dict[str, Any]) -> None:
+        for key, v in {**ids, "start": self.start, "duration": self.duration}.items():
+            if not _whole(v):
+                raise ScenarioError(f"{what}: {key} must be an integer, got {v!r}")
 
     @property
     def end(self) -> int:
@@ -64,6 +76,9 @@ class Breakdown(_Window):
     start: int
     duration: int
 
+    def __post_init__(self) -> None:
+        self._check("breakdown", {"machine": self.machine})
+
 
 @dataclass(frozen=True)
 class Outage(_Window):
@@ -73,6 +88,11 @@ class Outage(_Window):
     vehicle: int
     start: int
     duration: int
+
+    def __post_init__(self) -> None:
+        if self.kind not in VEHICLE_KINDS:
+            raise ScenarioError(f"outage kind must be agv or tt, got {self.kind!r}")
+        self._check(f"outage of {self.kind}", {"vehicle": self.vehicle})
 
 
 @dataclass(frozen=True)
@@ -86,11 +106,15 @@ class Scenario:
     _factors: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.noise, (int, float)) or isinstance(self.noise, bool) or not math.isfinite(self.noise) \
-                or self.noise < 0:
-            raise ScenarioError(f"noise must be a number >= 0, got {self.noise!r}")
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
+        if not isinstance(self.noise, (int, float)) or isinstance(self.noise, bool) \
+                or not 0 <= self.noise <= MAX_NOISE:
+            raise ScenarioError(f"noise must be a spread from 0 to {MAX_NOISE:g}, got {self.noise!r}")
+        if not _whole(self.seed):
             raise ScenarioError(f"seed must be an integer, got {self.seed!r}")
+        for what, items, kind in (("breakdowns", self.breakdowns, Breakdown), ("outages", self.outages, Outage)):
+            if not isinstance(items, (tuple, list)) or not all(isinstance(w, kind) for w in items):
+                raise ScenarioError(f"{what} must be a sequence of {kind.__name__}, got {items!r}")
+            object.__setattr__(self, what, tuple(items))  # a list given is kept as a tuple: hashable, immutable
         for b in self.breakdowns:
             if b.start < 0 or b.duration <= 0:
                 raise ScenarioError(f"breakdown of machine {b.machine}: start must be >= 0 and duration > 0, got "
@@ -183,12 +207,14 @@ class Scenario:
             if not isinstance(b, dict):
                 raise ScenarioError(f"breakdown {i} must be an object")
             w = f"breakdown {i}"
+            _known_keys(b, ("machine", "start", "duration"), w)
             breakdowns.append(Breakdown(_int(b, "machine", w), _int(b, "start", w), _int(b, "duration", w)))
         outages = []
         for i, o in enumerate(outs):
             if not isinstance(o, dict):
                 raise ScenarioError(f"outage {i} must be an object")
             w = f"outage {i}"
+            _known_keys(o, ("kind", "vehicle", "start", "duration"), w)
             outages.append(Outage(o.get("kind"), _int(o, "vehicle", w), _int(o, "start", w), _int(o, "duration", w)))
         noise = d.get("noise", 0.0)
         seed = d.get("seed", 0)
@@ -223,6 +249,13 @@ class Scenario:
         machines = rng.sample(range(1, instance.n_machines + 1), min(breakdowns, instance.n_machines))
         bds = tuple(Breakdown(m, rng.randrange(max(1, horizon)), rng.randint(lo, hi)) for m in machines)
         return cls(bds, (), noise, seed)
+
+
+def _known_keys(d: dict[str, Any], keys: tuple[str, ...], where: str) -> None:
+    unknown = sorted(set(d) - set(keys))
+    if unknown:  # a misspelt 'durarion' must not leave a window that quietly means something else
+        raise ScenarioError(f"{where}: unknown field(s) {', '.join(map(repr, unknown))}; its fields are "
+                            f"{', '.join(keys)}")
 
 
 def _no_overlap(items: Any, what: str) -> None:

@@ -44,7 +44,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .disruptions import Scenario
+from .disruptions import MAX_NOISE, Scenario
 from .full_shop import DECISIONS, FullShop, make_shop
 from .instance import Instance
 from .petri import InvalidAction
@@ -93,8 +93,8 @@ def check_disruptions(disruptions: dict[str, Any] | None, decisions: str = "full
     if unknown:
         raise ValueError(f"unknown disruption keys {unknown}; use {', '.join(DISRUPTION_KEYS)}")
     noise, bds = disruptions.get("noise", 0.0), disruptions.get("breakdowns", 0)
-    if not isinstance(noise, (int, float)) or isinstance(noise, bool) or not noise >= 0:
-        raise ValueError(f"disruption noise must be a spread >= 0, got {noise!r}")
+    if not isinstance(noise, (int, float)) or isinstance(noise, bool) or not 0 <= noise <= MAX_NOISE:
+        raise ValueError(f"disruption noise must be a spread from 0 to {MAX_NOISE:g}, got {noise!r}")
     if not isinstance(bds, int) or isinstance(bds, bool) or bds < 0:
         raise ValueError(f"disruption breakdowns must be an integer >= 0, got {bds!r}")
     if not isinstance(disruptions.get("seed", 0), int):

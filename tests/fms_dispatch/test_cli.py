@@ -184,6 +184,12 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
     code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--decisions", "paper", "--noise", "0.1",
                         "-q"], capsys)
     assert code == 2 and "full-decision net only" in err
+    for noise in ("1000", "50", "-1", "nan"):  # 1000 was an OverflowError, 50 a "valid" makespan of 3e47
+        code, _, err = run(["solve", "EX12", "--noise", noise, "-q"], capsys)
+        assert code == 2 and "--noise must be a spread from 0 to 1" in err
+    sc.write_text(json.dumps({"breakdowns": [{"machine": 2, "start": 30, "durarion": 20}]}))
+    code, _, err = run(["solve", "EX12", "--scenario", str(sc), "-q"], capsys)
+    assert code == 2 and "breakdown 0: unknown field(s) 'durarion'" in err
 
 
 def test_solve_runs_a_full_net_ppo_model_under_disruptions(tmp_path, capsys):

@@ -55,6 +55,29 @@ def test_bad_scenarios_are_refused_with_a_reason():
         make_shop(inst, "paper", Scenario(noise=0.1))
 
 
+@pytest.mark.parametrize("make, msg", [
+    (lambda: Scenario(noise=50), "noise must be a spread from 0 to 1, got 50"),
+    (lambda: Scenario(noise=float("inf")), "noise must be a spread"),
+    (lambda: Breakdown("1", 1, 2), "breakdown: machine must be an integer, got '1'"),
+    (lambda: Breakdown(1, 30.5, 2), "breakdown: start must be an integer, got 30.5"),
+    (lambda: Outage("agv", 0, 1, True), "outage of agv: duration must be an integer, got True"),
+    (lambda: Outage("bus", 0, 1, 2), "agv or tt"),
+    (lambda: Scenario(breakdowns=((1, 0, 5),)), "breakdowns must be a sequence of Breakdown"),
+    (lambda: Scenario.from_dict({"outages": [{"kind": "agv", "vehicle": 0, "start": 0, "duration": 5, "x": 1}]}),
+     "outage 0: unknown field"),
+])
+def test_scenario_parts_are_checked_when_made(make, msg):
+    # a float start used to run and be called malformed by the validator afterwards; a string machine was a raw
+    # TypeError; a spread of 50 gave a makespan of 3e47
+    with pytest.raises(ScenarioError, match=msg):
+        make()
+
+
+def test_a_list_of_windows_is_kept_as_a_tuple():
+    sc = Scenario(breakdowns=[Breakdown(1, 0, 5)])
+    assert sc.breakdowns == (Breakdown(1, 0, 5),) and sc == Scenario(breakdowns=(Breakdown(1, 0, 5),))
+
+
 def test_scenario_json_round_trip_and_draw(tmp_path):
     inst = builtin("sl00")
     sc = Scenario.draw(inst, noise=0.1, breakdowns=3, horizon=500, seed=4)

@@ -381,7 +381,8 @@ def test_disrupted_episodes_draw_scenarios_and_stay_valid():
     assert env.shop.scenario == given
 
 
-@pytest.mark.parametrize("bad, match", [({"noise": -1}, "noise"), ({"breakdowns": 1.5}, "breakdowns"),
+@pytest.mark.parametrize("bad, match", [({"noise": -1}, "noise"), ({"noise": float("inf")}, "noise"),
+                                        ({"breakdowns": 1.5}, "breakdowns"),
                                         ({"jitter": 1}, "unknown disruption keys"), ("noise", "must be a dict")])
 def test_bad_disruptions_are_refused(bad, match):
     with pytest.raises(ValueError, match=match):
