@@ -684,6 +684,11 @@ class FullShop(Shop):
             raise InvalidAction(f"unknown action label {label!r} (full net: job:J, agv:V, tt:R, start:J, tool:T, "
                                 "use:J or hold)") from None
 
+    def idle_machines(self) -> int:
+        """How many machines process nothing now (a broken-down machine without an operation included): what the
+        paper's ``idle`` reward counts, as on the paper's net (:meth:`Shop.idle_machines`)."""
+        return sum(self.m_idle) - 1  # index 0 is no machine
+
     def hold_allowed(self) -> bool:
         """Hold is offered at a decision among the base choices while some event is still to come."""
         net = self.net

@@ -99,8 +99,23 @@ def test_train_refuses_bad_input(tmp_path):
         train(dict(TINY, train=["EX12"], reward="speed", steps=10), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="unknown warm-start expert 'oracle'"):
         train(dict(TINY, train=["EX12"], steps=10, warm_start={"expert": "oracle"}), tmp_path / "x", progress=False)
-    with pytest.raises(ValueError, match="n_envs must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="config: n_envs must be an integer >= 1, got 0"):
         train(dict(TINY, train=["EX12"], steps=10, n_envs=0), tmp_path / "x", progress=False)
+    # a misspelt key trained the default 100,000 steps; wrong kinds failed deep inside torch or sb3
+    for bad, msg in [(dict(step=256), r"unknown config key 'step' \(did you mean 'steps'\?\)"),
+                     (dict(ppo={"n_step": 64}), r"unknown config key 'ppo.n_step' \(did you mean 'n_steps'\?\)"),
+                     (dict(hidden="big"), 'config: hidden must be an integer >= 1, got "big"'),
+                     (dict(eval_freq=0), "config: eval_freq must be an integer >= 1, got 0"),
+                     (dict(steps="100"), 'config: steps must be an integer >= 0, got "100"'),
+                     (dict(warm_start={"lr": -1}), "config: warm_start.lr must be a number > 0, got -1"),
+                     (dict(fleet=[1]), "config key fleet must be an object"),
+                     (dict(net_arch=[64, 0]), "config: net_arch must be a list of layer widths")]:
+        with pytest.raises(ValueError, match=msg):
+            train(dict(TINY, train=["gen:6x4x3*1@5"], **bad), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="cannot read the shop specs") as info:  # a typo, not a benchmark
+        train(dict(TINY, train=["gen:6x4x3*1@5", "gne:6x4"], steps=10, allow_benchmarks=False), tmp_path / "x",
+              progress=False)
+    assert "--allow-benchmarks" not in str(info.value)
     with pytest.raises(ValueError, match="init: no weights at models/nosuchmodel"):
         train(dict(TINY, train=["EX12"], steps=10, init="models/nosuchmodel"), tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()  # refused before anything was written

@@ -69,6 +69,24 @@ def test_idle_reward_is_minus_idle_fraction_per_step():
     assert -1.0 <= r <= 0.0
 
 
+def test_idle_reward_on_the_full_net_counts_the_machines_processing_nothing():
+    # the full net had no idle_machines: the paper's reward crashed on the first step (and fms train with it)
+    inst = builtin("ra01")
+    env = ShopEnv(inst, decisions="full", reward="idle")
+    env.reset(seed=0)
+    rng, rewards = np.random.default_rng(1), []
+    while True:
+        _, r, done, _, _ = env.step(int(rng.choice(np.flatnonzero(env.action_masks()))))
+        shop = env.shop
+        if done:
+            break
+        running = {o.machine for o in shop.rec.ops if o.start <= shop.now < o.end}
+        assert shop.idle_machines() == inst.n_machines - len(running)
+        assert r == pytest.approx(-shop.idle_machines() / inst.n_machines)
+        rewards.append(r)
+    assert min(rewards) < max(rewards) <= 0.0
+
+
 def test_padding_one_policy_shape_serves_smaller_instances():
     big, small = builtin("sl00"), builtin("ra01")
     env = ShopEnv([big, small], max_jobs=20, max_machines=20, max_tools=20, max_agvs=10, max_tts=5)

@@ -42,12 +42,14 @@ schedule's order to the observation (:mod:`fms_dispatch.rl.envs`).
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
+import math
 import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -55,7 +57,7 @@ from fms_sim.instance import Instance
 
 from .models import CONFIG_FILE, METRICS_FILE
 
-__all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "add_train_parser", "cmd_train", "evaluate_model"]
+__all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "check_config", "add_train_parser", "cmd_train", "evaluate_model"]
 
 #: Defaults of every config key (a config file or the command line overrides them).
 DEFAULT_CONFIG: dict[str, Any] = {
@@ -145,6 +147,79 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
         else:
             out[k] = v
     return out
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+#: What each config value must be: (test, words for the error). Keys checked elsewhere (padding, guide_effort,
+#: disruptions, warm_start.refine, the names of rules, rewards and experts) only need the right JSON type here.
+_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "str?": (lambda v: v is None or isinstance(v, str), "a string or null"),
+    "str": (lambda v: isinstance(v, str), "a string"),
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "int": (_is_int, "an integer"),
+    "int>=0": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    "int>=1": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    "int>=1?": (lambda v: v is None or (_is_int(v) and v >= 1), "an integer >= 1 or null"),
+    "num": (_is_num, "a finite number"),
+    "num>=0": (lambda v: _is_num(v) and v >= 0, "a number >= 0"),
+    "num>0": (lambda v: _is_num(v) and v > 0, "a number > 0"),
+    "gamma": (lambda v: _is_num(v) and 0 < v <= 1, "a number in (0, 1]"),
+    "specs": (lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of instance specs"),
+    "layers": (lambda v: isinstance(v, list) and all(_is_int(x) and x >= 1 for x in v),
+               "a list of layer widths (integers >= 1)"),
+    "padding": (lambda v: v is None or isinstance(v, (str, dict)), "a profile name, auto or a dict of sizes"),
+    "dict?": (lambda v: v is None or isinstance(v, dict), "an object or null"),
+    "list": (lambda v: isinstance(v, list), "a list"),
+    "vec_env": (lambda v: v in ("subproc", "dummy"), "subproc or dummy"),
+}
+_CONFIG_KINDS: dict[str, Any] = {
+    "name": "str?", "train": "specs", "eval": "specs",
+    "fleet": {"agvs": "int>=1?", "tool_transporters": "int>=1?", "no_tools": "bool"},
+    "padding": "padding", "decisions": "str?", "guide": "str?", "guide_effort": "dict?", "disruptions": "dict?",
+    "init": "str?", "baseline": "str?", "allow_benchmarks": "bool", "reward": "str", "steps": "int>=0",
+    "seed": "int", "arch": "str", "hidden": "int>=1", "net_arch": "layers", "n_envs": "int>=1",
+    "vec_env": "vec_env", "eval_freq": "int>=1", "save_freq": "int>=1",
+    "warm_start": {"expert": "str?", "instances": "int>=1", "search_iters": "int>=0", "search_insert": "num>=0",
+                   "search_restarts": "int>=1", "search_starts": "int>=1", "workers": "int>=1", "epochs": "int>=0",
+                   "lr": "num>0", "dagger": "int>=0", "dagger_epochs": "int>=1", "refine": "list"},
+    "ppo": {"learning_rate": "num>0", "n_steps": "int>=1", "batch_size": "int>=1", "n_epochs": "int>=1",
+            "gamma": "gamma", "gae_lambda": "gamma", "clip_range": "num>0", "ent_coef": "num>=0", "vf_coef": "num>=0",
+            "max_grad_norm": "num>0"},
+}
+assert set(_CONFIG_KINDS) == set(DEFAULT_CONFIG)
+
+
+def check_config(config: Any, where: str = "") -> None:
+    """Raise ValueError, naming the key, for a training config key that :data:`DEFAULT_CONFIG` does not have (a
+    misspelt ``step`` would silently train the default 100,000 steps) or a value of the wrong kind (a string
+    ``hidden`` failed deep inside torch); null leaves a key at its default, as on the command line."""
+    kinds = _CONFIG_KINDS
+    for part in [p for p in where.split(".") if p]:
+        kinds = kinds[part]
+    if not isinstance(config, dict):
+        raise ValueError(f"config{' key ' + where if where else ''} must be an object, got {config!r}")
+    for key, value in config.items():
+        name = f"{where}.{key}" if where else key
+        if key not in kinds:
+            near = difflib.get_close_matches(key, list(kinds), n=1)
+            raise ValueError(f"unknown config key {name!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                             + f"; the keys{' of ' + where if where else ''} are {', '.join(kinds)}")
+        if value is None:
+            continue
+        kind = kinds[key]
+        if isinstance(kind, dict):
+            check_config(value, name)
+            continue
+        test, words = _KINDS[kind]
+        if not test(value):
+            raise ValueError(f"config: {name} must be {words}, got {json.dumps(value)[:80]}")
 
 
 def evaluate_model(weights: str | Path, padding: dict[str, int], instances: Sequence[Instance],
@@ -314,6 +389,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"the model folder {out} is a file")
+    check_config(config)
     if resume:
         saved = json.loads((out / CONFIG_FILE).read_text()) if (out / CONFIG_FILE).is_file() else None
         if saved is None or not (out / "model.zip").is_file():
@@ -330,6 +406,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         try:
             check_training_specs(cfg)
         except ValueError as exc:
+            if not str(exc).startswith("training must use generated shops"):
+                raise  # a spec that does not expand is a typo, not a benchmark: no hint about benchmarks
             raise ValueError(f"{exc}\n(a model for reproducing the paper's own setting may train on benchmark "
                              "instances with --allow-benchmarks; its config then says so, and the figures measured "
                              "on those instances are not held-out results)") from None
