@@ -288,8 +288,10 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     look_model = ABLATION_LOOKAHEAD_MODEL[decisions]
     agent = load_agent(look_model)
     look_sets = ([1, 2] if quick else list(range(1, 11))) if "lookahead" in chosen else []
-    for s in look_sets:
+    for i, s in enumerate(look_sets):
         inst = load_instance(f"EX{s}2")
+        if echo:
+            print(f"lookahead [{i + 1}/{len(look_sets)}] {inst.name}", flush=True)
         for variant, la in (("off", False), ("on", True)):
             t0 = time.perf_counter()
             sched = run_agent(make_shop(inst, decisions), agent.act, lookahead=la)
@@ -302,8 +304,12 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     masking = (("masked", True), ("unmasked", False)) if "masking" in chosen else ()
     for variant, flag in masking:
         t0 = time.perf_counter()
+        if echo:
+            print(f"masking {variant}: training {steps} steps", flush=True)
         for p in _episode_curve(flag, mask_insts, steps, seed, decisions):
             rows.append(dict(p, study="masking", variant=variant, wall_time=round(time.perf_counter() - t0, 2)))
+        if echo:
+            print(f"masking {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
 
     summary: dict[str, Any] = {}
     for study, variants in (("reward_shaping", ("shaped", "sparse")), ("lookahead", ("off", "on"))):
@@ -328,13 +334,13 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
         a0.bar(["shaped", "sparse"], [rs.get("shaped", math.nan), rs.get("sparse", math.nan)],
                color=["tab:blue", "tab:orange"])
         a0.set_title(f"reward shaping ({steps} steps)")
-        a0.set_ylabel("mean makespan (sl40-49, never trained on)")
+        a0.set_ylabel(f"mean makespan ({eval_sl[0]}-{eval_sl[-1][2:]}, never trained on)")
         la_names = sorted({r["instance"] for r in rows if r["study"] == "lookahead"},
                           key=lambda n: int(n[2:-1]))
         for v, c in (("off", "tab:gray"), ("on", "tab:green")):
             cell = {r["instance"]: r["makespan"] for r in rows if r["study"] == "lookahead" and r["variant"] == v}
             a1.plot(la_names, [cell[n] for n in la_names], marker="o", color=c, label=f"lookahead {v}")
-        a1.set_title("lookahead (bu model)")
+        a1.set_title(f"lookahead ({look_model} model)")
         a1.set_ylabel("makespan")
         a1.tick_params(axis="x", labelrotation=60)
         a1.legend()
@@ -513,10 +519,13 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         raise ValueError("--sos-time must be positive")
     if parts < 2:
         raise ValueError("need at least 2 partitions")
-    groups = [p for p in partition_jobs(inst.n_jobs, parts) if p]
+    # with fewer jobs than partitions some are empty: the others keep their index, so partition p still arrives
+    # at p * delta (renumbered, they arrived earlier than the lower bound's share says)
+    slots = [p for p, g in enumerate(partition_jobs(inst.n_jobs, parts)) if g]
+    groups = [partition_jobs(inst.n_jobs, parts)[p] for p in slots]
     lb = lower_bound(inst)
     delta = lb / parts
-    arrival = [round(p * delta, 2) for p in range(len(groups))]
+    arrival = [round(p * delta, 2) for p in slots]
     agent = load_agent(model or default_model_name(inst))
     if not agent.fits(inst):
         raise ValueError(f"instance {inst.name} does not fit model {agent.name} ({agent.padding})")
@@ -534,7 +543,7 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         s = solve_sos(sub, time_limit=sos_time, seed=seed)
         sos_t = time.perf_counter() - t0
         prev = rows[-1]["sos_time_cum"] if rows else 0.0
-        rows.append({"partition": p, "arrival": arrival[p], "entered_at": shop.now, "early": early,
+        rows.append({"partition": slots[p], "arrival": arrival[p], "entered_at": shop.now, "early": early,
                      "jobs_so_far": len(so_far), "rl_makespan": proj, "rl_time_cum": round(decide, 4),
                      "rl_projection_time": round(proj_t, 4), "sos_makespan": s.makespan,
                      "sos_time_cum": round(prev + sos_t, 3), "sos_valid": _checked(sub, s)})
@@ -673,10 +682,13 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                              f"{', '.join(dict.fromkeys(n for n, _ in insts))})")
         insts = [(n, m) for n, m in insts if n in set(instances)]
     rows: list[dict[str, Any]] = []
-    for name, mode in insts:
+    for i, (name, mode) in enumerate(insts):
         inst = load_instance(name)
         if mode == "agvs" and inst.has_tools:
             inst = inst.without_tools()
+        if echo:
+            print(f"[{i + 1}/{len(insts)}] {inst.name} ({mode}): plans, then {len(noises)} noise levels x "
+                  f"{n_seeds} seeds x {len(methods)} methods", flush=True)
         t0 = time.perf_counter()
         plan = solve(inst, "cpsat", time_limit=cpsat_time)
         plan_time = time.perf_counter() - t0
@@ -848,6 +860,12 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _cmd(a: argparse.Namespace) -> int:
+    from .cli import file_above
+
+    out = Path(a.results_dir)
+    blocker = out if out.exists() and not out.is_dir() else file_above(out)
+    if blocker is not None:  # found before the work, not after hours of it
+        raise ValueError(f"--results-dir {a.results_dir}: {blocker} is a file; name a folder")
     for flag in ("steps", "seeds", "cpsat_time", "replan_budget", "sos_time"):  # 0 would silently mean the default
         v = getattr(a, flag, None)
         if v is not None and not v > 0:

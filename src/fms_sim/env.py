@@ -177,17 +177,28 @@ class ShopEnv(gym.Env):
             self._sample = instances
             known: list[Instance] = []
         else:
+            if isinstance(instances, (str, bytes)):  # a name is not an instance (and would be read letter by letter)
+                raise TypeError(f"ShopEnv takes Instance objects, not the name {instances!r} "
+                                "(fms_sim.formats.load_instance reads one)")
             known = list(instances)
             if not known:
                 raise ValueError("ShopEnv needs at least one instance")
+            bad = next((i for i in known if not isinstance(i, Instance)), None)
+            if bad is not None:
+                raise TypeError(f"ShopEnv takes Instance objects, got {type(bad).__name__} {bad!r:.60}")
             self._sample = lambda rng: known[int(rng.integers(len(known)))]
         if not known and None in (max_jobs, max_machines, max_tools, max_agvs, max_tts):
             raise ValueError("with an instance sampler, give every max_* size")
-        self.max_jobs = max_jobs or max(i.n_jobs for i in known)
-        self.max_machines = max_machines or max(i.n_machines for i in known)
-        self.max_tools = max_tools if max_tools is not None else max(i.n_tools for i in known)
-        self.max_agvs = max_agvs if max_agvs is not None else max(i.n_agvs for i in known)
-        self.max_tts = max_tts if max_tts is not None else max(i.n_tool_transporters for i in known)
+        for key, v, least in (("max_jobs", max_jobs, 1), ("max_machines", max_machines, 1), ("max_tools", max_tools, 0),
+                              ("max_agvs", max_agvs, 0), ("max_tts", max_tts, 0)):
+            if v is not None and (not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < least):
+                raise ValueError(f"{key} must be an integer >= {least} (None: the largest of the instances), "
+                                 f"got {v!r}")
+        self.max_jobs = int(max_jobs) if max_jobs is not None else max(i.n_jobs for i in known)
+        self.max_machines = int(max_machines) if max_machines is not None else max(i.n_machines for i in known)
+        self.max_tools = int(max_tools) if max_tools is not None else max(i.n_tools for i in known)
+        self.max_agvs = int(max_agvs) if max_agvs is not None else max(i.n_agvs for i in known)
+        self.max_tts = int(max_tts) if max_tts is not None else max(i.n_tool_transporters for i in known)
         for i in known:
             self._check_fits(i)
         self.reward_mode = reward
@@ -209,6 +220,7 @@ class ShopEnv(gym.Env):
         self.action_space = spaces.Discrete(self.n_actions)
         self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
         self.shop: Shop | None = None
+        self._ended = False  # the episode ended (the shop finished, or an invalid action under "penalty")
         self.instance: Instance | None = None
         self._tables: _Tables | None = None
         self._tables_for: Instance | None = None
@@ -232,6 +244,7 @@ class ShopEnv(gym.Env):
         if scenario is None and self.disruptions is not None:
             scenario = self.draw_scenario(inst)
         self.shop = make_shop(inst, self.decisions, scenario)
+        self._ended = False
         self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
@@ -247,15 +260,18 @@ class ShopEnv(gym.Env):
         shop = self.shop
         if shop is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended:  # was answered as an invalid action (-10), as if the finished shop could go on
+            raise RuntimeError("the episode has ended; call reset() before step()")
         a = int(action)
         net_action = self._to_net(a)
         if net_action is None or not self._mask_net()[net_action]:
             if self.invalid_action == "raise":
                 legal = [self._from_net(x) for x in shop.legal_actions()]
                 raise InvalidAction(f"action {a} is not allowed now (legal: {legal})")
+            self._ended = True
             return self._obs(), self.invalid_penalty, True, False, self._info(invalid=True)
         shop.act(net_action)
-        terminated = shop.done
+        terminated = self._ended = shop.done
         if self.reward_mode == "idle":
             reward = -shop.idle_machines() / self.instance.n_machines if not terminated else 0.0
         elif self.reward_mode == "makespan":

@@ -148,6 +148,29 @@ def test_the_experiments_on_the_full_net(tmp_path: Path) -> None:
         run_generalization(quick=True, results_dir=tmp_path, echo=False, decisions="both")
 
 
+def test_dynamic_with_fewer_jobs_than_partitions_keeps_their_arrival_times(tmp_path: Path) -> None:
+    # empty partitions were dropped and the rest renumbered: they arrived earlier than p * delta
+    inst = builtin("EX12")
+    assert inst.n_jobs < 10
+    doc = run_dynamic(quick=True, results_dir=tmp_path, instance="EX12", sos_time=0.05, echo=False)
+    slots = [p for p, g in enumerate(partition_jobs(inst.n_jobs)) if g]
+    assert [r["partition"] for r in doc["rows"]] == slots and len(slots) == inst.n_jobs
+    assert [r["arrival"] for r in doc["rows"]] == [round(p * doc["delta"], 2) for p in slots]
+    assert slots != list(range(len(slots)))  # some partitions are empty: the case that was renumbered
+    assert all(r["sos_valid"] for r in doc["rows"])
+
+
+def test_a_results_dir_that_is_a_file_is_refused_before_any_work(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from fms_dispatch.cli import main
+
+    (tmp_path / "f").write_text("")
+    for where in (tmp_path / "f", tmp_path / "f" / "sub"):
+        assert main(["experiment", "ablation", "--quick", "--studies", "lookahead", "--results-dir", str(where)]) == 2
+        err = capsys.readouterr()
+        assert "is a file; name a folder" in err.err and "lookahead [" not in err.out  # nothing was run
+
+
 def test_bad_options(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="size group 9"):
         run_generalization(quick=True, results_dir=tmp_path, groups=[9], echo=False)

@@ -118,6 +118,40 @@ def test_invalid_action_raises_or_ends_with_penalty():
     env2.reset(seed=0)
     _, r, done, _, info = env2.step(bad)
     assert done and r == -5 and info["invalid_action"]
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        env2.step(bad)
+
+
+@pytest.mark.parametrize("decisions", ["paper", "full"])
+def test_step_after_the_end_raises_until_reset(decisions):
+    # a finished episode answered a step as an invalid action (-10, as if the shop could go on)
+    env = ShopEnv(builtin("EX12"), decisions=decisions, invalid_action="penalty")
+    rollout(env, np.random.default_rng(0))
+    with pytest.raises(RuntimeError, match="episode has ended; call reset"):
+        env.step(0)
+    env.reset(seed=1)
+    _, _, done, _, _ = env.step(int(np.flatnonzero(env.action_masks())[0]))
+    assert not done
+
+
+@pytest.mark.parametrize("args, kwargs, error, msg", [
+    (("EX12",), {}, TypeError, "not the name 'EX12'"),
+    ((["EX12"],), {}, TypeError, "takes Instance objects, got str"),
+    ((None,), {"max_jobs": 0, "max_machines": 4, "max_tools": 0, "max_agvs": 1, "max_tts": 0}, ValueError,
+     "max_jobs must be an integer >= 1"),
+    ((None,), {"max_jobs": 7.5}, ValueError, "max_jobs must be an integer >= 1 .*got 7.5"),
+    ((None,), {"max_machines": 0}, ValueError, "max_machines must be an integer >= 1"),
+    ((None,), {"max_agvs": -1}, ValueError, "max_agvs must be an integer >= 0"),
+])
+def test_bad_instances_and_sizes_are_refused_by_name(args, kwargs, error, msg):
+    # a name was an AttributeError, max_jobs=0 was quietly replaced (and with a sampler an error from max()),
+    # 7.5 a TypeError from numpy
+    if args == (None,):
+        args = ((lambda rng: builtin("EX12")) if kwargs.get("max_jobs") == 0 else builtin("EX12"),)
+    with pytest.raises(error, match=msg):
+        ShopEnv(*args, **kwargs)
+    env = ShopEnv(builtin("EX12"), max_jobs=np.int64(12))
+    assert env.max_jobs == 12 and type(env.max_jobs) is int
 
 
 def test_unknown_reward_rejected():
