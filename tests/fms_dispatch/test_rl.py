@@ -85,6 +85,9 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
 
     m2 = train({"steps": 128}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
     assert m2["training"]["timesteps"] == 384  # continued, not restarted
+    assert m2["resumes"] == [{"ppo_steps_before": 256, "ppo_steps_after": 384, "dagger_rounds": 0,
+                              "wall_seconds": m2["resumes"][0]["wall_seconds"], "interrupted": False}]
+    assert json.loads((out / "metrics.json").read_text())["resumes"] == m2["resumes"]
 
 
 def test_resume_without_model_is_refused(tmp_path):

@@ -657,6 +657,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                                    + list(old.get("training_shops", []))
                                                    + (_init_shops(init) if init else [])))
     metrics["ppo_steps"] = int(model.num_timesteps)  # 0: a clone (DAgger included), not a PPO-trained model
+    if resume:  # each continuation on record: what it added to the model the config alone would train
+        metrics["resumes"] = list(old.get("resumes", [])) + [{
+            "ppo_steps_before": int(prev.get("timesteps", 0)), "ppo_steps_after": int(model.num_timesteps),
+            "dagger_rounds": int(rounds), "wall_seconds": round(wall, 1), "interrupted": interrupted}]
     metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
 
