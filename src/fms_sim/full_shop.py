@@ -431,12 +431,15 @@ class FullShop(Shop):
                 self.net.postpone(self.p_busy, m, dur)
             self.net.put(self.p_disrupt, ("up", m), delay=dur)
             self._touch_starts(m)
-        elif d[0] == "up":
-            self.m_down[d[1]] = False
+        elif d[0] == "up":  # unless a window that starts at this repair is already under way (back to back)
+            sc = self.scenario
+            self.m_down[d[1]] = sc is not None and any(w.start <= now < w.end for w in sc.windows(d[1]))
             self._touch_starts(d[1])
         else:
             kind, v = d[1], d[2]
-            self.out[kind][v] = d[0] == "out"
+            sc = self.scenario
+            self.out[kind][v] = d[0] == "out" or (sc is not None and any(
+                o.kind == kind and o.vehicle == v and o.start <= now < o.end for o in sc.outages))
             if d[0] == "out":
                 self.net.put(self.p_disrupt, ("back", kind, v), delay=d[3])
             touch = self.net.touch

@@ -224,3 +224,17 @@ def test_a_disruption_reported_at_the_instant_something_started_suspends_or_fini
     else:
         assert any(t.start == hit.start and t.end == hit.end and t.agv == hit.agv for t in s.agv_trips)
         assert all(not hit.start < t.start < hit.start + 10 for t in s.agv_trips if t.agv == hit.agv)
+
+
+@pytest.mark.parametrize("sc", [
+    Scenario(breakdowns=(Breakdown(1, 1, 9), Breakdown(1, 10, 9))),
+    Scenario(outages=(Outage("agv", 0, 1, 5), Outage("agv", 0, 6, 20), Outage("agv", 1, 1, 5),
+                      Outage("agv", 1, 6, 20))),
+], ids=["breakdowns", "outages"])
+def test_back_to_back_windows_keep_the_machine_or_vehicle_out(sc):
+    # the repair of the first window and the start of the next fall at the same time; the repair came last and
+    # put the machine (vehicle) back in service for the whole second window
+    inst = builtin("EX12")
+    for seed in range(4):
+        s = _run(inst, sc, seed=seed)
+        assert validate(inst, s) == [], seed
