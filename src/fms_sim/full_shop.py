@@ -732,6 +732,9 @@ class FullShop(Shop):
         self.disp_next.append(self._next_transport(j, 0))
         self.started.append(0)
         self._add_job(j)
+        if self.tool_choice is not None:  # a tool's user is being chosen: the new job may be one, and its use:
+            self._use_cands.append(j)     # transition must be re-checked when the choice closes, like the others'
+            self.net.touch(self.t_use[j])
         self._touch_tools()  # new requests for the tools
 
     # ------------------------------------------------------------------ introspection

@@ -316,6 +316,28 @@ def test_order_with_tools_in_a_tool_shop() -> None:
     assert validate(svc.instance, svc.final_schedule) == []
 
 
+def test_an_order_while_a_tool_user_is_being_chosen_is_offered_only_while_the_choice_is_open() -> None:
+    # the new job's use: stayed offered after the choice closed; taking it crashed the shop and stuck the run
+    svc = ShopService(builtin("ra01"), decisions="full", run_id="r")
+    svc.start()
+
+    def enabled() -> list[str]:
+        return [a for a, ok in zip(svc.state["actions"], svc.state["mask"]) if ok]
+
+    while not any(a.startswith("tool:") for a in enabled()):
+        svc.handle_command(command(svc, enabled()[0]))
+    tool = next(a for a in enabled() if a.startswith("tool:"))
+    svc.handle_command(command(svc, tool))
+    out = svc.handle_order(order("o1", [[(1, int(tool[5:]), 5)]]))
+    assert not by_topic(out, m.TOPIC_ERRORS)
+    new = svc.orders["o1"][0]
+    assert f"use:{new}" in enabled()  # a candidate while the choice is open
+    svc.handle_command(command(svc, next(a for a in enabled() if a.startswith("use:") and a != f"use:{new}")))
+    assert f"use:{new}" not in enabled()  # the choice is made
+    run_to_end(svc)
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
 # ------------------------------------------------------------------------------------------------ replays
 def test_replay_republishes_events_and_the_schedule() -> None:
     svc = ShopService(builtin("EX12"), run_id="r")
