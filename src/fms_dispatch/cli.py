@@ -7,6 +7,7 @@ with a one-line ``fms: error: ...`` on stderr and exit code 2, never a traceback
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
@@ -152,8 +153,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if a.replan is not None:
         if not a.solver.lower().startswith("plan:"):
             raise CliError("--replan applies to the plan: solvers only")
-        if a.replan <= 0:
-            raise CliError("--replan must be positive (seconds per re-plan)")
+        if not 0 < a.replan < math.inf:
+            raise CliError(f"--replan must be positive and finite (seconds per re-plan), got {a.replan:g}")
         opts["replan"] = a.replan
     if a.lookahead or a.lookahead_fast or a.lookahead_guide:
         if a.lookahead + a.lookahead_fast + a.lookahead_guide > 1:

@@ -304,6 +304,12 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     decisions = options.get("decisions")
     if decisions is not None and decisions not in ("full", "paper"):
         raise UnknownSolver(f"unknown decisions {decisions!r}; choose from full, paper")
+    for name, what in (("replan", "seconds per re-plan"), ("drift", "a fraction of the plan's makespan")):
+        v = options.get(name)  # replan=inf ran a search with no deadline: it never ended
+        if v is not None and not number(v):
+            raise TypeError(f"{name} must be a number ({what}) or None, got {v!r}")
+        if v is not None and not 0 < v < math.inf:
+            raise ValueError(f"{name} must be a positive, finite number ({what}), got {v!r}")
     for name in ("progress", "guide_replan"):
         if name in options and not isinstance(options[name], bool):
             raise TypeError(f"{name} must be True or False, got {options[name]!r}")

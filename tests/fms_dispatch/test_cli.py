@@ -184,6 +184,8 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
     code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--decisions", "paper", "--noise", "0.1",
                         "-q"], capsys)
     assert code == 2 and "full-decision net only" in err
+    code, _, err = run(["solve", "EX12", "--solver", "plan:list", "--noise", "0.3", "--replan", "inf", "-q"], capsys)
+    assert code == 2 and "--replan must be positive and finite" in err  # ran a search with no deadline
     for noise in ("1000", "50", "-1", "nan"):  # 1000 was an OverflowError, 50 a "valid" makespan of 3e47
         code, _, err = run(["solve", "EX12", "--noise", noise, "-q"], capsys)
         assert code == 2 and "--noise must be a spread from 0 to 1" in err

@@ -40,6 +40,10 @@ def test_solver_names_list_the_lookahead_suffixes():
     (dict(scenario="x.json"), TypeError, "scenario must be a fms_sim.disruptions.Scenario .*got str"),
     (dict(decisions="fll"), UnknownSolver, "unknown decisions 'fll'; choose from full, paper"),
     (dict(progress="yes"), TypeError, "progress must be True or False"),
+    (dict(replan=float("inf")), ValueError, "replan must be a positive, finite number"),  # it never ended
+    (dict(replan="1"), TypeError, "replan must be a number"),
+    (dict(drift="x"), TypeError, "drift must be a number"),
+    (dict(drift=0), ValueError, "drift must be a positive"),
 ])
 def test_shared_options_of_the_wrong_type_are_refused_by_every_solver(options, error, message):
     # each solver reads only its own options: before the check, time_limit="3" was a TypeError inside cpsat and
