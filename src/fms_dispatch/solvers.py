@@ -304,7 +304,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     decisions = options.get("decisions")
     if decisions is not None and decisions not in ("full", "paper"):
         raise UnknownSolver(f"unknown decisions {decisions!r}; choose from full, paper")
-    for name, what in (("replan", "seconds per re-plan"), ("drift", "a fraction of the plan's makespan")):
+    for name, what in (("replan", "the re-planning budget, seconds"), ("drift", "a fraction of the plan's makespan")):
         v = options.get(name)  # replan=inf ran a search with no deadline: it never ended
         if v is not None and not number(v):
             raise TypeError(f"{name} must be a number ({what}) or None, got {v!r}")
