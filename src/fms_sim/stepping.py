@@ -96,12 +96,24 @@ class Stepper:
         self.looked: set[tuple[str, int]] = set()
         self.kind: StopKind | None = None
         self.idle: list[Move] = []
+        self._trips = (len(shop.rec.agv), len(shop.rec.tt))  # trips recorded when the vehicles were last checked
+
+    def _forget_workers(self) -> None:
+        """A vehicle that made a trip since the last check is new again at the next idle stop, even if it never
+        looked busy to a stop: a trip of travel time 0 starts and ends at one instant (a valid schedule's empty
+        move after it was then never offered, and replay got stuck)."""
+        rec = self.shop.rec
+        a0, t0 = self._trips
+        if len(rec.agv) > a0 or len(rec.tt) > t0:
+            self.looked -= {("agv", t.agv) for t in rec.agv[a0:]} | {("tt", t.transporter) for t in rec.tt[t0:]}
+        self._trips = (len(rec.agv), len(rec.tt))
 
     def copy(self) -> "Stepper":
         """An independent twin at the same stop."""
         twin = Stepper(self.shop.copy(), self.idle_stops)
         twin.idle_first = self.idle_first
         twin.looked, twin.kind, twin.idle = set(self.looked), self.kind, list(self.idle)
+        twin._trips = self._trips
         return twin
 
     @contextmanager
@@ -109,12 +121,12 @@ class Stepper:
         """``with stepper.trial(): ...`` runs anything on this stepper (and its shop) and then puts both back
         as they were, even on errors (:meth:`Shop.trial <fms_sim.shop.Shop.trial>`): a twin without a copy."""
         state = self.shop.save_state()
-        saved = (set(self.looked), self.kind, list(self.idle), self.idle_stops)
+        saved = (set(self.looked), self.kind, list(self.idle), self.idle_stops, self._trips)
         try:
             yield self
         finally:
             self.shop.restore_state(state)
-            self.looked, self.kind, self.idle, self.idle_stops = saved
+            self.looked, self.kind, self.idle, self.idle_stops, self._trips = saved
 
     def mask(self) -> list[bool]:
         """The actions this stop offers: the shop's mask at a decision, none at an idle stop or the end (on the
@@ -141,6 +153,7 @@ class Stepper:
             return self.kind
         while True:
             net.run_autonomous()
+            self._forget_workers()
             if self.idle_first and not shop.done:
                 vehicles = self.idle_vehicles()
                 self.looked &= {(m.kind, m.vehicle) for m in vehicles}  # a vehicle that left idle is new again
@@ -196,6 +209,7 @@ class Stepper:
             seen.add((kind, v))
         for kind, v, loc in moves:
             shop.reposition(kind, v, loc, advance=False)
+        self._trips = (len(shop.rec.agv), len(shop.rec.tt))  # these moves are answered: not news
         self.looked.update(offered - seen if self.idle_first else offered)
         return self.advance()
 

@@ -112,3 +112,22 @@ def test_a_plan_policy_refuses_another_shops_plan_and_the_paper_net():
     shop = make_shop(small, "full")
     execute(shop, PlanPolicy(small, own))
     assert validate(small, shop.schedule()) == [] and shop.schedule().makespan <= own.makespan
+
+
+def test_a_schedule_with_zero_travel_times_replays():
+    # an AGV's 0-length carry starts and ends at one instant: it never looked busy, so it was not offered again
+    # and the plan's empty move back never came ("replay is stuck")
+    from fms_dispatch.exact import greedy_schedule
+    from fms_sim.instance import Instance
+
+    inst = Instance.from_dict({"name": "ztr", "n_agvs": 1, "agv_travel": [[0, 0], [4, 0]],
+                               "jobs": [[{"machine": 1, "tool": None, "duration": 5}],
+                                        [{"machine": 1, "tool": None, "duration": 5}]]})
+    ra01 = builtin("ra01")
+    zero = dataclasses.replace(ra01, agv_travel=tuple(tuple(0 for _ in r) for r in ra01.agv_travel),
+                               tool_travel=tuple(tuple(0 for _ in r) for r in ra01.tool_travel))
+    for case in (inst, zero):
+        plan = greedy_schedule(case, rule="est")
+        assert validate(case, plan) == []
+        again = replay(case, plan)
+        assert validate(case, again) == [] and again.makespan <= plan.makespan
