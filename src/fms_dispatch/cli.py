@@ -125,8 +125,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
     from .solvers import get_solver, searches_time, solve
 
     get_solver(a.solver)  # unknown names fail before any work or output
-    check_output(a.out, "--out")
-    check_output(a.gantt, "--gantt")
+    plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
+    check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
     inst = load_from_args(a)
     opts: dict = {"seed": a.seed}
     if a.time_limit is not None:
@@ -225,6 +225,25 @@ def check_output(path: str | None, what: str) -> None:
         raise CliError(f"{what} {path}: {above} is a file, not a folder")
 
 
+def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
+    """:func:`check_output` for ``--out`` and ``--gantt``, and refuse an empty name (it was silently ignored), the
+    two naming one file (the chart overwrote the schedule) or an output that is one of the ``inputs`` (``fms
+    solve shop.json --out shop.json`` overwrote the instance)."""
+    named = {}
+    for flag, path in (("--out", a.out), ("--gantt", a.gantt)):
+        if path is not None and not path.strip():
+            raise CliError(f"{flag} names no file (an empty name); leave it out to write nothing")
+        check_output(path, flag)
+        if path:
+            named[flag] = Path(path).resolve()
+    if len(named) == 2 and named["--out"] == named["--gantt"]:
+        raise CliError(f"--out and --gantt name the same file {a.out}; the chart would overwrite the schedule")
+    for flag, where in named.items():
+        for src in inputs:
+            if src and Path(src).is_file() and Path(src).resolve() == where:
+                raise CliError(f"{flag} {src} is an input of this command; name another file")
+
+
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
     """Save the schedule JSON and the Gantt chart where asked, one line each."""
     if out:
@@ -265,8 +284,7 @@ def cmd_validate(a: argparse.Namespace) -> int:
 def cmd_replay(a: argparse.Namespace) -> int:
     from fms_sim.replay import ReplayError, replay
 
-    check_output(a.out, "--out")
-    check_output(a.gantt, "--gantt")
+    check_outputs(a, a.instance, a.schedule)
     inst = load_from_args(a)
     given = _load_schedule(a.schedule)
     if given.meta.get("scenario"):  # the orders are replayed; the disruptions they answered are not

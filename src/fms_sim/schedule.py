@@ -143,7 +143,10 @@ class Schedule:
     def load(cls, path: str | Path) -> "Schedule":
         """The schedule in a JSON file; OSError if it cannot be read, :class:`ScheduleError` (naming the file) if
         it is not a schedule."""
-        text = Path(path).read_text()
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except UnicodeDecodeError:  # was the codec's message alone, without the file's name
+            raise ScheduleError(f"{path}: not a text (UTF-8 JSON) file") from None
         try:
             return cls.from_json(text)
         except ScheduleError as exc:

@@ -285,3 +285,21 @@ def test_instances_lists_the_heldout_shops(capsys):
     assert code == 0 and names[-50:] == [f"ho{k:02d}" for k in range(50)]
     code, out, _ = run(["instances", "--details"], capsys)
     assert out.splitlines()[-1].startswith("ho49: 100 jobs x 20 machines") and "(held out)" in out
+
+
+def test_outputs_that_would_clobber_an_input_or_each_other_are_refused(tmp_path, capsys):
+    # the chart overwrote the schedule, --out overwrote the instance, and an empty name was silently ignored
+    shop = tmp_path / "shop.json"
+    shop.write_text(builtin("EX12").to_json())
+    same = tmp_path / "same.json"
+    for args, needle in [(["solve", "EX12", "--out", str(same), "--gantt", str(same)], "name the same file"),
+                         (["solve", str(shop), "--out", str(shop)], "is an input of this command"),
+                         (["solve", "EX12", "--out", ""], "--out names no file"),
+                         (["solve", "EX12", "--gantt", " "], "--gantt names no file")]:
+        code, _, err = run(args + ["-q"], capsys)
+        assert code == 2 and needle in err, (args, err)
+    assert not same.exists() and json.loads(shop.read_text())["name"] == "EX12"
+    sched = tmp_path / "s.json"
+    assert run(["solve", "EX12", "--out", str(sched), "-q"], capsys)[0] == 0
+    code, _, err = run(["replay", "EX12", str(sched), "--out", str(sched)], capsys)
+    assert code == 2 and "is an input of this command" in err

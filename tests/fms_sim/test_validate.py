@@ -163,3 +163,7 @@ def test_a_schedule_file_that_is_not_a_schedule_is_named(tmp_path):
         Schedule.load(bad)
     with pytest.raises(OSError):
         Schedule.load(tmp_path / "missing.json")
+    binary = tmp_path / "shot.png"
+    binary.write_bytes(b"\xff\xd8\xff")
+    with pytest.raises(ScheduleError, match=r"shot\.png: not a text \(UTF-8 JSON\) file"):
+        Schedule.load(binary)
