@@ -67,3 +67,23 @@ def test_best_refuses_to_fall_back_when_the_models_are_missing(tmp_path: Path,
     monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path))
     with pytest.raises(UpError, match=f"--solver best needs the shipped PPO models: no model named 'guided-dagger'.*{tmp_path}"):
         best_solver(inst)
+
+
+@pytest.mark.parametrize("config, needle", [
+    ([1, 2], "must hold a JSON object (the training config), got list"),
+    ({"decisions": "full"}, "must name its padded layout"),
+    ({"decisions": "full", "padding": 5}, "must name its padded layout"),
+    ({"decisions": "full", "padding": {"max_jobs": 10}}, "'padding' in .* must give the integer sizes"),
+    ({"decisions": ["full"], "padding": "large"}, "unknown decisions"),
+])
+def test_a_broken_model_config_is_named(tmp_path: Path, config: object, needle: str) -> None:
+    # a list was an AttributeError, a missing or partial padding a KeyError, and fms solve printed a traceback
+    import json
+    import re
+
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    shutil.copy(resolve_model("full").weights, folder / "best_model.zip")
+    (folder / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=needle if "*" in needle else re.escape(needle)):
+        resolve_model(str(folder))

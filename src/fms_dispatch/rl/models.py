@@ -98,11 +98,16 @@ def models_dir() -> Path:
 def load_config(folder: str | Path) -> dict[str, Any]:
     path = Path(folder) / CONFIG_FILE
     try:
-        return json.loads(path.read_text())
+        config = json.loads(path.read_text(encoding="utf-8"))
     except OSError:
         raise ValueError(f"model folder {folder} has no readable {CONFIG_FILE}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a text (UTF-8 JSON) file") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
+    if not isinstance(config, dict):  # a list was an AttributeError in whatever read it first
+        raise ValueError(f"{path} must hold a JSON object (the training config), got {type(config).__name__}")
+    return config
 
 
 class ModelRef:
@@ -112,15 +117,28 @@ class ModelRef:
         self.folder = folder
         self.weights = weights
         self.config = load_config(folder)
-        self.name = self.config.get("name") or folder.name
-        from .envs import padding_for
+        name = self.config.get("name")
+        self.name = name if isinstance(name, str) and name else folder.name
+        from .envs import PADDING, padding_for
 
-        self.padding = padding_for(self.config["padding"], [])
+        padding = self.config.get("padding")
+        if isinstance(padding, dict):
+            sizes = [padding.get(k) for k in PADDING["large"]]
+            if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in sizes):
+                raise ValueError(f"model {self.name}: 'padding' in {folder / CONFIG_FILE} must give the integer sizes "
+                                 f"{', '.join(PADDING['large'])}, got {json.dumps(padding)[:120]}")
+        elif padding in (None, "auto") or not isinstance(padding, str):  # a model's layout is fixed when trained
+            raise ValueError(f"model {self.name}: {folder / CONFIG_FILE} must name its padded layout ('padding': "
+                             f"a profile such as {', '.join(PADDING)} or a dict of sizes), got {padding!r}")
+        try:
+            self.padding = padding_for(padding, [])
+        except ValueError as exc:
+            raise ValueError(f"model {self.name}: {exc}") from None
         from fms_sim.full_shop import DECISIONS
 
         #: the net the model was trained on (configs before the full net existed: the paper's)
         self.decisions = self.config.get("decisions", "paper")
-        if self.decisions not in DECISIONS:
+        if not isinstance(self.decisions, str) or self.decisions not in DECISIONS:
             raise ValueError(f"model {self.name}: unknown decisions {self.decisions!r} in its config "
                              f"(choose from {', '.join(DECISIONS)})")
         #: the observation's plan guide (None: none; :mod:`fms_dispatch.rl.envs`)
