@@ -311,6 +311,7 @@ class Replanner:
         self.plan = plan
         self.policy = PlanPolicy.resume(shop, plan) if shop is not None else PlanPolicy(self.instance, plan)
         self._planned = {(r.job, r.op): r.start for r in plan.operations}
+        self._lag = 0  # the lateness already answered by a re-plan that kept this plan
         self._tol = max(1.0, self.drift * plan.makespan)
         self._n_jobs = n_jobs
         self._seen = len(shop.rec.ops) if shop is not None else 0
@@ -340,7 +341,7 @@ class Replanner:
                     ops = shop.rec.ops
                     for r in ops[self._seen:]:
                         planned = self._planned.get((r.job, r.op))
-                        if planned is not None and r.start - planned > self._tol:
+                        if planned is not None and r.start - planned - self._lag > self._tol:
                             reason = "late"
                             break
                     self._seen = len(ops)
@@ -410,7 +411,10 @@ class Replanner:
         return event
 
     def _follow_state(self, shop: FullShop) -> None:
-        """Keep the current plan but take the shop's state as seen (so one deviation triggers once)."""
+        """Keep the current plan but take the shop's state as seen, its lateness so far included: one deviation
+        triggers once (a kept plan's old start times made every later start 'late' again, one re-plan each)."""
+        late = [r.start - self._planned[r.job, r.op] for r in shop.rec.ops if (r.job, r.op) in self._planned]
+        self._lag = max([self._lag] + late)
         self._seen = len(shop.rec.ops)
         self._active = self._disruptions(shop)
         self._n_jobs = shop.n_jobs  # new jobs left out wait; a plan that then cannot go on re-plans ("stuck")

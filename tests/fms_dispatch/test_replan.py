@@ -210,3 +210,13 @@ def test_a_replan_searches_its_best_plan_further_with_the_tabu_search():
     assert residual_lower_bound(snap) <= res.after < listed and res.after < res.before
     assert replan(snap, plan, 0.3, tabu=0.0).method != "tabu"  # tabu=0: the list search alone
     assert validate(inst, finish_by(nominal_copy(shop), res.plan)) == []
+
+
+def test_a_kept_plan_is_not_re_planned_again_for_the_same_lateness():
+    # a plan kept after a "late" re-plan kept its old start times, so every later start was late again: one
+    # re-plan (each spending its whole budget) per operation start, 9 on ra01 here
+    inst = builtin("ra01")
+    s = solve(inst, "plan:list", replan=0.1, scenario=Scenario(noise=0.4, seed=1))
+    assert validate(inst, s) == []
+    late = [e for e in s.meta["replans"] if e["reason"] == "late"]
+    assert 1 <= len(late) <= 3, late
