@@ -319,7 +319,10 @@ def test_plan_effort_is_validated():
     with pytest.raises(ValueError, match="restarts"):
         effort_from(restarts=-2)
     for bad in (dict(restarts=-1), dict(restarts=1.5), dict(budget=-0.1), dict(budget=float("nan")),
-                dict(exact=-0.5), dict(exact=float("nan")), dict(tabu=-0.001), dict(tabu=float("nan"))):
+                dict(exact=-0.5), dict(exact=float("nan")), dict(tabu=-0.001), dict(tabu=float("nan")),
+                # a string was a TypeError at the first comparison, inf a search that never ended
+                dict(budget="1"), dict(budget=float("inf")), dict(seed="a"), dict(rules="yes"), dict(restarts=True),
+                dict(exact=float("inf"))):
         with pytest.raises(ValueError, match="plan"):
             PlanEffort(**bad)
 

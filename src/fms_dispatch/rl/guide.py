@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import time
 from typing import Any, Callable
 
@@ -89,14 +90,25 @@ class PlanEffort:
     tabu: float = 0.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.restarts, int) or self.restarts < 0:
+        def whole(v: Any) -> bool:
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        def seconds(v: Any) -> bool:  # a string was a TypeError at the first comparison; inf never ended
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf
+
+        if not whole(self.restarts) or self.restarts < 0:
             raise ValueError(f"plan restarts must be an integer >= 0, got {self.restarts!r}")
-        if self.budget is not None and not self.budget >= 0:
-            raise ValueError(f"plan budget must be >= 0 seconds (or None), got {self.budget!r}")
-        if not self.exact >= 0:
-            raise ValueError(f"plan polish (exact) must be >= 0 seconds, got {self.exact!r}")
-        if not self.tabu >= 0:
-            raise ValueError(f"plan tabu search must be >= 0 seconds per operation, got {self.tabu!r}")
+        if self.budget is not None and not seconds(self.budget):
+            raise ValueError(f"plan budget must be a finite number of seconds >= 0 (or None), got {self.budget!r}")
+        if not whole(self.seed):
+            raise ValueError(f"plan seed must be an integer, got {self.seed!r}")
+        if not isinstance(self.rules, bool):
+            raise ValueError(f"plan rules must be True or False, got {self.rules!r}")
+        if not seconds(self.exact):
+            raise ValueError(f"plan polish (exact) must be a finite number of seconds >= 0, got {self.exact!r}")
+        if not seconds(self.tabu):
+            raise ValueError(f"plan tabu search must be a finite number of seconds >= 0 per operation, got "
+                             f"{self.tabu!r}")
 
     def as_dict(self) -> dict[str, Any]:
         return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules,
