@@ -65,7 +65,8 @@ class Task:
     """One solve: built-in ``instance`` in ``variant`` by solver ``method`` (a name for ``solvers.solve``).
 
     ``time_limit`` is ``None`` for methods that do not search (rules, ``first``, ``random``); ``workers`` is
-    passed to ``cpsat`` only and is not part of the cache key, nor is ``seed``.
+    passed to ``cpsat`` only and is not part of the cache key; ``seed`` is (a run with another ``--seed`` reused the
+    cached rows of seed 0 and printed their makespans).
     """
 
     benchmark: str
@@ -77,8 +78,8 @@ class Task:
     workers: int | None = field(default=None, compare=False)
 
     @property
-    def key(self) -> tuple[str, str, str, str, float | None]:
-        return (self.benchmark, self.instance, self.variant, self.method, _tl(self.time_limit))
+    def key(self) -> tuple[str, str, str, str, float | None, int]:
+        return (self.benchmark, self.instance, self.variant, self.method, _tl(self.time_limit), int(self.seed))
 
 
 def _tl(x: Any) -> float | None:
@@ -86,7 +87,8 @@ def _tl(x: Any) -> float | None:
 
 
 def _row_key(row: dict[str, Any]) -> tuple[Any, ...]:
-    return (row["benchmark"], row["instance"], row["variant"], row["method"], _tl(row.get("time_limit")))
+    return (row["benchmark"], row["instance"], row["variant"], row["method"], _tl(row.get("time_limit")),
+            int(row.get("seed") or 0))
 
 
 def searches(method: str) -> bool:

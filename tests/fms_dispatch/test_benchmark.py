@@ -123,6 +123,11 @@ def test_resume_skips_cached_tasks_and_force_redoes(tmp_path: Path, monkeypatch:
     assert run_cli(["bench", "bu", "--methods", *RULES, "--instances", "1..2", "-q", "--jobs", "1", "--force",
                     "--results-dir", str(tmp_path)]) == 0
     assert len(calls) == 8 and len(cache_lines(tmp_path)) == 8
+    # another seed is another run (it reused seed 0's rows and printed their makespans)
+    seeded = bm.run_bench(bm.bu_tasks(RULES, sets=[1, 2], seed=7), jobs=1, results_dir=tmp_path)
+    assert len(calls) == 12 and {r["seed"] for r in seeded} == {7}
+    rows = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 12 and {r["seed"] for r in rows} == {0}  # seed 0's rows are still cached
 
 
 def test_interrupted_run_loses_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
