@@ -244,15 +244,26 @@ class Instance:
         unknown = sorted(set(data) - set(_FIELDS))
         if unknown:  # a misspelt field would otherwise be dropped without a word (n_agv: no AGVs)
             raise InstanceError(f"unknown instance field {unknown[0]!r}; the fields are {', '.join(_FIELDS)}")
+        for count, matrix, what in (("n_agvs", "agv_travel", "AGVs"),
+                                    ("n_tool_transporters", "tool_travel", "tool transporters")):
+            n = data.get(count)
+            if _is_int(n) and n > 0 and data.get(matrix) is None:  # was dropped without a word
+                raise InstanceError(f"{count} is {n} but {matrix} is missing: {what} need a travel matrix (or "
+                                    f"leave {count} out)")
+
+        def given(key: str) -> Any:  # null: derived; false, "" or [] are not counts (they were read as 0)
+            v = data.get(key)
+            return 0 if v is None else v
+
         return cls(
             name=data["name"],
             jobs=data["jobs"],
             agv_travel=data.get("agv_travel"),
             tool_travel=data.get("tool_travel"),
-            n_agvs=data.get("n_agvs", 0),
-            n_tool_transporters=data.get("n_tool_transporters", 0),
-            n_machines=data.get("n_machines", 0) or 0,
-            n_tools=data.get("n_tools", 0) or 0,
+            n_agvs=given("n_agvs"),
+            n_tool_transporters=given("n_tool_transporters"),
+            n_machines=given("n_machines"),
+            n_tools=given("n_tools"),
         )
 
     @classmethod

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
 
 import pytest
@@ -70,3 +71,19 @@ def test_json_round_trip() -> None:
     for name in ("EX12", "ra01", "sl00"):
         inst = builtin(name)
         assert Instance.from_json(inst.to_json()) == inst
+
+
+@pytest.mark.parametrize("extra, needle", [
+    ({"n_agvs": 3}, "n_agvs is 3 but agv_travel is missing"),
+    ({"n_tool_transporters": 2}, "n_tool_transporters is 2 but tool_travel is missing"),
+    ({"n_machines": False}, "n_machines must be a non-negative integer, got False"),
+    ({"n_machines": []}, "n_machines must be a non-negative integer, got []"),
+    ({"n_machines": 0.0}, "n_machines must be a non-negative integer, got 0.0"),
+    ({"n_tools": ""}, "n_tools must be a non-negative integer, got ''"),
+])
+def test_counts_in_json_are_not_dropped_or_coerced(extra, needle):
+    # n_agvs without a travel matrix became a plain job shop, and false, [], 0.0 or "" were read as 0
+    data = {"name": "t", "jobs": [[{"machine": 1, "tool": None, "duration": 3}]], **extra}
+    with pytest.raises(InstanceError, match=re.escape(needle)):
+        Instance.from_dict(data)
+    assert Instance.from_dict({"name": "t", "jobs": data["jobs"], "n_machines": None}).n_machines == 1
