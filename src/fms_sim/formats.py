@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .benchmarks import NAME_PATTERNS, builtin, is_builtin_name
-from .instance import Instance, InstanceError, Operation
+from .instance import MAX_COUNT, Instance, InstanceError, Operation
 
 __all__ = ["parse_text_jobshop", "format_standard", "format_taillard", "load_instance"]
 
@@ -242,5 +242,6 @@ def load_instance(
 
 
 def _fleet_size(what: str, value: object, drop_flag: str) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise InstanceError(f"{what} must be an integer >= 1, got {value!r} (use --{drop_flag} to drop them)")
+    if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
+        raise InstanceError(f"{what} must be an integer from 1 to {MAX_COUNT}, got {value!r} (use --{drop_flag} to "
+                            "drop them)")

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from .instance import Instance, InstanceError, Operation
+from .instance import MAX_COUNT, Instance, InstanceError, Operation
 
 __all__ = [
     "TaillardRNG",
@@ -125,8 +125,9 @@ def travel_matrix(m: int, seed: int, lo: int = 1, hi: int = 30) -> Grid:
 
 
 def _check_size(name: str, value: Any, minimum: int = 1) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise InstanceError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    top = 10**6 if name == "count" else MAX_COUNT  # more machines or tools than a shop may have ran for minutes
+    if not isinstance(value, int) or isinstance(value, bool) or not minimum <= value <= top:
+        raise InstanceError(f"{name} must be an integer from {minimum} to {top}, got {value!r}")
 
 
 def generate_instances(

@@ -36,6 +36,13 @@ def _is_int(x: Any) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
+#: The largest duration or travel time: sums of many still fit CP-SAT's and numpy's 64-bit integers (a time of
+#: 10**30 was "valid" to the list schedulers and crashed cpsat and ppo).
+MAX_TIME = 10**9
+#: The most machines, tools, AGVs or tool transporters of one shop (10**8 AGVs ran out of memory).
+MAX_COUNT = 1000
+
+
 @dataclass(frozen=True, slots=True)
 class Operation:
     """One operation: processed on ``machine`` (1-based) for ``duration`` time units, needing ``tool``."""
@@ -48,12 +55,13 @@ class Operation:
         return self  # a value: twins share it
 
     def __post_init__(self) -> None:
-        if not _is_int(self.machine) or self.machine < 1:
-            raise InstanceError(f"machine must be an integer >= 1, got {self.machine!r}")
-        if self.tool is not None and (not _is_int(self.tool) or self.tool < 1):
-            raise InstanceError(f"tool must be null or an integer >= 1, got {self.tool!r}")
-        if not _is_int(self.duration) or self.duration < 0:
-            raise InstanceError(f"duration must be a non-negative integer, got {self.duration!r}")
+        if not _is_int(self.machine) or not 1 <= self.machine <= MAX_COUNT:
+            raise InstanceError(f"machine must be an integer from 1 to {MAX_COUNT}, got {self.machine!r}")
+        if self.tool is not None and (not _is_int(self.tool) or not 1 <= self.tool <= MAX_COUNT):
+            raise InstanceError(f"tool must be null or an integer from 1 to {MAX_COUNT}, got {self.tool!r}")
+        if not _is_int(self.duration) or not 0 <= self.duration <= MAX_TIME:
+            raise InstanceError(f"duration must be a non-negative integer (at most {MAX_TIME:,}), got "
+                                f"{self.duration!r}")
 
 
 def _matrix(name: str, rows: Any, size: int) -> Matrix:
@@ -70,6 +78,8 @@ def _matrix(name: str, rows: Any, size: int) -> Matrix:
                 raise InstanceError(f"{name}[{i}][{j}] must be an integer, got {x!r}")
             if x < 0:
                 raise InstanceError(f"{name}[{i}][{j}] is negative ({x}); travel times must be >= 0")
+            if x > MAX_TIME:
+                raise InstanceError(f"{name}[{i}][{j}] is {x}; travel times must be from 0 to {MAX_TIME:,}")
         out.append(tuple(row))
     for i in range(size):
         if out[i][i] != 0:
@@ -116,8 +126,8 @@ class Instance:
         used_m = max(op.machine for ops in jobs for op in ops)
         used_t = max((op.tool for ops in jobs for op in ops if op.tool is not None), default=0)
         m = self.n_machines
-        if not _is_int(m) or m < 0:
-            raise InstanceError(f"n_machines must be a non-negative integer, got {m!r}")
+        if not _is_int(m) or not 0 <= m <= MAX_COUNT:
+            raise InstanceError(f"n_machines must be an integer from 0 to {MAX_COUNT} (0: derived), got {m!r}")
         derived = ""  # where the machine count came from, when it was not given
         if not m:
             sizes = {}
@@ -142,15 +152,15 @@ class Instance:
             if rows is not None:
                 set_(self, name, _matrix(name, rows, m + 1))
         t = self.n_tools
-        if not _is_int(t) or t < 0:
-            raise InstanceError(f"n_tools must be a non-negative integer, got {t!r}")
+        if not _is_int(t) or not 0 <= t <= MAX_COUNT:
+            raise InstanceError(f"n_tools must be an integer from 0 to {MAX_COUNT} (0: derived), got {t!r}")
         if t and used_t > t:
             raise InstanceError(f"an operation uses tool {used_t} but the instance has only {t} tools (n_tools)")
         set_(self, "n_tools", t or used_t)
         for name in ("n_agvs", "n_tool_transporters"):
             v = getattr(self, name)
-            if not _is_int(v) or v < 0:
-                raise InstanceError(f"{name} must be a non-negative integer, got {v!r}")
+            if not _is_int(v) or not 0 <= v <= MAX_COUNT:
+                raise InstanceError(f"{name} must be an integer from 0 to {MAX_COUNT}, got {v!r}")
         if self.agv_travel is not None and self.n_agvs < 1:
             raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs = 0); use --no-agvs")
         if self.agv_travel is None and self.n_agvs:

@@ -169,8 +169,8 @@ def test_overrides() -> None:
     [
         ("ta01", {"agvs": 2}, "ta01 has no AGV travel matrix"),
         ("EX12", {"tool_transporters": 2}, "EX12 has no tool travel matrix"),
-        ("ra01", {"agvs": 0}, r"agvs must be an integer >= 1, got 0 \(use --no-agvs"),
-        ("ra01", {"tool_transporters": -1}, "tool_transporters must be an integer >= 1"),
+        ("ra01", {"agvs": 0}, r"agvs must be an integer from 1 to 1000, got 0 \(use --no-agvs"),
+        ("ra01", {"tool_transporters": -1}, "tool_transporters must be an integer from 1 to 1000"),
         ("ra01", {"agvs": 2, "no_agvs": True}, "conflict"),
         ("ra01", {"tool_transporters": 2, "no_tools": True}, "conflict"),
     ],

@@ -24,7 +24,7 @@ def _inst(**kw: Any) -> Instance:
 @pytest.mark.parametrize("kw, match", [
     (dict(jobs=[]), "instance has no jobs"),
     (dict(jobs=[[]]), "job 0 has no operations"),
-    (dict(jobs=[[{"machine": 0, "duration": 3}]]), "job 0 operation 0: machine must be an integer >= 1"),
+    (dict(jobs=[[{"machine": 0, "duration": 3}]]), "job 0 operation 0: machine must be an integer from 1 to 1000"),
     (dict(jobs=[[{"machine": 1, "duration": -1}]]), "duration must be a non-negative integer"),
     (dict(jobs=[[{"machine": 1}]]), "missing field 'duration'"),
     (dict(jobs=[[{"machine": 1, "duration": 3, "tol": 1}]]), "job 0 operation 0: unknown field 'tol'"),
@@ -76,10 +76,10 @@ def test_json_round_trip() -> None:
 @pytest.mark.parametrize("extra, needle", [
     ({"n_agvs": 3}, "n_agvs is 3 but agv_travel is missing"),
     ({"n_tool_transporters": 2}, "n_tool_transporters is 2 but tool_travel is missing"),
-    ({"n_machines": False}, "n_machines must be a non-negative integer, got False"),
-    ({"n_machines": []}, "n_machines must be a non-negative integer, got []"),
-    ({"n_machines": 0.0}, "n_machines must be a non-negative integer, got 0.0"),
-    ({"n_tools": ""}, "n_tools must be a non-negative integer, got ''"),
+    ({"n_machines": False}, "n_machines must be an integer from 0 to 1000 (0: derived), got False"),
+    ({"n_machines": []}, "n_machines must be an integer from 0 to 1000 (0: derived), got []"),
+    ({"n_machines": 0.0}, "n_machines must be an integer from 0 to 1000 (0: derived), got 0.0"),
+    ({"n_tools": ""}, "n_tools must be an integer from 0 to 1000 (0: derived), got ''"),
 ])
 def test_counts_in_json_are_not_dropped_or_coerced(extra, needle):
     # n_agvs without a travel matrix became a plain job shop, and false, [], 0.0 or "" were read as 0
@@ -87,3 +87,19 @@ def test_counts_in_json_are_not_dropped_or_coerced(extra, needle):
     with pytest.raises(InstanceError, match=re.escape(needle)):
         Instance.from_dict(data)
     assert Instance.from_dict({"name": "t", "jobs": data["jobs"], "n_machines": None}).n_machines == 1
+
+
+@pytest.mark.parametrize("data, needle", [
+    ({"jobs": [[{"machine": 1, "duration": 10**30}]]},
+     "duration must be a non-negative integer (at most 1,000,000,000)"),
+    ({"jobs": [[{"machine": 1, "duration": 3}]], "n_machines": 10**7}, "n_machines must be an integer from 0 to 1000"),
+    ({"jobs": [[{"machine": 1, "tool": 10**9, "duration": 3}]]}, "tool must be null or an integer from 1 to 1000"),
+    ({"jobs": [[{"machine": 1, "duration": 3}]], "n_agvs": 10**9, "agv_travel": [[0, 1], [1, 0]]},
+     "n_agvs must be an integer from 0 to 1000"),
+    ({"jobs": [[{"machine": 1, "duration": 3}]], "n_agvs": 1, "agv_travel": [[0, 2**62], [1, 0]]},
+     "travel times must be from 0 to 1,000,000,000"),
+])
+def test_sizes_and_times_are_bounded(data, needle):
+    # a time of 10**30 was "valid" to the list schedulers and crashed cpsat and ppo; 10**9 AGVs ran out of memory
+    with pytest.raises(InstanceError, match=re.escape(needle)):
+        Instance.from_dict({"name": "t", **data})
