@@ -288,8 +288,8 @@ def cmd_replay(a: argparse.Namespace) -> int:
     inst = load_from_args(a)
     given = _load_schedule(a.schedule)
     if given.meta.get("scenario"):  # the orders are replayed; the disruptions they answered are not
-        print("note: the schedule was made in a disrupted shop (meta.scenario); the replay runs the nominal shop",
-              file=sys.stderr)
+        print("note: the schedule was made in a disrupted shop (meta.scenario); the replay runs the nominal shop, "
+              "so its times differ and it may end later", file=sys.stderr)
     try:
         out = replay(inst, given)
     except ReplayError as exc:
