@@ -122,7 +122,7 @@ def search_summary(sched: Schedule) -> str:
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
-    from .solvers import get_solver, searches_time, solve
+    from .solvers import get_solver, solve, takes_time_limit
 
     get_solver(a.solver)  # unknown names fail before any work or output
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
@@ -136,7 +136,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if low.startswith("ppo"):
             raise CliError("--time-limit does not apply to ppo (a policy's run); its plan search's limit is "
                            "--guide-budget")
-        if not low.startswith("rules") and not searches_time(low):
+        if not takes_time_limit(a.solver):
             raise CliError(f"--time-limit does not apply to {a.solver}: it runs once, without a search")
         opts["time_limit"] = a.time_limit
     from .solvers import DECISION_SOLVERS

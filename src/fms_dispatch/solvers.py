@@ -195,12 +195,14 @@ def parse_plan_name(name: str) -> tuple[str, float | None]:
             pass
         else:
             base = head
-            if not seconds > 0:
-                raise UnknownSolver(f"the time budget of {name!r} must be positive")
+            if not 0 < seconds < math.inf:
+                raise UnknownSolver(f"the time budget of {name!r} must be a positive, finite number of seconds")
     if not base or base.lower().startswith(("plan:", "ppo")) or base.lower() in ("first", "random"):
         raise UnknownSolver(f"bad plan solver {name!r}: use plan:SOLVER[:SECONDS] with an offline solver "
                             "(cpsat, sos, rules, list, rule:...) or plan:file:PATH")
     get_solver(base)
+    if seconds is not None and not takes_time_limit(base):  # it was accepted and ignored
+        raise UnknownSolver(f"bad plan solver {name!r}: {base} runs once, without a search; drop ':{tail}'")
     return base, seconds
 
 
@@ -223,7 +225,7 @@ def make_plan(instance: Instance, base: str, seconds: float | None = None, **opt
                                 + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
         return plan
     opts = {k: v for k, v in options.items() if k not in ("decisions", "scenario")}
-    if seconds is not None and searches_time(base):
+    if seconds is not None and takes_time_limit(base):  # rules too: plan:rules:2 searched for 18 s
         opts["time_limit"] = seconds
     return solve(instance, base, **opts)
 
@@ -265,6 +267,16 @@ def searches_time(method: str) -> bool:
     """Whether a solver takes a time limit (everything but rules, list, first and random)."""
     low = method.lower()
     return not (low.startswith(("rule:", "rules", "list")) or low in ("first", "random"))
+
+
+def takes_time_limit(method: str) -> bool:
+    """Whether a time limit means something to a solver: a search (:func:`searches_time`), ``rules`` (it stops
+    trying combinations), or a ``plan:`` of one of those (not ``plan:file:``, nor ``plan:list``)."""
+    low = method.lower()
+    if low.startswith("plan:"):
+        base = parse_plan_name(method)[0].lower()
+        return not base.startswith("file:") and takes_time_limit(base)
+    return low.startswith("rules") or (searches_time(low) and not low.startswith("ppo"))
 
 
 #: solvers that can run in a disrupted shop (option ``scenario``): online deciders on the full net (rules,

@@ -60,3 +60,19 @@ def test_shared_options_of_the_right_type_pass():
     inst = builtin("EX12")
     s = solve(inst, "random", seed=np.int64(4), time_limit=np.float64(2.0), decisions="full", progress=False)
     assert validate(inst, s) == [] and s.meta["wall_time"] >= 0
+
+
+def test_plan_budgets_apply_or_are_refused():
+    # plan:rules:2 searched every combination (18 s on sl00); plan:list:5 and plan:list --time-limit were ignored
+    from fms_dispatch.solvers import make_plan, parse_plan_name, takes_time_limit
+
+    inst = builtin("sl00")
+    plan = make_plan(inst, "rules", 0.05)
+    assert plan.meta["tried"] < plan.meta["combinations"] and validate(inst, plan) == []
+    assert takes_time_limit("plan:rules") and takes_time_limit("plan:cpsat:3") and takes_time_limit("rules")
+    assert not any(takes_time_limit(n) for n in ("plan:list", "plan:file:x.json", "list", "first", "ppo"))
+    for name, needle in (("plan:list:5", "list runs once, without a search; drop ':5'"),
+                         ("plan:cpsat:inf", "must be a positive, finite number of seconds"),
+                         ("plan:rule:SPT+nearest:2", "runs once")):
+        with pytest.raises(UnknownSolver, match=needle):
+            parse_plan_name(name)
