@@ -24,6 +24,7 @@ project's semantic contract, without using the Petri net, and reports *every* vi
 from __future__ import annotations
 
 from collections import defaultdict
+from itertools import groupby
 from typing import Iterable
 
 from .disruptions import Scenario, ScenarioError
@@ -221,6 +222,24 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
             here, free = b, max(free, e)
 
 
+def _tool_order(us: list[tuple], trips: dict) -> list[tuple]:
+    """The uses of one tool in the order the tool serves them: by time; among uses at the same instant (zero
+    durations), one on the machine where the tool is before one it must be carried to, carried ones by their trip's
+    start (by job number, a feasible schedule whose trip served job 1 before job 0's use was called infeasible)."""
+    out: list[tuple] = []
+    loc = 0
+    for _, group in groupby(sorted(us), key=lambda u: u[:2]):
+        tied = list(group)
+        while tied:  # a group holds more than one use only for zero durations: it is small
+            here = [u for u in tied if not trips.get((u[2], u[3])) and u[4] == loc]
+            carried = sorted((u for u in tied if trips.get((u[2], u[3]))), key=lambda u: trips[u[2], u[3]][0].start)
+            u = (here or carried or tied)[0]
+            tied.remove(u)
+            out.append(u)
+            loc = u[4]
+    return out
+
+
 def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
     uses: dict[int, list] = defaultdict(list)
     for j, job in enumerate(instance.jobs):
@@ -249,7 +268,7 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
             if key not in used_keys:
                 errs.append(f"tool {tool} is carried for op {key}, which does not use it")
         loc, free = 0, 0
-        for s, e, j, k, machine in us:
+        for s, e, j, k, machine in _tool_order(us, trips):
             ts = trips.get((j, k), [])
             if len(ts) > 1:
                 errs.append(f"tool {tool} is carried {len(ts)} times for op ({j},{k})")

@@ -167,3 +167,20 @@ def test_a_schedule_file_that_is_not_a_schedule_is_named(tmp_path):
     binary.write_bytes(b"\xff\xd8\xff")
     with pytest.raises(ScheduleError, match=r"shot\.png: not a text \(UTF-8 JSON\) file"):
         Schedule.load(binary)
+
+
+def test_zero_duration_uses_of_a_tool_at_one_instant_follow_its_trip():
+    # two 0-length operations on machine 1 share tool 1, brought once for job 1: feasible, but uses at one
+    # instant were checked in job order (job 0 first, before the tool had arrived) and the schedule refused
+    from fms_sim.instance import Instance
+
+    inst = Instance.from_dict({"name": "zt", "n_tool_transporters": 1, "tool_travel": [[0, 3], [3, 0]],
+                               "jobs": [[{"machine": 1, "tool": 1, "duration": 0}],
+                                        [{"machine": 1, "tool": 1, "duration": 0}]]})
+    doc = {"instance": "zt", "makespan": 5, "n_agvs": 0, "n_tool_transporters": 1, "agv_trips": [],
+           "operations": [{"job": j, "op": 0, "machine": 1, "tool": 1, "start": 5, "end": 5} for j in (0, 1)],
+           "tool_trips": [{"transporter": 0, "tool": 1, "job": 1, "op": 0, "from": 0, "to": 1, "start": 0,
+                           "end": 3, "loaded": True}]}
+    assert validate(inst, Schedule.from_dict(doc)) == []
+    doc["tool_trips"][0].update(start=3, end=6)  # the tool arrives after both uses: still wrong
+    assert validate(inst, Schedule.from_dict(doc))
