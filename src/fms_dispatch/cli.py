@@ -317,14 +317,27 @@ def cmd_generate(a: argparse.Namespace) -> int:
         raise CliError("--tools/--tool-transporters and --no-tools contradict each other")
     if a.no_agvs and a.agvs is not None:
         raise CliError("--agvs and --no-agvs contradict each other")
-    for flag, v in (("--jobs", a.jobs), ("--machines", a.machines), ("--count", a.count)):
-        if v < 1:
-            raise CliError(f"{flag} must be >= 1")
+    from fms_sim.instance import MAX_COUNT
+
+    for flag, v, top in (("--jobs", a.jobs, None), ("--machines", a.machines, MAX_COUNT), ("--count", a.count, None),
+                         ("--tools", a.tools, MAX_COUNT), ("--agvs", a.agvs, MAX_COUNT),
+                         ("--tool-transporters", a.tool_transporters, MAX_COUNT)):
+        if v is not None and (v < 1 or (top is not None and v > top)):  # named by its flag, not the library's name
+            raise CliError(f"{flag} must be >= 1" + (f" and at most {top}" if top is not None else "")
+                           + f", got {v}")
+    top = g.TaillardRNG.M - 1
+    for flag, v in (("--time-seed", a.time_seed), ("--route-seed", a.route_seed), ("--tool-seed", a.tool_seed),
+                    ("--agv-seed", a.agv_seed), ("--tool-travel-seed", a.tool_travel_seed)):
+        if not 0 < v <= top:  # checked whether it is used or not: --no-agvs took a bad --agv-seed, --no-tools not
+            raise CliError(f"{flag} must be a Taillard seed in 1..{top}, got {v}")
     insts = g.generate_instances(
         a.jobs, a.machines, a.machines if a.tools is None else a.tools, a.count, time_seed=a.time_seed,
         route_seed=a.route_seed, tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed,
         n_agvs=10 if a.agvs is None else a.agvs, n_tool_transporters=5 if a.tool_transporters is None
         else a.tool_transporters, tools=not a.no_tools, agvs=not a.no_agvs, name_prefix=a.prefix)
+    for inst in insts:  # every target before the first file: a folder in the way left a partial set
+        if (out / f"{inst.name}.json").is_dir():
+            raise CliError(f"{out / (inst.name + '.json')} is a folder; nothing was written")
     out.mkdir(parents=True, exist_ok=True)
     for inst in insts:
         path = out / f"{inst.name}.json"

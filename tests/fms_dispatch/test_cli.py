@@ -303,3 +303,19 @@ def test_outputs_that_would_clobber_an_input_or_each_other_are_refused(tmp_path,
     assert run(["solve", "EX12", "--out", str(sched), "-q"], capsys)[0] == 0
     code, _, err = run(["replay", "EX12", str(sched), "--out", str(sched)], capsys)
     assert code == 2 and "is an input of this command" in err
+
+
+def test_generate_checks_every_flag_by_name_before_writing(tmp_path, capsys):
+    # --no-agvs took a bad --agv-seed while --no-tools refused a bad --tool-seed; --tools 0 was reported as
+    # "n_tools ..."; a folder in the way of the second file left the first one written
+    base = ["generate", "--jobs", "3", "--machines", "2", "--out-dir", str(tmp_path / "g")]
+    for extra, needle in ((["--no-agvs", "--agv-seed", "0"], "--agv-seed must be a Taillard seed in 1..2147483646"),
+                          (["--no-tools", "--tool-seed", "0"], "--tool-seed must be a Taillard seed"),
+                          (["--tools", "0"], "--tools must be >= 1 and at most 1000, got 0"),
+                          (["--machines", "100000"], "--machines must be >= 1 and at most 1000")):
+        code, _, err = run(base + extra, capsys)
+        assert code == 2 and needle in err, (extra, err)
+    (tmp_path / "g" / "gen01.json").mkdir(parents=True)
+    code, _, err = run(base + ["--count", "2", "--prefix", "gen"], capsys)
+    assert code == 2 and "is a folder; nothing was written" in err
+    assert not (tmp_path / "g" / "gen00.json").exists()
