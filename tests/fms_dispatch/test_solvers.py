@@ -76,3 +76,12 @@ def test_plan_budgets_apply_or_are_refused():
                          ("plan:rule:SPT+nearest:2", "runs once")):
         with pytest.raises(UnknownSolver, match=needle):
             parse_plan_name(name)
+
+
+def test_a_plan_of_a_tool_rule_runs_the_rule_on_the_full_net():
+    # plan:rule:JOB+VEHICLE+TOOL was accepted by the name parser, then always failed: the plan's rule ran on the
+    # paper's net, which has no tool choice
+    inst = builtin("ra01")
+    s = solve(inst, "plan:rule:SPT+nearest+fifo")
+    full = solve(inst, "rule:SPT+nearest+fifo", decisions="full")
+    assert validate(inst, s) == [] and s.makespan <= full.makespan  # the rule's schedule, replayed: never later
