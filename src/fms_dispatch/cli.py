@@ -319,17 +319,16 @@ def cmd_generate(a: argparse.Namespace) -> int:
         raise CliError("--agvs and --no-agvs contradict each other")
     from fms_sim.instance import MAX_COUNT
 
-    for flag, v, top in (("--jobs", a.jobs, None), ("--machines", a.machines, MAX_COUNT), ("--count", a.count, None),
-                         ("--tools", a.tools, MAX_COUNT), ("--agvs", a.agvs, MAX_COUNT),
+    for flag, v, top in (("--jobs", a.jobs, MAX_COUNT), ("--machines", a.machines, MAX_COUNT),
+                         ("--count", a.count, 10**6), ("--tools", a.tools, MAX_COUNT), ("--agvs", a.agvs, MAX_COUNT),
                          ("--tool-transporters", a.tool_transporters, MAX_COUNT)):
-        if v is not None and (v < 1 or (top is not None and v > top)):  # named by its flag, not the library's name
-            raise CliError(f"{flag} must be >= 1" + (f" and at most {top}" if top is not None else "")
-                           + f", got {v}")
-    top = g.TaillardRNG.M - 1
+        if v is not None and not 1 <= v <= top:  # named by its flag, not the library's name (the same bounds)
+            raise CliError(f"{flag} must be >= 1 and at most {top}, got {v}")
+    last_seed = g.TaillardRNG.M - 1
     for flag, v in (("--time-seed", a.time_seed), ("--route-seed", a.route_seed), ("--tool-seed", a.tool_seed),
                     ("--agv-seed", a.agv_seed), ("--tool-travel-seed", a.tool_travel_seed)):
-        if not 0 < v <= top:  # checked whether it is used or not: --no-agvs took a bad --agv-seed, --no-tools not
-            raise CliError(f"{flag} must be a Taillard seed in 1..{top}, got {v}")
+        if not 0 < v <= last_seed:  # checked whether used or not: --no-agvs took a bad --agv-seed, --no-tools not
+            raise CliError(f"{flag} must be a Taillard seed in 1..{last_seed}, got {v}")
     insts = g.generate_instances(
         a.jobs, a.machines, a.machines if a.tools is None else a.tools, a.count, time_seed=a.time_seed,
         route_seed=a.route_seed, tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed,

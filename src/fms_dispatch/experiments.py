@@ -521,8 +521,9 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
         raise ValueError("need at least 2 partitions")
     # with fewer jobs than partitions some are empty: the others keep their index, so partition p still arrives
     # at p * delta (renumbered, they arrived earlier than the lower bound's share says)
-    slots = [p for p, g in enumerate(partition_jobs(inst.n_jobs, parts)) if g]
-    groups = [partition_jobs(inst.n_jobs, parts)[p] for p in slots]
+    partitions = partition_jobs(inst.n_jobs, parts)
+    slots = [p for p, g in enumerate(partitions) if g]
+    groups = [partitions[p] for p in slots]
     lb = lower_bound(inst)
     delta = lb / parts
     arrival = [round(p * delta, 2) for p in slots]

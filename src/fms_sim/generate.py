@@ -124,8 +124,8 @@ def travel_matrix(m: int, seed: int, lo: int = 1, hi: int = 30) -> Grid:
     return rows
 
 
-def _check_size(name: str, value: Any, minimum: int = 1) -> None:
-    top = 10**6 if name == "count" else MAX_COUNT  # more machines or tools than a shop may have ran for minutes
+def _check_size(name: str, value: Any, minimum: int = 1, top: int = MAX_COUNT) -> None:
+    """``value`` is an integer from ``minimum`` to ``top`` (more than a shop may have ran for minutes)."""
     if not isinstance(value, int) or isinstance(value, bool) or not minimum <= value <= top:
         raise InstanceError(f"{name} must be an integer from {minimum} to {top}, got {value!r}")
 
@@ -159,7 +159,7 @@ def generate_instances(
     _check_size("n_jobs", n_jobs)
     _check_size("n_machines", n_machines)
     _check_size("n_tools", n_tools, 1 if tools else 0)
-    _check_size("count", count)
+    _check_size("count", count, top=10**6)
     if agvs:
         _check_size("n_agvs", n_agvs)
     if tools:

@@ -57,7 +57,8 @@ from fms_sim.instance import Instance
 
 from .models import CONFIG_FILE, METRICS_FILE
 
-__all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "check_config", "add_train_parser", "cmd_train", "evaluate_model"]
+__all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "check_config", "add_train_parser", "cmd_train",
+           "evaluate_model"]
 
 #: Defaults of every config key (a config file or the command line overrides them).
 DEFAULT_CONFIG: dict[str, Any] = {
@@ -157,36 +158,34 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-#: What each config value must be: (test, words for the error). Keys checked elsewhere (padding, guide_effort,
-#: disruptions, warm_start.refine, the names of rules, rewards and experts) only need the right JSON type here.
+#: What each config value must be: (test, words for the error); null always passes (it leaves the default). Keys
+#: checked elsewhere (padding, guide_effort, disruptions, warm_start.refine, the names of rules, rewards and
+#: experts) only need the right JSON type here.
 _KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "str?": (lambda v: v is None or isinstance(v, str), "a string or null"),
     "str": (lambda v: isinstance(v, str), "a string"),
     "bool": (lambda v: isinstance(v, bool), "true or false"),
     "int": (_is_int, "an integer"),
     "int>=0": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
     "int>=1": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
-    "int>=1?": (lambda v: v is None or (_is_int(v) and v >= 1), "an integer >= 1 or null"),
-    "num": (_is_num, "a finite number"),
     "num>=0": (lambda v: _is_num(v) and v >= 0, "a number >= 0"),
     "num>0": (lambda v: _is_num(v) and v > 0, "a number > 0"),
     "gamma": (lambda v: _is_num(v) and 0 < v <= 1, "a number in (0, 1]"),
     "specs": (lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of instance specs"),
     "layers": (lambda v: isinstance(v, list) and all(_is_int(x) and x >= 1 for x in v),
                "a list of layer widths (integers >= 1)"),
-    "padding": (lambda v: v is None or isinstance(v, (str, dict)), "a profile name, auto or a dict of sizes"),
-    "dict?": (lambda v: v is None or isinstance(v, dict), "an object or null"),
+    "padding": (lambda v: isinstance(v, (str, dict)), "a profile name, auto or a dict of sizes"),
+    "dict": (lambda v: isinstance(v, dict), "an object"),
     "list": (lambda v: isinstance(v, list), "a list"),
     "vec_env": (lambda v: v in ("subproc", "dummy"), "subproc or dummy"),
 }
 _CONFIG_KINDS: dict[str, Any] = {
-    "name": "str?", "train": "specs", "eval": "specs",
-    "fleet": {"agvs": "int>=1?", "tool_transporters": "int>=1?", "no_tools": "bool"},
-    "padding": "padding", "decisions": "str?", "guide": "str?", "guide_effort": "dict?", "disruptions": "dict?",
-    "init": "str?", "baseline": "str?", "allow_benchmarks": "bool", "reward": "str", "steps": "int>=0",
+    "name": "str", "train": "specs", "eval": "specs",
+    "fleet": {"agvs": "int>=1", "tool_transporters": "int>=1", "no_tools": "bool"},
+    "padding": "padding", "decisions": "str", "guide": "str", "guide_effort": "dict", "disruptions": "dict",
+    "init": "str", "baseline": "str", "allow_benchmarks": "bool", "reward": "str", "steps": "int>=0",
     "seed": "int", "arch": "str", "hidden": "int>=1", "net_arch": "layers", "n_envs": "int>=1",
     "vec_env": "vec_env", "eval_freq": "int>=1", "save_freq": "int>=1",
-    "warm_start": {"expert": "str?", "instances": "int>=1", "search_iters": "int>=0", "search_insert": "num>=0",
+    "warm_start": {"expert": "str", "instances": "int>=1", "search_iters": "int>=0", "search_insert": "num>=0",
                    "search_restarts": "int>=1", "search_starts": "int>=1", "workers": "int>=1", "epochs": "int>=0",
                    "lr": "num>0", "dagger": "int>=0", "dagger_epochs": "int>=1", "refine": "list"},
     "ppo": {"learning_rate": "num>0", "n_steps": "int>=1", "batch_size": "int>=1", "n_epochs": "int>=1",
