@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
@@ -214,7 +215,8 @@ def file_above(path: Path) -> Path | None:
 
 
 def check_output(path: str | None, what: str) -> None:
-    """Refuse an output file that cannot be written, before any work: a folder, or one inside a file."""
+    """Refuse an output file that cannot be written, before any work: a folder, one inside a file, an existing
+    file or a folder to write in that this user may not write."""
     if not path:
         return
     p = Path(path)
@@ -223,6 +225,13 @@ def check_output(path: str | None, what: str) -> None:
     above = file_above(p)
     if above is not None:
         raise CliError(f"{what} {path}: {above} is a file, not a folder")
+    if p.exists():
+        if not os.access(p, os.W_OK):
+            raise CliError(f"{what} {path}: the file may not be written (permission denied)")
+        return
+    folder = next((q for q in p.absolute().parents if q.exists()), None)
+    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
+        raise CliError(f"{what} {path}: the folder {folder} may not be written (permission denied)")
 
 
 def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
@@ -245,15 +254,25 @@ def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
 
 
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
-    """Save the schedule JSON and the Gantt chart where asked, one line each."""
+    """Save the schedule JSON and the Gantt chart where asked, one line each. The schedule goes first: a chart
+    that cannot be written (a failure :func:`check_output` could not foresee) does not cost the solve's result,
+    and the error says it was kept."""
     if out:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        sched.save(out)
+        try:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+            sched.save(out)
+        except OSError as exc:
+            raise CliError(f"cannot write --out {out}: {exc.strerror or exc}") from None
         print(f"schedule: {out}")
     if gantt:
         from fms_sim.gantt import save_gantt
 
-        print(f"gantt:    {save_gantt(sched, gantt, instance=inst)}")
+        try:
+            written = save_gantt(sched, gantt, instance=inst)
+        except OSError as exc:
+            kept = f" (the schedule was saved to {out})" if out else ""
+            raise CliError(f"cannot write --gantt {gantt}: {exc.strerror or exc}{kept}") from None
+        print(f"gantt:    {written}")
 
 
 def _load_schedule(path: str) -> Schedule:

@@ -1,6 +1,7 @@
 """The fms command line: happy paths and one-line errors with exit code 2."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -303,6 +304,41 @@ def test_outputs_that_would_clobber_an_input_or_each_other_are_refused(tmp_path,
     assert run(["solve", "EX12", "--out", str(sched), "-q"], capsys)[0] == 0
     code, _, err = run(["replay", "EX12", str(sched), "--out", str(sched)], capsys)
     assert code == 2 and "is an input of this command" in err
+
+
+def test_a_chart_that_cannot_be_written_names_itself_and_keeps_the_schedule(tmp_path, capsys, monkeypatch):
+    # the chart is rendered after the schedule is saved; its failure read "No such file or directory: x.png" with
+    # nothing saying which output failed or that the schedule had been written
+    import fms_sim.gantt
+
+    def fail(*args, **kwargs):
+        raise FileNotFoundError(2, "No such file or directory")
+
+    monkeypatch.setattr(fms_sim.gantt, "save_gantt", fail)
+    out, png = tmp_path / "s.json", tmp_path / "g.png"
+    code, _, err = run(["solve", "EX12", "--solver", "list", "--out", str(out), "--gantt", str(png), "-q"], capsys)
+    assert code == 2
+    assert f"cannot write --gantt {png}: No such file or directory (the schedule was saved to {out})" in err
+    assert validate(builtin("EX12"), Schedule.load(out)) == []
+
+
+def test_an_output_folder_without_write_permission_is_refused_before_solving(tmp_path, capsys, monkeypatch):
+    # a folder this user may not write was found only after the solve; access is denied through os.access so the
+    # test holds for root too (who may write anywhere)
+    import fms_dispatch.cli as cli
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = os.access
+    monkeypatch.setattr(cli.os, "access", lambda p, mode: False if os.fspath(p) == str(locked) else real(p, mode))
+    code, stdout, err = run(["solve", "EX12", "--out", str(locked / "sub" / "s.json"), "-q"], capsys)
+    assert code == 2 and f"the folder {locked} may not be written (permission denied)" in err
+    assert "makespan" not in stdout and not (locked / "sub").exists()
+    (locked / "s.json").write_text("{}")
+    monkeypatch.setattr(cli.os, "access", lambda p, mode: False if os.fspath(p) == str(locked / "s.json")
+                        else real(p, mode))
+    code, _, err = run(["solve", "EX12", "--out", str(locked / "s.json"), "-q"], capsys)
+    assert code == 2 and "the file may not be written (permission denied)" in err
 
 
 def test_generate_checks_every_flag_by_name_before_writing(tmp_path, capsys):
