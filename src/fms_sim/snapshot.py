@@ -134,8 +134,9 @@ def snapshot(shop: FullShop) -> Snapshot:
         T = inst.agv_travel
         assert T is not None
         for v, j, k, pickup, m in _all(shop, shop.p_agv_pick):  # on the way to a part, or waiting for it
-            start = max(agv_free[v], ready[j])
+            start = max(agv_free[v], ready[j], out_until.get(("agv", v), 0))  # an AGV out of service waits
             arrival[j] = agv_free[v] = start + T[pickup][m]
+            agv_loc[v] = m  # the committed carry ends at the part's machine (it was left at the pickup)
         for v, j, k, pickup, m in _all(shop, shop.p_agv_drop):  # carrying it
             arrival[j] = agv_free[v]
     for j in range(n):
@@ -157,8 +158,9 @@ def snapshot(shop: FullShop) -> Snapshot:
                 tool_free[t] = op_end.get(user, now)
         carried: dict[tuple[int, int], int] = {}
         for r, t, src, j, k, m in _all(shop, shop.p_tt_pick):  # on the way to the tool, or waiting for it
-            start = max(tt_free[r], tool_free[t])
+            start = max(tt_free[r], tool_free[t], out_until.get(("tt", r), 0))
             carried[j, k] = tt_free[r] = start + TT[src][m]
+            tt_loc[r] = m  # the committed carry ends at the machine
         for r, t, src, j, k, m in _all(shop, shop.p_tt_drop):
             carried[j, k] = tt_free[r]
         for t in range(1, inst.n_tools + 1):

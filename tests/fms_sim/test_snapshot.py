@@ -88,3 +88,37 @@ def test_the_nominal_copy_forgets_noise_and_future_breakdowns_but_not_the_presen
                                                         + (6 if m == 1 and r.start < 1 < r.end else 0), shop.now + 1)
     # the real shop is untouched
     assert shop.scenario is sc
+
+
+def test_a_residual_plan_from_a_snapshot_ends_when_it_predicts_in_a_nominal_shop():
+    # a vehicle committed to a carry was left at its pickup in the snapshot: residual plans moved it from the
+    # wrong place and their executions ended later than they predicted, with no disruption at all
+    from fms_dispatch.full_rules import parse_full_rule
+    from fms_dispatch.replan import simulate
+    from fms_sim.snapshot import can_snapshot
+
+    rule = parse_full_rule("rule:SPT+nearest+fifo")
+    checked = 0
+    for name in ("ra01", "ra02", "EX22"):
+        inst = builtin(name)
+        for seed in range(6):
+            rng = random.Random(seed)
+            shop = FullShop(inst)
+            st = Stepper(shop, idle_stops=True)
+            st.advance()
+            stop_at, n = rng.randint(5, 60), 0
+            while st.kind != "done":
+                if n >= stop_at and can_snapshot(shop):
+                    snap = snapshot(shop)
+                    for r in ("est", "ect"):
+                        plan = greedy_schedule(inst, rule=r, origin=snap)
+                        made = simulate(nominal_copy(shop), plan)
+                        assert made is not None and made <= plan.makespan, (name, seed, r, made, plan.makespan)
+                        checked += 1
+                    break
+                if st.kind == "idle":
+                    st.move([])
+                else:
+                    st.decide(rule(shop) if rng.random() < 0.8 else rng.choice(shop.legal_actions()))
+                n += 1
+    assert checked >= 20
