@@ -198,7 +198,8 @@ def load_instance(
     no_tools: bool = False,
     no_agvs: bool = False,
 ) -> Instance:
-    """Load ``spec`` (an existing file, else a built-in name) and apply the command-line overrides.
+    """Load ``spec`` (an existing file, else a built-in name; a folder is never an instance, so a folder named
+    like a built-in does not hide it) and apply the command-line overrides.
 
     Files: ``.json`` or content starting with ``{`` is the project's instance JSON, anything else a text job
     shop. ``layout`` applies to built-in ``ra`` names only. Then ``no_tools``/``no_agvs`` drop tools/AGVs and
@@ -208,7 +209,7 @@ def load_instance(
     if not isinstance(spec, str) or not spec.strip():
         raise InstanceError("an instance must be named: give a built-in name or a file path")
     path = Path(spec)
-    if path.is_dir():
+    if path.is_dir() and not is_builtin_name(spec):
         raise InstanceError(f"{spec!r} is a directory, not an instance file")
     if path.is_file():
         if layout is not None:

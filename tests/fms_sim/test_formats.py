@@ -125,6 +125,16 @@ def test_load_files(tmp_path: Path) -> None:
     assert load_instance(str(tmp_path / "r.inst")) == ra
 
 
+def test_a_folder_named_like_a_builtin_does_not_hide_it(tmp_path: Path, monkeypatch) -> None:
+    # "fms solve EX12" in a folder holding an EX12/ folder (e.g. results written per instance) read
+    # "'EX12' is a directory"; a folder is never an instance, and a file of that name still wins
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "EX12").mkdir()
+    assert load_instance("EX12") == builtin("EX12")
+    (tmp_path / "sl00").write_text(builtin("ra02").to_json())
+    assert load_instance("sl00") == builtin("ra02")
+
+
 def test_load_file_errors(tmp_path: Path) -> None:
     with pytest.raises(InstanceError, match="no built-in instance or file named 'missing.txt'"):
         load_instance("missing.txt")
