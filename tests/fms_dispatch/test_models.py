@@ -87,3 +87,30 @@ def test_a_broken_model_config_is_named(tmp_path: Path, config: object, needle: 
     (folder / "config.json").write_text(json.dumps(config))
     with pytest.raises(ValueError, match=needle if "*" in needle else re.escape(needle)):
         resolve_model(str(folder))
+
+
+@pytest.mark.parametrize("content, needle", [
+    (b"garbage\n", "the file wasn't a zip-file"),
+    (b"PK\x03\x04cut short", "the file wasn't a zip-file"),
+    (None, "No data found in the saved file"),  # a zip, but not a model's
+])
+def test_broken_weights_are_named_as_a_model_error(tmp_path: Path, content: bytes | None, needle: str) -> None:
+    # sb3's own message ("Error: the file ... wasn't a zip-file") escaped as a bare ValueError of the library
+    import zipfile
+
+    from fms_dispatch.cli import main
+    from fms_dispatch.rl.agent import load_torch_policy
+
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    shutil.copy(resolve_model("guided-dagger").folder / "config.json", folder / "config.json")
+    weights = folder / "best_model.zip"
+    if content is None:
+        with zipfile.ZipFile(weights, "w") as z:
+            z.writestr("notes.txt", "hello")
+    else:
+        weights.write_bytes(content)
+    with pytest.raises(ValueError, match=f"the weights {weights} are not a readable MaskablePPO model") as info:
+        load_torch_policy(weights)
+    assert needle in str(info.value)
+    assert main(["solve", "EX12", "--solver", f"ppo:{folder}", "-q"]) == 2

@@ -26,12 +26,20 @@ __all__ = ["Agent", "GuideReplanner", "export_actor", "load_torch_policy"]
 
 
 def load_torch_policy(weights: str | Path) -> Any:
-    """The MaskablePPO policy of a weights file, on the CPU, in evaluation mode (imports torch)."""
+    """The MaskablePPO policy of a weights file, on the CPU, in evaluation mode (imports torch). A file that is
+    not a MaskablePPO save (cut short, overwritten, another library's) raises ValueError naming it."""
     import torch
     from sb3_contrib import MaskablePPO
 
     torch.set_num_threads(1)
-    policy = MaskablePPO.load(str(weights), device="cpu").policy
+    try:
+        policy = MaskablePPO.load(str(weights), device="cpu").policy
+    except OSError:
+        raise
+    except Exception as exc:  # sb3 reports a broken save as whatever its unzip or unpickle met first
+        cause = str(exc).removeprefix("Error: ").replace(f"the file {weights} ", "the file ").strip()
+        cause = cause or type(exc).__name__
+        raise ValueError(f"the weights {weights} are not a readable MaskablePPO model ({cause})") from None
     policy.set_training_mode(False)
     return policy
 
