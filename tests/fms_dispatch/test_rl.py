@@ -642,7 +642,9 @@ def test_guided_ppo_is_a_ppo_model_of_guided_that_solves_nominal_and_disrupted_s
 def test_guided_dagger_acts_as_its_expert_in_a_disrupted_shop_where_guided_does_not():
     """guided-dagger (the default): two DAgger rounds in disrupted runs from guided's weights and no PPO step (its
     card says so). In a disrupted validation shop where guided leaves the guide follower's run, it makes the
-    follower's run (valid against the scenario)."""
+    follower's run (valid against the scenario). Like the follower it was cloned from (and as bench/disrupted.py
+    --no-guide-replan compares them), it acts the start's plan out here: with re-plans its run also depends on
+    what the re-plans find, which is not what cloning taught."""
     from fms_dispatch.full_rules import run_full
     from fms_dispatch.rl.guide import GuideFollower, effort_from
     from fms_dispatch.rl.models import load_config
@@ -657,6 +659,8 @@ def test_guided_dagger_acts_as_its_expert_in_a_disrupted_shop_where_guided_does_
     sc = episode_scenario(inst, check_disruptions({"noise": 0.2, "breakdowns": 1, "fixed": True, "seed": 0}))
     effort = effort_from(tabu=0.0)
     follower = run_full(inst, GuideFollower(effort=effort), sc)
-    dagger = ppo_solver("ppo:guided-dagger")(inst, scenario=sc, guide_effort=effort)
-    clone = ppo_solver("ppo:guided")(inst, scenario=sc, guide_effort=effort)
+    dagger = ppo_solver("ppo:guided-dagger")(inst, scenario=sc, guide_effort=effort, guide_replan=False)
+    clone = ppo_solver("ppo:guided")(inst, scenario=sc, guide_effort=effort, guide_replan=False)
     assert validate(inst, dagger, sc) == [] and dagger.makespan == follower.makespan < clone.makespan
+    replanned = ppo_solver("ppo:guided-dagger")(inst, scenario=sc, guide_effort=effort)
+    assert validate(inst, replanned, sc) == [] and replanned.meta["replans"]
