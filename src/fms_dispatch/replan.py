@@ -79,6 +79,11 @@ class ReplanResult:
         return self.before is None or self.after < self.before
 
 
+#: A run of a plan through the net (:func:`simulate`) costs up to this many list schedules of the same work
+#: (``greedy_schedule`` from the same snapshot; measured 8 on sl70, 17-23 on sl20-sl45, 28-36 on BU-size shops).
+SIM_COST = 30
+
+
 def _remaining_starts(snap: Snapshot, plan: Schedule | None) -> dict[tuple[int, int], int] | None:
     """The current plan's start time of every operation that has not started; None if it misses one."""
     if plan is None:
@@ -195,8 +200,8 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     simulations through the net: *before* runs the current plan's orders on, *after* the two best new plans
     (one that gets stuck is dropped), so both are what the shop would do under nominal times; ``policy`` (a copy
     of the policy following the run, consumed) continues the current plan exactly. Simulations are used only
-    where about nine list schedules fit the budget (a run through the net costs about three); otherwise, and
-    without ``sim``, the predictions are the list scheduler's own (*before*: the current plan's order, each
+    where three of them take at most half the budget (a run through the net costs up to :data:`SIM_COST` list
+    schedules of the same work); otherwise, and without ``sim``, the predictions are the list scheduler's own (*before*: the current plan's order, each
     operation as early as the state allows). At least one list schedule is always made, so a re-plan of a large
     shop may take up to a second (100 x 20) beyond a very small budget.
 
@@ -211,8 +216,10 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     hint = _remaining_starts(snap, current)
     cands: list[tuple[Schedule, str]] = [(greedy_schedule(inst, rule="est", origin=snap), "est")]
     one = time.monotonic() - t0  # one list schedule: what each further step must fit in
-    # a run through the net costs about three list schedules: simulate only where three runs fit the budget
-    if sim is not None and deadline - time.monotonic() < 9 * one:
+    sim_cost = SIM_COST * one
+    # simulate only where three runs (the current plan's, the two best new plans') take at most half the budget:
+    # on larger shops they would leave the searches no time, or run past the budget
+    if sim is not None and deadline - time.monotonic() < 6 * sim_cost:
         sim = None
     ruled: list[tuple[int, int, Schedule, str]] = []  # (simulated makespan, order, plan, method)
     for name, rule in rules if sim is not None else ():
@@ -231,6 +238,8 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
             reserve = 2 * (time.monotonic() - t1)  # the final simulations of two new plans
         else:
             before = greedy_schedule(inst, rule="guided", priority=hint, origin=snap).makespan
+    elif sim is not None:
+        reserve = sim_cost  # the final simulation of the best new plan (after an order: nothing measured it yet)
     if time.monotonic() + one <= deadline - reserve:
         cands.append((greedy_schedule(inst, rule="ect", origin=snap), "ect"))
     best = min(cands, key=lambda c: c[0].makespan)[0]
