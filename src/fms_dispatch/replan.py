@@ -201,9 +201,10 @@ def replan(snap: Snapshot, current: Schedule | None, budget: float, *, sim: Full
     (one that gets stuck is dropped), so both are what the shop would do under nominal times; ``policy`` (a copy
     of the policy following the run, consumed) continues the current plan exactly. Simulations are used only
     where three of them take at most half the budget (a run through the net costs up to :data:`SIM_COST` list
-    schedules of the same work); otherwise, and without ``sim``, the predictions are the list scheduler's own (*before*: the current plan's order, each
-    operation as early as the state allows). At least one list schedule is always made, so a re-plan of a large
-    shop may take up to a second (100 x 20) beyond a very small budget.
+    schedules of the same work); otherwise, and without ``sim``, the predictions are the list scheduler's own
+    (*before*: the current plan's order, each operation as early as the state allows). At least one list
+    schedule is always made, so a re-plan of a large shop may take up to a second (100 x 20) beyond a very small
+    budget.
 
     ``rules`` (``(name, full-net rule)`` pairs; with ``sim`` only) are further candidates: each rule completes
     a copy of ``sim``, and the run's schedule is a plan, predicted by simulating its orders like the others
