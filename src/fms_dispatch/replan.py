@@ -80,7 +80,8 @@ class ReplanResult:
 
 
 #: A run of a plan through the net (:func:`simulate`) costs up to this many list schedules of the same work
-#: (``greedy_schedule`` from the same snapshot; measured 8 on sl70, 17-23 on sl20-sl45, 28-36 on BU-size shops).
+#: (``greedy_schedule`` from the same snapshot; ``bench/sim_cost.py`` measured 9 on sl70 to 25 on sl00, with a
+#: margin for the first, slower calls of a process).
 SIM_COST = 30
 
 

@@ -297,7 +297,7 @@ def test_a_retimed_plan_that_lost_more_than_the_drift_is_replanned_once_more():
 
 
 def test_simulations_are_skipped_where_they_would_take_most_of_the_budget(monkeypatch):
-    # a run through the net costs 8-36 list schedules, not the 3 once assumed: on sl40 a 1 s re-plan after an order
+    # a run through the net costs 9-25 list schedules (bench/sim_cost.py), not the 3 once assumed: on sl40 a 1 s re-plan after an order
     # simulated its plan for 0.44 s after the budget (1.46 s in all; 2-3 s while the agent's decisions flowed), and
     # one with a plan to compare spent the budget on simulations instead of searching
     import fms_dispatch.replan as rpmod
