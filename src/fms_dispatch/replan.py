@@ -314,7 +314,6 @@ class Replanner:
         self._rules = [(name, parse_full_rule(name)) for name in self.rules]
         self.policy: PlanPolicy | None = None
         self._pending: str | None = None
-        self._again = False  # the re-plan in progress was triggered by a re-timed plan's loss (at most once in a row)
         self._off_plan = False  # the last answer came from the fallback rule: the plan resumes from the state
         self._follow(self.plan, self.instance.n_jobs)
 
@@ -408,7 +407,6 @@ class Replanner:
               error: str | None = None) -> dict[str, Any]:
         """Put ``result`` in force if it is better (or the plan no longer covers the shop's jobs) and record the
         event; ``result`` None (the re-plan failed: ``error`` says why) keeps the current plan."""
-        again, self._again = self._again, False
         event: dict[str, Any] = {"reason": reason, "time": shop.now, "budget": self.budget,
                                  "wall_time": round(wall_time if wall_time is not None
                                                     else (result.wall_time if result else 0.0), 4)}
@@ -419,15 +417,8 @@ class Replanner:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
                 if self.moved_on(shop):  # computed from an earlier state (in a thread): re-time it from here
-                    retimed = self.retime(shop, result.plan)
-                    self._follow(retimed, shop.n_jobs, shop)
+                    self._follow(self.retime(shop, result.plan), shop.n_jobs, shop)
                     event["retimed"] = True
-                    # what the run did meanwhile cost more than the drift allows: re-plan once more from here
-                    # (its plan starts from a state where the plan in force knows every job, so it moves less)
-                    if not again and retimed.makespan - result.after > self._tol:
-                        self._pending = "late"
-                        self._again = True
-                        event["retimed_makespan"] = retimed.makespan
                 else:
                     self._follow(result.plan, result.n_jobs or shop.n_jobs, shop)
                 event["status"] = "adopted"
