@@ -419,6 +419,8 @@ class Replanner:
                 if self.moved_on(shop):  # computed from an earlier state (in a thread): re-time it from here
                     self._follow(self.retime(shop, result.plan), shop.n_jobs, shop)
                     event["retimed"] = True
+                    if result.n_jobs and result.n_jobs < shop.n_jobs:
+                        self._pending = "order"  # jobs ordered meanwhile were only fitted in: plan them too
                 else:
                     self._follow(result.plan, result.n_jobs or shop.n_jobs, shop)
                 event["status"] = "adopted"

@@ -273,6 +273,40 @@ def test_a_retimed_plan_is_the_better_of_its_order_and_a_list_schedule_from_the_
     assert finish_by(shop, rp.plan).makespan <= est and validate(shop.instance, shop.schedule()) == []
 
 
+def test_an_order_that_arrives_while_a_re_plan_runs_gets_its_own_re_plan():
+    # the re-plan, made before the order, was re-timed from the state with the order's jobs fitted in by the list
+    # schedule, and that was all: the order was never re-planned with the search
+    from fms_dispatch.replan import ReplanResult
+
+    inst = builtin("sl00")
+    shop = FullShop(inst)
+    rp = Replanner(inst, greedy_schedule(inst, rule="est"), budget=0.2)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+
+    def run(n):
+        k = 0
+        while st.kind != "done" and (k < n or not rp.can_snapshot(shop)):
+            label = rp.answer(st)
+            rp.apply(st, label)
+            st.apply(label)
+            k += 1
+
+    run(100)
+    rp.take(shop)  # a re-plan (here: a list schedule of the state) starts, the run goes on
+    made = greedy_schedule(inst, rule="ect", origin=snapshot(shop))
+    result = ReplanResult(made, made.makespan + 1, made.makespan, "ect", 0.0, inst.n_jobs)
+    st.add_jobs([[Operation(m, 1, 50) for m in (1, 2, 3)]])
+    run(50)
+    event = rp.adopt(shop, result, "late")
+    assert event["status"] == "adopted" and event["retimed"]
+    assert rp.trigger(shop) == "order"
+    order = rp.replan_now(shop, "order")
+    assert order["reason"] == "order" and order["status"] in ("adopted", "kept")
+    assert {r.job for r in rp.plan.operations} >= {inst.n_jobs}
+    assert finish_by(shop, rp.plan).makespan <= rp.plan.makespan and validate(shop.instance, shop.schedule()) == []
+
+
 def test_simulations_are_skipped_where_they_would_take_most_of_the_budget(monkeypatch):
     # a run through the net costs 9-25 list schedules (bench/sim_cost.py), not the 3 once assumed: on sl40 a 1 s re-plan after an order
     # simulated its plan for 0.44 s after the budget (1.46 s in all; 2-3 s while the agent's decisions flowed), and
