@@ -222,6 +222,25 @@ def test_a_kept_plan_is_not_re_planned_again_for_the_same_lateness():
     assert 1 <= len(late) <= 3, late
 
 
+def _est_run(name, budget):
+    """A replanner over ``name``'s earliest-start plan and the stepper of its run, at the first stop."""
+    inst = builtin(name)
+    rp = Replanner(inst, greedy_schedule(inst, rule="est"), budget=budget)
+    st = Stepper(FullShop(inst), idle_stops=True)
+    st.advance()
+    return rp, st
+
+
+def _follow(rp, st, n):
+    """``n`` answers of ``rp``'s plan in force, then on to a stop where a snapshot can be taken (or the end)."""
+    k = 0
+    while st.kind != "done" and (k < n or not rp.can_snapshot(st.shop)):
+        label = rp.answer(st)
+        rp.apply(st, label)
+        st.apply(label)
+        k += 1
+
+
 def _live_order(name, at, moved):
     """A run of ``name``'s earliest-start plan to ``at`` answers, where an order of two 3-operation jobs arrives;
     its re-plan (here: the earliest-start list schedule from that state, deterministic) is then computed while the
@@ -229,27 +248,15 @@ def _live_order(name, at, moved):
     does. Returns the replanner, the stepper and the new plan as a re-plan's result."""
     from fms_dispatch.replan import ReplanResult
 
-    inst = builtin(name)
-    shop = FullShop(inst)
-    rp = Replanner(inst, greedy_schedule(inst, rule="est"), budget=0.3)
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-
-    def run(n):
-        k = 0
-        while st.kind != "done" and (k < n or not rp.can_snapshot(shop)):
-            label = rp.answer(st)
-            rp.apply(st, label)
-            st.apply(label)
-            k += 1
-
-    run(at)
+    rp, st = _est_run(name, 0.3)
+    shop = st.shop
+    _follow(rp, st, at)
     st.add_jobs([[Operation(m, 1, 50) for m in (1, 2, 3)] for _ in range(2)])
-    run(0)
+    _follow(rp, st, 0)
     assert rp.trigger(shop) == "order"
     rp.take(shop)
     new = greedy_schedule(shop.instance, rule="est", origin=snapshot(shop))
-    run(moved)
+    _follow(rp, st, moved)
     assert rp.moved_on(shop) == (moved > 0)
     return rp, st, ReplanResult(new, None, new.makespan, "est", 0.0, shop.n_jobs)
 
@@ -278,26 +285,14 @@ def test_an_order_that_arrives_while_a_re_plan_runs_gets_its_own_re_plan():
     # schedule, and that was all: the order was never re-planned with the search
     from fms_dispatch.replan import ReplanResult
 
-    inst = builtin("sl00")
-    shop = FullShop(inst)
-    rp = Replanner(inst, greedy_schedule(inst, rule="est"), budget=0.2)
-    st = Stepper(shop, idle_stops=True)
-    st.advance()
-
-    def run(n):
-        k = 0
-        while st.kind != "done" and (k < n or not rp.can_snapshot(shop)):
-            label = rp.answer(st)
-            rp.apply(st, label)
-            st.apply(label)
-            k += 1
-
-    run(100)
+    rp, st = _est_run("sl00", 0.2)
+    shop, inst = st.shop, rp.instance
+    _follow(rp, st, 100)
     rp.take(shop)  # a re-plan (here: a list schedule of the state) starts, the run goes on
     made = greedy_schedule(inst, rule="ect", origin=snapshot(shop))
     result = ReplanResult(made, made.makespan + 1, made.makespan, "ect", 0.0, inst.n_jobs)
     st.add_jobs([[Operation(m, 1, 50) for m in (1, 2, 3)]])
-    run(50)
+    _follow(rp, st, 50)
     event = rp.adopt(shop, result, "late")
     assert event["status"] == "adopted" and event["retimed"]
     assert rp.trigger(shop) == "order"
