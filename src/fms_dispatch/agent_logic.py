@@ -42,6 +42,7 @@ Offline solvers named alone (``sos``, ``cpsat``) raise :class:`UnavailableSolver
 from __future__ import annotations
 
 import random
+import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from fms_msgs_json import TOPIC_COMMAND, TOPIC_ERRORS, MessageError, decode, error_reply, make_command, make_error
@@ -395,9 +396,10 @@ class PlanDecider(TwinDecider):
     The plan follows the run: each label of the history moves it on as the twin applies it, so answers never
     drift from what the shop did. With ``replan`` > 0 (seconds, the budget of one re-plan) the agent re-plans
     (:mod:`fms_dispatch.replan`) when an order arrives, a breakdown or outage begins, an operation starts late by
-    more than ``drift`` of the plan's makespan, or the plan cannot go on. A re-plan runs in a thread from a
-    snapshot of the twin; until it is ready the current plan answers (jobs it does not cover wait; a state it
-    cannot answer gets the ``fallback`` rule), so the shop never waits for it. A finished re-plan is put in
+    more than ``drift`` of the plan's makespan, or the plan cannot go on. A re-plan runs in a forked process
+    (:data:`REPLAN_IN_PROCESS`; a thread elsewhere) from a snapshot of the twin; until it is ready the current plan
+    answers (jobs it does not cover wait; a state it cannot answer gets the ``fallback`` rule), so the shop never
+    waits for it. A finished re-plan is put in
     force if it predicts an earlier end (always for an order) and is published as an ``fms/replan/v1``
     (:meth:`drain`); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout`` and the
     current plan stays. With ``replan`` 0, jobs the plan does not know and a plan that cannot go on are answered
@@ -455,6 +457,8 @@ class PlanDecider(TwinDecider):
         from .replan import Replanner
 
         # a fresh twin: the plan starts over with it (a re-plan of an earlier twin is dropped)
+        if self._job is not None:
+            self._job.cancel()
         self._job = None
         self._answered = None
         self.replanner = None  # with re-planning, the plan's policy is the replanner's (it changes with each plan)
@@ -533,7 +537,7 @@ class PlanDecider(TwinDecider):
             return WAIT
         return st.shop.action_labels()[self.fallback(st.shop)]
 
-    # ------------------------------------------------------------------ re-planning in a thread
+    # ------------------------------------------------------------------ re-planning beside the decisions
     def _answer_replanning(self, state: dict[str, Any], st: Stepper) -> str:
         from fms_sim.replay import ReplayError
 
@@ -574,7 +578,8 @@ class PlanDecider(TwinDecider):
         if not job.done.is_set():
             elapsed = job.elapsed()
             if elapsed > rp.budget + REPLAN_GRACE_S:
-                self._job = None  # the thread ends by itself (its searches have time limits); its plan is dropped
+                self._job = None  # its plan is dropped
+                job.cancel()
                 rp._follow_state(self.stepper.shop)
                 self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
                              f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
@@ -604,10 +609,31 @@ REPLAN_GRACE_S = 5.0
 """How long past its budget a re-plan may run before the agent reports it ``timeout``."""
 
 
-class _ReplanJob:
-    """One re-plan running in a daemon thread (a node that stops never waits for it)."""
+REPLAN_IN_PROCESS = sys.platform.startswith("linux")
+"""Whether a live re-plan runs in a forked process (on Linux) rather than in a thread of the agent. In a thread it
+shares the interpreter lock with the decisions: each is about half as fast while the other runs (on sl70 the agent
+answered 765 states during a 2 s re-plan in a thread against 1,820 in a process; docs/benchmarks.md §8). A forked
+process needs nothing pickled (it starts as a copy of the agent, in a few milliseconds) and sends only the
+result back."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int) -> None:
+
+def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any) -> None:
+    """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``."""
+    try:
+        out: tuple[str, Any] = ("ok", fn(*args))
+    except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
+        out = ("error", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    conn.send(out)
+    conn.close()
+
+
+class _ReplanJob:
+    """One re-plan running in a forked daemon process (:data:`REPLAN_IN_PROCESS`) or a daemon thread; a node that
+    stops never waits for it. :meth:`cancel` ends a process at once (a thread ends by itself: its searches have
+    time limits)."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int,
+                 in_process: bool | None = None) -> None:
         import threading
         import time as _time
 
@@ -618,19 +644,49 @@ class _ReplanJob:
         self.done = threading.Event()
         self._t0 = _time.monotonic()
         self._clock = _time.monotonic
+        self.process: Any = None
+        if REPLAN_IN_PROCESS if in_process is None else in_process:
+            import multiprocessing
 
-        def work() -> None:
-            try:
-                self.result = fn(*args)
-            except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
-                self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            self.wall = self._clock() - self._t0
-            self.done.set()
+            ctx = multiprocessing.get_context("fork")
+            receive, send = ctx.Pipe(duplex=False)
+            self.process = ctx.Process(target=_replan_child, args=(fn, args, send), name="fms-replan", daemon=True)
+            self.process.start()
+            send.close()  # the child holds the sending end: its exit ends the wait below
+
+            def work() -> None:
+                try:
+                    kind, value = receive.recv()
+                except (EOFError, OSError):  # the process died (killed, out of memory) or was cancelled
+                    self.process.join(1.0)
+                    kind, value = "error", (f"the re-plan process ended without a result (exit code "
+                                            f"{self.process.exitcode})")
+                receive.close()
+                if kind == "ok":
+                    self.result = value
+                else:
+                    self.error = value
+                self.wall = self._clock() - self._t0
+                self.done.set()
+                self.process.join()
+        else:
+            def work() -> None:
+                try:
+                    self.result = fn(*args)
+                except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
+                    self.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                self.wall = self._clock() - self._t0
+                self.done.set()
 
         threading.Thread(target=work, name="fms-replan", daemon=True).start()
 
     def elapsed(self) -> float:
         return self._clock() - self._t0
+
+    def cancel(self) -> None:
+        """Stop a re-plan that is no longer wanted (a process is terminated; a thread runs out by itself)."""
+        if self.process is not None and self.process.is_alive():
+            self.process.terminate()
 
 
 def needs_full_net(solver: str) -> bool:

@@ -21,9 +21,10 @@ A plan (a schedule from ``cpsat``, ``sos``, ...) is executed through the full-de
   by :meth:`fms_sim.replay.PlanPolicy.resume`.
 
 Each re-plan is an event ``{reason, time, wall_time, budget, before, after, status}`` (status ``adopted``,
-``kept`` or ``failed``; the agent node also reports ``timeout``). Offline (:func:`solve_with_replanning`, solvers ``plan:...`` with ``replan``) the
-simulated shop waits for the re-plan; the agent node re-plans in a thread and answers from the current plan
-(or its fallback rule) meanwhile (:class:`fms_dispatch.agent_logic.PlanDecider`).
+``kept`` or ``failed``; the agent node also reports ``timeout``). Offline (:func:`solve_with_replanning`, solvers
+``plan:...`` with ``replan``) the simulated shop waits for the re-plan; the agent node re-plans in a forked process
+(or a thread) and answers from the current plan (or its fallback rule) meanwhile
+(:class:`fms_dispatch.agent_logic.PlanDecider`).
 """
 
 from __future__ import annotations
@@ -290,7 +291,7 @@ class Replanner:
     """Executes ``plan`` on a :class:`~fms_sim.stepping.Stepper` over a :class:`~fms_sim.full_shop.FullShop`
     and re-plans on the triggers of the module docstring (``budget`` seconds each; ``drift`` as a fraction of
     the plan's makespan). Offline use: :meth:`step` at every stop; the agent node drives :meth:`trigger`,
-    :meth:`compute` (in a thread) and :meth:`adopt` itself."""
+    :meth:`compute` (in a process or a thread) and :meth:`adopt` itself."""
 
     instance: Instance
     plan: Schedule
@@ -416,7 +417,7 @@ class Replanner:
         else:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
-                if self.moved_on(shop):  # computed from an earlier state (in a thread): re-time it from here
+                if self.moved_on(shop):  # computed from an earlier state (beside the run): re-time it from here
                     self._follow(self.retime(shop, result.plan), shop.n_jobs, shop)
                     event["retimed"] = True
                     if result.n_jobs and result.n_jobs < shop.n_jobs:

@@ -1,5 +1,8 @@
 """Plan execution by the agent's logic: a plan made at the first state, then answered state by state."""
 
+import os
+import time
+
 import pytest
 
 from fms_dispatch.agent_logic import AgentLogic, UnavailableSolver, make_decider, needs_full_net
@@ -80,7 +83,13 @@ def test_orders_hand_over_to_the_fallback_rule_and_say_so():
     assert "does not cover" in errors[0]["message"] and "decides from here on" in errors[0]["message"]
 
 
-def test_an_order_is_replanned_and_the_new_jobs_are_served_by_the_plan():
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_an_order_is_replanned_and_the_new_jobs_are_served_by_the_plan(in_process, monkeypatch):
+    from fms_dispatch import agent_logic
+
+    if in_process and not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", in_process)
     inst = builtin("ra01")
     order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
     replans = []
@@ -128,6 +137,69 @@ def test_decisions_keep_flowing_while_a_replan_runs(monkeypatch):
         time.sleep(0.005)  # a shop slower than the agent's loop: the run outlasts the re-plan
     assert during >= 3 and slowest < 0.4  # states were answered, at once, while the re-plan ran
     assert [m["reason"] for m in replans][:1] == ["order"] and replans[0]["status"] == "adopted"
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+def _order_run(monkeypatch, compute, grace=None, pace=0.002):
+    """ra01 with an order at state 20 and re-planning on (0.5 s), the re-plan computed by ``compute(self, *args)``
+    in a forked process; returns (service, re-plan messages, the re-plan job)."""
+    from fms_dispatch import agent_logic
+    from fms_dispatch import replan as replan_module
+
+    if not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    monkeypatch.setattr(replan_module.Replanner, "compute", compute)
+    if grace is not None:
+        monkeypatch.setattr(agent_logic, "REPLAN_GRACE_S", grace)
+    inst = builtin("ra01")
+    order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+    agent = AgentLogic("plan:list", instance=inst, replan=0.5)
+    svc.start()
+    replans, jobs, steps = [], [], 0
+    while not svc.done:
+        if steps == 20:
+            svc.handle_order(encode(order))
+        out = agent.on_state(encode(svc.state))
+        job = agent.decide._job
+        if job is not None and job not in jobs:
+            jobs.append(job)
+        replans += [o.msg for o in out if o.topic == "fms/replans"]
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+        svc.handle_command(encode(cmd))
+        steps += 1
+        time.sleep(pace)  # a shop slower than the agent's loop: the run outlasts the re-plan
+    return svc, replans, jobs[0]
+
+
+def test_a_replan_in_a_process_reports_its_error_and_the_plan_stays(monkeypatch):
+    def compute(self, *args):
+        raise RuntimeError("no plan fits\nsecond line")
+
+    svc, replans, job = _order_run(monkeypatch, compute)
+    assert job.process is not None and job.process.pid != os.getpid()  # computed in another process
+    assert replans[0]["reason"] == "order" and replans[0]["status"] == "failed"
+    assert replans[0]["message"] == "no plan fits"
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+def test_a_replan_process_that_dies_is_a_failed_replan(monkeypatch):
+    def compute(self, *args):
+        os._exit(3)  # killed, out of memory...: no result comes back
+
+    svc, replans, _ = _order_run(monkeypatch, compute)
+    assert replans[0]["status"] == "failed" and "ended without a result (exit code 3)" in replans[0]["message"]
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
+def test_a_replan_process_past_its_time_is_stopped(monkeypatch):
+    def compute(self, *args):
+        time.sleep(60)
+
+    svc, replans, job = _order_run(monkeypatch, compute, grace=0.2, pace=0.02)
+    assert replans[0]["status"] == "timeout"
+    job.process.join(5)
+    assert not job.process.is_alive()  # terminated, not left to run for a minute
     assert validate(svc.instance, svc.final_schedule) == []
 
 
