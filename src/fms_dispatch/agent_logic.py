@@ -618,12 +618,19 @@ result back."""
 
 
 def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any) -> None:
-    """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``."""
+    """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``. A
+    Ctrl-C meant for the node is left to the node (which ends this process); an agent gone meanwhile is no error."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         out: tuple[str, Any] = ("ok", fn(*args))
     except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
         out = ("error", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-    conn.send(out)
+    try:
+        conn.send(out)
+    except OSError:  # the agent stopped (or dropped this re-plan) while it ran
+        pass
     conn.close()
 
 
