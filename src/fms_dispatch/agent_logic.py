@@ -658,8 +658,13 @@ class _ReplanJob:
             ctx = multiprocessing.get_context("fork")
             receive, send = ctx.Pipe(duplex=False)
             self.process = ctx.Process(target=_replan_child, args=(fn, args, send), name="fms-replan", daemon=True)
-            self.process.start()
+            try:
+                self.process.start()
+            except OSError:  # no fork now (out of memory or processes): the re-plan runs in a thread instead
+                self.process = None
+                receive.close()
             send.close()  # the child holds the sending end: its exit ends the wait below
+        if self.process is not None:
 
             def work() -> None:
                 try:

@@ -192,6 +192,20 @@ def test_a_replan_process_that_dies_is_a_failed_replan(monkeypatch):
     assert validate(svc.instance, svc.final_schedule) == []
 
 
+def test_a_replan_runs_in_a_thread_when_no_process_can_be_forked(monkeypatch):
+    import multiprocessing.context
+
+    def start(self):
+        raise OSError(12, "Cannot allocate memory")
+
+    monkeypatch.setattr(multiprocessing.context.ForkProcess, "start", start)
+    from fms_dispatch import replan as replan_module
+
+    svc, replans, job = _order_run(monkeypatch, replan_module.Replanner.compute)
+    assert job.process is None and replans[0]["status"] == "adopted"
+    assert validate(svc.instance, svc.final_schedule) == []
+
+
 def test_a_replan_process_past_its_time_is_stopped(monkeypatch):
     def compute(self, *args):
         time.sleep(60)
