@@ -70,7 +70,7 @@ ABLATION_STUDIES = ("reward_shaping", "lookahead", "masking")
 GENERALIZATION_COLUMNS = ("group", "size", "agent", "instance", "makespan", "valid", "wall_time", "train_steps")
 DISRUPTION_COLUMNS = ("instance", "mode", "noise", "seed", "breakdowns", "method", "makespan", "nominal_makespan",
                       "ratio", "decisions", "latency_ms", "plan_time")
-DISRUPTION_METHODS = ("plan:cpsat", "plan:cpsat+replan", "best-rule", "ppo", "ppo+lookahead")
+DISRUPTION_METHODS = ("plan:cpsat", "plan:cpsat+replan", "best-rule", "ppo", "ppo+lookahead", "default")
 #: the PPO model of the disruptions experiment: it must decide through the full net, which runs disruptions
 DISRUPTION_MODEL = "full"
 #: PPO + lookahead runs only on shops with at most this many operations by default: in a disrupted shop every
@@ -634,15 +634,16 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     (:func:`~fms_dispatch.rl.lookahead.nominal_twin`: what a dispatcher can know), on shops of at most
     ``lookahead_max_ops`` operations (the others are listed in ``not_measured``). Instances: sl{g}0 for
     groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed); ``instances``
-    (names among those) runs only these."""
+    (names among those) runs only these. ``default`` — the shipped default model
+    (:func:`~fms_dispatch.rl.models.default_model_name`: a guided model acting out its searched plan), deciding in the
+    disrupted shop and re-planning its guide at breakdowns and delays (:class:`~fms_dispatch.rl.agent.GuideReplanner`):
+    what ``fms solve --solver ppo`` does in a disrupted shop."""
     from fms_sim.disruptions import Scenario
     from fms_sim.formats import load_instance
 
     from .replan import solve_with_replanning
-    from .rl.models import load_agent
+    from .rl.models import ModelNotFoundError, default_model_name, load_agent
     from .solvers import solve
-
-    from .rl.models import ModelNotFoundError
 
     from .rl.lookahead import nominal_twin, run_with_lookahead
 
@@ -655,6 +656,14 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         missing["ppo"] = missing["ppo+lookahead"] = (f"model {DISRUPTION_MODEL!r} not available: "
                                                      f"{str(exc).splitlines()[0]}")
     skipped_la: list[str] = []
+
+    def default_run(inst: Instance, sc: Any) -> tuple[Schedule, int, float]:
+        from .rl.agent import GuideReplanner
+
+        model = load_agent(default_model_name(inst))
+        model.use_guide_effort(None)  # a cached agent: the default plan search for every run
+        choose = GuideReplanner(model) if sc is not None and model.guide is not None else model.act
+        return _timed_run(inst, sc, None, choose)
 
     def lookahead_run(inst: Instance, sc: Any) -> tuple[Schedule, int, float]:
         from fms_sim.full_shop import FullShop
@@ -682,6 +691,11 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             raise ValueError(f"--instances: {', '.join(unknown)} not in this experiment (choose from "
                              f"{', '.join(dict.fromkeys(n for n, _ in insts))})")
         insts = [(n, m) for n, m in insts if n in set(instances)]
+    try:  # the default model is the same for every shop (models.default_model_name)
+        load_agent(default_model_name(load_instance(insts[0][0])))
+    except (ModelNotFoundError, ImportError) as exc:
+        methods = tuple(m for m in methods if m != "default")
+        missing["default"] = f"the default model is not available: {str(exc).splitlines()[0]}"
     rows: list[dict[str, Any]] = []
     for i, (name, mode) in enumerate(insts):
         inst = load_instance(name)
@@ -706,6 +720,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                 nominal["ppo+lookahead"] = lookahead_run(inst, None)[0].makespan
             else:
                 skipped_la.append(f"{inst.name} ({mode})")
+        if "default" in methods:
+            nominal["default"] = default_run(inst, None)[0].makespan
         for noise in noises:
             for k in range(n_seeds):
                 sc = Scenario.draw(inst, noise=noise, breakdowns=2, horizon=max(1, plan.makespan // 2),
@@ -725,6 +741,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                         sched, n, secs = _timed_run(inst, sc, None, agent.act)
                     elif method == "ppo+lookahead":
                         sched, n, secs = lookahead_run(inst, sc)
+                    elif method == "default":
+                        sched, n, secs = default_run(inst, sc)
                     else:
                         sched, n, secs = _timed_run(inst, sc, rule_plan, None if rule_plan else winner)
                     _checked(inst, sched)
@@ -745,7 +763,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             summary[f"{method} noise {noise:g}"] = {"mean_makespan": _mean([r["makespan"] for r in sel]),
                                                     "mean_ratio_to_nominal": _mean([r["ratio"] for r in sel]),
                                                     "runs": len(sel)}
-    wins, rwins, pwins, lwins = {}, {}, {}, {}
+    wins, rwins, pwins, lwins, dwins = {}, {}, {}, {}, {}
     for noise in noises:
         pairs = {}
         for r in rows:
@@ -761,6 +779,10 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             la = [v for v in pairs.values() if "ppo+lookahead" in v]
             lwins[f"noise {noise:g}"] = (sum(1 for v in la if v["plan:cpsat+replan"] < v["ppo+lookahead"]),
                                          sum(1 for v in la if v["ppo+lookahead"] < v["ppo"]), len(la))
+        if "default" in methods:
+            dwins[f"noise {noise:g}"] = (sum(1 for v in pairs.values() if v["plan:cpsat+replan"] < v["default"]),
+                                         sum(1 for v in pairs.values() if v["default"] < v["plan:cpsat+replan"]),
+                                         sum(1 for v in pairs.values() if v["default"] < v["best-rule"]), len(pairs))
     meta = {"experiment": "disruptions", "quick": quick, "seed": seed, "seeds": n_seeds, "noises": list(noises),
             "cpsat_time": cpsat_time, "instances": [f"{n} ({m})" for n, m in insts],
             "not_measured": missing, "summary": summary,
@@ -771,6 +793,9 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             "ppo_beats_best_rule": {k: f"{b}/{c}" for k, (a, b, c) in pwins.items()},
             "replan_beats_ppo_lookahead": {k: f"{a}/{c}" for k, (a, b, c) in lwins.items()},
             "ppo_lookahead_beats_ppo": {k: f"{b}/{c}" for k, (a, b, c) in lwins.items()},
+            "replan_beats_default": {k: f"{a}/{d}" for k, (a, b, c, d) in dwins.items()},
+            "default_beats_replan": {k: f"{b}/{d}" for k, (a, b, c, d) in dwins.items()},
+            "default_beats_best_rule": {k: f"{c}/{d}" for k, (a, b, c, d) in dwins.items()},
             "lookahead_max_ops": lookahead_max_ops}
 
     def draw(path: Path) -> None:
@@ -807,6 +832,12 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
             print("plan:cpsat+replan beats PPO + lookahead: " + ", ".join(
                 f"{k}: {v}" for k, v in meta["replan_beats_ppo_lookahead"].items()) + "; PPO + lookahead beats PPO: "
                 + ", ".join(f"{k}: {v}" for k, v in meta["ppo_lookahead_beats_ppo"].items()))
+        if dwins:
+            print("plan:cpsat+replan beats the default model: " + ", ".join(
+                f"{k}: {v}" for k, v in meta["replan_beats_default"].items()) + "; the default model beats it: "
+                + ", ".join(f"{k}: {v}" for k, v in meta["default_beats_replan"].items())
+                + "; the default model beats the best rule: "
+                + ", ".join(f"{k}: {v}" for k, v in meta["default_beats_best_rule"].items()))
         if missing:
             print("not measured: " + "; ".join(f"{k} ({why})" for k, why in missing.items()))
         print(f"written: {', '.join(str(p) for p in paths.values())}")

@@ -209,7 +209,8 @@ def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
 
     doc = run_disruptions(quick=True, results_dir=tmp_path)
     rows, saved = _outputs(tmp_path, "disruptions", DISRUPTION_COLUMNS)
-    assert len(rows) == 2 * 2 * 5  # two instances x noise 0 / 10 % x five methods (PPO: the full-net model)
+    # two instances x noise 0 / 10 % x six methods (PPO: the full-net model; default: the shipped default model)
+    assert len(rows) == 2 * 2 * 6
     assert {r["instance"] for r in rows} == {"EX12", "ra01"} and {float(r["noise"]) for r in rows} == {0.0, 0.1}
     assert all(int(r["breakdowns"]) == 2 for r in rows)
     for r in rows:  # every run measured (and validated inside the experiment), with its decision latency
@@ -232,8 +233,20 @@ def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     for r in look:
         plain = next(p for p in rows if p["method"] == "ppo" and p["instance"] == r["instance"])
         assert int(r["nominal_makespan"]) <= int(plain["nominal_makespan"])
+    # the default model (its plan search stops on the clock, so its makespans are not compared with another run):
+    # one nominal run per instance, each disrupted run against it
+    default = [r for r in rows if r["method"] == "default"]
+    assert {r["instance"] for r in default} == {"EX12", "ra01"}
+    for r in default:
+        assert len({int(d["nominal_makespan"]) for d in default if d["instance"] == r["instance"]}) == 1
+        assert float(r["ratio"]) == round(int(r["makespan"]) / int(r["nominal_makespan"]), 4)
+    assert set(saved["replan_beats_default"]) == set(saved["default_beats_best_rule"]) == {"noise 0", "noise 0.1"}
+    for k, v in saved["replan_beats_default"].items():
+        a, n = map(int, v.split("/"))
+        b = int(saved["default_beats_replan"][k].split("/")[0])
+        assert n == 2 and a + b <= n
     out = capsys.readouterr().out
-    assert "| method | noise |" in out and "beats PPO + lookahead" in out
+    assert "| method | noise |" in out and "beats PPO + lookahead" in out and "beats the default model" in out
 
 
 def test_disruptions_run_the_lookahead_only_up_to_its_size_limit(tmp_path: Path) -> None:
@@ -258,5 +271,6 @@ def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path
     monkeypatch.setenv("FMS_MODELS_DIR", str(tmp_path / "none"))
     doc = run_disruptions(quick=True, results_dir=tmp_path, echo=False)
     assert "no model named 'full'" in doc["not_measured"]["ppo"] and "no model" in doc["not_measured"]["ppo+lookahead"]
+    assert "the default model is not available" in doc["not_measured"]["default"]
     assert {r["method"].split(" ")[0] for r in doc["rows"]} == {"plan:cpsat", "plan:cpsat+replan", "best-rule"}
 
