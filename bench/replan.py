@@ -9,6 +9,8 @@ validated).
 
     .venv/bin/python bench/replan.py                       # sl70, plan:list, budget 2 s
     .venv/bin/python bench/replan.py --instance sl70 --plan plan:cpsat:10 --budget 2
+    .venv/bin/python bench/replan.py --replan-in thread     # the re-plan in a thread of the agent (default: a
+                                                            # forked process where the OS has fork)
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import platform
 import random
 import time
 
+from fms_dispatch import agent_logic
 from fms_dispatch.agent_logic import AgentLogic
 from fms_msgs_json import encode, make_order
 from fms_sim.benchmarks import builtin
@@ -35,7 +38,14 @@ def main() -> None:
     p.add_argument("--at", type=int, default=800, help="answered states before the order")
     p.add_argument("--jobs", type=positive, default=3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pace", type=float, default=0.0,
+                   help="seconds the shop takes per state at least (0: as fast as the agent answers; a real shop "
+                        "goes on at its own pace however fast the agent is)")
+    p.add_argument("--replan-in", choices=("process", "thread"),
+                   help="where the re-plan runs (default: agent_logic.REPLAN_IN_PROCESS)")
     a = p.parse_args()
+    if a.replan_in:
+        agent_logic.REPLAN_IN_PROCESS = a.replan_in == "process"
     inst = builtin(a.instance)
     rng = random.Random(a.seed)
     jobs = [[{"machine": m, "tool": rng.randint(1, inst.n_tools) if inst.has_tools else None,
@@ -55,6 +65,8 @@ def main() -> None:
         t1 = time.monotonic()
         out = agent.on_state(encode(svc.state))
         dt = time.monotonic() - t1
+        if dt < a.pace:
+            time.sleep(a.pace - dt)
         job = agent.decide._job
         if job is not None and not job.done.is_set():
             during += 1
@@ -67,7 +79,8 @@ def main() -> None:
         steps += 1
     s = svc.final_schedule
     assert validate(svc.instance, s) == []
-    print(f"{a.instance} {a.plan}, budget {a.budget:g} s, order of {a.jobs} jobs after {a.at} states "
+    where = "a process" if agent_logic.REPLAN_IN_PROCESS else "a thread"
+    print(f"{a.instance} {a.plan}, budget {a.budget:g} s in {where}, order of {a.jobs} jobs after {a.at} states "
           f"({platform.node()}, {time.strftime('%Y-%m-%d')}); run {time.monotonic() - t0:.1f} s, {steps} states, "
           f"makespan {s.makespan}")
     for r in replans:

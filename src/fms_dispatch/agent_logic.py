@@ -612,8 +612,8 @@ REPLAN_GRACE_S = 5.0
 REPLAN_IN_PROCESS = sys.platform.startswith("linux")
 """Whether a live re-plan runs in a forked process (on Linux) rather than in a thread of the agent. In a thread it
 shares the interpreter lock with the decisions: each is about half as fast while the other runs (on sl70 the agent
-answered 765 states during a 2 s re-plan in a thread against 1,820 in a process; docs/benchmarks.md §8). A forked
-process needs nothing pickled (it starts as a copy of the agent, in a few milliseconds) and sends only the
+answered 667-869 states during a 2 s re-plan in a thread against 1,680-1,887 in a process; docs/benchmarks.md §8). A
+forked process needs nothing pickled (it starts as a copy of the agent, in a few milliseconds) and sends only the
 result back."""
 
 
