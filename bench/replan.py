@@ -10,7 +10,9 @@ validated).
     .venv/bin/python bench/replan.py                       # sl70, plan:list, budget 2 s
     .venv/bin/python bench/replan.py --instance sl70 --plan plan:cpsat:10 --budget 2
     .venv/bin/python bench/replan.py --replan-in thread     # the re-plan in a thread of the agent (default: a
-                                                            # forked process where the OS has fork)
+                                                            # forked process on Linux)
+    .venv/bin/python bench/replan.py --pace 0.004           # a shop that takes at least 4 ms per state (without
+                                                            # it the shop moves on as fast as the agent answers)
 """
 
 from __future__ import annotations
