@@ -43,6 +43,8 @@ def main() -> None:
     p.add_argument("--pace", type=float, default=0.0,
                    help="seconds the shop takes per state at least (0: as fast as the agent answers; a real shop "
                         "goes on at its own pace however fast the agent is)")
+    p.add_argument("--wait", action="store_true",
+                   help="the shop waits for each re-plan (the agent's replan_wait; fms up --replan-wait)")
     p.add_argument("--replan-in", choices=("process", "thread"),
                    help="where the re-plan runs (default: agent_logic.REPLAN_IN_PROCESS)")
     a = p.parse_args()
@@ -55,7 +57,7 @@ def main() -> None:
             for _ in range(a.jobs)]
     svc = ShopService(inst, run_id="bench", decisions="full", history=True, idle_stops=True, features=False)
     t0 = time.monotonic()
-    agent = AgentLogic(a.plan, instance=inst, replan=a.budget)
+    agent = AgentLogic(a.plan, instance=inst, replan=a.budget, replan_wait=a.wait)
     svc.start()
     steps, during, slowest_during, slowest, replans = 0, 0, 0.0, 0.0, []
     while not svc.done:
@@ -81,7 +83,7 @@ def main() -> None:
         steps += 1
     s = svc.final_schedule
     assert validate(svc.instance, s) == []
-    where = "a process" if agent_logic.REPLAN_IN_PROCESS else "a thread"
+    where = ("a process" if agent_logic.REPLAN_IN_PROCESS else "a thread") + (", the shop waiting" if a.wait else "")
     print(f"{a.instance} {a.plan}, budget {a.budget:g} s in {where}, order of {a.jobs} jobs after {a.at} states "
           f"({platform.node()}, {time.strftime('%Y-%m-%d')}); run {time.monotonic() - t0:.1f} s, {steps} states, "
           f"makespan {s.makespan}")

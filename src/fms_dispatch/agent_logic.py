@@ -402,13 +402,17 @@ class PlanDecider(TwinDecider):
     waits for it. A finished re-plan is put in
     force if it predicts an earlier end (always for an order) and is published as an ``fms/replan/v1``
     (:meth:`drain`); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout`` and the
-    current plan stays. With ``replan`` 0, jobs the plan does not know and a plan that cannot go on are answered
-    by the fallback rule from then on, and the first such state publishes an ``internal`` error."""
+    current plan stays. With ``replan_wait`` the state that triggers a re-plan is answered only once the re-plan is
+    done (and by the new plan, if it is put in force): the shop waits, as the offline re-planning does. That suits a
+    simulated shop, which otherwise runs on under the old plan for as many states as the agent answers meanwhile; a
+    real shop goes on anyway. With ``replan`` 0, jobs the plan does not know and a plan that cannot go on are
+    answered by the fallback rule from then on, and the first such state publishes an ``internal`` error."""
 
     decisions = "full"
 
     def __init__(self, instance: Instance, name: str, fallback: str = "rule:MTWR+nearest+fifo",
-                 replan: float = 0.0, drift: float | None = None, source: str = SOURCE) -> None:
+                 replan: float = 0.0, drift: float | None = None, source: str = SOURCE,
+                 replan_wait: bool = False) -> None:
         from fms_dispatch.full_rules import parse_full_rule
 
         from .replan import DEFAULT_DRIFT
@@ -422,6 +426,7 @@ class PlanDecider(TwinDecider):
         self.fallback_name = fallback
         self.fallback = parse_full_rule(fallback)
         self.replan_budget = float(replan)
+        self.replan_wait = bool(replan_wait)
         self.drift = DEFAULT_DRIFT if drift is None else float(drift)
         if not self.drift > 0:
             raise UnavailableSolver(f"the re-planning drift must be positive, got {self.drift}")
@@ -549,6 +554,7 @@ class PlanDecider(TwinDecider):
             reason = rp.trigger(shop)
             if reason is not None:
                 self._start(reason, state)
+                self._wait(state)
         try:
             self._answered = rp.answer(st)  # the next history label is this one if the shop applied it
             return self._answered
@@ -556,8 +562,25 @@ class PlanDecider(TwinDecider):
             self._answered = None
             if self._job is None and rp.can_snapshot(shop):
                 self._start("stuck", state)
+                if self._wait(state):  # answered by the new plan, if it can
+                    try:
+                        self._answered = rp.answer(st)
+                        return self._answered
+                    except ReplayError:
+                        self._answered = None
             rp._off_plan = True
             return self._fallback_answer(st)
+
+    def _wait(self, state: dict[str, Any]) -> bool:
+        """With ``replan_wait``: wait for the re-plan just started (at most its budget plus the grace) and put it in
+        force; returns whether a re-plan was collected."""
+        job = self._job
+        if not self.replan_wait or job is None:
+            return False
+        job.done.wait(self.replanner.budget + REPLAN_GRACE_S + 0.1)  # past the grace, _collect reports a timeout
+        self._collect(state)
+        self._resync()
+        return self._job is None
 
     def _start(self, reason: str, state: dict[str, Any]) -> None:
         rp = self.replanner
@@ -777,13 +800,14 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
 
 
 def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *, replan: float = 0.0,
-                 drift: float | None = None, guide_effort: Any = None, guide_replan: bool = True
-                 ) -> tuple[Decider, str]:
+                 drift: float | None = None, guide_effort: Any = None, guide_replan: bool = True,
+                 replan_wait: bool = False) -> tuple[Decider, str]:
     """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
 
-    ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off)
-    and ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`); ``guide_effort`` the
-    plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns and delays."""
+    ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off),
+    ``drift`` and ``replan_wait`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`);
+    ``guide_effort`` the plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns and
+    delays."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
@@ -812,7 +836,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
         from .solvers import UnknownSolver
 
         try:
-            plan_decider = PlanDecider(instance, name, replan=replan, drift=drift)
+            plan_decider = PlanDecider(instance, name, replan=replan, drift=drift, replan_wait=replan_wait)
         except (UnknownSolver, ValueError) as exc:
             raise UnavailableSolver(str(exc)) from None
         return plan_decider, name
@@ -835,9 +859,10 @@ class AgentLogic:
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
                  instance: Instance | None = None, replan: float = 0.0, drift: float | None = None,
-                 guide_effort: Any = None, guide_replan: bool = True) -> None:
+                 guide_effort: Any = None, guide_replan: bool = True, replan_wait: bool = False) -> None:
         self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift,
-                                              guide_effort=guide_effort, guide_replan=guide_replan)
+                                              guide_effort=guide_effort, guide_replan=guide_replan,
+                                              replan_wait=replan_wait)
         self.source = source
         self.run_id: str | None = None
         self.last_seq = -1           # the newest state seq seen in run_id

@@ -14,8 +14,9 @@ Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|ne
 as the shop node's; needed by ``ppo`` solvers, which replay the states' ``history`` into a twin of the shop —
 start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahead), ``delay_s`` (think time before each command, for demos and tests),
 ``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
-re-planning off) and ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
-default 0.05). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
+re-planning off), ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
+default 0.05) and ``replan_wait`` (default false: the run goes on under the current plan while a re-plan runs; true:
+the state that triggered it is answered once the re-plan is done, so a simulated shop waits for it). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
 ``guided-dagger``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
 tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
@@ -56,6 +57,7 @@ class AgentNode(FmsNode):
         self.resend_s = float(param(n, "resend_s", 1.0))
         replan = float(param(n, "replan", 2.0))
         drift = float(param(n, "drift", 0.05))
+        replan_wait = bool(param(n, "replan_wait", False))
         inst = self._instance()
         restarts = int(param(n, "guide_restarts", -1))
         budget = float(param(n, "guide_budget", -1.0))
@@ -75,7 +77,7 @@ class AgentNode(FmsNode):
                                    ) from None
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
-                                    guide_replan=guide_replan)
+                                    guide_replan=guide_replan, replan_wait=replan_wait)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:

@@ -91,6 +91,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replan", type=float, default=None, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
+    p.add_argument("--replan-wait", action="store_true",
+                   help="plan: solvers: the shop waits for each re-plan (as offline re-planning does) instead of "
+                        "running on under the old plan meanwhile")
     add_guide_args(p)
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -276,6 +279,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
     if a.replan is not None and not needs_full_net(solver):
         raise UpError(f"--replan applies to plan: solvers only, not to {solver!r}")
+    if a.replan_wait and not needs_full_net(solver):
+        raise UpError(f"--replan-wait applies to plan: solvers only, not to {solver!r}")
     try:
         decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
@@ -298,6 +303,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     replan = 2.0 if a.replan is None else a.replan
     if not 0 <= replan < float("inf"):
         raise UpError("--replan must be >= 0 seconds (0: never re-plan)")
+    if a.replan_wait and replan == 0:
+        raise UpError("--replan-wait needs re-planning (--replan > 0)")
     domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
     try:
         domain = int(domain)
@@ -343,6 +350,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if needs_full_net(solver):
         agent_params["replan"] = float(replan)
+        if a.replan_wait:
+            agent_params["replan_wait"] = True
     if twin:
         agent_params["instance"] = str(inst_in)
     if effort is not None:

@@ -172,6 +172,46 @@ def _order_run(monkeypatch, compute, grace=None, pace=0.002):
     return svc, replans, jobs[0]
 
 
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+@pytest.mark.parametrize("name,at", [("ra01", 20), ("EX42", 10)])
+def test_with_replan_wait_the_shop_waits_and_the_run_ends_as_predicted(name, at, in_process, monkeypatch):
+    """The state of the order is answered once the re-plan is in force: no state is answered meanwhile, and in a
+    nominal shop the run ends at the re-plan's prediction (a simulation from that very state). Without waiting, the
+    run goes on under the old plan meanwhile (on these small shops it even ends before the re-plan is back)."""
+    from fms_dispatch import agent_logic
+
+    if in_process and not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", in_process)
+    inst = builtin(name)
+    order = make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5},
+                               {"machine": 3, "duration": 4}]])
+    spans = {}
+    for wait in (True, False):
+        svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+        agent = AgentLogic("plan:list", instance=inst, replan=0.5, replan_wait=wait)
+        svc.start()
+        replans, steps, during = [], 0, 0
+        while not svc.done:
+            if steps == at:
+                svc.handle_order(encode(order))
+            out = agent.on_state(encode(svc.state))
+            during += agent.decide._job is not None
+            replans += [o.msg for o in out if o.topic == "fms/replans"]
+            (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+            svc.handle_command(encode(cmd))
+            steps += 1
+        s = svc.final_schedule
+        assert validate(svc.instance, s) == [] and {r.job for r in s.operations} == set(range(inst.n_jobs + 1))
+        spans[wait] = s.makespan
+        if wait:
+            assert during == 0 and [(m["reason"], m["status"]) for m in replans] == [("order", "adopted")]
+            assert s.makespan == replans[0]["after"]
+        else:
+            assert during > 0
+    assert spans[True] < spans[False]
+
+
 def test_a_replan_in_a_process_reports_its_error_and_the_plan_stays(monkeypatch):
     def compute(self, *args):
         raise RuntimeError("no plan fits\nsecond line")

@@ -214,6 +214,8 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--timeout", "nan"], "--timeout must be a positive number"),
              (["--timeout", "inf"], "--timeout must be a positive number"),
              (["--replan", "5"], "--replan applies to plan: solvers only"),
+             (["--replan-wait"], "--replan-wait applies to plan: solvers only"),
+             (["--solver", "plan:list", "--replan", "0", "--replan-wait"], "--replan-wait needs re-planning"),
              (["--db", str(db)], "run id 't1' is already in")]
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
@@ -234,3 +236,17 @@ def test_sigterm_stops_the_nodes_as_ctrl_c_does() -> None:
     finally:
         guard.restore()
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_replan_wait_reaches_the_agent_node(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
+    fake_nodes()
+    seen: dict[str, dict[str, Any]] = {}
+    fake = up.node_command
+
+    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+        seen[module.rsplit(".", 1)[1]] = params
+        return fake(module, params, python)
+
+    monkeypatch.setattr(up, "node_command", command)
+    assert _up(tmp_path, "--solver", "plan:list", "--replan-wait") == up.EXIT_OK, capsys.readouterr().err
+    assert seen["agent_node"]["replan_wait"] is True and seen["agent_node"]["replan"] == 2.0
