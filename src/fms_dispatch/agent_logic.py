@@ -399,10 +399,9 @@ class PlanDecider(TwinDecider):
     more than ``drift`` of the plan's makespan, or the plan cannot go on. A re-plan runs in a forked process
     (:data:`REPLAN_IN_PROCESS`; a thread elsewhere) from a snapshot of the twin; until it is ready the current plan
     answers (jobs it does not cover wait; a state it cannot answer gets the ``fallback`` rule), so the shop never
-    waits for it. A finished re-plan is put in
-    force if it predicts an earlier end (always for an order) and is published as an ``fms/replan/v1``
-    (:meth:`drain`); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout`` and the
-    current plan stays. With ``replan_wait`` the state that triggers a re-plan is answered only once the re-plan is
+    waits for it. A finished re-plan is put in force if it predicts an earlier end (always for an order) and is
+    published as an ``fms/replan/v1`` (:meth:`drain`); one not done after its budget plus :data:`REPLAN_GRACE_S` is
+    reported ``timeout`` (a process is then ended) and the current plan stays. With ``replan_wait`` the state that triggers a re-plan is answered only once the re-plan is
     done (and by the new plan, if it is put in force): the shop waits, as the offline re-planning does. That suits a
     simulated shop, which otherwise runs on under the old plan for as many states as the agent answers meanwhile; a
     real shop goes on anyway. With ``replan`` 0, jobs the plan does not know and a plan that cannot go on are
@@ -662,8 +661,7 @@ class _ReplanJob:
     stops never waits for it. :meth:`cancel` ends a process at once (a thread ends by itself: its searches have
     time limits)."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int,
-                 in_process: bool | None = None) -> None:
+    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int) -> None:
         import threading
         import time as _time
 
@@ -675,7 +673,7 @@ class _ReplanJob:
         self._t0 = _time.monotonic()
         self._clock = _time.monotonic
         self.process: Any = None
-        if REPLAN_IN_PROCESS if in_process is None else in_process:
+        if REPLAN_IN_PROCESS:
             import multiprocessing
 
             ctx = multiprocessing.get_context("fork")
