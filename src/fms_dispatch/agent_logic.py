@@ -581,6 +581,20 @@ class PlanDecider(TwinDecider):
         self._resync()
         return self._job is None
 
+    def finish(self, state: dict[str, Any]) -> list[Outgoing]:
+        """At the run's final state: a re-plan still running is ended and reported ``timeout`` (the run ended before
+        it was done; its plan is dropped), so every trigger gets its ``fms/replan/v1``."""
+        job = self._job
+        if job is None or job.run_id != state["run_id"]:
+            return []
+        self._job = None
+        job.cancel()
+        elapsed = job.elapsed()
+        self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
+                     f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done (budget "
+                     f"{self.replan_budget:g} s); its plan was dropped")
+        return self.drain()
+
     def _start(self, reason: str, state: dict[str, Any]) -> None:
         rp = self.replanner
         shop = self.stepper.shop
@@ -880,7 +894,8 @@ class AgentLogic:
             return []
         self.last_seq = seq
         if state["done"]:
-            return []
+            finish = getattr(self.decide, "finish", None)  # e.g. a plan decider's re-plan cut short by the end
+            return [] if finish is None else finish(state)
         out: list[Outgoing] = []
         try:
             if state.get("idle") and not getattr(self.decide, "handles_idle", False):

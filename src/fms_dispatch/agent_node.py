@@ -15,8 +15,9 @@ as the shop node's; needed by ``ppo`` solvers, which replay the states' ``histor
 start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahead), ``delay_s`` (think time before each command, for demos and tests),
 ``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
 re-planning off), ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
-default 0.05) and ``replan_wait`` (default false: the run goes on under the current plan while a re-plan runs; true:
-the state that triggered it is answered once the re-plan is done, so a simulated shop waits for it). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
+default 0.05) and ``replan_wait`` (default false: the run goes on under the current plan while a re-plan runs;
+true: the state that triggered it is answered once the re-plan is done, so a simulated shop waits for it). Re-plans
+are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
 ``guided-dagger``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
 tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:

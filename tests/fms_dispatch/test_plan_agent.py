@@ -246,6 +246,41 @@ def test_a_replan_runs_in_a_thread_when_no_process_can_be_forked(monkeypatch):
     assert validate(svc.instance, svc.final_schedule) == []
 
 
+def test_a_replan_still_running_when_the_run_ends_is_reported_and_stopped(monkeypatch):
+    def compute(self, *args):
+        time.sleep(60)
+
+    from fms_dispatch import agent_logic
+
+    if not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    from fms_dispatch import replan as replan_module
+
+    monkeypatch.setattr(replan_module.Replanner, "compute", compute)
+    inst = builtin("ra01")
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+    agent = AgentLogic("plan:list", instance=inst, replan=0.5)
+    svc.start()
+    steps, job = 0, None
+    while not svc.done:
+        if steps == 20:
+            svc.handle_order(encode(make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}]])))
+        out = agent.on_state(encode(svc.state))
+        job = job or agent.decide._job
+        assert not [o for o in out if o.topic == "fms/replans"]  # the run outlasts no re-plan here
+        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
+        svc.handle_command(encode(cmd))
+        steps += 1
+    assert job is not None and svc.state["done"]
+    out = agent.on_state(encode(svc.state))  # the final state: no command, the re-plan's report
+    (msg,) = [o.msg for o in out]
+    assert msg["schema"] == "fms/replan/v1" and msg["reason"] == "order" and msg["status"] == "timeout"
+    assert "the run ended" in msg["message"] and "dropped" in msg["message"]
+    job.process.join(5)
+    assert not job.process.is_alive()
+    assert agent.decide.finish(svc.state) == []  # said once
+
+
 def test_a_replan_process_past_its_time_is_stopped(monkeypatch):
     def compute(self, *args):
         time.sleep(60)
