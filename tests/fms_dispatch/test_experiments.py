@@ -237,6 +237,9 @@ def test_disruptions_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     # one nominal run per instance, each disrupted run against it
     default = [r for r in rows if r["method"] == "default"]
     assert {r["instance"] for r in default} == {"EX12", "ra01"}
+    for r in rows:  # the time spent before a run: a plan's or the rule choice's; a policy's is inside its run
+        assert (float(r["plan_time"]) > 0) == (r["method"].split(" ")[0] in ("plan:cpsat", "plan:cpsat+replan",
+                                                                               "best-rule")), r
     for r in default:
         assert len({int(d["nominal_makespan"]) for d in default if d["instance"] == r["instance"]}) == 1
         assert float(r["ratio"]) == round(int(r["makespan"]) / int(r["nominal_makespan"]), 4)
