@@ -705,17 +705,16 @@ class _ReplanJob:
                 try:
                     kind, value = receive.recv()
                 except (EOFError, OSError):  # the process died (killed, out of memory) or was cancelled
-                    self.process.join(1.0)
-                    kind, value = "error", (f"the re-plan process ended without a result (exit code "
-                                            f"{self.process.exitcode})")
+                    kind, value = "error", None
                 receive.close()
+                self.process.join()  # reaped here only (the child ends right after sending), before done is set
                 if kind == "ok":
                     self.result = value
                 else:
-                    self.error = value
+                    self.error = value or (f"the re-plan process ended without a result (exit code "
+                                           f"{self.process.exitcode})")
                 self.wall = self._clock() - self._t0
                 self.done.set()
-                self.process.join()
         else:
             def work() -> None:
                 try:
@@ -732,7 +731,7 @@ class _ReplanJob:
 
     def cancel(self) -> None:
         """Stop a re-plan that is no longer wanted (a process is terminated; a thread runs out by itself)."""
-        if self.process is not None and self.process.is_alive():
+        if self.process is not None and not self.done.is_set():  # (only the job's own thread reaps the process)
             self.process.terminate()
 
 

@@ -276,8 +276,7 @@ def test_a_replan_still_running_when_the_run_ends_is_reported_and_stopped(monkey
     (msg,) = [o.msg for o in out]
     assert msg["schema"] == "fms/replan/v1" and msg["reason"] == "order" and msg["status"] == "timeout"
     assert "the run ended" in msg["message"] and "dropped" in msg["message"]
-    job.process.join(5)
-    assert not job.process.is_alive()
+    assert job.done.wait(10) and job.process.exitcode is not None  # ended (and reaped by the job), not left to run
     assert agent.decide.finish(svc.state) == []  # said once
 
 
@@ -287,8 +286,7 @@ def test_a_replan_process_past_its_time_is_stopped(monkeypatch):
 
     svc, replans, job = _order_run(monkeypatch, compute, grace=0.2, pace=0.02)
     assert replans[0]["status"] == "timeout"
-    job.process.join(5)
-    assert not job.process.is_alive()  # terminated, not left to run for a minute
+    assert job.done.wait(10) and job.process.exitcode is not None  # terminated, not left to run for a minute
     assert validate(svc.instance, svc.final_schedule) == []
 
 
