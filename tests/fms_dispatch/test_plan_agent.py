@@ -87,8 +87,8 @@ def test_orders_hand_over_to_the_fallback_rule_and_say_so():
 def test_an_order_is_replanned_and_the_new_jobs_are_served_by_the_plan(in_process, monkeypatch):
     from fms_dispatch import agent_logic
 
-    if in_process and not agent_logic.REPLAN_IN_PROCESS:
-        pytest.skip("re-plans run in a forked process on Linux only")
+    if in_process:
+        _forking()
     monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", in_process)
     inst = builtin("ra01")
     order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
@@ -140,36 +140,47 @@ def test_decisions_keep_flowing_while_a_replan_runs(monkeypatch):
     assert validate(svc.instance, svc.final_schedule) == []
 
 
-def _order_run(monkeypatch, compute, grace=None, pace=0.002):
-    """ra01 with an order at state 20 and re-planning on (0.5 s), the re-plan computed by ``compute(self, *args)``
-    in a forked process; returns (service, re-plan messages, the re-plan job)."""
+def _order_run(monkeypatch, compute=None, grace=None, pace=0.002, name="ra01", at=20, replan_wait=False):
+    """``name`` with an order at state ``at`` and re-planning on (0.5 s), the shop taking at least ``pace`` s per
+    state; ``compute(self, *args)`` replaces the re-plan's computation, and ``grace`` the grace past its budget.
+    Returns (service, agent, re-plan messages, the re-plan jobs, states answered while a re-plan ran)."""
     from fms_dispatch import agent_logic
     from fms_dispatch import replan as replan_module
 
-    if not agent_logic.REPLAN_IN_PROCESS:
-        pytest.skip("re-plans run in a forked process on Linux only")
-    monkeypatch.setattr(replan_module.Replanner, "compute", compute)
+    if compute is not None:
+        monkeypatch.setattr(replan_module.Replanner, "compute", compute)
     if grace is not None:
         monkeypatch.setattr(agent_logic, "REPLAN_GRACE_S", grace)
-    inst = builtin("ra01")
-    order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
+    inst = builtin(name)
+    order = make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5},
+                               {"machine": 3, "duration": 4}]])
     svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
-    agent = AgentLogic("plan:list", instance=inst, replan=0.5)
+    agent = AgentLogic("plan:list", instance=inst, replan=0.5, replan_wait=replan_wait)
     svc.start()
-    replans, jobs, steps = [], [], 0
+    replans, jobs, steps, during = [], [], 0, 0
     while not svc.done:
-        if steps == 20:
+        if steps == at:
             svc.handle_order(encode(order))
         out = agent.on_state(encode(svc.state))
         job = agent.decide._job
         if job is not None and job not in jobs:
             jobs.append(job)
+        during += job is not None
         replans += [o.msg for o in out if o.topic == "fms/replans"]
         (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
         svc.handle_command(encode(cmd))
         steps += 1
         time.sleep(pace)  # a shop slower than the agent's loop: the run outlasts the re-plan
-    return svc, replans, jobs[0]
+    assert validate(svc.instance, svc.final_schedule) == []
+    return svc, agent, replans, jobs, during
+
+
+def _forking():
+    """Skip where re-plans do not run in a forked process."""
+    from fms_dispatch import agent_logic
+
+    if not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
 
 
 @pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
@@ -180,29 +191,14 @@ def test_with_replan_wait_the_shop_waits_and_the_run_ends_as_predicted(name, at,
     run goes on under the old plan meanwhile (on these small shops it even ends before the re-plan is back)."""
     from fms_dispatch import agent_logic
 
-    if in_process and not agent_logic.REPLAN_IN_PROCESS:
-        pytest.skip("re-plans run in a forked process on Linux only")
+    if in_process:
+        _forking()
     monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", in_process)
-    inst = builtin(name)
-    order = make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5},
-                               {"machine": 3, "duration": 4}]])
     spans = {}
     for wait in (True, False):
-        svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
-        agent = AgentLogic("plan:list", instance=inst, replan=0.5, replan_wait=wait)
-        svc.start()
-        replans, steps, during = [], 0, 0
-        while not svc.done:
-            if steps == at:
-                svc.handle_order(encode(order))
-            out = agent.on_state(encode(svc.state))
-            during += agent.decide._job is not None
-            replans += [o.msg for o in out if o.topic == "fms/replans"]
-            (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
-            svc.handle_command(encode(cmd))
-            steps += 1
+        svc, _, replans, _, during = _order_run(monkeypatch, pace=0, name=name, at=at, replan_wait=wait)
         s = svc.final_schedule
-        assert validate(svc.instance, s) == [] and {r.job for r in s.operations} == set(range(inst.n_jobs + 1))
+        assert {r.job for r in s.operations} == set(range(builtin(name).n_jobs + 1))  # the order's job served too
         spans[wait] = s.makespan
         if wait:
             assert during == 0 and [(m["reason"], m["status"]) for m in replans] == [("order", "adopted")]
@@ -216,20 +212,20 @@ def test_a_replan_in_a_process_reports_its_error_and_the_plan_stays(monkeypatch)
     def compute(self, *args):
         raise RuntimeError("no plan fits\nsecond line")
 
-    svc, replans, job = _order_run(monkeypatch, compute)
+    _forking()
+    _, _, replans, [job, *_], _ = _order_run(monkeypatch, compute)
     assert job.process is not None and job.process.pid != os.getpid()  # computed in another process
     assert replans[0]["reason"] == "order" and replans[0]["status"] == "failed"
     assert replans[0]["message"] == "no plan fits"
-    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_a_replan_process_that_dies_is_a_failed_replan(monkeypatch):
     def compute(self, *args):
         os._exit(3)  # killed, out of memory...: no result comes back
 
-    svc, replans, _ = _order_run(monkeypatch, compute)
+    _forking()
+    _, _, replans, _, _ = _order_run(monkeypatch, compute)
     assert replans[0]["status"] == "failed" and "ended without a result (exit code 3)" in replans[0]["message"]
-    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_a_replan_runs_in_a_thread_when_no_process_can_be_forked(monkeypatch):
@@ -238,40 +234,19 @@ def test_a_replan_runs_in_a_thread_when_no_process_can_be_forked(monkeypatch):
     def start(self):
         raise OSError(12, "Cannot allocate memory")
 
+    _forking()
     monkeypatch.setattr(multiprocessing.context.ForkProcess, "start", start)
-    from fms_dispatch import replan as replan_module
-
-    svc, replans, job = _order_run(monkeypatch, replan_module.Replanner.compute)
+    _, _, replans, [job, *_], _ = _order_run(monkeypatch)
     assert job.process is None and replans[0]["status"] == "adopted"
-    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_a_replan_still_running_when_the_run_ends_is_reported_and_stopped(monkeypatch):
     def compute(self, *args):
         time.sleep(60)
 
-    from fms_dispatch import agent_logic
-
-    if not agent_logic.REPLAN_IN_PROCESS:
-        pytest.skip("re-plans run in a forked process on Linux only")
-    from fms_dispatch import replan as replan_module
-
-    monkeypatch.setattr(replan_module.Replanner, "compute", compute)
-    inst = builtin("ra01")
-    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
-    agent = AgentLogic("plan:list", instance=inst, replan=0.5)
-    svc.start()
-    steps, job = 0, None
-    while not svc.done:
-        if steps == 20:
-            svc.handle_order(encode(make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}]])))
-        out = agent.on_state(encode(svc.state))
-        job = job or agent.decide._job
-        assert not [o for o in out if o.topic == "fms/replans"]  # the run outlasts no re-plan here
-        (cmd,) = [o.msg for o in out if o.topic == "fms/command"]
-        svc.handle_command(encode(cmd))
-        steps += 1
-    assert job is not None and svc.state["done"]
+    _forking()
+    svc, agent, replans, [job, *_], _ = _order_run(monkeypatch, compute)
+    assert replans == [] and svc.state["done"]  # the run outlasts no re-plan here
     out = agent.on_state(encode(svc.state))  # the final state: no command, the re-plan's report
     (msg,) = [o.msg for o in out]
     assert msg["schema"] == "fms/replan/v1" and msg["reason"] == "order" and msg["status"] == "timeout"
@@ -284,10 +259,10 @@ def test_a_replan_process_past_its_time_is_stopped(monkeypatch):
     def compute(self, *args):
         time.sleep(60)
 
-    svc, replans, job = _order_run(monkeypatch, compute, grace=0.2, pace=0.02)
+    _forking()
+    _, _, replans, [job, *_], _ = _order_run(monkeypatch, compute, grace=0.2, pace=0.02)
     assert replans[0]["status"] == "timeout"
     assert job.done.wait(10) and job.process.exitcode is not None  # terminated, not left to run for a minute
-    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_plan_solvers_need_the_full_net_with_idle_stops_and_the_instance():

@@ -72,6 +72,20 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     return install
 
 
+def _record_params(monkeypatch: pytest.MonkeyPatch) -> dict[str, dict[str, Any]]:
+    """Record each node's parameters as ``fms up`` starts it (``{"agent_node": {...}, ...}``), the node started by the
+    ``node_command`` in place (e.g. the stand-in of :func:`fake_nodes`)."""
+    seen: dict[str, dict[str, Any]] = {}
+    fake = up.node_command
+
+    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
+        seen[module.rsplit(".", 1)[1]] = params
+        return fake(module, params, python)
+
+    monkeypatch.setattr(up, "node_command", command)
+    return seen
+
+
 def _up(tmp_path: Path, *extra: str) -> int:
     return up.main(["EX12", "--solver", "first", "--out", str(tmp_path / "out" / "s.json"), "--db",
                     str(tmp_path / "out" / "fms.sqlite"), "--run-id", "t1", "--timeout", "60", *extra])
@@ -127,14 +141,7 @@ def test_a_full_net_model_runs_the_shop_on_the_full_net(fake_nodes, tmp_path: Pa
     """`fms up --solver ppo:full` (also in a disrupted shop) starts the shop on the full net with history, so the
     agent's twin follows it; a paper-net model under disruptions is refused before any node starts."""
     fake_nodes()
-    seen: dict[str, dict[str, Any]] = {}
-    fake = up.node_command
-
-    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
-        seen[module.rsplit(".", 1)[1]] = params
-        return fake(module, params, python)
-
-    monkeypatch.setattr(up, "node_command", command)
+    seen = _record_params(monkeypatch)
     for extra, idle in (([], False), (["--noise", "0.1"], False)):
         seen.clear()
         (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)  # (the stand-in recorder's chart)
@@ -175,14 +182,7 @@ def test_best_in_a_disrupted_run_compares_the_model_with_plan_rules(fake_nodes, 
         "PPO not available: instance EX12 does not fit model guided-dagger)")
     assert up.best_solver(inst)[0] == up.best_rule(inst)[0]  # nominal: the best rule pair, as before
     fake_nodes()
-    seen: dict[str, dict[str, Any]] = {}
-    fake = up.node_command
-
-    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
-        seen[module.rsplit(".", 1)[1]] = params
-        return fake(module, params, python)
-
-    monkeypatch.setattr(up, "node_command", command)
+    seen = _record_params(monkeypatch)
     code = up.main(["EX12", "--solver", "best", "--noise", "0.1", "--out", str(tmp_path / "out" / "s.json"),
                     "--db", str(tmp_path / "out" / "fms.sqlite"), "--run-id", "t1", "--timeout", "60"])
     err = capsys.readouterr().err
@@ -240,13 +240,6 @@ def test_sigterm_stops_the_nodes_as_ctrl_c_does() -> None:
 
 def test_replan_wait_reaches_the_agent_node(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
     fake_nodes()
-    seen: dict[str, dict[str, Any]] = {}
-    fake = up.node_command
-
-    def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
-        seen[module.rsplit(".", 1)[1]] = params
-        return fake(module, params, python)
-
-    monkeypatch.setattr(up, "node_command", command)
+    seen = _record_params(monkeypatch)
     assert _up(tmp_path, "--solver", "plan:list", "--replan-wait") == up.EXIT_OK, capsys.readouterr().err
     assert seen["agent_node"]["replan_wait"] is True and seen["agent_node"]["replan"] == 2.0
