@@ -205,9 +205,15 @@ class TwinDecider:
     one replayed so far; otherwise only the new entries are replayed. See the module docstring for the checks
     and the fallback.
 
-    A ``choose`` with a ``check(shop)`` method (:class:`fms_dispatch.rl.agent.GuideReplanner`: a guided model that
-    re-plans its guide when a machine breaks down or its plan runs late) is checked before every answer; each
-    re-plan it reports is published as an ``fms/replan/v1`` (:meth:`drain`).
+    A ``choose`` that re-plans (:class:`fms_dispatch.rl.agent.GuideReplanner`: a guided model that re-plans its
+    guide when a machine breaks down or its plan runs late) is asked for a trigger before every answer; a re-plan
+    then runs beside the decisions, in a forked process (:data:`REPLAN_IN_PROCESS`; a thread on a copy of the twin
+    elsewhere), while the plan in force goes on answering, so the shop never waits for it. Once done it is put in
+    force if it ends the replanner's margin earlier than the plan in force continued from the trigger's state (as
+    the offline run decides); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout``
+    (its process ended) and one whose jobs changed meanwhile (an order) is dropped as ``failed``. Each is
+    published as an ``fms/replan/v1`` (:meth:`drain`). With ``replan_wait`` the state that triggers a re-plan is
+    answered once the re-plan is done, so a simulated shop waits for it and the run is the offline one.
     """
 
     handles_idle = True
@@ -215,9 +221,13 @@ class TwinDecider:
     """The net of the twin (and of the shop it follows)."""
 
     def __init__(self, instance: Instance, choose: Callable[["Shop"], int], name: str, planner: Any = None,
-                 source: str = SOURCE) -> None:
+                 source: str = SOURCE, replan_wait: bool = False) -> None:
         self.instance = instance
         self.choose = choose
+        self.replan_wait = bool(replan_wait)
+        self._job: _ReplanJob | None = None  # the re-plan running beside the decisions
+        # a re-planning choose re-plans here, beside the decisions; its model decides
+        self._act: Callable[["Shop"], int] = choose.agent.act if hasattr(choose, "trigger") else choose  # type: ignore
         self.name = name
         self.planner = planner
         self.source = source
@@ -242,6 +252,9 @@ class TwinDecider:
         from fms_sim.disruptions import Scenario
 
         scenario = Scenario.from_dict(self._scenario) if self._scenario is not None else None
+        if self._job is not None and self._job.run_id != run_id:  # a re-plan of another run is dropped
+            self._job.cancel()
+            self._job = None
         self.stepper = Stepper(make_shop(self.instance, self.decisions, scenario), idle_stops=idle_stops)
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
@@ -359,17 +372,85 @@ class TwinDecider:
         return out
 
     def _check_replan(self, state: dict[str, Any], shop: "Shop") -> None:
-        """Let a re-planning ``choose`` look at the synced twin (a breakdown begun re-plans the guide); report."""
-        check = getattr(self.choose, "check", None)
-        event = None if check is None else check(shop)
-        if event is None:
+        """Let a re-planning ``choose`` look at the synced twin: collect a re-plan that is done, else start one when
+        a trigger fires (a breakdown begun, a late plan); see the class docstring."""
+        trigger = getattr(self.choose, "trigger", None)
+        if trigger is None:
             return
+        self._collect_guide(state, shop)
+        if self._job is not None:
+            return
+        reason = trigger(shop)
+        if reason is None:
+            return
+        rp = self.choose
+        old, effort = rp.inputs(shop)
+        job = _ReplanJob(_guide_replan, (shop, old, effort), reason, state["run_id"], state["seq"], shop.now,
+                         budget=effort.budget, method="guide", thread_copy=True)
+        job.n_jobs = shop.n_jobs
+        self._job = job
+        if self.replan_wait:
+            limit = self._timeout(job)
+            job.done.wait(None if limit == float("inf") else limit + 0.1)  # past the limit: reported timeout
+            self._collect_guide(state, shop)
+
+    @staticmethod
+    def _timeout(job: "_ReplanJob") -> float:
+        """Seconds after which ``job`` is reported ``timeout`` (its budget plus the grace; no budget: never)."""
+        return float("inf") if job.budget is None else job.budget + REPLAN_GRACE_S
+
+    def _collect_guide(self, state: dict[str, Any], shop: "Shop") -> None:
+        """Put a finished guide re-plan in force if it is better (or report why not) and queue its message."""
+        job = self._job
+        if job is None:
+            return
+        rp = self.choose
+        if not job.done.is_set():
+            elapsed = job.elapsed()
+            if elapsed > self._timeout(job):
+                self._job = None
+                job.cancel()
+                why = (f"no plan {elapsed:.1f} s after the trigger (budget {job.budget:g} s); the plan in force "
+                       "stays")
+                rp.failed(shop, job.reason, job.time, "timeout", elapsed, job.budget, why)
+                self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, "guide", why,
+                             budget=job.budget)
+            return
+        self._job = None
+        if job.error is not None or shop.n_jobs != job.n_jobs:
+            why = job.error or "jobs joined while it ran (the guide was planned again for them)"
+            rp.failed(shop, job.reason, job.time, "failed", job.wall, job.budget, why)
+            self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.wall, None, None, "guide", why,
+                         budget=job.budget)
+            return
+        plan, before = job.result
+        ev = rp.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget)
+        self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev["before"], ev["after"],
+                     "guide", None, budget=job.budget)
+
+    def finish(self, state: dict[str, Any]) -> list[Outgoing]:
+        """At the run's final state: a re-plan still running is ended and reported ``timeout`` (the run ended before
+        it was done; its plan is dropped), so every trigger gets its ``fms/replan/v1``."""
+        job = self._job
+        if job is None or job.run_id != state["run_id"]:
+            return []
+        self._job = None
+        job.cancel()
+        elapsed = job.elapsed()
+        budget = "no" if job.budget is None else f"{job.budget:g} s"
+        self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, job.method,
+                     f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done (budget "
+                     f"{budget}); its plan was dropped", budget=job.budget)
+        return self.drain()
+
+    def _report(self, run_id: str, seq: int, time: int, reason: str, status: str, wall: float, before: Any,
+                after: Any, method: Any, message: Any, *, budget: float | None) -> None:
+        """Queue an ``fms/replan/v1`` (a re-plan without a budget reports its wall time as its budget)."""
         from fms_msgs_json import TOPIC_REPLANS, make_replan
 
         self._outbox.append(Outgoing(TOPIC_REPLANS, make_replan(
-            state["run_id"], self.source, state["seq"], event["time"], event["reason"], event["status"],
-            budget_s=event["budget"] or event["wall_time"], wall_s=event["wall_time"], before=event["before"],
-            after=event["after"], method=event["method"])))
+            run_id, self.source, seq, time, reason, status, budget_s=wall if budget is None else budget, wall_s=wall,
+            before=before, after=after, method=method, message=message)))
 
     def __call__(self, state: dict[str, Any]) -> str:
         self.sync(state)
@@ -382,7 +463,7 @@ class TwinDecider:
             legal = _legal(state)
             if len(legal) == 1:
                 return legal[0][2]
-            return st.shop.action_labels()[self.choose(st.shop)]
+            return st.shop.action_labels()[self._act(st.shop)]
         except (ValueError, RuntimeError, IndexError) as exc:
             raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending "
                                    f"{_fallback(state)!r}", _fallback(state)) from None
@@ -581,29 +662,16 @@ class PlanDecider(TwinDecider):
         self._resync()
         return self._job is None
 
-    def finish(self, state: dict[str, Any]) -> list[Outgoing]:
-        """At the run's final state: a re-plan still running is ended and reported ``timeout`` (the run ended before
-        it was done; its plan is dropped), so every trigger gets its ``fms/replan/v1``."""
-        job = self._job
-        if job is None or job.run_id != state["run_id"]:
-            return []
-        self._job = None
-        job.cancel()
-        elapsed = job.elapsed()
-        self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
-                     f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done (budget "
-                     f"{self.replan_budget:g} s); its plan was dropped")
-        return self.drain()
-
     def _start(self, reason: str, state: dict[str, Any]) -> None:
         rp = self.replanner
         shop = self.stepper.shop
         try:
             args = rp.take(shop)
         except ValueError as exc:  # pragma: no cover - take is only called where a snapshot can be taken
-            self._report(state["run_id"], state["seq"], shop.now, reason, "failed", 0.0, None, None, None, str(exc))
+            self._report(state["run_id"], state["seq"], shop.now, reason, "failed", 0.0, None, None, None, str(exc),
+                         budget=self.replan_budget)
             return
-        self._job = _ReplanJob(rp.compute, args, reason, state["run_id"], state["seq"], shop.now)
+        self._job = _ReplanJob(rp.compute, args, reason, state["run_id"], state["seq"], shop.now, budget=rp.budget)
 
     def _collect(self, state: dict[str, Any]) -> None:
         """Put a finished re-plan in force (or report a timed-out one) and queue its message."""
@@ -619,7 +687,7 @@ class PlanDecider(TwinDecider):
                 rp._follow_state(self.stepper.shop)
                 self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
                              f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
-                             "plan stays in force")
+                             "plan stays in force", budget=rp.budget)
             return
         shop = self.stepper.shop
         if job.error is None and not rp.can_snapshot(shop):
@@ -630,15 +698,7 @@ class PlanDecider(TwinDecider):
         else:
             ev = rp.adopt(shop, job.result, job.reason, wall_time=job.wall)
         self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev.get("before"),
-                     ev.get("after"), ev.get("method"), ev.get("error"))
-
-    def _report(self, run_id: str, seq: int, time: int, reason: str, status: str, wall: float, before: Any,
-                after: Any, method: Any, message: Any) -> None:
-        from fms_msgs_json import TOPIC_REPLANS, make_replan
-
-        self._outbox.append(Outgoing(TOPIC_REPLANS, make_replan(
-            run_id, self.source, seq, time, reason, status, budget_s=self.replan_budget, wall_s=wall, before=before,
-            after=after, method=method, message=message)))
+                     ev.get("after"), ev.get("method"), ev.get("error"), budget=rp.budget)
 
 
 REPLAN_GRACE_S = 5.0
@@ -670,16 +730,27 @@ def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any) -> None:
     conn.close()
 
 
+def _guide_replan(shop: "Shop", old: Any, effort: Any) -> Any:
+    """A guide re-plan beside the run (:func:`fms_dispatch.rl.guide.replan_search`): ``(new plan, before)``."""
+    from .rl.guide import replan_search
+
+    return replan_search(shop, old, effort)  # type: ignore[arg-type]
+
+
 class _ReplanJob:
     """One re-plan running in a forked daemon process (:data:`REPLAN_IN_PROCESS`) or a daemon thread; a node that
     stops never waits for it. :meth:`cancel` ends a process at once (a thread ends by itself: its searches have
-    time limits)."""
+    time limits). With ``thread_copy`` a re-plan that runs in a thread gets deep copies of ``args`` (taken here,
+    before the caller goes on: the twin it reads keeps moving); a forked process has its own copy anyway."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int) -> None:
+    def __init__(self, fn: Callable[..., Any], args: tuple, reason: str, run_id: str, seq: int, time: int, *,
+                 budget: float | None = None, method: str | None = None, thread_copy: bool = False) -> None:
         import threading
         import time as _time
 
         self.reason, self.run_id, self.seq, self.time = reason, run_id, seq, time
+        self.budget, self.method = budget, method  # the search's budget in seconds (None: none); as reported
+        self.n_jobs = 0  # the run's jobs when it started (set by the caller that needs it)
         self.result: Any = None
         self.error: str | None = None
         self.wall = 0.0
@@ -699,6 +770,10 @@ class _ReplanJob:
                 self.process = None
                 receive.close()
             send.close()  # the child holds the sending end: its exit ends the wait below
+        if self.process is None and thread_copy:  # a thread shares the agent's objects: it works on copies
+            import copy
+
+            args = copy.deepcopy(args)
         if self.process is not None:
 
             def work() -> None:
@@ -759,11 +834,12 @@ def needs_idle_stops(solver: str) -> bool:
 
 
 def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
-                 guide_replan: bool = True) -> tuple[Decider, str]:
+                 guide_replan: bool = True, replan_wait: bool = False) -> tuple[Decider, str]:
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
     ``ppo+lookahead``) over a twin of ``instance``; a guided model searches its plan with ``guide_effort``
     (:class:`fms_dispatch.rl.guide.PlanEffort`; None: the default) and, with ``guide_replan``, re-plans it when a
-    machine breaks down or its plan runs late (:class:`fms_dispatch.rl.agent.GuideReplanner`)."""
+    machine breaks down or its plan runs late (:class:`fms_dispatch.rl.agent.GuideReplanner`), beside its decisions
+    (with ``replan_wait`` the shop waits for each re-plan; see :class:`TwinDecider`)."""
     low = name.lower()
     lookahead = needs_idle_stops(name)
     suffix = next((s for s in LOOKAHEAD_SUFFIXES if low.endswith(s)), "+lookahead")
@@ -804,7 +880,7 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
         from .rl.agent import GuideReplanner
 
         choose = GuideReplanner(agent)
-    decider = TwinDecider(instance, choose, canonical, planner)
+    decider = TwinDecider(instance, choose, canonical, planner, replan_wait=replan_wait)
     decider.decisions = agent.decisions  # a full-net model follows a full-net shop
     decider.model_path = agent.path
     return decider, canonical
@@ -815,10 +891,10 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
                  replan_wait: bool = False) -> tuple[Decider, str]:
     """The decision function and canonical name for a solver name; raises :class:`UnavailableSolver`.
 
-    ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off),
-    ``drift`` and ``replan_wait`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`);
-    ``guide_effort`` the plan search of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns and
-    delays."""
+    ``instance`` (the shop's instance) is needed by ``ppo`` and ``plan:`` solvers; ``replan`` (seconds, 0: off) and
+    ``drift`` configure the re-planning of ``plan:`` solvers (:class:`PlanDecider`); ``guide_effort`` the plan search
+    of a guided PPO model, ``guide_replan`` whether it re-plans at breakdowns and delays; ``replan_wait`` whether the
+    state that triggers a re-plan (of either) waits for it."""
     if not isinstance(solver, str) or not solver.strip():
         raise UnavailableSolver(f"a solver must be named; choose from {', '.join(AGENT_SOLVERS)}")
     name = solver.strip()
@@ -839,7 +915,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
         decider = RuleDecider(policy.job_rule, policy.vehicle_rule)
         return decider, decider.name
     if needs_twin(name):
-        return _ppo_decider(name, instance, guide_effort, guide_replan)
+        return _ppo_decider(name, instance, guide_effort, guide_replan, replan_wait)
     if needs_full_net(name):
         if instance is None:
             raise UnavailableSolver(f"solver {name!r} is not available without the shop's instance: it plans the "

@@ -16,15 +16,16 @@ start the shop with ``history:=true``, and with ``idle_stops:=true`` for lookahe
 ``resend_s`` (default 1.0), and for ``plan:`` solvers ``replan`` (seconds per re-plan, default 2.0; 0 turns
 re-planning off), ``drift`` (the lateness that triggers a re-plan, as a fraction of the plan's makespan,
 default 0.05) and ``replan_wait`` (default false: the run goes on under the current plan while a re-plan runs;
-true: the state that triggered it is answered once the re-plan is done, so a simulated shop waits for it). Re-plans
-are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
+true: the state that triggered it is answered once the re-plan is done, so a simulated shop waits for it; it applies
+to a guided model's re-plans too). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
 ``guided-dagger``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
 tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
 the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`); with ``guide_replan`` (default true) it re-plans
 its guide in a disrupted shop when a machine breakdown begins or an operation starts late against its plan, adopting
 the new plan where it ends 2 % earlier than the plan in force (:class:`fms_dispatch.rl.agent.GuideReplanner`), and
-publishes each re-plan on ``fms/replans``.
+publishes each re-plan on ``fms/replans``. Those re-plans run beside the decisions, in a forked process, as a plan
+solver's do: the model goes on deciding with the plan in force meanwhile (:class:`~fms_dispatch.agent_logic.TwinDecider`).
 """
 
 from __future__ import annotations

@@ -92,8 +92,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
     p.add_argument("--replan-wait", action="store_true",
-                   help="plan: solvers: the shop waits for each re-plan (as offline re-planning does) instead of "
-                        "running on under the old plan meanwhile")
+                   help="plan: solvers and guided ppo models: the shop waits for each re-plan (as offline "
+                        "re-planning does) instead of running on under the plan in force meanwhile")
     add_guide_args(p)
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -279,13 +279,15 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
     if a.replan is not None and not needs_full_net(solver):
         raise UpError(f"--replan applies to plan: solvers only, not to {solver!r}")
-    if a.replan_wait and not needs_full_net(solver):
-        raise UpError(f"--replan-wait applies to plan: solvers only, not to {solver!r}")
     try:
         decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
     except UnavailableSolver as exc:
         msg = str(exc)
         raise UpError(msg + ("; fms up also takes best" if msg.startswith("unknown solver") else "")) from None
+    guide_replans = hasattr(getattr(decider, "choose", None), "trigger") and a.guide_replan is not False
+    if a.replan_wait and not (needs_full_net(solver) or guide_replans):
+        raise UpError(f"--replan-wait applies to plan: solvers and to guided ppo models that re-plan their guide, "
+                      f"not to {solver!r}" + (" with --no-guide-replan" if a.guide_replan is False else ""))
     # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
     full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
     if disrupted:
@@ -350,8 +352,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if needs_full_net(solver):
         agent_params["replan"] = float(replan)
-        if a.replan_wait:
-            agent_params["replan_wait"] = True
+    if a.replan_wait:
+        agent_params["replan_wait"] = True
     if twin:
         agent_params["instance"] = str(inst_in)
     if effort is not None:

@@ -437,7 +437,8 @@ def test_a_guided_agent_searches_its_plan_as_told() -> None:
 
 def test_a_guided_agent_re_plans_at_a_breakdown_over_messages_as_the_offline_solver() -> None:
     """The agent's twin learns of the breakdown from the history and re-plans the guide as the offline solver does
-    (the same run), publishing the re-plan on fms/replans; with guide_replan off it acts the start's plan out."""
+    (the same run: with replan_wait the shop waits for the re-plan, as offline), publishing the re-plan on
+    fms/replans; with guide_replan off it acts the start's plan out."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
     from fms_sim.disruptions import Breakdown, Scenario
@@ -448,7 +449,7 @@ def test_a_guided_agent_re_plans_at_a_breakdown_over_messages_as_the_offline_sol
     for replan in (True, False):
         ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort, guide_replan=replan)
         svc = ShopService(inst, run_id="b", history=True, decisions="full", scenario=sc)
-        agent = AgentLogic("ppo", instance=inst, guide_effort=effort, guide_replan=replan)
+        agent = AgentLogic("ppo", instance=inst, guide_effort=effort, guide_replan=replan, replan_wait=True)
         replans = []
         svc.start()
         while not svc.done:
@@ -467,3 +468,125 @@ def test_a_guided_agent_re_plans_at_a_breakdown_over_messages_as_the_offline_sol
             assert (msg["time"], msg["before"], msg["after"]) == (ev["time"], ev["before"], ev["after"])
         else:
             assert replans == [] and "replans" not in ref.meta
+
+
+def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, order_at=None, pace=0.005):
+    """ra01 with machine 2 down from time 20 (noise 0.1), run by the default guided model over messages, its guide
+    re-planned beside the decisions; ``compute(shop, old, effort)`` replaces the re-plan's search (in the forked
+    process or the thread), ``grace`` the grace past its budget, ``budget`` the re-plan's budget (s), ``order_at``
+    the state at which an order joins, and the shop takes at least ``pace`` s per state. Returns (service, agent,
+    re-plan messages, the offline reference run, states answered while a re-plan ran, the slowest such answer)."""
+    import time
+
+    from fms_dispatch import agent_logic
+    from fms_dispatch.rl import ppo_solver
+    from fms_dispatch.rl.guide import effort_from
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    if compute is not None:
+        monkeypatch.setattr(agent_logic, "_guide_replan", compute)
+    if grace is not None:
+        monkeypatch.setattr(agent_logic, "REPLAN_GRACE_S", grace)
+    inst = builtin("ra01")
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5)
+    effort = effort_from(tabu=0.0, budget=budget)  # a search the clock does not cut: the offline run's plans
+    ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort)
+    svc = ShopService(inst, run_id="g", history=True, decisions="full", scenario=sc)
+    agent = AgentLogic("ppo", instance=inst, guide_effort=effort)
+    order = m.make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5}]])
+    replans, during, slowest, steps = [], 0, 0.0, 0
+    svc.start()
+    while not svc.done:
+        if steps == order_at:
+            svc.handle_order(encode(order))
+        t0 = time.monotonic()
+        out = agent.on_state(encode(svc.state))
+        job = agent.decide._job
+        if job is not None and not job.done.is_set():
+            during += 1
+            slowest = max(slowest, time.monotonic() - t0)
+        replans += [m.decode(encode(o.msg), expect="replan") for o in out if o.topic == m.TOPIC_REPLANS]
+        (cmd,) = [o.msg for o in out if o.topic == m.TOPIC_COMMAND]
+        assert not [o for o in svc.handle_command(encode(cmd)) if o.topic == m.TOPIC_ERRORS]
+        steps += 1
+        time.sleep(pace)
+    assert validate(svc.instance, svc.final_schedule, sc) == []
+    return svc, agent, replans, ref, during, slowest
+
+
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_a_guided_agents_re_plan_runs_beside_its_decisions(monkeypatch, in_process: bool) -> None:
+    """Without replan_wait the guide's re-plan at the breakdown runs beside the decisions (a forked process, or a
+    thread on a copy of the twin): states are answered at once meanwhile, and the re-plan, made from the trigger's
+    state, predicts what the offline run's does and is put in force on the same rule (its plan becomes the guide)."""
+    import os
+    import time
+
+    from fms_dispatch import agent_logic
+
+    if in_process and not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", in_process)
+    real = agent_logic._guide_replan
+
+    def slow(shop, old, effort):
+        time.sleep(0.2)  # a long re-plan (ra01's takes about 20 ms): the shop must not wait for it
+        plan, before = real(shop, old, effort)
+        plan.meta["pid"] = os.getpid()  # where it ran
+        return plan, before
+
+    svc, agent, replans, ref, during, slowest = _guided_breakdown_run(monkeypatch, slow)
+    assert during >= 3 and slowest < 0.15  # answered at once while the re-plan ran
+    (msg,) = replans
+    (ev,) = ref.meta["replans"]
+    assert (msg["reason"], msg["method"], msg["time"]) == ("breakdown", "guide", ev["time"])
+    assert (msg["before"], msg["after"], msg["status"]) == (ev["before"], ev["after"], ev["status"]) == \
+        (ev["before"], ev["after"], "adopted")
+    assert msg["wall_ms"] >= 200
+    guide = agent.decide.choose.agent.guide_of(agent.decide.twin)
+    assert guide.plan.makespan == msg["after"]  # the new plan is the guide in force
+    assert (guide.plan.meta["pid"] != os.getpid()) == in_process  # searched in a forked process, or here
+
+
+def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkeypatch) -> None:
+    """A re-plan that raises is ``failed`` with its error; one past its budget plus the grace is ``timeout`` (its
+    process ended); one whose jobs changed meanwhile (an order) is ``failed`` and dropped; one still running when
+    the run ends is reported at the final state. The guide in force stays each time and the runs are valid."""
+    import time
+
+    from fms_dispatch import agent_logic
+
+    real = agent_logic._guide_replan
+
+    def broken(shop, old, effort):
+        raise ValueError("no plan here\nsecond line")
+
+    _, agent, replans, *_ = _guided_breakdown_run(monkeypatch, broken)
+    msg = replans[0]  # (then the plan in force runs late: lateness triggers once per drift, failing as well)
+    assert (msg["reason"], msg["status"], msg["message"], msg["before"], msg["after"]) == \
+        ("breakdown", "failed", "no plan here", None, None)
+    assert {m["status"] for m in replans} == {"failed"} and len(replans) <= 3
+
+    def stuck(shop, old, effort):
+        time.sleep(30)
+
+    _, agent, replans, *_ = _guided_breakdown_run(monkeypatch, stuck, grace=0.1, budget=0.2, pace=0.02)
+    msg = replans[0]
+    assert msg["status"] == "timeout" and msg["budget_ms"] == 200 and "the plan in force stays" in msg["message"]
+    assert 300 <= msg["wall_ms"] < 5000  # ended past its budget and grace, not after the search's 30 s
+
+    def slow(shop, old, effort):
+        time.sleep(0.3)
+        return real(shop, old, effort)
+
+    svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, slow, order_at=45)  # the trigger: state 39
+    assert [(m["reason"], m["status"]) for m in replans][:1] == [("breakdown", "failed")]
+    assert "jobs joined while it ran" in replans[0]["message"]
+    assert {r.job for r in svc.final_schedule.operations} == set(range(svc.instance.n_jobs))  # the order served
+
+    svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, stuck, grace=60, pace=0)
+    assert replans == [] and svc.state["done"]
+    out = agent.on_state(encode(svc.state))
+    (msg,) = [m.decode(encode(o.msg), expect="replan") for o in out]
+    assert msg["status"] == "timeout" and "the run ended" in msg["message"] and msg["method"] == "guide"
+    assert agent.decide.finish(svc.state) == []  # said once

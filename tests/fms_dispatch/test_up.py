@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sys
 import textwrap
@@ -214,7 +215,9 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--timeout", "nan"], "--timeout must be a positive number"),
              (["--timeout", "inf"], "--timeout must be a positive number"),
              (["--replan", "5"], "--replan applies to plan: solvers only"),
-             (["--replan-wait"], "--replan-wait applies to plan: solvers only"),
+             (["--replan-wait"], "--replan-wait applies to plan: solvers and to guided ppo models that re-plan"),
+             (["--solver", "ppo:bu", "--replan-wait"], "re-plan their guide, not to 'ppo:bu'"),
+             (["--solver", "ppo", "--no-guide-replan", "--replan-wait"], "not to 'ppo' with --no-guide-replan"),
              (["--solver", "plan:list", "--replan", "0", "--replan-wait"], "--replan-wait needs re-planning"),
              (["--db", str(db)], "run id 't1' is already in")]
     for extra, msg in cases:
@@ -243,3 +246,7 @@ def test_replan_wait_reaches_the_agent_node(fake_nodes, tmp_path: Path, monkeypa
     seen = _record_params(monkeypatch)
     assert _up(tmp_path, "--solver", "plan:list", "--replan-wait") == up.EXIT_OK, capsys.readouterr().err
     assert seen["agent_node"]["replan_wait"] is True and seen["agent_node"]["replan"] == 2.0
+    # a guided model's guide re-plans wait too (no plan re-planning budget: it has none)
+    shutil.rmtree(tmp_path / "out")  # (the stand-in nodes record run t1 there)
+    assert _up(tmp_path, "--solver", "ppo", "--replan-wait") == up.EXIT_OK, capsys.readouterr().err
+    assert seen["agent_node"]["replan_wait"] is True and "replan" not in seen["agent_node"]

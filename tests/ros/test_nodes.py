@@ -157,8 +157,8 @@ def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tm
 
 def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tmp_path: Path) -> None:
     """In a shop with a breakdown the default (guided) agent node re-plans its guide when the breakdown begins, as
-    the offline solver does (the same run); the re-plan is published and recorded; --no-guide-replan is refused for
-    a solver that is not ppo."""
+    the offline solver does (the same run: with --replan-wait the simulated shop waits for the re-plan); the re-plan
+    is published and recorded; --no-guide-replan is refused for a solver that is not ppo."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
     from fms_sim.disruptions import Scenario
@@ -167,7 +167,7 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
     sc_file.write_text(json.dumps({"schema": "fms/scenario/v1", "noise": 0.1, "seed": 5,
                                    "breakdowns": [{"machine": 2, "start": 20, "duration": 40}]}))
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-tabu", "0",
-                          "--scenario", str(sc_file), "--out", str(out), "--db", str(db), "--run-id", "up-bd",
+                          "--replan-wait", "--scenario", str(sc_file), "--out", str(out), "--db", str(db), "--run-id", "up-bd",
                           "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
                          env=ros_env, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr + res.stdout

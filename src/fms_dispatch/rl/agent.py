@@ -226,6 +226,22 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).replan_guide(margin, budget, effort)
 
+    def replan_inputs(self, shop: Shop, margin: float | None = REPLAN_MARGIN, budget: float | None = None,
+                      effort: Any = None) -> tuple[Any, Any]:
+        """The plan in force and the search of a re-plan of the guide in ``shop``, for
+        :func:`~fms_dispatch.rl.guide.replan_search` run elsewhere (the agent node's forked re-plans); then
+        :meth:`adopt_replan`. Raises ValueError as :meth:`replan_guide` does."""
+        if self.guide is None:
+            raise ValueError(f"model {self.name} has no plan guide")
+        return self._env(shop).replan_inputs(margin, budget, effort)
+
+    def adopt_replan(self, shop: Shop, plan: Any, before: int | None, margin: float | None = REPLAN_MARGIN) -> bool:
+        """Make ``plan`` (a re-plan from a state of ``shop``'s run) the guide in ``shop`` if it ends ``margin``
+        earlier than ``before``; returns whether it did (:meth:`fms_dispatch.rl.envs.FastShopEnv.adopt_replan`)."""
+        if self.guide is None:
+            raise ValueError(f"model {self.name} has no plan guide")
+        return self._env(shop).adopt_replan(plan, before, margin)
+
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
         legal = shop.legal_actions()
@@ -287,8 +303,10 @@ class GuideReplanner:
         self._seen = len(ops)
         return late
 
-    def check(self, shop: Shop) -> dict[str, Any] | None:
-        """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
+    def trigger(self, shop: Shop) -> str | None:
+        """Why the guide should be re-planned in ``shop`` now (``breakdown`` or ``late``; each trigger is answered
+        once), or None. :meth:`check` re-plans at once; the agent node starts the re-plan beside its decisions
+        (:meth:`inputs`, then :meth:`adopt`)."""
         if shop is not self._shop:
             if self._shop is None or at_start(shop):
                 self._answered, self._guide, self._quiet_until = set(), None, 0.0
@@ -304,12 +322,42 @@ class GuideReplanner:
             reason = "breakdown"
         if self.drift is not None and self._late(shop) and reason is None:
             reason = "late"
+        return reason
+
+    def check(self, shop: Shop) -> dict[str, Any] | None:
+        """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
+        reason = self.trigger(shop)
         if reason is None:
             return None
         result = self.agent.replan_guide(shop, self.margin, self.budget, self.effort)
+        return self._record(shop, reason, result)
+
+    def inputs(self, shop: Shop) -> tuple[Any, Any]:
+        """``(plan in force, search)`` of a re-plan from ``shop`` now, to run
+        :func:`~fms_dispatch.rl.guide.replan_search` beside the run."""
+        return self.agent.replan_inputs(shop, self.margin, self.budget, self.effort)
+
+    def adopt(self, shop: Shop, reason: str, time: int, plan: Any, before: int | None, wall_time: float,
+              budget: float | None) -> dict[str, Any]:
+        """Put a re-plan made beside the run (from its state at ``time``) in force in ``shop`` if it ends the margin
+        earlier than ``before``, as :meth:`check` does; records and returns the event (its ``time`` the trigger's)."""
+        adopted = self.agent.adopt_replan(shop, plan, before, self.margin)
+        return self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
+
+    def failed(self, shop: Shop, reason: str, time: int, status: str, wall_time: float, budget: float | None,
+               error: str) -> dict[str, Any]:
+        """Record a re-plan made beside the run that brought no plan (``status`` ``failed`` or ``timeout``, ``error``
+        says why): the plan in force stays, and as after a kept plan lateness does not trigger again at once."""
+        self._quiet_until = shop.now + self._tol
+        event = {"reason": reason, "time": time, "wall_time": round(wall_time, 4), "budget": budget, "before": None,
+                 "after": None, "status": status, "method": "guide", "error": error}
+        self.events.append(event)
+        return event
+
+    def _record(self, shop: Shop, reason: str, result: GuideReplan, time: int | None = None) -> dict[str, Any]:
         if not result.adopted:
             self._quiet_until = shop.now + self._tol
-        event = result.event(reason, shop.now)
+        event = result.event(reason, shop.now if time is None else time)
         self.events.append(event)
         return event
 

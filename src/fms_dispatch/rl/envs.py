@@ -31,10 +31,11 @@ from gymnasium import spaces
 from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, FULL_TOOL_FEATURES, GLOBAL_FEATURES,
                          JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH, TOOL_FEATURES, ShopEnv)
 from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 
 from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, REPLAN_MARGIN,
-                    GuideReplan, PlanEffort, PlanGuide, at_start, guide_plan, retimed_plan)
+                    GuideReplan, PlanEffort, PlanGuide, at_start, replan_search)
 
 __all__ = ["FastShopEnv", "PADDING", "padding_for", "obs_layout", "obs_size", "GUIDES", "check_guide"]
 
@@ -180,25 +181,36 @@ class FastShopEnv(ShopEnv):
         at least ``margin`` (a fraction) earlier than the plan in force continued from the state
         (:func:`~fms_dispatch.rl.guide.retimed_plan`); ``margin=None`` adopts it whatever it promises. Raises
         ValueError for an env without a guide, a margin outside [0, 1) or a negative budget."""
+        old, effort = self.replan_inputs(margin, budget, effort)
+        t0 = time.perf_counter()
+        plan, before = replan_search(self.shop, old, effort)
+        adopted = self.adopt_replan(plan, before, margin)
+        return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0, effort.budget)
+
+    def replan_inputs(self, margin: float | None = REPLAN_MARGIN, budget: float | None = None,
+                      effort: PlanEffort | None = None) -> tuple[Schedule, PlanEffort]:
+        """What a re-plan of the guide needs besides the shop (:func:`~fms_dispatch.rl.guide.replan_search`): the plan
+        in force and the search (``effort``, by default this env's, cut to ``budget`` seconds). Checked as
+        :meth:`replan_guide` says."""
         if margin is not None and not 0 <= margin < 1:
             raise ValueError(f"the re-planning margin must be in [0, 1) or None, got {margin!r}")
         if budget is not None and not budget >= 0:
             raise ValueError(f"the re-planning budget must be >= 0 seconds or None, got {budget!r}")
-        old = self.plan_guide()
-        t0 = time.perf_counter()
+        old = self.plan_guide().plan
         effort = self.guide_effort if effort is None else effort
         if budget is not None and (effort.budget is None or budget < effort.budget):
             effort = dataclasses.replace(effort, budget=budget)
-        plan = guide_plan(self.shop, effort)
-        try:
-            before: int | None = retimed_plan(self.shop, old.plan).makespan
-        except (KeyError, ValueError):  # the plan in force does not cover the shop's work: it cannot go on
-            before = None
+        return old, effort
+
+    def adopt_replan(self, plan: Schedule, before: int | None, margin: float | None = REPLAN_MARGIN) -> bool:
+        """Put ``plan`` (a re-plan from a state of this run) in force as the guide if it ends ``margin`` earlier
+        than ``before`` (the plan in force continued from that state; None: it could not be, so ``plan`` is
+        taken); returns whether it was."""
         adopted = margin is None or before is None or plan.makespan < before * (1 - margin)
         if adopted:
             # labelled with the env's effort (what the guide is searched with), whatever the re-plan's budget
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
-        return GuideReplan(adopted, before, plan.makespan, time.perf_counter() - t0, effort.budget)
+        return adopted
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:

@@ -48,8 +48,8 @@ from fms_sim.schedule import Schedule
 from ..full_rules import FullRulePolicy
 
 __all__ = ["GUIDE_JOB_FEATURES", "GUIDE_TOOL_FEATURES", "GUIDE_AGV_FEATURES", "GUIDE_TT_FEATURES", "PlanGuide",
-           "GuideFollower", "GuideMoves", "guide_plan", "retimed_plan", "PlanEffort", "DEFAULT_EFFORT", "effort_from",
-           "REPLAN_MARGIN", "REPLAN_DRIFT", "REPLAN_BUDGET", "GuideReplan"]
+           "GuideFollower", "GuideMoves", "guide_plan", "retimed_plan", "replan_search", "PlanEffort", "DEFAULT_EFFORT",
+           "effort_from", "REPLAN_MARGIN", "REPLAN_DRIFT", "REPLAN_BUDGET", "GuideReplan"]
 
 #: per job: buffered part heads its machine's order; its next carry heads its planned AGV's route, and that AGV
 #: is idle; its pending request heads the chosen tool's order; rank of its next operation's planned start
@@ -265,6 +265,19 @@ def retimed_plan(shop: FullShop, plan: Schedule) -> Schedule:
 
     priority = {(r.job, r.op): float(r.start) for r in plan.operations}
     return greedy_schedule(shop.instance, rule="guided", priority=priority, origin=_state(shop))
+
+
+def replan_search(shop: FullShop, old: Schedule, effort: PlanEffort) -> tuple[Schedule, int | None]:
+    """A re-plan of a guide from ``shop``'s state: the new plan (:func:`guide_plan` with ``effort``) and the makespan
+    of ``old``, the plan in force, continued from the state (:func:`retimed_plan`; None where it cannot go on: it
+    does not cover the shop's work). It reads ``shop`` and changes nothing, so it can run on a forked copy of the
+    shop beside the run (the agent node's re-plans)."""
+    plan = guide_plan(shop, effort)
+    try:
+        before: int | None = retimed_plan(shop, old).makespan
+    except (KeyError, ValueError):
+        before = None
+    return plan, before
 
 
 def at_start(shop: FullShop) -> bool:
