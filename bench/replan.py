@@ -13,6 +13,11 @@ validated).
                                                             # forked process on Linux)
     .venv/bin/python bench/replan.py --pace 0.004           # a shop that takes at least 4 ms per state (without
                                                             # it the shop moves on as fast as the agent answers)
+    .venv/bin/python bench/replan.py --plan ppo --breakdown 1000   # the default model, its guide re-planned when
+                                                            # machine 1 breaks down at time 1000 (no order)
+
+With ``--breakdown T`` the shop has one breakdown (``--machine``, from shop time T for ``--duration``) and no order
+arrives: a guided ``ppo`` model re-plans its guide when the breakdown begins (a plan solver re-plans too).
 """
 
 from __future__ import annotations
@@ -45,6 +50,12 @@ def main() -> None:
                         "goes on at its own pace however fast the agent is)")
     p.add_argument("--wait", action="store_true",
                    help="the shop waits for each re-plan (the agent's replan_wait; fms up --replan-wait)")
+    p.add_argument("--breakdown", type=int, metavar="T",
+                   help="a machine breakdown from shop time T instead of the order")
+    p.add_argument("--machine", type=positive, default=1, help="the machine of --breakdown")
+    p.add_argument("--duration", type=positive, default=200, help="the length of --breakdown")
+    p.add_argument("--no-guide-replan", action="store_true",
+                   help="a guided ppo model acts its start's plan out (the baseline of --breakdown)")
     p.add_argument("--replan-in", choices=("process", "thread"),
                    help="where the re-plan runs (default: agent_logic.REPLAN_IN_PROCESS)")
     a = p.parse_args()
@@ -55,13 +66,21 @@ def main() -> None:
     jobs = [[{"machine": m, "tool": rng.randint(1, inst.n_tools) if inst.has_tools else None,
               "duration": rng.randint(1, 99)} for m in rng.sample(range(1, inst.n_machines + 1), min(5, inst.n_machines))]
             for _ in range(a.jobs)]
-    svc = ShopService(inst, run_id="bench", decisions="full", history=True, idle_stops=True, features=False)
+    scenario = None
+    if a.breakdown is not None:
+        from fms_sim.disruptions import Breakdown, Scenario
+
+        scenario = Scenario((Breakdown(a.machine, a.breakdown, a.duration),), (), 0.0, a.seed)
+    svc = ShopService(inst, run_id="bench", decisions="full", history=True, idle_stops=True, features=False,
+                      scenario=scenario)
     t0 = time.monotonic()
-    agent = AgentLogic(a.plan, instance=inst, replan=a.budget, replan_wait=a.wait)
+    plan_solver = a.plan.lower().startswith("plan:")
+    agent = AgentLogic(a.plan, instance=inst, replan_wait=a.wait, **({"replan": a.budget} if plan_solver else
+                                                                     {"guide_replan": not a.no_guide_replan}))
     svc.start()
     steps, during, slowest_during, slowest, replans = 0, 0, 0.0, 0.0, []
     while not svc.done:
-        if steps == a.at:
+        if steps == a.at and scenario is None:
             refused = [o.msg for o in svc.handle_order(encode(make_order("bench-order", jobs)))
                        if o.msg["schema"] == "fms/error/v1"]
             if refused:
@@ -82,13 +101,23 @@ def main() -> None:
         svc.handle_command(encode(cmd))
         steps += 1
     s = svc.final_schedule
-    assert validate(svc.instance, s) == []
+    assert validate(svc.instance, s, scenario) == []
     where = ("a process" if agent_logic.REPLAN_IN_PROCESS else "a thread") + (", the shop waiting" if a.wait else "")
-    print(f"{a.instance} {a.plan}, budget {a.budget:g} s in {where}, order of {a.jobs} jobs after {a.at} states "
+    if a.no_guide_replan:
+        where = "none: the start's plan acted out"
+    choose = agent.decide.choose if not plan_solver else None
+    model = getattr(choose, "agent", getattr(choose, "__self__", None))  # a GuideReplanner's model, or Agent.act's
+    budget = a.budget if plan_solver else (model.guide_effort.budget or 0.0)
+    what = (f"order of {a.jobs} jobs after {a.at} states" if scenario is None else
+            f"machine {a.machine} down at t={a.breakdown} for {a.duration}")
+    print(f"{a.instance} {a.plan}, budget {budget:g} s in {where}, {what} "
           f"({platform.node()}, {time.strftime('%Y-%m-%d')}); run {time.monotonic() - t0:.1f} s, {steps} states, "
           f"makespan {s.makespan}")
-    for r in replans:
-        ok = "within" if r["wall_ms"] <= a.budget * 1000 + 1000 else "OVER"
+    over = sum(r["wall_ms"] > budget * 1000 + 1000 for r in replans)
+    print(f"  {len(replans)} re-plans ({sum(r['status'] == 'adopted' for r in replans)} adopted), "
+          f"{over} over budget + 1 s, the longest {max((r['wall_ms'] for r in replans), default=0)} ms")
+    for r in replans[:5]:
+        ok = "within" if r["wall_ms"] <= budget * 1000 + 1000 else "OVER"
         print(f"  re-plan ({r['reason']}) at t={r['time']}: {r['status']}, {r['wall_ms']} ms ({ok} budget + 1 s), "
               f"predicted {r['before']} -> {r['after']}")
     print(f"  states answered while a re-plan ran: {during}, slowest of them {slowest_during * 1000:.0f} ms; "

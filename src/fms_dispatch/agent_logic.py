@@ -388,6 +388,7 @@ class TwinDecider:
         job = _ReplanJob(_guide_replan, (shop, old, effort), reason, state["run_id"], state["seq"], shop.now,
                          budget=effort.budget, method="guide", thread_copy=True)
         job.n_jobs = shop.n_jobs
+        job.taken_at = (shop.now, shop.net.acted)  # type: ignore[attr-defined]  # a guided model runs a FullShop
         self._job = job
         if self.replan_wait:
             limit = self._timeout(job)
@@ -423,8 +424,14 @@ class TwinDecider:
             self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.wall, None, None, "guide", why,
                          budget=job.budget)
             return
+        from fms_sim.snapshot import can_snapshot
+
+        if not can_snapshot(shop):  # a plan made meanwhile is re-timed from a state with no choice pending
+            self._job = job
+            return
         plan, before = job.result
-        ev = rp.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget)
+        moved = (shop.now, shop.net.acted) != job.taken_at  # type: ignore[attr-defined]
+        ev = rp.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget, moved)
         self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev["before"], ev["after"],
                      "guide", None, budget=job.budget)
 

@@ -338,11 +338,26 @@ class GuideReplanner:
         return self.agent.replan_inputs(shop, self.margin, self.budget, self.effort)
 
     def adopt(self, shop: Shop, reason: str, time: int, plan: Any, before: int | None, wall_time: float,
-              budget: float | None) -> dict[str, Any]:
+              budget: float | None, moved: bool = False) -> dict[str, Any]:
         """Put a re-plan made beside the run (from its state at ``time``) in force in ``shop`` if it ends the margin
-        earlier than ``before``, as :meth:`check` does; records and returns the event (its ``time`` the trigger's)."""
-        adopted = self.agent.adopt_replan(shop, plan, before, self.margin)
-        return self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
+        earlier than ``before``, as :meth:`check` does; records and returns the event (its ``time`` the trigger's).
+        If the run ``moved`` on meanwhile, the plan put in force is the new plan's order re-timed from ``shop``'s state
+        now, or the earliest-start list schedule from it where that ends earlier
+        (:meth:`fms_dispatch.replan.Replanner.retime`; ``shop`` must allow a snapshot): the decisions taken meanwhile
+        (hundreds on a large simulated shop) leave a plan's start times and vehicle routes behind, and a guide
+        read from them leads the model astray (sl70, one breakdown: 18718 against about 8000)."""
+        event_after = plan.makespan
+        adopted = margin_ok = self.margin is None or before is None or plan.makespan < before * (1 - self.margin)
+        if margin_ok:
+            if moved:
+                from ..replan import Replanner
+
+                plan = Replanner.retime(shop, plan)  # type: ignore[arg-type]
+            adopted = self.agent.adopt_replan(shop, plan, before, None)
+        event = self._record(shop, reason, GuideReplan(adopted, before, event_after, wall_time, budget), time)
+        if moved and adopted:
+            event["retimed"] = plan.meta.get("retime")
+        return event
 
     def failed(self, shop: Shop, reason: str, time: int, status: str, wall_time: float, budget: float | None,
                error: str) -> dict[str, Any]:
