@@ -195,6 +195,12 @@ def load_ppo_agent(model: str | None, instance: Instance) -> Any:
     return agent
 
 
+def _extends(text: str, done: str) -> bool:
+    """Whether the history ``text`` (labels joined by single spaces) continues ``done`` (the labels replayed so far,
+    joined the same way) label by label: ``"a b c"`` continues ``"a b"``, ``"a bc"`` does not."""
+    return text.startswith(done) and (not done or len(text) == len(done) or text[len(done)] == " ")
+
+
 class TwinDecider:
     """A policy over a local twin :class:`~fms_sim.shop.Shop`, kept in step with the states' ``history``.
 
@@ -236,6 +242,7 @@ class TwinDecider:
         self._run_id: str | None = None
         self._idle_stops = False
         self._labels: list[str] = []           # labels replayed into the twin
+        self._text = ""                         # the same joined by spaces (the history's text that far)
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
         self._disruptions: list[dict[str, Any]] = []  # disruptions replayed into the twin
         self._scenario: dict[str, Any] | None = None  # the run's scenario from the history (twin mirrors it)
@@ -258,19 +265,21 @@ class TwinDecider:
         self.stepper = Stepper(make_shop(self.instance, self.decisions, scenario), idle_stops=idle_stops)
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
+        self._text = ""
         self._disruptions = []
         self.rebuilds += 1
 
-    def _replay(self, labels: list[str], orders: list[dict[str, Any]],
+    def _replay(self, new: list[str], orders: list[dict[str, Any]],
                 disruptions: list[dict[str, Any]] | None = None) -> int:
-        """Apply the entries of the history beyond those already replayed (raises on an impossible step);
-        returns how many were applied (labels, orders and disruptions)."""
+        """Apply the entries of the history beyond those already replayed (``new``: the labels after them; raises on
+        an impossible step); returns how many were applied (labels, orders and disruptions)."""
         from fms_sim.disruptions import Breakdown, Outage
 
         st = self.stepper
         assert st is not None
         disruptions = disruptions or []
         p, q, r = len(self._labels), len(self._orders), len(self._disruptions)
+        base = p
         applied = 0
         while True:
             while True:  # the orders and disruptions that came before action p, in the order they came
@@ -290,11 +299,12 @@ class TwinDecider:
                     applied += 2  # an order changes the run: never "one step on" (see sync)
                 else:
                     break
-            if p >= len(labels):
+            if p - base >= len(new):
                 return applied
-            self._applying(labels[p])
-            st.apply(labels[p])
-            self._labels.append(labels[p])
+            label = new[p - base]
+            self._applying(label)
+            st.apply(label)
+            self._labels.append(label)
             p += 1
             applied += 1
 
@@ -336,22 +346,29 @@ class TwinDecider:
         if self.planner is not None and not idle_stops:
             raise DecisionError(f"state {state['seq']} has no 'idle' field; {self.name} pre-positions idle "
                                 "vehicles at the shop's idle stops (start the shop with idle_stops:=true)")
-        labels = history["actions"].split(" ") if history["actions"] else []
+        # the history grows by a label or two per state (20,000 on sl70): only what follows the text already replayed
+        # is split and applied; the rest is compared as text (a split and a list comparison per state made each
+        # state cost in proportion to the run so far)
+        text = history["actions"]
+        done = self._text
+        extends = _extends(text, done)
         orders = history["orders"]
         disruptions = history.get("disruptions") or []
         scenario = history.get("scenario")
         if scenario != self._scenario:
             self._scenario, self.stepper = scenario, None  # another run's disruptions: rebuild the twin
-        n, m, k = len(self._labels), len(self._orders), len(self._disruptions)
+        m, k = len(self._orders), len(self._disruptions)
         fresh = (self.stepper is None or self._run_id != state["run_id"] or self._idle_stops != idle_stops
-                 or len(labels) < n or len(orders) < m or labels[:n] != self._labels or orders[:m] != self._orders
+                 or not extends or len(orders) < m or orders[:m] != self._orders
                  or len(disruptions) < k or disruptions[:k] != self._disruptions)
         problem = None
         for attempt in range(2):
             if fresh or attempt:
                 self._reset(state["run_id"], idle_stops)
             try:
-                applied = self._replay(labels, orders, disruptions)
+                tail = text[len(self._text) + 1:] if self._text else text
+                applied = self._replay(tail.split(" ") if tail else [], orders, disruptions)
+                self._text = text
                 problem = self._agrees(state)
             except (InvalidAction, InstanceError, ValueError) as exc:  # ScenarioError is a ValueError
                 problem = f"replaying the history failed: {exc}"

@@ -408,12 +408,11 @@ def _history_consistent(history: dict[str, Any]) -> None:
     """History labels are separated by single spaces; orders come in order and refer to applied actions."""
     text = history["actions"]
     n = 0
-    if text:
-        labels = text.split(" ")
-        if "" in labels:
+    if text:  # (counted, not split: the text grows with the run and is checked at every state)
+        if text[0] == " " or text[-1] == " " or "  " in text:
             raise FieldError("history.actions", "field 'history.actions' must separate action labels by single "
                                                 "spaces (no leading, trailing or double spaces)")
-        n = len(labels)
+        n = text.count(" ") + 1
     last = 0
     for i, order in enumerate(history["orders"]):
         if not last <= order["at"] <= n:

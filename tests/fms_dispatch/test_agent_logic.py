@@ -252,6 +252,20 @@ def test_ppo_twin_mismatch_rebuilds_then_falls_back_to_the_first_action() -> Non
     good = dict(state, seq=state["seq"] + 2)
     (cmd,) = agent.on_state(json.dumps(good))
     assert cmd.topic == m.TOPIC_COMMAND and agent.decide.rebuilds == 3
+    # a history of the same length that differs in an early label is no continuation: the twin is rebuilt
+    first, *rest = state["history"]["actions"].split(" ")
+    assert first.startswith("job:")
+    changed = "job:4" if first != "job:4" else "job:3"
+    forged = dict(state, seq=state["seq"] + 3, history=dict(state["history"], actions=" ".join([changed, *rest])))
+    agent.on_state(json.dumps(forged))
+    assert agent.decide.rebuilds >= 4
+
+
+def test_the_twin_replays_only_what_follows_the_history_it_has() -> None:
+    from fms_dispatch.agent_logic import _extends
+
+    assert _extends("a b c", "a b") and _extends("a b", "a b") and _extends("a", "") and _extends("", "")
+    assert not _extends("a bc", "a b") and not _extends("a", "a b") and not _extends("x b c", "a b")
 
 
 def test_unknown_ppo_model_and_oversized_instance() -> None:

@@ -442,6 +442,7 @@ def test_history_schema_is_strict() -> None:
     for hist, needle in (
         ({"actions": "job:0  agv:5", "orders": []}, "must separate action labels by single spaces"),
         ({"actions": "job:0 ", "orders": []}, "must separate action labels by single spaces"),
+        ({"actions": " job:0", "orders": []}, "must separate action labels by single spaces"),
         ({"actions": "job:0", "orders": [{"at": 2, "jobs": [[{"machine": 1, "duration": 1}]]}]},
          "'history.orders[0].at' is 2 but must be between 0"),
         ({"actions": "job:0", "orders": [{"at": 0, "jobs": []}]}, "history.orders[0].jobs"),
