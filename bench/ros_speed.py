@@ -46,13 +46,14 @@ def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     inst = builtin(name)
     agent = AgentLogic(solver, instance=inst)  # loaded once (a PPO model takes seconds to load)
     twin = needs_twin(solver)  # the same shop settings as fms up uses for this solver
+    full = getattr(agent.decide, "decisions", "paper") == "full"  # a full-net model (the default ppo) runs the full net
     n = 0
     t0 = time.perf_counter()
     for run in itertools.count():
         if n and time.perf_counter() - t0 >= seconds:
             break
         svc = ShopService(inst, run_id=f"bench-{run}", history=twin, features=not twin,
-                          idle_stops=needs_idle_stops(solver))
+                          idle_stops=full or needs_idle_stops(solver), decisions="full" if full else "paper")
         out = svc.start()
         while not svc.done:
             state = [o.msg for o in out if o.topic == TOPIC_STATE][-1]
