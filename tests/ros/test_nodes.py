@@ -157,30 +157,40 @@ def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tm
 
 def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tmp_path: Path) -> None:
     """In a shop with a breakdown the default (guided) agent node re-plans its guide when the breakdown begins, as
-    the offline solver does (the same run: with --replan-wait the simulated shop waits for the re-plan); the re-plan
-    is published and recorded; --no-guide-replan is refused for a solver that is not ppo."""
+    the offline solver does: with --replan-wait the simulated shop waits for the re-plan and the run is the offline
+    one; without, the re-plan runs beside the decisions (a forked process) and is the offline one's (the same
+    trigger state), the run going on meanwhile. The re-plan is published and recorded; --no-guide-replan is refused
+    for a solver that is not ppo."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
     from fms_sim.disruptions import Scenario
 
-    sc_file, out, db = tmp_path / "sc.json", tmp_path / "ra01.json", tmp_path / "fms.sqlite"
+    sc_file = tmp_path / "sc.json"
     sc_file.write_text(json.dumps({"schema": "fms/scenario/v1", "noise": 0.1, "seed": 5,
                                    "breakdowns": [{"machine": 2, "start": 20, "duration": 40}]}))
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-tabu", "0",
-                          "--replan-wait", "--scenario", str(sc_file), "--out", str(out), "--db", str(db), "--run-id", "up-bd",
-                          "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
-                         env=ros_env, capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr + res.stdout
-    assert ", 1 re-plans (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
     inst = builtin("ra01")
     sc = Scenario.load(sc_file)
     ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort_from(tabu=0))
-    sched = Schedule.load(out)
-    assert validate(inst, sched, sc) == [] and sched.to_dict()["operations"] == ref.to_dict()["operations"]
     (ev,) = ref.meta["replans"]
-    (rec,) = RecorderStore(db).replans("up-bd")
-    assert (rec["reason"], rec["status"], rec["method"], rec["time"]) == ("breakdown", "adopted", "guide", ev["time"])
-    assert (rec["before"], rec["after"]) == (ev["before"], ev["after"])
+    for wait in (True, False):
+        out, db, run = tmp_path / f"ra01-{wait}.json", tmp_path / f"fms-{wait}.sqlite", f"up-bd-{wait}"
+        res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-tabu", "0",
+                              *(["--replan-wait"] if wait else []), "--scenario", str(sc_file), "--out", str(out),
+                              "--db", str(db), "--run-id", run, "--domain-id", ros_env["ROS_DOMAIN_ID"],
+                              "--log-dir", str(tmp_path / "logs")],
+                             env=ros_env, capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr + res.stdout
+        sched = Schedule.load(out)
+        assert validate(inst, sched, sc) == []
+        rec, *later = RecorderStore(db).replans(run)
+        assert (rec["reason"], rec["method"], rec["time"]) == ("breakdown", "guide", ev["time"])
+        if not wait and rec["status"] == "timeout":  # a loaded machine: the run ended before the re-plan was back
+            assert "the run ended" in rec["message"] and later == []
+            continue
+        assert rec["status"] == "adopted" and (rec["before"], rec["after"]) == (ev["before"], ev["after"])
+        if wait:
+            assert ", 1 re-plans (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
+            assert later == [] and sched.to_dict()["operations"] == ref.to_dict()["operations"]
     bad = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "first", "--no-guide-replan",
                           "--db", str(tmp_path / "bad.sqlite"), "--domain-id", ros_env["ROS_DOMAIN_ID"]],
                          env=ros_env, capture_output=True, text=True, timeout=60)
