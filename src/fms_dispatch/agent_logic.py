@@ -19,7 +19,10 @@ Solvers (the ``solver`` parameter):
   with ``history``) into it. The twin is cached between states, so a new state costs one replayed step; the
   twin is checked against the state (time, action labels, mask) and rebuilt from scratch on a mismatch. If it
   still disagrees, the agent publishes an ``internal`` error *and* the first enabled action, so the run goes
-  on. Nothing is kept across restarts: a restarted agent replays the latched state's history.
+  on. Nothing is kept across restarts: a restarted agent replays the latched state's history. Orders that take
+  the shop past the model's padding (100 jobs for the default) hand the rest of the run over, with one
+  ``internal`` error: a guided model to the guide follower, the expert it was cloned from; another model to a rule
+  (:meth:`TwinDecider._outgrown`).
 * ``lookahead`` / ``ppo+lookahead`` / ``ppo:<model>+lookahead`` — the PPO policy with pre-positioning of idle
   vehicles (:mod:`fms_dispatch.rl.lookahead`). It needs a shop started with ``idle_stops`` (and ``history``):
   such a shop also publishes a state when a vehicle stands idle between decisions (``idle`` lists the
@@ -248,6 +251,8 @@ class TwinDecider:
         self._scenario: dict[str, Any] | None = None  # the run's scenario from the history (twin mirrors it)
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
         self.model_path: Any = None              # the weights file the policy was loaded from (logged)
+        self.model: Any = None                   # the policy's model (its padding limits the shops it can decide)
+        self._handover: Callable[["Shop"], int] | None = None  # decides once the shop outgrew the model
 
     @property
     def twin(self) -> "Shop | None":
@@ -266,6 +271,7 @@ class TwinDecider:
         self.stepper.advance()
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
         self._text = ""
+        self._handover = None
         self._disruptions = []
         self.rebuilds += 1
 
@@ -476,11 +482,41 @@ class TwinDecider:
             run_id, self.source, seq, time, reason, status, budget_s=wall if budget is None else budget, wall_s=wall,
             before=before, after=after, method=method, message=message)))
 
+    def _outgrown(self, state: dict[str, Any], shop: "Shop") -> Callable[["Shop"], int] | None:
+        """The policy that decides for a model the shop has outgrown (orders took it past the model's padding: it
+        cannot observe the shop any more), or None while the model fits. The first such state raises
+        :class:`FallbackDecision` once, naming the hand-over; the run is then decided by the guide follower (a guided
+        model: the expert it was cloned from, acting out a plan searched from the state with the model's search, no
+        size limit) or by the full-net rule ``rule:MTWR+nearest+fifo`` (a full-net model without a guide), or by the
+        rule pair ``MTWR+nearest`` (a paper-net model)."""
+        model = self.model
+        if model is None or (self._handover is None and model.fits(shop.instance)):
+            return None
+        if self._handover is None:
+            if model.guide is not None:
+                from .rl.guide import GuideFollower
+
+                self._handover = GuideFollower(effort=model.guide_effort)
+                what = "the guide follower (the expert it was cloned from)"
+            elif self.decisions == "full":
+                from .full_rules import parse_full_rule
+
+                self._handover, what = parse_full_rule("rule:MTWR+nearest+fifo"), "rule:MTWR+nearest+fifo"
+            else:
+                self._handover, what = parse_rule_name("MTWR+nearest"), "the rule pair MTWR+nearest"
+            label = WAIT if self.stepper.kind == "idle" else shop.action_labels()[self._handover(shop)]
+            raise FallbackDecision(f"state {state['seq']}: the shop ({shop.instance.n_jobs} jobs) has outgrown model "
+                                   f"{model.name} ({model.layout()}); {what} decides from here on", label)
+        return self._handover
+
     def __call__(self, state: dict[str, Any]) -> str:
         self.sync(state)
         st = self.stepper
         assert st is not None
         try:
+            handover = self._outgrown(state, st.shop)
+            if handover is not None:  # (no re-plans, no pre-positioning: those are the model's)
+                return WAIT if st.kind == "idle" else st.shop.action_labels()[handover(st.shop)]
             self._check_replan(state, st.shop)
             if st.kind == "idle":
                 return WAIT if self.planner is None else moves_label(self.planner.plan(st))
@@ -488,6 +524,8 @@ class TwinDecider:
             if len(legal) == 1:
                 return legal[0][2]
             return st.shop.action_labels()[self._act(st.shop)]
+        except FallbackDecision:
+            raise
         except (ValueError, RuntimeError, IndexError) as exc:
             raise FallbackDecision(f"state {state['seq']}: {self.name} failed ({exc}); sending "
                                    f"{_fallback(state)!r}", _fallback(state)) from None
@@ -907,6 +945,7 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
     decider = TwinDecider(instance, choose, canonical, planner, replan_wait=replan_wait)
     decider.decisions = agent.decisions  # a full-net model follows a full-net shop
     decider.model_path = agent.path
+    decider.model = agent
     return decider, canonical
 
 

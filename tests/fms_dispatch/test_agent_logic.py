@@ -215,6 +215,49 @@ def test_ppo_twin_follows_orders() -> None:
     assert validate(svc.instance, svc.final_schedule) == []
 
 
+@pytest.mark.parametrize("net", ["paper", "full"])
+def test_a_shop_grown_past_the_models_padding_is_handed_over_once(net: str) -> None:
+    """Orders that take the shop past the model's padding (it can no longer observe the shop) hand the rest of the
+    run over, with one ``internal`` error naming the hand-over: a paper-net model (``bu``, 8 jobs at most) to the
+    rule pair MTWR+nearest, deciding as that rule does on the live shop; the guided default (100 jobs at most) to
+    the guide follower, the expert it was cloned from. Every job is served and the run is valid."""
+    import dataclasses
+
+    from fms_dispatch.rl.guide import GuideFollower, effort_from
+
+    if net == "paper":
+        inst, solver, order, at = builtin("EX12"), "ppo:bu", [[(1, None, 3), (2, None, 4)]] * 4, 6  # 5 + 4 jobs
+    else:  # 99 one-operation jobs of sl70 (a short run), then 3 more
+        sl70 = builtin("sl70")
+        inst = dataclasses.replace(sl70, name="sl70-1op", jobs=tuple(job[:1] for job in sl70.jobs[:99]))
+        solver, order, at = "ppo", [[(1, 2, 30), (3, 4, 20)]] * 3, 20
+    svc = ShopService(inst, run_id="g", history=True, decisions=net, idle_stops=net == "full")
+    agent = AgentLogic(solver, instance=inst, guide_effort=effort_from(tabu=0.0) if net == "full" else None)
+    rule = RulePolicy("MTWR", "nearest")
+    errors, after = [], 0
+    svc.start()
+    while not svc.done:
+        if svc.state_seq == at:
+            assert not [o for o in svc.handle_order(encode(m.make_order("o1", order))) if o.topic == m.TOPIC_ERRORS]
+        out = agent.on_state(encode(svc.state))
+        errors += [o.msg for o in out if o.topic == m.TOPIC_ERRORS]
+        (cmd,) = [o.msg for o in out if o.topic == m.TOPIC_COMMAND]
+        if errors and net == "paper" and not svc.state.get("idle"):
+            assert cmd["action"] == svc.shop.action_labels()[rule(svc.shop)]  # the rule decides
+            after += 1
+        assert not [o for o in svc.handle_command(encode(cmd)) if o.topic == m.TOPIC_ERRORS]
+    (err,) = errors
+    assert err["code"] == "internal" and f"has outgrown model {agent.name[4:]}" in err["message"]
+    assert ("the rule pair MTWR+nearest" if net == "paper" else "the guide follower") in err["message"]
+    if net == "full":
+        assert isinstance(agent.decide._handover, GuideFollower)
+    else:
+        assert after > 10
+    s = svc.final_schedule
+    assert {r.job for r in s.operations} == set(range(svc.instance.n_jobs)) and svc.instance.n_jobs > inst.n_jobs
+    assert validate(svc.instance, s) == []
+
+
 def test_ppo_without_history_or_with_another_instance_is_an_error() -> None:
     inst = builtin("EX12")
     svc = ShopService(inst, run_id="p")                      # no history
