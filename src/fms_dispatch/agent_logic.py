@@ -252,6 +252,7 @@ class TwinDecider:
         self.rebuilds = 0                       # twins built from scratch (for tests and logs)
         self.model_path: Any = None              # the weights file the policy was loaded from (logged)
         self.model: Any = None                   # the policy's model (its padding limits the shops it can decide)
+        self._guide_jobs: int | None = None      # the jobs of the run when its guide was last planned for them
         self._handover: Callable[["Shop"], int] | None = None  # decides once the shop outgrew the model
 
     @property
@@ -272,6 +273,7 @@ class TwinDecider:
         self._run_id, self._idle_stops, self._labels, self._orders = run_id, idle_stops, [], []
         self._text = ""
         self._handover = None
+        self._guide_jobs = None
         self._disruptions = []
         self.rebuilds += 1
 
@@ -401,12 +403,24 @@ class TwinDecider:
         if trigger is None:
             return
         self._collect_guide(state, shop)
+        rp = self.choose
+        reason = None
+        if self._guide_jobs is not None and shop.n_jobs > self._guide_jobs:  # an order: go on with a bridge plan
+            if rp.agent.bridge_guide(shop) is not None:
+                reason = "order"
+                job, self._job = self._job, None
+                if job is not None:  # a re-plan without the new jobs: ended, reported failed
+                    job.cancel()
+                    why = "jobs joined while it ran (the guide is planned again for them)"
+                    rp.failed(shop, job.reason, job.time, "failed", job.elapsed(), job.budget, why)
+                    self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.elapsed(), None, None,
+                                 "guide", why, budget=job.budget)
+        self._guide_jobs = shop.n_jobs
         if self._job is not None:
             return
-        reason = trigger(shop)
+        reason = reason or trigger(shop)
         if reason is None:
             return
-        rp = self.choose
         old, effort = rp.inputs(shop)
         job = _ReplanJob(_guide_replan, (shop, old, effort), reason, state["run_id"], state["seq"], shop.now,
                          budget=effort.budget, method="guide", thread_copy=True)
@@ -442,7 +456,7 @@ class TwinDecider:
             return
         self._job = None
         if job.error is not None or shop.n_jobs != job.n_jobs:
-            why = job.error or "jobs joined while it ran (the guide was planned again for them)"
+            why = job.error or "jobs joined while it ran (the guide is planned again for them)"
             rp.failed(shop, job.reason, job.time, "failed", job.wall, job.budget, why)
             self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.wall, None, None, "guide", why,
                          budget=job.budget)
@@ -939,7 +953,11 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
         canonical += suffix
     choose: Callable[["Shop"], int] = agent.act
     if guide_replan and agent.guide is not None:
+        import importlib
+
         from .rl.agent import GuideReplanner
+
+        importlib.import_module("fms_dispatch.replan")  # loaded now, not at the run's first order (0.3 s: OR-Tools)
 
         choose = GuideReplanner(agent)
     decider = TwinDecider(instance, choose, canonical, planner, replan_wait=replan_wait)

@@ -50,8 +50,8 @@ from .exact import _improve_by_priorities, greedy_schedule
 from .full_rules import parse_full_rule
 from .tabu import residual_lower_bound, tabu_plan
 
-__all__ = ["ReplanResult", "replan", "simulate", "Replanner", "solve_with_replanning", "REPLAN_REASONS",
-           "DEFAULT_DRIFT", "REPLAN_TABU"]
+__all__ = ["ReplanResult", "replan", "simulate", "Replanner", "retime_from", "solve_with_replanning",
+           "REPLAN_REASONS", "DEFAULT_DRIFT", "REPLAN_TABU"]
 
 DEFAULT_DRIFT = 0.05
 """Re-plan when an operation starts later than planned by more than this fraction of the plan's makespan."""
@@ -391,18 +391,7 @@ class Replanner:
         any price: the decisions taken while it was computed (hundreds on a large shop) can leave its start
         times a poor guide (on sl70, 800 states after a live order the guided re-timing of an 8000 plan ended at
         9447, the list schedule at 7894; ``meta["retime"]`` says which was taken)."""
-        snap = snapshot(shop)
-        starts = {(r.job, r.op): r.start for r in plan.operations}
-        last = max(starts.values(), default=0) + 1
-        prio = {(j, k): starts.get((j, k), last + k) for j, job in enumerate(snap.instance.jobs)
-                for k in range(snap.next_op[j], len(job))}
-        guided = greedy_schedule(snap.instance, rule="guided", priority=prio, origin=snap)
-        est = greedy_schedule(snap.instance, rule="est", origin=snap)
-        out, how = (est, "est") if est.makespan < guided.makespan else (guided, "guided")  # a tie keeps the order
-        out.meta.update(plan.meta)
-        out.meta["retimed"] = snap.now
-        out.meta["retime"] = how
-        return out
+        return retime_from(snapshot(shop), plan)
 
     def adopt(self, shop: FullShop, result: ReplanResult | None, reason: str, *, wall_time: float | None = None,
               error: str | None = None) -> dict[str, Any]:
@@ -485,6 +474,22 @@ class Replanner:
                 raise
             self._off_plan = True
             return shop.action_labels()[fallback(shop)]
+
+
+def retime_from(snap: Snapshot, plan: Schedule) -> Schedule:
+    """``plan``'s order of the remaining operations re-timed from the state ``snap``, or the earliest-start list
+    schedule from it where that ends earlier (see :meth:`Replanner.retime`)."""
+    starts = {(r.job, r.op): r.start for r in plan.operations}
+    last = max(starts.values(), default=0) + 1
+    prio = {(j, k): starts.get((j, k), last + k) for j, job in enumerate(snap.instance.jobs)
+            for k in range(snap.next_op[j], len(job))}
+    guided = greedy_schedule(snap.instance, rule="guided", priority=prio, origin=snap)
+    est = greedy_schedule(snap.instance, rule="est", origin=snap)
+    out, how = (est, "est") if est.makespan < guided.makespan else (guided, "guided")  # a tie keeps the order
+    out.meta.update(plan.meta)
+    out.meta["retimed"] = snap.now
+    out.meta["retime"] = how
+    return out
 
 
 def solve_with_replanning(instance: Instance, plan: Schedule, *, budget: float = 2.0, drift: float = DEFAULT_DRIFT,

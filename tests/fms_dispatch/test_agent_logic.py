@@ -527,12 +527,14 @@ def test_a_guided_agent_re_plans_at_a_breakdown_over_messages_as_the_offline_sol
             assert replans == [] and "replans" not in ref.meta
 
 
-def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, order_at=None, pace=0.005):
+def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, order_at=None, pace=0.005,
+                          breakdown=True, wait=False):
     """ra01 with machine 2 down from time 20 (noise 0.1), run by the default guided model over messages, its guide
     re-planned beside the decisions; ``compute(shop, old, effort)`` replaces the re-plan's search (in the forked
     process or the thread), ``grace`` the grace past its budget, ``budget`` the re-plan's budget (s), ``order_at``
     the state at which an order joins, and the shop takes at least ``pace`` s per state. Returns (service, agent,
-    re-plan messages, the offline reference run, states answered while a re-plan ran, the slowest such answer)."""
+    re-plan messages, the offline reference run, states answered while a re-plan ran, the slowest such answer).
+    ``breakdown=False``: a nominal shop (no offline reference: None); ``wait``: the agent's replan_wait."""
     import time
 
     from fms_dispatch import agent_logic
@@ -545,11 +547,11 @@ def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, or
     if grace is not None:
         monkeypatch.setattr(agent_logic, "REPLAN_GRACE_S", grace)
     inst = builtin("ra01")
-    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5)
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5) if breakdown else None
     effort = effort_from(tabu=0.0, budget=budget)  # a search the clock does not cut: the offline run's plans
-    ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort)
+    ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort) if breakdown else None
     svc = ShopService(inst, run_id="g", history=True, decisions="full", scenario=sc)
-    agent = AgentLogic("ppo", instance=inst, guide_effort=effort)
+    agent = AgentLogic("ppo", instance=inst, guide_effort=effort, replan_wait=wait)
     order = m.make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5}]])
     replans, during, slowest, steps = [], 0, 0.0, 0
     svc.start()
@@ -604,6 +606,39 @@ def test_a_guided_agents_re_plan_runs_beside_its_decisions(monkeypatch, in_proce
     guide = agent.decide.choose.agent.guide_of(agent.decide.twin)
     assert guide.plan.meta["retimed"] > msg["time"] and guide.plan.meta["retime"] in ("guided", "est")
     assert (guide.plan.meta["pid"] != os.getpid()) == in_process  # searched in a forked process, or here
+
+
+@pytest.mark.parametrize("wait", [False, True], ids=["beside", "waiting"])
+def test_a_live_order_to_a_guided_agent_is_bridged_then_re_planned(monkeypatch, wait: bool) -> None:
+    """An order does not hold the agent up for its guide's search: the agent answers at once with a bridge plan (the
+    plan in force continued from the state with the new jobs, two list schedules) while the search for the new jobs
+    runs beside the decisions, published as an ``order`` re-plan; with replan_wait the state of the order waits for
+    that search. Every job is served and the run is valid."""
+    import time
+
+    from fms_dispatch import agent_logic
+
+    real = agent_logic._guide_replan
+
+    def slow(shop, old, effort):
+        time.sleep(0.3)
+        plan, before = real(shop, old, effort)
+        plan.meta["jobs"] = shop.n_jobs  # (searched in the forked process: it comes back with the plan)
+        return plan, before
+
+    svc, agent, replans, _, during, slowest = _guided_breakdown_run(monkeypatch, slow, order_at=20, breakdown=False,
+                                                                    wait=wait)
+    (msg,) = replans
+    assert (msg["reason"], msg["method"]) == ("order", "guide") and msg["status"] in ("adopted", "kept")
+    n = builtin("ra01").n_jobs + 1
+    assert msg["wall_ms"] >= 300 and svc.instance.n_jobs == n
+    if wait:
+        assert during == 0
+    else:
+        assert during >= 3 and slowest < 0.15  # answered at once, the first of them with the bridge plan
+    guide = agent.decide.choose.agent.guide_of(agent.decide.twin)
+    assert guide.instance.n_jobs == n and (msg["status"] == "adopted") == (guide.plan.meta.get("jobs") == n)
+    assert {r.job for r in svc.final_schedule.operations} == set(range(n))
 
 
 def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkeypatch) -> None:

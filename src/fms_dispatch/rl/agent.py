@@ -242,6 +242,13 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).adopt_replan(plan, before, margin)
 
+    def bridge_guide(self, shop: Shop) -> Any:
+        """After jobs joined ``shop``: its guide continued at once from the state with the new jobs
+        (:meth:`fms_dispatch.rl.envs.FastShopEnv.bridge_guide`); None where there is none to continue."""
+        if self.guide is None:
+            raise ValueError(f"model {self.name} has no plan guide")
+        return self._env(shop).bridge_guide()
+
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
         legal = shop.legal_actions()

@@ -212,6 +212,22 @@ class FastShopEnv(ShopEnv):
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
         return adopted
 
+    def bridge_guide(self) -> Schedule | None:
+        """After jobs joined the observed shop (a live order): put in force at once the plan in force's order
+        continued from the state with the new jobs after it, or the earliest-start list schedule from the state where
+        that ends earlier (:func:`fms_dispatch.replan.retime_from`: two list schedules, where planning the guide
+        afresh searches for its whole budget), so that the model decides on while a full search runs beside it.
+        Returns that plan, or None where there is no plan in force to continue (the env then plans as usual)."""
+        from ..replan import retime_from
+        from .guide import _state
+
+        old = self._plan_guide
+        if self.guide is None or old is None or at_start(self.shop):
+            return None
+        plan = retime_from(_state(self.shop), old.plan)
+        self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
+        return plan
+
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:
         """Observe ``shop`` (any state) as if it were this env's episode; does not reset or step it."""
