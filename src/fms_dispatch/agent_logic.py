@@ -411,10 +411,7 @@ class TwinDecider:
                 job, self._job = self._job, None
                 if job is not None:  # a re-plan without the new jobs: ended, reported failed
                     job.cancel()
-                    why = "jobs joined while it ran (the guide is planned again for them)"
-                    rp.failed(shop, job.reason, job.time, "failed", job.elapsed(), job.budget, why)
-                    self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.elapsed(), None, None,
-                                 "guide", why, budget=job.budget)
+                    self._drop_guide(job, shop, "failed", job.elapsed(), _JOBS_JOINED)
         self._guide_jobs = shop.n_jobs
         if self._job is not None:
             return
@@ -428,38 +425,45 @@ class TwinDecider:
         job.taken_at = (shop.now, shop.net.acted)  # type: ignore[attr-defined]  # a guided model runs a FullShop
         self._job = job
         if self.replan_wait:
-            limit = self._timeout(job)
-            job.done.wait(None if limit == float("inf") else limit + 0.1)  # past the limit: reported timeout
+            self._await(job)
             self._collect_guide(state, shop)
 
     @staticmethod
-    def _timeout(job: "_ReplanJob") -> float:
-        """Seconds after which ``job`` is reported ``timeout`` (its budget plus the grace; no budget: never)."""
-        return float("inf") if job.budget is None else job.budget + REPLAN_GRACE_S
+    def _await(job: "_ReplanJob") -> None:
+        """Wait for ``job`` until it is done or past its budget plus the grace (then the collector reports it
+        ``timeout``; a job without a budget is waited for until it is done)."""
+        job.done.wait(None if job.budget is None else job.budget + REPLAN_GRACE_S + 0.1)
+
+    def _expired(self, job: "_ReplanJob") -> float | None:
+        """If ``job``, not done, is past its budget plus the grace: drop it (a process is ended) and return its
+        elapsed seconds, for the collector to report it ``timeout``; else None."""
+        elapsed = job.elapsed()
+        if job.done.is_set() or job.budget is None or elapsed <= job.budget + REPLAN_GRACE_S:
+            return None
+        self._job = None  # its plan is dropped
+        job.cancel()
+        return elapsed
+
+    def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str) -> None:
+        """A guide re-plan that brings no plan (``failed`` or ``timeout``): recorded by the replanner, reported."""
+        self.choose.failed(shop, job.reason, job.time, status, wall, job.budget, why)
+        self._report(job.run_id, job.seq, job.time, job.reason, status, wall, None, None, "guide", why,
+                     budget=job.budget)
 
     def _collect_guide(self, state: dict[str, Any], shop: "Shop") -> None:
         """Put a finished guide re-plan in force if it is better (or report why not) and queue its message."""
         job = self._job
         if job is None:
             return
-        rp = self.choose
         if not job.done.is_set():
-            elapsed = job.elapsed()
-            if elapsed > self._timeout(job):
-                self._job = None
-                job.cancel()
-                why = (f"no plan {elapsed:.1f} s after the trigger (budget {job.budget:g} s); the plan in force "
-                       "stays")
-                rp.failed(shop, job.reason, job.time, "timeout", elapsed, job.budget, why)
-                self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, "guide", why,
-                             budget=job.budget)
+            elapsed = self._expired(job)
+            if elapsed is not None:
+                self._drop_guide(job, shop, "timeout", elapsed, f"no plan {elapsed:.1f} s after the trigger (budget "
+                                 f"{job.budget:g} s); the plan in force stays")
             return
         self._job = None
         if job.error is not None or shop.n_jobs != job.n_jobs:
-            why = job.error or "jobs joined while it ran (the guide is planned again for them)"
-            rp.failed(shop, job.reason, job.time, "failed", job.wall, job.budget, why)
-            self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.wall, None, None, "guide", why,
-                         budget=job.budget)
+            self._drop_guide(job, shop, "failed", job.wall, job.error or _JOBS_JOINED)
             return
         from fms_sim.snapshot import can_snapshot
 
@@ -468,7 +472,7 @@ class TwinDecider:
             return
         plan, before = job.result
         moved = (shop.now, shop.net.acted) != job.taken_at  # type: ignore[attr-defined]
-        ev = rp.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget, moved)
+        ev = self.choose.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget, moved)
         self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev["before"], ev["after"],
                      "guide", None, budget=job.budget)
 
@@ -573,7 +577,7 @@ class PlanDecider(TwinDecider):
 
         from .replan import DEFAULT_DRIFT
 
-        super().__init__(instance, lambda shop: 0, name, source=source)
+        super().__init__(instance, lambda shop: 0, name, source=source, replan_wait=replan_wait)
         from .solvers import parse_plan_name
 
         if replan < 0:
@@ -582,7 +586,6 @@ class PlanDecider(TwinDecider):
         self.fallback_name = fallback
         self.fallback = parse_full_rule(fallback)
         self.replan_budget = float(replan)
-        self.replan_wait = bool(replan_wait)
         self.drift = DEFAULT_DRIFT if drift is None else float(drift)
         if not self.drift > 0:
             raise UnavailableSolver(f"the re-planning drift must be positive, got {self.drift}")
@@ -592,7 +595,6 @@ class PlanDecider(TwinDecider):
         self.plan_wall_time: float | None = None
         self.plan_error: str | None = None      # why no plan could be made (the fallback rule decides then)
         self.on_fallback = False
-        self._job: _ReplanJob | None = None
         self._answered: str | None = None  # the plan's last answer, not yet seen in the history
         if self.base.lower().startswith("file:"):
             self._make_plan()  # a given plan is checked at once: a bad file stops the agent before the run
@@ -733,7 +735,7 @@ class PlanDecider(TwinDecider):
         job = self._job
         if not self.replan_wait or job is None:
             return False
-        job.done.wait(self.replanner.budget + REPLAN_GRACE_S + 0.1)  # past the grace, _collect reports a timeout
+        self._await(job)
         self._collect(state)
         self._resync()
         return self._job is None
@@ -756,10 +758,8 @@ class PlanDecider(TwinDecider):
             return
         rp = self.replanner
         if not job.done.is_set():
-            elapsed = job.elapsed()
-            if elapsed > rp.budget + REPLAN_GRACE_S:
-                self._job = None  # its plan is dropped
-                job.cancel()
+            elapsed = self._expired(job)
+            if elapsed is not None:
                 rp._follow_state(self.stepper.shop)
                 self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
                              f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
@@ -779,6 +779,8 @@ class PlanDecider(TwinDecider):
 
 REPLAN_GRACE_S = 5.0
 """How long past its budget a re-plan may run before the agent reports it ``timeout``."""
+
+_JOBS_JOINED = "jobs joined while it ran (the guide is planned again for them)"
 
 
 REPLAN_IN_PROCESS = sys.platform.startswith("linux")

@@ -235,12 +235,14 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).replan_inputs(margin, budget, effort)
 
-    def adopt_replan(self, shop: Shop, plan: Any, before: int | None, margin: float | None = REPLAN_MARGIN) -> bool:
+    def adopt_replan(self, shop: Shop, plan: Any, before: int | None, margin: float | None = REPLAN_MARGIN,
+                     retime: bool = False) -> bool:
         """Make ``plan`` (a re-plan from a state of ``shop``'s run) the guide in ``shop`` if it ends ``margin``
-        earlier than ``before``; returns whether it did (:meth:`fms_dispatch.rl.envs.FastShopEnv.adopt_replan`)."""
+        earlier than ``before``, re-timed from the state now with ``retime``; returns whether it did
+        (:meth:`fms_dispatch.rl.envs.FastShopEnv.adopt_replan`)."""
         if self.guide is None:
             raise ValueError(f"model {self.name} has no plan guide")
-        return self._env(shop).adopt_replan(plan, before, margin)
+        return self._env(shop).adopt_replan(plan, before, margin, retime)
 
     def bridge_guide(self, shop: Shop) -> Any:
         """After jobs joined ``shop``: its guide continued at once from the state with the new jobs
@@ -350,20 +352,13 @@ class GuideReplanner:
         earlier than ``before``, as :meth:`check` does; records and returns the event (its ``time`` the trigger's).
         If the run ``moved`` on meanwhile, the plan put in force is the new plan's order re-timed from ``shop``'s state
         now, or the earliest-start list schedule from it where that ends earlier
-        (:meth:`fms_dispatch.replan.Replanner.retime`; ``shop`` must allow a snapshot): the decisions taken meanwhile
+        (:func:`fms_dispatch.replan.retime_from`; ``shop`` must allow a snapshot): the decisions taken meanwhile
         (hundreds on a large simulated shop) leave a plan's start times and vehicle routes behind, and a guide
         read from them leads the model astray (sl70, one breakdown: 18718 against about 8000)."""
-        event_after = plan.makespan
-        adopted = margin_ok = self.margin is None or before is None or plan.makespan < before * (1 - self.margin)
-        if margin_ok:
-            if moved:
-                from ..replan import Replanner
-
-                plan = Replanner.retime(shop, plan)  # type: ignore[arg-type]
-            adopted = self.agent.adopt_replan(shop, plan, before, None)
-        event = self._record(shop, reason, GuideReplan(adopted, before, event_after, wall_time, budget), time)
+        adopted = self.agent.adopt_replan(shop, plan, before, self.margin, retime=moved)
+        event = self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
         if moved and adopted:
-            event["retimed"] = plan.meta.get("retime")
+            event["retimed"] = self.agent.guide_of(shop).plan.meta.get("retime")
         return event
 
     def failed(self, shop: Shop, reason: str, time: int, status: str, wall_time: float, budget: float | None,

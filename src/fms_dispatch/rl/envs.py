@@ -202,12 +202,21 @@ class FastShopEnv(ShopEnv):
             effort = dataclasses.replace(effort, budget=budget)
         return old, effort
 
-    def adopt_replan(self, plan: Schedule, before: int | None, margin: float | None = REPLAN_MARGIN) -> bool:
+    def adopt_replan(self, plan: Schedule, before: int | None, margin: float | None = REPLAN_MARGIN,
+                     retime: bool = False) -> bool:
         """Put ``plan`` (a re-plan from a state of this run) in force as the guide if it ends ``margin`` earlier
         than ``before`` (the plan in force continued from that state; None: it could not be, so ``plan`` is
-        taken); returns whether it was."""
+        taken); returns whether it was. With ``retime`` (the run moved on since that state) the guide is the plan's
+        order re-timed from the shop's state now, or the earliest-start list schedule from it where that ends
+        earlier (:func:`fms_dispatch.replan.retime_from`; the state must allow a snapshot)."""
         adopted = margin is None or before is None or plan.makespan < before * (1 - margin)
         if adopted:
+            if retime:
+                from fms_sim.snapshot import snapshot
+
+                from ..replan import retime_from
+
+                plan = retime_from(snapshot(self.shop), plan)
             # labelled with the env's effort (what the guide is searched with), whatever the re-plan's budget
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
         return adopted
@@ -225,7 +234,7 @@ class FastShopEnv(ShopEnv):
         if self.guide is None or old is None or at_start(self.shop):
             return None
         plan = retime_from(_state(self.shop), old.plan)
-        self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
+        self.adopt_replan(plan, None, None)
         return plan
 
     # ------------------------------------------------------------------ live shops
