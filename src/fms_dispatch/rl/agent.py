@@ -354,7 +354,7 @@ class GuideReplanner:
         now, or the earliest-start list schedule from it where that ends earlier
         (:func:`fms_dispatch.replan.retime_from`; ``shop`` must allow a snapshot): the decisions taken meanwhile
         (hundreds on a large simulated shop) leave a plan's start times and vehicle routes behind, and a guide
-        read from them leads the model astray (sl70, one breakdown: 18718 against about 8000)."""
+        read from them leads the model astray."""
         adopted = self.agent.adopt_replan(shop, plan, before, self.margin, retime=moved)
         event = self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
         if moved and adopted:
