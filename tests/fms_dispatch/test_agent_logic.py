@@ -173,8 +173,12 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
         if svc.state_seq == restart_at:
             agent = AgentLogic(solver, instance=inst)
             agents.append(agent)
-        (cmd,) = agent.on_state(encode(svc.state))
-        assert cmd.topic == m.TOPIC_COMMAND and cmd.msg["agent"] == agent.name
+        outs = agent.on_state(encode(svc.state))
+        (cmd,) = [o for o in outs if o.topic == m.TOPIC_COMMAND]
+        assert cmd.msg["agent"] == agent.name
+        for rep in (o for o in outs if o is not cmd):  # a re-plan searched beside (an order's) may end meanwhile
+            assert rep.topic == m.TOPIC_REPLANS and rep.msg["reason"] == "order", rep.msg
+            assert rep.msg["status"] in ("adopted", "kept", "timeout"), rep.msg
         out = svc.handle_command(encode(cmd.msg))
         assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
     return svc, agents
