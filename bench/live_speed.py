@@ -8,12 +8,16 @@ state (``AgentLogic.on_state``), the shop's (``handle_command`` and the state's 
 schedule validated). The default model's plan is the plain list schedule (no restarts, no tabu search:
 ``--guide-restarts 0 --guide-tabu 0``), so every run makes the same decisions and only the time differs.
 
+The shop sends history deltas by default, as ``fms up`` runs it (``history_delta``: each state carries the labels
+applied since the state before); ``--history whole`` sends the whole history in every state, and ``--history both``
+makes each run both ways, taking turns, and reports the whole history's times against the deltas'.
+
 With ``--baseline REV`` the same runs are made on the source of git revision REV (a temporary worktree), the two
 taking turns run by run so that both see the same machine load; the baseline must make the same schedules, or the
-bench stops.
+bench stops (a revision without history deltas runs with ``--history whole`` only).
 
 Usage: python bench/live_speed.py [--instances sl00 sl40 sl70] [--solver ppo] [--repeat 1] [--baseline REV]
-                                  [--json PATH]
+                                  [--history delta|whole|both] [--json PATH]
 """
 
 from __future__ import annotations
@@ -32,8 +36,8 @@ from checks import checked, positive, report
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_once(name: str, solver: str) -> dict:
-    """One whole run of ``name`` by ``solver`` through the messages, timed."""
+def run_once(name: str, solver: str, delta: bool = True) -> dict:
+    """One whole run of ``name`` by ``solver`` through the messages (``delta``: history deltas), timed."""
     from fms_dispatch.agent_logic import AgentLogic, needs_twin
     from fms_msgs_json import encode
     from fms_sim.benchmarks import builtin
@@ -50,8 +54,9 @@ def run_once(name: str, solver: str) -> dict:
     except ValueError:  # a model without a guide takes no guide effort
         agent = AgentLogic(solver, instance=inst)
     full = getattr(agent.decide, "decisions", "paper") == "full"
+    kw = {"history_delta": True} if delta else {}  # (a baseline revision may not know the parameter)
     svc = ShopService(inst, run_id="live", decisions="full" if full else "paper", history=True, idle_stops=full,
-                      features=not full)
+                      features=not full, **kw)
     svc.start()
     text = encode(svc.state)
     agent_s = shop_s = 0.0
@@ -68,15 +73,16 @@ def run_once(name: str, solver: str) -> dict:
             agent_s += t1 - t0
             shop_s += t2 - t1
         states += 1
+    assert not getattr(agent, "history_requests", 0), "the agent lost the deltas' thread"
     return {"instance": name, "states": states, "agent_s": agent_s, "shop_s": shop_s,
             "makespan": checked(inst, svc.final_schedule, solver)}
 
 
-def _worker(src: Path, names: list[str], solver: str) -> list[dict]:
+def _worker(src: Path, names: list[str], solver: str, history: str) -> list[dict]:
     """:func:`run_once` per shop in a fresh interpreter on the package source at ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src))
-    out = subprocess.run([sys.executable, __file__, "--worker", "--solver", solver, "--instances", *names],
-                         env=env, capture_output=True, text=True, cwd=src.parent)
+    out = subprocess.run([sys.executable, __file__, "--worker", "--solver", solver, "--history", history,
+                          "--instances", *names], env=env, capture_output=True, text=True, cwd=src.parent)
     if out.returncode:
         raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -88,23 +94,33 @@ def main() -> None:
     ap.add_argument("--solver", default="ppo", help="the agent's solver (default ppo: the default model)")
     ap.add_argument("--repeat", type=positive, default=1, help="runs per shop (the fastest reported)")
     ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
+    ap.add_argument("--history", choices=("delta", "whole", "both"), default="delta",
+                    help="the states' history: deltas (as fms up runs the shop; default), whole, or both in turn")
     ap.add_argument("--json", help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.worker:
-        print(json.dumps([run_once(n, a.solver) for n in a.instances]))
+        print(json.dumps([run_once(n, a.solver, a.history == "delta") for n in a.instances]))
         return
+    if a.history == "both" and a.baseline:
+        raise SystemExit("--history both compares the two ways in this checkout; give it without --baseline")
     from decide_speed import _sources
 
     best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}
     with _sources(ROOT / "src", a.baseline) as sources:
+        if a.history == "both":  # the whole history takes the baseline's place
+            sources = [("base", sources[0][1], "whole"), ("new", sources[0][1], "delta")]
+        else:
+            sources = [(who, src, a.history) for who, src in sources]
         for _ in range(a.repeat):
-            for who, src in sources:
-                for r in _worker(src, a.instances, a.solver):
+            for who, src, history in sources:
+                for r in _worker(src, a.instances, a.solver, history):
                     old = best[who].get(r["instance"])
                     if old is None or r["agent_s"] < old["agent_s"]:
                         best[who][r["instance"]] = r
-    lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, solver {a.solver}, fastest of {a.repeat}"
+    base_name = "whole history" if a.history == "both" else "baseline"
+    lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, solver {a.solver}, fastest of {a.repeat}, history "
+             + ("deltas against whole histories, run by run" if a.history == "both" else a.history)
              + (f", baseline {a.baseline} run by run" if a.baseline else "")]
     rows = []
     for name in a.instances:
@@ -116,9 +132,9 @@ def main() -> None:
         b = best["base"].get(name)
         if b is not None:
             if (b["makespan"], b["states"]) != (n["makespan"], n["states"]):
-                raise SystemExit(f"{name}: the baseline runs differently (makespan {b['makespan']} against "
+                raise SystemExit(f"{name}: the {base_name} runs differently (makespan {b['makespan']} against "
                                  f"{n['makespan']}, states {b['states']} against {n['states']})")
-            line += (f"; baseline agent {per * b['agent_s']:.2f} ms ({b['agent_s'] / n['agent_s']:.2f}x), shop "
+            line += (f"; {base_name} agent {per * b['agent_s']:.2f} ms ({b['agent_s'] / n['agent_s']:.2f}x), shop "
                      f"{per * b['shop_s']:.2f} ms ({b['shop_s'] / n['shop_s']:.2f}x)")
             row.update(baseline_agent_s=b["agent_s"], baseline_shop_s=b["shop_s"])
         lines.append(line)

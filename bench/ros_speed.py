@@ -52,7 +52,7 @@ def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     for run in itertools.count():
         if n and time.perf_counter() - t0 >= seconds:
             break
-        svc = ShopService(inst, run_id=f"bench-{run}", history=twin, features=not twin,
+        svc = ShopService(inst, run_id=f"bench-{run}", history=twin, features=not twin, history_delta=twin,
                           idle_stops=full or needs_idle_stops(solver), decisions="full" if full else "paper")
         out = svc.start()
         while not svc.done:

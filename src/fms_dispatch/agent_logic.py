@@ -19,7 +19,10 @@ Solvers (the ``solver`` parameter):
   with ``history``) into it. The twin is cached between states, so a new state costs one replayed step; the
   twin is checked against the state (time, action labels, mask) and rebuilt from scratch on a mismatch. If it
   still disagrees, the agent publishes an ``internal`` error *and* the first enabled action, so the run goes
-  on. Nothing is kept across restarts: a restarted agent replays the latched state's history. Orders that take
+  on. Nothing is kept across restarts: a restarted agent replays the latched state's history. From a shop that
+  sends history deltas (``history_delta``: the labels since the state before) the twin applies each delta; where
+  it cannot (a restart, a missed state, a disagreement) the agent asks for the state again with the whole history
+  (:class:`NeedHistory`, a replay request ``what: "state"``) and answers that. Orders that take
   the shop past the model's padding (100 jobs for the default) hand the rest of the run over, with one
   ``internal`` error: a guided model to the guide follower, the expert it was cloned from; another model to a rule
   (:meth:`TwinDecider._outgrown`).
@@ -48,7 +51,10 @@ import random
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from fms_msgs_json import TOPIC_COMMAND, TOPIC_ERRORS, MessageError, decode, error_reply, make_command, make_error
+from fms_msgs_json import (
+    TOPIC_COMMAND, TOPIC_ERRORS, TOPIC_REPLAY, MessageError, decode, error_reply, make_command, make_error,
+    make_replay_request,
+)
 from fms_sim.instance import Instance, InstanceError, Operation
 from fms_sim.petri import InvalidAction
 from fms_sim.shop_service import Outgoing
@@ -60,7 +66,7 @@ from .solvers import LOOKAHEAD_SUFFIXES
 if TYPE_CHECKING:
     from fms_sim.shop import Shop
 
-__all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision", "FEATURE_JOB_KEYS",
+__all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision", "NeedHistory", "FEATURE_JOB_KEYS",
            "make_decider", "AGENT_SOLVERS", "Decider", "TwinDecider", "load_ppo_agent", "needs_twin",
            "needs_idle_stops", "PlanDecider", "needs_full_net"]
 
@@ -80,6 +86,12 @@ class UnavailableSolver(ValueError):
 
 class DecisionError(ValueError):
     """A state the solver cannot decide on (no enabled action, missing or inconsistent features)."""
+
+
+class NeedHistory(Exception):
+    """A state of a ``history_delta`` shop that the twin cannot follow (a restarted agent, a missed state, a twin
+    that disagrees after the delta): the agent asks the shop for the state again with the whole history (a replay
+    request with ``what: "state"``) and answers that one."""
 
 
 class FallbackDecision(DecisionError):
@@ -245,7 +257,8 @@ class TwinDecider:
         self._run_id: str | None = None
         self._idle_stops = False
         self._labels: list[str] = []           # labels replayed into the twin
-        self._text = ""                         # the same joined by spaces (the history's text that far)
+        # the same joined by spaces (the history's text that far); None after deltas (joined when next needed)
+        self._text: str | None = ""
         self._orders: list[dict[str, Any]] = []  # orders replayed into the twin
         self._disruptions: list[dict[str, Any]] = []  # disruptions replayed into the twin
         self._scenario: dict[str, Any] | None = None  # the run's scenario from the history (twin mirrors it)
@@ -278,8 +291,10 @@ class TwinDecider:
         self.rebuilds += 1
 
     def _replay(self, new: list[str], orders: list[dict[str, Any]],
-                disruptions: list[dict[str, Any]] | None = None) -> int:
-        """Apply the entries of the history beyond those already replayed (``new``: the labels after them; raises on
+                disruptions: list[dict[str, Any]] | None = None, orders_from: int = 0,
+                disruptions_from: int = 0) -> int:
+        """Apply the entries of the history beyond those already replayed (``new``: the labels after them;
+        ``orders`` and ``disruptions`` the history's from its ``orders_from`` and ``disruptions_from`` on; raises on
         an impossible step); returns how many were applied (labels, orders and disruptions)."""
         from fms_sim.disruptions import Breakdown, Outage
 
@@ -291,18 +306,21 @@ class TwinDecider:
         applied = 0
         while True:
             while True:  # the orders and disruptions that came before action p, in the order they came
-                if r < len(disruptions) and disruptions[r]["at"] == p and disruptions[r]["orders_before"] == q:
-                    d = disruptions[r]["disruption"]
+                d_entry = (disruptions[r - disruptions_from]
+                           if 0 <= r - disruptions_from < len(disruptions) else None)
+                order = orders[q - orders_from] if 0 <= q - orders_from < len(orders) else None
+                if d_entry is not None and d_entry["at"] == p and d_entry["orders_before"] == q:
+                    d = d_entry["disruption"]
                     st.disrupt(Breakdown(d["machine"], d["start"], d["duration"]) if d["kind"] == "breakdown"
                                else Outage(d["vehicle_kind"], d["vehicle"], d["start"], d["duration"]))
-                    self._disruptions.append(disruptions[r])
+                    self._disruptions.append(d_entry)
                     r += 1
                     applied += 2
-                elif q < len(orders) and orders[q]["at"] == p:
+                elif order is not None and order["at"] == p:
                     jobs = [[Operation(op["machine"], op.get("tool"), op["duration"]) for op in ops]
-                            for ops in orders[q]["jobs"]]
+                            for ops in order["jobs"]]
                     st.add_jobs(jobs)
-                    self._orders.append(orders[q])
+                    self._orders.append(order)
                     q += 1
                     applied += 2  # an order changes the run: never "one step on" (see sync)
                 else:
@@ -354,17 +372,23 @@ class TwinDecider:
         if self.planner is not None and not idle_stops:
             raise DecisionError(f"state {state['seq']} has no 'idle' field; {self.name} pre-positions idle "
                                 "vehicles at the shop's idle stops (start the shop with idle_stops:=true)")
+        scenario = history.get("scenario")
+        if scenario != self._scenario:
+            self._scenario, self.stepper = scenario, None  # another run's disruptions: rebuild the twin
+        starts = (history.get("actions_from", 0), history.get("orders_from", 0), history.get("disruptions_from", 0))
+        if any(starts):  # a delta (a history_delta shop): what was applied since the state before
+            self._sync_delta(state, history, *starts, idle_stops)
+            return
         # the history grows by a label or two per state (20,000 on sl70): only what follows the text already replayed
         # is split and applied; the rest is compared as text (a split and a list comparison per state made each
         # state cost in proportion to the run so far)
         text = history["actions"]
+        if self._text is None:  # (deltas were followed: join once)
+            self._text = " ".join(self._labels)
         done = self._text
         extends = _extends(text, done)
         orders = history["orders"]
         disruptions = history.get("disruptions") or []
-        scenario = history.get("scenario")
-        if scenario != self._scenario:
-            self._scenario, self.stepper = scenario, None  # another run's disruptions: rebuild the twin
         m, k = len(self._orders), len(self._disruptions)
         fresh = (self.stepper is None or self._run_id != state["run_id"] or self._idle_stops != idle_stops
                  or not extends or len(orders) < m or orders[:m] != self._orders
@@ -390,6 +414,40 @@ class TwinDecider:
         self.stepper = None  # start afresh next time
         raise FallbackDecision(f"state {state['seq']}: the twin of the shop disagrees with the state ({problem}); "
                                f"sending {_fallback(state)!r}", _fallback(state))
+
+    def _sync_delta(self, state: dict[str, Any], history: dict[str, Any], actions_from: int, orders_from: int,
+                    disruptions_from: int, idle_stops: bool) -> None:
+        """Bring the twin to ``state`` from a delta history (what was applied since the state before, from
+        ``actions_from``, ``orders_from`` and ``disruptions_from`` on); raises :class:`NeedHistory` where the twin
+        cannot follow it (none yet, another run, a gap, or it disagrees with the state after it)."""
+        text = history["actions"]
+        labels = text.split(" ") if text else []
+        orders, disruptions = history["orders"], history.get("disruptions") or []
+        n, m, k = len(self._labels), len(self._orders), len(self._disruptions)
+        twin = self.stepper is not None and self._run_id == state["run_id"] and self._idle_stops == idle_stops
+        follows = (twin and actions_from <= n <= actions_from + len(labels)
+                   and self._labels[actions_from:] == labels[:n - actions_from]
+                   and orders_from <= m <= orders_from + len(orders)
+                   and self._orders[orders_from:] == orders[:m - orders_from]
+                   and disruptions_from <= k <= disruptions_from + len(disruptions)
+                   and self._disruptions[disruptions_from:] == disruptions[:k - disruptions_from])
+        if not follows:
+            self.stepper = None
+            raise NeedHistory(f"state {state['seq']}: its history follows action {actions_from}, order "
+                              f"{orders_from} and disruption {disruptions_from} of the run, but "
+                              + (f"the twin has replayed {n}, {m} and {k}" if twin else "there is no twin of it"))
+        try:
+            applied = self._replay(labels[n - actions_from:], orders, disruptions, orders_from, disruptions_from)
+            problem = self._agrees(state)
+        except (InvalidAction, InstanceError, ValueError) as exc:  # ScenarioError is a ValueError
+            problem = f"replaying the history failed: {exc}"
+        self._text = None
+        if problem is not None:
+            self.stepper = None
+            raise NeedHistory(f"state {state['seq']}: the twin disagrees with the state after its history "
+                              f"({problem})")
+        if self.planner is not None and applied != 1:
+            self.planner.reset()
 
     def drain(self) -> list[Outgoing]:
         """The messages (``fms/replan/v1``) to publish after the last answer."""
@@ -1024,7 +1082,9 @@ class AgentLogic:
 
     A state is answered once: a repeated ``(run_id, seq)`` (a latched state delivered again) or an older
     ``seq`` of the same run is ignored, as is a final (``done``) state. A state that cannot be decided on
-    gives an ``fms/error/v1`` instead of a command.
+    gives an ``fms/error/v1`` instead of a command. A state of a ``history_delta`` shop that the twin cannot follow
+    (:class:`NeedHistory`) gives a replay request for that state with the whole history (``what: "state"``, once
+    per state; :meth:`history_asked` says which is awaited) and is answered when it comes again so.
     """
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
@@ -1038,6 +1098,8 @@ class AgentLogic:
         self.last_seq = -1           # the newest state seq seen in run_id
         self.answered_seq = -1       # the newest state seq answered in run_id
         self.decisions = 0
+        self.history_requests = 0    # states asked for again with the whole history
+        self._asked: tuple[str, int] | None = None  # (run_id, seq) of the state asked for so, not yet answered
 
     def on_state(self, text: str) -> list[Outgoing]:
         """The command answering ``text`` (an ``fms/state/v1``), nothing, or an error."""
@@ -1047,8 +1109,8 @@ class AgentLogic:
             return [Outgoing(TOPIC_ERRORS, error_reply(self.source, exc, received=text))]
         run_id, seq = state["run_id"], state["seq"]
         if run_id != self.run_id:
-            self.run_id, self.last_seq, self.answered_seq = run_id, -1, -1
-        if seq <= self.last_seq:
+            self.run_id, self.last_seq, self.answered_seq, self._asked = run_id, -1, -1, None
+        if seq < self.last_seq or (seq == self.last_seq and self._asked != (run_id, seq)):
             return []
         self.last_seq = seq
         if state["done"]:
@@ -1066,12 +1128,23 @@ class AgentLogic:
         except DecisionError as exc:
             return [Outgoing(TOPIC_ERRORS, make_error(self.source, "bad_schema", str(exc), run_id=run_id,
                                                       received=text))]
+        except NeedHistory:
+            if self._asked == (run_id, seq):  # asked already; the node asks again if it does not come
+                return []
+            self._asked = (run_id, seq)
+            self.history_requests += 1
+            return [Outgoing(TOPIC_REPLAY, make_replay_request(run_id, 0, self.source, what="state"))]
+        self._asked = None
         self.answered_seq = seq
         self.decisions += 1
         drain = getattr(self.decide, "drain", None)  # e.g. re-plan reports of a plan decider
         if drain is not None:
             out.extend(drain())
         return out + [Outgoing(TOPIC_COMMAND, make_command(run_id, seq, label, agent=self.name))]
+
+    def history_asked(self) -> tuple[str, int] | None:
+        """``(run_id, seq)`` of the state asked for again with the whole history and not yet answered, else None."""
+        return self._asked
 
     def waiting_for(self) -> tuple[str, int] | None:
         """``(run_id, seq)`` of the state last answered if no newer state has arrived since, else None."""

@@ -4,8 +4,10 @@ A thin adapter around :class:`fms_dispatch.agent_logic.AgentLogic`: it subscribe
 ``fms/state`` (so a late or restarted agent receives the current state at once), decides with the ``solver``
 parameter and publishes one ``fms/command`` per state. A command is sent as soon as the shop listens on
 ``fms/command``; if no newer state has arrived ``resend_s`` seconds later it is sent again (the shop answers
-a duplicate with a ``stale_state`` error and ignores it). An unknown or unavailable solver stops the node at
-start with a one-line error and exit code 2.
+a duplicate with a ``stale_state`` error and ignores it). A state of a ``history_delta`` shop that the agent's
+twin cannot follow (a restarted agent receives the latched state, which carries only the last delta) is asked for
+again with the whole history (``fms/replay_request``, ``what: "state"``), again every ``resend_s`` until it comes.
+An unknown or unavailable solver stops the node at start with a one-line error and exit code 2.
 
 Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``, ``ppo``,
 ``ppo:<model>``, ``ppo[:<model>]+lookahead`` or ``+lookahead-fast``; default ``first``), ``seed`` (for
@@ -34,7 +36,7 @@ import sys
 import time
 from typing import Sequence
 
-from fms_msgs_json import TOPIC_COMMAND
+from fms_msgs_json import TOPIC_COMMAND, TOPIC_REPLAY
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.shop_node import FmsNode, StartupError, TopicIO, param, run_node
 from fms_sim.shop_service import Outgoing
@@ -84,8 +86,10 @@ class AgentNode(FmsNode):
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:
             raise StartupError("parameters 'delay_s' must be >= 0 and 'resend_s' > 0")
-        self.io = TopicIO(n, ["command", "error", "replan"])
+        self.io = TopicIO(n, ["command", "error", "replan", "replay_request"])
         self._pending: Outgoing | None = None     # a command waiting for the shop to listen
+        self._ask: Outgoing | None = None         # a request for a state with its whole history (history_delta)
+        self._asked_at: float | None = None       # when it was sent (None: not yet, the shop not listening)
         self._sent: Outgoing | None = None        # the last command sent, and when
         self._sent_at = 0.0
         self.io.subscribe("state", self._on_state)
@@ -116,11 +120,20 @@ class AgentNode(FmsNode):
                 if self.delay_s:
                     time.sleep(self.delay_s)
                 self._pending = o
+            elif o.topic == TOPIC_REPLAY:
+                asked = self.logic.history_asked()
+                self.node.get_logger().info(f"cannot follow state {asked[1] if asked else '?'} from its history "
+                                            "delta (restarted, or a state missed); asking for it with the whole "
+                                            "history")
+                self._ask, self._asked_at = o, None
             else:
                 self.io.publish([o])
         self._flush()
 
     def _flush(self) -> None:
+        if self._ask is not None and self._asked_at is None and self.io.matched(TOPIC_REPLAY) > 0:
+            self.io.publish([self._ask])
+            self._asked_at = time.monotonic()
         if self._pending is not None and self.io.matched(TOPIC_COMMAND) > 0:
             self.io.publish([self._pending])
             self._sent, self._pending = self._pending, None
@@ -128,6 +141,14 @@ class AgentNode(FmsNode):
 
     def _tick(self) -> None:
         self._flush()
+        if self._ask is not None and self.logic.history_asked() is None:
+            self._ask = None  # the state came with its whole history and was answered
+        elif (self._ask is not None and self._asked_at is not None
+              and time.monotonic() - self._asked_at >= self.resend_s):
+            self.node.get_logger().warning(f"no state with the whole history {self.resend_s:.1f} s after asking for "
+                                           "it; asking again")
+            self._asked_at = None
+            self._flush()
         sent = self._sent
         if sent is None or time.monotonic() - self._sent_at < self.resend_s:
             return

@@ -12,8 +12,9 @@ not as a failed run: nothing is lost by then. It imports no rclpy itself: the no
 instance in-process first and runs the winner over the topics: PPO if its makespan is strictly smaller than the
 best rule pair's, else that pair (:func:`best_solver`; it says which; in a disrupted run ``plan:rules`` takes the
 rule pairs' place). A ``ppo`` solver makes the launcher
-start the shop with ``history:=true`` (and ``features:=false``) and give the agent the instance file, so that
-the agent can replay the run into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``, and
+start the shop with ``history:=true`` and ``history_delta:=true`` (each state carries what was applied since the
+one before; and ``features:=false``) and give the agent the instance file, so that the agent can replay the run
+into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``, and
 a plan solver (``plan:cpsat:10``: the agent plans at the first state, then executes the plan) runs the shop on
 the full-decision net (``decisions:=full``) with history and idle stops. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
 environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
@@ -372,7 +373,7 @@ def cmd_up(a: argparse.Namespace) -> int:
                     log_dir / "recorder.log", env),
         NodeProcess("shop", node_command("fms_sim.shop_node", {
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
-            "instance_out": str(inst_final), "history": twin, "features": not twin,
+            "instance_out": str(inst_final), "history": twin, "history_delta": twin, "features": not twin,
             "idle_stops": needs_idle_stops(solver) or needs_full_net(solver), "decisions": "full" if full else "paper",
             **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed}
                if disrupted else {})}),

@@ -222,8 +222,11 @@ def error_reply(source: str, exc: BaseException, *, received: str | bytes | None
     return make_error(source, code, text or type(exc).__name__, run_id=run_id, received=received)
 
 
-def make_replay_request(run_id: str, from_seq: int, requester: str) -> dict[str, Any]:
+def make_replay_request(run_id: str, from_seq: int, requester: str, what: str = "events") -> dict[str, Any]:
     """An ``fms/replay_request/v1``: ``requester`` asks the shop to re-publish run ``run_id``'s events
-    (``"*"``: the current run) from event number ``from_seq`` on."""
-    return _checked({"schema": SCHEMA_REPLAY_REQUEST, "run_id": run_id, "from_seq": _plain(from_seq),
-                     "requester": requester})
+    (``"*"``: the current run) from event number ``from_seq`` on, or with ``what="state"`` its current state with
+    the run's whole history (``from_seq`` is then not read)."""
+    msg = {"schema": SCHEMA_REPLAY_REQUEST, "run_id": run_id, "from_seq": _plain(from_seq), "requester": requester}
+    if what != "events":
+        msg["what"] = what
+    return _checked(msg)

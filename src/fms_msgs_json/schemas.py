@@ -36,7 +36,7 @@ __all__ = [
     "TOPIC_STATE", "TOPIC_COMMAND", "TOPIC_EVENTS", "TOPIC_SCHEDULE", "TOPIC_ORDERS", "TOPIC_ERRORS",
     "TOPIC_REPLAY", "TOPIC_DISRUPTIONS", "TOPIC_REPLANS", "TOPICS",
     "EVENT_KINDS", "ERROR_CODES", "RECEIVED_MAX_CHARS", "ERROR_MAX_CHARS", "ERROR_MAX_BYTES", "bounded",
-    "TOPIC_QOS", "TopicQos",
+    "TOPIC_QOS", "TopicQos", "REPLAY_WHATS",
     "FEATURE_JOB_COLUMNS", "FEATURE_VEHICLE_COLUMNS",
     "MessageError", "validate", "kind_of", "encode", "decode",
 ]
@@ -187,6 +187,9 @@ _FEATURES = Obj((
 # the same instance can replay it into a twin of the shop (the net is deterministic). "actions" is the
 # applied action labels in order, separated by single spaces (one string: cheap to send, check and split);
 # "orders" are the accepted orders' jobs, each with "at" = the number of actions applied before it.
+# A shop started with history_delta sends only what was applied since its previous state: "actions_from",
+# "orders_from" and "disruptions_from" then say where the given entries begin in the whole run (0, or absent:
+# the whole history; "at" values stay counted from the run's start).
 _HISTORY_ORDER = Obj((
     Field("at", Int(0)),
     Field("jobs", ListOf(ListOf(Obj((
@@ -216,7 +219,11 @@ _HISTORY = Obj((
     Field("orders", ListOf(_HISTORY_ORDER)),
     Field("disruptions", ListOf(_HISTORY_DISRUPTION), required=False),
     Field("scenario", Obj(()), required=False),
-), expected="a history object {actions, orders[, disruptions, scenario]}")
+    Field("actions_from", Int(0), required=False),
+    Field("orders_from", Int(0), required=False),
+    Field("disruptions_from", Int(0), required=False),
+), expected="a history object {actions, orders[, disruptions, scenario, actions_from, orders_from, "
+            "disruptions_from]}")
 
 # The optional "idle" of a state, sent by a shop that stops at idle-vehicle moments (for pre-positioning; see
 # fms_sim.stepping): the vehicles offered now, or [] at a decision. Absent (or null) if the shop does not stop
@@ -381,10 +388,15 @@ _REPLAN = (
     Field("message", Nullable(Str(nonempty=False, max_len=ERROR_MAX_CHARS["message"])), required=False),
 )
 
+REPLAY_WHATS: tuple[str, ...] = ("events", "state")
+"""What a replay request asks for: the run's events from ``from_seq`` on (the default), or the current state
+again with the run's whole history (an agent of a ``history_delta`` shop that cannot follow the deltas)."""
+
 _REPLAY_REQUEST = (
     Field("run_id", Str(what='a run id, or "*" for the current run')),
     Field("from_seq", Int(0)),
     Field("requester", Str()),
+    Field("what", OneOf(REPLAY_WHATS), required=False),
 )
 
 
@@ -405,19 +417,22 @@ def _mask_matches_actions(msg: dict[str, Any], path: str) -> None:
 
 
 def _history_consistent(history: dict[str, Any]) -> None:
-    """History labels are separated by single spaces; orders come in order and refer to applied actions."""
+    """History labels are separated by single spaces; orders come in order and refer to applied actions (of a
+    delta, those from ``actions_from`` on: see ``_HISTORY``)."""
     text = history["actions"]
-    n = 0
+    first = history.get("actions_from", 0)
+    n = first
     if text:  # (counted, not split: the text grows with the run and is checked at every state)
         if text[0] == " " or text[-1] == " " or "  " in text:
             raise FieldError("history.actions", "field 'history.actions' must separate action labels by single "
                                                 "spaces (no leading, trailing or double spaces)")
-        n = text.count(" ") + 1
-    last = 0
+        n += text.count(" ") + 1
+    last = first
     for i, order in enumerate(history["orders"]):
         if not last <= order["at"] <= n:
             raise FieldError(f"history.orders[{i}].at", f"field 'history.orders[{i}].at' is {order['at']} but "
-                                                        f"must be between {last} (the previous order's) and {n} "
+                                                        f"must be between {last} (the previous order's"
+                                                        f"{' or actions_from' if first else ''}) and {n} "
                                                         "(the number of applied actions)")
         last = order["at"]
 

@@ -10,7 +10,8 @@ rejected message is answered on ``fms/errors`` and logged; the node keeps runnin
 Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
 (0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
 carry the rule features), ``history`` (true: states carry the replay history a PPO agent needs; default
-false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``scenario`` (a
+false), ``history_delta`` (true, with ``history``: each state carries only what was applied since the state before,
+and an agent that cannot follow asks for the whole history with a replay request; default false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``scenario`` (a
 ``fms/scenario/v1`` file of breakdowns and outages, full net only), ``noise`` and ``noise_seed`` (lognormal
 noise on every duration), ``idle_stops``
 (true: the shop also stops, and publishes a state, when a vehicle is idle between
@@ -203,6 +204,7 @@ class ShopNode(FmsNode):
         run_id = param(n, "run_id", "")
         features = param(n, "features", True)
         history = param(n, "history", False)
+        history_delta = param(n, "history_delta", False)
         idle_stops = param(n, "idle_stops", False)
         decisions = param(n, "decisions", "paper")
         scenario_file = param(n, "scenario", "")
@@ -235,8 +237,11 @@ class ShopNode(FmsNode):
                 raise StartupError(str(exc)) from None
             if decisions != "full":
                 raise StartupError("a scenario or noise needs decisions:=full")
+        if history_delta and not history:
+            raise StartupError("parameter 'history_delta' needs history:=true (the deltas are of the history)")
         self.service = ShopService(inst, run_id=run_id or None, features=features, history=history,
-                                   idle_stops=idle_stops, decisions=decisions, scenario=scenario)
+                                   idle_stops=idle_stops, decisions=decisions, scenario=scenario,
+                                   history_delta=history_delta)
         self.io = TopicIO(n, ["state", "event", "schedule", "error"])
         self.io.subscribe("command", lambda t: self._handle(self.service.handle_command, t))
         self.io.subscribe("order", lambda t: self._handle(self.service.handle_order, t))

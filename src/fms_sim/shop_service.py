@@ -13,7 +13,12 @@ rclpy:
   space-separated string) and the accepted orders' jobs with the number of actions applied before each. An
   agent that needs the whole shop (the PPO policy) replays it into its own twin of the shop, started from the
   same instance; the net is deterministic, so the twin reaches the same state. The agent keeps no state of
-  its own across restarts: the latched state is all it needs.
+  its own across restarts: the latched state is all it needs. With ``history_delta=True`` a state carries only
+  what was applied since the state that the last applied command answered (``actions_from``, ``orders_from`` and
+  ``disruptions_from`` say where that begins: normally the state before; a state superseded by an order before it
+  was answered is covered by the next), so a state's size and cost stay the same all run long instead of growing with it (on a
+  100-job shop the whole history reaches about 120 KB); an agent that cannot follow (restarted, or it missed a
+  state) asks for the current state again with the whole history: a replay request with ``what: "state"``.
 * **Decisions** (``decisions="paper"`` by default, or ``"full"``): the net the shop runs and whose action
   labels the states carry (docs/semantics.md); every state names it in ``decisions``. On the full net idle
   stops come before the decisions of the same moment, once per idle period of a vehicle.
@@ -195,7 +200,9 @@ class ShopService:
     def __init__(self, instance: Instance, *, run_id: str | None = None, source: str = SOURCE,
                  features: bool = True, history: bool = False, idle_stops: bool = False,
                  clock: Callable[[], float] = time.perf_counter, decisions: str = "paper",
-                 scenario: Any = None) -> None:
+                 scenario: Any = None, history_delta: bool = False) -> None:
+        if history_delta and not history:
+            raise ValueError("history_delta needs history: the deltas are of the history")
         self.shop = make_shop(instance, decisions, scenario)
         # the run's scenario as given at the start, for twins that mirror the shop (with history)
         self._scenario_doc = scenario.to_dict() if scenario is not None and not scenario.empty else None
@@ -205,8 +212,14 @@ class ShopService:
         self.source = source
         self.with_features = features
         self.with_history = history
+        self.history_delta = history_delta
         self._applied: list[str] = []                     # applied action labels, in order (for history)
-        self._applied_text = ""                           # the same, space-separated
+        self._applied_text = ""                           # the same, space-separated (whole histories only)
+        # a delta starts where the history stood when the state that the last applied command answered was published
+        # (what the agent that answered it has seen: a state superseded by an order before anyone answered it is
+        # covered by the next one); counts of (labels, orders, disruptions)
+        self._history_base = (0, 0, 0)
+        self._history_at_state = (0, 0, 0)                # the counts when the current state was published
         self._order_history: list[dict[str, Any]] = []    # accepted orders: {"at": n actions before, "jobs"}
         self._disruption_history: list[dict[str, Any]] = []  # {"at", "orders_before", "disruption"}
         self.disruptions: dict[str, dict[str, Any]] = {}  # accepted disruption id -> its message body
@@ -280,8 +293,10 @@ class ShopService:
                 return [self._error("forbidden_action", problem, text)]
             self.decisions += 1
         if self.with_history:
+            self._history_base = self._history_at_state
             self._applied.append(label)
-            self._applied_text = f"{self._applied_text} {label}" if self._applied_text else label
+            if not self.history_delta:  # (a delta shop joins the labels only when asked for the whole history)
+                self._applied_text = f"{self._applied_text} {label}" if self._applied_text else label
         agent = msg.get("agent")
         if agent and (not self.agents or self.agents[-1] != agent):
             self.agents.append(agent)
@@ -375,7 +390,9 @@ class ShopService:
         return out + self._after_step()
 
     def handle_replay(self, text: str) -> list[Outgoing]:
-        """Re-publish this run's events from ``from_seq`` on (and the schedule if the run is complete)."""
+        """Re-publish this run's events from ``from_seq`` on (and the schedule if the run is complete); with
+        ``what: "state"``, the current state instead, with the run's whole history (an agent of a
+        ``history_delta`` shop that cannot follow the deltas asks for it)."""
         try:
             msg = decode(text, expect="replay_request")
         except MessageError as exc:
@@ -383,6 +400,11 @@ class ShopService:
         if msg["run_id"] not in ("*", self.run_id):
             return [self._error("unknown_run", f"replay requested for run {msg['run_id']!r} but this shop runs "
                                                f"{self.run_id!r}", text)]
+        if msg.get("what") == "state":
+            state = self.state
+            if state is not None and "history" in state:
+                state = dict(state, history=self._history(whole=True))
+            return [] if state is None else [Outgoing(TOPIC_STATE, state)]
         out = [Outgoing(TOPIC_EVENTS, e) for e in self.events[msg["from_seq"]:]]
         if self._schedule_msg is not None:
             out.append(Outgoing(TOPIC_SCHEDULE, self._schedule_msg))
@@ -436,13 +458,27 @@ class ShopService:
                                 instance=shop.instance.name, makespan=shop.makespan if done else None,
                                 features=features, idle=self._idle_offer())
         if self.with_history and not done:  # added after make_state's check; the schema (history) allows it
-            self.state["history"] = {"actions": self._applied_text, "orders": list(self._order_history)}
-            if self._disruption_history:
-                self.state["history"]["disruptions"] = list(self._disruption_history)
-            if self._scenario_doc is not None:
-                self.state["history"]["scenario"] = self._scenario_doc
+            self.state["history"] = self._history(whole=not self.history_delta)
+            self._history_at_state = (len(self._applied), len(self._order_history), len(self._disruption_history))
         self.state["decisions"] = shop.decisions  # an extra field (allowed): the net the labels belong to
         return self.state
+
+    def _history(self, whole: bool) -> dict[str, Any]:
+        """The state's ``history``: the whole run's, or (``whole=False``) what was applied since the state that the
+        last applied command answered was published, with where that begins."""
+        p, q, r = (0, 0, 0) if whole else self._history_base
+        if whole:
+            text = " ".join(self._applied) if self.history_delta else self._applied_text
+        else:
+            text = " ".join(self._applied[p:])
+        history: dict[str, Any] = {"actions": text, "orders": self._order_history[q:]}
+        if self._disruption_history:
+            history["disruptions"] = self._disruption_history[r:]
+        if self._scenario_doc is not None:
+            history["scenario"] = self._scenario_doc
+        if self.history_delta:
+            history.update(actions_from=p, orders_from=q, disruptions_from=r)
+        return history
 
     def _idle_offer(self) -> list[dict[str, Any]] | None:
         """The state's ``idle`` field: None without idle stops, else the vehicles offered now."""

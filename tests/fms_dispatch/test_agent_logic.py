@@ -159,10 +159,13 @@ def test_legal_labels() -> None:
 
 # ------------------------------------------------------------------------------------------------ ppo
 def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: int | None = None,
-            idle_stops: bool = False, decisions: str = "paper"):
-    """Drive a history-carrying shop (on the net ``decisions``) with a PPO agent; optionally replace the agent
-    by a fresh one (a restart) before state ``restart_at`` and send an order before state ``order_at``."""
-    svc = ShopService(inst, run_id="p", history=True, idle_stops=idle_stops, decisions=decisions)
+            idle_stops: bool = False, decisions: str = "paper", delta: bool = False, missed: int | None = None):
+    """Drive a history-carrying shop (on the net ``decisions``; ``delta``: a ``history_delta`` shop, whose replay
+    requests for the whole history are served) with a PPO agent; optionally replace the agent by a fresh one (a
+    restart) before state ``restart_at``, send an order before state ``order_at``, and let another agent answer
+    state ``missed`` (the first one never sees it)."""
+    svc = ShopService(inst, run_id="p", history=True, idle_stops=idle_stops, decisions=decisions,
+                      history_delta=delta)
     agent = AgentLogic(solver, instance=inst)
     agents = [agent]
     out = svc.start()
@@ -173,9 +176,18 @@ def ppo_run(inst, solver: str = "ppo", restart_at: int | None = None, order_at: 
         if svc.state_seq == restart_at:
             agent = AgentLogic(solver, instance=inst)
             agents.append(agent)
-        outs = agent.on_state(encode(svc.state))
+        who = AgentLogic(solver, instance=inst) if svc.state_seq == missed else agent
+        outs = who.on_state(encode(svc.state))
+        if delta and [o for o in outs if o.topic == m.TOPIC_REPLAY]:  # the twin cannot follow: the whole history
+            (req,) = outs
+            assert req.msg["what"] == "state" and who.history_asked() == ("p", svc.state_seq)
+            assert who.on_state(encode(svc.state)) == []       # the same delta again: asked already
+            (again,) = svc.handle_replay(encode(req.msg))
+            assert again.topic == m.TOPIC_STATE and again.msg["seq"] == svc.state_seq
+            outs = who.on_state(encode(again.msg))
+            assert who.history_asked() is None
         (cmd,) = [o for o in outs if o.topic == m.TOPIC_COMMAND]
-        assert cmd.msg["agent"] == agent.name
+        assert cmd.msg["agent"] == who.name
         for rep in (o for o in outs if o is not cmd):  # a re-plan searched beside (an order's) may end meanwhile
             assert rep.topic == m.TOPIC_REPLANS and rep.msg["reason"] == "order", rep.msg
             assert rep.msg["status"] in ("adopted", "kept", "timeout"), rep.msg
@@ -209,6 +221,46 @@ def test_ppo_agent_restarted_mid_run_replays_the_history() -> None:
     assert len(agents) == 2 and agents[1].decide.rebuilds == 1 and agents[1].decisions == svc.decisions - 11
     assert svc.final_schedule.makespan == ppo_solver("ppo:bu")(inst).makespan  # the restarted twin goes on alike
     assert validate(inst, svc.final_schedule) == []
+
+
+@pytest.mark.parametrize("name, solver, net", [("EX12", "ppo:bu", "paper"), ("ra01", "ppo", "full")])
+def test_ppo_agent_follows_history_deltas_and_asks_for_the_whole_history_when_it_cannot(name: str, solver: str,
+                                                                                      net: str) -> None:
+    """A ``history_delta`` shop's states carry what was applied since the state before: the twin follows them (one
+    build, no request); a restarted agent, and one that missed a state, ask once for the whole history (a replay
+    request ``what: "state"``) and go on with the same run."""
+    from fms_dispatch.rl import ppo_solver
+
+    inst = builtin(name)
+    ref = ppo_solver(solver)(inst).to_dict()["operations"]
+    svc, (agent,) = ppo_run(inst, solver=solver, decisions=net, delta=True)
+    assert svc.final_schedule.to_dict()["operations"] == ref
+    assert agent.decide.rebuilds == 1 and agent.history_requests == 0
+    svc, agents = ppo_run(inst, solver=solver, decisions=net, delta=True, restart_at=11, missed=20)
+    assert svc.final_schedule.to_dict()["operations"] == ref and validate(inst, svc.final_schedule) == []
+    assert [a.history_requests for a in agents] == [0, 2]        # at its start (11) and after the state it missed
+    assert agents[1].decide.rebuilds == 2
+
+
+def test_a_twin_that_disagrees_after_a_delta_asks_for_the_whole_history() -> None:
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p", history=True, history_delta=True)
+    agent = AgentLogic("ppo:bu", instance=inst)
+    svc.start()
+    for _ in range(5):
+        (cmd,) = agent.on_state(encode(svc.state))
+        svc.handle_command(encode(cmd.msg))
+    state = json.loads(encode(svc.state))
+    assert state["history"]["actions_from"] > 0 and state["history"]["actions"]
+    wrong = dict(state, time=state["time"] + 1)
+    (req,) = agent.on_state(json.dumps(wrong))
+    assert req.topic == m.TOPIC_REPLAY and req.msg == m.make_replay_request("p", 0, agent.source, what="state")
+    assert agent.decide.stepper is None                           # the twin is dropped: the whole history rebuilds it
+    (again,) = svc.handle_replay(encode(req.msg))
+    assert again.msg["history"]["actions_from"] == 0 and again.msg["history"]["actions"].count(" ") == 4
+    (cmd,) = agent.on_state(encode(again.msg))
+    assert cmd.topic == m.TOPIC_COMMAND and cmd.msg["state_seq"] == state["seq"] and agent.decide.rebuilds == 2
+    assert agent.on_state(encode(again.msg)) == []               # answered: not again
 
 
 def test_ppo_twin_follows_orders() -> None:

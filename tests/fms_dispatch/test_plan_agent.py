@@ -13,11 +13,14 @@ from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
 
 
-def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None, replan=0.0, replans=None, settle=True):
+def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None, replan=0.0, replans=None, settle=True,
+          delta=False):
     """Run a ShopService against AgentLogic in-process; returns (service, errors published by the agent).
     ``replans`` (a list) collects the agent's re-plan messages; with ``settle`` a re-plan under way is waited
-    for before the next state (deterministic tests), else the run goes on meanwhile."""
-    svc = ShopService(inst, run_id="r", decisions=decisions, history=True, idle_stops=idle_stops, features=False)
+    for before the next state (deterministic tests), else the run goes on meanwhile. ``delta``: the shop sends
+    history deltas (``history_delta``); the agent must follow them without asking for the whole history."""
+    svc = ShopService(inst, run_id="r", decisions=decisions, history=True, idle_stops=idle_stops, features=False,
+                      history_delta=delta)
     agent = AgentLogic(solver, instance=inst, replan=replan)
     svc.start()
     errors = []
@@ -33,6 +36,7 @@ def drive(inst, solver, *, decisions="full", idle_stops=True, orders=None, repla
         if replans is not None:
             replans += [o.msg for o in out if o.topic == "fms/replans"]
         errors += [o.msg for o in out if o.topic == "fms/errors"]
+        assert not [o for o in out if o.topic == "fms/replay_request"], "the twin lost the deltas' thread"
         cmds = [o.msg for o in out if o.topic == "fms/command"]
         if not cmds:
             break
@@ -72,6 +76,18 @@ def test_a_state_answered_twice_gets_the_same_answer():
         assert first == again
         svc.handle_command(encode({"schema": "fms/command/v1", "run_id": "r", "state_seq": state["seq"],
                                    "action": first}))
+
+
+def test_a_plan_agent_follows_history_deltas_through_orders():
+    """A ``history_delta`` shop (each state carries what was applied since the one before): the plan agent's twin
+    follows the deltas, an order included, and the run is the one a shop sending whole histories gets."""
+    inst = builtin("ra01")
+    order = make_order("o1", [[{"machine": 1, "tool": 1, "duration": 5}, {"machine": 3, "duration": 4}]])
+    whole, errors = drive(inst, "plan:list", orders={20: order}, replan=0.5)
+    svc, delta_errors = drive(inst, "plan:list", orders={20: order}, replan=0.5, delta=True)
+    assert errors == delta_errors == [] and validate(svc.instance, svc.final_schedule) == []
+    for key in ("operations", "agv_trips", "tool_trips"):
+        assert svc.final_schedule.to_dict()[key] == whole.final_schedule.to_dict()[key], key
 
 
 def test_orders_hand_over_to_the_fallback_rule_and_say_so():
@@ -280,11 +296,13 @@ def test_plan_solvers_need_the_full_net_with_idle_stops_and_the_instance():
         make_decider("cpsat", instance=inst)
 
 
-def test_disruptions_at_run_time_reach_the_shop_and_the_plan_agents_twin():
+@pytest.mark.parametrize("delta", [False, True], ids=["whole", "delta"])
+def test_disruptions_at_run_time_reach_the_shop_and_the_plan_agents_twin(delta):
     from fms_msgs_json import make_disruption
 
     inst = builtin("ra01")
-    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False)
+    svc = ShopService(inst, run_id="r", decisions="full", history=True, idle_stops=True, features=False,
+                      history_delta=delta)
     agent = AgentLogic("plan:list", instance=inst)
     svc.start()
     sent = {15: make_disruption("m1", "breakdown", 25, machine=1),

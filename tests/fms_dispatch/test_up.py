@@ -151,6 +151,7 @@ def test_a_full_net_model_runs_the_shop_on_the_full_net(fake_nodes, tmp_path: Pa
         assert code == up.EXIT_OK
         shop, agent = seen["shop_node"], seen["agent_node"]
         assert shop["decisions"] == "full" and shop["history"] is True and shop["idle_stops"] is idle
+        assert shop["history_delta"] is True and shop["features"] is False  # each state: the labels since the last
         assert agent["solver"] == "ppo:full" and "instance" in agent
         assert ("noise" in shop) is bool(extra)
     seen.clear()

@@ -455,6 +455,79 @@ def test_history_schema_is_strict() -> None:
     decode(json.dumps(dict(state, history=None)))           # optional: null is fine
 
 
+def test_history_deltas_add_up_to_the_whole_history_and_stay_small() -> None:
+    """A ``history_delta`` shop sends, in each state, what was applied since the state that the last command
+    answered; the deltas, read in order, are the whole history a shop without deltas sends, and the state's size
+    stays flat instead of growing with the run. A replay request ``what: "state"`` gets the current state again
+    with the whole history (and no events)."""
+    from fms_msgs_json import make_disruption
+
+    inst = builtin("ra01")
+    whole = ShopService(inst, run_id="r", history=True, decisions="full")
+    delta = ShopService(inst, run_id="r", history=True, decisions="full", history_delta=True)
+    for svc in (whole, delta):
+        svc.start()
+    labels: list[str] = []
+    orders: list[dict[str, Any]] = []
+    disruptions: list[dict[str, Any]] = []
+    sizes = []
+    step = 0
+    while not whole.done:
+        if step in (10, 25):  # an order supersedes a state before it was answered: the next delta covers both
+            for svc in (whole, delta):
+                svc.handle_order(order(f"o{step}", [[(1, None, 3), (2, None, 4)]]))
+        if step == 40:
+            for svc in (whole, delta):
+                assert not by_topic(svc.handle_disruption(encode(make_disruption("b", "breakdown", 9, machine=2))),
+                                    m.TOPIC_ERRORS)
+        h = decode(encode(delta.state))["history"]
+        assert (h["actions_from"], h["orders_from"], h["disruptions_from"]) == (
+            len(labels), len(orders), len(disruptions)), step
+        labels += h["actions"].split(" ") if h["actions"] else []
+        orders += h["orders"]
+        disruptions += h.get("disruptions", [])
+        full = whole.state["history"]
+        assert " ".join(labels) == full["actions"] and orders == full["orders"], step
+        assert disruptions == full.get("disruptions", []), step
+        sizes.append((len(json.dumps(full)), len(json.dumps(delta.state["history"]))))
+        if step == 30:
+            (again,) = delta.handle_replay(encode(m.make_replay_request("*", 0, "agent", what="state")))
+            assert again.topic == m.TOPIC_STATE and again.msg["seq"] == delta.state_seq
+            assert {k: again.msg["history"][k] for k in ("actions", "orders")} == {"actions": full["actions"],
+                                                                                  "orders": full["orders"]}
+            assert again.msg["history"]["actions_from"] == 0 and delta.state["history"] == h  # the state sent stays
+        label = first_label(whole.state)
+        for svc in (whole, delta):
+            assert not by_topic(svc.handle_command(command(svc, label)), m.TOPIC_ERRORS)
+        step += 1
+    assert len(orders) == 2 and len(disruptions) == 1
+    assert delta.final_schedule.to_dict() == whole.final_schedule.to_dict() | {"meta": delta.final_schedule.meta}
+    # the whole history grows with the run (965 bytes at the end here, 120 KB on sl70); a delta is a label or two,
+    # or an order's jobs (at most 245 bytes here)
+    assert sizes[-1][0] > 900 and max(d for _, d in sizes) < 250
+    (final,) = delta.handle_replay(encode(m.make_replay_request("*", 0, "agent", what="state")))
+    assert final.msg["done"] and "history" not in final.msg
+    with pytest.raises(ValueError, match="history_delta needs history"):
+        ShopService(inst, history_delta=True)
+
+
+def test_replay_request_what_is_checked() -> None:
+    assert m.make_replay_request("*", 0, "a", what="state")["what"] == "state"
+    assert "what" not in m.make_replay_request("*", 0, "a")
+    with pytest.raises(MessageError, match="what"):
+        m.make_replay_request("*", 0, "a", what="history")
+    with pytest.raises(MessageError, match="actions_from"):
+        decode(json.dumps({"schema": "fms/state/v1", "run_id": "r", "seq": 1, "time": 0, "marking": {},
+                           "actions": [], "mask": [], "done": False,
+                           "history": {"actions": "", "orders": [], "actions_from": -1}}))
+    # a delta's orders come after its first action
+    with pytest.raises(MessageError, match=r"'history.orders\[0\].at' is 2 but must be between 3"):
+        decode(json.dumps({"schema": "fms/state/v1", "run_id": "r", "seq": 1, "time": 0, "marking": {},
+                           "actions": [], "mask": [], "done": False,
+                           "history": {"actions": "job:0", "actions_from": 3,
+                                       "orders": [{"at": 2, "jobs": [[{"machine": 1, "duration": 1}]]}]}}))
+
+
 # ------------------------------------------------------------------------------------------------ idle stops
 def answer(svc: ShopService) -> str:
     """``wait`` at an idle stop, else the first enabled action."""

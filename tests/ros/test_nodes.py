@@ -309,21 +309,26 @@ def test_agent_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_pa
     check_log(db, "agent-crash", sched, inst)
 
 
-def test_ppo_agent_killed_and_restarted_replays_the_history(nodes: NodeProcs, observer: Observer) -> None:
+@pytest.mark.parametrize("delta", [False, True], ids=["whole", "delta"])
+def test_ppo_agent_killed_and_restarted_replays_the_history(nodes: NodeProcs, observer: Observer,
+                                                            delta: bool) -> None:
     from fms_dispatch.rl import ppo_solver
 
-    nodes.start("shop", SHOP, instance="EX12", run_id="ppo-crash", history=True)
+    nodes.start("shop", SHOP, instance="EX12", run_id="ppo-crash", history=True, history_delta=delta)
     shop_seen(observer, "ppo-crash")
     first = nodes.start("agent1", AGENT, solver="ppo:bu", instance="EX12", delay_s=0.1)
     observer.wait_for(lambda g: any(s["seq"] >= 8 for s in g["state"]), STARTUP_S + RUN_S, "state 8")
     nodes.kill(first)
     time.sleep(0.3)
-    nodes.start("agent2", AGENT, solver="ppo:bu", instance="EX12")  # a fresh twin from the latched history
+    # a fresh twin from the latched history; with deltas the latched state has only the last one, so the agent asks
+    # for that state again with the whole history
+    nodes.start("agent2", AGENT, solver="ppo:bu", instance="EX12")
     sched = schedule_of(observer, "ppo-crash")
     inst = builtin("EX12")
     assert validate(inst, sched) == [] and sched.meta["solver"] == "ppo:bu"
     assert sched.makespan == ppo_solver("ppo:bu")(inst).makespan  # the restarted agent carries the same run on
     assert not [e for e in observer.snapshot("error") if e.get("run_id") == "ppo-crash" and e["code"] == "internal"]
+    assert ("asking for it with the whole history" in nodes.log("agent2")) == delta, nodes.log("agent2")
 
 
 def test_recorder_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_path: Path) -> None:
@@ -408,6 +413,7 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
                                              "shop's instance"),
         (SHOP, ["-p", "instance:=EX99"], "fms-shop: error: unknown built-in instance 'EX99'"),
         (SHOP, [], "fms-shop: error: parameter 'instance' is required"),
+        (SHOP, ["-p", "instance:=EX12", "-p", "history_delta:=true"], "parameter 'history_delta' needs history:=true"),
         (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
         # an integer is a number: it reaches the range check (it was refused as "must be a number")
         (RECORDER, ["-p", "retry_s:=0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
