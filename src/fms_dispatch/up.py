@@ -19,7 +19,9 @@ a plan solver (``plan:cpsat:10``: the agent plans at the first state, then execu
 the full-decision net (``decisions:=full``) with history and idle stops. ROS settings: ``ROS_DOMAIN_ID`` is taken from the
 environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` runs never talk to each
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
-default a temporary folder, kept and printed only when something fails).
+default a temporary folder, kept and printed only when something fails). While the run goes on, a line every
+:data:`PROGRESS_S` seconds says how far it is (operations ended and the shop's clock, from the recorder's database);
+a run that outlasts ``--timeout`` fails with that progress named.
 
 Exit codes: 0 done and valid; 1 the run failed (a node died before the run was delivered, timeout, invalid
 schedule); 2 bad input.
@@ -56,6 +58,10 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 #: seconds the nodes get to stop after SIGINT before SIGKILL (a node bounds its own teardown at
 #: ``fms_sim.shop_node.STOP_STALL_S``, which is shorter)
 STOP_GRACE_S = 10.0
+
+#: seconds between the progress lines of a run that goes on (operations done and the shop's clock, read from the
+#: recorder's database); --quiet prints none
+PROGRESS_S = 5.0
 
 
 class UpError(ValueError):
@@ -387,6 +393,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         for node in nodes:
             node.start()
         deadline = time.monotonic() + a.timeout
+        next_report = time.monotonic() + PROGRESS_S
         while True:
             if sched_tmp.exists() and inst_final.exists() and png.exists():
                 break
@@ -396,8 +403,12 @@ def cmd_up(a: argparse.Namespace) -> int:
                 break
             if time.monotonic() > deadline:
                 missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
-                failure = f"timed out after {a.timeout:g} s waiting for {', '.join(missing)}"
+                failure = (f"timed out after {a.timeout:g} s waiting for {', '.join(missing)}; "
+                           f"{_progress_line(db, run_id, inst.n_operations)} (a longer run needs --timeout)")
                 break
+            if time.monotonic() >= next_report:  # a long run says how far it is, from the recorder's database
+                say(f"fms up: {_progress_line(db, run_id, inst.n_operations)}, {time.perf_counter() - t0:.0f} s")
+                next_report += PROGRESS_S
             time.sleep(0.02)
     except KeyboardInterrupt:
         failure = "interrupted"
@@ -503,6 +514,15 @@ class _TermAsInterrupt:
         if self._old is not None:
             signal.signal(signal.SIGTERM, self._old)
             self._old = None
+
+
+def _progress_line(db: Path, run_id: str, n_operations: int) -> str:
+    """How far the run is as the recorder stored it: operations ended (of the instance's at the start; orders add
+    more) and the shop's clock."""
+    done, latest = _from_store(db, lambda store: store.progress(run_id), (0, None))
+    if latest is None:
+        return "no event recorded yet"
+    return f"{done} of {n_operations} operations done, shop time {latest}"
 
 
 def _recorded_replans(db: Path, run_id: str) -> list[dict[str, Any]]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import sys
@@ -38,6 +39,14 @@ FAKE_NODE = textwrap.dedent('''
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     signal.signal(signal.SIGINT, signal.SIG_IGN if role == params["stuck"] else stop)
+    if role == "recorder" and params["slow"]:  # a run under way: two operations ended, as the recorder stores them
+        from fms_sim.recorder_store import RecorderStore
+        store = RecorderStore(params["db"])
+        for seq, (t, kind) in enumerate([(0, "run_start"), (5, "op_end"), (9, "agv_trip_end"), (12, "op_end")]):
+            store.add_event({"run_id": params["run"], "seq": seq, "time": t, "kind": kind, "data": {}})
+        store.close()
+    if params["slow"]:
+        time.sleep(params["slow"])
     if role == "shop":
         from fms_sim.instance import Instance
         from fms_dispatch.rules import solve_rule
@@ -64,9 +73,10 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     script = tmp_path / "fake_node.py"
     script.write_text(FAKE_NODE)
 
-    def install(stuck: str = "", bad_schedule: bool = False) -> None:
+    def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0) -> None:
         def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
-            extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png")}
+            extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png"),
+                     "slow": slow, "run": "t1"}
             return [sys.executable, str(script), module, json.dumps({**params, **extra})]
         monkeypatch.setattr(up, "node_command", command)
         monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
@@ -108,6 +118,27 @@ def test_clean_stops_give_no_warning(fake_nodes, tmp_path: Path, capsys) -> None
     fake_nodes()
     assert _up(tmp_path) == up.EXIT_OK
     assert "warning" not in capsys.readouterr().err
+
+
+def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_nodes, tmp_path: Path,
+                                                                           monkeypatch, capsys) -> None:
+    """Every PROGRESS_S seconds `fms up` says how far the run is (operations ended, the shop's clock: read from the
+    recorder's database); --quiet says nothing; a timeout names the progress made and the option to raise."""
+    monkeypatch.setattr(up, "PROGRESS_S", 0.3)
+    fake_nodes(slow=2.0)
+    assert _up(tmp_path) == up.EXIT_OK
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "operations done" in line]
+    assert lines and re.fullmatch(r"fms up: 2 of 13 operations done, shop time 12, \d+ s", lines[-1]), err
+    chart = tmp_path / "out" / "t1.gantt.png"  # (the stand-in recorder's chart: fms up refuses a recorded run id)
+    chart.unlink()
+    assert _up(tmp_path, "--quiet", "--db", str(tmp_path / "out" / "q.sqlite")) == up.EXIT_OK  # (the last --db)
+    assert "operations done" not in capsys.readouterr().err
+    chart.unlink()
+    assert _up(tmp_path, "--timeout", "0.8", "--db", str(tmp_path / "out" / "t.sqlite")) == up.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "timed out after 0.8 s waiting for" in err and "2 of 13 operations done, shop time 12 (a longer run " \
+        "needs --timeout)" in err, err
 
 
 def test_an_invalid_schedule_still_fails_and_names_the_unclean_stop(fake_nodes, tmp_path: Path, capsys) -> None:

@@ -73,6 +73,21 @@ def test_store_dedups_events_and_schedules(tmp_path: Path) -> None:
     assert n == len(svc.events)
 
 
+def test_store_progress_counts_ended_operations_and_the_latest_time(tmp_path: Path) -> None:
+    svc = finished_run()
+    store = RecorderStore(tmp_path / "log.sqlite")
+    assert store.progress("run-1") == (0, None)                 # nothing stored yet
+    half = len(svc.events) // 2
+    for e in svc.events[:half]:
+        store.add_event(e)
+    ended = sum(e["kind"] == "op_end" for e in svc.events[:half])
+    assert 0 < ended and store.progress("run-1") == (ended, max(e["time"] for e in svc.events[:half]))
+    for e in svc.events[half:]:
+        store.add_event(e)
+    assert store.progress("run-1") == (svc.instance.n_operations, svc.final_schedule.makespan)
+    assert store.progress("other") == (0, None)
+
+
 def test_store_incomplete_runs_and_errors(tmp_path: Path) -> None:
     svc = finished_run("EX12")
     store = RecorderStore(tmp_path / "sub" / "log.sqlite")      # the folder is created
