@@ -16,9 +16,10 @@ rclpy:
   its own across restarts: the latched state is all it needs. With ``history_delta=True`` a state carries only
   what was applied since the state that the last applied command answered (``actions_from``, ``orders_from`` and
   ``disruptions_from`` say where that begins: normally the state before; a state superseded by an order before it
-  was answered is covered by the next), so a state's size and cost stay the same all run long instead of growing with it (on a
-  100-job shop the whole history reaches about 120 KB); an agent that cannot follow (restarted, or it missed a
-  state) asks for the current state again with the whole history: a replay request with ``what: "state"``.
+  was answered is covered by the next), so a state's size and cost stay the same all run long instead of growing
+  with it (on a 100-job shop the whole history reaches about 120 KB); an agent that cannot follow (restarted, or
+  it missed a state) asks for the current state again with the whole history: a replay request with
+  ``what: "state"``.
 * **Decisions** (``decisions="paper"`` by default, or ``"full"``): the net the shop runs and whose action
   labels the states carry (docs/semantics.md); every state names it in ``decisions``. On the full net idle
   stops come before the decisions of the same moment, once per idle period of a vehicle.
