@@ -441,10 +441,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .benchmark import add_bench_parser
     from .experiments import add_experiment_parser
     from .rl import add_train_parser
+    from .send import add_send_parser
     from .up import add_up_parser
 
     add_bench_parser(sub)
     add_up_parser(sub)
+    add_send_parser(sub)
     add_train_parser(sub)
     add_experiment_parser(sub)
     return p

@@ -485,3 +485,32 @@ def test_topic_io_logs_a_message_it_cannot_send_and_sends_the_rest() -> None:
     assert [json.loads(t)["message"] for t in node.pub.sent] == ["order 'o1' rejected"]
     assert any("cannot publish a fms/error/v1 message on fms/errors" in e and "lone surrogate" in e
                for e in node.log.errors)
+
+
+# ------------------------------------------------------------------------------------------------ fms send
+def test_fms_send_delivers_orders_and_disruptions_and_prints_the_shops_answer(nodes: NodeProcs, observer: Observer,
+                                                                             ros_env: dict[str, str]) -> None:
+    """`fms send` (a separate process, as an operator runs it) waits for the shop, sends, and reports the shop's
+    answer: the acceptance with the new job numbers (exit 0) or the shop's refusal (exit 1)."""
+    inst = builtin("ra01")
+    nodes.start("shop", SHOP, instance="ra01", run_id="send", decisions="full", history=True, idle_stops=True)
+    shop_seen(observer, "send")
+    nodes.start("agent", AGENT, solver="first", delay_s=0.3)  # slow (about 30 s): the run goes on while orders come
+
+    def send(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "fms_dispatch.send", *args, "--timeout", str(STARTUP_S)],
+                              env=ros_env, capture_output=True, text=True, timeout=STARTUP_S + 30)
+
+    res = send("order", "--jobs", '[[[1, null, 3], {"machine": 2, "duration": 4}]]', "--id", "o1")
+    assert res.returncode == 0, res.stderr
+    assert re.fullmatch(rf"order o1 accepted by run send at time \d+: jobs {inst.n_jobs}\n", res.stdout), res.stdout
+    res = send("order", "--jobs", "[[[1, null, 3]]]", "--id", "o1")  # an order id is accepted once
+    assert res.returncode == 1 and "fms send: refused by fms_shop: [bad_order]" in res.stderr, res.stderr
+    res = send("breakdown", "--machine", "2", "--duration", "7", "--id", "b1")
+    assert res.returncode == 0 and re.fullmatch(r"breakdown b1 \(machine 2, from time \d+ for 7\) accepted by run "
+                                                r"send\n", res.stdout), (res.stdout, res.stderr)
+    res = send("outage", "--vehicle", f"agv:{inst.n_agvs}", "--duration", "3")  # no such AGV
+    assert res.returncode == 1 and "[bad_disruption]" in res.stderr, res.stderr
+    events = observer.snapshot("event")
+    assert [e["data"]["jobs"] for e in events if e["kind"] == "order_accepted"] == [[inst.n_jobs]]
+    assert [e["data"]["disruption_id"] for e in events if e["kind"] == "disruption_accepted"] == ["b1"]

@@ -1,0 +1,212 @@
+"""``fms send``: send an order or a disruption to a running shop over ROS 2 and say how the shop answered.
+
+A shop node takes new jobs on ``fms/orders`` and machine breakdowns or vehicle outages on ``fms/disruptions``
+(docs/ros.md). Factory software publishes them itself; an operator needs a command, and the ROS 2 wheels from PyPI
+bring no ``ros2`` command line (``ros2 topic pub``). ``fms send order|breakdown|outage`` builds the message
+(``fms_msgs_json.make_order`` / ``make_disruption``: checked before anything is sent), waits until a shop listens
+on the ROS domain that ``--domain-id`` or ``ROS_DOMAIN_ID`` names (``fms up`` prints its domain), publishes it and
+waits for the shop's answer: the ``order_accepted`` or ``disruption_accepted`` event naming its id (exit code 0;
+an order's line lists the job numbers the shop gave the new jobs), or the error the shop published about it (exit
+code 1). No shop within ``--timeout`` seconds, or no answer: exit code 1. Bad input, or no domain given: exit
+code 2, before anything is sent. Like ``fms up``, it sets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless set.
+
+The message building and the reading of the shop's answer (:func:`build`, :func:`answer`) need no ROS; rclpy is
+imported only to send (:func:`exchange`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Sequence
+
+from fms_msgs_json import (
+    TOPIC_ERRORS, TOPIC_EVENTS, TOPICS, MessageError, decode, encode, make_disruption, make_order,
+)
+
+__all__ = ["add_send_parser", "cmd_send", "build", "answer", "exchange", "main", "SendError"]
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+SOURCE = "fms_send"
+
+
+class SendError(ValueError):
+    """Bad input for ``fms send`` (exit code 2)."""
+
+
+def add_send_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``send`` subcommand to an ``argparse`` subparsers object; it sets ``fn=cmd_send``."""
+    p = subparsers.add_parser(
+        "send", help="send an order or a disruption to a running shop (ROS 2) and print the shop's answer",
+        description="Send new jobs, a machine breakdown or a vehicle outage to a running shop node over ROS 2 "
+                    "and wait for its answer (docs/ros.md).")
+    _add_arguments(p)
+    p.set_defaults(fn=cmd_send)
+    return p
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="what", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--id", help="the message's id (default: <kind>-<UTC time>-<random>); a shop accepts an id "
+                                     "once")
+    common.add_argument("--run-id", help="only for this run (default: the shop's current run)")
+    common.add_argument("--domain-id", type=int, help="the shop's ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID; fms up "
+                                                      "prints the one it uses)")
+    common.add_argument("--timeout", type=float, default=10.0,
+                        help="seconds to wait for a shop and its answer (default 10)")
+    o = sub.add_parser("order", parents=[common], help="new jobs",
+                       description="Send new jobs. --jobs is JSON (or @FILE): a list of jobs, each a list of "
+                                   "operations {\"machine\": M, \"tool\": T or null, \"duration\": D} or [M, T, D] "
+                                   "or [M, D]; a file may also hold a whole fms/order/v1 message.")
+    o.add_argument("--jobs", required=True, metavar="JSON|@FILE")
+    b = sub.add_parser("breakdown", parents=[common], help="a machine breakdown")
+    b.add_argument("--machine", type=int, required=True)
+    b.add_argument("--duration", type=int, required=True)
+    b.add_argument("--start", type=int, help="the shop time it begins (default: now)")
+    u = sub.add_parser("outage", parents=[common], help="a vehicle out of service")
+    u.add_argument("--vehicle", required=True, metavar="agv:V|tt:V", help="an AGV or tool transporter, from 0")
+    u.add_argument("--duration", type=int, required=True)
+    u.add_argument("--start", type=int, help="the shop time it begins (default: now)")
+
+
+def _jobs(spec: str) -> Any:
+    """The jobs of ``--jobs``: JSON, or ``@FILE`` holding JSON (a list of jobs or an ``fms/order/v1``)."""
+    if spec.startswith("@"):
+        try:
+            text = Path(spec[1:]).read_text()
+        except OSError as exc:
+            raise SendError(f"cannot read {spec[1:]}: {exc.strerror or exc}") from None
+    else:
+        text = spec
+    try:
+        jobs = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise SendError(f"--jobs is not JSON: {exc}") from None
+    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message
+        jobs = jobs["jobs"]
+    return jobs
+
+
+def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    """The message the arguments describe, checked: ``("order" | "disruption", message)``; raises
+    :class:`SendError`."""
+    mid = a.id or f"{a.what}-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}-{uuid.uuid4().hex[:6]}"
+    try:
+        if a.what == "order":
+            return "order", make_order(mid, _jobs(a.jobs), run_id=a.run_id)
+        if a.what == "breakdown":
+            return "disruption", make_disruption(mid, "breakdown", a.duration, machine=a.machine, start=a.start,
+                                                 run_id=a.run_id)
+        kind, _, number = a.vehicle.partition(":")
+        if kind not in ("agv", "tt") or not number.isdigit():
+            raise SendError(f"--vehicle must be agv:V or tt:V with V a vehicle number from 0, got {a.vehicle!r}")
+        return "disruption", make_disruption(mid, "outage", a.duration, vehicle_kind=kind, vehicle=int(number),
+                                             start=a.start, run_id=a.run_id)
+    except MessageError as exc:
+        raise SendError(str(exc)) from None
+
+
+def answer(kind: str, msg: dict[str, Any], text: str, topic: str, incoming: dict[str, Any]) -> tuple[bool, str] | None:
+    """The shop's answer to ``msg`` (sent as ``text``) if ``incoming`` (decoded, from ``topic``) is it:
+    ``(accepted, a line to print)``; None for any other message. An acceptance is the event naming the id; a
+    refusal is an error whose ``received`` text is (the start of) ``text``."""
+    key = f"{kind}_id"
+    if topic == TOPIC_EVENTS and incoming.get("kind") == f"{kind}_accepted" and incoming["data"].get(key) == msg[key]:
+        data = incoming["data"]
+        if kind == "order":
+            jobs = ", ".join(str(j) for j in data["jobs"])
+            return True, f"order {msg[key]} accepted by run {incoming['run_id']} at time {incoming['time']}: jobs {jobs}"
+        what = (f"machine {data['machine']}" if data["disruption"] == "breakdown"
+                else f"{data['vehicle_kind']} {data['vehicle']}")
+        return True, (f"{data['disruption']} {msg[key]} ({what}, from time {data['start']} for {data['duration']}) "
+                      f"accepted by run {incoming['run_id']}")
+    received = incoming.get("received")
+    if topic == TOPIC_ERRORS and received and text.startswith(received):
+        return False, f"refused by {incoming['source']}: [{incoming['code']}] {incoming['message']}"
+    return None
+
+
+def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
+    """Send ``msg`` on the topic of ``kind`` once a shop listens there and wait for its :func:`answer`: ``(exit
+    code, line)``. Needs rclpy."""
+    import rclpy
+    from std_msgs.msg import String
+
+    from fms_sim.shop_node import qos_profile
+
+    text = encode(msg)
+    topic = TOPICS[kind]
+    rclpy.init(args=[])
+    node = rclpy.create_node(f"{SOURCE}_{uuid.uuid4().hex[:8]}")
+    heard: list[tuple[str, str]] = []
+    try:
+        subs = [node.create_subscription(String, TOPICS[k], lambda m, t=TOPICS[k]: heard.append((t, m.data)),
+                                         qos_profile(k)) for k in ("event", "error")]
+        pub = node.create_publisher(String, topic, qos_profile(kind))
+        deadline = time.monotonic() + timeout
+        # the shop listens on the topic and publishes the events that answer: both matched before sending
+        while pub.get_subscription_count() == 0 or any(s.get_publisher_count() == 0 for s in subs):
+            if time.monotonic() > deadline:
+                return EXIT_FAILED, (f"no shop listens on {topic} within {timeout:g} s (ROS_DOMAIN_ID="
+                                     f"{os.environ.get('ROS_DOMAIN_ID')}; fms up prints the domain it uses)")
+            rclpy.spin_once(node, timeout_sec=0.05)
+        pub.publish(String(data=text))
+        while time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            for t, data in heard:
+                try:
+                    incoming = decode(data, expect="event" if t == TOPIC_EVENTS else "error")
+                except MessageError:
+                    continue
+                got = answer(kind, msg, text, t, incoming)
+                if got is not None:
+                    return (EXIT_OK if got[0] else EXIT_FAILED), got[1]
+            heard.clear()
+        return EXIT_FAILED, f"sent {kind} {msg[f'{kind}_id']}, but the shop did not answer within {timeout:g} s"
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def cmd_send(a: argparse.Namespace) -> int:
+    """``fms send ...`` (see the module docstring); returns the exit code."""
+    import importlib.util
+
+    if not a.timeout > 0 or a.timeout == float("inf"):
+        raise SendError(f"--timeout must be a positive number of seconds, got {a.timeout:g}")
+    kind, msg = build(a)
+    if a.domain_id is not None:
+        if not 0 <= a.domain_id <= 232:
+            raise SendError(f"--domain-id must be in 0..232, got {a.domain_id}")
+        os.environ["ROS_DOMAIN_ID"] = str(a.domain_id)
+    elif not os.environ.get("ROS_DOMAIN_ID"):
+        raise SendError("give the shop's ROS domain: --domain-id N or ROS_DOMAIN_ID (fms up prints "
+                        "ROS_DOMAIN_ID=N when it starts)")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if importlib.util.find_spec("rclpy") is None:
+        raise SendError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
+    code, line = exchange(kind, msg, a.timeout)
+    print(line if code == EXIT_OK else f"fms send: {line}", file=sys.stdout if code == EXIT_OK else sys.stderr)
+    return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m fms_dispatch.send ...``: the same as ``fms send`` without the ``fms`` CLI."""
+    p = argparse.ArgumentParser(prog="fms send", description=__doc__.splitlines()[0])
+    _add_arguments(p)
+    a = p.parse_args(argv)
+    try:
+        return cmd_send(a)
+    except SendError as exc:
+        print(f"fms send: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
