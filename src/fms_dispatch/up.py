@@ -108,6 +108,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run-id", help="run id (default: <instance>-<time>-<random>)")
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the nodes (default: $ROS_DOMAIN_ID, "
                                                  "else a random one in 1..101)")
+    p.add_argument("--time-scale", type=float, default=0.0, metavar="SECONDS",
+                   help="the simulated shop keeps to a clock: wall seconds per unit of shop time (e.g. 0.01: a "
+                        "makespan of 3000 takes 30 s; default 0: as fast as the agent answers)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the run (default 120)")
     p.add_argument("--log-dir", help="keep the node logs here (default: a temporary folder, kept on failure)")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the result lines")
@@ -309,6 +312,8 @@ def cmd_up(a: argparse.Namespace) -> int:
                           f"random, a full-net model such as ppo:full), not {solver}")
     if not 0 < a.timeout < float("inf"):  # NaN would never time out
         raise UpError("--timeout must be a positive number of seconds")
+    if not 0 <= a.time_scale < float("inf"):
+        raise UpError("--time-scale must be >= 0 seconds per time unit (0: as fast as the agent answers)")
     replan = 2.0 if a.replan is None else a.replan
     if not 0 <= replan < float("inf"):
         raise UpError("--replan must be >= 0 seconds (0: never re-plan)")
@@ -381,12 +386,14 @@ def cmd_up(a: argparse.Namespace) -> int:
             "instance": str(inst_in), "run_id": run_id, "schedule_out": str(sched_tmp),
             "instance_out": str(inst_final), "history": twin, "history_delta": twin, "features": not twin,
             "idle_stops": needs_idle_stops(solver) or needs_full_net(solver), "decisions": "full" if full else "paper",
+            **({"time_scale": float(a.time_scale)} if a.time_scale else {}),
             **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed}
                if disrupted else {})}),
             log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
-    say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}")
+    say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}"
+        + (f"; {a.time_scale:g} s per time unit" if a.time_scale else ""))
     failure: str | None = None
     stop_on_term = _TermAsInterrupt()  # `kill` / a supervisor's SIGTERM stops the nodes as Ctrl-C does
     try:

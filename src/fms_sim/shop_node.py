@@ -15,7 +15,10 @@ and an agent that cannot follow asks for the whole history with a replay request
 ``fms/scenario/v1`` file of breakdowns and outages, full net only), ``noise`` and ``noise_seed`` (lognormal
 noise on every duration), ``idle_stops``
 (true: the shop also stops, and publishes a state, when a vehicle is idle between
-decisions, so a ``ppo+lookahead`` agent can pre-position it; default false), ``schedule_out`` / ``instance_out`` (files written when the run completes: the
+decisions, so a ``ppo+lookahead`` agent can pre-position it; default false), ``time_scale`` (wall seconds per unit
+of shop time: each step's messages are published once the shop time since the previous state has passed at that
+speed, from the command that led to it, :mod:`fms_sim.pacing`; default 0: as fast as the agent answers),
+``schedule_out`` / ``instance_out`` (files written when the run completes: the
 schedule JSON and the final instance including accepted orders; '' = none).
 
 This module also holds the small rclpy helpers the other fms nodes share (:func:`qos_profile`,
@@ -210,6 +213,7 @@ class ShopNode(FmsNode):
         scenario_file = param(n, "scenario", "")
         noise = param(n, "noise", 0.0)
         noise_seed = param(n, "noise_seed", 0)
+        time_scale = float(param(n, "time_scale", 0.0))
         self.schedule_out = param(n, "schedule_out", "")
         self.instance_out = param(n, "instance_out", "")
         from .full_shop import DECISIONS
@@ -239,6 +243,12 @@ class ShopNode(FmsNode):
                 raise StartupError("a scenario or noise needs decisions:=full")
         if history_delta and not history:
             raise StartupError("parameter 'history_delta' needs history:=true (the deltas are of the history)")
+        from .pacing import Pacer
+
+        try:
+            self.pacer = Pacer(time_scale)
+        except ValueError as exc:
+            raise StartupError(f"parameter 'time_scale': {exc}") from None
         self.service = ShopService(inst, run_id=run_id or None, features=features, history=history,
                                    idle_stops=idle_stops, decisions=decisions, scenario=scenario,
                                    history_delta=history_delta)
@@ -248,21 +258,35 @@ class ShopNode(FmsNode):
         self.io.subscribe("replay_request", lambda t: self._handle(self.service.handle_replay, t))
         self.io.subscribe("disruption", lambda t: self._handle(self.service.handle_disruption, t))
         self._written = False
-        n.get_logger().info(f"run {self.service.run_id}: {inst.describe()}")
-        self.io.publish(self.service.start())
-        self._after()
+        n.get_logger().info(f"run {self.service.run_id}: {inst.describe()}"
+                            + (f"; {time_scale:g} s per time unit" if time_scale else ""))
+        if time_scale:
+            n.create_timer(0.005, self._release)
+        self._emit(self.service.start())
 
     def _handle(self, fn: Callable[[str], list[Outgoing]], text: str) -> None:
         try:
             out = fn(text)
         except Exception as exc:  # a bug must not take the shop down: report it and keep serving
             out = self.service.handle_bad_text(text, exc)
-        self.io.publish(out)
+        self._emit(out)
+
+    def _emit(self, out: list[Outgoing]) -> None:
+        """Publish a step's messages once their time has come (at once without a time scale)."""
+        released = self.pacer.push(out)
+        if any(o.topic == TOPICS["schedule"] for o in out):  # the end: its wait counts in the run's times
+            self.service.delay_end(self.pacer.last_delay)
+        self.io.publish(released)
         self._after()
+
+    def _release(self) -> None:
+        if self.pacer.holding:
+            self.io.publish(self.pacer.release())
+            self._after()
 
     def _after(self) -> None:
         svc = self.service
-        if not svc.done or self._written:
+        if not svc.done or self._written or self.pacer.holding:  # (the files once the end is published)
             return
         self._written = True
         sched = svc.final_schedule

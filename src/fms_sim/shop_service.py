@@ -411,6 +411,18 @@ class ShopService:
             out.append(Outgoing(TOPIC_SCHEDULE, self._schedule_msg))
         return out
 
+    def delay_end(self, seconds: float) -> None:
+        """The end of the run is published ``seconds`` after it was reached (a shop kept to a clock,
+        :mod:`fms_sim.pacing`): count them in the final schedule's ``wall_time`` and ``decision_time`` (in the
+        schedule message too, whether or not it was sent yet)."""
+        if self.final_schedule is None or self.wall_time is None or self.decision_time is None or seconds <= 0:
+            return
+        self.wall_time += seconds
+        self.decision_time += seconds
+        for meta in (self.final_schedule.meta, *([self._schedule_msg["schedule"]["meta"]] if self._schedule_msg
+                                                 else [])):
+            meta.update(wall_time=round(self.wall_time, 4), decision_time=round(self.decision_time, 4))
+
     def handle_bad_text(self, text: str, exc: BaseException) -> list[Outgoing]:
         """An error for a failure outside the handlers (the node calls this if a handler crashed)."""
         return [self._error_reply(exc, text)]

@@ -141,6 +141,17 @@ def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_
         "needs --timeout)" in err, err
 
 
+def test_time_scale_reaches_the_shop(fake_nodes, tmp_path: Path, monkeypatch) -> None:
+    fake_nodes()
+    seen = _record_params(monkeypatch)
+    assert _up(tmp_path, "--time-scale", "0.02") == up.EXIT_OK
+    assert seen["shop_node"]["time_scale"] == 0.02
+    seen.clear()
+    (tmp_path / "out" / "t1.gantt.png").unlink()
+    assert _up(tmp_path, "--db", str(tmp_path / "out" / "b.sqlite")) == up.EXIT_OK
+    assert "time_scale" not in seen["shop_node"]  # unpaced: the shop's default
+
+
 def test_an_invalid_schedule_still_fails_and_names_the_unclean_stop(fake_nodes, tmp_path: Path, capsys) -> None:
     fake_nodes(stuck="agent", bad_schedule=True)
     assert _up(tmp_path) == up.EXIT_FAILED

@@ -218,10 +218,36 @@ def test_fms_up_ppo_lookahead_equals_the_offline_solver(ros_env: dict[str, str],
         assert "Traceback" not in (tmp_path / "logs" / f"{name}.log").read_text()
 
 
+def test_fms_up_keeps_the_shop_to_a_clock(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """--time-scale: the shop publishes each state no earlier than its shop time × the scale from the start, so
+    the run takes about makespan × scale on the wall clock; the decisions are the same as unpaced."""
+    from fms_dispatch.rl import ppo_solver
+
+    from fms_dispatch.rl.guide import effort_from
+
+    scale = 0.04
+    out = tmp_path / "EX12.json"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--solver", "ppo", "--guide-tabu", "0",
+                          "--time-scale", str(scale), "--out", str(out), "--db", str(tmp_path / "fms.sqlite"),
+                          "--domain-id", ros_env["ROS_DOMAIN_ID"], "--log-dir", str(tmp_path / "logs")],
+                         env=ros_env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr + res.stdout
+    inst = builtin("EX12")
+    sched = Schedule.load(out)
+    ref = ppo_solver("ppo")(inst, guide_effort=effort_from(tabu=0))
+    assert validate(inst, sched) == [] and sched.to_dict()["operations"] == ref.to_dict()["operations"]
+    # from the first command (answering state 0, at time 0) to the end, the shop's clock ran at the scale, and
+    # stood while the agent decided
+    assert sched.makespan * scale <= sched.meta["decision_time"] <= sched.makespan * scale + 3.0, sched.meta
+    assert f"{scale:g} s per time unit" in res.stderr
+    assert f"{scale:g} s per time unit" in (tmp_path / "logs" / "shop.log").read_text()
+
+
 def test_fms_up_bad_input_exits_2(ros_env: dict[str, str], tmp_path: Path) -> None:
     for args, needle in ((["EX12", "--solver", "cpsat"], "plans a whole schedule offline"),
                          (["EX12", "--solver", "ppo:nope"], "no model named 'nope'"),
-                         (["NOPE"], "no built-in instance or file named 'NOPE'")):
+                         (["NOPE"], "no built-in instance or file named 'NOPE'"),
+                         (["EX12", "--time-scale", "-1"], "--time-scale must be >= 0")):
         res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", *args, "--db", str(tmp_path / "x.sqlite")],
                              env=ros_env, capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and res.stderr.startswith("fms up: error: ") and needle in res.stderr
@@ -414,6 +440,7 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (SHOP, ["-p", "instance:=EX99"], "fms-shop: error: unknown built-in instance 'EX99'"),
         (SHOP, [], "fms-shop: error: parameter 'instance' is required"),
         (SHOP, ["-p", "instance:=EX12", "-p", "history_delta:=true"], "parameter 'history_delta' needs history:=true"),
+        (SHOP, ["-p", "instance:=EX12", "-p", "time_scale:=-0.5"], "parameter 'time_scale': the time scale must be"),
         (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
         # an integer is a number: it reaches the range check (it was refused as "must be a number")
         (RECORDER, ["-p", "retry_s:=0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
