@@ -176,7 +176,7 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
 
 def cmd_send(a: argparse.Namespace) -> int:
     """``fms send ...`` (see the module docstring); returns the exit code."""
-    import importlib.util
+    from .up import rclpy_missing
 
     if not a.timeout > 0 or a.timeout == float("inf"):
         raise SendError(f"--timeout must be a positive number of seconds, got {a.timeout:g}")
@@ -189,8 +189,9 @@ def cmd_send(a: argparse.Namespace) -> int:
         raise SendError("give the shop's ROS domain: --domain-id N or ROS_DOMAIN_ID (fms up prints "
                         "ROS_DOMAIN_ID=N when it starts)")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    if importlib.util.find_spec("rclpy") is None:
-        raise SendError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
+    missing = rclpy_missing()
+    if missing:
+        raise SendError(missing)
     code, line = exchange(kind, msg, a.timeout)
     print(line if code == EXIT_OK else f"fms send: {line}", file=sys.stdout if code == EXIT_OK else sys.stderr)
     return code

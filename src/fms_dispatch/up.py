@@ -265,14 +265,23 @@ def _load(a: argparse.Namespace) -> Instance:
                          no_tools=a.no_tools, no_agvs=a.no_agvs)
 
 
+def rclpy_missing() -> str | None:
+    """Why a command that talks ROS 2 cannot run here (rclpy is not installed), else None; found without importing
+    rclpy (``fms up`` and ``fms send`` check before they start anything)."""
+    if importlib.util.find_spec("rclpy") is None:
+        return "ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation"
+    return None
+
+
 def cmd_up(a: argparse.Namespace) -> int:
     """Run ``fms up`` for parsed arguments (see the module docstring); returns the exit code."""
     from fms_sim.validate import validate
 
     say = (lambda *args: None) if a.quiet else (lambda *args: print(*args, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
-    if importlib.util.find_spec("rclpy") is None:
-        raise UpError("ROS 2 (rclpy) is not installed; `pip install 'fms[ros]'` or source a ROS 2 installation")
+    missing = rclpy_missing()
+    if missing:
+        raise UpError(missing)
     inst = _load(a)
     solver = a.solver
     from .cli import guide_effort_from_args
