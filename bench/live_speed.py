@@ -9,8 +9,8 @@ schedule validated). The default model's plan is the plain list schedule (no res
 ``--guide-restarts 0 --guide-tabu 0``), so every run makes the same decisions and only the time differs.
 
 The shop sends history deltas by default, as ``fms up`` runs it (``history_delta``: each state carries the labels
-applied since the state before); ``--history whole`` sends the whole history in every state, and ``--history both``
-makes each run both ways, taking turns, and reports the whole history's times against the deltas'.
+applied since the state the last command answered); ``--history whole`` sends the whole history in every state, and
+``--history both`` makes each run both ways, taking turns, and reports the whole history's times against the deltas'.
 
 With ``--baseline REV`` the same runs are made on the source of git revision REV (a temporary worktree), the two
 taking turns run by run so that both see the same machine load; the baseline must make the same schedules, or the

@@ -20,9 +20,9 @@ Solvers (the ``solver`` parameter):
   twin is checked against the state (time, action labels, mask) and rebuilt from scratch on a mismatch. If it
   still disagrees, the agent publishes an ``internal`` error *and* the first enabled action, so the run goes
   on. Nothing is kept across restarts: a restarted agent replays the latched state's history. From a shop that
-  sends history deltas (``history_delta``: the labels since the state before) the twin applies each delta; where
-  it cannot (a restart, a missed state, a disagreement) the agent asks for the state again with the whole history
-  (:class:`NeedHistory`, a replay request ``what: "state"``) and answers that. Orders that take
+  sends history deltas (``history_delta``: the labels since the state the last command answered) the twin applies
+  each delta; where it cannot (a restart, a missed state, a disagreement) the agent asks for the state again with
+  the whole history (:class:`NeedHistory`, a replay request ``what: "state"``) and answers that. Orders that take
   the shop past the model's padding (100 jobs for the default) hand the rest of the run over, with one
   ``internal`` error: a guided model to the guide follower, the expert it was cloned from; another model to a rule
   (:meth:`TwinDecider._outgrown`).
@@ -376,7 +376,7 @@ class TwinDecider:
         if scenario != self._scenario:
             self._scenario, self.stepper = scenario, None  # another run's disruptions: rebuild the twin
         starts = (history.get("actions_from", 0), history.get("orders_from", 0), history.get("disruptions_from", 0))
-        if any(starts):  # a delta (a history_delta shop): what was applied since the state before
+        if any(starts):  # a delta (a history_delta shop): what was applied since an earlier state
             self._sync_delta(state, history, *starts, idle_stops)
             return
         # the history grows by a label or two per state (20,000 on sl70): only what follows the text already replayed
@@ -417,9 +417,9 @@ class TwinDecider:
 
     def _sync_delta(self, state: dict[str, Any], history: dict[str, Any], actions_from: int, orders_from: int,
                     disruptions_from: int, idle_stops: bool) -> None:
-        """Bring the twin to ``state`` from a delta history (what was applied since the state before, from
-        ``actions_from``, ``orders_from`` and ``disruptions_from`` on); raises :class:`NeedHistory` where the twin
-        cannot follow it (none yet, another run, a gap, or it disagrees with the state after it)."""
+        """Bring the twin to ``state`` from a delta history (what was applied since the state the last command
+        answered, from ``actions_from``, ``orders_from`` and ``disruptions_from`` on); raises :class:`NeedHistory`
+        where the twin cannot follow it (none yet, another run, a gap, or it disagrees with the state after it)."""
         text = history["actions"]
         labels = text.split(" ") if text else []
         orders, disruptions = history["orders"], history.get("disruptions") or []

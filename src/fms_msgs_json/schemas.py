@@ -187,9 +187,9 @@ _FEATURES = Obj((
 # the same instance can replay it into a twin of the shop (the net is deterministic). "actions" is the
 # applied action labels in order, separated by single spaces (one string: cheap to send, check and split);
 # "orders" are the accepted orders' jobs, each with "at" = the number of actions applied before it.
-# A shop started with history_delta sends only what was applied since its previous state: "actions_from",
-# "orders_from" and "disruptions_from" then say where the given entries begin in the whole run (0, or absent:
-# the whole history; "at" values stay counted from the run's start).
+# A shop started with history_delta sends only what was applied since the state its last command answered:
+# "actions_from", "orders_from" and "disruptions_from" then say where the given entries begin in the whole run (0,
+# or absent: the whole history; "at" values stay counted from the run's start).
 _HISTORY_ORDER = Obj((
     Field("at", Int(0)),
     Field("jobs", ListOf(ListOf(Obj((

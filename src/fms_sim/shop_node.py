@@ -10,8 +10,9 @@ rejected message is answered on ``fms/errors`` and logged; the node keeps runnin
 Parameters: ``instance`` (built-in name or file; required), ``layout``, ``agvs``, ``tool_transporters``
 (0 = the instance's own), ``no_tools``, ``no_agvs``, ``run_id`` ('' = generated), ``features`` (true: states
 carry the rule features), ``history`` (true: states carry the replay history a PPO agent needs; default
-false), ``history_delta`` (true, with ``history``: each state carries only what was applied since the state before,
-and an agent that cannot follow asks for the whole history with a replay request; default false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``scenario`` (a
+false), ``history_delta`` (true, with ``history``: each state carries only what was applied since the state the
+last command answered, and an agent that cannot follow asks for the whole history with a replay request; default
+false), ``decisions`` (``paper``, the default, or ``full``: the net the shop runs, docs/semantics.md), ``scenario`` (a
 ``fms/scenario/v1`` file of breakdowns and outages, full net only), ``noise`` and ``noise_seed`` (lognormal
 noise on every duration), ``idle_stops``
 (true: the shop also stops, and publishes a state, when a vehicle is idle between
