@@ -35,9 +35,13 @@ figures show that the pipeline works, not what the methods are worth.
   projections are timed separately), the SOS time its cumulative search time.
 
 The paper's net and the full one side by side: ``--decisions full`` runs the ablation and the generalization
-study on the full net (the full-net model ``full`` for the lookahead study and as the general model; the
-trained agents train on the full net), and ``fms experiment dynamic --model full`` continues the full-net model
-on a live full-net shop.
+study on the full net (the shipped default model, ``guided-dagger``, for the lookahead study and as the general
+model; the trained agents train on the full net). ``--model`` names another shipped model (or a model folder) for
+the lookahead study and as the general model, one that decides through the net the study runs on (``full``, the
+full-net clone of CP-SAT plans, on the full net). The lookahead study's *on* is the model's own lookahead: the
+verified twin (:func:`~fms_dispatch.rl.lookahead.run_agent`), or, for a guided model, its plan's empty trips
+(``lookahead="guide"`` of :func:`~fms_dispatch.rl.ppo_solver`). ``fms experiment dynamic --model M`` continues
+model M on a live shop of its net.
 """
 
 from __future__ import annotations
@@ -76,11 +80,12 @@ DISRUPTION_MODEL = "full"
 #: PPO + lookahead runs only on shops with at most this many operations by default: in a disrupted shop every
 #: idle stop rolls the policy out afresh on a nominal copy (about 5 min per run on sl00, 225 operations)
 DISRUPTION_LOOKAHEAD_MAX_OPS = 100
-#: the shipped model of the ablation's lookahead study, per net
-ABLATION_LOOKAHEAD_MODEL = {"paper": "bu", "full": "full"}
-#: the general shipped model of the generalization study, per net and tool mode (the full-net model covers both)
-GENERAL_MODEL = {("paper", False): "large", ("paper", True): "large-agv", ("full", False): "full",
-                 ("full", True): "full"}
+#: the shipped model of the ablation's lookahead study on the paper's net (on the full net: the default model,
+#: :func:`~fms_dispatch.rl.models.default_model_name`)
+ABLATION_LOOKAHEAD_MODEL = {"paper": "bu"}
+#: the general shipped model of the generalization study on the paper's net, per tool mode (on the full net: the
+#: default model, which covers both)
+GENERAL_MODEL = {("paper", False): "large", ("paper", True): "large-agv"}
 DYNAMIC_COLUMNS = ("partition", "arrival", "entered_at", "early", "jobs_so_far", "rl_makespan", "rl_time_cum",
                    "rl_projection_time", "sos_makespan", "sos_time_cum", "sos_valid")
 
@@ -89,6 +94,30 @@ DYNAMIC_COLUMNS = ("partition", "arrival", "entered_at", "early", "jobs_so_far",
 def _check_decisions(decisions: str) -> None:
     if decisions not in ("paper", "full"):
         raise ValueError(f"unknown decisions {decisions!r}; choose paper or full")
+
+
+def _study_model(model: str | None, default: str | None, decisions: str, inst: Instance) -> tuple[str, Any]:
+    """The model a study runs (``model``, else ``default``, else the shipped default model for ``inst``): its
+    name or folder as given and the loaded agent, checked to decide through the study's net (``decisions``); a
+    model of the other net is refused, naming the option that fits it."""
+    from .rl.models import default_model_name, load_agent
+
+    spec = model or default or default_model_name(inst)
+    agent = load_agent(spec)
+    if agent.decisions != decisions:
+        raise ValueError(f"model {agent.name} decides through the {agent.decisions} net, but this study runs on the "
+                         f"{decisions} net; run it with --decisions {agent.decisions} or name a {decisions}-net model")
+    return spec, agent
+
+
+def _model_run(spec: str, agent: Any, inst: Instance, lookahead: bool) -> Schedule:
+    """``inst`` solved by the model ``spec`` (loaded as ``agent``) as ``fms solve --solver ppo:MODEL`` does, with
+    the model's own lookahead if asked: the verified twin's pre-positioning, or, for a guided model, the plan's
+    empty trips (``lookahead="guide"``)."""
+    from .rl import ppo_solver
+
+    mode: bool | str = ("guide" if agent.guide is not None else True) if lookahead else False
+    return ppo_solver(f"ppo:{spec}")(inst, lookahead=mode)
 
 
 def _checked(inst: Instance, sched: Schedule) -> bool:
@@ -248,14 +277,11 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
 
 def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                  steps: int | None = None, studies: Sequence[str] | None = None,
-                 echo: bool = True, decisions: str = "paper") -> dict[str, Any]:
+                 echo: bool = True, decisions: str = "paper", model: str | None = None) -> dict[str, Any]:
     """The ablations in ``studies`` (default all of :data:`ABLATION_STUDIES`; see the module docstring) on the
-    paper's net or the full one (``decisions``); returns the JSON document written."""
+    paper's net or the full one (``decisions``), the lookahead study with ``model`` (default: ``bu`` on the
+    paper's net, the shipped default model on the full one); returns the JSON document written."""
     from fms_sim.formats import load_instance
-    from fms_sim.full_shop import make_shop
-
-    from .rl.lookahead import run_agent
-    from .rl.models import load_agent
 
     rows: list[dict[str, Any]] = []
     steps = int(steps) if steps else (128 if quick else 20_000)
@@ -266,6 +292,12 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     for st in chosen:
         if st not in ABLATION_STUDIES:
             raise ValueError(f"unknown ablation study {st!r}; choose from {', '.join(ABLATION_STUDIES)}")
+    look_sets = ([1, 2] if quick else list(range(1, 11))) if "lookahead" in chosen else []
+    look_model = look_mode = None
+    if look_sets:  # the lookahead study's model, checked before any training (the other net's would fail after it)
+        spec, agent = _study_model(model, ABLATION_LOOKAHEAD_MODEL.get(decisions), decisions, load_instance("EX12"))
+        look_model = agent.name
+        look_mode = "plan's empty trips" if agent.guide is not None else "verified twin"
     # (1) reward shaping
     # trained on generated shops of group 4's size, selected on others, measured on sl40.. (never trained on)
     j4, m4, t4 = SL_GROUPS[4]
@@ -284,17 +316,14 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
                              "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
             if echo:
                 print(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
-    # (2) lookahead with the shipped model of BU scale for the net
-    look_model = ABLATION_LOOKAHEAD_MODEL[decisions]
-    agent = load_agent(look_model)
-    look_sets = ([1, 2] if quick else list(range(1, 11))) if "lookahead" in chosen else []
+    # (2) lookahead with the study's model (shipped, of BU scale or general)
     for i, s in enumerate(look_sets):
         inst = load_instance(f"EX{s}2")
         if echo:
             print(f"lookahead [{i + 1}/{len(look_sets)}] {inst.name}", flush=True)
         for variant, la in (("off", False), ("on", True)):
             t0 = time.perf_counter()
-            sched = run_agent(make_shop(inst, decisions), agent.act, lookahead=la)
+            sched = _model_run(spec, agent, inst, la)
             wall = time.perf_counter() - t0
             rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
                          "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
@@ -324,7 +353,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     meta = {"experiment": "ablation", "quick": quick, "seed": seed, "steps": steps, "studies": chosen,
             "decisions": decisions,
             "reward_shaping": {"train": train_sl, "eval": eval_sl, "on": "shaped", "off": "makespan (sparse)"},
-            "lookahead": {"model": look_model}, "masking": {"instances": [i.name for i in mask_insts],
+            "lookahead": {"model": look_model, "mode": look_mode}, "masking": {"instances": [i.name for i in mask_insts],
                                                       "invalid_penalty": -10.0}, "summary": summary}
 
     def draw(path: Path) -> None:
@@ -340,7 +369,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
         for v, c in (("off", "tab:gray"), ("on", "tab:green")):
             cell = {r["instance"]: r["makespan"] for r in rows if r["study"] == "lookahead" and r["variant"] == v}
             a1.plot(la_names, [cell[n] for n in la_names], marker="o", color=c, label=f"lookahead {v}")
-        a1.set_title(f"lookahead ({look_model} model)")
+        a1.set_title(f"lookahead ({look_model} model, {look_mode})")
         a1.set_ylabel("makespan")
         a1.tick_params(axis="x", labelrotation=60)
         a1.legend()
@@ -376,13 +405,10 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
 # ---------------------------------------------------------------------- generalization
 def run_generalization(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                        steps: int | None = None, groups: Sequence[int] | None = None, no_tools: bool = False,
-                       echo: bool = True, decisions: str = "paper") -> dict[str, Any]:
+                       echo: bool = True, decisions: str = "paper", model: str | None = None) -> dict[str, Any]:
     """General shipped model vs an agent specialised per size group (see the module docstring), on the paper's
-    net or the full one (``decisions``)."""
-    from fms_sim.full_shop import make_shop
-
-    from .rl.lookahead import run_agent
-    from .rl.models import load_agent
+    net or the full one (``decisions``); the general model is ``model`` (default: ``large`` / ``large-agv`` on the
+    paper's net, the shipped default model on the full one)."""
     from .rl.train import expand_instances
 
     steps = int(steps) if steps else (256 if quick else 20_000)
@@ -393,9 +419,10 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
         if not 0 <= g < len(SL_GROUPS):
             raise ValueError(f"size group {g} does not exist (0-{len(SL_GROUPS) - 1})")
     _check_decisions(decisions)
-    general = GENERAL_MODEL[(decisions, bool(no_tools))]
     fleet = {"no_tools": no_tools}
-    agent = load_agent(general)
+    first = expand_instances([f"sl{groups[0] if groups else 0}9"], fleet)[0]
+    spec, agent = _study_model(model, GENERAL_MODEL.get((decisions, bool(no_tools))), decisions, first)
+    general = agent.name
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="fms-general-") as tmp:
         for g in groups:
@@ -404,7 +431,7 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
             held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
             for inst in expand_instances(held, fleet):
                 t0 = time.perf_counter()
-                sched = run_agent(make_shop(inst, decisions), agent.act)
+                sched = _model_run(spec, agent, inst, False)
                 rows.append({"group": g, "size": size, "agent": f"general ({general})", "instance": inst.name,
                              "makespan": sched.makespan, "valid": _checked(inst, sched),
                              "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
@@ -863,16 +890,22 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="training steps per agent (default 20000; quick 128)")
     p.add_argument("--studies", nargs="+", choices=ABLATION_STUDIES, help="run only these (default all)")
     p.add_argument("--decisions", choices=("paper", "full"), default="paper",
-                   help="the net the agents decide through (default paper; full: the full-net model `full` in the "
+                   help="the net the agents decide through (default paper; full: the default model in the "
                         "lookahead study, full-net training in the others)")
+    p.add_argument("--model", help="the lookahead study's model, of the --decisions net (default: bu on the paper's "
+                                   "net, the shipped default model on the full net)")
     p.set_defaults(fn=_cmd)
     p = sub.add_parser("generalization", help="general vs specialized agents per size group")
     common(p)
     p.add_argument("--steps", type=int, help="training steps per specialized agent (default 20000; quick 256)")
     p.add_argument("--groups", type=int, nargs="+", help="size groups 0-7 (default all; quick 0)")
-    p.add_argument("--no-tools", action="store_true", help="instances without tools, general model large-agv")
+    p.add_argument("--no-tools", action="store_true",
+                   help="instances without tools (paper net: general model large-agv)")
     p.add_argument("--decisions", choices=("paper", "full"), default="paper",
-                   help="the net (default paper; full: general model `full`, specialists trained on the full net)")
+                   help="the net (default paper; full: the default model as the general one, specialists trained "
+                        "on the full net)")
+    p.add_argument("--model", help="the general model, of the --decisions net (default: large or large-agv on the "
+                                   "paper's net, the shipped default model on the full net)")
     p.set_defaults(fn=_cmd)
     p = sub.add_parser("dynamic", help="jobs arriving in 10 partitions: RL continues, SOS re-solves")
     common(p)
@@ -906,9 +939,10 @@ def _cmd(a: argparse.Namespace) -> int:
         if v is not None and not v > 0:
             raise ValueError(f"--{flag.replace('_', '-')} must be positive, got {v}")
     if a.experiment == "ablation":
-        run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies, decisions=a.decisions)
+        run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies, decisions=a.decisions, model=a.model)
     elif a.experiment == "generalization":
-        run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools, decisions=a.decisions)
+        run_generalization(a.quick, a.results_dir, a.seed, a.steps, a.groups, a.no_tools, decisions=a.decisions,
+                           model=a.model)
     elif a.experiment == "disruptions":
         run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget,
                         lookahead_max_ops=a.lookahead_max_ops, instances=a.instances)

@@ -112,33 +112,53 @@ def test_generalization_quick(tmp_path: Path) -> None:
     assert doc["summary"]["0"]["specialized"] == float(rows[1]["makespan"])
 
 
-def test_the_experiments_on_the_full_net(tmp_path: Path) -> None:
-    """The paper's experiments side by side on the full net: the full-net model `full` for inference, full-net
-    training for the trained agents; every schedule is validated inside the experiments."""
-    from fms_dispatch.rl import ppo_solver
+def test_the_experiments_on_the_full_net(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The paper's experiments side by side on the full net: the shipped default model (guided) for inference by
+    default, another full-net model by --model, full-net training for the trained agents; every schedule is
+    validated inside the experiments."""
+    from fms_dispatch.rl import guide, ppo_solver
+    from fms_dispatch.rl.models import default_model_name, load_agent
 
+    # the default plan search stops on the clock (its tabu search); a search without it is reproducible, so the
+    # experiments' runs can be compared with the solver's
+    monkeypatch.setattr(guide, "DEFAULT_EFFORT", guide.PlanEffort(restarts=8, tabu=0.0))
+    default = default_model_name(builtin("EX12"))
     doc = run_ablation(quick=True, results_dir=tmp_path / "a", steps=64, studies=["lookahead", "masking"],
                        echo=False, decisions="full")
-    assert doc["decisions"] == "full" and doc["lookahead"]["model"] == "full"
-    look = {(r["instance"], r["variant"]): r["makespan"] for r in doc["rows"] if r["study"] == "lookahead"}
-    assert look[("EX12", "off")] == ppo_solver("ppo:full")(builtin("EX12")).makespan
-    assert all(look[(i, "on")] <= look[(i, "off")] for i in ("EX12", "EX22"))  # verified moves only
+    assert doc["decisions"] == "full" and doc["lookahead"] == {"model": default, "mode": "plan's empty trips"}
+    look = [r for r in doc["rows"] if r["study"] == "lookahead"]
+    assert sorted((r["instance"], r["variant"]) for r in look) == [("EX12", "off"), ("EX12", "on"), ("EX22", "off"),
+                                                                   ("EX22", "on")]
+    assert all(r["valid"] for r in look)
+    off = {r["instance"]: r["makespan"] for r in look if r["variant"] == "off"}
+    assert off["EX12"] == ppo_solver(f"ppo:{default}")(builtin("EX12")).makespan
+    on = {r["instance"]: r["makespan"] for r in look if r["variant"] == "on"}
+    assert on["EX22"] == ppo_solver(f"ppo:{default}")(builtin("EX22"), lookahead="guide").makespan
     curve = [r for r in doc["rows"] if r["study"] == "masking"]
     assert all(r["invalid_episodes"] == 0 for r in curve if r["variant"] == "masked")
     assert sum(r["invalid_episodes"] for r in curve if r["variant"] == "unmasked") > 0
+    doc = run_ablation(quick=True, results_dir=tmp_path / "a2", studies=["lookahead"], echo=False, decisions="full",
+                       model="full")
+    assert doc["lookahead"] == {"model": "full", "mode": "verified twin"}
+    look = {(r["instance"], r["variant"]): r["makespan"] for r in doc["rows"]}
+    assert look[("EX12", "off")] == ppo_solver("ppo:full")(builtin("EX12")).makespan
+    assert all(look[(i, "on")] <= look[(i, "off")] for i in ("EX12", "EX22"))  # verified moves only
 
     doc = run_generalization(quick=True, results_dir=tmp_path / "g", steps=32, echo=False, decisions="full")
-    assert doc["general_model"] == "full" and doc["decisions"] == "full"
+    assert doc["general_model"] == default and doc["decisions"] == "full"
     general, special = doc["rows"]
-    assert (general["agent"], special["agent"]) == ("general (full)", "specialized")
-    assert general["makespan"] == ppo_solver("ppo:full")(builtin("sl09")).makespan
+    assert (general["agent"], special["agent"]) == (f"general ({default})", "specialized")
+    assert general["valid"] and general["makespan"] == ppo_solver(f"ppo:{default}")(builtin("sl09")).makespan
+    doc = run_generalization(quick=True, results_dir=tmp_path / "g2", steps=32, echo=False, decisions="full",
+                             model="full")
+    assert doc["general_model"] == "full" and doc["rows"][0]["agent"] == "general (full)"
+    assert doc["rows"][0]["makespan"] == ppo_solver("ppo:full")(builtin("sl09")).makespan
 
     doc = run_dynamic(quick=True, results_dir=tmp_path / "d", model="full", echo=False)
     assert doc["model"] == "full" and doc["decisions"] == "full"
     static = doc["summary"]["rl_static_makespan"]
     assert static == ppo_solver("ppo:full")(builtin("sl00")).makespan
     with pytest.raises(ValueError, match="full net, not through a Shop"):  # the model never runs on the wrong net
-        from fms_dispatch.rl.models import load_agent
         from fms_sim.shop import Shop
 
         load_agent("full").act(Shop(builtin("EX12")))
@@ -146,6 +166,23 @@ def test_the_experiments_on_the_full_net(tmp_path: Path) -> None:
         run_ablation(quick=True, results_dir=tmp_path, studies=["lookahead"], echo=False, decisions="both")
     with pytest.raises(ValueError, match="unknown decisions"):
         run_generalization(quick=True, results_dir=tmp_path, echo=False, decisions="both")
+
+
+def test_a_study_model_of_the_other_net_is_refused_before_any_work(tmp_path: Path) -> None:
+    """--model names a model of the net the study runs on; one of the other net is refused at once (before the
+    ablation trains anything), naming the option that fits it; an unknown model names the shipped ones."""
+    with pytest.raises(ValueError, match="model full decides through the full net, but this study runs on the "
+                                         "paper net; run it with --decisions full"):
+        run_ablation(quick=True, results_dir=tmp_path / "a", echo=False, model="full")
+    with pytest.raises(ValueError, match="model bu decides through the paper net.*--decisions paper"):
+        run_generalization(quick=True, results_dir=tmp_path / "g", echo=False, decisions="full", model="bu")
+    with pytest.raises(ValueError, match="no model named 'nope'"):
+        run_generalization(quick=True, results_dir=tmp_path / "g", echo=False, model="nope")
+    assert not any(tmp_path.iterdir())
+    from fms_dispatch.cli import main
+
+    assert main(["experiment", "ablation", "--quick", "--model", "full", "--results-dir", str(tmp_path / "c")]) == 2
+    assert not any(tmp_path.iterdir())
 
 
 def test_dynamic_with_fewer_jobs_than_partitions_keeps_their_arrival_times(tmp_path: Path) -> None:
@@ -200,6 +237,8 @@ def test_parser() -> None:
     assert p.parse_args(["experiment", "disruptions"]).lookahead_max_ops == 100
     assert p.parse_args(["experiment", "ablation"]).decisions == "paper"
     assert p.parse_args(["experiment", "generalization", "--decisions", "full"]).decisions == "full"
+    assert p.parse_args(["experiment", "generalization"]).model is None
+    assert p.parse_args(["experiment", "ablation", "--model", "full", "--decisions", "full"]).model == "full"
     with pytest.raises(SystemExit):
         p.parse_args(["experiment", "nonsense"])
 
