@@ -421,7 +421,7 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
     _check_decisions(decisions)
     fleet = {"no_tools": no_tools}
     first = expand_instances([f"sl{groups[0] if groups else 0}9"], fleet)[0]
-    spec, agent = _study_model(model, GENERAL_MODEL.get((decisions, bool(no_tools))), decisions, first)
+    general_spec, agent = _study_model(model, GENERAL_MODEL.get((decisions, bool(no_tools))), decisions, first)
     general = agent.name
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="fms-general-") as tmp:
@@ -431,16 +431,16 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
             held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
             for inst in expand_instances(held, fleet):
                 t0 = time.perf_counter()
-                sched = _model_run(spec, agent, inst, False)
+                sched = _model_run(general_spec, agent, inst, False)
                 rows.append({"group": g, "size": size, "agent": f"general ({general})", "instance": inst.name,
                              "makespan": sched.makespan, "valid": _checked(inst, sched),
                              "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
             train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
             select = [f"gen:{j}x{m}x{t}*1@{120 + g}"]  # model selection on generated shops, never on sl
-            spec = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
+            trained = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
                                 fleet=fleet, measure=held, decisions=decisions)
-            met = spec["training"]
-            for name, ms in spec["measured"].items():  # validated by evaluate_model
+            met = trained["training"]
+            for name, ms in trained["measured"].items():  # validated by evaluate_model
                 rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
                              "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
             if echo:

@@ -144,11 +144,15 @@ def test_the_experiments_on_the_full_net(tmp_path: Path, monkeypatch: pytest.Mon
     assert look[("EX12", "off")] == ppo_solver("ppo:full")(builtin("EX12")).makespan
     assert all(look[(i, "on")] <= look[(i, "off")] for i in ("EX12", "EX22"))  # verified moves only
 
-    doc = run_generalization(quick=True, results_dir=tmp_path / "g", steps=32, echo=False, decisions="full")
+    # two groups: the model runs again after a specialist has trained
+    doc = run_generalization(quick=True, results_dir=tmp_path / "g", steps=32, echo=False, decisions="full",
+                             groups=[0, 1])
     assert doc["general_model"] == default and doc["decisions"] == "full"
-    general, special = doc["rows"]
-    assert (general["agent"], special["agent"]) == (f"general ({default})", "specialized")
-    assert general["valid"] and general["makespan"] == ppo_solver(f"ppo:{default}")(builtin("sl09")).makespan
+    assert [(r["group"], r["agent"], r["instance"]) for r in doc["rows"]] == [
+        (g, a, f"sl{g}9") for g in (0, 1) for a in (f"general ({default})", "specialized")]
+    for general in doc["rows"][::2]:
+        assert general["valid"] and general["makespan"] == ppo_solver(f"ppo:{default}")(
+            builtin(general["instance"])).makespan
     doc = run_generalization(quick=True, results_dir=tmp_path / "g2", steps=32, echo=False, decisions="full",
                              model="full")
     assert doc["general_model"] == "full" and doc["rows"][0]["agent"] == "general (full)"
