@@ -125,7 +125,8 @@ def test_the_experiments_on_the_full_net(tmp_path: Path, monkeypatch: pytest.Mon
     default = default_model_name(builtin("EX12"))
     doc = run_ablation(quick=True, results_dir=tmp_path / "a", steps=64, studies=["lookahead", "masking"],
                        echo=False, decisions="full")
-    assert doc["decisions"] == "full" and doc["lookahead"] == {"model": default, "mode": "plan's empty trips"}
+    assert doc["decisions"] == "full" and doc["lookahead"] == {
+        "model": default, "mode": "plan's empty trips", "plan": "searched in the off run, acted out again in the on run"}
     look = [r for r in doc["rows"] if r["study"] == "lookahead"]
     assert sorted((r["instance"], r["variant"]) for r in look) == [("EX12", "off"), ("EX12", "on"), ("EX22", "off"),
                                                                    ("EX22", "on")]
@@ -139,7 +140,7 @@ def test_the_experiments_on_the_full_net(tmp_path: Path, monkeypatch: pytest.Mon
     assert sum(r["invalid_episodes"] for r in curve if r["variant"] == "unmasked") > 0
     doc = run_ablation(quick=True, results_dir=tmp_path / "a2", studies=["lookahead"], echo=False, decisions="full",
                        model="full")
-    assert doc["lookahead"] == {"model": "full", "mode": "verified twin"}
+    assert doc["lookahead"] == {"model": "full", "mode": "verified twin", "plan": None}
     look = {(r["instance"], r["variant"]): r["makespan"] for r in doc["rows"]}
     assert look[("EX12", "off")] == ppo_solver("ppo:full")(builtin("EX12")).makespan
     assert all(look[(i, "on")] <= look[(i, "off")] for i in ("EX12", "EX22"))  # verified moves only
