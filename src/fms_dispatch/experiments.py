@@ -361,8 +361,7 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
             "reward_shaping": {"train": train_sl, "eval": eval_sl, "on": "shaped", "off": "makespan (sparse)"},
             "lookahead": {"model": look_model, "mode": look_mode,
                           "plan": "searched in the off run, acted out again in the on run" if guided else None},
-            "masking": {"instances": [i.name for i in mask_insts],
-                                                      "invalid_penalty": -10.0}, "summary": summary}
+            "masking": {"instances": [i.name for i in mask_insts], "invalid_penalty": -10.0}, "summary": summary}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(15, 4.5, ncols=3)
