@@ -11,14 +11,14 @@ figures show that the pipeline works, not what the methods are worth.
     (``gen:30x20x20*5@140``, quick: one), selected on two others (``@141``), one with the dense ``shaped``
     reward (lower-bound increments, on) and one with the sparse ``makespan`` reward (only the final makespan,
     off); both measured (deterministic, validated) on sl40..sl49 (quick: sl40, sl41), which no agent trains on;
-  - *lookahead*: the shipped ``bu`` model with and without the twin's pre-positioning on EX12..EX102
-    (inference only; quick: EX12, EX22);
+  - *lookahead*: the shipped ``bu`` model (on the paper's net; ``--model``: another) with and without the twin's
+    pre-positioning on EX12..EX102 (inference only; quick: EX12, EX22);
   - *masking*: MaskablePPO on five generated job sets on BU layout 2 (``genbu:2*5@150``, quick: one) with
     action masks vs the same algorithm with masking disabled, where an invalid action ends the episode with
     the env's penalty (-10); the curve is the mean reward of the episodes that ended in each rollout.
 
-* **generalization** — per size group g of the large benchmark, the general shipped model (``large``, or
-  ``large-agv`` with ``--no-tools``) against a specialised agent trained only on generated instances of that
+* **generalization** — per size group g of the large benchmark, the general shipped model (on the paper's net
+  ``large``, or ``large-agv`` with ``--no-tools``; ``--model``: another) against a specialised agent trained only on generated instances of that
   group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group 0, 256 steps) and
   selected on another (``@(120+g)``), measured on sl{g}5..sl{g}9 (quick: sl{g}9). No model trains or is
   selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``).
