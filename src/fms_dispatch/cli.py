@@ -186,8 +186,25 @@ def cmd_solve(a: argparse.Namespace) -> int:
         return EXIT_INFEASIBLE
     extra = replans_summary(sched.meta.get("replans")) + search_summary(sched)
     print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
+    hint = plan_hint(sched, scenario)
+    if hint and not a.quiet:
+        print(f"{inst.name}: {hint}", file=sys.stderr)
     _write_outputs(sched, inst, a.out, a.gantt)
     return 0
+
+
+def plan_hint(sched: Schedule, scenario: Scenario | None) -> str | None:
+    """What to tell the user when a guided model's nominal run without the plan's empty trips ended later than the
+    plan it acted out (``meta["guide_plan_makespan"]``): that plan, and the option that makes those trips. None
+    otherwise (a disrupted run's plan in force is a forecast, not a makespan the run could have reached)."""
+    m = sched.meta
+    planned = m.get("guide_plan_makespan")
+    if planned is None or sched.makespan <= planned or (scenario is not None and not scenario.empty):
+        return None
+    if str(m.get("solver", "")).endswith("+lookahead-guide"):
+        return None
+    return (f"the model's plan ends at {planned}; this run left out some of the plan's empty trips "
+            "(--lookahead-guide makes them)")
 
 
 def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None:

@@ -661,3 +661,31 @@ def test_the_default_models_numpy_actor_computes_its_torch_policys_logits(no_too
             compared += 1
         shop.act(agent.act(shop))
     assert compared > 20
+
+
+def test_a_plain_run_that_ends_after_its_plan_names_the_plan_and_the_lookahead(capsys, tmp_path):
+    """A guided run records the makespan of the plan it acted out; where a plain nominal run ends later (it leaves
+    out the plan's empty trips), fms solve says so on stderr and names --lookahead-guide, whose run ends at the
+    plan. Not with -q, not in a disrupted run (its plan in force is a forecast), not with the lookahead."""
+    from fms_dispatch.cli import main
+
+    out = tmp_path / "s.json"
+    args = ["solve", "EX24", "--solver", "ppo", "--guide-tabu", "0", "--out", str(out)]  # a reproducible plan search
+    assert main(args) == 0
+    meta = json.loads(out.read_text())["meta"]
+    plain, planned = json.loads(out.read_text())["makespan"], meta["guide_plan_makespan"]
+    assert plain > planned  # on this shop the plain run misses two of the plan's empty trips
+    err = capsys.readouterr().err
+    assert f"EX24: the model's plan ends at {planned}; this run left out some of the plan's empty trips " \
+           "(--lookahead-guide makes them)" in err
+    assert main(args + ["--lookahead-guide"]) == 0
+    again = json.loads(out.read_text())
+    assert again["makespan"] == again["meta"]["guide_plan_makespan"] == planned
+    assert "plan ends at" not in capsys.readouterr().err
+    assert main(args + ["-q"]) == 0 and capsys.readouterr().err == ""
+    assert main(args + ["--noise", "0.1", "--seed", "1"]) == 0
+    noisy = json.loads(out.read_text())
+    assert noisy["makespan"] > noisy["meta"]["guide_plan_makespan"]  # later than its plan, but disrupted: no hint
+    assert "plan ends at" not in capsys.readouterr().err
+    assert main(["solve", "EX24", "--solver", "ppo:bu", "--out", str(out), "-q"]) == 0  # no guide, no plan
+    assert "guide_plan_makespan" not in json.loads(out.read_text())["meta"]

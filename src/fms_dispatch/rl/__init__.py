@@ -45,7 +45,10 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     ``guide_replan`` (default True; a guided model in a disrupted run): re-plan the guide when a machine breakdown
     begins or an operation starts late against the plan in force, adopting the new plan where it ends
     :data:`~fms_dispatch.rl.guide.REPLAN_MARGIN` earlier than the plan in force
-    (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``.
+    (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``. A guided model's run
+    records the makespan of the plan in force at its end in ``meta["guide_plan_makespan"]`` (the plan searched at the
+    start; in a disrupted run the last re-plan adopted, a forecast): a plain run that ends later left out some of the
+    plan's empty trips, which ``lookahead="guide"`` makes.
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -102,6 +105,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         sched.meta["lookahead"] = bool(lookahead)
         if agent.guide is not None:
             sched.meta["guide_effort"] = agent.guide_effort.as_dict()
+            # the plan in force at the end: the plan searched at the start, or in a disrupted run the last re-plan
+            # adopted (its makespan then a forecast); a plain run can end later than its plan (no empty trips)
+            sched.meta["guide_plan_makespan"] = agent.guide_of(shop).plan.makespan
         if lookahead:
             sched.meta["lookahead_fast"] = fast
         return sched
