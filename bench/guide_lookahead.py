@@ -66,10 +66,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[{label} {i + 1}/{len(names)}] {name}: plan {plan.makespan}, plain {plain}, lookahead {look}"
                   + ("  LONGER" if way == "longer" else ""), flush=True)
         mine = [r for r in rows if r["set"] == label]
+        mean = {k: sum(r[k] for r in mine) / len(mine) for k in ("plain", "lookahead", "plan")}
         lines.append(f"  {label}: {len(mine)} instances; with the lookahead shorter {counts['shorter']}, equal "
-                     f"{counts['equal']}, longer {counts['longer']}; mean plain {sum(r['plain'] for r in mine) / len(mine):.1f},"
-                     f" with the lookahead {sum(r['lookahead'] for r in mine) / len(mine):.1f}, the plans "
-                     f"{sum(r['plan'] for r in mine) / len(mine):.1f}")
+                     f"{counts['equal']}, longer {counts['longer']}; mean plain {mean['plain']:.1f}, with the "
+                     f"lookahead {mean['lookahead']:.1f}, the plans {mean['plan']:.1f}")
         lines += [f"    longer: {r['instance']} {r['plain']} -> {r['lookahead']}" for r in mine
                   if r["lookahead"] > r["plain"]]
     report(lines, rows, a.json)

@@ -654,7 +654,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                     seeds: int | None = None, cpsat_time: float | None = None, echo: bool = True,
                     replan_budget: float | None = None,
                     lookahead_max_ops: int = DISRUPTION_LOOKAHEAD_MAX_OPS,
-                    instances: Sequence[str] | None = None) -> dict[str, Any]:
+                    instances: Sequence[str] | None = None, model: str | None = None) -> dict[str, Any]:
     """Plans and rules in disrupted shops: breakdowns (2 per run, in the first half of the nominal plan, 5-15 %
     of it long) and noise 0 / 10 / 20 % on every duration, several seeds (issue 18 §5).
 
@@ -663,9 +663,9 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     quick 0.2) on breakdowns and lateness (:mod:`fms_dispatch.replan`; the simulated shop waits for it, so its
     latency column includes the re-plans), each re-plan also weighing the best rule's continuation when that
     rule is a full-net rule; ``best-rule`` — the best full-net rule or list schedule *on the nominal instance*, then
-    run in the disrupted shop (a list schedule is a plan: executed as one); ``ppo`` — the shipped full-net model
-    (:data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes; ``ppo+lookahead`` — the same with the
-    verified lookahead (fast mode), whose twins are nominal copies of the shop
+    run in the disrupted shop (a list schedule is a plan: executed as one); ``ppo`` — a full-net model (``model``;
+    default the shipped :data:`DISRUPTION_MODEL`), deciding in the disrupted shop as it goes; ``ppo+lookahead`` — the
+    same with the verified lookahead (fast mode), whose twins are nominal copies of the shop
     (:func:`~fms_dispatch.rl.lookahead.nominal_twin`: what a dispatcher can know), on shops of at most
     ``lookahead_max_ops`` operations (the others are listed in ``not_measured``). Instances: sl{g}0 for
     groups 0-4 in both modes and EX12..EX102 (quick: EX12 and ra01, noise 0 / 10 %, one seed); ``instances``
@@ -685,11 +685,18 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
     missing: dict[str, str] = {}
     methods = DISRUPTION_METHODS
     try:
-        agent = load_agent(DISRUPTION_MODEL)  # decides through the full net, which runs the disruptions
+        agent = load_agent(model or DISRUPTION_MODEL)  # must decide through the full net, which runs the disruptions
     except (ModelNotFoundError, ImportError) as exc:
+        if model is not None:  # a model asked for by name is bad input; only the shipped one may be absent
+            raise
         agent, methods = None, tuple(m for m in DISRUPTION_METHODS if not m.startswith("ppo"))
         missing["ppo"] = missing["ppo+lookahead"] = (f"model {DISRUPTION_MODEL!r} not available: "
                                                      f"{str(exc).splitlines()[0]}")
+    if agent is not None and agent.decisions != "full":
+        raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; name a "
+                         "full-net model (e.g. full, guided-dagger)")
+    if agent is not None and agent.guide is not None:
+        agent.use_guide_effort(None)  # a cached agent: a guided model searches its plans as fms solve does
     skipped_la: list[str] = []
 
     def default_run(inst: Instance, sc: Any) -> tuple[Schedule, int, float]:
@@ -823,6 +830,7 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
                                          sum(1 for v in pairs.values() if v["default"] < v["best-rule"]), len(pairs))
     meta = {"experiment": "disruptions", "quick": quick, "seed": seed, "seeds": n_seeds, "noises": list(noises),
             "cpsat_time": cpsat_time, "instances": [f"{n} ({m})" for n, m in insts],
+            "ppo_model": agent.name if agent is not None else None,
             "not_measured": missing, "summary": summary,
             "plan_beats_best_rule": {k: f"{a}/{b}" for k, (a, b) in wins.items()},
             "replan_beats_best_rule": {k: f"{a}/{c}" for k, (a, b, c) in rwins.items()},
@@ -928,6 +936,7 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--cpsat-time", type=float, help="CP-SAT plan time limit in s (default 10; quick 1)")
     p.add_argument("--replan-budget", type=float, help="seconds per re-plan (default 1; quick 0.2)")
     p.add_argument("--instances", nargs="+", help="only these of the experiment's instances (e.g. sl00 EX12)")
+    p.add_argument("--model", help=f"the ppo method's model, a full-net one (default {DISRUPTION_MODEL})")
     p.add_argument("--lookahead-max-ops", type=int, default=DISRUPTION_LOOKAHEAD_MAX_OPS,
                    help=f"PPO + lookahead only on shops with at most this many operations "
                         f"(default {DISRUPTION_LOOKAHEAD_MAX_OPS})")
@@ -953,7 +962,7 @@ def _cmd(a: argparse.Namespace) -> int:
                            model=a.model)
     elif a.experiment == "disruptions":
         run_disruptions(a.quick, a.results_dir, a.seed, a.seeds, a.cpsat_time, replan_budget=a.replan_budget,
-                        lookahead_max_ops=a.lookahead_max_ops, instances=a.instances)
+                        lookahead_max_ops=a.lookahead_max_ops, instances=a.instances, model=a.model)
     else:
         run_dynamic(a.quick, a.results_dir, a.seed, a.instance, a.model, a.sos_time)
     return 0

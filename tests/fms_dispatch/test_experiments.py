@@ -126,7 +126,8 @@ def test_the_experiments_on_the_full_net(tmp_path: Path, monkeypatch: pytest.Mon
     doc = run_ablation(quick=True, results_dir=tmp_path / "a", steps=64, studies=["lookahead", "masking"],
                        echo=False, decisions="full")
     assert doc["decisions"] == "full" and doc["lookahead"] == {
-        "model": default, "mode": "plan's empty trips", "plan": "searched in the off run, acted out again in the on run"}
+        "model": default, "mode": "plan's empty trips",
+        "plan": "searched in the off run, acted out again in the on run"}
     look = [r for r in doc["rows"] if r["study"] == "lookahead"]
     assert sorted((r["instance"], r["variant"]) for r in look) == [("EX12", "off"), ("EX12", "on"), ("EX22", "off"),
                                                                    ("EX22", "on")]
@@ -238,7 +239,7 @@ def test_parser() -> None:
     a = p.parse_args(["experiment", "ablation", "--studies", "lookahead", "masking"])
     assert a.studies == ["lookahead", "masking"] and a.steps is None
     a = p.parse_args(["experiment", "disruptions", "--seeds", "1", "--lookahead-max-ops", "300", "--instances", "sl00"])
-    assert (a.seeds, a.lookahead_max_ops, a.instances) == (1, 300, ["sl00"])
+    assert (a.seeds, a.lookahead_max_ops, a.instances, a.model) == (1, 300, ["sl00"], None)
     assert p.parse_args(["experiment", "disruptions"]).lookahead_max_ops == 100
     assert p.parse_args(["experiment", "ablation"]).decisions == "paper"
     assert p.parse_args(["experiment", "generalization", "--decisions", "full"]).decisions == "full"
@@ -309,6 +310,32 @@ def test_disruptions_run_the_lookahead_only_up_to_its_size_limit(tmp_path: Path)
     assert {r["instance"] for r in doc["rows"]} == {"ra01"}
     with pytest.raises(ValueError, match="sl99 not in this experiment"):
         run_disruptions(quick=True, results_dir=tmp_path, echo=False, instances=["sl99"])
+
+
+def test_disruptions_ppo_method_takes_a_full_net_model_by_name(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """--model puts another full-net model in the ppo method (recorded as ppo_model); a paper-net model or an
+    unknown one is refused before any work (the shipped default may be absent, a model asked for may not)."""
+    from fms_dispatch.cli import main
+    from fms_dispatch.experiments import run_disruptions
+    from fms_dispatch.rl import guide, ppo_solver
+
+    monkeypatch.setattr(guide, "DEFAULT_EFFORT", guide.PlanEffort(restarts=8, tabu=0.0))  # a reproducible search
+    doc = run_disruptions(quick=True, results_dir=tmp_path / "ok", echo=False, seeds=1, lookahead_max_ops=0,
+                          instances=["EX12"], model="guided-dagger")
+    assert doc["ppo_model"] == "guided-dagger"
+    ppo = [r for r in doc["rows"] if r["method"] == "ppo"]
+    assert len(ppo) == 2 and all(r["makespan"] > 0 for r in ppo)  # noise 0 and 10 %, validated in the experiment
+    # its nominal run is the model's run of the instance, with the plan search fms solve makes
+    assert ppo[0]["nominal_makespan"] == ppo_solver("ppo:guided-dagger")(builtin("EX12")).makespan
+    assert run_disruptions(quick=True, results_dir=tmp_path / "d", echo=False, seeds=1, lookahead_max_ops=0,
+                           instances=["EX12"])["ppo_model"] == "full"
+    with pytest.raises(ValueError, match="model bu decides through the paper's net, which runs no disruptions"):
+        run_disruptions(quick=True, results_dir=tmp_path / "bad", echo=False, model="bu")
+    with pytest.raises(ValueError, match="no model named 'nope'"):
+        run_disruptions(quick=True, results_dir=tmp_path / "bad", echo=False, model="nope")
+    assert main(["experiment", "disruptions", "--quick", "--model", "bu", "--results-dir", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()
 
 
 def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path,
