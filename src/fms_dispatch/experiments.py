@@ -400,8 +400,9 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     if echo:
         print("| study | variant | result |\n|---|---|---|")
         for study in ("reward_shaping", "lookahead"):
+            label = f"lookahead ({look_model}: {look_mode})" if study == "lookahead" else study
             for v, x in summary.get(study, {}).items():
-                print(f"| {study} | {v} | mean makespan {x} |")
+                print(f"| {label} | {v} | mean makespan {x} |")
         for v, d in summary.get("masking", {}).items():
             print(f"| masking | {v} | final mean episode reward {d['final_mean_episode_reward']}, "
                   f"invalid episodes {d['invalid_episodes']} |")

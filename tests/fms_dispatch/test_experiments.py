@@ -91,8 +91,10 @@ def test_ablation_quick(tmp_path: Path) -> None:
     assert set(doc["summary"]) == {"reward_shaping", "lookahead", "masking"}
 
 
-def test_ablation_only_lookahead(tmp_path: Path) -> None:
-    doc = run_ablation(quick=True, results_dir=tmp_path, studies=["lookahead"], echo=False)
+def test_ablation_only_lookahead(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    doc = run_ablation(quick=True, results_dir=tmp_path, studies=["lookahead"])
+    out = capsys.readouterr().out  # the printed table names the study's model and its lookahead
+    assert f"| lookahead (bu: verified twin) | off | mean makespan {doc['summary']['lookahead']['off']} |" in out
     rows, _ = _outputs(tmp_path, "ablation", ABLATION_COLUMNS)
     assert {r["study"] for r in rows} == {"lookahead"} and len(rows) == 4
     assert list(doc["summary"]) == ["lookahead"] and doc["studies"] == ["lookahead"]
