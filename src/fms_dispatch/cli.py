@@ -203,8 +203,8 @@ def plan_hint(sched: Schedule, scenario: Scenario | None) -> str | None:
         return None
     if str(m.get("solver", "")).endswith("+lookahead-guide"):
         return None
-    return (f"the model's plan ends at {planned}; this run left out some of the plan's empty trips "
-            "(--lookahead-guide makes them)")
+    return (f"the model's plan ends at {planned}; --lookahead-guide sends idle vehicles on the plan's empty trips, "
+            "which a plain run leaves out")
 
 
 def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None:

@@ -676,8 +676,8 @@ def test_a_plain_run_that_ends_after_its_plan_names_the_plan_and_the_lookahead(c
     plain, planned = json.loads(out.read_text())["makespan"], meta["guide_plan_makespan"]
     assert plain > planned  # on this shop the plain run misses two of the plan's empty trips
     err = capsys.readouterr().err
-    assert f"EX24: the model's plan ends at {planned}; this run left out some of the plan's empty trips " \
-           "(--lookahead-guide makes them)" in err
+    assert f"EX24: the model's plan ends at {planned}; --lookahead-guide sends idle vehicles on the plan's empty " \
+           "trips, which a plain run leaves out" in err
     assert main(args + ["--lookahead-guide"]) == 0
     again = json.loads(out.read_text())
     assert again["makespan"] == again["meta"]["guide_plan_makespan"] == planned
