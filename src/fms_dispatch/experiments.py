@@ -18,10 +18,10 @@ figures show that the pipeline works, not what the methods are worth.
     the env's penalty (-10); the curve is the mean reward of the episodes that ended in each rollout.
 
 * **generalization** — per size group g of the large benchmark, the general shipped model (on the paper's net
-  ``large``, or ``large-agv`` with ``--no-tools``; ``--model``: another) against a specialised agent trained only on generated instances of that
-  group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group 0, 256 steps) and
-  selected on another (``@(120+g)``), measured on sl{g}5..sl{g}9 (quick: sl{g}9). No model trains or is
-  selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``).
+  ``large``, or ``large-agv`` with ``--no-tools``; ``--model``: another) against a specialised agent trained only on
+  generated instances of that group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group
+  0, 256 steps) and selected on another (``@(120+g)``), measured on sl{g}5..sl{g}9 (quick: sl{g}9). No model trains
+  or is selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``).
 
 * **dynamic** — an instance's jobs split into 10 partitions (job j in partition ``j*10//n``); partition p
   arrives at ``p*Δ`` with ``Δ`` = the instance's simple lower bound (max of the largest machine load and the
