@@ -534,6 +534,45 @@ def test_shipped_models_have_current_numpy_exports():
             assert sha == file_sha256(weights), weights
 
 
+@pytest.mark.parametrize("name", SHIPPED)
+def test_the_batched_small_blocks_give_the_block_by_block_logits(name):
+    """The numpy actor embeds the machines, tools, AGVs and transporters in one batched pass; on every shipped
+    model it gives the logits of embedding them block by block, on shops with and without tools and AGVs (blocks
+    with no rows), with fewer rows than the padding (ra01: 10 machines of 20) and at the padding (EX12 and EX104, bu)."""
+    import copy
+
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.formats import load_instance
+    from fms_sim.full_shop import make_shop
+
+    agent = load_agent(name)
+    assert agent.actor._small is not None  # every shipped model is an entity network of two-layer blocks
+    plain = copy.copy(agent.actor)
+    plain._small = None
+    if agent.guide is not None:
+        agent.use_guide_effort(effort_from(restarts=0, tabu=0))
+    if name == "bu":
+        shops = [load_instance("EX12"), load_instance("EX104")]
+    else:
+        shops = [load_instance("ra01"), load_instance("ra01", no_tools=True), builtin("ta01")]
+    compared = 0
+    for inst in shops:
+        if not agent.fits(inst):
+            continue
+        shop = make_shop(inst, agent.decisions)
+        for _ in range(200 if name == "bu" else 60):
+            if shop.done:
+                break
+            if len(shop.legal_actions()) > 1:
+                obs, mask = agent._env(shop).observe()
+                got, want = agent.actor.logits(obs, mask), plain.logits(obs, mask)
+                assert np.array_equal(np.isfinite(got), np.isfinite(want))
+                assert np.allclose(got[mask], want[mask], rtol=0, atol=1e-4)
+                compared += 1
+            shop.act(agent.act(shop))
+    assert compared >= 20
+
 def test_solving_with_a_shipped_model_does_not_import_torch():
     code = ("import sys; from fms_dispatch.rl import ppo_solver; from fms_sim.benchmarks import builtin; "
             "s = ppo_solver('ppo')(builtin('EX12'), lookahead=True); "

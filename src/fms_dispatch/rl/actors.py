@@ -88,6 +88,7 @@ class NumpyEntityActor:
                 parts[name].append((i, L[f]))
                 i += L[name] * L[f]
         self._parts = parts
+        self._obs_len = i
         first = []
         self._row_w: dict[str, np.ndarray] = {}
         for b in self.blocks:
@@ -104,6 +105,60 @@ class NumpyEntityActor:
                        "tool": (paper + L["jobs"], L["tools"], "tools"),
                        "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
         self._hold = paper + 2 * L["jobs"] + L["tools"]
+        self._prepare_small()
+
+    def _prepare_small(self) -> None:
+        """Stack the blocks other than the jobs' (machines, tools, AGVs, transporters: a few dozen rows in all) so
+        that one batched pass embeds them all: much of a decision's cost is numpy's cost per call, and these blocks
+        took about ten calls each (docs/benchmarks.md §9: 9 % of the actor's time on sl70). One index gathers each
+        block's rows from the flat observation (its base, full-net and guide features side by side), padded to the
+        widest block's features and the longest block's rows; the padding reads any feature, which the zero-padded
+        first-layer weights ignore, and the padded rows are left out of the means. Only for embedding nets of two
+        tanh layers (every entity network :mod:`fms_dispatch.rl.policy` builds); otherwise :attr:`_small` is None and
+        :meth:`logits` embeds block by block."""
+        L = self.lay
+        small = [b for b in self.blocks if b != "jobs" and L[b]]
+        self._small = None
+        if not small or any(len(self.nets[b]) != 2 or not all(t for _, _, t in self.nets[b]) for b in small):
+            return
+        h = self.hidden
+        rows = max(L[b] for b in small)
+        width = max(self._row_w[b].shape[0] for b in small)
+        idx = np.zeros((len(small), rows, width), dtype=np.intp)
+        real = np.zeros((len(small), rows), dtype=np.float32)  # 1 for the rows the observation has
+        w1 = np.zeros((len(small), width, h), dtype=np.float32)
+        for s, b in enumerate(small):
+            col = 0
+            for i, f in self._parts[b]:
+                idx[s, :L[b], col:col + f] = i + np.arange(L[b])[:, None] * f + np.arange(f)[None, :]
+                col += f
+            w1[s, :col] = self._row_w[b]
+            real[s, :L[b]] = 1.0
+        k = [self.blocks.index(b) for b in small]
+        self._small = {
+            "blocks": small, "k": np.array(k), "idx": idx, "real": real, "w1": w1,
+            "gsel": np.concatenate([np.arange(j * h, (j + 1) * h) for j in k]).reshape(len(small), 1, h),
+            "w2": np.stack([self.nets[b][1][0] for b in small]).astype(np.float32),
+            "b2": np.stack([self.nets[b][1][1] for b in small]).astype(np.float32)[:, None, :],
+        }
+
+    def _embed_small(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray, emb: dict[str, np.ndarray]) -> None:
+        """Embed the stacked small blocks (:meth:`_prepare_small`) in one pass: each block's rows into ``emb``,
+        their mean into its part of ``ctx``. A row exists exactly where its 'present' feature (its block's first) is
+        1, and the rows that exist come first."""
+        S = self._small
+        x = obs[S["idx"]]  # (blocks, rows, features)
+        present = x[:, :, 0] * S["real"]
+        n = present.sum(axis=1)
+        top = int(n.max())  # the rows past every block's last are left out (only a few machines: a BU shop)
+        x, present = x[:, :top], present[:, :top]
+        e = np.tanh(x @ S["w1"] + gw[S["gsel"]])
+        e = np.tanh(e @ S["w2"] + S["b2"])
+        mean = (present / np.maximum(n, 1)[:, None])[:, None, :] @ e  # (blocks, 1, hidden)
+        h = self.hidden
+        ctx.reshape(-1, h)[S["k"]] = mean[:, 0, :]
+        for s, b in enumerate(S["blocks"]):
+            emb[b] = e[s, :int(n[s])]
 
     def _rows(self, obs: np.ndarray, b: str, n: int) -> np.ndarray:
         """The first ``n`` rows of block ``b``: its base, full-net and guide features side by side."""
@@ -132,7 +187,10 @@ class NumpyEntityActor:
         gw = g @ self._g_w + self._g_b  # every block's first layer, global part
         # rows that exist: the 'present' feature (each block's first) is 1 exactly for them, and they come first
         n = {}
+        batched = self._small["blocks"] if self._small is not None else ()
         for b in self.blocks:
+            if b in batched:
+                continue  # counted in the batched pass
             i, f = self._parts[b][0]
             n[b] = int(np.count_nonzero(obs[i:i + L[b] * f:f])) if L[b] else 0
         nj = n["jobs"]
@@ -143,7 +201,11 @@ class NumpyEntityActor:
         nxt[idx < 0] = 0.0
         emb: dict[str, np.ndarray] = {}
         ctx = np.zeros(h * len(self.blocks), np.float32)
+        if self._small is not None:
+            self._embed_small(obs, gw, ctx, emb)
         for k, b in enumerate(self.blocks):
+            if b in emb:
+                continue
             if b != "jobs" and not n[b]:  # no rows (a shop without tools): no embedding, its context stays 0
                 emb[b] = np.zeros((0, self.nets[b][-1][0].shape[1]), np.float32)
                 continue
