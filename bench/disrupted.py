@@ -7,14 +7,17 @@ expert the guided models are cloned from) on generated shops, each in ``--scenar
 scenarios per disruption level (``fms_sim.env.episode_scenario``: seeded by the shop's name and the scenario's
 number, breakdowns within the shop's work per machine), the same for every method::
 
-    python bench/disrupted.py --models ppo:guided ppo:FOLDER [--shops SPEC ...] [--noise 0 0.2] [--breakdowns 1]
+    python bench/disrupted.py --models ppo:guided ppo:FOLDER [ppo:guided+lookahead-guide] [--shops SPEC ...]
+                              [--noise 0 0.2] [--breakdowns 1]
                               [--scenarios 3] [--guide-tabu S] [--heldout] [--json FILE]
 
 Validation shops by default (checked like training specs); ``--heldout`` runs the 50 held-out shops instead, for
 reported figures only (never for choosing). Guided models plan with the solver's default effort unless
 ``--guide-*`` options say otherwise, and re-plan at breakdowns as the solver does unless ``--no-guide-replan``
-(the guide follower never re-plans: compare models with it under ``--no-guide-replan``). Per level: each method's mean makespan, its mean ratio to ``plan:list``, and
-in how many runs it is below the first model. Every schedule is validated against its scenario.
+(the guide follower never re-plans: compare models with it under ``--no-guide-replan``). A model's name may carry
+a lookahead as the solver's names do (``ppo:guided-dagger+lookahead-guide``: the plan's empty trips). Per level:
+each method's mean makespan, its mean ratio to ``plan:list``, and in how many runs it is below and above the first
+model. Every schedule is validated against its scenario.
 """
 
 from __future__ import annotations
@@ -26,10 +29,9 @@ import time
 
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
 from fms_dispatch.full_rules import run_full
-from fms_dispatch.rl import ppo_solver
 from fms_dispatch.rl.guide import DEFAULT_EFFORT, GuideFollower
 from fms_dispatch.rl.train import expand_instances
-from fms_dispatch.solvers import solve
+from fms_dispatch.solvers import get_solver, solve
 from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
@@ -42,7 +44,8 @@ DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--models", nargs="+", required=True, help="PPO solver specs (ppo:NAME, ppo:FOLDER)")
+    ap.add_argument("--models", nargs="+", required=True,
+                    help="PPO solver names (ppo:NAME, ppo:FOLDER; +lookahead-guide etc. for a lookahead)")
     ap.add_argument("--shops", nargs="+", default=DEFAULT_SHOPS, help="generated validation shop specs")
     ap.add_argument("--heldout", action="store_true", help="the 50 held-out shops instead (reported figures only)")
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
@@ -63,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     effort = guide_effort_from_args(a)
     replan = {} if a.guide_replan is None else {"guide_replan": a.guide_replan}
     methods = ["plan:list"] + (["guide-follower"] if a.follower else []) + list(a.models)
+    solvers = {m: get_solver(m) for m in a.models}  # an unknown name or model stops the bench before any run
     rows = []
     t_start = time.perf_counter()
     for noise in a.noise:
@@ -79,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                     elif m == "guide-follower":
                         s = run_full(inst, GuideFollower(effort=effort or DEFAULT_EFFORT), sc)
                     else:
-                        s = ppo_solver(m)(inst, scenario=sc, guide_effort=effort, **replan)
+                        s = solvers[m](inst, scenario=sc, guide_effort=effort, **replan)
                     row[m] = checked(inst, s, m, sc)
                     row[m + "_s"] = round(time.perf_counter() - t0, 2)
                 rows.append(row)
