@@ -205,8 +205,7 @@ def load_ppo_agent(model: str | None, instance: Instance) -> Any:
     except (ValueError, OSError) as exc:
         raise UnavailableSolver(f"solver 'ppo:{name}': {str(exc).splitlines()[0]}") from None
     if not agent.fits(instance):
-        raise UnavailableSolver(f"instance {instance.name} is larger than model {agent.name} allows "
-                                f"({agent.layout()})")
+        raise UnavailableSolver(agent.misfit(instance))
     return agent
 
 

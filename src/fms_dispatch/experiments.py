@@ -565,7 +565,7 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
     arrival = [round(p * delta, 2) for p in slots]
     agent = load_agent(model or default_model_name(inst))
     if not agent.fits(inst):
-        raise ValueError(f"instance {inst.name} does not fit model {agent.name} ({agent.padding})")
+        raise ValueError(agent.misfit(inst))
 
     rows: list[dict[str, Any]] = []
 

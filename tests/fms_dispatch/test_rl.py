@@ -628,8 +628,16 @@ def test_shipped_large_models_valid_on_sl00(name, no_tools):
 
 
 def test_bu_model_refuses_too_large_instance():
-    with pytest.raises(ValueError, match=r"larger than model bu allows \(up to 8 jobs, 4 machines, 0 tools, 2 AGVs"):
+    """The error names what exceeds the model's padding (sl00: 15 jobs, 15 machines, 15 tools, 10 AGVs, 5
+    transporters against bu's 8 / 4 / 0 / 2 / 0) and the solvers that take any size."""
+    with pytest.raises(ValueError) as err:
         ppo_solver("ppo:bu")(builtin("sl00"))
+    msg = str(err.value)
+    assert msg.startswith("instance sl00 is larger than model bu allows: 15 jobs (at most 8), 15 machines (at most "
+                          "4), 15 tools (at most 0), 10 AGVs (at most 2), 5 tool transporters (at most 0); ")
+    assert "rule:MTWR+nearest" in msg and "plan:list" in msg
+    with pytest.raises(ValueError, match=r"larger than model bu allows: 10 AGVs \(at most 2\); a rule"):
+        ppo_solver("ppo:bu")(builtin("EX12").with_fleet(n_agvs=10))
 
 
 def test_models_record_the_net_they_were_trained_on_and_load_with_it(tmp_path):

@@ -71,8 +71,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
 
         agent = load_agent(model or default_model_name(instance))
         if not agent.fits(instance):
-            raise ValueError(f"instance {instance.name} is larger than model {agent.name} allows "
-                             f"({agent.layout()})")
+            raise ValueError(agent.misfit(instance))
         agent.use_guide_effort(guide_effort)  # a cached agent: set for every run
         disrupted = scenario is not None and not scenario.empty
         if disrupted and agent.decisions != "full":

@@ -140,6 +140,18 @@ class Agent:
                 and (inst.n_agvs if inst.has_agvs else 0) <= p["max_agvs"]
                 and (inst.n_tool_transporters if inst.has_tools else 0) <= p["max_tts"])
 
+    def misfit(self, inst: Instance) -> str:
+        """The error message for an ``inst`` that does not :meth:`fit <fits>` this model: what exceeds its padded
+        layout, and which solvers take any size (a model decides only within the padding it was trained with)."""
+        p = self.padding
+        sizes = (("jobs", inst.n_jobs, p["max_jobs"]), ("machines", inst.n_machines, p["max_machines"]),
+                 ("tools", inst.n_tools if inst.has_tools else 0, p["max_tools"]),
+                 ("AGVs", inst.n_agvs if inst.has_agvs else 0, p["max_agvs"]),
+                 ("tool transporters", inst.n_tool_transporters if inst.has_tools else 0, p["max_tts"]))
+        over = ", ".join(f"{n} {what} (at most {top})" for what, n, top in sizes if n > top)
+        return (f"instance {inst.name} is larger than model {self.name} allows: {over}; a rule (rule:MTWR+nearest) "
+                "or a plan (plan:list, plan:tabu:5) solves shops of any size")
+
     def layout(self) -> str:
         """The padded layout in words, for messages: ``"up to 8 jobs, 4 machines, 0 tools, 2 AGVs, 0 tool
         transporters"``."""
@@ -151,8 +163,7 @@ class Agent:
         env = self._envs.get(id(shop))
         if env is None or env.shop is not shop:
             if not self.fits(shop.instance):
-                raise ValueError(f"instance {shop.instance.name} does not fit model {self.name} "
-                                 f"({self.layout()})")
+                raise ValueError(self.misfit(shop.instance))
             if isinstance(shop, FullShop) != (self.decisions == "full"):
                 raise ValueError(f"model {self.name} decides through the {self.decisions} net, not through a "
                                  f"{type(shop).__name__}")
