@@ -185,7 +185,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
         return EXIT_INFEASIBLE
     extra = replans_summary(sched.meta.get("replans")) + search_summary(sched)
-    print(f"{inst.name}: makespan {sched.makespan} ({a.solver}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
+    # a PPO run names the model and lookahead it ran ("ppo --lookahead" ran ppo:guided-dagger+lookahead)
+    ran = str(sched.meta.get("solver", ""))
+    shown = ran if a.solver.lower().startswith("ppo") and ran.lower().startswith("ppo") else a.solver
+    print(f"{inst.name}: makespan {sched.makespan} ({shown}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     hint = plan_hint(sched, scenario)
     if hint and not a.quiet:
         print(f"{inst.name}: {hint}", file=sys.stderr)

@@ -125,13 +125,18 @@ def test_ppo_solver_names(capsys):
     assert ahead.makespan <= plain.makespan
     with pytest.raises(UnknownSolver, match="only \\+lookahead, \\+lookahead-fast or \\+lookahead-guide"):
         get_solver("ppo+magic")
-    assert run(["solve", "EX22", "--solver", "ppo", "--lookahead", "-q"], capsys)[0] == 0
+    code, out, _ = run(["solve", "EX22", "--solver", "ppo", "--lookahead", "-q"], capsys)
+    # the summary names the model and the lookahead that ran, as the schedule's meta does
+    assert code == 0 and f"makespan {ahead.makespan} (ppo:guided-dagger+lookahead, " in out
+    assert ahead.meta["solver"] == "ppo:guided-dagger+lookahead"
     fast = solve(inst, "ppo+lookahead-fast")
     assert validate(inst, fast) == [] and fast.makespan <= plain.makespan
     assert fast.meta["lookahead_fast"] is True and ahead.meta["lookahead_fast"] is False
     assert fast.meta["solver"].endswith("+lookahead-fast") and "lookahead_fast" not in plain.meta
     code, out, _ = run(["solve", "EX22", "--solver", "ppo", "--lookahead-fast", "-q"], capsys)
-    assert code == 0 and f"makespan {fast.makespan} " in out
+    assert code == 0 and f"makespan {fast.makespan} (ppo:guided-dagger+lookahead-fast, " in out
+    code, out, _ = run(["solve", "EX22", "--solver", "ppo:full", "-q"], capsys)
+    assert code == 0 and "(ppo:full, " in out
     code, _, err = run(["solve", "EX22", "--solver", "first", "--lookahead-fast", "-q"], capsys)
     assert code == 2 and "--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only" in err
     with pytest.raises(ValueError, match="lookahead must be False, True, 'fast' or 'guide'"):
