@@ -14,7 +14,10 @@ model's load, the default plan search within its 1 s budget and the run), each r
 ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This is how the large benchmark's sl70 time
 goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``.
 
-Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3] [--solve]
+``--parts`` says where a run's time goes, per decision with a choice: the net's own steps, the observation's base
+and full-net features, the guide's features and the numpy actor (this checkout only).
+
+Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3] [--solve | --parts]
                                     [--baseline REV] [--json PATH]
 """
 
@@ -73,6 +76,76 @@ def measure(names: list[str], model: str, repeat: int) -> list[dict]:
             row["list_seconds"] = min(dt, row.get("list_seconds", dt))
         row["list_makespan"] = checked(inst, plan, "list schedule")
         rows.append(row)
+    return rows
+
+
+def parts(names: list[str], model: str, repeat: int) -> list[dict]:
+    """Per shop, where the run's time goes (best of ``repeat`` replays of the model's own run, the plan made
+    beforehand as in :func:`measure`): the net's own steps (the legal actions and each action fired, every action of
+    the run), and at each decision with a choice the observation's base and full-net features with the action mask
+    (``fms_sim.env.ShopEnv._obs``), the guide's features (``PlanGuide.features``, joined to the observation as
+    ``FastShopEnv._obs`` joins them) and the numpy actor's logits. The observation so built is checked against the
+    env's own at the first decisions, and every decision against the run's."""
+    import numpy as np
+
+    from fms_sim.env import ShopEnv
+    from fms_sim.formats import load_instance
+    from fms_sim.full_shop import make_shop
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import default_model_name, load_agent
+
+    clock = time.perf_counter
+    rows = []
+    for name in names:
+        inst = load_instance(name)
+        agent = load_agent(model if model != "ppo" else default_model_name(inst))
+        if agent.guide is not None:
+            agent.use_guide_effort(effort_from(restarts=0, budget=0, tabu=0))
+        shop = make_shop(inst, agent.decisions)
+        acts = []
+        while not shop.done:  # the plan is made here; the replays adopt it
+            acts.append(agent.act(shop))
+            shop.act(acts[-1])
+        makespan = checked(inst, shop.schedule(), agent.name)
+        best: dict[str, float] | None = None
+        for _ in range(repeat):
+            t = dict.fromkeys(("net", "observation", "guide", "actor"), 0.0)
+            shop = make_shop(inst, agent.decisions)
+            choices = 0
+            for a in acts:
+                t0 = clock()
+                many = len(shop.legal_actions()) > 1
+                t["net"] += clock() - t0
+                if many:
+                    env = agent._env(shop)
+                    t0 = clock()
+                    obs, mask = ShopEnv._obs(env), env.action_masks()
+                    t1 = clock()
+                    if agent.guide is not None:
+                        tools = env.legal_of_kind(shop.legal_actions(), "tool").tolist()
+                        guide = env._guide().features(shop, tools, env.max_jobs, env.max_tools, env.max_agvs,
+                                                      env.max_tts)
+                        obs = np.concatenate([obs] + [r.ravel() for r in guide])
+                    t2 = clock()
+                    logits = agent.actor.logits(obs, mask)
+                    t3 = clock()
+                    t["observation"] += t1 - t0
+                    t["guide"] += t2 - t1
+                    t["actor"] += t3 - t2
+                    if choices < 20 and not np.array_equal(obs, env.observe()[0]):
+                        raise SystemExit(f"{name}: the bench's observation is not the env's (bench/decide_speed.py "
+                                         "must follow FastShopEnv._obs)")
+                    if env.to_net_action(int(np.argmax(logits))) != a:
+                        raise SystemExit(f"{name}: the replay decides differently from the run")
+                    choices += 1
+                t0 = clock()
+                shop.act(a)
+                t["net"] += clock() - t0
+            if best is None or sum(t.values()) < sum(best.values()):
+                best = t
+        assert best is not None
+        rows.append({"instance": name, "decisions": choices, "makespan": makespan, "model": agent.name,
+                     **{k: round(v, 4) for k, v in best.items()}})
     return rows
 
 
@@ -140,6 +213,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per shop (best reported)")
     ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
     ap.add_argument("--solve", action="store_true", help="time the whole default solve (fresh process per run)")
+    ap.add_argument("--parts", action="store_true",
+                    help="where a run's time goes: the net's steps, the observation, the guide's features, the actor")
     ap.add_argument("--json", help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -150,6 +225,19 @@ def main() -> None:
                          else measure(a.instances, a.model, a.repeat)))
         return
     here = ROOT / "src"
+    if a.parts:
+        if a.baseline or a.solve:
+            raise SystemExit("--parts measures this checkout alone: not with --baseline or --solve")
+        rows = parts(a.instances, a.model, a.repeat)
+        lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, best of {a.repeat} replays, ms per decision with a "
+                 "choice (the net's steps: over every action of the run)"]
+        for r in rows:
+            total = sum(r[k] for k in ("net", "observation", "guide", "actor"))
+            share = ", ".join(f"{k} {1000 * r[k] / r['decisions']:.3f} ({100 * r[k] / total:.0f} %)"
+                              for k in ("net", "observation", "guide", "actor"))
+            lines.append(f"{r['instance']} ({r['model']}): {r['decisions']} decisions, {total:.3f} s: {share}")
+        report(lines, rows, a.json)
+        return
     if a.solve:
         _solve_report(a, here)
         return
