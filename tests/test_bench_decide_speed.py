@@ -1,0 +1,31 @@
+"""bench/decide_speed.py --parts rebuilds the observation as the env builds it (its base, then the guide's features)
+to time each part; it checks that it still does, so a change to the env that the bench does not follow stops it.
+This runs it on EX104 (the default model) and ra01 (with tools), and checks the split it reports."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("sb3_contrib")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_decide_speed_parts_splits_the_run_and_follows_the_env(tmp_path: Path) -> None:
+    out = tmp_path / "parts.json"
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--instances", "EX104",
+                          "ra01", "--repeat", "1", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["instance"] for r in rows] == ["EX104", "ra01"]
+    for r in rows:
+        assert r["model"] == "guided-dagger" and r["decisions"] > 20 and r["makespan"] > 0
+        assert all(r[part] > 0 for part in ("net", "observation", "guide", "actor"))
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--baseline", "HEAD"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode != 0 and "--parts measures this checkout alone" in res.stderr
