@@ -88,7 +88,6 @@ class NumpyEntityActor:
                 parts[name].append((i, L[f]))
                 i += L[name] * L[f]
         self._parts = parts
-        self._obs_len = i
         first = []
         self._row_w: dict[str, np.ndarray] = {}
         for b in self.blocks:
@@ -110,7 +109,7 @@ class NumpyEntityActor:
     def _prepare_small(self) -> None:
         """Stack the blocks other than the jobs' (machines, tools, AGVs, transporters: a few dozen rows in all) so
         that one batched pass embeds them all: much of a decision's cost is numpy's cost per call, and these blocks
-        took about ten calls each (docs/benchmarks.md §9: 9 % of the actor's time on sl70). One index gathers each
+        took about ten calls each (docs/benchmarks.md §9: 14 % less actor time on sl70's states). One index gathers each
         block's rows from the flat observation (its base, full-net and guide features side by side), padded to the
         widest block's features and the longest block's rows; the padding reads any feature, which the zero-padded
         first-layer weights ignore, and the padded rows are left out of the means. Only for embedding nets of two
@@ -119,9 +118,10 @@ class NumpyEntityActor:
         L = self.lay
         small = [b for b in self.blocks if b != "jobs" and L[b]]
         self._small = None
-        if not small or any(len(self.nets[b]) != 2 or not all(t for _, _, t in self.nets[b]) for b in small):
-            return
         h = self.hidden
+        if not small or any(len(self.nets[b]) != 2 or not all(t for _, _, t in self.nets[b])
+                            or self.nets[b][0][0].shape[1] != h or self.nets[b][1][0].shape != (h, h) for b in small):
+            return
         rows = max(L[b] for b in small)
         width = max(self._row_w[b].shape[0] for b in small)
         idx = np.zeros((len(small), rows, width), dtype=np.intp)
