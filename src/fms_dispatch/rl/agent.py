@@ -132,23 +132,22 @@ class Agent:
             return None
         return actor if sha == file_sha256(self.path) else None  # a stale export is never used
 
+    def _sizes(self, inst: Instance) -> list[tuple[str, int, int]]:
+        """``(what, the instance's count, the model's padding)`` for each padded dimension."""
+        p = self.padding
+        return [("jobs", inst.n_jobs, p["max_jobs"]), ("machines", inst.n_machines, p["max_machines"]),
+                ("tools", inst.n_tools if inst.has_tools else 0, p["max_tools"]),
+                ("AGVs", inst.n_agvs if inst.has_agvs else 0, p["max_agvs"]),
+                ("tool transporters", inst.n_tool_transporters if inst.has_tools else 0, p["max_tts"])]
+
     def fits(self, inst: Instance) -> bool:
         """Whether ``inst`` fits this model's padded layout."""
-        p = self.padding
-        return (inst.n_jobs <= p["max_jobs"] and inst.n_machines <= p["max_machines"]
-                and (inst.n_tools if inst.has_tools else 0) <= p["max_tools"]
-                and (inst.n_agvs if inst.has_agvs else 0) <= p["max_agvs"]
-                and (inst.n_tool_transporters if inst.has_tools else 0) <= p["max_tts"])
+        return all(n <= top for _, n, top in self._sizes(inst))
 
     def misfit(self, inst: Instance) -> str:
         """The error message for an ``inst`` that does not :meth:`fit <fits>` this model: what exceeds its padded
         layout, and which solvers take any size (a model decides only within the padding it was trained with)."""
-        p = self.padding
-        sizes = (("jobs", inst.n_jobs, p["max_jobs"]), ("machines", inst.n_machines, p["max_machines"]),
-                 ("tools", inst.n_tools if inst.has_tools else 0, p["max_tools"]),
-                 ("AGVs", inst.n_agvs if inst.has_agvs else 0, p["max_agvs"]),
-                 ("tool transporters", inst.n_tool_transporters if inst.has_tools else 0, p["max_tts"]))
-        over = ", ".join(f"{n} {what} (at most {top})" for what, n, top in sizes if n > top)
+        over = ", ".join(f"{n} {what} (at most {top})" for what, n, top in self._sizes(inst) if n > top)
         return (f"instance {inst.name} is larger than model {self.name} allows: {over}; a rule (rule:MTWR+nearest) "
                 "or a plan (plan:list, plan:tabu:5) solves shops of any size")
 
