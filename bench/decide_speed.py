@@ -15,7 +15,8 @@ ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This i
 goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``.
 
 ``--parts`` says where a run's time goes, per decision with a choice: the net's own steps, the observation's base
-and full-net features, the guide's features and the numpy actor (this checkout only).
+and full-net features, the guide's features and the numpy actor; with ``--baseline`` the baseline's too, alternating,
+with each part's speed-up.
 
 Usage: python bench/decide_speed.py [--instances sl00 sl31 sl70 EX104] [--model ppo] [--repeat 3] [--solve | --parts]
                                     [--baseline REV] [--json PATH]
@@ -162,15 +163,16 @@ def solve_once(name: str, model: str) -> dict:
             "makespan": checked(inst, sched, solver)}
 
 
-def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = False) -> list[dict]:
-    """:func:`measure` (or, ``whole``, :func:`solve_once` per shop, each in its own interpreter) in a fresh
-    interpreter on the package source at ``src``."""
+def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = False,
+            split: bool = False) -> list[dict]:
+    """:func:`measure` (or, ``whole``, :func:`solve_once` per shop, each in its own interpreter; or, ``split``,
+    :func:`parts`) in a fresh interpreter on the package source at ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src))
     rows = []
     for group in ([[n] for n in names] if whole else [names]):
         out = subprocess.run([sys.executable, __file__, "--worker", "--model", model, "--repeat", str(repeat),
-                              "--instances", *group] + (["--solve"] if whole else []), env=env,
-                             capture_output=True, text=True, cwd=src.parent)
+                              "--instances", *group] + (["--solve"] if whole else []) + (["--parts"] if split else []),
+                             env=env, capture_output=True, text=True, cwd=src.parent)
         if out.returncode:
             raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
         rows += json.loads(out.stdout.strip().splitlines()[-1])
@@ -195,14 +197,14 @@ def _sources(here: Path, baseline: str | None) -> Iterator[list[tuple[str, Path]
                            capture_output=True)
 
 
-def _alternating(a: argparse.Namespace, here: Path, whole: bool) -> dict[str, list[dict]]:
+def _alternating(a: argparse.Namespace, here: Path, whole: bool, split: bool = False) -> dict[str, list[dict]]:
     """Per source ("base", "new"), the rows of ``a.repeat`` rounds of one run per shop each, the sources taking turns
     round by round so that both see the same machine load."""
     out: dict[str, list[dict]] = {"new": [], "base": []}
     with _sources(here, a.baseline) as sources:
         for _ in range(a.repeat):
             for who, src in sources:
-                out[who] += _worker(src, a.instances, a.model, 1, whole=whole)
+                out[who] += _worker(src, a.instances, a.model, 1, whole=whole, split=split)
     return out
 
 
@@ -222,21 +224,14 @@ def main() -> None:
         raise SystemExit("--repeat must be >= 1")
     if a.worker:
         print(json.dumps([solve_once(n, a.model) for n in a.instances] if a.solve
+                         else parts(a.instances, a.model, a.repeat) if a.parts
                          else measure(a.instances, a.model, a.repeat)))
         return
     here = ROOT / "src"
     if a.parts:
-        if a.baseline or a.solve:
-            raise SystemExit("--parts measures this checkout alone: not with --baseline or --solve")
-        rows = parts(a.instances, a.model, a.repeat)
-        lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, best of {a.repeat} replays, ms per decision with a "
-                 "choice (the net's steps: over every action of the run)"]
-        for r in rows:
-            total = sum(r[k] for k in ("net", "observation", "guide", "actor"))
-            share = ", ".join(f"{k} {1000 * r[k] / r['decisions']:.3f} ({100 * r[k] / total:.0f} %)"
-                              for k in ("net", "observation", "guide", "actor"))
-            lines.append(f"{r['instance']} ({r['model']}): {r['decisions']} decisions, {total:.3f} s: {share}")
-        report(lines, rows, a.json)
+        if a.solve:
+            raise SystemExit("give one of --parts and --solve")
+        _parts_report(a, here)
         return
     if a.solve:
         _solve_report(a, here)
@@ -273,6 +268,44 @@ def main() -> None:
                      f"{b['seconds']:.3f} s, {b['seconds'] / n['seconds']:.2f}x; makespan {n['makespan']} (same); list "
                      f"schedule {1000 * n['list_seconds']:.1f} ms against {1000 * b['list_seconds']:.1f} ms, "
                      f"{b['list_seconds'] / n['list_seconds']:.2f}x")
+    report(lines, rows, a.json)
+
+
+PARTS = ("net", "observation", "guide", "actor")
+
+
+def _parts_report(a: argparse.Namespace, here: Path) -> None:
+    """``--parts``: each part's time per decision with a choice (best of ``--repeat`` replays by their total), and
+    with ``--baseline`` the same of the baseline's source, alternating with this checkout's replays, with each part's
+    speed-up; both must decide alike (the bench stops otherwise)."""
+    best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}
+    runs = _alternating(a, here, whole=False, split=True) if a.baseline else {"new": _worker(
+        here, a.instances, a.model, a.repeat, split=True)}
+    for who, rows in runs.items():
+        for r in rows:
+            old = best[who].get(r["instance"])
+            if old is None or sum(r[k] for k in PARTS) < sum(old[k] for k in PARTS):
+                best[who][r["instance"]] = r
+    head = f"{platform.node()} {time.strftime('%Y-%m-%d')}, best of {a.repeat} replays"
+    lines = [head + (f", alternating with baseline {a.baseline}" if a.baseline else "") + ", ms per decision with a "
+             "choice (the net's steps: over every action of the run)"]
+    rows = []
+    for name in a.instances:
+        n = best["new"][name]
+        total = sum(n[k] for k in PARTS)
+        share = ", ".join(f"{k} {1000 * n[k] / n['decisions']:.3f} ({100 * n[k] / total:.0f} %)" for k in PARTS)
+        lines.append(f"{name} ({n['model']}): {n['decisions']} decisions, {total:.3f} s: {share}")
+        row = dict(n)
+        if a.baseline:
+            b = best["base"][name]
+            if (b["makespan"], b["decisions"]) != (n["makespan"], n["decisions"]):
+                raise SystemExit(f"{name}: the baseline decides differently (makespan {b['makespan']} against "
+                                 f"{n['makespan']}, decisions {b['decisions']} against {n['decisions']})")
+            lines.append("  baseline: " + ", ".join(f"{k} {1000 * b[k] / b['decisions']:.3f} ({b[k] / n[k]:.2f}x)"
+                                                    for k in PARTS)
+                         + f"; total {sum(b[k] for k in PARTS):.3f} s ({sum(b[k] for k in PARTS) / total:.2f}x)")
+            row["baseline"] = {k: b[k] for k in PARTS}
+        rows.append(row)
     report(lines, rows, a.json)
 
 

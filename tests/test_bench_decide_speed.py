@@ -1,6 +1,7 @@
 """bench/decide_speed.py --parts rebuilds the observation as the env builds it (its base, then the guide's features)
 to time each part; it checks that it still does, so a change to the env that the bench does not follow stops it.
-This runs it on EX104 (the default model) and ra01 (with tools), and checks the split it reports."""
+This runs it on EX104 (the default model) and ra01 (with tools), alone and against a baseline revision, and checks
+the split it reports."""
 
 from __future__ import annotations
 
@@ -26,6 +27,14 @@ def test_decide_speed_parts_splits_the_run_and_follows_the_env(tmp_path: Path) -
     for r in rows:
         assert r["model"] == "guided-dagger" and r["decisions"] > 20 and r["makespan"] > 0
         assert all(r[part] > 0 for part in ("net", "observation", "guide", "actor"))
-    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--baseline", "HEAD"],
+    # against a baseline (here the checkout's own commit, in a temporary worktree): both replays, each part's ratio
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--instances", "EX104",
+                          "--repeat", "1", "--baseline", "HEAD", "--json", str(out)], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    (row,) = json.loads(out.read_text())["rows"]
+    assert set(row["baseline"]) == {"net", "observation", "guide", "actor"} and all(row["baseline"].values())
+    assert "baseline: net " in res.stdout
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--solve"],
                          capture_output=True, text=True, timeout=60)
-    assert res.returncode != 0 and "--parts measures this checkout alone" in res.stderr
+    assert res.returncode != 0 and "give one of --parts and --solve" in res.stderr
