@@ -109,12 +109,12 @@ class NumpyEntityActor:
     def _prepare_small(self) -> None:
         """Stack the blocks other than the jobs' (machines, tools, AGVs, transporters: a few dozen rows in all) so
         that one batched pass embeds them all: much of a decision's cost is numpy's cost per call, and these blocks
-        took about ten calls each (docs/benchmarks.md §1: the actor 1.10× faster in sl70's run, 1.14× in sl00's). One index gathers each
-        block's rows from the flat observation (its base, full-net and guide features side by side), padded to the
-        widest block's features and the longest block's rows; the padding reads any feature, which the zero-padded
-        first-layer weights ignore, and the padded rows are left out of the means. Only for embedding nets of two
-        tanh layers (every entity network :mod:`fms_dispatch.rl.policy` builds); otherwise :attr:`_small` is None and
-        :meth:`logits` embeds block by block."""
+        took about ten calls each (docs/benchmarks.md §1: the actor 1.10× faster in sl70's run, 1.14× in sl00's).
+        One index gathers each block's rows from the flat observation (its base, full-net and guide features side by
+        side), padded to the widest block's features and the longest block's rows; the padding reads any feature,
+        which the zero-padded first-layer weights ignore, and the padded rows are left out of the means. Only for
+        embedding nets of two tanh layers of the hidden size (every entity network :mod:`fms_dispatch.rl.policy`
+        builds); otherwise :attr:`_small` is None and :meth:`logits` embeds block by block."""
         L = self.lay
         small = [b for b in self.blocks if b != "jobs" and L[b]]
         self._small = None
