@@ -538,7 +538,8 @@ def test_shipped_models_have_current_numpy_exports():
 def test_the_batched_small_blocks_give_the_block_by_block_logits(name):
     """The numpy actor embeds the machines, tools, AGVs and transporters in one batched pass; on every shipped
     model it gives the logits of embedding them block by block, on shops with and without tools and AGVs (blocks
-    with no rows), with fewer rows than the padding (ra01: 10 machines of 20) and at the padding (EX12 and EX104, bu)."""
+    with no rows), with fewer rows than the padding (ra01: 10 machines of 20) and at the padding (EX12 and EX104,
+    bu)."""
     import copy
 
     from fms_dispatch.rl.guide import effort_from
