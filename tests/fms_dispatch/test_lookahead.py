@@ -122,6 +122,20 @@ def test_lookahead_reports_progress_without_changing_the_run():
     assert "idle stops" in lines[-1]
 
 
+def test_plain_run_reports_progress_without_changing_the_run():
+    inst = builtin("ra01")
+    pol = RulePolicy("SPTN", "nearest")
+    lines: list[str] = []
+    s = run_agent(Shop(inst), pol, progress=lines.append, every_s=0.0)
+    assert s.to_dict() == run_agent(Shop(inst), pol).to_dict()
+    total = sum(len(ops) for ops in inst.jobs)
+    assert lines and all(line.startswith("  policy: ") and f"/{total} operations done" in line for line in lines)
+    assert f" {total}/{total} operations done" in lines[-1]
+    quiet: list[str] = []
+    run_agent(Shop(inst), pol, progress=quiet.append)  # every 2 s by default: a run of milliseconds says nothing
+    assert quiet == []
+
+
 @pytest.mark.parametrize("name", ["EX12", "EX22", "EX62", "ra01", "ra05", "ra08"])
 @pytest.mark.parametrize("verify", [True, False])
 def test_trial_runs_and_the_cached_trajectory_plan_like_the_reference(name, verify):

@@ -60,13 +60,26 @@ DEFAULT_HORIZON = 200
 
 def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int = DEFAULT_HORIZON,
               verify: bool = True, progress: Callable[[str], None] | None = None, retry: bool = True,
-              twin: TwinMaker | None = None, planner: Any = None) -> Schedule:
+              twin: TwinMaker | None = None, planner: Any = None, every_s: float = 2.0) -> Schedule:
     """Run ``shop`` to completion with ``choose(shop) -> net action``; pre-position idle vehicles if asked
-    (``progress``, ``retry``, ``twin``, ``planner``: see :func:`run_with_lookahead`)."""
+    (``retry``, ``twin``, ``planner``: see :func:`run_with_lookahead`). ``progress`` (e.g. ``print``) receives a
+    one-line report at most every ``every_s`` seconds, with or without the lookahead: a 100-job shop takes the plain
+    policy about 10 s (docs/benchmarks.md §9)."""
     if lookahead:
-        return run_with_lookahead(shop, choose, horizon, verify, progress, retry=retry, twin=twin, planner=planner)
+        return run_with_lookahead(shop, choose, horizon, verify, progress, every_s, retry=retry, twin=twin,
+                                  planner=planner)
+    if progress is None:
+        while not shop.done:
+            shop.act(choose(shop))
+        return shop.schedule()
+    t0 = last = time.perf_counter()
+    total = sum(len(ops) for ops in shop.instance.jobs)
     while not shop.done:
         shop.act(choose(shop))
+        if time.perf_counter() - last >= every_s:
+            last = time.perf_counter()
+            progress(f"  policy: {sum(shop.job_done_ops)}/{total} operations done, time {shop.now}, "
+                     f"{last - t0:.1f} s")
     return shop.schedule()
 
 
