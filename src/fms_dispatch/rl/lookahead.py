@@ -68,18 +68,13 @@ def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int 
     if lookahead:
         return run_with_lookahead(shop, choose, horizon, verify, progress, every_s, retry=retry, twin=twin,
                                   planner=planner)
-    if progress is None:
-        while not shop.done:
-            shop.act(choose(shop))
-        return shop.schedule()
     t0 = last = time.perf_counter()
-    total = sum(len(ops) for ops in shop.instance.jobs)
     while not shop.done:
         shop.act(choose(shop))
-        if time.perf_counter() - last >= every_s:
+        if progress is not None and time.perf_counter() - last >= every_s:
             last = time.perf_counter()
-            progress(f"  policy: {sum(shop.job_done_ops)}/{total} operations done, time {shop.now}, "
-                     f"{last - t0:.1f} s")
+            progress(f"  policy: {sum(shop.job_done_ops)}/{shop.instance.n_operations} operations done, "
+                     f"time {shop.now}, {last - t0:.1f} s")
     return shop.schedule()
 
 
