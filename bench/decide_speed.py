@@ -35,11 +35,23 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 from checks import checked, report
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def _agent(inst: Any, model: str) -> Any:
+    """The model that runs ``inst`` (``ppo``: the default for it), a guided one planning with the plain list
+    schedule, so that the plan search's budget does not enter the times and every run makes the same plan."""
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import default_model_name, load_agent
+
+    agent = load_agent(model if model != "ppo" else default_model_name(inst))
+    if agent.guide is not None:
+        agent.use_guide_effort(effort_from(restarts=0, budget=0, tabu=0))
+    return agent
 
 
 def measure(names: list[str], model: str, repeat: int) -> list[dict]:
@@ -48,15 +60,11 @@ def measure(names: list[str], model: str, repeat: int) -> list[dict]:
     from fms_sim.formats import load_instance
     from fms_dispatch.exact import greedy_schedule
     from fms_sim.full_shop import make_shop
-    from fms_dispatch.rl.guide import effort_from
-    from fms_dispatch.rl.models import default_model_name, load_agent
 
     rows = []
     for name in names:
         inst = load_instance(name)
-        agent = load_agent(model if model != "ppo" else default_model_name(inst))
-        if agent.guide is not None:
-            agent.use_guide_effort(effort_from(restarts=0, budget=0, tabu=0))
+        agent = _agent(inst, model)
         best = None
         for rep in range(repeat + 1):  # the first run makes the plan; the others adopt it
             shop = make_shop(inst, agent.decisions)
@@ -92,16 +100,12 @@ def parts(names: list[str], model: str, repeat: int) -> list[dict]:
     from fms_sim.env import ShopEnv
     from fms_sim.formats import load_instance
     from fms_sim.full_shop import make_shop
-    from fms_dispatch.rl.guide import effort_from
-    from fms_dispatch.rl.models import default_model_name, load_agent
 
     clock = time.perf_counter
     rows = []
     for name in names:
         inst = load_instance(name)
-        agent = load_agent(model if model != "ppo" else default_model_name(inst))
-        if agent.guide is not None:
-            agent.use_guide_effort(effort_from(restarts=0, budget=0, tabu=0))
+        agent = _agent(inst, model)
         shop = make_shop(inst, agent.decisions)
         acts = []
         while not shop.done:  # the plan is made here; the replays adopt it
