@@ -10,8 +10,8 @@ worktree), alternating with this checkout's run by run, so both see the same mac
 make the same schedules (the same decisions), or the bench stops.
 
 ``--solve`` times the whole solve instead, as ``fms solve NAME --solver ppo`` reports it (``meta["wall_time"]``: the
-model's load, the default plan search within its 1 s budget and the run), each run in a fresh process; a name
-ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This is how the large benchmark's sl70 time
+model's load, the default plan search within its 1 s budget and the run; the plan search's share is reported beside
+it), each run in a fresh process; a name ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This is how the large benchmark's sl70 time
 goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``.
 
 ``--parts`` says where a run's time goes, per decision with a choice: the net's own steps, the observation's base
@@ -164,7 +164,7 @@ def solve_once(name: str, model: str) -> dict:
     solver = model if model.lower().startswith("ppo") else f"ppo:{model}"
     sched = solve(inst, solver)
     return {"instance": name, "decisions": 0, "seconds": sched.meta["wall_time"],
-            "makespan": checked(inst, sched, solver)}
+            "search": sched.meta.get("guide_search_time"), "makespan": checked(inst, sched, solver)}
 
 
 def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = False,
@@ -318,17 +318,25 @@ def _solve_report(a: argparse.Namespace, here: Path) -> None:
     times reported (the search's clock makes the plan, and so the makespan, vary a little between runs)."""
     times: dict[str, dict[str, list[float]]] = {"new": {}, "base": {}}
     spans: dict[str, dict[str, list[int]]] = {"new": {}, "base": {}}
+    search: dict[str, list[float]] = {}  # this source's plan search at the start (a baseline may not time it)
     for who, runs in _alternating(a, here, whole=True).items():
         for r in runs:
             times[who].setdefault(r["instance"], []).append(r["seconds"])
             spans[who].setdefault(r["instance"], []).append(r["makespan"])
+            if who == "new" and r.get("search") is not None:
+                search.setdefault(r["instance"], []).append(r["search"])
     lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, {a.model}, whole solves, {a.repeat} each, fresh processes"
              + (f", baseline {a.baseline} alternating" if a.baseline else "")]
     rows = []
     for name in a.instances:
         t = times["new"][name]
         row = {"instance": name, "seconds": t, "makespans": spans["new"][name]}
-        line = f"{name}: {min(t):.2f}-{max(t):.2f} s (makespans {sorted(set(spans['new'][name]))})"
+        line = f"{name}: {min(t):.2f}-{max(t):.2f} s"
+        if name in search:  # a guided model: how much of it the plan search took
+            st = search[name]
+            row["search_seconds"] = st
+            line += f" ({min(st):.2f}-{max(st):.2f} s of it the plan search)"
+        line += f" (makespans {sorted(set(spans['new'][name]))})"
         if a.baseline:
             b = times["base"][name]
             row.update(baseline_seconds=b, baseline_makespans=spans["base"][name])

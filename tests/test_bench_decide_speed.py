@@ -1,7 +1,7 @@
 """bench/decide_speed.py --parts rebuilds the observation as the env builds it (its base, then the guide's features)
 to time each part; it checks that it still does, so a change to the env that the bench does not follow stops it.
 This runs it on EX104 (the default model) and ra01 (with tools), alone and against a baseline revision, and checks
-the split it reports."""
+the split it reports; and --solve's report of whole solves."""
 
 from __future__ import annotations
 
@@ -38,3 +38,15 @@ def test_decide_speed_parts_splits_the_run_and_follows_the_env(tmp_path: Path) -
     res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--parts", "--solve"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode != 0 and "give one of --parts and --solve" in res.stderr
+
+
+def test_decide_speed_solve_reports_the_plan_searchs_share(tmp_path: Path) -> None:
+    """--solve times whole solves as fms solve does, and says how much of each was the plan search at the start."""
+    out = tmp_path / "solve.json"
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--solve", "--instances", "EX104",
+                          "--repeat", "2", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    (row,) = json.loads(out.read_text())["rows"]
+    assert len(row["seconds"]) == len(row["search_seconds"]) == 2
+    assert all(0 < s < t for s, t in zip(row["search_seconds"], row["seconds"]))
+    assert "s of it the plan search" in res.stdout

@@ -107,10 +107,13 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
 
 
 def search_summary(sched: Schedule) -> str:
-    """What the summary line adds about the search: CP-SAT's proof (``", optimal"`` or ``", bound B"``) and the
-    rule combinations a time limit left untried."""
+    """What the summary line adds about the search: a guided model's plan search at the start (``", 1.02 s of it the
+    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``) and the rule combinations a time limit left
+    untried."""
     m = sched.meta
     out = ""
+    if m.get("guide_search_time") is not None:
+        out += f", {m['guide_search_time']:.3f} s of it the plan search"
     if m.get("status") == "OPTIMAL":
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":

@@ -143,6 +143,19 @@ def test_ppo_solver_names(capsys):
         solve(inst, "ppo", lookahead="quick")
 
 
+def test_a_guided_runs_plan_search_is_timed_apart(tmp_path, capsys):
+    """The summary line and the schedule say how much of a guided model's run was its plan search at the start
+    (within its budget; most of it on sl00, where the search takes the whole budget), and nothing for a model
+    without a plan."""
+    out = tmp_path / "s.json"
+    code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"], capsys)
+    meta = json.loads(out.read_text())["meta"]
+    assert code == 0 and 0.2 <= meta["guide_search_time"] <= 0.8 and meta["guide_search_time"] < meta["wall_time"]
+    assert f"{meta['wall_time']:.3f} s, {meta['guide_search_time']:.3f} s of it the plan search, valid)" in line
+    code, line, _ = run(["solve", "EX22", "--solver", "ppo:full", "--out", str(out), "-q"], capsys)
+    assert code == 0 and "plan search" not in line and "guide_search_time" not in json.loads(out.read_text())["meta"]
+
+
 def test_replay_writes_a_schedule_no_later_than_the_given_one(tmp_path, capsys):
     given, out, png = tmp_path / "given.json", tmp_path / "out.json", tmp_path / "r.png"
     assert run(["solve", "ra01", "--solver", "rule:MTWR+nearest", "--out", str(given), "-q"], capsys)[0] == 0

@@ -16,6 +16,7 @@ Solver entry point: :func:`ppo_solver` (``"ppo"`` or ``"ppo:MODEL"``).
 from __future__ import annotations
 
 import sys
+import time
 from typing import Any, Callable
 
 from fms_sim.instance import Instance
@@ -49,7 +50,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     (:class:`~fms_dispatch.rl.agent.GuideReplanner`); the re-plans are in ``meta["replans"]``. A guided model's run
     records the makespan of the plan in force at its end in ``meta["guide_plan_makespan"]`` (the plan searched at the
     start; in a disrupted run the last re-plan adopted, a forecast): a plain run that ends later left out some of the
-    plan's empty trips, which ``lookahead="guide"`` makes.
+    plan's empty trips, which ``lookahead="guide"`` makes; ``meta["guide_search_time"]`` is the seconds of the plan
+    search at the start (of the run's ``wall_time``).
     """
     low = spec.strip()
     if low.lower() == "ppo":
@@ -85,6 +87,11 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
 
             planner = GuideMoves.for_agent(agent)
         shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
+        search_s = None
+        if agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
+            t0 = time.perf_counter()
+            agent.guide_of(shop)
+            search_s = time.perf_counter() - t0
         replanner = None
         if disrupted and guide_replan and agent.guide is not None:
             from .agent import GuideReplanner
@@ -108,6 +115,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             # the plan in force at the end: the plan searched at the start, or in a disrupted run the last re-plan
             # adopted (its makespan then a forecast); a plain run can end later than its plan (no empty trips)
             sched.meta["guide_plan_makespan"] = agent.guide_of(shop).plan.makespan
+            sched.meta["guide_search_time"] = round(search_s, 4)
         if lookahead:
             sched.meta["lookahead_fast"] = fast
         return sched
