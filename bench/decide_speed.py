@@ -11,8 +11,9 @@ make the same schedules (the same decisions), or the bench stops.
 
 ``--solve`` times the whole solve instead, as ``fms solve NAME --solver ppo`` reports it (``meta["wall_time"]``: the
 model's load, the default plan search within its 1 s budget and the run; the plan search's share is reported beside
-it), each run in a fresh process; a name ending in ``/notools`` drops the shop's tools (``fms solve --no-tools``). This is how the large benchmark's sl70 time
-goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``.
+it), each run in a fresh process. This is how the large benchmark's sl70 time goal (<= 5 s) is measured: ``python
+bench/decide_speed.py --solve --instances sl70 sl70/notools``. In every mode a name ending in ``/notools`` drops the
+shop's tools (``fms solve --no-tools``).
 
 ``--parts`` says where a run's time goes, per decision with a choice: the net's own steps, the observation's base
 and full-net features, the guide's features and the numpy actor; with ``--baseline`` the baseline's too, alternating,
@@ -42,6 +43,14 @@ from checks import checked, report
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def _load(name: str) -> Any:
+    """The shop ``name`` (a built-in or a file); ``NAME/notools``: without its tools, as ``fms solve --no-tools``."""
+    from fms_sim.formats import load_instance
+
+    base, _, flag = name.partition("/")
+    return load_instance(base, no_tools=flag == "notools")
+
+
 def _agent(inst: Any, model: str) -> Any:
     """The model that runs ``inst`` (``ppo``: the default for it), a guided one planning with the plain list
     schedule, so that the plan search's budget does not enter the times and every run makes the same plan."""
@@ -57,13 +66,12 @@ def _agent(inst: Any, model: str) -> Any:
 def measure(names: list[str], model: str, repeat: int) -> list[dict]:
     """Per shop: decisions with a choice, makespan, and the best of ``repeat`` timed runs (seconds); the same for
     one earliest-start list schedule."""
-    from fms_sim.formats import load_instance
     from fms_dispatch.exact import greedy_schedule
     from fms_sim.full_shop import make_shop
 
     rows = []
     for name in names:
-        inst = load_instance(name)
+        inst = _load(name)
         agent = _agent(inst, model)
         best = None
         for rep in range(repeat + 1):  # the first run makes the plan; the others adopt it
@@ -98,13 +106,12 @@ def parts(names: list[str], model: str, repeat: int) -> list[dict]:
     import numpy as np
 
     from fms_sim.env import ShopEnv
-    from fms_sim.formats import load_instance
     from fms_sim.full_shop import make_shop
 
     clock = time.perf_counter
     rows = []
     for name in names:
-        inst = load_instance(name)
+        inst = _load(name)
         agent = _agent(inst, model)
         shop = make_shop(inst, agent.decisions)
         acts = []
@@ -156,11 +163,9 @@ def parts(names: list[str], model: str, repeat: int) -> list[dict]:
 
 def solve_once(name: str, model: str) -> dict:
     """One default solve of ``name`` (``/notools``: without tools), timed as ``fms solve`` times it."""
-    from fms_sim.formats import load_instance
     from fms_dispatch.solvers import solve
 
-    base, _, flag = name.partition("/")
-    inst = load_instance(base, no_tools=flag == "notools")
+    inst = _load(name)
     solver = model if model.lower().startswith("ppo") else f"ppo:{model}"
     sched = solve(inst, solver)
     return {"instance": name, "decisions": 0, "seconds": sched.meta["wall_time"],
