@@ -21,7 +21,10 @@ environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` r
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails). While the run goes on, a line every
 :data:`PROGRESS_S` seconds says how far it is (operations ended and the shop's clock, from the recorder's database);
-a run that outlasts ``--timeout`` fails with that progress named.
+a run that outlasts ``--timeout`` fails with that progress named. A simulated shop without a clock (``--time-scale``
+0, the default) waits for each re-plan of a ``plan:`` solver or a guided model (``replan_wait:=true``; ``--no-replan-wait``
+lets it run on meanwhile), so that its run is the offline one and does not depend on how fast this machine searches;
+a shop kept to a clock runs on, as a real shop would.
 
 Exit codes: 0 done and valid; 1 the run failed (a node died before the run was delivered, timeout, invalid
 schedule); 2 bad input.
@@ -98,9 +101,11 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replan", type=float, default=None, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
-    p.add_argument("--replan-wait", action="store_true",
+    p.add_argument("--replan-wait", action=argparse.BooleanOptionalAction, default=None,
                    help="plan: solvers and guided ppo models: the shop waits for each re-plan (as offline "
-                        "re-planning does) instead of running on under the plan in force meanwhile")
+                        "re-planning does) instead of running on under the plan in force meanwhile (default: wait "
+                        "where the shop keeps no clock, --time-scale 0, so that how fast this machine searches "
+                        "does not enter the simulated run; not with --time-scale)")
     add_guide_args(p)
     p.add_argument("--out", help="write the schedule JSON here (default: <instance>.schedule.json)")
     p.add_argument("--db", default=DEFAULT_DB, help=f"recorder SQLite database (default: {DEFAULT_DB})")
@@ -328,6 +333,11 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError("--replan must be >= 0 seconds (0: never re-plan)")
     if a.replan_wait and replan == 0:
         raise UpError("--replan-wait needs re-planning (--replan > 0)")
+    # by default a simulated shop without a clock waits for each re-plan: it would otherwise run on under the plan
+    # in force for as many states as the agent answers during the search's second (docs/benchmarks.md §8), an
+    # effect of this machine's speed that a real shop, minutes per time unit, does not see
+    replans = guide_replans or (needs_full_net(solver) and replan > 0)
+    wait = a.replan_wait if a.replan_wait is not None else (replans and not a.time_scale)
     domain = a.domain_id if a.domain_id is not None else os.environ.get("ROS_DOMAIN_ID") or random.randint(1, 101)
     try:
         domain = int(domain)
@@ -373,7 +383,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
     if needs_full_net(solver):
         agent_params["replan"] = float(replan)
-    if a.replan_wait:
+    if wait:
         agent_params["replan_wait"] = True
     if twin:
         agent_params["instance"] = str(inst_in)
@@ -402,7 +412,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
     say(f"fms up: {inst.describe()}; solver {solver}; run {run_id}; ROS_DOMAIN_ID={domain}"
-        + (f"; {a.time_scale:g} s per time unit" if a.time_scale else ""))
+        + (f"; {a.time_scale:g} s per time unit" if a.time_scale else "")
+        + ("; the shop waits for each re-plan" if wait else ""))
     failure: str | None = None
     stop_on_term = _TermAsInterrupt()  # `kill` / a supervisor's SIGTERM stops the nodes as Ctrl-C does
     try:

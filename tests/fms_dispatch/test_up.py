@@ -293,3 +293,26 @@ def test_replan_wait_reaches_the_agent_node(fake_nodes, tmp_path: Path, monkeypa
     shutil.rmtree(tmp_path / "out")  # (the stand-in nodes record run t1 there)
     assert _up(tmp_path, "--solver", "ppo", "--replan-wait") == up.EXIT_OK, capsys.readouterr().err
     assert seen["agent_node"]["replan_wait"] is True and "replan" not in seen["agent_node"]
+
+
+@pytest.mark.parametrize("extra, waits", [
+    (["--solver", "plan:list"], True),                           # a shop without a clock: waits by default
+    (["--solver", "ppo"], True),                                 # a guided model's guide re-plans too
+    (["--solver", "plan:list", "--time-scale", "0.01"], False),  # a shop kept to a clock runs on, as a real one
+    (["--solver", "ppo", "--time-scale", "0.01", "--replan-wait"], True),
+    (["--solver", "plan:list", "--no-replan-wait"], False),
+    (["--solver", "plan:list", "--replan", "0"], False),         # nothing to wait for
+    (["--solver", "ppo", "--no-guide-replan"], False),
+    (["--solver", "ppo:bu"], False),                             # a paper-net model re-plans nothing
+    (["--solver", "first"], False),
+])
+def test_an_unpaced_shop_waits_for_re_plans_by_default(extra, waits, fake_nodes, tmp_path: Path, monkeypatch,
+                                                      capsys) -> None:
+    """Without a clock the simulated shop would run on under the plan in force for as many states as the agent
+    answers during a re-plan's search, which depends on this machine's speed (docs/benchmarks.md §8): by default
+    it waits, so the live run is the offline one; with --time-scale it runs on, as a real shop does."""
+    fake_nodes()
+    seen = _record_params(monkeypatch)
+    assert _up(tmp_path, *extra) == up.EXIT_OK, capsys.readouterr().err
+    assert seen["agent_node"].get("replan_wait", False) is waits
+    assert ("the shop waits for each re-plan" in capsys.readouterr().err) is waits

@@ -157,9 +157,9 @@ def test_fms_up_passes_the_guide_search_to_the_agent(ros_env: dict[str, str], tm
 
 def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tmp_path: Path) -> None:
     """In a shop with a breakdown the default (guided) agent node re-plans its guide when the breakdown begins, as
-    the offline solver does: with --replan-wait the simulated shop waits for the re-plan and the run is the offline
-    one; without, the re-plan runs beside the decisions (a forked process) and is the offline one's (the same
-    trigger state), the run going on meanwhile. The re-plan is published and recorded; --no-guide-replan is refused
+    the offline solver does: by default the simulated shop, which keeps no clock, waits for the re-plan and the run
+    is the offline one; with --no-replan-wait the re-plan runs beside the decisions (a forked process) and is the
+    offline one's (the same trigger state), the run going on meanwhile. The re-plan is published and recorded; --no-guide-replan is refused
     for a solver that is not ppo."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
@@ -175,7 +175,7 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
     for wait in (True, False):
         out, db, run = tmp_path / f"ra01-{wait}.json", tmp_path / f"fms-{wait}.sqlite", f"up-bd-{wait}"
         res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--guide-tabu", "0",
-                              *(["--replan-wait"] if wait else []), "--scenario", str(sc_file), "--out", str(out),
+                              *([] if wait else ["--no-replan-wait"]), "--scenario", str(sc_file), "--out", str(out),
                               "--db", str(db), "--run-id", run, "--domain-id", ros_env["ROS_DOMAIN_ID"],
                               "--log-dir", str(tmp_path / "logs")],
                              env=ros_env, capture_output=True, text=True, timeout=120)
@@ -188,6 +188,7 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
             assert "the run ended" in rec["message"] and later == []
             continue
         assert rec["status"] == "adopted" and (rec["before"], rec["after"]) == (ev["before"], ev["after"])
+        assert ("the shop waits for each re-plan" in res.stderr) is wait
         if wait:
             assert ", 1 re-plans (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
             assert later == [] and sched.to_dict()["operations"] == ref.to_dict()["operations"]
