@@ -11,7 +11,8 @@ TEST_JOBS ?= 2
 .PHONY: demo test install bench clean
 
 # extras: rl = torch (the CPU build pinned by constraints.txt) and sb3; ros = ROS 2 Jazzy from PyPI's wheels;
-# dev = pytest (with xdist: the tests run on TEST_JOBS workers) and colcon (tests/ros/test_colcon.py builds a ROS 2 workspace)
+# dev = pytest (with xdist: the tests run on TEST_JOBS workers) and colcon (tests/ros/test_colcon.py builds a
+# ROS 2 workspace)
 $(STAMP): setup.cfg pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install --quiet -c constraints.txt -e '.[rl,ros,dev]'

@@ -21,10 +21,10 @@ environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` r
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails). While the run goes on, a line every
 :data:`PROGRESS_S` seconds says how far it is (operations ended and the shop's clock, from the recorder's database);
-a run that outlasts ``--timeout`` fails with that progress named. A simulated shop without a clock (``--time-scale``
-0, the default) waits for each re-plan of a ``plan:`` solver or a guided model (``replan_wait:=true``; ``--no-replan-wait``
-lets it run on meanwhile), so that its run is the offline one and does not depend on how fast this machine searches;
-a shop kept to a clock runs on, as a real shop would.
+a run that outlasts ``--timeout`` fails with that progress named. A simulated shop without a clock
+(``--time-scale 0``, the default) waits for each re-plan of a ``plan:`` solver or a guided model
+(``replan_wait:=true``; ``--no-replan-wait`` lets it run on meanwhile), so that its run is the offline one and does
+not depend on how fast this machine searches; a shop kept to a clock runs on, as a real shop would.
 
 Exit codes: 0 done and valid; 1 the run failed (a node died before the run was delivered, timeout, invalid
 schedule); 2 bad input.

@@ -159,8 +159,8 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
     """In a shop with a breakdown the default (guided) agent node re-plans its guide when the breakdown begins, as
     the offline solver does: by default the simulated shop, which keeps no clock, waits for the re-plan and the run
     is the offline one; with --no-replan-wait the re-plan runs beside the decisions (a forked process) and is the
-    offline one's (the same trigger state), the run going on meanwhile. The re-plan is published and recorded; --no-guide-replan is refused
-    for a solver that is not ppo."""
+    offline one's (the same trigger state), the run going on meanwhile. The re-plan is published and recorded;
+    --no-guide-replan is refused for a solver that is not ppo."""
     from fms_dispatch.rl import ppo_solver
     from fms_dispatch.rl.guide import effort_from
     from fms_sim.disruptions import Scenario
