@@ -21,7 +21,8 @@ environment or ``--domain-id``, else a random one in 1..101 (so two ``fms up`` r
 other); ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST``. The node logs go to ``--log-dir`` (by
 default a temporary folder, kept and printed only when something fails). While the run goes on, a line every
 :data:`PROGRESS_S` seconds says how far it is (operations ended and the shop's clock, from the recorder's database);
-a run that outlasts ``--timeout`` fails with that progress named. A simulated shop without a clock
+a run that makes no progress (no operation ended, the shop's clock still) for ``--timeout`` seconds fails with that
+progress named; a long run that keeps moving does not time out. A simulated shop without a clock
 (``--time-scale 0``, the default) waits for each re-plan of a ``plan:`` solver or a guided model
 (``replan_wait:=true``; ``--no-replan-wait`` lets it run on meanwhile), so that its run is the offline one and does
 not depend on how fast this machine searches; a shop kept to a clock runs on, as a real shop would.
@@ -116,7 +117,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-scale", type=float, default=0.0, metavar="SECONDS",
                    help="the simulated shop keeps to a clock: wall seconds per unit of shop time (e.g. 0.01: a "
                         "makespan of 3000 takes 30 s; default 0: as fast as the agent answers)")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the run (default 120)")
+    p.add_argument("--timeout", type=float, default=120.0,
+                   help="give up when the run has made no progress (no operation ended, the shop's clock still, as "
+                        "the recorder stores them) for this many seconds (default 120)")
     p.add_argument("--log-dir", help="keep the node logs here (default: a temporary folder, kept on failure)")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the result lines")
 
@@ -419,8 +422,13 @@ def cmd_up(a: argparse.Namespace) -> int:
     try:
         for node in nodes:
             node.start()
+        # the run has --timeout seconds to make progress (an operation ended or the shop's clock moved, as the recorder
+        # stored them); it is read again every PROGRESS_S, and a run that moved on gets the whole --timeout again: a
+        # long run is not a stuck one
         deadline = time.monotonic() + a.timeout
+        next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
         next_report = time.monotonic() + PROGRESS_S
+        seen = _progress(db, run_id)
         while True:
             if sched_tmp.exists() and inst_final.exists() and png.exists():
                 break
@@ -428,10 +436,15 @@ def cmd_up(a: argparse.Namespace) -> int:
             if dead:
                 failure = f"the {dead[0].name} node exited early with code {dead[0].poll()}"
                 break
+            if time.monotonic() >= next_check:
+                now_seen = _progress(db, run_id)
+                if now_seen != seen:
+                    seen, deadline = now_seen, time.monotonic() + a.timeout
+                next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
             if time.monotonic() > deadline:
                 missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
-                failure = (f"timed out after {a.timeout:g} s waiting for {', '.join(missing)}; "
-                           f"{_progress_line(db, run_id, inst.n_operations)} (a longer run needs --timeout)")
+                failure = (f"timed out: no progress for {a.timeout:g} s while waiting for {', '.join(missing)}; "
+                           f"{_progress_line(db, run_id, inst.n_operations)} (longer pauses need --timeout)")
                 break
             if time.monotonic() >= next_report:  # a long run says how far it is, from the recorder's database
                 say(f"fms up: {_progress_line(db, run_id, inst.n_operations)}, {time.perf_counter() - t0:.0f} s")
@@ -543,10 +556,16 @@ class _TermAsInterrupt:
             self._old = None
 
 
+def _progress(db: Path, run_id: str) -> tuple[int, int | None]:
+    """How far the run is as the recorder stored it: operations ended and the latest event's time (None: none
+    stored yet, or the database cannot be read). What ``--timeout`` watches and the progress lines say."""
+    return _from_store(db, lambda store: store.progress(run_id), (0, None))
+
+
 def _progress_line(db: Path, run_id: str, n_operations: int) -> str:
     """How far the run is as the recorder stored it: operations ended (of the instance's at the start; orders add
     more) and the shop's clock."""
-    done, latest = _from_store(db, lambda store: store.progress(run_id), (0, None))
+    done, latest = _progress(db, run_id)
     if latest is None:
         return "no event recorded yet"
     return f"{done} of {n_operations} operations done, shop time {latest}"

@@ -45,7 +45,16 @@ FAKE_NODE = textwrap.dedent('''
         for seq, (t, kind) in enumerate([(0, "run_start"), (5, "op_end"), (9, "agv_trip_end"), (12, "op_end")]):
             store.add_event({"run_id": params["run"], "seq": seq, "time": t, "kind": kind, "data": {}})
         store.close()
-    if params["slow"]:
+    if role == "recorder" and params["steady"]:  # a long run that keeps moving: an operation ends every 0.1 s
+        from fms_sim.recorder_store import RecorderStore
+        store = RecorderStore(params["db"])
+        end, seq = time.monotonic() + params["slow"], 4
+        while time.monotonic() < end:
+            time.sleep(0.1)
+            store.add_event({"run_id": params["run"], "seq": seq, "time": 10 * seq, "kind": "op_end", "data": {}})
+            seq += 1
+        store.close()
+    elif params["slow"]:
         time.sleep(params["slow"])
     if role == "shop":
         from fms_sim.instance import Instance
@@ -73,10 +82,10 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     script = tmp_path / "fake_node.py"
     script.write_text(FAKE_NODE)
 
-    def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0) -> None:
+    def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0, steady: bool = False) -> None:
         def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
             extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png"),
-                     "slow": slow, "run": "t1"}
+                     "slow": slow, "steady": steady, "run": "t1"}
             return [sys.executable, str(script), module, json.dumps({**params, **extra})]
         monkeypatch.setattr(up, "node_command", command)
         monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
@@ -123,7 +132,8 @@ def test_clean_stops_give_no_warning(fake_nodes, tmp_path: Path, capsys) -> None
 def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_nodes, tmp_path: Path,
                                                                            monkeypatch, capsys) -> None:
     """Every PROGRESS_S seconds `fms up` says how far the run is (operations ended, the shop's clock: read from the
-    recorder's database); --quiet says nothing; a timeout names the progress made and the option to raise."""
+    recorder's database); --quiet says nothing; a run that makes no progress for --timeout seconds fails, naming the
+    progress made and the option to raise, while one that keeps moving runs past it."""
     monkeypatch.setattr(up, "PROGRESS_S", 0.3)
     fake_nodes(slow=2.0)
     assert _up(tmp_path) == up.EXIT_OK
@@ -137,8 +147,15 @@ def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_
     chart.unlink()
     assert _up(tmp_path, "--timeout", "0.8", "--db", str(tmp_path / "out" / "t.sqlite")) == up.EXIT_FAILED
     err = capsys.readouterr().err
-    assert "timed out after 0.8 s waiting for" in err and "2 of 13 operations done, shop time 12 (a longer run " \
-        "needs --timeout)" in err, err
+    assert "timed out: no progress for 0.8 s while waiting for" in err and "2 of 13 operations done, shop time 12 " \
+        "(longer pauses need --timeout)" in err, err
+
+
+def test_a_run_that_keeps_moving_outlasts_the_timeout(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
+    """--timeout bounds a pause, not the run: 2.5 s of operations ending every 0.1 s with --timeout 1 is done."""
+    monkeypatch.setattr(up, "PROGRESS_S", 0.2)
+    fake_nodes(slow=2.5, steady=True)
+    assert _up(tmp_path, "--timeout", "1") == up.EXIT_OK, capsys.readouterr().err
 
 
 def test_time_scale_reaches_the_shop(fake_nodes, tmp_path: Path, monkeypatch) -> None:
