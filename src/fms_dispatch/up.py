@@ -423,8 +423,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         for node in nodes:
             node.start()
         # the run has --timeout seconds to make progress (an operation ended or the shop's clock moved, as the recorder
-        # stored them); it is read again every PROGRESS_S, and a run that moved on gets the whole --timeout again: a
-        # long run is not a stuck one
+        # stored them); it is read once per check (every PROGRESS_S at most, at a report and at the deadline), and a
+        # run that moved on gets the whole --timeout again: a long run is not a stuck one
         deadline = time.monotonic() + a.timeout
         next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
         next_report = time.monotonic() + PROGRESS_S
@@ -436,18 +436,19 @@ def cmd_up(a: argparse.Namespace) -> int:
             if dead:
                 failure = f"the {dead[0].name} node exited early with code {dead[0].poll()}"
                 break
-            if time.monotonic() >= next_check:
-                now_seen = _progress(db, run_id)
-                if now_seen != seen:
-                    seen, deadline = now_seen, time.monotonic() + a.timeout
-                next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now >= min(next_check, next_report, deadline):
+                progress = _progress(db, run_id)
+                if progress != seen:
+                    seen, deadline = progress, now + a.timeout
+                next_check = now + min(PROGRESS_S, a.timeout / 4)
+            if now > deadline:
                 missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
                 failure = (f"timed out: no progress for {a.timeout:g} s while waiting for {', '.join(missing)}; "
-                           f"{_progress_line(db, run_id, inst.n_operations)} (longer pauses need --timeout)")
+                           f"{_progress_text(seen, inst.n_operations)} (longer pauses need --timeout)")
                 break
-            if time.monotonic() >= next_report:  # a long run says how far it is, from the recorder's database
-                say(f"fms up: {_progress_line(db, run_id, inst.n_operations)}, {time.perf_counter() - t0:.0f} s")
+            if now >= next_report:  # a long run says how far it is, from the recorder's database
+                say(f"fms up: {_progress_text(seen, inst.n_operations)}, {time.perf_counter() - t0:.0f} s")
                 next_report += PROGRESS_S
             time.sleep(0.02)
     except KeyboardInterrupt:
@@ -562,10 +563,10 @@ def _progress(db: Path, run_id: str) -> tuple[int, int | None]:
     return _from_store(db, lambda store: store.progress(run_id), (0, None))
 
 
-def _progress_line(db: Path, run_id: str, n_operations: int) -> str:
-    """How far the run is as the recorder stored it: operations ended (of the instance's at the start; orders add
-    more) and the shop's clock."""
-    done, latest = _progress(db, run_id)
+def _progress_text(progress: tuple[int, int | None], n_operations: int) -> str:
+    """:func:`_progress` in words: operations ended (of the instance's at the start; orders add more) and the shop's
+    clock."""
+    done, latest = progress
     if latest is None:
         return "no event recorded yet"
     return f"{done} of {n_operations} operations done, shop time {latest}"
