@@ -574,6 +574,7 @@ def test_the_batched_small_blocks_give_the_block_by_block_logits(name):
             shop.act(agent.act(shop))
     assert compared >= 20
 
+
 def test_solving_with_a_shipped_model_does_not_import_torch():
     code = ("import sys; from fms_dispatch.rl import ppo_solver; from fms_sim.benchmarks import builtin; "
             "s = ppo_solver('ppo')(builtin('EX12'), lookahead=True); "
