@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass, field
-from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Hashable, Iterator, Sequence
 
 __all__ = ["Token", "Place", "Arc", "Output", "Transition", "Net", "NetState", "InvalidAction", "Deadlock", "ANY"]
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Iterator, Sequence
 
 from .instance import Instance, InstanceError, Operation
-from .petri import ANY, Arc, Deadlock, InvalidAction, Net, NetState, Output, Place, Transition
+from .petri import Arc, Deadlock, InvalidAction, Net, NetState, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 
 __all__ = ["Shop", "ShopState", "ActionKind", "run_policy"]

@@ -6,7 +6,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import fms_sim  # noqa: F401  (registers fms/Shop-v0)
-from fms_sim import Schedule, validate
+from fms_sim import validate
 from fms_sim.benchmarks import builtin
 from fms_sim.env import ShopEnv
 from fms_sim.petri import InvalidAction
@@ -170,7 +170,7 @@ def test_reset_seed_reproducible_instance_draw():
 # ---------------------------------------------------------------------------------------------------------
 # A slow, obviously-correct reference for the table-driven features: per job and machine, straight from the
 # instance and the shop. The env's numpy version must give the same values bit for bit.
-from fms_sim.env import (AGV_FEATURES, GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH,  # noqa: E402
+from fms_sim.env import (GLOBAL_FEATURES, JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH,  # noqa: E402
                          TOOL_FEATURES)
 
 

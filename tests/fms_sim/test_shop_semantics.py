@@ -2,7 +2,7 @@
 
 import pytest
 
-from fms_sim import AgvTrip, Instance, OperationRecord, ToolTrip, validate
+from fms_sim import AgvTrip, Instance, ToolTrip, validate
 from fms_sim.petri import InvalidAction
 from fms_sim.shop import Shop
 

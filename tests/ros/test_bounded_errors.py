@@ -4,7 +4,6 @@ another node is refused by the recorder in bounds too (tests/test_bounded_errors
 
 from __future__ import annotations
 
-import json
 import sqlite3
 import time
 from pathlib import Path

@@ -4,7 +4,6 @@ started while a run is under way, with nobody else asking for replays, it gets e
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 from pathlib import Path
 
