@@ -160,7 +160,7 @@ def _check_parts_with_agvs(instance: Instance, schedule: Schedule, ops: dict, er
             errs.append(f"empty AGV trip of AGV {t.agv} at {t.start} names an operation")
     for key in loaded:
         if key not in ops:
-            errs.append(f"loaded AGV trip for nonexistent op {key}")
+            errs.append(f"loaded AGV trip for nonexistent op ({key[0]},{key[1]})")
     for j, job in enumerate(instance.jobs):
         for k, spec in enumerate(job):
             ready = ops[j, k - 1][1] if k else 0
@@ -266,7 +266,7 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
         used_keys = {(j, k) for (_, _, j, k, _) in us}
         for key in trips:
             if key not in used_keys:
-                errs.append(f"tool {tool} is carried for op {key}, which does not use it")
+                errs.append(f"tool {tool} is carried for op ({key[0]},{key[1]}), which does not use it")
         loc, free = 0, 0
         for s, e, j, k, machine in _tool_order(us, trips):
             ts = trips.get((j, k), [])

@@ -6,6 +6,7 @@ from dataclasses import replace
 import pytest
 
 from fms_sim import Instance, Schedule, ScheduleError, ScheduleInvalid, check, validate
+from fms_sim.disruptions import Breakdown, Outage, Scenario
 
 from .conftest import run_first
 
@@ -70,7 +71,7 @@ def test_tool_in_two_places_rejected(good):
     s.operations[i] = replace(s.operations[i], start=a.start + 1, end=a.start + 3)
     s.makespan = max(o.end for o in s.operations)
     v = validate(INST, s)
-    assert any("tool 1" in x for x in v)
+    assert "tool 1 is used by op (0,1) from 3 while busy until 5 (two places at once)" in v
     assert any("before its part is ready" in x or "before its part arrives" in x for x in v)
 
 
@@ -102,9 +103,82 @@ def test_missing_and_duplicate_ops_and_unknown_vehicle(good):
     s.operations = s.operations[1:] + s.operations[-1:]
     v = validate(INST, s)
     assert any("missing from the schedule" in x for x in v)
+    assert "op (0,1) is scheduled more than once" in v
     s2 = Schedule.from_dict(good.to_dict())
     s2.agv_trips[0] = replace(s2.agv_trips[0], agv=3)
     assert any("AGV 3 does not exist" in x for x in validate(INST, s2))
+
+
+def _edit(rows: str, i: int, **kw):
+    """A mutation of the good schedule's dict: row ``i`` of ``rows`` updated with ``kw``."""
+    return lambda d: d[rows][i].update({k.rstrip("_"): v for k, v in kw.items()})
+
+
+def _append(rows: str, i: int, **kw):
+    """A mutation of the good schedule's dict: a copy of row ``i`` of ``rows``, updated with ``kw``, appended."""
+    return lambda d: d[rows].append({**d[rows][i], **{k.rstrip("_"): v for k, v in kw.items()}})
+
+
+# One mutation per rule of the validator, each on the good schedule of INST (run_first):
+#   ops    (0,0) M1 tool 1 [2,5)   (1,0) M2 tool 2 [7,9)   (0,1) M2 tool 1 [13,15)
+#   AGV 0  (0,0) 0->1 [0,2), 1->0 [2,4), (1,0) 0->2 [4,7), 2->1 [7,11), (0,1) 1->2 [11,13)
+#   TT 0   tool 1 (0,0) 0->1 [0,1), 1->0 [2,3), tool 2 (1,0) 0->2 [3,5), 2->1 [7,10), tool 1 (0,1) 1->2 [10,13)
+# ``only``: the mutation breaks that rule alone, so the message must be the only violation.
+RULES = [
+    ("duplicate op", _append("operations", 1), "op (1,0) is scheduled more than once", False),
+    ("wrong machine", _edit("operations", 1, machine=1), "op (1,0) runs on machine 1, needs machine 2", True),
+    ("wrong tool", _edit("operations", 1, tool=1), "op (1,0) uses tool 1, needs tool 2", True),
+    ("op before time 0", _edit("operations", 0, start=-1, end=2), "op (0,0) starts before time 0", False),
+    ("op that does not exist", _append("operations", 1, op=5), "op (1,5) does not exist in the instance", False),
+    ("trip for an op that does not exist", _append("agv_trips", 2, op=5), "loaded AGV trip for nonexistent op (1,5)",
+     False),
+    ("part moved twice", _append("agv_trips", 2), "op (1,0): the part is moved 2 times (one loaded trip expected)",
+     False),
+    ("loaded trip names no op", _edit("agv_trips", 2, job=None, op=None),
+     "loaded AGV trip of AGV 0 at 4 names no operation", False),
+    ("empty trip names an op", _edit("agv_trips", 1, job=1, op=0), "empty AGV trip of AGV 0 at 2 names an operation",
+     True),
+    ("part taken too early", _edit("operations", 0, start=9, end=12),
+     "op (0,1): loaded trip starts at 11 before the part is ready at 12", False),
+    ("part travels wrong", _edit("agv_trips", 2, to=1), "op (1,0): the part travels 0->1, must go 0->2", False),
+    ("vehicle trips overlap", _edit("agv_trips", 3, start=6, end=10),
+     "AGV 0: trip 2->1 at 6 starts before its previous trip ends at 7", True),
+    ("unknown location", _edit("agv_trips", 1, to=7), "AGV 0: trip 1->7 at 2 names an unknown location", False),
+    ("tool moved, no use", _edit("tool_trips", 0, tool=3), "tool 3 is moved but no operation uses it", False),
+    ("tool carried for another op", _edit("tool_trips", 2, tool=1),
+     "tool 1 is carried for op (1,0), which does not use it", False),
+    ("tool carried twice", _append("tool_trips", 4), "tool 1 is carried 2 times for op (0,1)", False),
+    ("tool taken from the wrong place", _edit("tool_trips", 4, from_=0),
+     "tool 1 for op (0,1): trip starts at 0 but the tool is at 1", False),
+    ("tool taken to the wrong machine", _edit("tool_trips", 4, to=1),
+     "tool 1 for op (0,1): trip goes to 1, the op is on machine 2", False),
+    ("tool moved while in use", _edit("tool_trips", 4, start=4, end=7),
+     "tool 1 for op (0,1): moved at 4 while busy until 5", False),
+    ("tool trip names no tool", _edit("tool_trips", 2, tool=None),
+     "loaded trip of transporter 0 at 3 names no tool/operation", False),
+    ("empty tool trip names a tool", _edit("tool_trips", 1, tool=2),
+     "empty trip of transporter 0 at 2 names a tool or operation", True),
+]
+
+
+@pytest.mark.parametrize("mutate, msg, only", [r[1:] for r in RULES], ids=[r[0] for r in RULES])
+def test_each_rule_is_checked(good, mutate, msg, only):
+    d = good.to_dict()
+    mutate(d)
+    v = validate(INST, Schedule.from_dict(d))
+    assert v == [msg] if only else msg in v, v
+
+
+@pytest.mark.parametrize("scenario, msg", [
+    (Scenario(breakdowns=(Breakdown(2, 6, 2),)), "op (1,0) starts at 7 while machine 2 is down [6, 8)"),
+    (Scenario(outages=(Outage("agv", 0, 3, 3),)), "AGV 0: trip 0->2 starts at 4 while out of service [3, 6)"),
+    (Scenario(outages=(Outage("tt", 0, 9, 2),)),
+     "tool transporter 0: trip 1->2 starts at 10 while out of service [9, 11)"),
+])
+def test_a_nominal_schedule_breaks_the_windows_of_a_scenario(good, scenario, msg):
+    # the schedule unchanged: only the scenario it is checked against puts a start inside a window
+    assert validate(INST, good) == []
+    assert msg in validate(INST, good, scenario)
 
 
 def test_plain_job_shop_precedence(good):
