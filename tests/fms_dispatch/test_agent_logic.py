@@ -49,7 +49,10 @@ def test_every_rule_pair_matches_the_offline_rule_solver(name: str) -> None:
 @pytest.mark.parametrize("rule", ["rule:SPTN+nearest", "rule:LWT+least-work", "rule:MTWR+first"])
 def test_rules_on_a_large_instance(rule: str) -> None:
     svc = drive("sl00", rule, check_policy=RulePolicy(*rule.split(":")[1].split("+")))
-    assert svc.final_schedule.makespan == solve(builtin("sl00"), rule).makespan
+    ref = solve(builtin("sl00"), rule)
+    assert svc.final_schedule.to_dict()["operations"] == ref.to_dict()["operations"]
+    assert svc.final_schedule.makespan == ref.makespan
+    assert validate(svc.instance, svc.final_schedule) == []
 
 
 def test_every_job_key_equals_the_rule_key_on_live_states() -> None:

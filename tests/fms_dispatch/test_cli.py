@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import pytest
 
@@ -52,7 +53,7 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "EX12", "--solver", "magic"], "unknown solver"),
     (["solve", "EX12", "--solver", "rule:FOO"], "unknown job rule"),
     (["solve", "EX12", "--time-limit", "-1"], "time-limit"),
-    (["solve", "EX12", "--agvs", "0"], ""),
+    (["solve", "EX12", "--agvs", "0"], "agvs must be an integer from 1 to 1000, got 0 (use --no-agvs to drop them)"),
     (["solve", "EX12", "--solver", "first", "--time-limit", "3"], "--time-limit does not apply to first"),
     (["solve", "EX12", "--solver", "list", "--time-limit", "3"], "--time-limit does not apply to list"),
     (["solve", "EX12", "--solver", "ppo", "--time-limit", "3"], "its plan search's limit is --guide-budget"),
@@ -245,12 +246,34 @@ def test_solve_replans_a_plan_under_disruptions_and_refuses_bad_replan_options(t
                            "--out", str(out), "-q"], capsys)
     assert code == 0 and "re-plans (" in stdout
     s = Schedule.load(out)
-    assert validate(builtin("sl00"), s) == [] and isinstance(s.meta["replans"], list)
+    assert validate(builtin("sl00"), s) == []
+    events = s.meta["replans"]  # 20 % noise makes the shop late: it re-plans (first at the same state every run)
+    assert events and events[0]["reason"] == "late" and f", {len(events)} re-plans (" in stdout
+    for e in events:
+        assert e["status"] in ("adopted", "kept") and e["budget"] == 0.3 and e["after"] <= e["before"]
     assert run(["validate", "sl00", str(out)], capsys)[0] == 0
     code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--replan", "1", "-q"], capsys)
     assert code == 2 and "plan: solvers only" in err
     code, _, err = run(["solve", "EX12", "--solver", "plan:list", "--replan", "0", "-q"], capsys)
     assert code == 2 and "--replan must be positive" in err
+
+
+def test_an_infeasible_schedule_from_a_solver_is_refused_and_not_written(tmp_path, capsys, monkeypatch):
+    """The CLI validates every schedule before writing it: a solver bug gives exit 1 and no file."""
+    import fms_dispatch.solvers as solvers
+
+    real = solvers.solve
+
+    def broken(inst, name, **opts):
+        s = real(inst, name, **opts)
+        s.operations[0] = replace(s.operations[0], start=s.operations[0].start - 1)
+        return s
+
+    monkeypatch.setattr(solvers, "solve", broken)
+    out = tmp_path / "s.json"
+    code, stdout, err = run(["solve", "EX12", "--solver", "list", "--out", str(out), "-q"], capsys)
+    assert code == 1 and err.startswith("fms: internal error: the list schedule is infeasible: op (")
+    assert not out.exists() and "makespan" not in stdout
 
 
 def test_solve_re_plans_a_guided_models_guide_at_a_breakdown(tmp_path, capsys):

@@ -223,6 +223,7 @@ def test_cpsat_wrapper_sets_meta():
     inst = Instance("js", jobs=[[Operation(1, None, 3), Operation(2, None, 2)],
                                 [Operation(2, None, 4), Operation(1, None, 1)]])
     sch = cpsat(inst, time_limit=5.0)
+    assert validate(inst, sch) == []
     assert sch.makespan == 6
     assert sch.meta["solver"] == "cpsat" and sch.meta["status"] == "OPTIMAL" and sch.meta["lower_bound"] == 6
     assert sch.meta["wall_time"] >= 0

@@ -31,6 +31,7 @@ def test_executed_plans_are_valid_and_never_later_than_the_plan(name):
 def test_cpsat_plan_of_a_small_shop_executes_at_the_optimum():
     inst = builtin("EX12")
     s = solve(inst, "plan:cpsat:10")
+    assert validate(inst, s) == []
     assert s.makespan == inst.meta["optimal_makespan"] == 82
 
 

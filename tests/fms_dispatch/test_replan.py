@@ -104,6 +104,8 @@ def test_a_replan_keeps_its_budget():
         wall = time.monotonic() - t0
         assert wall <= budget + 1.0, wall
         assert res.before is not None and res.after > 0 and res.wall_time <= wall
+        done = finish_by(nominal_copy(shop), res.plan)  # the plan it returns runs to a valid end, as predicted
+        assert validate(inst, done) == [] and done.makespan == res.after
 
 
 def test_bad_replanning_options_are_refused():

@@ -148,6 +148,7 @@ def test_from_the_initial_state_the_residual_search_is_the_whole_one():
         start = Snapshot.initial(inst)
         whole = tabu_plan(inst, greedy_schedule(inst), budget=None, max_iters=100)
         residual = tabu_plan(inst, greedy_schedule(inst, origin=start), budget=None, max_iters=100, origin=start)
+        assert validate(inst, whole) == []
         assert residual.meta["residual"] == 0 and residual.makespan == whole.makespan < greedy_schedule(inst).makespan
         assert (residual.operations, residual.agv_trips, residual.tool_trips) == (
             whole.operations, whole.agv_trips, whole.tool_trips)

@@ -160,11 +160,18 @@ def test_machines_wait_for_the_chosen_operation():
     shop.act(shop.action_index("agv:0"))
     while shop.action_index("start:0") not in shop.legal_actions():
         shop.act(shop.hold_action)
-    for _ in range(2):
-        if not shop.hold_allowed():
-            break
+    ready = shop.now
+    # something in flight (job 2's part on AGV 1), so time can pass while job 0's part waits in its buffer
+    shop.act(shop.action_index("job:2"))
+    shop.act(shop.action_index("agv:1"))
+    for _ in range(3):
+        assert shop.hold_allowed()
         shop.act(shop.hold_action)
-    assert not any(r.job == 0 for r in shop.rec.ops)
+        if shop.now > ready:
+            break
+    assert shop.now > ready  # time passed ...
+    assert shop.action_index("start:0") in shop.legal_actions()  # ... the start is still offered ...
+    assert not any(r.job == 0 for r in shop.rec.ops)  # ... and was not taken by itself
 
 
 def test_trial_restores_the_full_state():
