@@ -373,8 +373,8 @@ def greedy_schedule(
     near = vehicle == "nearest"
     if rule == "guided" and priority is None:
         raise ValueError("greedy rule 'guided' needs a priority for every operation")
-    if origin is not None and origin.instance.n_jobs != inst.n_jobs:
-        raise ValueError(f"the snapshot has {origin.instance.n_jobs} jobs, the instance {inst.n_jobs}")
+    if origin is not None:
+        origin.check_of(inst)
     o = origin if origin is not None else Snapshot.initial(inst)
     jobs = inst.jobs
     nj = len(jobs)

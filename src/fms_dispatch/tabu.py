@@ -732,8 +732,8 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     if origin is not None and plan.meta.get("residual") != origin.now:
         raise ValueError(f"the plan does not start from the snapshot at time {origin.now} (its meta['residual']: "
                          f"{plan.meta.get('residual')!r})")
-    if origin is not None and origin.instance.jobs != inst.jobs:
-        raise ValueError(f"the snapshot is of other jobs than {inst.name}'s")
+    if origin is not None:
+        origin.check_of(inst)
     if budget == 0 or max_iters == 0 or plan.makespan <= bound or (origin is not None and not origin.remaining):
         return plan
     t0 = time.monotonic()

@@ -63,6 +63,20 @@ class Snapshot:
         """How many operations have not started."""
         return sum(len(job) - k for job, k in zip(self.instance.jobs, self.next_op))
 
+    def check_of(self, instance: Instance) -> None:
+        """Raise ValueError unless this is a state of ``instance``'s shop: the same jobs (operations, machines,
+        tools, durations) and fleets, since a plan from it indexes them (a snapshot of another shop would fail
+        deep inside the planner, or plan the wrong jobs)."""
+        mine = self.instance
+        if mine is instance:
+            return
+        if mine.jobs != instance.jobs:
+            raise ValueError(f"the snapshot is of other jobs than {instance.name}'s")
+        fleet = ("n_machines", "n_agvs", "n_tool_transporters", "n_tools")
+        if any(getattr(mine, f) != getattr(instance, f) for f in fleet):
+            raise ValueError(f"the snapshot is of another shop than {instance.name} (machines, vehicles or tools "
+                             f"differ)")
+
     @classmethod
     def initial(cls, instance: Instance) -> "Snapshot":
         """The state at time 0 of a run: everything at the depot (location 0), nothing started."""

@@ -393,3 +393,20 @@ def test_the_nearest_vehicle_list_schedule_sends_a_nearest_vehicle(name):
     assert greedy_schedule(inst).makespan == greedy_schedule(inst, vehicle="earliest").makespan
     with pytest.raises(ValueError, match="vehicle"):
         greedy_schedule(inst, vehicle="closest")
+
+
+def test_bad_origins_and_cp_sat_parameters_are_refused():
+    from fms_sim.snapshot import Snapshot
+
+    # EX12 is ra01 without its tools: the same number of jobs and operations, and it failed deep in the scheduler
+    with pytest.raises(ValueError, match="^the snapshot is of other jobs than ra01's$"):
+        greedy_schedule(builtin("ra01"), origin=Snapshot.initial(builtin("EX12")))
+    with pytest.raises(ValueError, match="^the snapshot is of other jobs than ra01's$"):
+        greedy_schedule(builtin("ra01"), origin=Snapshot.initial(builtin("ra02")))
+    fewer = builtin("sl00").with_fleet(n_agvs=3)
+    with pytest.raises(ValueError, match="^the snapshot is of another shop than sl00 .machines, vehicles or tools"):
+        greedy_schedule(builtin("sl00"), origin=Snapshot.initial(fewer))
+    same = builtin("ra01")  # an equal instance, another object: accepted
+    assert greedy_schedule(same, origin=Snapshot.initial(builtin("ra01"))).makespan == greedy_schedule(same).makespan
+    with pytest.raises(ValueError, match="^unknown CP-SAT parameter 'bogus'$"):
+        solve_exact(builtin("EX12"), time_limit=1.0, cp_params={"bogus": 1})
