@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -222,11 +223,13 @@ def test_invalid_schedule_is_an_error_row_and_exit_1(tmp_path: Path, monkeypatch
 
 def test_unknown_method_fails_before_any_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     calls = count_solves(monkeypatch)
-    for bad in (["rule:FIFO+first", "ppo-does-not-exist"], ["rule:NOPE+first"], ["rule:FIFO+sideways"],
-                ["rule:FIFO+first", "ppo:no-such-model"]):
-        with pytest.raises(ValueError):
+    for bad, msg in ((["rule:FIFO+first", "ppo-does-not-exist"], "unknown solver 'ppo-does-not-exist'"),
+                     (["rule:NOPE+first"], "unknown job rule 'NOPE'"),
+                     (["rule:FIFO+sideways"], "unknown vehicle rule 'sideways'"),
+                     (["rule:FIFO+first", "ppo:no-such-model"], "no model named 'no-such-model'")):
+        with pytest.raises(ValueError, match=msg):
             run_cli(["bench", "bu", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=msg):
             run_cli(["bench", "sl", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
     assert calls == [] and not (tmp_path / bm.CACHE_NAME).exists()
     for limit in ("0", "nan", "inf"):  # NaN and inf would reach the caches as non-JSON
@@ -291,3 +294,17 @@ def test_sl_table_reports_the_lower_bound_and_gap() -> None:
     assert lines[2] == ["sl00", "100", "120", "110", "FIFO+first (120)"]
     assert lines[4] == ["gap %", "0.00", "20.00", "10.00", ""]
     assert bm.summary(rows)["cpsat"]["mean_gap_pct"] == pytest.approx(10.0)
+
+
+def test_bad_library_arguments_are_refused_before_any_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = count_solves(monkeypatch)
+    with pytest.raises(ValueError, match="layout must be 1, 2, 3 or 4, got 5"):
+        bm.bu_tasks(RULES, layout=5)
+    with pytest.raises(ValueError, match="--jobs must be >= 1, got 0"):
+        bm.run_bench(bm.bu_tasks(RULES, sets=[1]), jobs=0, results_dir=tmp_path)
+    task = bm.bu_tasks(RULES, sets=[1])[0]
+    with pytest.raises(ValueError, match="EX12 has no tools; variant agvs\\+tools does not apply"):
+        bm.load_task_instance(replace(task, variant="agvs+tools"))
+    with pytest.raises(ValueError, match="unknown variant 'tools'"):
+        bm.load_task_instance(replace(task, variant="tools"))
+    assert calls == [] and not (tmp_path / bm.CACHE_NAME).exists()

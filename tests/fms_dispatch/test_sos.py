@@ -158,13 +158,12 @@ def test_improves_on_ex12():
     inst = builtin("EX12")
     rules = _rule_makespans(inst, DEFAULT_SEED_RULES)
     fifo = solve_rule(inst, "FIFO", "first").makespan
-    assert fifo == 90
     # 36 seeds + 5 random organisms + 4 iterations x 10 organisms x 4 evaluations = 201 evaluations
     s = _valid(inst, solve_sos(inst, time_limit=None, iterations=4, population=10, seed=0))
     assert s.meta["evaluations"] == 36 + 5 + 4 * 10 * 4
     assert s.makespan <= min(rules.values())
     assert s.makespan < fifo
-    assert s.makespan < min(rules.values())          # strictly better than every rule pair (86 -> 84)
+    assert s.makespan < min(rules.values())          # strictly better than every rule pair
     hist = s.meta["best_makespan_history"]
     assert hist[-1][1] == s.makespan
     assert [m for _, m in hist] == sorted((m for _, m in hist), reverse=True)
@@ -192,7 +191,8 @@ def test_progress_lines_on_stderr(capsys):
     inst = builtin("EX12")
     solve_sos(inst, time_limit=None, iterations=1, population=4, progress=True, initial=["rule:FIFO+first"])
     err = capsys.readouterr().err
-    assert "sos: iteration 0, evaluations 1, best makespan 90" in err
+    fifo = solve_rule(inst, "FIFO", "first").makespan  # the one seed organism's makespan
+    assert f"sos: iteration 0, evaluations 1, best makespan {fifo}" in err
     solve_sos(inst, time_limit=None, iterations=1, population=4, initial=["rule:FIFO+first"])
     assert capsys.readouterr().err == ""
 

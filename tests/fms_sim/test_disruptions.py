@@ -9,6 +9,7 @@ import pytest
 from fms_sim.benchmarks import builtin
 from fms_sim.disruptions import Breakdown, Outage, Scenario, ScenarioError
 from fms_sim.full_shop import FullShop, make_shop
+from fms_sim.petri import InvalidAction
 from fms_sim.replay import replay
 from fms_sim.validate import validate
 
@@ -174,6 +175,25 @@ def test_no_trip_starts_while_its_vehicle_is_out():
     moved = dataclasses.replace(s, agv_trips=[dataclasses.replace(t, agv=0) if k == i else t
                                               for k, t in enumerate(trips)])
     assert validate(inst, moved)  # AGV 0 cannot have driven then (out of service, or two places at once)
+
+
+def test_a_vehicle_out_of_service_is_not_sent_and_a_past_disruption_is_refused():
+    inst = builtin("ra01")
+    sc = Scenario(outages=(Outage("agv", 0, 0, 60), Outage("tt", 0, 0, 60)))
+    shop = FullShop(inst, scenario=sc)
+    with pytest.raises(InvalidAction, match="^AGV 0 is out of service at time 0$"):
+        shop.check_reposition("agv", 0, 1)
+    with pytest.raises(InvalidAction, match="^tool transporter 0 is out of service at time 0$"):
+        shop.check_reposition("tt", 0, 1)
+    shop.check_reposition("agv", 1, 1)  # the other AGV is in service
+    while shop.now == 0:
+        shop.act(shop.legal_actions()[0])
+    with pytest.raises(ScenarioError, match=f"^the disruption starts at {shop.now - 1}, before the shop's time "
+                                            f"{shop.now}$"):
+        shop.add_disruption(Breakdown(1, shop.now - 1, 5))
+    assert shop.scenario == sc  # nothing changed
+    shop.add_disruption(Breakdown(1, shop.now, 5))  # from now on it is taken
+    assert shop.scenario.breakdowns == (Breakdown(1, shop.now, 5),)
 
 
 def test_a_plan_executed_under_disruptions_keeps_its_orders_and_stays_valid():
