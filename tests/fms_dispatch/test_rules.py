@@ -37,6 +37,9 @@ T = [[0, 1, 1], [1, 0, 1], [1, 1, 0]]
 def test_job_rule_choice(rule, expected):
     shop = Shop(Instance("r", JOBS, agv_travel=T, n_agvs=1))
     assert RulePolicy(rule)(shop) == expected
+
+
+def test_the_twelve_job_rules_of_the_paper():
     assert set(JOB_RULES) == {"FIFO", "SPS", "LPS", "SPTN", "LPTN", "MTWR", "LTWR", "LWT", "SPT", "LPT",
                               "SPSR", "LPSR"}
 

@@ -3,6 +3,7 @@
 import pytest
 
 from fms_sim import AgvTrip, Instance, ToolTrip, validate
+from fms_sim.instance import InstanceError
 from fms_sim.petri import InvalidAction
 from fms_sim.shop import Shop
 
@@ -234,9 +235,9 @@ def test_add_jobs_mid_run_joins_the_net():
     ids = shop.add_jobs([[Operation(2, 1, 5), Operation(4, 3, 7)], [Operation(1, None, 3)]])
     assert ids == [inst.n_jobs, inst.n_jobs + 1] and shop.n_jobs == inst.n_jobs + 2
     assert "job:5" in shop.action_labels()
-    with pytest.raises(Exception, match="machine 9 does not exist"):
+    with pytest.raises(InstanceError, match="machine 9 does not exist"):
         shop.add_jobs([[Operation(9, None, 1)]])
-    with pytest.raises(Exception, match="tool 7 does not exist"):
+    with pytest.raises(InstanceError, match="tool 7 does not exist"):
         shop.add_jobs([[Operation(1, 7, 1)]])
     while not shop.done:
         shop.act(shop.legal_actions()[-1])
