@@ -601,6 +601,10 @@ def test_stale_or_broken_export_falls_back_to_torch(tmp_path):
     assert agent.uses_torch
     actor_path(weights).write_bytes(b"not an npz")
     assert Agent(weights, ref.padding).uses_torch
+    good = ref.weights.with_name("best_model.actor.npz").read_bytes()
+    for broken in (b"", good[:1000], good[:-200]):  # empty, truncated (an interrupted copy or a full disk)
+        actor_path(weights).write_bytes(broken)
+        assert Agent(weights, ref.padding).uses_torch
     shutil.copy(ref.weights.with_name("best_model.actor.npz"), actor_path(weights))  # the right export
     fast = Agent(weights, ref.padding)
     assert not fast.uses_torch

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Union
 
@@ -308,6 +310,7 @@ def load_actor(path: str | Path) -> tuple[Actor, str]:
                     {b: _unpack(f"head.{b}", t, data) for b, t in meta["heads"].items()})
             else:
                 actor = NumpyMlpActor(_unpack("mlp", meta["layers"], data))
-    except (OSError, KeyError, json.JSONDecodeError) as exc:
+    except (OSError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError,
+            UnicodeDecodeError) as exc:  # empty, truncated or damaged (an interrupted copy, a full disk)
         raise ValueError(f"cannot read the actor export {path}: {exc}") from None
     return actor, meta["source_sha256"]
