@@ -89,6 +89,29 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
                               "wall_seconds": m2["resumes"][0]["wall_seconds"], "interrupted": False}]
     assert json.loads((out / "metrics.json").read_text())["resumes"] == m2["resumes"]
 
+    # a new model is not trained over this one (it kept the old best_model.zip and reported it as its own) ...
+    again = dict(TINY, train=["EX12"], steps=128, seed=6, padding="bu", eval_freq=10_000)  # no evaluation: no best
+    with pytest.raises(ValueError, match=r"already holds a model \(config.json, metrics.json, model.zip, "
+                                         r"best_model.zip, .*--force to replace it"):
+        train(again, out, progress=False, tensorboard=tmp_path / "tb")
+    with pytest.raises(ValueError, match="give one"):
+        train({"steps": 128}, out, resume=True, force=True, progress=False)
+    # ... unless forced: the old model's files are gone, the new run's weights are its own
+    m3 = train(again, out, progress=False, tensorboard=tmp_path / "tb", force=True)
+    assert m3["training"]["timesteps"] == 128 and m3["training"]["weights"] == "model.zip" and "resumes" not in m3
+    assert not (out / "best_model.zip").exists() and not (out / "best_model.actor.npz").exists()
+    assert json.loads((out / "config.json").read_text())["seed"] == 6
+
+
+def test_resume_refuses_options_it_cannot_apply(tmp_path, capsys):
+    from fms_dispatch.cli import main
+
+    for extra in (["EX22"], ["--reward", "makespan"], ["--padding", "large"], ["--seed", "3"], ["--no-tools"]):
+        assert main(["train", "--out", str(tmp_path / "m"), "--resume", "--steps", "64", *extra]) == 2
+        err = capsys.readouterr().err
+        assert "--resume continues the model in" in err and "it takes --steps and --dagger, not" in err
+    assert not (tmp_path / "m").exists()
+
 
 def test_resume_without_model_is_refused(tmp_path):
     with pytest.raises(ValueError, match="cannot resume"):
@@ -121,6 +144,11 @@ def test_train_refuses_bad_input(tmp_path):
     assert "--allow-benchmarks" not in str(info.value)
     with pytest.raises(ValueError, match="init: no weights at models/nosuchmodel"):
         train(dict(TINY, train=["EX12"], steps=10, init="models/nosuchmodel"), tmp_path / "x", progress=False)
+    # a shop larger than the padding is refused before the workers start (in a worker: a traceback, a broken pipe)
+    with pytest.raises(ValueError, match=r"shop gen5x4s1_00 has 4 tools, more than the model's padded maximum 0 "
+                                         r"\(padding bu; --padding auto fits every shop\)"):
+        train(dict(TINY, train=["gen:5x4x4*2@1"], steps=64, padding="bu", n_envs=2, vec_env="subproc"),
+              tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()  # refused before anything was written
     (tmp_path / "f").write_text("")
     with pytest.raises(ValueError, match="is a file"):

@@ -363,9 +363,38 @@ def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float, int]
     return figures
 
 
+def _misfit(instances: Sequence[Instance], padding: dict[str, int]) -> str | None:
+    """Why the first of ``instances`` that exceeds ``padding`` does not fit (None: all fit)."""
+    for inst in instances:
+        for what, n, cap in (("jobs", inst.n_jobs, padding["max_jobs"]),
+                             ("machines", inst.n_machines, padding["max_machines"]),
+                             ("tools", inst.n_tools if inst.has_tools else 0, padding["max_tools"]),
+                             ("AGVs", inst.n_agvs, padding["max_agvs"]),
+                             ("tool transporters", inst.n_tool_transporters, padding["max_tts"])):
+            if n > cap:
+                return f"shop {inst.name} has {n} {what}, more than the model's padded maximum {cap}"
+    return None
+
+
+#: the files of a trained model in its folder (with a ``.actor.npz`` export beside each ``.zip``)
+MODEL_FILES = (CONFIG_FILE, METRICS_FILE, "model.zip", "best_model.zip", "warm_start.zip")
+
+
+def _model_files(out: Path) -> list[Path]:
+    """The files of a trained model that folder ``out`` holds (:data:`MODEL_FILES` and their actor exports)."""
+    names = list(MODEL_FILES) + [n[:-len(".zip")] + ".actor.npz" for n in MODEL_FILES if n.endswith(".zip")]
+    return [out / n for n in names if (out / n).is_file()]
+
+
 def train(config: dict[str, Any], out: str | Path, resume: bool = False, progress: bool = True,
-          tensorboard: str | Path | None = None, verbose: int = 0, dagger: int = 0) -> dict[str, Any]:
+          tensorboard: str | Path | None = None, verbose: int = 0, dagger: int = 0,
+          force: bool = False) -> dict[str, Any]:
     """Train (or continue) the model in folder ``out`` per ``config``; returns the metrics written.
+
+    A new model is never trained over another: a fresh run (not ``resume``) into a folder that holds a model's
+    files is refused, unless ``force``, which removes them (:data:`MODEL_FILES` and their actor exports; nothing
+    else) once the configuration is checked and before training starts. (A run over another model rewrote its
+    config but kept its ``best_model.zip``, which the new run then reported and solved with as its own.)
 
     A fresh run with a warm-start expert first clones the expert, then runs the ``warm_start.refine`` stages
     (each clones one rule pair on its own instances), then ``warm_start.dagger`` DAgger rounds (rule-pair or
@@ -389,6 +418,12 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     if out.exists() and not out.is_dir():
         raise ValueError(f"the model folder {out} is a file")
     check_config(config)
+    if resume and force:
+        raise ValueError("--force trains a new model over the one in the folder; --resume continues it: give one")
+    held = _model_files(out) if not resume and out.is_dir() else []
+    if held and not force:
+        raise ValueError(f"{out} already holds a model ({', '.join(p.name for p in held)}): continue it with "
+                         "--resume, give another --out, or --force to replace it")
     if resume:
         saved = json.loads((out / CONFIG_FILE).read_text()) if (out / CONFIG_FILE).is_file() else None
         if saved is None or not (out / "model.zip").is_file():
@@ -480,11 +515,18 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError("warm_start.refine clones rule pairs of the paper's net; it does not apply to the full net")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
-    padding = padding_for(cfg["padding"], train_set + eval_set + [i for st in refine for i in st[1]])
+    everything = train_set + eval_set + [i for st in refine for i in st[1]]
+    padding = padding_for(cfg["padding"], everything)
+    misfit = _misfit(everything, padding)
+    if misfit:  # checked here: found in a worker process it ended in a traceback and a broken pipe
+        raise ValueError(f"{misfit} (padding {cfg['padding'] if isinstance(cfg['padding'], str) else padding}; "
+                         "--padding auto fits every shop)")
     if cfg["padding"] in (None, "auto"):
         cfg["padding"] = padding
     if int(cfg["n_envs"]) < 1:
         raise ValueError(f"n_envs must be >= 1, got {cfg['n_envs']}")
+    for stale in held:  # force: the model replaced (checked above: only with force)
+        stale.unlink()
     out.mkdir(parents=True, exist_ok=True)
     tb = Path(tensorboard) if tensorboard else Path("runs") / cfg["name"]
 
@@ -684,7 +726,10 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--agvs", type=int, help="override the number of AGVs of every instance")
     s.add_argument("--tool-transporters", type=int, help="override the number of tool transporters")
     s.add_argument("--no-tools", action="store_true", help="drop tools (AGV-only model)")
-    s.add_argument("--resume", action="store_true", help="continue training the model in --out")
+    s.add_argument("--resume", action="store_true", help="continue training the model in --out (takes --steps "
+                                                          "and --dagger; the rest comes from its config.json)")
+    s.add_argument("--force", action="store_true", help="train a new model into an --out that holds one, "
+                                                         "replacing its model files (refused otherwise)")
     s.add_argument("--decisions", choices=("paper", "full"), help="the net the model decides through (default "
                                                                     "paper)")
     s.add_argument("--guide", choices=("list", "none"), help="full net: add the earliest-start list schedule's "
@@ -705,6 +750,17 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def cmd_train(a: argparse.Namespace) -> int:
+    if a.resume:  # a resumed model keeps its own config: an option it cannot apply is refused, not dropped
+        given = [flag for flag, v in (("training instances", a.instances), ("--config", a.config), ("--eval", a.eval),
+                                      ("--reward", a.reward), ("--seed", a.seed), ("--padding", a.padding),
+                                      ("--arch", a.arch), ("--n-envs", a.n_envs), ("--eval-freq", a.eval_freq),
+                                      ("--agvs", a.agvs), ("--tool-transporters", a.tool_transporters),
+                                      ("--no-tools", a.no_tools), ("--decisions", a.decisions), ("--guide", a.guide),
+                                      ("--allow-benchmarks", a.allow_benchmarks), ("--init", a.init))
+                 if v not in (None, False, [])]
+        if given:
+            raise ValueError(f"--resume continues the model in {a.out} with its own {CONFIG_FILE}: it takes --steps "
+                             f"and --dagger, not {', '.join(given)} (train a new model for those)")
     cfg: dict[str, Any] = {}
     if a.config:
         try:
@@ -724,7 +780,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     if not a.resume and not cfg.get("train"):
         raise ValueError("give training instances (or --resume)")
     m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard,
-              dagger=a.dagger)
+              dagger=a.dagger, force=a.force)
     t = m["training"]
     print(f"{a.out}: {t['timesteps']} steps, {t['wall_seconds']} s; eval mean makespan {t['eval_mean_makespan']} "
           f"({t['weights']})")
