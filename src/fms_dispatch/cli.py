@@ -423,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
                    "disrupted shop departs from the plan (breakdown, outage, lateness); default: keep the plan")
     s.add_argument("--out", help="write the schedule JSON here")
-    s.add_argument("--gantt", help="write a Gantt chart PNG here")
+    s.add_argument("--gantt", help="write a Gantt chart here (PNG; PDF or SVG for a .pdf or .svg name)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     s.set_defaults(fn=cmd_solve)
 
@@ -439,7 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_instance_args(s)
     s.add_argument("schedule", help="schedule JSON file (any valid schedule: cpsat, another tool, a person)")
     s.add_argument("--out", help="write the replayed schedule JSON here")
-    s.add_argument("--gantt", help="write a Gantt chart PNG of the replayed schedule here")
+    s.add_argument("--gantt", help="write a Gantt chart of the replayed schedule here (PNG; PDF or SVG for a .pdf or "
+                                   ".svg name)")
     s.set_defaults(fn=cmd_replay)
 
     s = sub.add_parser("generate", help="write random instances with Taillard's LCG family")

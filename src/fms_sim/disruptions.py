@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .files import write_atomically
 from .instance import Instance
 
 __all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS", "MAX_NOISE"]
@@ -235,7 +236,7 @@ class Scenario:
         return cls.from_dict(data)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n", encoding="utf-8")
+        write_atomically(path, json.dumps(self.to_dict(), indent=1) + "\n")
 
     # ------------------------------------------------------------------ drawing
     @classmethod

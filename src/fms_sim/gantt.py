@@ -32,6 +32,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 from matplotlib.transforms import blended_transform_factory
 
+from .files import replacing
 from .instance import Instance
 from .schedule import Schedule
 
@@ -141,7 +142,8 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
     """Draw ``schedule`` as a Gantt chart and return the figure; also save it to ``path`` when given.
 
     ``instance`` (optional) only widens the chart to rows the schedule leaves idle (all of its machines,
-    AGVs and transporters). The file format follows the suffix of ``path`` (PNG when it has none).
+    AGVs and transporters). The file format follows the suffix of ``path`` (PNG for none, or for one that
+    matplotlib does not write).
     Raises ``ValueError("empty schedule")`` when the schedule has no operations.
     """
     if not schedule.operations:
@@ -271,17 +273,22 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
              fontweight="bold")
 
     if path is not None:
-        out = Path(path)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out, dpi=_DPI)
+        _save(fig, Path(path))
     return fig
+
+
+def _save(fig: Figure, out: Path) -> None:
+    """Write ``fig`` to ``out`` in the format its suffix names where matplotlib writes it (png, pdf, svg, eps, ...),
+    else PNG, through a temporary file, so that a failed write leaves an existing chart as it was."""
+    fmt = out.suffix[1:].lower()
+    with replacing(out) as tmp:
+        fig.savefig(tmp, dpi=_DPI, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
 
 
 def save_gantt(schedule: Schedule, path: str | Path, instance: Instance | None = None,
                title: str | None = None) -> Path:
-    """Render ``schedule`` (see :func:`plot_gantt`) to a PNG at ``path`` (whatever its suffix) and return it."""
+    """Render ``schedule`` (see :func:`plot_gantt`) to ``path`` and return it: in the format its suffix names
+    (a PDF for ``.pdf``, an SVG for ``.svg``, ...), a PNG for any suffix matplotlib does not write."""
     out = Path(path)
-    fig = plot_gantt(schedule, instance, title=title)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=_DPI, format="png")
+    _save(plot_gantt(schedule, instance, title=title), out)
     return out

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from .files import write_atomically
+
 __all__ = ["Operation", "Instance", "InstanceError"]
 
 Matrix = tuple[tuple[int, ...], ...]
@@ -285,7 +287,8 @@ class Instance:
         return cls.from_dict(data)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(self.to_json(indent=1) + "\n")
+        """Write the JSON form to ``path``; a failed write leaves an existing file as it was (:mod:`.files`)."""
+        write_atomically(path, self.to_json(indent=1) + "\n")
 
 
 #: the fields of an instance's JSON object (:meth:`Instance.to_dict`)

@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .files import write_atomically
+
 __all__ = ["OperationRecord", "AgvTrip", "ToolTrip", "Schedule", "ScheduleError"]
 
 
@@ -104,7 +106,8 @@ class Schedule:
         return json.dumps(self.to_dict(), indent=indent)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(self.to_json() + "\n")
+        """Write the JSON form to ``path``; a failed write leaves an existing file as it was (:mod:`.files`)."""
+        write_atomically(path, self.to_json() + "\n")
 
     @classmethod
     def from_dict(cls, d: Any) -> "Schedule":

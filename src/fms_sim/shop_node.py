@@ -30,12 +30,9 @@ one; without it, :func:`main` exits with code 2 and says how to install it.
 from __future__ import annotations
 
 import faulthandler
-import os
 import signal
 import sys
-import tempfile
 import time
-from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 try:  # ROS 2 is optional for the rest of the package; the nodes need it
@@ -50,6 +47,7 @@ except (ImportError, OSError) as _exc:  # pragma: no cover - exercised by a subp
 
 from fms_msgs_json import KINDS, TOPIC_QOS, TOPICS, encode
 
+from .files import write_atomically
 from .instance import InstanceError
 from .shop_service import Outgoing, ShopService
 
@@ -123,20 +121,6 @@ def param(node: Any, name: str, default: Any) -> Any:
         kind = {bool: "a boolean (true/false)", int: "an integer", float: "a number", str: "a string"}.get(
             type(default), type(default).__name__)
         raise StartupError(f"parameter {name!r} must be {kind}: {exc}") from None
-
-
-def write_atomically(path: str | Path, text: str) -> Path:
-    """Write ``text`` to ``path`` via a temporary file and a rename (a watcher never sees half a file)."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", dir=str(out.parent))
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual permissions
-    os.replace(tmp, out)
-    return out
 
 
 #: parameters every rclpy node declares by itself

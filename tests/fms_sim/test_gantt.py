@@ -170,10 +170,14 @@ def test_empty_trips_drawn_apart(tmp_path: Path) -> None:
     assert e_ys.min() > l_ys.max()
 
 
-def test_custom_title_and_save_gantt_writes_png(tmp_path: Path) -> None:
-    out = save_gantt(hand_schedule(), tmp_path / "chart.pdf", title="My chart")  # PNG whatever the suffix
-    assert out == tmp_path / "chart.pdf"
-    assert out.read_bytes()[:8] == PNG_MAGIC
+def test_custom_title_and_save_gantt_writes_the_format_its_name_says(tmp_path: Path) -> None:
+    out = save_gantt(hand_schedule(), tmp_path / "chart.pdf", title="My chart")
+    assert out == tmp_path / "chart.pdf" and out.read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in save_gantt(hand_schedule(), tmp_path / "chart.svg").read_bytes()[:400]
+    for name in ("chart.png", "chart", "chart.xyz"):  # PNG where the suffix names no format matplotlib writes
+        assert save_gantt(hand_schedule(), tmp_path / name).read_bytes()[:8] == PNG_MAGIC
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chart", "chart.pdf", "chart.png", "chart.svg",
+                                                          "chart.xyz"]  # no temporary left
     fig = plot_gantt(hand_schedule(), title="My chart")
     assert [t.get_text() for t in fig.texts] == ["My chart"]
 
