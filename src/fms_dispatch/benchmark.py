@@ -118,8 +118,16 @@ def check_methods(methods: Sequence[str]) -> list[str]:
 
 
 def _time_limit_for(method: str, time_limit: float | None, cpsat_time_limit: float | None) -> float | None:
+    """The time limit a task of ``method`` runs with (and is cached under): None for a method without a search,
+    the seconds a ``plan:SOLVER:SECONDS`` name gives, the CP-SAT limit for ``cpsat``, else ``time_limit``."""
     if not searches(method):
         return None
+    if method.lower().startswith("plan:"):
+        from .solvers import parse_plan_name
+
+        seconds = parse_plan_name(method)[1]
+        if seconds is not None:
+            return _tl(seconds)
     return _tl(cpsat_time_limit if method.lower() == "cpsat" else time_limit)
 
 

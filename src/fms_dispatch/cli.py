@@ -126,7 +126,7 @@ def search_summary(sched: Schedule) -> str:
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
-    from .solvers import get_solver, solve, takes_time_limit
+    from .solvers import get_solver, parse_plan_name, solve, takes_time_limit
 
     get_solver(a.solver)  # unknown names fail before any work or output
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
@@ -142,6 +142,9 @@ def cmd_solve(a: argparse.Namespace) -> int:
                            "--guide-budget")
         if not takes_time_limit(a.solver):
             raise CliError(f"--time-limit does not apply to {a.solver}: it runs once, without a search")
+        if low.startswith("plan:") and parse_plan_name(a.solver)[1] is not None:
+            raise CliError(f"{a.solver} gives its plan's budget in its name; give it without the seconds and "
+                           "--time-limit, or no --time-limit")
         opts["time_limit"] = a.time_limit
     from .solvers import DECISION_SOLVERS
 
@@ -165,6 +168,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
             raise CliError("give one of --lookahead, --lookahead-fast and --lookahead-guide")
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--lookahead, --lookahead-fast and --lookahead-guide apply to the ppo solver only")
+        if "+" in a.solver:
+            raise CliError(f"{a.solver} chooses its lookahead in its name; give no --lookahead flag with it")
         opts["lookahead"] = "guide" if a.lookahead_guide else "fast" if a.lookahead_fast else True
     try:
         effort = guide_effort_from_args(a)

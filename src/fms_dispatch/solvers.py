@@ -172,7 +172,13 @@ def get_solver(name: str) -> Solver:
         except ValueError as exc:
             raise UnknownSolver(str(exc)) from None
         if plus:  # "ppo[:MODEL]+lookahead[-fast|-guide]": names for benches, as the lookahead option
-            return lambda inst, **kw: fn(inst, **{**kw, "lookahead": mode})
+            def with_lookahead(inst: Instance, **kw: Any) -> Schedule:
+                if kw.get("lookahead") not in (None, False, mode):  # another lookahead: refused, not dropped
+                    raise ValueError(f"{name} chooses its lookahead ({plus}{flag}); another one "
+                                     f"({kw['lookahead']!r}) cannot be given with it")
+                return fn(inst, **{**kw, "lookahead": mode})
+
+            return with_lookahead
         return fn
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 
@@ -246,6 +252,9 @@ def plan_solver(name: str) -> Solver:
                replan: float | None = None, drift: float | None = None, **kw: Any) -> Schedule:
         from fms_sim.replay import replay
 
+        if seconds is not None and time_limit is not None and time_limit != seconds:
+            raise ValueError(f"{name} gives its plan's budget ({seconds:g} s); a time limit of {time_limit:g} s "
+                             "would be ignored: give one of the two")
         budget = seconds if seconds is not None else time_limit
         plan = make_plan(instance, base, budget, **kw)  # on the nominal shop: disruptions are not known ahead
         if replan is not None:

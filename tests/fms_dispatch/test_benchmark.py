@@ -308,3 +308,9 @@ def test_bad_library_arguments_are_refused_before_any_work(tmp_path: Path, monke
     with pytest.raises(ValueError, match="unknown variant 'tools'"):
         bm.load_task_instance(replace(task, variant="tools"))
     assert calls == [] and not (tmp_path / bm.CACHE_NAME).exists()
+
+
+def test_a_task_runs_and_is_cached_under_the_budget_it_really_has() -> None:
+    assert bm._time_limit_for("plan:cpsat:8", 10.0, 60.0) == 8.0  # the name's budget, not --time-limit's
+    assert bm._time_limit_for("plan:cpsat", 10.0, 60.0) == 10.0 and bm._time_limit_for("cpsat", 10.0, 60.0) == 60.0
+    assert bm._time_limit_for("rule:FIFO+first", 10.0, 60.0) is None

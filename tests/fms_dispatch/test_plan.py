@@ -43,3 +43,11 @@ def test_cli_plan_solver(tmp_path, capsys):
     capsys.readouterr()
     assert main(["solve", "EX21", "--solver", "plan:ppo", "-q"]) == 2
     assert "bad plan solver" in capsys.readouterr().err
+
+
+def test_a_plan_names_budget_and_a_time_limit_are_not_both_taken():
+    inst = builtin("EX12")
+    with pytest.raises(ValueError, match=r"plan:rules:0.5 gives its plan's budget \(0.5 s\); a time limit of 1 s "
+                                         "would be ignored: give one of the two"):
+        solve(inst, "plan:rules:0.5", time_limit=1.0)
+    assert validate(inst, solve(inst, "plan:rules:0.5", time_limit=0.5)) == []  # the same: taken

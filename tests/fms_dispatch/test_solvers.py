@@ -85,3 +85,12 @@ def test_a_plan_of_a_tool_rule_runs_the_rule_on_the_full_net():
     s = solve(inst, "plan:rule:SPT+nearest+fifo")
     full = solve(inst, "rule:SPT+nearest+fifo", decisions="full")
     assert validate(inst, s) == [] and s.makespan <= full.makespan  # the rule's schedule, replayed: never later
+
+
+def test_a_ppo_name_with_a_lookahead_refuses_another():
+    inst = builtin("EX12")
+    with pytest.raises(ValueError, match=r"ppo\+lookahead-fast chooses its lookahead \(\+lookahead-fast\); another "
+                                         r"one \('guide'\) cannot be given with it"):
+        solve(inst, "ppo+lookahead-fast", lookahead="guide")
+    s = solve(inst, "ppo+lookahead-fast", lookahead="fast")  # the same: taken
+    assert s.meta["solver"].endswith("+lookahead-fast") and s.meta["lookahead_fast"] and validate(inst, s) == []
