@@ -108,6 +108,10 @@ def check_methods(methods: Sequence[str]) -> list[str]:
     for m in methods:
         get_solver(m)  # UnknownSolver is a ValueError with the list of names
         low = m.lower()
+        if low.startswith("rule:") and m.count("+") >= 2:  # would fail every task, after the others have run
+            raise ValueError(f"{m!r} names a tool rule: fms bench runs first, random and rule:JOB+VEHICLE through "
+                             "the paper's net (the paper's table), which has none; rules:full runs the full net's "
+                             f"rule combinations, and fms solve --solver {m} runs this one")
         if low.startswith("ppo:"):  # an unknown model would fail every task, after the others have run
             from .rl.models import resolve_model
 
@@ -774,7 +778,8 @@ def cmd_bench_sl(a: argparse.Namespace) -> int:
 def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
     p.add_argument("--methods", nargs="+", metavar="NAME",
                    help="solver names (space- or comma-separated; 'rules' = every rule pair), e.g. "
-                        "rule:MTWR+first sos cpsat")
+                        "rule:MTWR+first sos cpsat; first, random and rule: run through the paper's net (fms "
+                        "solve's default is the full net), rules:full and list through the full net")
     p.add_argument("--time-limit", type=float, default=10.0, metavar="S",
                    help="time limit of searching methods other than cpsat, e.g. sos (default 10)")
     p.add_argument("--cpsat-time-limit", type=float, default=cpsat_default, metavar="S",

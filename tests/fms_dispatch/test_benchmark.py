@@ -226,7 +226,9 @@ def test_unknown_method_fails_before_any_work(tmp_path: Path, monkeypatch: pytes
     for bad, msg in ((["rule:FIFO+first", "ppo-does-not-exist"], "unknown solver 'ppo-does-not-exist'"),
                      (["rule:NOPE+first"], "unknown job rule 'NOPE'"),
                      (["rule:FIFO+sideways"], "unknown vehicle rule 'sideways'"),
-                     (["rule:FIFO+first", "ppo:no-such-model"], "no model named 'no-such-model'")):
+                     (["rule:FIFO+first", "ppo:no-such-model"], "no model named 'no-such-model'"),
+                     (["rule:MTWR+nearest+same-machine-first"], "'rule:MTWR\\+nearest\\+same-machine-first' names a "
+                      "tool rule: fms bench runs first, random and rule:JOB\\+VEHICLE through the paper's net")):
         with pytest.raises(ValueError, match=msg):
             run_cli(["bench", "bu", "--methods", *bad, "-q", "--results-dir", str(tmp_path)])
         with pytest.raises(ValueError, match=msg):
