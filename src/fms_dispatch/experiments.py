@@ -228,6 +228,7 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
     import torch
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -272,6 +273,8 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
                **_ppo_budget(max(16, steps // 8)))
     model = MaskablePPO(EntityPolicy, venv, policy_kwargs={"layout": obs_layout(padding, decisions)}, seed=seed,
                         device="cpu", verbose=0, **ppo)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # the curve is all it keeps (sb3's default logger
+    # made an empty SB3-<time> folder in the temp folder per run)
     model.learn(total_timesteps=steps, callback=Curve(), use_masking=use_masking)
     venv.close()
     return points

@@ -67,8 +67,14 @@ def test_dynamic_quick(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert "| partition |" in capsys.readouterr().out
 
 
-def test_ablation_quick(tmp_path: Path) -> None:
+def test_ablation_quick(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import tempfile
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     doc = run_ablation(quick=True, results_dir=tmp_path, steps=64, echo=False)
+    assert not list(scratch.glob("SB3-*"))  # sb3's default logger left an empty folder there per run
     rows, _ = _outputs(tmp_path, "ablation", ABLATION_COLUMNS)
     by = {(r["study"], r["variant"]) for r in rows}
     assert by == {("reward_shaping", "shaped"), ("reward_shaping", "sparse"), ("lookahead", "off"),
