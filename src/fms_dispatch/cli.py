@@ -129,13 +129,17 @@ def cmd_solve(a: argparse.Namespace) -> int:
     from .solvers import get_solver, parse_plan_name, solve, takes_time_limit
 
     get_solver(a.solver)  # unknown names fail before any work or output
+    if a.solver.lower().startswith("ppo:"):  # and unknown models (a ppo solver finds its model when it runs)
+        from .rl.models import resolve_model
+
+        resolve_model(a.solver[4:].split("+", 1)[0].strip())
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
     check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
     inst = load_from_args(a)
     opts: dict = {"seed": a.seed}
     if a.time_limit is not None:
-        if a.time_limit <= 0:
-            raise CliError("--time-limit must be positive")
+        if not 0 < a.time_limit < math.inf:
+            raise CliError(f"--time-limit must be a positive, finite number of seconds, got {a.time_limit:g}")
         low = a.solver.lower()
         if low.startswith("ppo"):
             raise CliError("--time-limit does not apply to ppo (a policy's run); its plan search's limit is "

@@ -647,7 +647,7 @@ def _timed_run(inst: Instance, scenario: Any, plan: Schedule | None, rule: Any) 
     if plan is not None:
         n = execute(shop, PlanPolicy(inst, plan))
     else:
-        choose = rule if callable(rule) else parse_full_rule(rule or "")
+        choose = rule if callable(rule) else parse_full_rule(rule or "FIFO")
         while not shop.done:
             shop.act(choose(shop))
             n += 1

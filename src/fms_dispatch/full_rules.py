@@ -219,8 +219,11 @@ def parse_full_rule(name: str) -> FullRulePolicy:
     parts = body.split("+")
     if len(parts) > 3:
         raise ValueError(f"rule name {name!r} has more than three parts (JOB+VEHICLE+TOOL)")
+    if not all(parts):  # "rule:" or "rule:MTWR+" ran as FIFO or MTWR+first: a typo, not a choice
+        raise ValueError(f"rule name {name!r} has an empty part; use rule:JOB[+VEHICLE[+TOOL]], e.g. "
+                         "rule:MTWR+nearest")
     job, vehicle, tool = (parts + ["", "", ""])[:3]
-    return FullRulePolicy(job or "FIFO", vehicle or "first", tool or "fifo")
+    return FullRulePolicy(job, vehicle or "first", tool or "fifo")
 
 
 #: list-scheduling variants: ``list`` (earliest start), ``list:ect`` (earliest completion), ``list:<JOB RULE>``

@@ -116,8 +116,10 @@ def choose_vehicle(rule: str, cands: list[int], free_at: list[int], work: list[i
 def parse_rule_name(name: str) -> RulePolicy:
     """``"MTWR+nearest"`` or ``"rule:MTWR+nearest"`` -> policy (vehicle rule defaults to ``first``)."""
     body = name.split(":", 1)[1] if name.lower().startswith("rule:") else name
-    job, _, vehicle = body.partition("+")
-    return RulePolicy(job or "FIFO", vehicle or "first")
+    job, plus, vehicle = body.partition("+")
+    if not job or (plus and not vehicle):  # "rule:" or "rule:MTWR+" ran as FIFO or MTWR+first: a typo
+        raise ValueError(f"rule name {name!r} has an empty part; use rule:JOB[+VEHICLE], e.g. rule:MTWR+nearest")
+    return RulePolicy(job, vehicle or "first")
 
 
 def solve_rule(instance: Instance, job_rule: str = "FIFO", vehicle_rule: str = "first") -> Schedule:

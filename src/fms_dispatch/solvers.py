@@ -206,7 +206,17 @@ def parse_plan_name(name: str) -> tuple[str, float | None]:
     if not base or base.lower().startswith(("plan:", "ppo")) or base.lower() in ("first", "random"):
         raise UnknownSolver(f"bad plan solver {name!r}: use plan:SOLVER[:SECONDS] with an offline solver "
                             "(cpsat, sos, rules, list, rule:...) or plan:file:PATH")
-    get_solver(base)
+    try:
+        get_solver(base)
+    except UnknownSolver:
+        if seconds is None and sep and head:  # plan:cpsat:abc: a known solver and a budget that is no number
+            try:
+                get_solver(head)
+            except UnknownSolver:
+                pass
+            else:
+                raise UnknownSolver(f"bad plan solver {name!r}: {tail!r} is not a time budget in seconds") from None
+        raise
     if seconds is not None and not takes_time_limit(base):  # it was accepted and ignored
         raise UnknownSolver(f"bad plan solver {name!r}: {base} runs once, without a search; drop ':{tail}'")
     return base, seconds

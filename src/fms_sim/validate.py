@@ -55,7 +55,11 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
     (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
     errs: list[str] = []
-    if scenario is None and isinstance(schedule.meta.get("scenario"), dict):
+    recorded = schedule.meta.get("scenario")
+    if scenario is None and recorded is not None and not isinstance(recorded, dict):  # it was silently ignored
+        return [f"the schedule's recorded scenario is malformed: meta.scenario must be an object, got "
+                f"{type(recorded).__name__}"]
+    if scenario is None and isinstance(recorded, dict):
         try:
             scenario = Scenario.from_dict(schedule.meta["scenario"])
         except ScenarioError as exc:

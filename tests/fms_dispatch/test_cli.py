@@ -54,6 +54,11 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "EX12", "--solver", "rule:FOO"], "unknown job rule"),
     (["solve", "EX12", "--time-limit", "-1"], "time-limit"),
     (["solve", "EX12", "--agvs", "0"], "agvs must be an integer from 1 to 1000, got 0 (use --no-agvs to drop them)"),
+    (["solve", "EX12", "--solver", "rule:"], "rule name 'rule:' has an empty part"),
+    (["solve", "EX12", "--solver", "rule:MTWR+"], "rule name 'rule:MTWR+' has an empty part"),
+    (["solve", "EX12", "--solver", "plan:cpsat:abc"], "bad plan solver 'plan:cpsat:abc': 'abc' is not a time budget"),
+    (["solve", "EX12", "--solver", "ppo:nonexistent"], "no model named 'nonexistent'"),  # before the header line
+    (["solve", "EX12", "--solver", "sos", "--time-limit", "nan"], "--time-limit must be a positive, finite number"),
     (["solve", "EX12", "--solver", "first", "--time-limit", "3"], "--time-limit does not apply to first"),
     (["solve", "EX12", "--solver", "list", "--time-limit", "3"], "--time-limit does not apply to list"),
     (["solve", "EX12", "--solver", "ppo", "--time-limit", "3"], "its plan search's limit is --guide-budget"),

@@ -181,6 +181,17 @@ def test_a_nominal_schedule_breaks_the_windows_of_a_scenario(good, scenario, msg
     assert msg in validate(INST, good, scenario)
 
 
+@pytest.mark.parametrize("recorded, msg", [
+    ("x", "meta.scenario must be an object, got str"),  # it was silently ignored: the schedule called valid
+    ({"bogus": 1}, "the schedule's recorded scenario is malformed: "),
+])
+def test_a_malformed_recorded_scenario_is_reported(good, recorded, msg):
+    s = Schedule.from_dict(good.to_dict())
+    s.meta["scenario"] = recorded
+    (err,) = validate(INST, s)
+    assert err.startswith("the schedule's recorded scenario is malformed: ") and msg in err
+
+
 def test_plain_job_shop_precedence(good):
     inst = Instance("js", [[(1, 3), (2, 2)]])
     s = run_first(inst)
