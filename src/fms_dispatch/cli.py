@@ -428,7 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
-                   "time (sigma from 0 to 1, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's noise")
+                   "time (sigma from 0 to 1, e.g. 0.1), seeded by --seed; with --scenario it replaces the file's "
+                   "noise and its seed (--seed, default 0)")
     s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
                    "disrupted shop departs from the plan (breakdown, outage, lateness); default: keep the plan")
     s.add_argument("--out", help="write the schedule JSON here")

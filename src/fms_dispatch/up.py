@@ -98,7 +98,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
                    "full-net ppo model")
     p.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
-                   "time (sigma from 0 to 1), seeded by --seed (with --scenario it replaces the file's noise)")
+                   "time (sigma from 0 to 1), seeded by --seed (with --scenario it replaces the "
+                   "file's noise and its seed: --seed, default 0)")
     p.add_argument("--replan", type=float, default=None, metavar="SECONDS",
                    help="plan: solvers: seconds per re-plan when an order arrives or the shop departs from the plan "
                         "(default 2; 0: never re-plan)")
