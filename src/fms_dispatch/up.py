@@ -208,7 +208,8 @@ class NodeProcess:
         self._log = open(self.log_path, "wb")
         self._interrupted = False
         self.proc = subprocess.Popen(self.cmd, stdout=self._log, stderr=subprocess.STDOUT, env=self.env,
-                                     stdin=subprocess.DEVNULL, start_new_session=True)
+                                     stdin=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=_stop_with(os.getpid()) if sys.platform.startswith("linux") else None)
         return self
 
     def poll(self) -> int | None:
@@ -537,25 +538,50 @@ def _recorded_run_ids(db: Path) -> set[str]:
     return _from_store(db, lambda store: set(store.run_ids()), set())
 
 
+def _stop_with(parent: int) -> Callable[[], None]:
+    """For a node's process, run between fork and exec (Linux): the kernel sends it SIGINT, its clean stop, when
+    ``fms up`` dies, even of a signal it cannot handle (SIGKILL: an OOM kill, ``timeout -s KILL``); in its own
+    session it gets no signal from the terminal, and it would run on for good. A parent already gone by then
+    (the kernel only watches from the call on) stops it at once."""
+
+    def arm() -> None:
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGINT))  # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return
+        if os.getppid() != parent:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    return arm
+
+
+#: the signals that stop ``fms up`` (and so its nodes) as Ctrl-C does: ``kill``, a supervisor, a closed terminal
+#: or a dropped SSH session (SIGHUP), SIGQUIT
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
+
+
 class _TermAsInterrupt:
-    """While it is installed, SIGTERM raises KeyboardInterrupt in the main thread, so that ``fms up`` stops its
-    nodes (each runs in its own process group and would outlive it) exactly as on Ctrl-C."""
+    """While it is installed, each of :data:`STOP_SIGNALS` raises KeyboardInterrupt in the main thread, so that
+    ``fms up`` stops its nodes (each runs in its own session and would outlive it) exactly as on Ctrl-C."""
 
     def __init__(self) -> None:
-        self._old: Any = None
+        self._old: dict[int, Any] = {}
         try:
-            self._old = signal.signal(signal.SIGTERM, self._raise)
+            for sig in STOP_SIGNALS:
+                self._old[sig] = signal.signal(sig, self._raise)
         except ValueError:  # not the main thread: nothing to install
-            self._old = None
+            self.restore()
 
     @staticmethod
     def _raise(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
 
     def restore(self) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
-            self._old = None
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
 
 
 def _progress(db: Path, run_id: str) -> tuple[int, int | None]:

@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import signal
+import subprocess
 import sys
 import textwrap
 import time
@@ -287,18 +288,54 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
         assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, (extra, err)
 
 
-def test_sigterm_stops_the_nodes_as_ctrl_c_does() -> None:
-    """While fms up waits for its nodes, SIGTERM raises KeyboardInterrupt (the nodes are then stopped as on Ctrl-C;
-    each runs in its own process group and would outlive fms up); afterwards the old handler is back."""
-    before = signal.getsignal(signal.SIGTERM)
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGQUIT"])
+def test_sigterm_and_a_closed_terminal_stop_the_nodes_as_ctrl_c_does(sig: str) -> None:
+    """While fms up waits for its nodes, SIGTERM, SIGHUP (a closed terminal, a dropped SSH session) and SIGQUIT
+    raise KeyboardInterrupt (the nodes are then stopped as on Ctrl-C; each runs in its own session and would outlive
+    fms up); afterwards the old handlers are back."""
+    number = getattr(signal, sig)
+    before = {s: signal.getsignal(s) for s in up.STOP_SIGNALS}
     guard = up._TermAsInterrupt()
     try:
         with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), number)
             time.sleep(1)  # the handler runs at the next bytecode boundary
     finally:
         guard.restore()
-    assert signal.getsignal(signal.SIGTERM) == before
+    assert {s: signal.getsignal(s) for s in up.STOP_SIGNALS} == before
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's parent-death signal is Linux's")
+def test_a_node_stops_when_fms_up_is_killed(tmp_path: Path) -> None:
+    """fms up killed outright (SIGKILL: no handler runs) still stops its nodes: the kernel sends them SIGINT."""
+    pid_file = tmp_path / "node.pid"
+    parent = subprocess.Popen([sys.executable, "-c", f"""
+import sys, time
+from pathlib import Path
+from fms_dispatch.up import NodeProcess
+node = NodeProcess("sleeper", [sys.executable, "-c", "import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(60)"],
+                   Path({str(tmp_path / 'node.log')!r}), dict(__import__('os').environ)).start()
+time.sleep(60)
+"""])
+    try:
+        for _ in range(100):
+            if pid_file.exists() and pid_file.read_text():
+                break
+            time.sleep(0.1)
+        child = int(pid_file.read_text())
+        parent.kill()
+        parent.wait()
+        for _ in range(50):  # a KeyboardInterrupt ends the sleeper at once
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(child, signal.SIGKILL)
+            pytest.fail("the node outlived its killed parent")
+    finally:
+        parent.kill()
 
 
 def test_replan_wait_reaches_the_agent_node(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
