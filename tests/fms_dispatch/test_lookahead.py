@@ -281,7 +281,7 @@ def test_fast_lookahead_with_ppo_on_a_large_instance_is_valid_and_no_worse():
 def _full_rule():
     from fms_dispatch.full_rules import parse_full_rule
 
-    return parse_full_rule("")
+    return parse_full_rule("FIFO")  # FIFO+first+fifo
 
 
 @pytest.mark.parametrize("name", ["EX12", "EX42", "ra01"])
