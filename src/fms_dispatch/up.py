@@ -352,7 +352,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(f"ROS domain id {domain} is out of range (0..232; 0..101 is safe everywhere)")
 
     run_id = a.run_id or new_run_id(inst.name)
-    out = Path(a.out) if a.out else Path(f"{inst.name}.schedule.json")
+    out = Path(a.out) if a.out else Path(f"{safe_run_name(inst.name)}.schedule.json")  # a name is no path
     db = Path(a.db)
     gantt_dir = Path(a.gantt_dir) if a.gantt_dir else (db.parent if str(db.parent) else Path("."))
     png = gantt_path(gantt_dir, run_id)
@@ -360,12 +360,12 @@ def cmd_up(a: argparse.Namespace) -> int:
     for path, what in ((out, "--out"), (db, "--db")):
         if path.is_dir():
             raise UpError(f"{what} {path} is a directory; give a file path")
-        _check_parent(path, what)
+        _check_writable(path, what, folder=False)
     for path, what in ((gantt_dir, "--gantt-dir"), (Path(a.log_dir) if a.log_dir else None, "--log-dir")):
         if path is not None:
             if path.exists() and not path.is_dir():
                 raise UpError(f"{what} {path} is a file, not a folder")
-            _check_parent(path, what)
+            _check_writable(path, what, folder=True)
     if png.exists():
         raise UpError(f"run id {run_id!r} was already recorded (its chart {png} exists); choose another --run-id")
     if run_id in _recorded_run_ids(db):
@@ -483,9 +483,14 @@ def cmd_up(a: argparse.Namespace) -> int:
         keep_logs = True
         print(f"fms up: warning: the run is complete and valid, but {stop_note}", file=sys.stderr)
         _print_logs([n for n in nodes if n.name in unclean])
+    # a run that took live orders has jobs the instance has not: its final instance goes beside the schedule, so
+    # that `fms validate` can check it afterwards (the work folder holding it is removed)
+    ordered = out.with_name(f"{out.name[:-5] if out.name.endswith('.json') else out.name}.instance.json")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         sched.save(out)
+        if final.n_jobs != inst.n_jobs:
+            final.save(ordered)
     except OSError as exc:
         print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_FAILED
@@ -498,6 +503,9 @@ def cmd_up(a: argparse.Namespace) -> int:
     print(f"{inst.name}: makespan {sched.makespan} ({meta.get('solver', solver)} over ROS 2 topics, "
           f"{meta.get('decisions', '?')} decisions{extra}, valid) in {wall:.2f} s")
     print(f"schedule: {out}")
+    if final.n_jobs != inst.n_jobs:
+        print(f"instance: {ordered} (with the {final.n_jobs - inst.n_jobs} jobs ordered during the run; "
+              f"fms validate {ordered} {out})")
     print(f"sqlite:   {db} (run {run_id})")
     print(f"gantt:    {png}")
     return EXIT_OK
@@ -510,6 +518,24 @@ def _check_parent(path: Path, what: str) -> None:
     above = file_above(path)
     if above is not None:
         raise UpError(f"{what} {path}: {above} is a file, not a folder")
+
+
+def _check_writable(path: Path, what: str, folder: bool) -> None:
+    """Refuse an output that cannot be written, before any node starts (found after the run, it lost the run; an
+    unwritable --gantt-dir left fms up waiting for the chart until --timeout): under a file, an existing file
+    this user may not write, or a folder where no file can be made (tried: the folder, ``path`` itself where
+    ``folder``, is made, a file written there and removed)."""
+    _check_parent(path, what)
+    if not folder and path.exists() and not os.access(path, os.W_OK):
+        raise UpError(f"{what} {path}: the file may not be written (permission denied)")
+    where = path if folder else (path.parent if str(path.parent) else Path("."))
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".fms-up-check.", dir=str(where))
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UpError(f"{what} {path}: nothing can be written in {where} ({exc.strerror or exc})") from None
 
 
 def _from_store(db: Path, read: Callable[[Any], Any], empty: Any) -> Any:

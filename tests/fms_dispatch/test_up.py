@@ -61,6 +61,10 @@ FAKE_NODE = textwrap.dedent('''
         from fms_sim.instance import Instance
         from fms_dispatch.rules import solve_rule
         inst = Instance.from_json(Path(params["instance"]).read_text())
+        if params["ordered"]:  # a live order joined the run: one job more than the instance
+            data = inst.to_dict()
+            data["jobs"].append([{"machine": 1, "tool": None, "duration": 5}])
+            inst = Instance.from_dict(data)
         sched = solve_rule(inst, "SPT", "first")
         if params["bad_schedule"]:
             data = json.loads(sched.to_json())
@@ -83,10 +87,11 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     script = tmp_path / "fake_node.py"
     script.write_text(FAKE_NODE)
 
-    def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0, steady: bool = False) -> None:
+    def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0, steady: bool = False,
+                ordered: bool = False) -> None:
         def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
             extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png"),
-                     "slow": slow, "steady": steady, "run": "t1"}
+                     "slow": slow, "steady": steady, "run": "t1", "ordered": ordered}
             return [sys.executable, str(script), module, json.dumps({**params, **extra})]
         monkeypatch.setattr(up, "node_command", command)
         monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
@@ -127,7 +132,37 @@ def test_a_node_that_will_not_stop_after_a_delivered_run_is_a_warning(fake_nodes
 def test_clean_stops_give_no_warning(fake_nodes, tmp_path: Path, capsys) -> None:
     fake_nodes()
     assert _up(tmp_path) == up.EXIT_OK
-    assert "warning" not in capsys.readouterr().err
+    out = capsys.readouterr()
+    assert "warning" not in out.err and "instance:" not in out.out  # no order: the instance is the one given
+    assert not (tmp_path / "out" / "s.instance.json").exists()
+
+
+def test_a_run_with_live_orders_writes_the_instance_its_schedule_is_valid_for(fake_nodes, tmp_path: Path,
+                                                                              capsys) -> None:
+    """The schedule of a run that took orders has jobs the instance has not: `fms validate INSTANCE` refused it, and
+    the final instance was removed with the work folder. It is written beside the schedule and named."""
+    fake_nodes(ordered=True)
+    assert _up(tmp_path) == up.EXIT_OK
+    final_path = tmp_path / "out" / "s.instance.json"
+    assert f"instance: {final_path} (with the 1 jobs ordered during the run; fms validate {final_path} " in \
+        capsys.readouterr().out
+    sched, final = Schedule.load(tmp_path / "out" / "s.json"), load_instance(str(final_path))
+    assert validate(final, sched) == [] and final.n_jobs == load_instance("EX12").n_jobs + 1
+    assert validate(load_instance("EX12"), sched)  # what the user had before: the ordered job is unknown there
+
+
+@pytest.mark.skipif(not Path("/proc/self").exists(), reason="needs /proc, where no folder can be made")
+@pytest.mark.parametrize("flag", ["--gantt-dir", "--log-dir", "--out", "--db"])
+def test_an_output_where_nothing_can_be_written_is_refused_before_the_run(flag: str, tmp_path: Path,
+                                                                           capsys) -> None:
+    """An unwritable --gantt-dir was found after the run: fms up waited for the chart until --timeout and lost the
+    valid schedule (an unwritable --out lost it too). Checked before any node starts, even for root."""
+    where = "/proc/fms-no-such-folder" + ("" if flag.endswith("dir") else "/x.json")
+    args = {"--out": str(tmp_path / "s.json"), "--db": str(tmp_path / "fms.sqlite"), flag: where}
+    code = up.main(["EX12", "--solver", "first", *[x for kv in args.items() for x in kv]])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{flag} {where}: nothing can be written in /proc/fms-no-such-folder" in err
+    assert not (tmp_path / "s.json").exists()
 
 
 def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_nodes, tmp_path: Path,
