@@ -83,9 +83,15 @@ class Check(Protocol):
     def __call__(self, value: Any, path: str) -> None: ...
 
 
+#: the integers a message may carry: 64-bit, as SQLite (the recorder) and most JSON readers store them (a larger
+#: time was accepted, run by the shop and then failed every insert of the recorder)
+INT64 = (-2**63, 2**63 - 1)
+
+
 @dataclass(frozen=True)
 class Int:
-    """An integer (never a bool, never a float), at least ``minimum`` if given."""
+    """An integer (never a bool, never a float) that fits 64 bits (:data:`INT64`), at least ``minimum`` if
+    given."""
 
     minimum: int | None = None
 
@@ -98,6 +104,8 @@ class Int:
             raise _fail(path, self.expected, value)
         if self.minimum is not None and value < self.minimum:
             raise _fail(path, self.expected, value)
+        if not INT64[0] <= value <= INT64[1]:
+            raise _fail(path, f"{self.expected} of 64 bits (at most {INT64[1]:,})", value)
 
 
 @dataclass(frozen=True)

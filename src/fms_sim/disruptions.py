@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from .files import write_atomically
-from .instance import Instance
+from .instance import MAX_TIME, Instance
 
 __all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS", "MAX_NOISE"]
 
@@ -117,15 +117,16 @@ class Scenario:
                 raise ScenarioError(f"{what} must be a sequence of {kind.__name__}, got {items!r}")
             object.__setattr__(self, what, tuple(items))  # a list given is kept as a tuple: hashable, immutable
         for b in self.breakdowns:
-            if b.start < 0 or b.duration <= 0:
-                raise ScenarioError(f"breakdown of machine {b.machine}: start must be >= 0 and duration > 0, got "
-                                    f"start {b.start}, duration {b.duration}")
+            if not (0 <= b.start <= MAX_TIME and 0 < b.duration <= MAX_TIME):
+                raise ScenarioError(f"breakdown of machine {b.machine}: start must be from 0 and duration from 1 to "
+                                    f"{MAX_TIME:,} (as an instance's times), got start {b.start}, duration {b.duration}")
         for o in self.outages:
             if o.kind not in VEHICLE_KINDS:
                 raise ScenarioError(f"outage kind must be agv or tt, got {o.kind!r}")
-            if o.start < 0 or o.duration <= 0:
-                raise ScenarioError(f"outage of {o.kind} {o.vehicle}: start must be >= 0 and duration > 0, got "
-                                    f"start {o.start}, duration {o.duration}")
+            if not (0 <= o.start <= MAX_TIME and 0 < o.duration <= MAX_TIME):
+                raise ScenarioError(f"outage of {o.kind} {o.vehicle}: start must be from 0 and duration from 1 to "
+                                    f"{MAX_TIME:,} (as an instance's times), got start {o.start}, duration "
+                                    f"{o.duration}")
         _no_overlap(((b.machine, b) for b in self.breakdowns), "machine")
         _no_overlap((((o.kind, o.vehicle), o) for o in self.outages), "vehicle")
 

@@ -289,6 +289,8 @@ def test_missing_required_field(kind: str, key: str) -> None:
     ("state", "run_id", "", "field 'run_id' must be a non-empty string, got '' (string)"),
     ("state", "run_id", 5, "field 'run_id' must be a non-empty string, got 5 (integer)"),
     ("state", "seq", -1, "field 'seq' must be an integer >= 0, got -1 (integer)"),
+    ("state", "time", 2**63, "field 'time' must be an integer >= 0 of 64 bits (at most 9,223,372,036,854,775,807), "
+                             "got 9223372036854775808 (integer)"),
     ("state", "seq", 1.0, "field 'seq' must be an integer >= 0, got 1.0 (number)"),
     ("state", "seq", "1", "field 'seq' must be an integer >= 0, got '1' (string)"),
     ("state", "time", None, "field 'time' must be an integer >= 0, got null"),

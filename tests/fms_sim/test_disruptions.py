@@ -39,10 +39,16 @@ def test_bad_scenarios_are_refused_with_a_reason():
         Scenario(breakdowns=(Breakdown(1, 0, 10), Breakdown(1, 5, 3)))
     with pytest.raises(ScenarioError, match="overlap"):
         Scenario(outages=(Outage("agv", 0, 0, 10), Outage("agv", 0, 9, 3)))
-    with pytest.raises(ScenarioError, match="duration > 0"):
+    with pytest.raises(ScenarioError, match="duration from 1 to 1,000,000,000 .*got start 0, duration 0"):
         Scenario(breakdowns=(Breakdown(1, 0, 0),))
-    with pytest.raises(ScenarioError, match="start must be >= 0"):
+    with pytest.raises(ScenarioError, match="start must be from 0 .*got start -1, duration 3"):
         Scenario(outages=(Outage("agv", 0, -1, 3),))
+    # times past an instance's bound ran (makespan 1e20) and then failed every insert of the recorder
+    with pytest.raises(ScenarioError, match="breakdown of machine 1: .*got start 5, duration 100000000000000000000"):
+        Scenario.from_dict({"breakdowns": [{"machine": 1, "start": 5, "duration": 10**20}]})
+    with pytest.raises(ScenarioError, match="outage of agv 0: .*got start 1000000001, duration 3"):
+        Scenario(outages=(Outage("agv", 0, 10**9 + 1, 3),))
+    Scenario(breakdowns=(Breakdown(1, 10**9, 10**9),))  # the bound itself is a time
     with pytest.raises(ScenarioError, match="agv or tt"):
         Scenario(outages=(Outage("truck", 0, 0, 3),))
     with pytest.raises(ScenarioError, match="noise"):
