@@ -96,6 +96,8 @@ def _jobs(spec: str) -> Any:
 def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     """The message the arguments describe, checked: ``("order" | "disruption", message)``; raises
     :class:`SendError`."""
+    if a.id is not None and not a.id.strip():  # an empty id was replaced by a generated one without a word
+        raise SendError("--id must be a non-empty name (leave it out for a generated one)")
     mid = a.id or f"{a.what}-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}-{uuid.uuid4().hex[:6]}"
     try:
         if a.what == "order":

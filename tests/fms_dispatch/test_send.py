@@ -98,3 +98,7 @@ def test_bad_input_is_refused_before_anything_is_sent(monkeypatch, capsys) -> No
         cmd_send(args("breakdown", "--machine", "1", "--duration", "3", "--domain-id", "300"))
     assert cli.main(["send", "order", "--jobs", "nope", "--domain-id", "3"]) == 2
     assert "fms: error: --jobs is not JSON" in capsys.readouterr().err
+    for empty in ("", "  "):  # it was replaced by a generated id without a word
+        assert cli.main(["send", "breakdown", "--machine", "1", "--duration", "3", "--id", empty,
+                         "--domain-id", "3"]) == 2
+        assert "fms: error: --id must be a non-empty name" in capsys.readouterr().err
