@@ -32,6 +32,7 @@ from __future__ import annotations
 import faulthandler
 import signal
 import sys
+import threading
 import time
 from typing import Any, Callable, Iterable, Sequence
 
@@ -311,6 +312,46 @@ def _arm_stop_watchdog() -> None:
     faulthandler.dump_traceback_later(STOP_STALL_S, exit=True, file=sys.stderr)
 
 
+class _Spinning:
+    """What :func:`_watch_busy_stop` returns: :meth:`release` says that spin returned (no busy callback to bound)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.done = False
+
+    def release(self) -> None:
+        with self.lock:
+            if not self.done:
+                self.done = True
+                faulthandler.cancel_dump_traceback_later()  # the stop reached spin in time: close() is unbounded
+
+
+def _watch_busy_stop(node: Any, poll_s: float = 0.1) -> _Spinning:
+    """Bound a stop that arrives while a callback is busy: once the node's context is shut down (SIGINT/SIGTERM:
+    rclpy shuts it down at once, even while a callback runs), spin returns only when that callback does, which
+    for a plan search can be a minute (``plan:cpsat:60`` at the first state). A watcher thread arms the stop
+    watchdog (:func:`_arm_stop_watchdog`: stacks in the log, exit code 1 after :data:`STOP_STALL_S` s) when it sees
+    the shutdown, unless spin has returned by then (:meth:`_Spinning.release` cancels it). A node without a context
+    (a stand-in) is not watched."""
+    spinning = _Spinning()
+    context = getattr(node, "context", None)
+    if context is None:
+        return spinning
+
+    def watch() -> None:
+        while True:
+            time.sleep(poll_s)
+            with spinning.lock:
+                if spinning.done:
+                    return
+                if not context.ok():
+                    _arm_stop_watchdog()
+                    return
+
+    threading.Thread(target=watch, name="fms-stop-watch", daemon=True).start()
+    return spinning
+
+
 def _shutting_down(grace_s: float) -> bool:
     """Whether rclpy is shut down now or within ``grace_s`` seconds."""
     deadline = time.monotonic() + grace_s
@@ -334,6 +375,7 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
     middleware teardown after it is bounded by :func:`_arm_stop_watchdog` (stacks in the log and exit code 1
     if it stalls).
     """
+    spinning = _watch_busy_stop(node)
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -344,6 +386,7 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
         if not _shutting_down(SHUTDOWN_GRACE_S):
             raise
     finally:
+        spinning.release()
         _ignore_stop_signals()
         try:
             close()

@@ -121,3 +121,56 @@ def test_a_slow_close_is_not_cut_short() -> None:
     res, _ = _stop(2.0, 0.0)
     assert res.returncode == 0, res.stderr
     assert "saved" in res.stdout and "Timeout" not in res.stderr
+
+
+#: a real node whose only callback is busy in native code for about argv[1] s, where a signal cannot interrupt
+#: it (as an agent in CP-SAT's search for its first plan: Python raises the KeyboardInterrupt only when the call
+#: returns); the stop watchdog fires after 1 s
+BUSY_SCRIPT = textwrap.dedent('''
+    import hashlib, sys, time
+    import rclpy
+    from rclpy.node import Node
+    from fms_sim import shop_node
+
+    rclpy.init()
+    node = Node("busy_for_test")
+
+    def busy():
+        print("busy", flush=True)
+        t0 = time.monotonic()
+        hashlib.pbkdf2_hmac("sha256", b"x", b"y", 100_000)
+        rounds = int(float(sys.argv[1]) / max(time.monotonic() - t0, 1e-3) * 100_000)
+        hashlib.pbkdf2_hmac("sha256", b"x", b"y", rounds)  # one C call, no signal handled until it returns
+        print("callback done", flush=True)
+
+    node.create_timer(0.05, busy)
+    shop_node.STOP_STALL_S = 1.0
+    code = shop_node.spin_until_shutdown(node, lambda: print("saved", flush=True))
+    sys.exit(code)
+''')
+
+
+@pytest.mark.parametrize("busy_s, code", [(60.0, 1), (0.3, 0)])
+def test_a_stop_during_a_busy_callback_is_bounded(ros_env: dict[str, str], busy_s: float, code: int) -> None:
+    """SIGINT while a callback is busy (an agent planning at the first state: plan:cpsat:60) stopped the node only
+    when the callback returned, a minute later; now the stop watchdog ends it after STOP_STALL_S with its stacks
+    in the log (exit code 1). A callback that returns in time stops cleanly, its close() unbounded."""
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-c", BUSY_SCRIPT, str(busy_s)], env=ros_env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "busy"
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        wall = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    if code:
+        assert wall < 10 and "Timeout" in err and "in busy" in err  # faulthandler names the busy callback
+        assert "saved" not in out
+    else:
+        assert "saved" in out and "Timeout" not in err
