@@ -368,7 +368,7 @@ def cmd_up(a: argparse.Namespace) -> int:
             _check_writable(path, what, folder=True)
     if png.exists():
         raise UpError(f"run id {run_id!r} was already recorded (its chart {png} exists); choose another --run-id")
-    if run_id in _recorded_run_ids(db):
+    if run_id in _recorded_run_ids(db, strict=True):
         raise UpError(f"run id {run_id!r} is already in {db}; choose another --run-id")
     keep_logs = a.log_dir is not None
     log_dir = Path(a.log_dir) if keep_logs else Path(tempfile.mkdtemp(prefix="fms-up-"))
@@ -559,8 +559,19 @@ def _from_store(db: Path, read: Callable[[Any], Any], empty: Any) -> Any:
         store.close()
 
 
-def _recorded_run_ids(db: Path) -> set[str]:
-    """The run ids already in the recorder's database."""
+def _recorded_run_ids(db: Path, strict: bool = False) -> set[str]:
+    """The run ids already in the recorder's database; with ``strict``, a file there that is not one the recorder
+    can open is refused (:class:`UpError`: before the start; the recorder node found it only after every node had
+    started, and the run failed with exit code 1)."""
+    if strict and db.is_file():
+        import sqlite3
+
+        from fms_sim.recorder_store import RecorderStore
+
+        try:
+            RecorderStore(db).close()
+        except (OSError, ValueError, sqlite3.Error) as exc:
+            raise UpError(f"--db {db} cannot be used as the recorder's database: {exc}") from None
     return _from_store(db, lambda store: set(store.run_ids()), set())
 
 

@@ -308,6 +308,7 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
         con.execute("INSERT INTO runs (run_id, instance, first_seen) VALUES ('t1', 'EX12', 0)")
     cases = [(["--gantt-dir", str(afile)], "--gantt-dir"), (["--log-dir", str(afile)], "--log-dir"),
              (["--out", str(afile / "s.json")], "is a file, not a folder"),
+             (["--db", str(afile)], f"--db {afile} cannot be used as the recorder's database: "),
              (["--timeout", "nan"], "--timeout must be a positive number"),
              (["--timeout", "inf"], "--timeout must be a positive number"),
              (["--replan", "5"], "--replan applies to plan: solvers only"),
