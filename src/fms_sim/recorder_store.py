@@ -97,6 +97,10 @@ def gantt_path(gantt_dir: str | Path, run_id: str) -> Path:
     return Path(gantt_dir) / f"{safe_run_name(run_id)}.gantt.png"
 
 
+#: the first bytes of every SQLite 3 database file
+_SQLITE_HEADER = b"SQLite format 3\x00"
+
+
 class RecorderStore:
     """The SQLite log (see the module docstring). Not thread-safe: one recorder, one thread."""
 
@@ -104,6 +108,12 @@ class RecorderStore:
         self.path = Path(path)
         if self.path.parent and not self.path.parent.exists():
             self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.is_file() and self.path.stat().st_size:  # SQLite made a database of a file shorter than its
+            with open(self.path, "rb") as fh:               # header (a one-line text file): never overwrite one
+                head = fh.read(len(_SQLITE_HEADER))
+            if head != _SQLITE_HEADER:
+                raise ValueError(f"cannot open the recorder database {str(self.path)!r}: the file is not an SQLite "
+                                 "database (left as it is)")
         try:
             self.db = sqlite3.connect(str(self.path), timeout=10.0)
             self.db.execute("PRAGMA journal_mode=WAL")

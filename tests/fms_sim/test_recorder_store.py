@@ -108,6 +108,20 @@ def test_store_incomplete_runs_and_errors(tmp_path: Path) -> None:
         RecorderStore(tmp_path)                                  # a folder, not a file
 
 
+@pytest.mark.parametrize("content", [b"x", b"runs of monday\n" * 100])
+def test_a_file_that_is_not_a_database_is_left_as_it_is(tmp_path: Path, content: bytes) -> None:
+    """SQLite turns a file shorter than its header into a database: a one-byte text file given as the database
+    became a 45 kB one. A non-empty file without SQLite's header is refused, unchanged."""
+    path = tmp_path / "notes.txt"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match="the file is not an SQLite database .left as it is."):
+        RecorderStore(path)
+    assert path.read_bytes() == content
+    (tmp_path / "empty.sqlite").write_bytes(b"")  # an empty file is a new database
+    RecorderStore(tmp_path / "empty.sqlite").close()
+    RecorderStore(tmp_path / "empty.sqlite").close()  # and opens again
+
+
 def test_gantt_path_is_safe() -> None:
     assert gantt_path("out", "EX12-2024-abc") == Path("out/EX12-2024-abc.gantt.png")
     assert gantt_path("out", "../x y/z") == Path("out/_x_y_z.gantt.png")
