@@ -234,7 +234,10 @@ class Scenario:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ScenarioError(f"scenario {path} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except ScenarioError as exc:  # name the file ("unknown scenario field(s): foo" alone did not)
+            raise ScenarioError(f"scenario {path}: {exc}") from None
 
     def save(self, path: str | Path) -> None:
         write_atomically(path, json.dumps(self.to_dict(), indent=1) + "\n")

@@ -201,7 +201,8 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
                 "-q"], capsys)[0] == 0
     assert Schedule.load(out).meta["scenario"]["noise"] == 0.2
     for bad, msg in [({"breakdowns": [{"machine": 9, "start": 0, "duration": 3}]}, "machine 9"),
-                     ({"outages": [{"kind": "agv", "vehicle": 0, "start": 0, "duration": -3}]}, "duration > 0")]:
+                     ({"outages": [{"kind": "agv", "vehicle": 0, "start": 0, "duration": -3}]},
+                      "duration from 1 to 1,000,000,000"), ({"storms": []}, f"scenario {sc}: unknown scenario field")]:
         sc.write_text(json.dumps(bad))
         code, _, err = run(["solve", "EX12", "--scenario", str(sc), "-q"], capsys)
         assert code == 2 and msg in err

@@ -195,3 +195,10 @@ def test_json_instance_with_plain_jobshop(tmp_path: Path) -> None:
     inst.save(tmp_path / "js.json")
     with pytest.raises(InstanceError, match="js has no AGV travel matrix"):
         load_instance(str(tmp_path / "js.json"), agvs=2)
+
+
+def test_an_error_in_a_text_file_names_the_file(tmp_path) -> None:
+    path = tmp_path / "shop.txt"
+    path.write_text("2 2\n0 3 1 4\n1 2 0 x\n")
+    with pytest.raises(InstanceError, match=r"^shop\.txt: line 3: expected integers, got 'x'$"):
+        load_instance(str(path))
