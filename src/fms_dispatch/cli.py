@@ -132,7 +132,15 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if a.solver.lower().startswith("ppo:"):  # and unknown models (a ppo solver finds its model when it runs)
         from .rl.models import resolve_model
 
-        resolve_model(a.solver[4:].split("+", 1)[0].strip())
+        ref = resolve_model(a.solver[4:].split("+", 1)[0].strip())
+        try:
+            effort = guide_effort_from_args(a)
+        except ValueError:
+            effort = None  # a bad value: reported below with the options it concerns
+        flags = [f for f, v in (("--[no-]guide-replan", a.guide_replan), ("plan search options (--guide-*)", effort))
+                 if v is not None]
+        if flags and not ref.config.get("guide"):  # taken and ignored (replan) or refused after the header (effort)
+            raise CliError(f"model {ref.name} reads no plan guide, so it takes no {' and no '.join(flags)}")
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
     check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
     inst = load_from_args(a)

@@ -58,6 +58,10 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "EX12", "--solver", "rule:MTWR+"], "rule name 'rule:MTWR+' has an empty part"),
     (["solve", "EX12", "--solver", "plan:cpsat:abc"], "bad plan solver 'plan:cpsat:abc': 'abc' is not a time budget"),
     (["solve", "EX12", "--solver", "ppo:nonexistent"], "no model named 'nonexistent'"),  # before the header line
+    (["solve", "EX42", "--solver", "ppo:full", "--no-guide-replan"],
+     "model full reads no plan guide, so it takes no --[no-]guide-replan"),
+    (["solve", "EX42", "--solver", "ppo:full", "--guide-tabu", "0"],
+     "model full reads no plan guide, so it takes no plan search options (--guide-*)"),
     (["solve", "EX12", "--solver", "sos", "--time-limit", "nan"], "--time-limit must be a positive, finite number"),
     (["solve", "EX12", "--solver", "first", "--time-limit", "3"], "--time-limit does not apply to first"),
     (["solve", "EX12", "--solver", "list", "--time-limit", "3"], "--time-limit does not apply to list"),

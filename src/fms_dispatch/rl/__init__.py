@@ -62,7 +62,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
-              guide_effort: Any = None, guide_replan: bool = True, **_: Any) -> Schedule:
+              guide_effort: Any = None, guide_replan: bool | None = None, **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
@@ -76,6 +76,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if not agent.fits(instance):
             raise ValueError(agent.misfit(instance))
         agent.use_guide_effort(guide_effort)  # a cached agent: set for every run
+        if guide_replan is not None and agent.guide is None:  # it was taken and ignored
+            raise ValueError(f"model {agent.name} reads no plan guide: guide re-planning does not apply to it")
+        guide_replan = guide_replan is not False  # default: re-plan
         disrupted = scenario is not None and not scenario.empty
         if disrupted and agent.decisions != "full":
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
