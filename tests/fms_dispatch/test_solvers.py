@@ -94,3 +94,8 @@ def test_a_ppo_name_with_a_lookahead_refuses_another():
         solve(inst, "ppo+lookahead-fast", lookahead="guide")
     s = solve(inst, "ppo+lookahead-fast", lookahead="fast")  # the same: taken
     assert s.meta["solver"].endswith("+lookahead-fast") and s.meta["lookahead_fast"] and validate(inst, s) == []
+
+
+def test_guide_replanning_is_refused_for_a_model_without_a_guide():
+    with pytest.raises(ValueError, match="model full reads no plan guide: guide re-planning does not apply to it"):
+        solve(builtin("EX42"), "ppo:full", guide_replan=False)  # it was taken and ignored
