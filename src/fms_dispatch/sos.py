@@ -226,8 +226,9 @@ class _Search:
     """State of one SOS run: population, fitness, the best schedule, budget and progress bookkeeping."""
 
     def __init__(self, decoder: KeyDecoder, rng: np.random.Generator, deadline: float | None,
-                 progress: bool, t0: float):
+                 progress: bool, t0: float, bound: int = 0):
         self.decoder, self.rng, self.deadline, self.progress, self.t0 = decoder, rng, deadline, progress, t0
+        self.bound = bound  # a lower bound on the makespan: once reached, nothing better exists
         self.evaluations = 0
         self.iteration = 0
         self.best_makespan: int | None = None
@@ -236,8 +237,16 @@ class _Search:
         self.history: list[list[int]] = []
         self.last_print = t0
 
+    @property
+    def at_bound(self) -> bool:
+        """Whether the best makespan found is the lower bound (proven optimal: the search can stop)."""
+        return self.best_makespan is not None and self.best_makespan <= self.bound
+
     def out_of_time(self) -> bool:
-        """True once the deadline has passed; the first evaluation is always allowed."""
+        """True once the deadline has passed or the lower bound is reached; the first evaluation is always
+        allowed."""
+        if self.at_bound:
+            return True
         return self.deadline is not None and self.evaluations > 0 and time.perf_counter() >= self.deadline
 
     def budget(self) -> float | None:
@@ -281,8 +290,8 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     ``"rule:MTWR+first"``, or ``"first"``); default :data:`DEFAULT_SEED_RULES`. ``config`` overrides the
     tunables; its population is replaced by ``population``. Unknown keyword options (``workers``) are ignored.
     ``meta``: solver, seed, population, evaluations, iterations, best_makespan_history ([evaluation,
-    makespan] at improvements, at most 20 entries), best_seed ([name, makespan]), stopped ("iterations" or
-    "time_limit").
+    makespan] at improvements, at most 20 entries), best_seed ([name, makespan]), stopped ("iterations",
+    "time_limit", or "lower_bound": the best makespan is :func:`fms_dispatch.exact.simple_lower_bound`, optimal).
     """
     if time_limit is None and iterations is None:
         time_limit = 10.0
@@ -297,7 +306,9 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     deadline = None if time_limit is None else t0 + time_limit
     rng = np.random.default_rng(seed)
     dec = KeyDecoder(instance)
-    search = _Search(dec, rng, deadline, progress, t0)
+    from .exact import simple_lower_bound
+
+    search = _Search(dec, rng, deadline, progress, t0, bound=simple_lower_bound(instance))
     stopped = "iterations"
 
     # 1. rule seeds (time-capped), best distinct ones enter the population
@@ -341,6 +352,8 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
             stopped = _iterate(search, cfg, pop, fit, iterations)
     except TimeUp:
         stopped = "time_limit"
+    if search.at_bound:  # proven optimal: the search stopped there (a 1-operation shop ran its whole budget)
+        stopped = "lower_bound"
 
     assert search.best_shop is not None  # at least one evaluation always happens
     sched = search.best_shop.schedule()

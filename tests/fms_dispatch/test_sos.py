@@ -12,6 +12,7 @@ from fms_dispatch.solvers import solve
 from fms_dispatch.sos import (DEFAULT_SEED_RULES, KeyDecoder, SOSConfig, TimeUp, _vehicle, keys_from_policy,
                               solve_sos)
 from fms_sim.benchmarks import builtin
+from fms_sim.instance import Instance, Operation
 from fms_sim.validate import validate
 
 FEW_SEEDS = ["rule:SPTN+nearest", "rule:MTWR+first"]
@@ -229,3 +230,15 @@ def test_bad_config():
         SOSConfig(benefit_factors=())
     with pytest.raises(ValueError, match="population"):
         SOSConfig(population=1)
+
+
+def test_the_search_stops_at_the_lower_bound():
+    """Once a schedule meets the lower bound nothing better exists: a one-operation shop ran the whole 10 s."""
+    from fms_dispatch.exact import simple_lower_bound
+
+    inst = Instance(name="one", jobs=((Operation(1, None, 5),),), n_machines=1)
+    t0 = time.perf_counter()
+    s = _valid(inst, solve_sos(inst, time_limit=10.0))
+    assert time.perf_counter() - t0 < 2.0
+    assert s.makespan == simple_lower_bound(inst) == 5 and s.meta["stopped"] == "lower_bound"
+    assert solve_sos(builtin("EX12"), iterations=1, population=4).meta["stopped"] == "iterations"  # 82 > its bound
