@@ -300,6 +300,11 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {jobs}")
     out_dir = Path(results_dir)
+    from .cli import file_above
+
+    blocker = out_dir if out_dir.exists() and not out_dir.is_dir() else file_above(out_dir)
+    if blocker is not None:  # "File exists: afile" said nothing of the option
+        raise ValueError(f"--results-dir {results_dir}: {blocker} is a file; name a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     cache_path = out_dir / CACHE_NAME
     cache = read_cache(cache_path)

@@ -304,6 +304,9 @@ def test_bad_library_arguments_are_refused_before_any_work(tmp_path: Path, monke
         bm.bu_tasks(RULES, layout=5)
     with pytest.raises(ValueError, match="--jobs must be >= 1, got 0"):
         bm.run_bench(bm.bu_tasks(RULES, sets=[1]), jobs=0, results_dir=tmp_path)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(ValueError, match="--results-dir .*afile: .*afile is a file; name a folder"):
+        bm.run_bench(bm.bu_tasks(RULES, sets=[1]), results_dir=tmp_path / "afile")
     task = bm.bu_tasks(RULES, sets=[1])[0]
     with pytest.raises(ValueError, match="EX12 has no tools; variant agvs\\+tools does not apply"):
         bm.load_task_instance(replace(task, variant="agvs+tools"))
