@@ -106,9 +106,19 @@ class TopicIO:
         return self.pubs[topic].get_subscription_count()
 
 
+def _asked(node: Any) -> set[str]:
+    """The parameters :func:`param` was asked for on ``node`` (declared, or refused for their value)."""
+    asked = getattr(node, "_fms_asked", None)
+    if asked is None:
+        asked = set()
+        node._fms_asked = asked
+    return asked
+
+
 def param(node: Any, name: str, default: Any) -> Any:
     """Declare a parameter and return its value; a value of the wrong type is a :class:`StartupError`. A number
     parameter also takes an integer (``resend_s:=2``, which ROS parses as an integer)."""
+    _asked(node).add(name)  # a known parameter even when its value is refused (not "unknown")
     try:
         if isinstance(default, float):
             from rcl_interfaces.msg import ParameterDescriptor
@@ -165,7 +175,8 @@ class FmsNode:
         """Parameters given on the command line or in a parameters file that the node did not declare (a
         misspelt name): ROS ignores them."""
         given = getattr(self.node, "_parameter_overrides", None) or {}  # rclpy keeps no public view of them
-        return sorted(name for name in given if not self.node.has_parameter(name))
+        asked = _asked(self.node)
+        return sorted(name for name in given if not self.node.has_parameter(name) and name not in asked)
 
     def _setup(self) -> None:
         raise NotImplementedError

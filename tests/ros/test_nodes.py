@@ -454,6 +454,11 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         res = subprocess.run([sys.executable, "-m", module, "--ros-args", *args], env=ros_env, capture_output=True,
                              text=True, timeout=60)
         assert res.returncode == 2 and needle in res.stderr and "Traceback" not in res.stderr, res.stderr
+    # a parameter of the wrong type is the node's own, not an unknown one (it was listed as both)
+    res = subprocess.run([sys.executable, "-m", SHOP, "--ros-args", "-p", "instance:=5"], env=ros_env,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "parameter 'instance' must be a string" in res.stderr, res.stderr
+    assert "unknown parameters" not in res.stderr
     # --help describes the node and starts nothing (the recorder would create its database here)
     for module in (AGENT, SHOP, RECORDER):
         res = subprocess.run([sys.executable, "-m", module, "--help"], env=ros_env, capture_output=True, text=True,
