@@ -58,6 +58,7 @@ __all__ = ["add_up_parser", "cmd_up", "main", "UpError", "best_rule", "best_solv
            "stop_all"]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_INTERRUPTED = 130  # Ctrl-C, SIGTERM, SIGHUP: as the CLI and shells say it
 
 #: seconds the nodes get to stop after SIGINT before SIGKILL (a node bounds its own teardown at
 #: ``fms_sim.shop_node.STOP_STALL_S``, which is shorter)
@@ -253,6 +254,22 @@ def stop_all(nodes: Sequence[NodeProcess], grace: float = 5.0) -> dict[str, int 
         n.interrupt()
     deadline = time.monotonic() + grace
     return {n.name: n.stop(deadline - time.monotonic()) for n in nodes}
+
+
+def _stop_shielded(nodes: Sequence[NodeProcess]) -> dict[str, int | None]:
+    """:func:`stop_all`, with fms up's stop signals ignored meanwhile: a second Ctrl-C escaped the stop and left
+    a node running (its SIGKILL fallback skipped); the stop is bounded by :data:`STOP_GRACE_S` anyway."""
+    old: dict[int, Any] = {}
+    try:
+        for sig in (signal.SIGINT, *STOP_SIGNALS):
+            old[sig] = signal.signal(sig, signal.SIG_IGN)
+    except ValueError:  # not the main thread: signals reach only the main thread
+        pass
+    try:
+        return stop_all(nodes, STOP_GRACE_S)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def _print_logs(nodes: Sequence[NodeProcess]) -> None:
@@ -456,12 +473,18 @@ def cmd_up(a: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         failure = "interrupted"
     finally:
-        codes = stop_all(list(reversed(nodes)), STOP_GRACE_S)
+        codes = _stop_shielded(list(reversed(nodes)))
         stop_on_term.restore()
     wall = time.perf_counter() - t0
-    unclean = {k: c for k, c in codes.items() if c not in (0, None)}
+    # a node interrupted before it could install its own handler (still importing) ends by the signal: clean then
+    cleanly = (0, None) + ((-signal.SIGINT, 128 + signal.SIGINT) if failure == "interrupted" else ())
+    unclean = {k: c for k, c in codes.items() if c not in cleanly}
     stop_note = ("a node did not stop cleanly: " + ", ".join(f"{k} exit code {c}" for k, c in unclean.items())
                  if unclean else None)
+    if failure == "interrupted":  # the user's stop, said as the CLI says it; only a node that failed to stop shows
+        print("fms: interrupted" + (f"; {stop_note}" if stop_note else "") + f" (logs: {log_dir})", file=sys.stderr)
+        _print_logs([n for n in nodes if n.name in unclean])
+        return EXIT_INTERRUPTED
     sched: Schedule | None = None
     if failure is None:
         try:

@@ -55,8 +55,10 @@ FAKE_NODE = textwrap.dedent('''
             store.add_event({"run_id": params["run"], "seq": seq, "time": 10 * seq, "kind": "op_end", "data": {}})
             seq += 1
         store.close()
-    elif params["slow"]:
-        time.sleep(params["slow"])
+    elif params["slow"]:  # a run under way; a stop still ends the node at once
+        end = time.monotonic() + params["slow"]
+        while time.monotonic() < end and not stopped:
+            time.sleep(0.02)
     if role == "shop":
         from fms_sim.instance import Instance
         from fms_dispatch.rules import solve_rule
@@ -322,6 +324,20 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
                         "--out", str(tmp_path / "s.json"), *extra])
         err = capsys.readouterr().err
         assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, (extra, err)
+
+
+def test_ctrl_c_stops_the_run_with_exit_130_and_no_node_logs(fake_nodes, tmp_path: Path, capsys) -> None:
+    """An interrupted run says so as the CLI does (exit 130; it was exit 1 or 130 by timing, with every node's log
+    tail printed, tracebacks of a node still importing among them)."""
+    import threading
+
+    fake_nodes(slow=5.0)
+    threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT)).start()
+    t0 = time.monotonic()
+    assert _up(tmp_path) == up.EXIT_INTERRUPTED == 130
+    err = capsys.readouterr().err
+    assert "\nfms: interrupted (logs: " in err and " log (" not in err, err  # after the start line
+    assert time.monotonic() - t0 < 5.0 and not (tmp_path / "out" / "s.json").exists()
 
 
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGQUIT"])
