@@ -932,7 +932,6 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--instance", help="instance (default sl30; quick sl00)")
     p.add_argument("--model", help="RL model (default: the shipped model for the instance)")
     p.add_argument("--sos-time", type=float, help="SOS time limit per re-solve in s (default 5; quick 0.2)")
-    p.add_argument("--steps", type=int, help="unused (no training in this experiment)")
     p.set_defaults(fn=_cmd)
     p = sub.add_parser("disruptions", help="plans, re-planning and rules under breakdowns and noise")
     common(p)
