@@ -75,6 +75,14 @@ def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
         return None
     from .rl.guide import effort_from
 
+    for flag, key in (("--guide-restarts", "restarts"), ("--guide-budget", "budget"), ("--guide-exact", "exact"),
+                      ("--guide-tabu", "tabu")):  # each bad value named by its option
+        value = getattr(a, flag[2:].replace("-", "_"))
+        if value is not None:
+            try:
+                effort_from(**{key: value})
+            except ValueError as exc:
+                raise ValueError(f"{flag}: {exc}") from None
     return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu)
 
 
@@ -186,7 +194,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as e:
-        raise CliError(f"--guide-restarts/--guide-budget/--guide-tabu/--guide-exact: {e}") from None
+        raise CliError(str(e)) from None
     if effort is not None:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu and --guide-exact "

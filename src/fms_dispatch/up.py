@@ -316,7 +316,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     try:
         effort = guide_effort_from_args(a)
     except ValueError as exc:
-        raise UpError(f"--guide-restarts/--guide-budget/--guide-tabu/--guide-exact: {exc}") from None
+        raise UpError(str(exc)) from None
     disrupted = bool(a.scenario) or bool(a.noise)
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort, disrupted)
