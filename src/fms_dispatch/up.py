@@ -437,6 +437,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         + (f"; {a.time_scale:g} s per time unit" if a.time_scale else "")
         + ("; the shop waits for each re-plan" if wait else ""))
     failure: str | None = None
+    chart_missing = False  # the run delivered, but the recorder rendered no chart in time
     stop_on_term = _TermAsInterrupt()  # `kill` / a supervisor's SIGTERM stops the nodes as Ctrl-C does
     try:
         for node in nodes:
@@ -462,6 +463,9 @@ def cmd_up(a: argparse.Namespace) -> int:
                     seen, deadline = progress, now + a.timeout
                 next_check = now + min(PROGRESS_S, a.timeout / 4)
             if now > deadline:
+                if sched_tmp.exists() and inst_final.exists():  # delivered: only the chart is missing; the
+                    chart_missing = True                         # schedule is not lost for it
+                    break
                 missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
                 failure = (f"timed out: no progress for {a.timeout:g} s while waiting for {', '.join(missing)}; "
                            f"{_progress_text(seen, inst.n_operations)} (longer pauses need --timeout)")
@@ -517,7 +521,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_FAILED
-    if not keep_logs:
+    if not keep_logs and not chart_missing:
         shutil.rmtree(log_dir, ignore_errors=True)
     meta = sched.meta
     from .cli import replans_summary
@@ -530,6 +534,11 @@ def cmd_up(a: argparse.Namespace) -> int:
         print(f"instance: {ordered} (with the {final.n_jobs - inst.n_jobs} jobs ordered during the run; "
               f"fms validate {ordered} {out})")
     print(f"sqlite:   {db} (run {run_id})")
+    if chart_missing:
+        print(f"fms up: error: the run is complete and its schedule written, but the recorder rendered no chart "
+              f"({png}) within --timeout {a.timeout:g} s", file=sys.stderr)
+        _print_logs([n for n in nodes if n.name == "recorder"])
+        return EXIT_FAILED
     print(f"gantt:    {png}")
     return EXIT_OK
 

@@ -76,7 +76,7 @@ FAKE_NODE = textwrap.dedent('''
             text = sched.to_json()
         Path(params["instance_out"]).write_text(inst.to_json())
         Path(params["schedule_out"]).write_text(text)
-    if role == "recorder":
+    if role == "recorder" and not params["no_chart"]:
         Path(params["png"]).parent.mkdir(parents=True, exist_ok=True)
         Path(params["png"]).write_bytes(b"png")
     while not stopped:
@@ -90,10 +90,11 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     script.write_text(FAKE_NODE)
 
     def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0, steady: bool = False,
-                ordered: bool = False) -> None:
+                ordered: bool = False, no_chart: bool = False) -> None:
         def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
             extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png"),
-                     "slow": slow, "steady": steady, "run": "t1", "ordered": ordered}
+                     "slow": slow, "steady": steady, "run": "t1", "ordered": ordered,
+                     "no_chart": no_chart}
             return [sys.executable, str(script), module, json.dumps({**params, **extra})]
         monkeypatch.setattr(up, "node_command", command)
         monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
@@ -137,6 +138,17 @@ def test_clean_stops_give_no_warning(fake_nodes, tmp_path: Path, capsys) -> None
     out = capsys.readouterr()
     assert "warning" not in out.err and "instance:" not in out.out  # no order: the instance is the one given
     assert not (tmp_path / "out" / "s.instance.json").exists()
+
+
+def test_a_chart_that_never_comes_does_not_lose_the_delivered_schedule(fake_nodes, tmp_path: Path, capsys) -> None:
+    """The recorder failing to render (a full disk) left fms up waiting until --timeout, then failing with 'no
+    progress' and without writing the valid schedule it had."""
+    fake_nodes(no_chart=True)
+    assert _up(tmp_path, "--timeout", "1") == up.EXIT_FAILED
+    out = capsys.readouterr()
+    assert "the run is complete and its schedule written, but the recorder rendered no chart" in out.err
+    assert "  recorder log (" in out.err and "gantt:" not in out.out
+    assert validate(load_instance("EX12"), Schedule.load(tmp_path / "out" / "s.json")) == []
 
 
 def test_a_run_with_live_orders_writes_the_instance_its_schedule_is_valid_for(fake_nodes, tmp_path: Path,
