@@ -148,6 +148,14 @@ class _Tables:
         self.dur_list: list[list[int]] = self.dur.tolist()  # the same, for reads of one item at a time
         self.travel: np.ndarray | None = None  # the AGV travel matrix as an array, made when first needed
 
+    def serves(self, inst: Instance) -> bool:
+        """Whether these tables describe ``inst`` too: its own, or an equal copy's (a twin's, a live order's
+        continuation) — the same jobs, machines and AGV travel times (the tables hold all three; the BU shops
+        share their jobs across layouts, and one layout's travel times observed another's)."""
+        mine = self.instance
+        return inst is mine or (inst.jobs == mine.jobs and inst.n_machines == mine.n_machines
+                                and inst.agv_travel == mine.agv_travel)
+
 
 class ShopEnv(gym.Env):
     """Dispatching environment; see the module docstring for spaces and rewards.
@@ -354,7 +362,7 @@ class ShopEnv(gym.Env):
         inst = self.shop.instance
         if self._tables_for is not inst:
             tb = self._tables
-            if tb is None or (tb.instance is not inst and tb.instance.jobs != inst.jobs):
+            if tb is None or not tb.serves(inst):
                 tb = _Tables(inst)
             self._tables, self._tables_for = tb, inst
         return self._tables

@@ -99,3 +99,20 @@ def test_a_ppo_name_with_a_lookahead_refuses_another():
 def test_guide_replanning_is_refused_for_a_model_without_a_guide():
     with pytest.raises(ValueError, match="model full reads no plan guide: guide re-planning does not apply to it"):
         solve(builtin("EX42"), "ppo:full", guide_replan=False)  # it was taken and ignored
+
+
+def test_a_models_run_does_not_depend_on_the_shop_solved_before():
+    """The agent shares its env's tables between runs; the BU layouts share their jobs, and EX13 was solved with
+    the travel times of the layout solved before it (114 from a fresh agent, 96 after EX12)."""
+    from fms_dispatch.rl.models import load_agent
+
+    def plain(s):
+        return {k: v for k, v in s.to_dict().items() if k != "meta"}  # meta holds wall times
+
+    load_agent("full").forget()  # nothing left from earlier runs in this process
+    ref = solve(builtin("EX13"), "ppo:full")
+    assert validate(builtin("EX13"), ref) == []
+    for before in ("EX12", "EX14", "EX11"):
+        load_agent("full").forget()
+        solve(builtin(before), "ppo:full")
+        assert plain(solve(builtin("EX13"), "ppo:full")) == plain(ref), before
