@@ -715,8 +715,8 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     Reproducible for a given ``seed`` while the time limit does not cut it short. ``progress(makespan, iteration,
     seconds)`` is called at every better schedule.
 
-    ``plan`` is a whole schedule of ``inst``, or, with ``origin`` (the :class:`~fms_sim.snapshot.Snapshot` of a
-    running shop), a residual plan from that state (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``):
+    ``plan`` is a whole schedule of ``inst`` (ValueError if the validator refuses it for ``inst``), or, with
+    ``origin`` (the :class:`~fms_sim.snapshot.Snapshot` of a running shop), a residual plan from that state (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``):
     then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
     when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
     is a residual plan from the same state."""
@@ -734,6 +734,13 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
                          f"{plan.meta.get('residual')!r})")
     if origin is not None:
         origin.check_of(inst)
+    else:  # another shop's plan came back as this one's best (EX12's for EX13), or failed deep inside (KeyError)
+        from fms_sim.validate import validate
+
+        problems = validate(inst, plan)
+        if problems:
+            raise ValueError(f"the plan is not a valid schedule of {inst.name}: {problems[0]}"
+                             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
     if budget == 0 or max_iters == 0 or plan.makespan <= bound or (origin is not None and not origin.remaining):
         return plan
     t0 = time.monotonic()

@@ -295,7 +295,7 @@ class ShopEnv(gym.Env):
 
     def action_masks(self) -> np.ndarray:
         m = np.zeros(self.n_actions, dtype=bool)
-        if self.shop is None or self.shop.done:
+        if self.shop is None or self.shop.done or self._ended:  # ended by an invalid action too: step refuses all
             return m
         if self.decisions == "full":  # one table lookup for all legal actions
             m[self._net_to_env_arr[self.shop.legal_actions()]] = True

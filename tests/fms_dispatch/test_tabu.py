@@ -197,3 +197,13 @@ def test_the_residual_lower_bound_holds_what_has_started_and_what_remains():
     assert snap.now > 0 and residual_lower_bound(snap) >= snap.makespan
     # every continuation ends at or after it: the list schedule's residual plan, run to its end
     assert finish_by(nominal_copy(shop), greedy_schedule(inst, origin=snap)).makespan >= residual_lower_bound(snap)
+
+
+def test_another_shops_plan_is_refused():
+    """EX12's plan given for EX13 (the same jobs, another layout) came back as EX13's best schedule, infeasible;
+    a plan of other jobs failed with a bare KeyError."""
+    ex12, ex13, ex22 = builtin("EX12"), builtin("EX13"), builtin("EX22")
+    with pytest.raises(ValueError, match="^the plan is not a valid schedule of EX13: "):
+        tabu_plan(ex13, greedy_schedule(ex12), budget=0.2)
+    with pytest.raises(ValueError, match="^the plan is not a valid schedule of EX12: "):
+        tabu_plan(ex12, greedy_schedule(ex22), budget=0.2)

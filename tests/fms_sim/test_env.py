@@ -118,6 +118,8 @@ def test_invalid_action_raises_or_ends_with_penalty():
     env2.reset(seed=0)
     _, r, done, _, info = env2.step(bad)
     assert done and r == -5 and info["invalid_action"]
+    # as after a normal end, nothing is offered: the shop's legal actions were, and step refused each
+    assert not env2.action_masks().any() and not info["action_mask"].any()
     with pytest.raises(RuntimeError, match="episode has ended"):
         env2.step(bad)
 
