@@ -21,10 +21,14 @@ Rewards (``reward=``):
 
 * ``"idle"`` — the paper's: ``-(idle machines / machines)`` after every decision;
 * ``"makespan"`` — sparse: ``-makespan / scale`` at the end, 0 before;
-* ``"shaped"`` — ours: potential-based on a makespan lower bound ``LB`` (max over machines of busy-until plus
-  work still to come on it, max over jobs of the time their part is free plus remaining work, and the clock):
-  reward ``-(LB_after - LB_before) / scale``. The episode sum is ``-(makespan - LB_0) / scale``, so it ranks
-  schedules exactly as the makespan does while giving a signal at every step.
+* ``"shaped"`` — ours: potential-based on a makespan estimate ``LB`` (:meth:`ShopEnv._lower_bound`): the largest of
+  the clock, the latest end recorded so far, the clock plus the most work a job has not begun, and per machine its
+  busy-until (or the clock) plus the work not begun on it. "Not begun" counts from the operations whose
+  processing has started on the full net and from the dispatched ones on the paper's net, where a dispatched
+  operation's machine is not yet busy: its work leaves ``LB`` until it starts, so ``LB`` can fall at a step and
+  that step's reward be positive. Reward ``-(LB_after - LB_before) / scale``; the episode sum is ``-(makespan -
+  LB_0) / scale`` whatever the steps, so it ranks schedules exactly as the makespan does while giving a signal at
+  every step.
 
 Disruptions (``disruptions=``, full net only): every episode runs in a shop disrupted by a scenario
 (:class:`fms_sim.disruptions.Scenario`: noise on every duration, machine breakdowns), so that a policy can be
