@@ -22,7 +22,7 @@ import random
 import time
 from typing import Any, Callable
 
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import Schedule
 from fms_sim.shop import run_policy
 
@@ -130,6 +130,8 @@ def solver_names() -> list[str]:
 
 def get_solver(name: str) -> Solver:
     """The solver function for a name; raises :class:`UnknownSolver` with the list of names."""
+    if not isinstance(name, str):
+        raise UnknownSolver(f"a solver is named by a string, got {type(name).__name__} {name!r:.60}")
     low = name.lower()
     if low == "first":
         return _first
@@ -362,6 +364,7 @@ def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule
     (:func:`check_options`)."""
     options = check_options(options)
     fn = get_solver(solver)
+    require_instance(instance, "solve")
     scenario = options.get("scenario")
     if scenario is not None and scenario.empty:
         options = {k: v for k, v in options.items() if k != "scenario"}

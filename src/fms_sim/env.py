@@ -50,7 +50,7 @@ from gymnasium import spaces
 
 from .disruptions import MAX_NOISE, Scenario
 from .full_shop import DECISIONS, FullShop, make_shop
-from .instance import Instance
+from .instance import Instance, require_instance
 from .petri import InvalidAction
 from .shop import Shop
 
@@ -249,7 +249,8 @@ class ShopEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
-        inst = (options or {}).get("instance") or self._sample(self.np_random)
+        inst = require_instance((options or {}).get("instance") or self._sample(self.np_random),
+                                "the env's episode (reset's options['instance'] or its instance sampler)")
         self._check_fits(inst)
         self.instance = inst
         scenario = (options or {}).get("scenario")

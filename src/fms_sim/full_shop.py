@@ -35,7 +35,7 @@ import copy
 from dataclasses import replace
 from functools import partial
 from .disruptions import Breakdown, Outage, Scenario, ScenarioError
-from .instance import Instance
+from .instance import Instance, require_instance
 from .petri import Arc, InvalidAction, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
@@ -74,8 +74,11 @@ class FullShop(Shop):
     decisions = "full"
 
     def __init__(self, instance: Instance, *, incremental: bool = True, scenario: Scenario | None = None):
+        if scenario is not None and not isinstance(scenario, Scenario):
+            raise TypeError(f"scenario must be a Scenario (Scenario.from_dict reads a dict), got "
+                            f"{type(scenario).__name__}")
         if scenario is not None:
-            scenario.check(instance)
+            scenario.check(require_instance(instance, "FullShop"))
         self.scenario = scenario if scenario is not None and not scenario.empty else None
         self._kinds: list[tuple[str, int]] = []  # action_kind per controllable transition, parsed once
         super().__init__(instance, incremental=incremental)

@@ -25,7 +25,7 @@ from typing import Any, Iterable, Sequence
 
 from .files import write_atomically
 
-__all__ = ["Operation", "Instance", "InstanceError"]
+__all__ = ["Operation", "Instance", "InstanceError", "require_instance"]
 
 Matrix = tuple[tuple[int, ...], ...]
 
@@ -330,3 +330,14 @@ def _op(j: int, k: int, op: Any) -> Operation:
 def jobs_from_rows(rows: Iterable[Iterable[tuple[int, int | None, int]]]) -> tuple[tuple[Operation, ...], ...]:
     """Build the jobs tuple from ``(machine, tool, duration)`` triples."""
     return tuple(tuple(Operation(m, t, d) for m, t, d in ops) for ops in rows)
+
+
+def require_instance(obj: object, who: str) -> Instance:
+    """``obj`` if it is an :class:`Instance`; else a TypeError naming ``who`` (the function or class given it) and
+    how to get one: a name or a dict reached attribute errors deep inside."""
+    if isinstance(obj, Instance):
+        return obj
+    hint = ("fms_sim.benchmarks.builtin or fms_sim.formats.load_instance reads one by name" if isinstance(obj, str)
+            else "Instance.from_dict reads one from a dict" if isinstance(obj, dict)
+            else "build one with Instance(...) or load it")
+    raise TypeError(f"{who} takes an Instance ({hint}), got {type(obj).__name__} {obj!r:.60}")

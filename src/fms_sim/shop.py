@@ -34,7 +34,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Iterator, Sequence
 
-from .instance import Instance, InstanceError, Operation
+from .instance import Instance, InstanceError, Operation, require_instance
 from .petri import Arc, Deadlock, InvalidAction, Net, NetState, Output, Place, Transition
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 
@@ -94,7 +94,7 @@ class Shop:
     """The decision space of this net (see :data:`fms_sim.full_shop.DECISIONS`)."""
 
     def __init__(self, instance: Instance, *, incremental: bool = True):
-        self.instance = instance
+        self.instance = instance = require_instance(instance, type(self).__name__)
         self.net = Net(incremental=incremental)
         self._stamp = 0
         self.rec = _Records()

@@ -113,6 +113,8 @@ def can_snapshot(shop: FullShop) -> bool:
 
 def snapshot(shop: FullShop) -> Snapshot:
     """The :class:`Snapshot` of ``shop`` now; raises ``ValueError`` unless :func:`can_snapshot`."""
+    if not isinstance(shop, FullShop):  # a paper-net Shop failed deep inside (no tool_choice)
+        raise TypeError(f"a snapshot is taken of a FullShop (the full-decision net), not a {type(shop).__name__}")
     if not can_snapshot(shop):
         raise ValueError(f"no snapshot at time {shop.now}: a vehicle or tool-use choice is pending")
     inst, now = shop.instance, shop.now
@@ -201,8 +203,9 @@ def nominal_copy(shop: FullShop) -> FullShop:
     """A copy of ``shop`` whose future is what a decider can expect: running operations end at the estimate of
     :class:`Snapshot`, everything still to come takes its nominal time (no noise), and breakdowns and outages
     that have not begun do not happen (the ones under way end as known). The copy can be run to the end."""
+    if not isinstance(shop, FullShop):
+        raise TypeError(f"a nominal copy is made of a FullShop (the full-decision net), not a {type(shop).__name__}")
     sim = shop.copy()
-    assert isinstance(sim, FullShop)
     sc = shop.scenario
     if sc is None:
         return sim

@@ -28,7 +28,7 @@ from itertools import groupby
 from typing import Iterable
 
 from .disruptions import Scenario, ScenarioError
-from .instance import Instance
+from .instance import Instance, require_instance
 from .schedule import Schedule
 
 __all__ = ["validate", "check", "ScheduleInvalid"]
@@ -54,6 +54,10 @@ def check(instance: Instance, schedule: Schedule, scenario: Scenario | None = No
 def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None = None) -> list[str]:
     """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
     (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
+    require_instance(instance, "validate")
+    if not isinstance(schedule, Schedule):
+        raise TypeError(f"validate takes a Schedule (Schedule.from_dict or Schedule.load reads one), got "
+                        f"{type(schedule).__name__}")
     errs: list[str] = []
     recorded = schedule.meta.get("scenario")
     if scenario is None and recorded is not None and not isinstance(recorded, dict):  # it was silently ignored

@@ -32,6 +32,7 @@ from fms_sim.env import (AGV_FEATURES, FULL_GLOBAL_FEATURES, FULL_JOB_FEATURES, 
                          JOB_FEATURES, MACHINE_FEATURES, OBS_HIGH, TOOL_FEATURES, ShopEnv)
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
+from fms_sim.full_shop import FullShop
 from fms_sim.shop import Shop
 
 from .guide import (GUIDE_AGV_FEATURES, GUIDE_JOB_FEATURES, GUIDE_TOOL_FEATURES, GUIDE_TT_FEATURES, REPLAN_MARGIN,
@@ -55,6 +56,13 @@ PADDING: dict[str, dict[str, int]] = {
 def padding_for(profile: str | dict[str, int] | None, instances: Sequence[Instance]) -> dict[str, int]:
     """Env padding: a named profile, an explicit dict, or ``None``/``"auto"`` = the largest of ``instances``."""
     if isinstance(profile, dict):
+        keys = set(PADDING["large"])
+        missing = [k for k in PADDING["large"] if k not in profile]
+        unknown = sorted(set(profile) - keys)
+        if missing or unknown:  # a bare KeyError, or a misspelt key silently dropped
+            raise ValueError(f"a padding names {', '.join(PADDING['large'])}"
+                             + (f"; missing: {', '.join(missing)}" if missing else "")
+                             + (f"; unknown: {', '.join(unknown)}" if unknown else ""))
         return {k: int(profile[k]) for k in PADDING["large"]}
     if profile in (None, "auto"):
         if not instances:
@@ -126,6 +134,8 @@ class FastShopEnv(ShopEnv):
     def __init__(self, instances, *, guide: str | None = None, guide_effort: PlanEffort = PlanEffort(), **kwargs):
         super().__init__(instances, **kwargs)
         check_guide(guide, self.decisions)
+        if not isinstance(guide_effort, PlanEffort):  # it failed at the first reset, deep in the plan search
+            raise TypeError(f"guide_effort must be a PlanEffort, got {type(guide_effort).__name__}")
         self.guide = guide
         self.guide_effort = guide_effort
         self._plan_guide: PlanGuide | None = None
@@ -149,6 +159,7 @@ class FastShopEnv(ShopEnv):
         """The guide of the observed shop (see :meth:`_guide`); raises ValueError for an env without a guide."""
         if self.guide is None:
             raise ValueError("this env has no plan guide (guide=None)")
+        self._attached()
         return self._guide()
 
     def _guide(self) -> PlanGuide:
@@ -192,6 +203,7 @@ class FastShopEnv(ShopEnv):
         """What a re-plan of the guide needs besides the shop (:func:`~fms_dispatch.rl.guide.replan_search`): the plan
         in force and the search (``effort``, by default this env's, cut to ``budget`` seconds). Checked as
         :meth:`replan_guide` says."""
+        self._attached()
         if margin is not None and not 0 <= margin < 1:
             raise ValueError(f"the re-planning margin must be in [0, 1) or None, got {margin!r}")
         if budget is not None and not budget >= 0:
@@ -239,7 +251,12 @@ class FastShopEnv(ShopEnv):
 
     # ------------------------------------------------------------------ live shops
     def attach(self, shop: Shop) -> None:
-        """Observe ``shop`` (any state) as if it were this env's episode; does not reset or step it."""
+        """Observe ``shop`` (any state) as if it were this env's episode; does not reset or step it. Stepping
+        goes on from its state (the shaped reward from its potential now)."""
+        if isinstance(shop, FullShop) != (self.decisions == "full"):  # the other way round crashed in _obs
+            raise ValueError(f"an env with decisions={self.decisions!r} observes a "
+                             f"{'FullShop' if self.decisions == 'full' else 'paper-net Shop'}, not a "
+                             f"{type(shop).__name__}")
         inst = shop.instance
         self._check_fits(inst)
         self.shop = shop
@@ -247,18 +264,29 @@ class FastShopEnv(ShopEnv):
         self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
         self._total_ops = inst.n_operations
+        self._ended = shop.done  # a new shop: not the end of the last episode
+        self._lb = self.potential()  # the shaped reward counts from here
+
+    def _attached(self) -> Shop:
+        """The observed shop; a clear error before :meth:`reset` or :meth:`attach` (not an AttributeError)."""
+        if self.shop is None:
+            raise RuntimeError("no shop to observe: call reset() or attach(shop) first")
+        return self.shop
 
     def observe(self) -> tuple[np.ndarray, np.ndarray]:
         """(observation, action mask) of the attached shop."""
+        self._attached()
         return self._obs(), self.action_masks()
 
     def potential(self) -> int:
         """The shaped reward's potential of the attached shop: its makespan lower bound (the makespan once done);
         a decision's shaped reward is ``-(potential after - potential before) / scale``."""
-        return self.shop.makespan if self.shop.done else self._lower_bound()
+        shop = self._attached()
+        return shop.makespan if shop.done else self._lower_bound()
 
     def to_net_action(self, a: int) -> int | None:
         """Net action index of padded action ``a`` (None for an empty slot)."""
+        self._attached()
         return self._to_net(int(a))
 
     def from_net_action(self, a: int) -> int:

@@ -1,0 +1,77 @@
+"""Plausible mistakes with the library API end in one clear error naming what was wrong (they reached attribute
+errors deep inside: a name for an instance, a dict for a scenario or schedule, an env used before reset)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fms_dispatch.rl.envs import FastShopEnv, padding_for
+from fms_dispatch.solvers import UnknownSolver, get_solver, solve
+from fms_sim.benchmarks import builtin
+from fms_sim.full_shop import FullShop, make_shop
+from fms_sim.replay import replay
+from fms_sim.shop import Shop
+from fms_sim.snapshot import nominal_copy, snapshot
+from fms_sim.env import ShopEnv
+from fms_sim.validate import validate
+
+
+def test_a_name_or_a_dict_for_an_instance_schedule_or_scenario_is_named() -> None:
+    ex12 = builtin("EX12")
+    s = solve(ex12, "list")
+    for call, who in ((lambda: solve("EX12", "list"), "solve"), (lambda: Shop("EX12"), "Shop"),
+                      (lambda: make_shop("EX12"), "FullShop"), (lambda: validate("EX12", s), "validate")):
+        with pytest.raises(TypeError, match=f"^{who} takes an Instance .fms_sim.benchmarks.builtin or "
+                                            "fms_sim.formats.load_instance reads one by name., got str 'EX12'"):
+            call()
+    with pytest.raises(TypeError, match=r"^validate takes a Schedule .Schedule.from_dict or Schedule.load reads one., "
+                                        r"got dict$"):
+        validate(ex12, s.to_dict())
+    with pytest.raises(TypeError, match="^validate takes a Schedule"):
+        replay(ex12, s.to_dict())
+    with pytest.raises(TypeError, match=r"^scenario must be a Scenario .Scenario.from_dict reads a dict., got dict$"):
+        FullShop(ex12, scenario={"noise": 0.1})
+    with pytest.raises(UnknownSolver, match="^a solver is named by a string, got NoneType None"):
+        get_solver(None)
+    with pytest.raises(TypeError, match="the env's episode .* takes an Instance .*got str 'EX12'"):
+        ShopEnv(ex12).reset(options={"instance": "EX12"})
+    paper = make_shop(ex12, "paper")
+    with pytest.raises(TypeError, match="^a snapshot is taken of a FullShop .the full-decision net., not a Shop$"):
+        snapshot(paper)
+    with pytest.raises(TypeError, match="^a nominal copy is made of a FullShop"):
+        nominal_copy(paper)
+
+
+def test_an_env_used_before_reset_or_given_the_wrong_shop_says_so() -> None:
+    ex12 = builtin("EX12")
+    for call in (lambda e: e.observe(), lambda e: e.potential(), lambda e: e.to_net_action(0),
+                 lambda e: e.plan_guide(), lambda e: e.replan_guide()):
+        with pytest.raises(RuntimeError, match=r"^no shop to observe: call reset\(\) or attach\(shop\) first$"):
+            call(FastShopEnv(ex12, decisions="full", guide="list"))
+    with pytest.raises(TypeError, match="^guide_effort must be a PlanEffort, got int$"):
+        FastShopEnv(ex12, decisions="full", guide="list", guide_effort=3)
+    with pytest.raises(ValueError, match="decisions='paper' observes a paper-net Shop, not a FullShop"):
+        FastShopEnv(ex12).attach(make_shop(ex12, "full"))  # an UnboundLocalError in _obs
+    with pytest.raises(ValueError, match="missing: max_machines, max_tools, max_agvs, max_tts; unknown: jobs$"):
+        padding_for({"max_jobs": 10, "jobs": 3}, [ex12])
+
+
+def test_an_attached_shop_can_be_stepped_from_its_state() -> None:
+    """attach set neither the episode's end nor its reward's potential: step failed (no _lb), or refused a live
+    shop after a finished episode ('the episode has ended'), or counted the reward from the old episode."""
+    ex12 = builtin("EX12")
+    env = FastShopEnv(ex12)
+    env.reset(seed=0)
+    while not env.step(int(np.flatnonzero(env.action_masks())[0]))[2]:
+        pass
+    shop = make_shop(ex12, "paper")
+    for _ in range(4):
+        shop.act(shop.legal_actions()[0])
+    env.attach(shop)
+    before = env.potential()
+    _, reward, done, _, _ = env.step(int(np.flatnonzero(env.action_masks())[0]))
+    assert not done and reward == pytest.approx(-(env.potential() - before) / env._scale)
+    fresh = FastShopEnv(ex12)
+    fresh.attach(make_shop(ex12, "paper"))  # never reset: stepping works too
+    fresh.step(int(np.flatnonzero(fresh.action_masks())[0]))
