@@ -31,7 +31,7 @@ from .disruptions import Scenario, ScenarioError
 from .instance import Instance, require_instance
 from .schedule import Schedule
 
-__all__ = ["validate", "check", "ScheduleInvalid"]
+__all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders"]
 
 
 class ScheduleInvalid(ValueError):
@@ -231,13 +231,20 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
 
 
 def _tool_order(us: list[tuple], trips: dict) -> list[tuple]:
-    """The uses of one tool in the order the tool serves them: by time; among uses at the same instant (zero
-    durations), one on the machine where the tool is before one it must be carried to, carried ones by their trip's
-    start (by job number, a feasible schedule whose trip served job 1 before job 0's use was called infeasible)."""
+    """The uses of one tool (``(start, end, job, op, machine)``) in the order the tool serves them: by time; uses at
+    the same instant (zero durations) in an order the tool can follow (:func:`_tied_order`), else, for the errors to
+    name, one on the machine where the tool is before one it must be carried to, carried ones by their trip's start.
+    (Job numbers decided ties once: a feasible schedule whose trip served job 1 before job 0's use was refused.)"""
     out: list[tuple] = []
     loc = 0
     for _, group in groupby(sorted(us), key=lambda u: u[:2]):
         tied = list(group)
+        free = max((u[1] for u in out), default=0)
+        found = _tied_order(tied, trips, loc, free) if len(tied) > 1 else None
+        if found is not None:
+            out += found
+            loc = found[-1][4]
+            continue
         while tied:  # a group holds more than one use only for zero durations: it is small
             here = [u for u in tied if not trips.get((u[2], u[3])) and u[4] == loc]
             carried = sorted((u for u in tied if trips.get((u[2], u[3]))), key=lambda u: trips[u[2], u[3]][0].start)
@@ -246,6 +253,69 @@ def _tool_order(us: list[tuple], trips: dict) -> list[tuple]:
             out.append(u)
             loc = u[4]
     return out
+
+
+#: the most uses at one instant whose orders :func:`_tied_order` tries (zero durations; the search remembers the
+#: dead ends, at most 2^n of them)
+_MAX_TIED = 16
+
+
+def _tied_order(tied: list[tuple], trips: dict, loc: int, free: int) -> list[tuple] | None:
+    """An order of one tool's uses at one instant that the tool can follow from ``loc``, free from ``free`` on: each
+    carried use's trip leaves from where the tool is and once it is free (a trip that left before the instant comes
+    first), each other use is where the tool is, a job's operations in their order; the first found, trying
+    uncarried uses, then carried ones by trip start and the schedule's order of the trips (its routes'), then
+    by job. None if there is none (the checks then name what is wrong) or the group is too large to try."""
+    if len(tied) > _MAX_TIED:
+        return None
+
+    def source(u: tuple) -> int:  # where the tool must be for the use (a carried one: where its trip leaves from)
+        ts = trips.get((u[2], u[3]))
+        return ts[0].from_ if ts else u[4]
+
+    pos = {key: i for i, key in enumerate(trips)}  # the trips in the schedule's order (its routes' order)
+
+    def rank(u: tuple) -> tuple:
+        ts = trips.get((u[2], u[3]))
+        return (1, ts[0].start, pos[u[2], u[3]], u[2], u[3]) if ts else (0, 0, 0, u[2], u[3])
+
+    dead: set[tuple] = set()  # (uses left, where the tool is, free since) known to lead nowhere
+
+    def search(rest: list[tuple], at: int, since: int) -> list[tuple] | None:
+        if not rest:
+            return []
+        state = (frozenset(rest), at, since)
+        if state in dead:
+            return None
+        for i, u in enumerate(rest):
+            ts = trips.get((u[2], u[3]))
+            if source(u) != at or (ts and ts[0].start < since) or any(v[2] == u[2] and v[3] < u[3] for v in rest):
+                continue
+            tail = search(rest[:i] + rest[i + 1:], u[4], max(since, u[1]))
+            if tail is not None:
+                return [u] + tail
+        dead.add(state)
+        return None
+
+    return search(sorted(tied, key=rank), loc, free)
+
+
+def tool_use_orders(instance: Instance, schedule: Schedule) -> dict[int, list[tuple[int, int]]]:
+    """Per tool, its uses ``(job, op)`` in the order the tool serves them, as the validator checks them (uses at one
+    instant in an order the tool can follow): what a replay of ``schedule`` must keep."""
+    if not instance.has_tools:
+        return {}
+    ops = {(r.job, r.op): (r.start, r.end) for r in schedule.operations}
+    uses: dict[int, list[tuple]] = defaultdict(list)
+    for j, job in enumerate(instance.jobs):
+        for k, spec in enumerate(job):
+            if spec.tool is not None and (j, k) in ops:
+                uses[spec.tool].append((*ops[j, k], j, k, spec.machine))
+    trips: dict[int, dict[tuple, list]] = defaultdict(dict)  # per tool, its trips in the schedule's order
+    for t in schedule.tool_trips:
+        if t.loaded and t.job is not None and t.tool is not None:
+            trips[t.tool].setdefault((t.job, t.op), []).append(t)
+    return {tool: [(u[2], u[3]) for u in _tool_order(us, trips.get(tool, {}))] for tool, us in uses.items()}
 
 
 def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
