@@ -608,20 +608,22 @@ def _recorded_run_ids(db: Path, strict: bool = False) -> set[str]:
 
 
 def _stop_with(parent: int) -> Callable[[], None]:
-    """For a node's process, run between fork and exec (Linux): the kernel sends it SIGINT, its clean stop, when
+    """For a node's process, run between fork and exec (Linux): the kernel sends it SIGTERM, a clean stop, when
     ``fms up`` dies, even of a signal it cannot handle (SIGKILL: an OOM kill, ``timeout -s KILL``); in its own
     session it gets no signal from the terminal, and it would run on for good. A parent already gone by then
-    (the kernel only watches from the call on) stops it at once."""
+    (the kernel only watches from the call on) stops it at once. SIGINT, the stop ``fms up`` sends, gets its
+    default action back: a shell ignores it for a job started in the background, and the node inherited that."""
 
     def arm() -> None:
         import ctypes
 
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
         try:
-            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGINT))  # 1: PR_SET_PDEATHSIG
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
         except (OSError, AttributeError):
             return
         if os.getppid() != parent:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGTERM)
 
     return arm
 

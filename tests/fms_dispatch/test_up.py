@@ -344,9 +344,14 @@ def test_ctrl_c_stops_the_run_with_exit_130_and_no_node_logs(fake_nodes, tmp_pat
     import threading
 
     fake_nodes(slow=5.0)
+    # Ctrl-C as a terminal delivers it (a process started in the background, as CI runs the tests, ignores SIGINT)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT)).start()
     t0 = time.monotonic()
-    assert _up(tmp_path) == up.EXIT_INTERRUPTED == 130
+    try:
+        assert _up(tmp_path) == up.EXIT_INTERRUPTED == 130
+    finally:
+        signal.signal(signal.SIGINT, old)
     err = capsys.readouterr().err
     assert "\nfms: interrupted (logs: " in err and " log (" not in err, err  # after the start line
     assert time.monotonic() - t0 < 5.0 and not (tmp_path / "out" / "s.json").exists()
@@ -371,7 +376,7 @@ def test_sigterm_and_a_closed_terminal_stop_the_nodes_as_ctrl_c_does(sig: str) -
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's parent-death signal is Linux's")
 def test_a_node_stops_when_fms_up_is_killed(tmp_path: Path) -> None:
-    """fms up killed outright (SIGKILL: no handler runs) still stops its nodes: the kernel sends them SIGINT."""
+    """fms up killed outright (SIGKILL: no handler runs) still stops its nodes: the kernel sends them SIGTERM."""
     pid_file = tmp_path / "node.pid"
     parent = subprocess.Popen([sys.executable, "-c", f"""
 import sys, time
