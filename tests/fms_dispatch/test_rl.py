@@ -106,6 +106,8 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
 def test_resume_refuses_options_it_cannot_apply(tmp_path, capsys):
     from fms_dispatch.cli import main
 
+    assert main(["train", "EX12", "--out", str(tmp_path / "m"), "--steps", "-5"]) == 2
+    assert "fms: error: --steps must be >= 0" in capsys.readouterr().err
     for extra in (["EX22"], ["--reward", "makespan"], ["--padding", "large"], ["--seed", "3"], ["--no-tools"]):
         assert main(["train", "--out", str(tmp_path / "m"), "--resume", "--steps", "64", *extra]) == 2
         err = capsys.readouterr().err

@@ -750,6 +750,8 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def cmd_train(a: argparse.Namespace) -> int:
+    if a.steps is not None and a.steps < 0:  # named as --steps 0's refusal names it (not as a config key)
+        raise ValueError(f"--steps must be >= 0 (0: the warm start or DAgger rounds only), got {a.steps}")
     if a.resume:  # a resumed model keeps its own config: an option it cannot apply is refused, not dropped
         given = [flag for flag, v in (("training instances", a.instances), ("--config", a.config), ("--eval", a.eval),
                                       ("--reward", a.reward), ("--seed", a.seed), ("--padding", a.padding),
