@@ -531,7 +531,8 @@ def cmd_up(a: argparse.Namespace) -> int:
           f"{meta.get('decisions', '?')} decisions{extra}, valid) in {wall:.2f} s")
     print(f"schedule: {out}")
     if final.n_jobs != inst.n_jobs:
-        print(f"instance: {ordered} (with the {final.n_jobs - inst.n_jobs} jobs ordered during the run; "
+        added = final.n_jobs - inst.n_jobs
+        print(f"instance: {ordered} (with the {added} job{'s' if added != 1 else ''} ordered during the run; "
               f"fms validate {ordered} {out})")
     print(f"sqlite:   {db} (run {run_id})")
     if chart_missing:

@@ -158,7 +158,7 @@ def test_a_run_with_live_orders_writes_the_instance_its_schedule_is_valid_for(fa
     fake_nodes(ordered=True)
     assert _up(tmp_path) == up.EXIT_OK
     final_path = tmp_path / "out" / "s.instance.json"
-    assert f"instance: {final_path} (with the 1 jobs ordered during the run; fms validate {final_path} " in \
+    assert f"instance: {final_path} (with the 1 job ordered during the run; fms validate {final_path} " in \
         capsys.readouterr().out
     sched, final = Schedule.load(tmp_path / "out" / "s.json"), load_instance(str(final_path))
     assert validate(final, sched) == [] and final.n_jobs == load_instance("EX12").n_jobs + 1
