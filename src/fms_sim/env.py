@@ -54,7 +54,7 @@ from .instance import Instance, require_instance
 from .petri import InvalidAction
 from .shop import Shop
 
-__all__ = ["ShopEnv", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
+__all__ = ["ShopEnv", "padding_excess", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
            "AGV_FEATURES", "TT_FEATURES", "REWARDS", "FULL_GLOBAL_FEATURES", "FULL_JOB_FEATURES",
            "FULL_TOOL_FEATURES", "FULL_BLOCKS", "DISRUPTION_KEYS", "check_disruptions",
            "episode_scenario"]
@@ -161,6 +161,19 @@ class _Tables:
                                 and inst.agv_travel == mine.agv_travel)
 
 
+def padding_excess(inst: Instance, padding: dict[str, int]) -> tuple[str, int, int] | None:
+    """The first dimension in which ``inst`` exceeds ``padding`` (``max_jobs``, ``max_machines``, ``max_tools``,
+    ``max_agvs``, ``max_tts``) as ``(what, the instance's count, the padded maximum)``; None if it fits."""
+    for what, n, cap in (("jobs", inst.n_jobs, padding["max_jobs"]),
+                         ("machines", inst.n_machines, padding["max_machines"]),
+                         ("tools", inst.n_tools if inst.has_tools else 0, padding["max_tools"]),
+                         ("AGVs", inst.n_agvs, padding["max_agvs"]),
+                         ("tool transporters", inst.n_tool_transporters, padding["max_tts"])):
+        if n > cap:
+            return what, n, cap
+    return None
+
+
 class ShopEnv(gym.Env):
     """Dispatching environment; see the module docstring for spaces and rewards.
 
@@ -239,12 +252,11 @@ class ShopEnv(gym.Env):
         self._scaled: tuple | None = None  # see _scaled_tables
 
     def _check_fits(self, inst: Instance) -> None:
-        limits = [("jobs", inst.n_jobs, self.max_jobs), ("machines", inst.n_machines, self.max_machines),
-                  ("tools", inst.n_tools if inst.has_tools else 0, self.max_tools),
-                  ("AGVs", inst.n_agvs, self.max_agvs), ("tool transporters", inst.n_tool_transporters, self.max_tts)]
-        for what, n, cap in limits:
-            if n > cap:
-                raise ValueError(f"instance {inst.name} has {n} {what}, more than this env's maximum {cap}")
+        over = padding_excess(inst, dict(max_jobs=self.max_jobs, max_machines=self.max_machines,
+                                         max_tools=self.max_tools, max_agvs=self.max_agvs, max_tts=self.max_tts))
+        if over is not None:
+            what, n, cap = over
+            raise ValueError(f"instance {inst.name} has {n} {what}, more than this env's maximum {cap}")
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):

@@ -364,15 +364,15 @@ def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float, int]
 
 
 def _misfit(instances: Sequence[Instance], padding: dict[str, int]) -> str | None:
-    """Why the first of ``instances`` that exceeds ``padding`` does not fit (None: all fit)."""
+    """Why the first of ``instances`` that exceeds ``padding`` does not fit (None: all fit), as the env checks it
+    (:func:`fms_sim.env.padding_excess`)."""
+    from fms_sim.env import padding_excess
+
     for inst in instances:
-        for what, n, cap in (("jobs", inst.n_jobs, padding["max_jobs"]),
-                             ("machines", inst.n_machines, padding["max_machines"]),
-                             ("tools", inst.n_tools if inst.has_tools else 0, padding["max_tools"]),
-                             ("AGVs", inst.n_agvs, padding["max_agvs"]),
-                             ("tool transporters", inst.n_tool_transporters, padding["max_tts"])):
-            if n > cap:
-                return f"shop {inst.name} has {n} {what}, more than the model's padded maximum {cap}"
+        over = padding_excess(inst, padding)
+        if over is not None:
+            what, n, cap = over
+            return f"shop {inst.name} has {n} {what}, more than the model's padded maximum {cap}"
     return None
 
 
