@@ -236,14 +236,13 @@ def _tool_order(us: list[tuple], trips: dict) -> list[tuple]:
     name, one on the machine where the tool is before one it must be carried to, carried ones by their trip's start.
     (Job numbers decided ties once: a feasible schedule whose trip served job 1 before job 0's use was refused.)"""
     out: list[tuple] = []
-    loc = 0
+    loc, free = 0, 0  # where the tool is, and until when the uses so far hold it
     for _, group in groupby(sorted(us), key=lambda u: u[:2]):
         tied = list(group)
-        free = max((u[1] for u in out), default=0)
         found = _tied_order(tied, trips, loc, free) if len(tied) > 1 else None
         if found is not None:
             out += found
-            loc = found[-1][4]
+            loc, free = found[-1][4], max(free, found[0][1])  # the group's uses share their end
             continue
         while tied:  # a group holds more than one use only for zero durations: it is small
             here = [u for u in tied if not trips.get((u[2], u[3])) and u[4] == loc]
@@ -251,7 +250,7 @@ def _tool_order(us: list[tuple], trips: dict) -> list[tuple]:
             u = (here or carried or tied)[0]
             tied.remove(u)
             out.append(u)
-            loc = u[4]
+            loc, free = u[4], max(free, u[1])
     return out
 
 
@@ -305,26 +304,37 @@ def tool_use_orders(instance: Instance, schedule: Schedule) -> dict[int, list[tu
     instant in an order the tool can follow): what a replay of ``schedule`` must keep."""
     if not instance.has_tools:
         return {}
-    ops = {(r.job, r.op): (r.start, r.end) for r in schedule.operations}
+    uses = _uses_by_tool(instance, {(r.job, r.op): (r.start, r.end) for r in schedule.operations})
+    moves: dict[int, list] = defaultdict(list)
+    for t in schedule.tool_trips:
+        if t.loaded and t.tool is not None and t.job is not None and t.op is not None:
+            moves[t.tool].append(t)
+    return {tool: [(u[2], u[3]) for u in _tool_order(us, _by_op(moves.get(tool, [])))] for tool, us in uses.items()}
+
+
+def _uses_by_tool(instance: Instance, ops: dict) -> dict[int, list[tuple]]:
+    """Per tool, its uses ``(start, end, job, op, machine)`` by time, for the operations in ``ops`` (``(job, op)``
+    -> ``(start, end)``)."""
     uses: dict[int, list[tuple]] = defaultdict(list)
     for j, job in enumerate(instance.jobs):
         for k, spec in enumerate(job):
             if spec.tool is not None and (j, k) in ops:
                 uses[spec.tool].append((*ops[j, k], j, k, spec.machine))
-    trips: dict[int, dict[tuple, list]] = defaultdict(dict)  # per tool, its trips in the schedule's order
-    for t in schedule.tool_trips:
-        if t.loaded and t.job is not None and t.tool is not None:
-            trips[t.tool].setdefault((t.job, t.op), []).append(t)
-    return {tool: [(u[2], u[3]) for u in _tool_order(us, trips.get(tool, {}))] for tool, us in uses.items()}
+    for us in uses.values():
+        us.sort()
+    return uses
+
+
+def _by_op(moves: list) -> dict[tuple, list]:
+    """One tool's loaded trips by the operation they serve, in the schedule's order (its routes' order)."""
+    trips: dict[tuple, list] = {}
+    for t in moves:
+        trips.setdefault((t.job, t.op), []).append(t)
+    return trips
 
 
 def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
-    uses: dict[int, list] = defaultdict(list)
-    for j, job in enumerate(instance.jobs):
-        for k, spec in enumerate(job):
-            if spec.tool is not None:
-                s, e = ops[j, k]
-                uses[spec.tool].append((s, e, j, k, spec.machine))
+    uses = _uses_by_tool(instance, ops)
     moves: dict[int, list] = defaultdict(list)
     for t in schedule.tool_trips:
         if t.loaded:
@@ -337,10 +347,7 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
     for tool in set(moves) - set(uses):
         errs.append(f"tool {tool} is moved but no operation uses it")
     for tool, us in uses.items():
-        us.sort()
-        trips = {(t.job, t.op): [] for t in moves.get(tool, [])}
-        for t in moves.get(tool, []):
-            trips[t.job, t.op].append(t)
+        trips = _by_op(moves.get(tool, []))
         used_keys = {(j, k) for (_, _, j, k, _) in us}
         for key in trips:
             if key not in used_keys:
