@@ -716,7 +716,8 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     seconds)`` is called at every better schedule.
 
     ``plan`` is a whole schedule of ``inst`` (ValueError if the validator refuses it for ``inst``), or, with
-    ``origin`` (the :class:`~fms_sim.snapshot.Snapshot` of a running shop), a residual plan from that state (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``):
+    ``origin`` (the :class:`~fms_sim.snapshot.Snapshot` of a running shop), a residual plan from that state
+    (:func:`fms_dispatch.exact.greedy_schedule` with ``origin``):
     then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
     when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
     is a residual plan from the same state."""

@@ -119,7 +119,8 @@ class Scenario:
         for b in self.breakdowns:
             if not (0 <= b.start <= MAX_TIME and 0 < b.duration <= MAX_TIME):
                 raise ScenarioError(f"breakdown of machine {b.machine}: start must be from 0 and duration from 1 to "
-                                    f"{MAX_TIME:,} (as an instance's times), got start {b.start}, duration {b.duration}")
+                                    f"{MAX_TIME:,} (as an instance's times), got start {b.start}, duration "
+                                    f"{b.duration}")
         for o in self.outages:
             if o.kind not in VEHICLE_KINDS:
                 raise ScenarioError(f"outage kind must be agv or tt, got {o.kind!r}")
