@@ -55,7 +55,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 if TYPE_CHECKING:
     from ortools.sat.python import cp_model
@@ -883,14 +883,24 @@ class _FullModel:
             assert tr is not None
             routes = _routes(self.agv_arcs, bool_value)
             for a, route in enumerate(routes):
-                here, free = 0, 0
-                for node in route:
-                    t = self.tasks[node - 1]
-                    st = value(self.ts[node - 1])
-                    if here != t.pickup:
-                        agv_trips.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
-                    agv_trips.append(AgvTrip(a, t.job, t.op, t.pickup, t.drop, st, st + t.dur, True))
-                    here, free = t.drop, st + t.dur
+                def agv_legs(route: list[int]) -> list[AgvTrip] | None:
+                    legs: list[AgvTrip] = []
+                    here, free = 0, 0
+                    for node in route:
+                        t = self.tasks[node - 1]
+                        st = value(self.ts[node - 1])
+                        if here != t.pickup:
+                            legs.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
+                            if free + tr[here][t.pickup] > st:
+                                return None
+                        legs.append(AgvTrip(a, t.job, t.op, t.pickup, t.drop, st, st + t.dur, True))
+                        here, free = t.drop, st + t.dur
+                    return legs
+
+                tied = _tie_order(route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].job,
+                                  lambda n: self.tasks[n - 1].op)
+                legs = agv_legs(tied) if tied != route else None
+                agv_trips += legs if legs is not None else agv_legs(route) or []
         tool_trips: list[ToolTrip] = []
         if self.uses:
             tt = inst.tool_travel
@@ -898,20 +908,59 @@ class _FullModel:
             origin: dict[tuple[int, int], int] = {}
             for w, preds in self.pred_arcs.items():
                 origin[w] = next(o for o, lit in preds if bool_value(lit))
+            rank: dict[tuple[int, int], int] = {}  # each use's place in its tool's sequence
+            for tool, us in self.uses.items():
+                for route in _routes(self.tool_arcs[tool], bool_value):
+                    rank.update((us[n - 1], i) for i, n in enumerate(route))
             routes = _routes([a for a in self.tr_arcs if a[0] != a[1]], bool_value)
             for r, route in enumerate(routes):
-                here, free = 0, 0
-                for node in route:
-                    tool, j, k = self.deliveries[node - 1]
-                    src, dst = origin[j, k], jobs[j][k].machine
-                    st = value(self.dts[j, k])
-                    if here != src:
-                        tool_trips.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
-                    tool_trips.append(ToolTrip(r, tool, j, k, src, dst, st, st + tt[src][dst], True))
-                    here, free = dst, st + tt[src][dst]
+                def tool_legs(route: list[int]) -> list[ToolTrip] | None:
+                    legs: list[ToolTrip] = []
+                    here, free = 0, 0
+                    for node in route:
+                        tool, j, k = self.deliveries[node - 1]
+                        src, dst = origin[j, k], jobs[j][k].machine
+                        st = value(self.dts[j, k])
+                        if here != src:
+                            legs.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
+                            if free + tt[here][src] > st:
+                                return None
+                        legs.append(ToolTrip(r, tool, j, k, src, dst, st, st + tt[src][dst], True))
+                        here, free = dst, st + tt[src][dst]
+                    return legs
+
+                tied = _tie_order(route, lambda n: value(self.dts[self.deliveries[n - 1][1:]]),
+                                  lambda n: self.deliveries[n - 1][0], lambda n: rank[self.deliveries[n - 1][1:]])
+                legs = tool_legs(tied) if tied != route else None
+                tool_trips += legs if legs is not None else tool_legs(route) or []
         return Schedule(instance=inst.name, makespan=max(o.end for o in ops), n_agvs=inst.n_agvs,
                         n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=agv_trips,
                         tool_trips=tool_trips)
+
+
+def _tie_order(route: list[int], start: Callable[[int], int], owner: Callable[[int], Any],
+               rank: Callable[[int], int]) -> list[int]:
+    """``route`` with the nodes that start at one instant re-sequenced so that the nodes of one owner (a part, a
+    tool) follow the owner's own order (``rank``), each owner's nodes taking the places its nodes had.
+
+    The model's precedences are inequalities, so where zero-length trips tie at one instant a solution may route a
+    vehicle through them in an order their part or tool cannot follow (a tool carried away from a machine before it
+    is carried there); the times stay right, only the recorded order of the tied trips changes."""
+    out = list(route)
+    i = 0
+    while i < len(out):
+        e = i
+        while e + 1 < len(out) and start(out[e + 1]) == start(out[i]):
+            e += 1
+        if e > i:
+            places: dict[Any, list[int]] = {}
+            for p in range(i, e + 1):
+                places.setdefault(owner(out[p]), []).append(p)
+            for ps in places.values():
+                for p, n in zip(ps, sorted((out[p] for p in ps), key=rank)):
+                    out[p] = n
+        i = e + 1
+    return out
 
 
 def _routes(arcs: Sequence[tuple[int, int, cp_model.IntVar]], bool_value: Callable[[cp_model.IntVar], bool]) -> list[list[int]]:

@@ -14,6 +14,8 @@ project's semantic contract, without using the Petri net, and reports *every* vi
 * every tool starts in the magazine, is at the machine of each operation that uses it from start to end,
   moves only on loaded tool-transporter trips that start after its previous use ended, and each transporter
   route is continuous with exact ``tool_travel`` legs;
+* operations and trips of zero length at one instant are recorded in orders that agree with one another (a part's
+  operations and trips, a tool's uses and carries, each vehicle's legs): some one sequence follows them all;
 * ``makespan`` equals the latest operation end;
 * with disruptions (a :class:`~fms_sim.disruptions.Scenario`, given or recorded in ``meta["scenario"]``): each
   operation lasts its realised duration (noise) plus every breakdown of its machine that began while it ran,
@@ -98,6 +100,8 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
                       [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs, scenario)
     elif schedule.tool_trips:
         errs.append("schedule has tool trips but the instance has no tools")
+    if not errs:  # every resource's own order holds; now they must hold together where events tie in time
+        _check_ties(instance, schedule, ops, errs)
     ends = [e for (_, e) in ops.values()]
     true_ms = max(ends) if ends else 0
     if schedule.makespan != true_ms:
@@ -373,3 +377,112 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
             if s < free:
                 errs.append(f"tool {tool} is used by op ({j},{k}) from {s} while busy until {free} (two places at once)")
             loc, free = machine, max(free, e)
+
+
+#: the most operations and trips of one cycle :func:`_check_ties` names
+_CYCLE_SHOWN = 8
+
+
+def _check_ties(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
+    """The orders of operations and trips of zero length at one instant must agree with one another.
+
+    Each resource's check above follows its own order of tied events: a vehicle its recorded legs, a part its
+    operations, a tool an order of its uses it can follow (:func:`_tool_order`). Every check can pass while
+    no sequence of the events follows all of them at once: a transporter that records carrying a tool away from
+    a machine before carrying it there, both at one instant. What must precede what (a part's operations and
+    trips, a tool's uses and carries, a vehicle's legs) forms a graph over the events (starts and ends of
+    operations, departures and arrivals of trips); between events at different times the checks above have
+    ordered them, so a cycle joins events at one instant. Every edge between two operations or trips leads from
+    one's end to the other's start, so a cycle passes only through operations and trips of zero length: the graph
+    is built over those alone (none in most shops) and must have no cycle. Machines add no order (operations of
+    zero length may run on one machine in any order). Only run on a schedule that passed every other check."""
+    when: dict[tuple, int] = {("op", j, k): s for (j, k), (s, e) in ops.items() if s == e}
+    when.update((("agv", i), t.start) for i, t in enumerate(schedule.agv_trips) if t.start == t.end)
+    when.update((("tt", i), t.start) for i, t in enumerate(schedule.tool_trips) if t.start == t.end)
+    if not when:
+        return
+    succ: dict[tuple, list[tuple]] = defaultdict(list)
+
+    def before(a: tuple, b: tuple) -> None:  # a ends before b starts; only tied ones of zero length can close a cycle
+        t = when.get(a)
+        if t is not None and when.get(b) == t:
+            succ[a].append(b)
+
+    for kind, trips in (("agv", schedule.agv_trips), ("tt", schedule.tool_trips)):
+        legs: dict[int, list] = defaultdict(list)
+        for i, t in enumerate(trips):
+            legs[t.agv if kind == "agv" else t.transporter].append((t.start, t.end, i))  # type: ignore[union-attr]
+        for route in legs.values():
+            route.sort(key=lambda leg: leg[:2])  # stable, as the route check orders them
+            for a, b in zip(route, route[1:]):
+                before((kind, a[2]), (kind, b[2]))
+    carry = {(t.job, t.op): i for i, t in enumerate(schedule.agv_trips) if t.loaded}
+    for j, job in enumerate(instance.jobs):
+        for k in range(len(job)):
+            i = carry.get((j, k)) if instance.has_agvs else None
+            if i is None:
+                if k:
+                    before(("op", j, k - 1), ("op", j, k))
+                continue
+            if k:
+                before(("op", j, k - 1), ("agv", i))
+            before(("agv", i), ("op", j, k))
+    if instance.has_tools:
+        moves: dict[int, list] = defaultdict(list)
+        where: dict[tuple, int] = {}
+        for i, t in enumerate(schedule.tool_trips):
+            if t.loaded:
+                moves[t.tool].append(t)  # type: ignore[index]
+                where[t.tool, t.job, t.op] = i
+        for tool, us in _uses_by_tool(instance, ops).items():
+            prev = None
+            for _, _, j, k, _ in _tool_order(us, _by_op(moves.get(tool, []))):
+                i = where.get((tool, j, k))
+                if i is not None:
+                    if prev is not None:
+                        before(("op", *prev), ("tt", i))
+                    before(("tt", i), ("op", j, k))
+                elif prev is not None:
+                    before(("op", *prev), ("op", j, k))
+                prev = (j, k)
+    cycle = _find_cycle(succ)
+    if cycle:
+        names = [_event(schedule, e) for e in cycle]
+        shown = names[:_CYCLE_SHOWN] + (["..."] if len(names) > _CYCLE_SHOWN else [])
+        errs.append(f"at time {when[cycle[0]]} no order of the events follows every resource: "
+                    f"{' -> '.join(shown + names[:1])} (each must come before the next; zero-length trips or "
+                    "operations recorded in contradicting orders)")
+
+
+def _find_cycle(succ: dict[tuple, list[tuple]]) -> list[tuple] | None:
+    """One cycle of the graph ``succ`` (its nodes in order), or None if it has none."""
+    state: dict[tuple, int] = {}  # 1: on the current path, 2: done
+    for root in list(succ):
+        if root in state:
+            continue
+        path, stack = [root], [iter(succ[root])]
+        state[root] = 1
+        while stack:
+            nxt = next(stack[-1], None)
+            if nxt is None:
+                state[path.pop()] = 2
+                stack.pop()
+            elif state.get(nxt) == 1:
+                return path[path.index(nxt):]
+            elif nxt not in state:
+                state[nxt] = 1
+                path.append(nxt)
+                stack.append(iter(succ.get(nxt, ())))
+    return None
+
+
+def _event(schedule: Schedule, e: tuple) -> str:
+    """An operation or trip of :func:`_check_ties` in words."""
+    if e[0] == "op":
+        return f"op ({e[1]},{e[2]})"
+    if e[0] == "agv":
+        a = schedule.agv_trips[e[1]]
+        return f"AGV {a.agv}'s trip {a.from_}->{a.to}" + (f" with op ({a.job},{a.op})'s part" if a.loaded else "")
+    t = schedule.tool_trips[e[1]]
+    return (f"transporter {t.transporter}'s trip {t.from_}->{t.to}"
+            + (f" with tool {t.tool} for op ({t.job},{t.op})" if t.loaded else ""))

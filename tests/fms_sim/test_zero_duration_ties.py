@@ -1,6 +1,8 @@
 """Operations of zero duration at one instant (found by fuzzing random shops): the validator accepts a feasible
 order of a tool's tied uses whatever the job numbers, and replay carries out valid schedules whose tied operations
-a list order would deadlock. Both made solvers fail on such shops (list, rules, plan:, tabu, ppo)."""
+a list order would deadlock. Both made solvers fail on such shops (list, rules, plan:, tabu, ppo). The validator
+refuses tied events recorded in orders that contradict one another (no sequence follows every resource), and
+CP-SAT, whose precedences allow such ties, records its tied trips in an order their tools and parts follow."""
 
 from __future__ import annotations
 
@@ -11,11 +13,13 @@ import pytest
 
 from fms_dispatch.solvers import solve
 from fms_sim.instance import Instance
-from fms_sim.replay import replay
+from fms_sim.replay import ReplayError, replay
 from fms_sim.schedule import Schedule
 from fms_sim.validate import tool_use_orders, validate
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "zero_duration_ties.json"
+#: a CP-SAT schedule of a fuzzed shop (zero tool travel) whose tied tool trips contradict the tool's order
+CONTRADICTION = Path(__file__).resolve().parent.parent / "data" / "tie_contradiction.json"
 
 #: tool 2 is carried 0->5 for job 1's use, then 5->2 for job 0's, all at t=0 over zero travel times
 INST = Instance.from_dict({
@@ -55,3 +59,66 @@ def test_valid_schedules_with_tied_operations_replay(case):
     assert validate(inst, sched) == []
     out = replay(inst, sched)  # it was "stuck: no planned order can be carried out and nothing is in flight"
     assert validate(inst, out) == [] and out.makespan <= sched.makespan
+
+
+def _contradiction() -> tuple[Instance, dict]:
+    doc = json.loads(CONTRADICTION.read_text())
+    return Instance.from_dict(doc["instance"]), doc["schedule"]
+
+
+def test_tied_trips_recorded_against_their_tools_order_are_refused():
+    """At t=26 transporter 0 records carrying tool 1 2->1 for op (1,2), then 1->2 for op (2,1), while the tool is
+    on machine 1 until op (2,1) has used it on machine 2: each resource's own order holds (the route chains, the
+    tool has an order of its own), no order holds them all. CP-SAT made it; replay got stuck on it."""
+    inst, doc = _contradiction()
+    errs = validate(inst, Schedule.from_dict(doc))
+    assert len(errs) == 1 and errs[0].startswith("at time 26 no order of the events follows every resource: ")
+    assert "tool 1 for op (1,2)" in errs[0] and "tool 1 for op (2,1)" in errs[0] and "-> op (2,1) ->" in errs[0]
+    with pytest.raises(ReplayError, match="not valid"):
+        replay(inst, Schedule.from_dict(doc))
+    # the same times in the order the tool follows (the transporter first goes back empty to machine 1): valid
+    trips = doc["tool_trips"]
+    late = [t for t in trips if t["start"] == 26]
+    assert [(t["job"], t["op"]) for t in late] == [(1, 2), (2, 1)]
+    back = {"transporter": 0, "tool": None, "job": None, "op": None, "from": 2, "to": 1, "start": 7, "end": 7,
+            "loaded": False}
+    doc["tool_trips"] = [t for t in trips if t["start"] < 26] + [back, late[1], late[0]]
+    sched = Schedule.from_dict(doc)
+    assert validate(inst, sched) == []
+    out = replay(inst, sched)
+    assert validate(inst, out) == [] and out.makespan <= sched.makespan
+
+
+def test_a_part_carried_on_before_it_arrives_is_refused():
+    """Zero travel and durations: an AGV records carrying job 0's part 2->1 for op (0,2) before carrying it 1->2
+    for op (0,1). The route chains (0->1, 1->2 empty, 2->1, 1->2) and each trip fits its operation's times."""
+    inst = Instance.from_dict({"name": "hop", "agv_travel": [[0] * 3 for _ in range(3)], "n_agvs": 1,
+                               "jobs": [[{"machine": 1, "duration": 0}, {"machine": 2, "duration": 0},
+                                         {"machine": 1, "duration": 0}]]})
+
+    def sched(trips: list[tuple]) -> Schedule:
+        return Schedule.from_dict({
+            "instance": "hop", "makespan": 0, "n_agvs": 1, "n_tool_transporters": 0, "tool_trips": [],
+            "operations": [{"job": 0, "op": k, "machine": m, "tool": None, "start": 0, "end": 0}
+                           for k, m in enumerate((1, 2, 1))],
+            "agv_trips": [{"agv": 0, "job": None if k is None else 0, "op": k, "from": a, "to": b, "start": 0,
+                           "end": 0, "loaded": k is not None} for k, a, b in trips]})
+
+    wrong = sched([(0, 0, 1), (None, 1, 2), (2, 2, 1), (1, 1, 2)])
+    errs = validate(inst, wrong)
+    assert len(errs) == 1 and errs[0].startswith("at time 0 no order of the events follows every resource: ")
+    assert "AGV 0's trip 2->1 with op (0,2)'s part" in errs[0] and "AGV 0's trip 1->2 with op (0,1)'s part" in errs[0]
+    right = sched([(0, 0, 1), (1, 1, 2), (2, 2, 1)])
+    assert validate(inst, right) == []
+    assert validate(inst, replay(inst, right)) == []
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cpsat_records_tied_trips_in_an_order_their_tools_follow(seed):
+    """The shop of the contradiction above: every CP-SAT solution routed the transporter through the tied trips
+    in the recorded, impossible order (10 seeds of 10) before its routes' ties were put in each tool's order."""
+    inst, _ = _contradiction()
+    s = solve(inst, "cpsat", time_limit=1.0, seed=seed)
+    assert validate(inst, s) == []
+    out = replay(inst, s)
+    assert validate(inst, out) == [] and out.makespan <= s.makespan
