@@ -351,7 +351,10 @@ def test_maskable_ppo_learns_on_the_full_action_space():
     sb3c = pytest.importorskip("sb3_contrib")
     inst = builtin("ra01")
     env = ShopEnv(inst, decisions="full")
+    from stable_baselines3.common.logger import Logger
+
     model = sb3c.MaskablePPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0, verbose=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # sb3's default makes a folder in the temp dir
     model.learn(total_timesteps=128)
     obs, info = env.reset(options={"instance": inst})
     done = False
