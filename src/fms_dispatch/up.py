@@ -239,13 +239,28 @@ class NodeProcess:
             self._log = None
         return self.proc.returncode
 
-
     def tail(self, lines: int = 15) -> str:
         try:
             text = self.log_path.read_text(errors="replace").splitlines()
         except OSError:
             return ""
         return "\n".join(f"    {line}" for line in text[-lines:])
+
+    def first_error(self) -> str | None:
+        """The first error the node logged (an ``[ERROR]`` or ``[FATAL]`` line of ROS 2's logger, or the last line of
+        a Python traceback: an exception in a callback), or None; read from its log."""
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return None
+        for i, line in enumerate(text):
+            if line.startswith(("[ERROR]", "[FATAL]")):
+                return line.strip()
+            if line.startswith("Traceback (most recent call last):"):
+                last = next((x for x in text[i + 1:] if x.strip() and not x.startswith((" ", "\t"))), None)
+                if last is not None:
+                    return last.strip()
+        return None
 
 
 def stop_all(nodes: Sequence[NodeProcess], grace: float = 5.0) -> dict[str, int | None]:
@@ -469,6 +484,9 @@ def cmd_up(a: argparse.Namespace) -> int:
                 missing = [str(p) for p in (sched_tmp, png) if not p.exists()]
                 failure = (f"timed out: no progress for {a.timeout:g} s while waiting for {', '.join(missing)}; "
                            f"{_progress_text(seen, inst.n_operations)} (longer pauses need --timeout)")
+                # a node that hit an error and stayed up (an exception in a callback) is the likely cause: name it
+                failure += next((f"; the {n.name} node logged an error: {e}" for n in nodes
+                                 if (e := n.first_error()) is not None), "")
                 break
             if now >= next_report:  # a long run says how far it is, from the recorder's database
                 say(f"fms up: {_progress_text(seen, inst.n_operations)}, {time.perf_counter() - t0:.0f} s")

@@ -40,6 +40,8 @@ FAKE_NODE = textwrap.dedent('''
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     signal.signal(signal.SIGINT, signal.SIG_IGN if role == params["stuck"] else stop)
+    if role == "agent" and params["log_error"]:  # an error logged by a node that stays up
+        print(params["log_error"], file=sys.stderr, flush=True)
     if role == "recorder" and params["slow"]:  # a run under way: two operations ended, as the recorder stores them
         from fms_sim.recorder_store import RecorderStore
         store = RecorderStore(params["db"])
@@ -90,11 +92,11 @@ def fake_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     script.write_text(FAKE_NODE)
 
     def install(stuck: str = "", bad_schedule: bool = False, slow: float = 0.0, steady: bool = False,
-                ordered: bool = False, no_chart: bool = False) -> None:
+                ordered: bool = False, no_chart: bool = False, log_error: str = "") -> None:
         def command(module: str, params: dict[str, Any], python: str | None = None) -> list[str]:
             extra = {"stuck": stuck, "bad_schedule": bad_schedule, "png": str(tmp_path / "out" / "t1.gantt.png"),
                      "slow": slow, "steady": steady, "run": "t1", "ordered": ordered,
-                     "no_chart": no_chart}
+                     "no_chart": no_chart, "log_error": log_error}
             return [sys.executable, str(script), module, json.dumps({**params, **extra})]
         monkeypatch.setattr(up, "node_command", command)
         monkeypatch.setattr(up, "STOP_GRACE_S", 1.0)
@@ -199,6 +201,20 @@ def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_
     err = capsys.readouterr().err
     assert "timed out: no progress for 0.8 s while waiting for" in err and "2 of 13 operations done, shop time 12 " \
         "(longer pauses need --timeout)" in err, err
+
+
+@pytest.mark.parametrize("logged, named", [
+    ("[INFO] [1.0] [fms_agent]: planning\n[ERROR] [1.5] [fms_agent]: [plan_failed] no plan for EX12\n[ERROR] [2.0] "
+     "[fms_agent]: again", "[ERROR] [1.5] [fms_agent]: [plan_failed] no plan for EX12"),
+    ("Traceback (most recent call last):\n  File \"agent.py\", line 3, in on_state\n    plan()\nValueError: no plan",
+     "ValueError: no plan")])
+def test_a_timeout_names_the_error_a_node_logged(fake_nodes, tmp_path: Path, capsys, logged: str, named: str) -> None:
+    """A node that hit an error and stayed up (an exception in a callback) left only 'no progress' and the log tails:
+    the timeout now names the node and its first error."""
+    fake_nodes(slow=2.0, log_error=logged)
+    assert _up(tmp_path, "--timeout", "0.8") == up.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert f"(longer pauses need --timeout); the agent node logged an error: {named}\n" in err, err
 
 
 def test_a_run_that_keeps_moving_outlasts_the_timeout(fake_nodes, tmp_path: Path, monkeypatch, capsys) -> None:
