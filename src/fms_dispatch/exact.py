@@ -63,6 +63,7 @@ if TYPE_CHECKING:
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.snapshot import Snapshot
+from fms_sim.ties import contradiction
 from fms_sim.validate import validate
 
 __all__ = [
@@ -897,8 +898,9 @@ class _FullModel:
                         here, free = t.drop, st + t.dur
                     return legs
 
-                tied = _tie_order(route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].job,
-                                  lambda n: self.tasks[n - 1].op)
+                tied = _tie_order(route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].dur,
+                                  lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), tr,
+                                  lambda n: ((self.tasks[n - 1].job, self.tasks[n - 1].op),))
                 legs = agv_legs(tied) if tied != route else None
                 agv_trips += legs if legs is not None else agv_legs(route) or []
         tool_trips: list[ToolTrip] = []
@@ -929,23 +931,38 @@ class _FullModel:
                         here, free = dst, st + tt[src][dst]
                     return legs
 
+                def ends(n: int) -> tuple[int, int]:
+                    _, j, k = self.deliveries[n - 1]
+                    return origin[j, k], jobs[j][k].machine
+
                 tied = _tie_order(route, lambda n: value(self.dts[self.deliveries[n - 1][1:]]),
-                                  lambda n: self.deliveries[n - 1][0], lambda n: rank[self.deliveries[n - 1][1:]])
-                legs = tool_legs(tied) if tied != route else None
-                tool_trips += legs if legs is not None else tool_legs(route) or []
+                                  lambda n: tt[ends(n)[0]][ends(n)[1]], ends, tt,
+                                  lambda n: ((("tool", self.deliveries[n - 1][0]), rank[self.deliveries[n - 1][1:]]),
+                                             (self.deliveries[n - 1][1], self.deliveries[n - 1][2])))
+                tlegs = tool_legs(tied) if tied != route else None
+                tool_trips += tlegs if tlegs is not None else tool_legs(route) or []
         return Schedule(instance=inst.name, makespan=max(o.end for o in ops), n_agvs=inst.n_agvs,
                         n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=agv_trips,
                         tool_trips=tool_trips)
 
 
-def _tie_order(route: list[int], start: Callable[[int], int], owner: Callable[[int], Any],
-               rank: Callable[[int], int]) -> list[int]:
-    """``route`` with the nodes that start at one instant re-sequenced so that the nodes of one owner (a part, a
-    tool) follow the owner's own order (``rank``), each owner's nodes taking the places its nodes had.
+#: the most partial orders :func:`_tie_order` tries for one instant of one route
+_TIE_TRIES = 10_000
+
+
+def _tie_order(route: list[int], start: Callable[[int], int], length: Callable[[int], int],
+               ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+               keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[int]:
+    """``route`` with the nodes that start at one instant re-sequenced so that the nodes of one owner follow the
+    owner's order: each node's ``keys`` are ``(owner, rank)`` pairs (a part and its operation; a tool and the
+    use's place in its sequence), and a node comes after every node at the instant with the same owner and a lower
+    rank. The vehicle must still reach each node's pickup in time (``ends``: pickup and drop, ``length``: the
+    loaded trip's duration, ``travel``: the empty legs' times), before and after the instant.
 
     The model's precedences are inequalities, so where zero-length trips tie at one instant a solution may route a
     vehicle through them in an order their part or tool cannot follow (a tool carried away from a machine before it
-    is carried there); the times stay right, only the recorded order of the tied trips changes."""
+    is carried there); the times stay right, only the recorded order of the tied trips changes. The first order
+    found (depth-first, the solution's order first) is taken; the solution's own where none is found."""
     out = list(route)
     i = 0
     while i < len(out):
@@ -953,14 +970,47 @@ def _tie_order(route: list[int], start: Callable[[int], int], owner: Callable[[i
         while e + 1 < len(out) and start(out[e + 1]) == start(out[i]):
             e += 1
         if e > i:
-            places: dict[Any, list[int]] = {}
-            for p in range(i, e + 1):
-                places.setdefault(owner(out[p]), []).append(p)
-            for ps in places.values():
-                for p, n in zip(ps, sorted((out[p] for p in ps), key=rank)):
-                    out[p] = n
+            before = out[i - 1] if i else None
+            after = out[e + 1] if e + 1 < len(out) else None
+            found = _tie_group(out[i:e + 1], before, after, start, length, ends, travel, keys)
+            if found is not None:
+                out[i:e + 1] = found
         i = e + 1
     return out
+
+
+def _tie_group(group: list[int], before: int | None, after: int | None, start: Callable[[int], int],
+               length: Callable[[int], int], ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+               keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[int] | None:
+    """An order of ``group`` (nodes at one instant, between ``before`` and ``after`` on the route) for
+    :func:`_tie_order`, or None."""
+    def reaches(p: int | None, n: int) -> bool:  # from p's drop, free when p's trip ends, to n's pickup in time
+        here, free = (ends(p)[1], start(p) + length(p)) if p is not None else (0, 0)
+        return here == ends(n)[0] or free + travel[here][ends(n)[0]] <= start(n)
+
+    dead: set[tuple] = set()
+    tries = 0
+
+    def go(rest: tuple[int, ...], last: int | None) -> list[int] | None:
+        nonlocal tries
+        if not rest:
+            return [] if after is None or reaches(last, after) else None
+        if (rest, last) in dead or tries > _TIE_TRIES:
+            return None
+        tries += 1
+        low: dict[Any, int] = {}
+        for m in rest:
+            for o, r in keys(m):
+                low[o] = min(r, low.get(o, r))
+        for n in rest:
+            if all(low[o] == r for o, r in keys(n)) and reaches(last, n):
+                tail = go(tuple(m for m in rest if m != n), n)
+                if tail is not None:
+                    return [n] + tail
+        dead.add((rest, last))
+        return None
+
+    return go(tuple(group), before)
 
 
 def _routes(arcs: Sequence[tuple[int, int, cp_model.IntVar]], bool_value: Callable[[cp_model.IntVar], bool]) -> list[list[int]]:
@@ -990,9 +1040,19 @@ def _callback_class() -> type:
             super().__init__()
             self.fm, self.progress, self.t0 = fm, progress, t0
             self.best: Schedule | None = None
+            self.contradictory = 0  # solutions skipped (see on_solution_callback)
 
         def on_solution_callback(self) -> None:
             sch = self.fm.extract(self.value, self.boolean_value)
+            if contradiction(self.fm.inst, sch) is not None:
+                # zero-length trips and operations tied in orders no shop can follow, even re-sequenced (the model's
+                # precedences are inequalities): not a schedule. A list schedule that follows its start times is;
+                # kept if it is the best so far
+                self.contradictory += 1
+                sch = greedy_schedule(self.fm.inst, rule="guided", priority={(o.job, o.op): o.start
+                                                                             for o in sch.operations})
+                if (self.best is not None and sch.makespan >= self.best.makespan) or validate(self.fm.inst, sch):
+                    return
             self.best = sch
             if self.progress is not None:
                 self.progress(int(self.objective_value), int(self.best_objective_bound), time.monotonic() - self.t0)
@@ -1165,8 +1225,8 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
     if cb.best is not None and cb.best.makespan <= best.makespan:
         best = cb.best
     wall = time.monotonic() - t0
-    if status == cp_model.OPTIMAL:
-        name = "OPTIMAL"
+    if status == cp_model.OPTIMAL and best.makespan <= bound:  # (the model's optimum may have been skipped as
+        name = "OPTIMAL"                                        # contradictory: its bound still holds)
         bound = best.makespan
     elif status == cp_model.INFEASIBLE:
         # cannot happen: the incumbent satisfies the model; keep it with the simple bound, but say so

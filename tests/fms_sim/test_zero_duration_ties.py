@@ -18,7 +18,8 @@ from fms_sim.schedule import Schedule
 from fms_sim.validate import tool_use_orders, validate
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "zero_duration_ties.json"
-#: a CP-SAT schedule of a fuzzed shop (zero tool travel) whose tied tool trips contradict the tool's order
+#: fuzzed shops (zero tool travel): "recorded", a CP-SAT schedule whose tied tool trips contradict the tool's
+#: order; "unrepairable_ties", a shop where CP-SAT's solutions tie trips in orders no re-sequencing repairs
 CONTRADICTION = Path(__file__).resolve().parent.parent / "data" / "tie_contradiction.json"
 
 #: tool 2 is carried 0->5 for job 1's use, then 5->2 for job 0's, all at t=0 over zero travel times
@@ -62,7 +63,7 @@ def test_valid_schedules_with_tied_operations_replay(case):
 
 
 def _contradiction() -> tuple[Instance, dict]:
-    doc = json.loads(CONTRADICTION.read_text())
+    doc = json.loads(CONTRADICTION.read_text())["recorded"]
     return Instance.from_dict(doc["instance"]), doc["schedule"]
 
 
@@ -120,5 +121,53 @@ def test_cpsat_records_tied_trips_in_an_order_their_tools_follow(seed):
     inst, _ = _contradiction()
     s = solve(inst, "cpsat", time_limit=1.0, seed=seed)
     assert validate(inst, s) == []
+    out = replay(inst, s)
+    assert validate(inst, out) == [] and out.makespan <= s.makespan
+
+
+def test_tools_at_one_instant_are_ordered_together_with_the_jobs():
+    """At t=4 job 1 uses tool 1, then tool 2 (carried in); job 0 uses tool 2, then tool 1, all on machine 1. Tool
+    2's order is forced (its carry comes first); tool 1's two uses are both where it is, and taken alone the first
+    by job number (job 0) closes a cycle with the jobs: the orders are searched together, job 1's use first."""
+    inst = Instance.from_dict({
+        "name": "crossed", "tool_travel": [[0] * 4 for _ in range(4)], "n_tool_transporters": 1, "n_machines": 3,
+        "jobs": [[{"machine": 2, "tool": None, "duration": 4}, {"machine": 1, "tool": 2, "duration": 0},
+                  {"machine": 1, "tool": 1, "duration": 0}],
+                 [{"machine": 3, "tool": None, "duration": 4}, {"machine": 1, "tool": 1, "duration": 0},
+                  {"machine": 1, "tool": 2, "duration": 0}],
+                 [{"machine": 1, "tool": 1, "duration": 2}]]})
+
+    def op(j: int, k: int, m: int, tool: int | None, s: int, e: int) -> dict:
+        return {"job": j, "op": k, "machine": m, "tool": tool, "start": s, "end": e}
+
+    def trip(tool: int | None, j: int | None, k: int | None, a: int, b: int, s: int) -> dict:
+        return {"transporter": 0, "tool": tool, "job": j, "op": k, "from": a, "to": b, "start": s, "end": s,
+                "loaded": tool is not None}
+
+    sched = Schedule.from_dict({
+        "instance": "crossed", "makespan": 4, "n_agvs": 0, "n_tool_transporters": 1, "agv_trips": [], "meta": {},
+        "operations": [op(2, 0, 1, 1, 0, 2), op(0, 0, 2, None, 0, 4), op(1, 0, 3, None, 0, 4), op(1, 1, 1, 1, 4, 4),
+                       op(1, 2, 1, 2, 4, 4), op(0, 1, 1, 2, 4, 4), op(0, 2, 1, 1, 4, 4)],
+        "tool_trips": [trip(1, 2, 0, 0, 1, 0), trip(None, None, None, 1, 0, 0), trip(2, 1, 2, 0, 1, 4)]})
+    assert validate(inst, sched) == []  # it named the cycle op (0,1) -> op (0,2) -> op (1,1) -> op (1,2)
+    assert tool_use_orders(inst, sched) == {1: [(2, 0), (1, 1), (0, 2)], 2: [(1, 2), (0, 1)]}
+    out = replay(inst, sched)
+    assert validate(inst, out) == [] and out.makespan == 4
+    for name in ("list", "cpsat", "plan:list", "tabu"):
+        s = solve(inst, name, **({"time_limit": 0.5} if name in ("cpsat", "tabu") else {}))
+        assert validate(inst, s) == [] and s.makespan == 4, name
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_cpsat_never_returns_ties_no_shop_can_follow(seed):
+    """CP-SAT's solutions of this shop tie a transporter's zero-length carries of two tools at t=35 in an order that
+    contradicts one tool's, and no re-sequencing of the route reaches every pickup in time: such a solution is no
+    schedule. CP-SAT returned it (6 seeds of 12, status OPTIMAL); now a list schedule following its start times
+    stands in where it is better than the best schedule so far, and OPTIMAL is claimed only at the bound."""
+    inst = Instance.from_dict(json.loads(CONTRADICTION.read_text())["unrepairable_ties"]["instance"])
+    s = solve(inst, "cpsat", time_limit=0.5, seed=seed)
+    assert validate(inst, s) == []
+    assert s.meta["lower_bound"] <= s.makespan
+    assert (s.meta["status"] == "OPTIMAL") == (s.makespan == s.meta["lower_bound"])
     out = replay(inst, s)
     assert validate(inst, out) == [] and out.makespan <= s.makespan
