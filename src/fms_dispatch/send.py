@@ -63,7 +63,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     o = sub.add_parser("order", parents=[common], help="new jobs",
                        description="Send new jobs. --jobs is JSON (or @FILE): a list of jobs, each a list of "
                                    "operations {\"machine\": M, \"tool\": T or null, \"duration\": D} or [M, T, D] "
-                                   "or [M, D]; a file may also hold a whole fms/order/v1 message.")
+                                   "or [M, D]; a file may also hold a whole fms/order/v1 message (its "
+                                   "order_id and run_id are used unless --id or --run-id are given).")
     o.add_argument("--jobs", required=True, metavar="JSON|@FILE")
     b = sub.add_parser("breakdown", parents=[common], help="a machine breakdown")
     b.add_argument("--machine", type=int, required=True)
@@ -75,8 +76,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     u.add_argument("--start", type=int, help="the shop time it begins (default: now)")
 
 
-def _jobs(spec: str) -> Any:
-    """The jobs of ``--jobs``: JSON, or ``@FILE`` holding JSON (a list of jobs or an ``fms/order/v1``)."""
+def _order(spec: str) -> tuple[Any, Any, Any]:
+    """What ``--jobs`` holds: JSON, or ``@FILE`` holding JSON: a list of jobs, or a whole ``fms/order/v1`` message
+    (then its ``order_id`` and ``run_id`` too, None where it has none): ``(jobs, order_id, run_id)``."""
     if spec.startswith("@"):
         try:
             text = Path(spec[1:]).read_text()
@@ -88,9 +90,9 @@ def _jobs(spec: str) -> Any:
         jobs = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
-    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message
-        jobs = jobs["jobs"]
-    return jobs
+    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message: its id and run too (they were dropped:
+        return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")  # a re-sent file got a new id)
+    return jobs, None, None
 
 
 def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
@@ -100,8 +102,9 @@ def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
         raise SendError("--id must be a non-empty name (leave it out for a generated one)")
     mid = a.id or f"{a.what}-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}-{uuid.uuid4().hex[:6]}"
     try:
-        if a.what == "order":
-            return "order", make_order(mid, _jobs(a.jobs), run_id=a.run_id)
+        if a.what == "order":  # --id and --run-id win over a message file's own
+            jobs, order_id, run_id = _order(a.jobs)
+            return "order", make_order(a.id or order_id or mid, jobs, run_id=a.run_id or run_id)
         if a.what == "breakdown":
             return "disruption", make_disruption(mid, "breakdown", a.duration, machine=a.machine, start=a.start,
                                                  run_id=a.run_id)

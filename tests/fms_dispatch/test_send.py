@@ -29,9 +29,15 @@ def test_messages_are_built_and_checked(tmp_path: Path) -> None:
     assert kind == "order" and msg == {"schema": "fms/order/v1", "order_id": "o1", "run_id": "r", "jobs": [
         [{"machine": 1, "tool": None, "duration": 3}, {"machine": 2, "tool": None, "duration": 4}],
         [{"machine": 3, "tool": None, "duration": 1}]]}
-    (tmp_path / "order.json").write_text(encode(msg))  # a whole order message in a file: its jobs
-    kind, again = build(args("order", "--jobs", f"@{tmp_path / 'order.json'}"))
+    (tmp_path / "order.json").write_text(encode(msg))  # a whole order message in a file: its jobs, id and run (the
+    kind, again = build(args("order", "--jobs", f"@{tmp_path / 'order.json'}"))  # id was replaced: a re-sent file
+    assert again == msg                                                           # was a new order)
+    kind, again = build(args("order", "--jobs", f"@{tmp_path / 'order.json'}", "--id", "o2", "--run-id", "r2"))
+    assert (again["order_id"], again["run_id"], again["jobs"]) == ("o2", "r2", msg["jobs"])  # the options win
+    (tmp_path / "jobs.json").write_text(json.dumps(msg["jobs"]))  # only jobs: a generated id, the current run
+    kind, again = build(args("order", "--jobs", f"@{tmp_path / 'jobs.json'}"))
     assert again["jobs"] == msg["jobs"] and re.fullmatch(r"order-\d{8}T\d{6}-[0-9a-f]{6}", again["order_id"])
+    assert "run_id" not in again
     kind, msg = build(args("breakdown", "--machine", "2", "--duration", "7", "--start", "40"))
     assert kind == "disruption" and (msg["kind"], msg["machine"], msg["duration"], msg["start"]) == (
         "breakdown", 2, 7, 40)
