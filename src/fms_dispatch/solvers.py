@@ -371,7 +371,8 @@ def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule
     elif scenario is not None:
         if not solver.lower().startswith(DISRUPTABLE):
             raise UnknownSolver(f"{solver} does not run in a disrupted shop; use first, random, rule: (full net), "
-                                "ppo:full (a full-net model) or plan:SOLVER (its plan executed under the disruptions)")
+                                "ppo (the default model) or another full-net model (ppo:full, ppo:guided-ppo), or "
+                                "plan:SOLVER (its plan executed under the disruptions)")
         scenario.check(instance)
     t0 = time.perf_counter()
     s = fn(instance, **options)

@@ -90,8 +90,10 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     add_instance_args(p)
     p.add_argument("--solver", default="first",
                    help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
-                        "ppo[:<model>]+lookahead | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
-                        "state, then execute the plan) | best (the shipped PPO model, with or without lookahead, if "
+                        "ppo[:<model>]+lookahead | ppo[:<model>]+lookahead-fast | ppo[:<model>]+lookahead-guide | "
+                        "lookahead (ppo+lookahead) | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
+                        "state, then execute the plan) | plan:file:PATH (execute a schedule made beforehand) | "
+                        "best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
                         "instead of the pair) (default: first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
