@@ -329,7 +329,7 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
 
     try:
         seq = go(frozenset(), indeg0, start, [])
-    except _GiveUp:
+    except (_GiveUp, RecursionError):  # (a choice per level: only a shop with hundreds of tied tool uses)
         return None
     if seq is None:
         return None
