@@ -63,7 +63,7 @@ if TYPE_CHECKING:
 from fms_sim.instance import Instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.snapshot import Snapshot
-from fms_sim.ties import contradiction
+from fms_sim.ties import has_ties
 from fms_sim.validate import validate
 
 __all__ = [
@@ -890,10 +890,10 @@ class _FullModel:
                     for node in route:
                         t = self.tasks[node - 1]
                         st = value(self.ts[node - 1])
+                        if free + (tr[here][t.pickup] if here != t.pickup else 0) > st:
+                            return None
                         if here != t.pickup:
                             legs.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
-                            if free + tr[here][t.pickup] > st:
-                                return None
                         legs.append(AgvTrip(a, t.job, t.op, t.pickup, t.drop, st, st + t.dur, True))
                         here, free = t.drop, st + t.dur
                     return legs
@@ -923,10 +923,10 @@ class _FullModel:
                         tool, j, k = self.deliveries[node - 1]
                         src, dst = origin[j, k], jobs[j][k].machine
                         st = value(self.dts[j, k])
+                        if free + (tt[here][src] if here != src else 0) > st:
+                            return None
                         if here != src:
                             legs.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
-                            if free + tt[here][src] > st:
-                                return None
                         legs.append(ToolTrip(r, tool, j, k, src, dst, st, st + tt[src][dst], True))
                         here, free = dst, st + tt[src][dst]
                     return legs
@@ -986,7 +986,7 @@ def _tie_group(group: list[int], before: int | None, after: int | None, start: C
     :func:`_tie_order`, or None."""
     def reaches(p: int | None, n: int) -> bool:  # from p's drop, free when p's trip ends, to n's pickup in time
         here, free = (ends(p)[1], start(p) + length(p)) if p is not None else (0, 0)
-        return here == ends(n)[0] or free + travel[here][ends(n)[0]] <= start(n)
+        return free + (travel[here][ends(n)[0]] if here != ends(n)[0] else 0) <= start(n)
 
     dead: set[tuple] = set()
     tries = 0
@@ -1044,10 +1044,11 @@ def _callback_class() -> type:
 
         def on_solution_callback(self) -> None:
             sch = self.fm.extract(self.value, self.boolean_value)
-            if contradiction(self.fm.inst, sch) is not None:
-                # zero-length trips and operations tied in orders no shop can follow, even re-sequenced (the model's
-                # precedences are inequalities): not a schedule. A list schedule that follows its start times is;
-                # kept if it is the best so far
+            if has_ties(sch) and validate(self.fm.inst, sch):
+                # zero-length trips and operations tied in orders no shop can follow (the model's precedences are
+                # inequalities: a tool's order at one instant against a job's, a route's against a tool's, where the
+                # routes' re-sequencing found none): not a schedule. A list schedule that follows its start times
+                # is; kept if it is the best so far
                 self.contradictory += 1
                 sch = greedy_schedule(self.fm.inst, rule="guided", priority={(o.job, o.op): o.start
                                                                              for o in sch.operations})

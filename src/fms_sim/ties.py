@@ -21,17 +21,20 @@ from itertools import groupby
 from .instance import Instance
 from .schedule import Schedule
 
-__all__ = ["tool_use_orders", "contradiction"]
+__all__ = ["tool_use_orders", "has_ties"]
 
-#: the most uses at one instant whose orders :func:`_tied_order` tries (zero durations; the search remembers the
-#: dead ends, at most 2^n of them)
-_MAX_TIED = 16
+#: the most states :func:`_tied_order` visits for one tool at one instant before it gives up
+_TIED_STATES = 100_000
 
 #: the most states :func:`_search` visits at one instant before it gives up (the order is then left contradictory)
 _SEARCH_STATES = 100_000
 
 #: the most operations and trips of one cycle a message names
 _CYCLE_SHOWN = 8
+
+
+class _GiveUp(Exception):
+    """A search of tied orders (:func:`_tied_order`, :func:`_search`) visited too many states."""
 
 
 def tool_order(us: list[tuple], trips: dict) -> list[tuple]:
@@ -61,12 +64,14 @@ def tool_order(us: list[tuple], trips: dict) -> list[tuple]:
 def _tied_order(tied: list[tuple], trips: dict, loc: int, free: int) -> list[tuple] | None:
     """An order of one tool's uses at one instant that the tool can follow from ``loc``, free from ``free`` on: each
     carried use's trip leaves from where the tool is and once it is free (a trip that left before the instant comes
-    first), each other use is where the tool is, a job's operations in their order; the first found, trying
-    uncarried uses, then carried ones by trip start and the schedule's order of the trips (its routes'), then
-    by job. None if there is none (the checks then name what is wrong) or the group is too large to try."""
-    if len(tied) > _MAX_TIED:
-        return None
+    first), each other use is where the tool is, a job's operations in their order. None if there is none (the
+    checks then name what is wrong) or the search gave up.
 
+    An uncarried use where the tool is (its job's earlier uses done) is taken at once: it neither moves the tool
+    nor can be needed later, so only the carried uses are choices: each in its transporter's route order (a
+    transporter carries the tool in the order it drives), tried by trip start and the schedule's order of the trips,
+    the dead ends remembered. So a group of dozens of uses is ordered at once
+    (a cap of 16 uses once refused valid schedules of shops with many operations of zero duration)."""
     def source(u: tuple) -> int:  # where the tool must be for the use (a carried one: where its trip leaves from)
         ts = trips.get((u[2], u[3]))
         return ts[0].from_ if ts else u[4]
@@ -77,25 +82,57 @@ def _tied_order(tied: list[tuple], trips: dict, loc: int, free: int) -> list[tup
         ts = trips.get((u[2], u[3]))
         return (1, ts[0].start, pos[u[2], u[3]], u[2], u[3]) if ts else (0, 0, 0, u[2], u[3])
 
+    def first_of_job(u: tuple, rest: list[tuple]) -> bool:
+        return not any(v[2] == u[2] and v[3] < u[3] for v in rest)
+
+    def leg(u: tuple) -> tuple | None:  # a carried use's trip: its transporter and place on its route
+        ts = trips.get((u[2], u[3]))
+        return (ts[0].transporter, ts[0].start, ts[0].end, pos[u[2], u[3]]) if ts else None
+
+    def next_on_route(u: tuple, rest: list[tuple]) -> bool:  # no trip of the tool before it on its transporter's route
+        mine = leg(u)
+        return mine is None or not any((o := leg(v)) is not None and o[0] == mine[0] and o < mine for v in rest)
+
+    instant = tied[0][0]
     dead: set[tuple] = set()  # (uses left, where the tool is, free since) known to lead nowhere
+    visits = 0
 
     def search(rest: list[tuple], at: int, since: int) -> list[tuple] | None:
+        nonlocal visits
+        taken: list[tuple] = []
+        # a trip that left before the instant must be first: nothing is taken at once before it
+        early = any(trips.get((u[2], u[3])) and trips[u[2], u[3]][0].start < max(since, instant) for u in rest)
+        while not early:
+            here = next((u for u in rest if not trips.get((u[2], u[3])) and u[4] == at and first_of_job(u, rest)),
+                        None)
+            if here is None:
+                break
+            rest = [u for u in rest if u is not here]
+            taken.append(here)
+            since = max(since, here[1])
         if not rest:
-            return []
+            return taken
         state = (frozenset(rest), at, since)
         if state in dead:
             return None
+        visits += 1
+        if visits > _TIED_STATES:
+            raise _GiveUp
         for i, u in enumerate(rest):
             ts = trips.get((u[2], u[3]))
-            if source(u) != at or (ts and ts[0].start < since) or any(v[2] == u[2] and v[3] < u[3] for v in rest):
+            if (source(u) != at or (ts and ts[0].start < since) or not first_of_job(u, rest)
+                    or not next_on_route(u, rest)):
                 continue
             tail = search(rest[:i] + rest[i + 1:], u[4], max(since, u[1]))
             if tail is not None:
-                return [u] + tail
+                return taken + [u] + tail
         dead.add(state)
         return None
 
-    return search(sorted(tied, key=rank), loc, free)
+    try:
+        return search(sorted(tied, key=rank), loc, free)
+    except (_GiveUp, RecursionError):
+        return None
 
 
 def uses_by_tool(instance: Instance, ops: dict) -> dict[int, list[tuple]]:
@@ -129,14 +166,11 @@ def tool_use_orders(instance: Instance, schedule: Schedule) -> dict[int, list[tu
     return {tool: [(u[2], u[3]) for u in us] for tool, us in orders.items()}
 
 
-def contradiction(instance: Instance, schedule: Schedule) -> str | None:
-    """Where the schedule's tied events are recorded in orders no sequence follows (:func:`settle`), in words;
-    None where they agree, or where nothing has zero length (at once). For a schedule whose every resource's own
-    order holds (the validator's other checks)."""
-    if (all(r.start != r.end for r in schedule.operations) and all(t.start != t.end for t in schedule.agv_trips)
-            and all(t.start != t.end for t in schedule.tool_trips)):
-        return None
-    return settle(instance, schedule, {(r.job, r.op): (r.start, r.end) for r in schedule.operations})[1]
+def has_ties(schedule: Schedule) -> bool:
+    """Whether anything in ``schedule`` has zero length (an operation or a trip): only then can events tie in a way
+    its times leave open, and a model whose precedences are inequalities (CP-SAT's) may order them impossibly."""
+    return (any(r.start == r.end for r in schedule.operations) or any(t.start == t.end for t in schedule.agv_trips)
+            or any(t.start == t.end for t in schedule.tool_trips))
 
 
 def settle(instance: Instance, schedule: Schedule, ops: dict) -> tuple[dict[int, list[tuple]], str | None]:
@@ -236,10 +270,6 @@ def _with_tools(fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]],
             if when.get(b) == t:
                 succ[a].append(b)
     return succ
-
-
-class _GiveUp(Exception):
-    """:func:`_search` visited too many states."""
 
 
 def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]], when: dict[tuple, int],
