@@ -884,13 +884,14 @@ class _FullModel:
             assert tr is not None
             routes = _routes(self.agv_arcs, bool_value)
             for a, route in enumerate(routes):
-                def agv_legs(route: list[int]) -> list[AgvTrip] | None:
+                def agv_legs(route: list[int], check: bool = True) -> list[AgvTrip] | None:
+                    """The route's trips; None if ``check`` and the AGV cannot keep to them (a re-sequencing)."""
                     legs: list[AgvTrip] = []
                     here, free = 0, 0
                     for node in route:
                         t = self.tasks[node - 1]
                         st = value(self.ts[node - 1])
-                        if free + (tr[here][t.pickup] if here != t.pickup else 0) > st:
+                        if check and free + (tr[here][t.pickup] if here != t.pickup else 0) > st:
                             return None
                         if here != t.pickup:
                             legs.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
@@ -902,7 +903,7 @@ class _FullModel:
                                   lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), tr,
                                   lambda n: ((self.tasks[n - 1].job, self.tasks[n - 1].op),))
                 legs = agv_legs(tied) if tied != route else None
-                agv_trips += legs if legs is not None else agv_legs(route) or []
+                agv_trips += legs if legs is not None else agv_legs(route, check=False) or []
         tool_trips: list[ToolTrip] = []
         if self.uses:
             tt = inst.tool_travel
@@ -916,14 +917,15 @@ class _FullModel:
                     rank.update((us[n - 1], i) for i, n in enumerate(route))
             routes = _routes([a for a in self.tr_arcs if a[0] != a[1]], bool_value)
             for r, route in enumerate(routes):
-                def tool_legs(route: list[int]) -> list[ToolTrip] | None:
+                def tool_legs(route: list[int], check: bool = True) -> list[ToolTrip] | None:
+                    """The route's trips; None if ``check`` and the transporter cannot keep to them."""
                     legs: list[ToolTrip] = []
                     here, free = 0, 0
                     for node in route:
                         tool, j, k = self.deliveries[node - 1]
                         src, dst = origin[j, k], jobs[j][k].machine
                         st = value(self.dts[j, k])
-                        if free + (tt[here][src] if here != src else 0) > st:
+                        if check and free + (tt[here][src] if here != src else 0) > st:
                             return None
                         if here != src:
                             legs.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
@@ -940,7 +942,7 @@ class _FullModel:
                                   lambda n: ((("tool", self.deliveries[n - 1][0]), rank[self.deliveries[n - 1][1:]]),
                                              (self.deliveries[n - 1][1], self.deliveries[n - 1][2])))
                 tlegs = tool_legs(tied) if tied != route else None
-                tool_trips += tlegs if tlegs is not None else tool_legs(route) or []
+                tool_trips += tlegs if tlegs is not None else tool_legs(route, check=False) or []
         return Schedule(instance=inst.name, makespan=max(o.end for o in ops), n_agvs=inst.n_agvs,
                         n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=agv_trips,
                         tool_trips=tool_trips)
@@ -1040,7 +1042,6 @@ def _callback_class() -> type:
             super().__init__()
             self.fm, self.progress, self.t0 = fm, progress, t0
             self.best: Schedule | None = None
-            self.contradictory = 0  # solutions skipped (see on_solution_callback)
 
         def on_solution_callback(self) -> None:
             sch = self.fm.extract(self.value, self.boolean_value)
@@ -1049,14 +1050,13 @@ def _callback_class() -> type:
                 # inequalities: a tool's order at one instant against a job's, a route's against a tool's, where the
                 # routes' re-sequencing found none): not a schedule. A list schedule that follows its start times
                 # is; kept if it is the best so far
-                self.contradictory += 1
                 sch = greedy_schedule(self.fm.inst, rule="guided", priority={(o.job, o.op): o.start
                                                                              for o in sch.operations})
                 if (self.best is not None and sch.makespan >= self.best.makespan) or validate(self.fm.inst, sch):
                     return
             self.best = sch
             if self.progress is not None:
-                self.progress(int(self.objective_value), int(self.best_objective_bound), time.monotonic() - self.t0)
+                self.progress(sch.makespan, int(self.best_objective_bound), time.monotonic() - self.t0)
 
     return _Callback
 
