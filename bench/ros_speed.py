@@ -36,7 +36,7 @@ from fms_sim.benchmarks import builtin
 from fms_sim.schedule import Schedule
 from fms_sim.shop_service import ShopService
 from fms_sim.validate import validate
-from fms_dispatch.agent_logic import AgentLogic, needs_idle_stops, needs_twin
+from fms_dispatch.agent_logic import AgentLogic, needs_full_net, needs_idle_stops, needs_twin
 
 from checks import positive
 
@@ -45,15 +45,18 @@ def in_process_rate(name: str, solver: str, seconds: float = 1.0) -> float:
     """Decisions/s of ShopService + AgentLogic exchanging encoded messages in one process."""
     inst = builtin(name)
     agent = AgentLogic(solver, instance=inst)  # loaded once (a PPO model takes seconds to load)
-    twin = needs_twin(solver)  # the same shop settings as fms up uses for this solver
-    full = getattr(agent.decide, "decisions", "paper") == "full"  # a full-net model (the default ppo) runs the full net
+    # the same shop settings as fms up uses for this solver (fms_dispatch.up): a plan: solver and a full-net model
+    # (the default ppo) run the full net; a plan: solver also reads the history, and answers idle stops
+    twin = needs_twin(solver) or needs_full_net(solver)
+    full = needs_full_net(solver) or getattr(agent.decide, "decisions", "paper") == "full"
     n = 0
     t0 = time.perf_counter()
     for run in itertools.count():
         if n and time.perf_counter() - t0 >= seconds:
             break
         svc = ShopService(inst, run_id=f"bench-{run}", history=twin, features=not twin, history_delta=twin,
-                          idle_stops=full or needs_idle_stops(solver), decisions="full" if full else "paper")
+                          idle_stops=needs_idle_stops(solver) or needs_full_net(solver),
+                          decisions="full" if full else "paper")
         out = svc.start()
         while not svc.done:
             state = [o.msg for o in out if o.topic == TOPIC_STATE][-1]
@@ -81,7 +84,7 @@ def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedul
     problems = validate(builtin(name), sched)
     if problems:
         raise SystemExit(f"fms up {name}: invalid schedule: {problems[0]}")
-    domain = re.search(r"; ROS_DOMAIN_ID=(\d+)$", res.stderr, re.M)  # fms up's start line says which it used
+    domain = re.search(r"; ROS_DOMAIN_ID=(\d+)(;|$)", res.stderr, re.M)  # fms up's start line says which it used
     if domain is None:
         raise SystemExit(f"fms up {name} did not say its ROS domain:\n{res.stderr}")
     return wall, sched, int(domain.group(1))
