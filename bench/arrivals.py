@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     insts = expand_instances(a.shops)
     agent = load_agent(a.model)
     if agent.guide is None:
-        raise SystemExit(f"model {a.model} has no plan guide")
+        raise ValueError(f"model {a.model} has no plan guide")
     rows = []
     t0 = time.perf_counter()
     for inst in insts:

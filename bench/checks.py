@@ -30,6 +30,7 @@ def report(lines: list[str], rows: list[dict], path: str | None) -> None:
     """Print the summary ``lines``; with ``path``, write them there as JSON with the ``rows`` and the command."""
     print("\n".join(lines))
     if path:
+        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)  # (a missing folder lost the finished bench's rows)
         with open(path, "w") as f:
             json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
 

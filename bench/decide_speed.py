@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
-from checks import checked, report
+from checks import checked, positive, report
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -183,6 +183,9 @@ def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = 
                               "--instances", *group] + (["--solve"] if whole else []) + (["--parts"] if split else []),
                              env=env, capture_output=True, text=True, cwd=src.parent)
         if out.returncode:
+            last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
+            if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
+                raise ValueError(last.split(": error: ", 1)[1])
             raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
         rows += json.loads(out.stdout.strip().splitlines()[-1])
     return rows
@@ -197,8 +200,10 @@ def _sources(here: Path, baseline: str | None) -> Iterator[list[tuple[str, Path]
         return
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "baseline"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), baseline], check=True,
-                       capture_output=True)
+        made = subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), baseline],
+                              capture_output=True, text=True)
+        if made.returncode:  # an unknown revision: git's own words, as one line (run_main: exit 2)
+            raise ValueError(f"--baseline {baseline}: " + " ".join(made.stderr.split()))
         try:
             yield [("base", tree / "src"), ("new", here)]
         finally:
@@ -221,7 +226,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--instances", nargs="+", default=["EX104", "sl00", "sl31", "sl70"])
     ap.add_argument("--model", default="ppo", help="ppo (the default per shop) or a model name")
-    ap.add_argument("--repeat", type=int, default=3, help="timed runs per shop (best reported)")
+    ap.add_argument("--repeat", type=positive, default=3, help="timed runs per shop (best reported)")
     ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
     ap.add_argument("--solve", action="store_true", help="time the whole default solve (fresh process per run)")
     ap.add_argument("--parts", action="store_true",
@@ -229,8 +234,6 @@ def main() -> None:
     ap.add_argument("--json", help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
-    if a.repeat < 1:
-        raise SystemExit("--repeat must be >= 1")
     if a.worker:
         print(json.dumps([solve_once(n, a.model) for n in a.instances] if a.solve
                          else parts(a.instances, a.model, a.repeat) if a.parts
@@ -239,7 +242,7 @@ def main() -> None:
     here = ROOT / "src"
     if a.parts:
         if a.solve:
-            raise SystemExit("give one of --parts and --solve")
+            raise ValueError("give one of --parts and --solve")
         _parts_report(a, here)
         return
     if a.solve:

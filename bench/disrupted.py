@@ -49,9 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shops", nargs="+", default=DEFAULT_SHOPS, help="generated validation shop specs")
     ap.add_argument("--heldout", action="store_true", help="the 50 held-out shops instead (reported figures only)")
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
-                    help="disruption levels: spread of the lognormal noise on durations (0 with --breakdowns 0: "
-                         "nominal)")
-    ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
+                    help="disruption levels: spread of the lognormal noise on durations; 0 is the nominal level "
+                         "(no noise and no breakdowns, one run per shop)")
+    ap.add_argument("--breakdowns", type=int, default=1,
+                    help="machine breakdowns per run of each level above 0")
     ap.add_argument("--scenarios", type=positive, default=3, help="scenarios per shop and disrupted level")
     ap.add_argument("--follower", action="store_true",
                     help="also the guide follower (the expert the guided models are cloned from) on the same plans")

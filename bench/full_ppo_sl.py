@@ -25,9 +25,8 @@ from pathlib import Path
 
 from fms_dispatch.rl import ppo_solver
 from fms_sim.benchmarks import SL_GROUPS, builtin
-from fms_sim.validate import validate
 
-from checks import positive
+from checks import checked, positive
 
 MODES = {"agvs+tools": False, "agvs": True}
 
@@ -70,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                 t0 = time.perf_counter()
                 sched = solve(inst, lookahead="guide" if a.lookahead_guide else False)
                 dt = time.perf_counter() - t0
-                assert validate(inst, sched) == [], (inst.name, variant)
-                row = {"group": g, "instance": f"sl{g}{k}", "variant": variant, "ppo": sched.makespan,
+                row = {"group": g, "instance": f"sl{g}{k}", "variant": variant,
+                       "ppo": checked(inst, sched, f"ppo:{a.model} ({variant})"),
                        "seconds": round(dt, 2)}
                 for method in ("rules:full", "list", "cpsat"):
                     row[method] = ref.get((f"sl{g}{k}", variant, method))

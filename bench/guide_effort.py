@@ -47,7 +47,7 @@ def parse_effort(text: str) -> PlanEffort:
                 raise ValueError(part)
         return PlanEffort(restarts=int(n), rules=rules, exact=exact, tabu=tabu)
     except ValueError:
-        raise SystemExit(f"bad effort {text!r}: use N[+rules][+exactS][+tabuS]") from None
+        raise ValueError(f"bad effort {text!r}: use N[+rules][+exactS][+tabuS]") from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         follower = _valid(inst, run_full(inst, GuideFollower()))
         dt = time.perf_counter() - t0
-        row = dict(instance=name, plan=plan.makespan, replay=_valid(inst, replay(inst, plan)),
+        row = dict(instance=name, plan=_valid(inst, plan), replay=_valid(inst, replay(inst, plan)),
                    priority=_valid(inst, run_full(inst, PlanPriorityPolicy(plan))), follower=follower,
                    follower_s=round(dt, 2), with_empty_trips=follower_with_empty_trips(inst))
         rows.append(row)

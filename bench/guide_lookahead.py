@@ -55,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
             plain = checked(inst, solver(inst, **kw), "plain")
             plan = agent.guide_of(FullShop(inst)).plan
             t1 = time.perf_counter()
+            checked(inst, plan, "the guide's plan")
             look = checked(inst, solver(inst, lookahead="guide", **kw), "+lookahead-guide")
             t2 = time.perf_counter()
             if agent.guide_of(FullShop(inst)).plan is not plan:

@@ -58,7 +58,13 @@ def run(agent, inst, scenario, setting: tuple | None):
 
 
 def _opt(text: str) -> float | None:
-    return None if text.lower() == "none" else float(text)
+    """An argparse type: a number of seconds or a fraction, or ``none``."""
+    if text.lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or none, got {text!r}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         insts = expand_instances(a.shops)
     agent = load_agent(a.model)
     if agent.guide is None:
-        raise SystemExit(f"model {a.model} has no plan guide: nothing to re-plan")
+        raise ValueError(f"model {a.model} has no plan guide: nothing to re-plan")
     agent.use_guide_effort(guide_effort_from_args(a))
     ways: dict[str, tuple | None] = {"plan": None, "replan": (None, None, None)}
     for m in a.margins:

@@ -3,7 +3,8 @@
 No model is trained or selected on these shops (``fms_sim.shopsets``; ``fms train`` refuses them), so the
 figures say how the policies do on shops they never saw::
 
-    python bench/heldout.py --models ppo:full ppo [--cpsat 10] [--limit N] [--json results/heldout.json]
+    python bench/heldout.py --models ppo:full ppo [--cpsat 10] [--limit N | --only hoNN ...] [--json F]
+                            [--lookahead-max-jobs N] [--lookahead-guide] [--write-metrics]
     python bench/heldout.py --models ppo:other --reference results/heldout.json --json results/heldout2.json
 
 Per shop: CP-SAT within ``--cpsat`` seconds (the reference; two workers), the earliest-start and
@@ -12,7 +13,9 @@ earliest-completion list schedules executed through the full net (``list``, ``li
 (``rule``), and each model plain and with the lookahead (``+la``; without retries from 50 jobs on). Every schedule
 is validated. The summary gives each method's mean gap to CP-SAT and, per model, on how many shops it is at most
 the list schedule. With ``--lookahead-guide`` a guided model's ``+la`` is its guide's empty trips
-(``lookahead="guide"``, on every size) instead of the verified lookahead. ``--guide-restarts N --guide-budget S
+(``lookahead="guide"``, on every size) instead of the verified lookahead. A guided model's ``+la`` run acts out
+the plan its plain run searched (the same plan both ways), so its seconds leave out the plan search (within the
+1 s budget). ``--guide-restarts N --guide-budget S
 --[no-]guide-rules --guide-tabu S --guide-exact S`` set a guided model's plan search
 (:class:`fms_dispatch.rl.guide.PlanEffort`; default: the solver's ``DEFAULT_EFFORT``) and label its columns
 ``SPEC~rN[-rules]-tT-xS`` (T: seconds of tabu search per operation, S: seconds of CP-SAT polish). A model
@@ -174,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference", help="a JSON file of an earlier run: reuse its CP-SAT, list and rule figures "
                                         "(and rows of models measured there)")
     a = ap.parse_args(argv)
+    if a.write_metrics and (a.only or a.limit):  # the record is the whole set's: a part of it would replace it
+        ap.error("--write-metrics records the whole held-out set; it cannot be combined with --only or --limit")
     shops = heldout_shops()
     if a.only:
         unknown = sorted(set(a.only) - {s.name for s in shops})

@@ -84,6 +84,9 @@ def _worker(src: Path, names: list[str], solver: str, history: str) -> list[dict
     out = subprocess.run([sys.executable, __file__, "--worker", "--solver", solver, "--history", history,
                           "--instances", *names], env=env, capture_output=True, text=True, cwd=src.parent)
     if out.returncode:
+        last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
+        if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
+            raise ValueError(last.split(": error: ", 1)[1])
         raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -103,7 +106,7 @@ def main() -> None:
         print(json.dumps([run_once(n, a.solver, a.history == "delta") for n in a.instances]))
         return
     if a.history == "both" and a.baseline:
-        raise SystemExit("--history both compares the two ways in this checkout; give it without --baseline")
+        raise ValueError("--history both compares the two ways in this checkout; give it without --baseline")
     from decide_speed import _sources
 
     best: dict[str, dict[str, dict]] = {"new": {}, "base": {}}

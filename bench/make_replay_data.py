@@ -54,7 +54,7 @@ def instance_for(name: str, mode: str) -> Instance:
     if mode == "agvs":
         inst = inst.without_tools()
     elif not inst.has_tools:
-        raise SystemExit(f"{name} has no tools; mode 'tools' makes no sense")
+        raise ValueError(f"{name} has no tools; mode 'tools' makes no sense")
     return inst
 
 

@@ -26,7 +26,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.benchmarks import builtin
 from fms_sim.schedule import Schedule
 
-from checks import positive
+from checks import checked, positive
 
 
 def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
@@ -40,7 +40,8 @@ def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
     wall = time.perf_counter() - t0
     if res.returncode != 0:
         return None, wall, (res.stderr.strip().splitlines() or ["?"])[-1]
-    return Schedule.load(out).makespan, wall, ""
+    sched = Schedule.load(out)
+    return checked(builtin(name), sched, f"fms up --solver {solver}"), wall, ""
 
 
 def main() -> None:
@@ -53,6 +54,8 @@ def main() -> None:
     ap.add_argument("--time-limit", type=float, default=10.0)
     ap.add_argument("--json", help="also write the rows here")
     a = ap.parse_args()
+    if not 0 <= a.skip <= 9:
+        ap.error(f"--skip must be 0..9 (the instances of an sl group), got {a.skip}")
     names = ([f"EX{s}{lay}" for lay in range(1, 5) for s in range(1, 11)] if a.set == "bu"
              else [f"sl{g}{k}" for g in range(8) for k in range(a.skip, a.skip + a.per_group) if k < 10])[:a.limit]
     solver = f"plan:cpsat:{a.time_limit:g}"
@@ -63,6 +66,7 @@ def main() -> None:
         for name in names:
             inst = builtin(name)
             offline = solve(inst, "cpsat", time_limit=a.time_limit)
+            checked(inst, offline, "cpsat")
             span, wall, err = live(name, solver, Path(tmp))
             opt = inst.meta.get("optimal_makespan")
             gap = None if span is None else round(100 * (span - offline.makespan) / offline.makespan, 2)

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
                     help="disruption levels: the spread of the lognormal noise on durations (0: nominal)")
     ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
-    ap.add_argument("--seeds", type=int, default=2, help="scenarios per shop and disrupted level")
+    ap.add_argument("--seeds", type=positive, default=2, help="scenarios per shop and disrupted level")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     check_training_specs({"train": [], "eval": a.shops})

@@ -24,7 +24,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, report, versus_line
+from checks import checked, positive, report, versus_line
 
 DEFAULT_SHOPS = ["genbu:**1@31", "gen:10x5x5*2@216", "gen:10x5x5*2@219/notools", "gen:20x10x10*2@216",
                  "gen:20x10x10*2@219/notools"]
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--shops", nargs="+", default=DEFAULT_SHOPS, help="validation shop specs")
     ap.add_argument("--tabu", type=float, nargs="+", default=[0.0, 0.0025], help="tabu search times to compare")
-    ap.add_argument("--seeds", type=int, default=3, help="scenarios per shop")
+    ap.add_argument("--seeds", type=positive, default=3, help="scenarios per shop")
     ap.add_argument("--noise", type=float, default=0.1)
     ap.add_argument("--breakdowns", type=int, default=2)
     ap.add_argument("--budget", type=float, default=1.0, help="seconds per re-plan")
@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for inst in expand_instances(a.shops):
         plan = solve(inst, "cpsat", time_limit=a.cpsat)
+        checked(inst, plan, "cpsat (the plan)")
         for seed in range(a.seeds):
             sc = Scenario.draw(inst, noise=a.noise, breakdowns=a.breakdowns, horizon=max(1, plan.makespan // 2),
                                duration=(max(1, plan.makespan // 20), max(1, plan.makespan // 7)), seed=seed)

@@ -33,7 +33,7 @@ from fms_sim.full_shop import make_shop
 from fms_sim.shop import Shop, run_policy
 from fms_sim.validate import validate
 
-from checks import positive
+from checks import checked, positive
 
 
 CPU: dict[str, float] = {}  # CPU seconds of the last run_ppo call (wall time suffers on a shared machine)
@@ -75,7 +75,8 @@ def rule_makespans(inst, include_nearest: bool = False) -> dict[str, int]:
     key = _key(inst) + ("|36" if include_nearest else "")
     if key in RULE_CACHE:
         return RULE_CACHE[key]
-    out = {name: run_policy(inst, parse_rule_name(name)).makespan for name in all_rule_pairs(include_nearest)}
+    out = {name: checked(inst, run_policy(inst, parse_rule_name(name)), name)
+           for name in all_rule_pairs(include_nearest)}
     RULE_CACHE[key] = out
     return out
 
@@ -204,7 +205,7 @@ def main() -> None:
                     help="sl: also run with the fast lookahead (no retries of rejected moves)")
     ap.add_argument("--vehicles", choices=("first", "least-work", "nearest"),
                     help="sl: also run the model's job choices with this rule's vehicle choices (probe)")
-    ap.add_argument("--jobs", type=int, default=1,
+    ap.add_argument("--jobs", type=positive, default=1,
                     help="sl: instances measured at once in separate processes (default 1; the seconds columns "
                          "are then measured on a busier machine)")
     ap.add_argument("--json", help="write the results here")
@@ -212,6 +213,8 @@ def main() -> None:
     ap.add_argument("--rules-only", action="store_true", help="sl: only compute (and cache) the rule pairs")
     ap.add_argument("--write-metrics", action="store_true", help="store results in the model's metrics.json")
     a = ap.parse_args()
+    if a.per_group > 10:  # (it ran the rules for seconds, then asked for sl010)
+        ap.error("--per-group: a group has 10 instances")
     if a.rules_cache and Path(a.rules_cache).is_file():
         try:
             cached = json.loads(Path(a.rules_cache).read_text())
@@ -244,7 +247,7 @@ def run(a: argparse.Namespace) -> None:
         model = a.model or ("large-agv" if a.no_tools else "large")
         groups = parse_groups(a.groups)
         if a.lookahead and a.lookahead_fast:
-            raise SystemExit("rl_eval: give --lookahead or --lookahead-fast, not both")
+            raise ValueError("give --lookahead or --lookahead-fast, not both")
         look: bool | str = "fast" if a.lookahead_fast else a.lookahead
         res = bench_sl(model, a.no_tools, a.per_group, look, groups, a.vehicles, a.jobs)
         key = "sl_no_tools" if a.no_tools else "sl"

@@ -2,9 +2,9 @@
 the measurement behind ``fms_dispatch.replan.SIM_COST`` (a re-plan simulates only where three such runs take at
 most half its budget; docs/benchmarks.md §8).
 
-Each shop's earliest-start plan is replayed for ``--at`` answers (scaled to the shop: a share of its operations),
-then, at the next state a snapshot can be taken of, the earliest-start list schedule of the remaining work is made
-(timed) and run through a nominal copy of the net (timed). Printed per shop: the work left, both times and their
+Each shop's earliest-start plan is replayed for a share of its operations (``--share``, default 0.1), then, at
+the next state a snapshot can be taken of, the earliest-start list schedule of the remaining work is made (timed)
+and run through a nominal copy of the net (timed). Printed per shop: the work left, both times and their
 ratio (the median of ``--repeat`` timings each); the run's end is checked against the schedule it followed.
 
     .venv/bin/python bench/sim_cost.py
@@ -59,7 +59,7 @@ def main() -> None:
     p.add_argument("--json")
     a = p.parse_args()
     if not 0 <= a.share < 1:
-        raise SystemExit(f"--share must be in [0, 1), got {a.share}")
+        raise ValueError(f"--share must be in [0, 1), got {a.share}")
     rows, lines = [], []
     print(f"{platform.node()}, {time.strftime('%Y-%m-%d')}; SIM_COST = {SIM_COST}")
     for name in a.shops:

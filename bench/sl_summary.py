@@ -139,8 +139,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("json", nargs="?", default="results/sl_full/bench_sl.json", type=Path)
     args = ap.parse_args(argv)
-    data = json.loads(args.json.read_text())
-    rows = data["rows"]
+    try:
+        data = json.loads(args.json.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{args.json} is not JSON: {exc}") from None
+    rows = data.get("rows") if isinstance(data, dict) else None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and {"variant", "method"} <= set(r) for r in rows):
+        raise ValueError(f"{args.json} is not the output of fms bench sl (a 'rows' list of variant/method rows)")
     total_ok = {}
     for variant, label in MODES:
         if not any(r["variant"] == variant for r in rows):

@@ -8,7 +8,8 @@ are checked like training specs), never on the shops the reported figures come f
 
 Per shop: the list schedule (the better of ``list`` and ``list:ect``, executed through the full net) and each
 model (plain, and with ``--lookahead`` also with the lookahead: a guided model's guide empty trips with
-``--lookahead-guide``); guided models plan with the solver's default effort; every schedule validated. The summary gives
+``--lookahead-guide``, acting out the plan of the plain run: its seconds leave out the plan search); guided models
+plan with the solver's default effort; every schedule validated. The summary gives
 each method's mean ratio to the list schedule, with and without tools.
 """
 
@@ -20,7 +21,7 @@ import statistics
 import time
 
 from fms_dispatch.rl import ppo_solver
-from fms_dispatch.rl.models import load_agent
+from fms_dispatch.rl.models import default_model_name, load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import check_training_specs
@@ -41,6 +42,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --lookahead: a guided model's lookahead is its guide's empty trips")
     ap.add_argument("--json", help="write the rows and the summary here")
     a = ap.parse_args(argv)
+    if a.lookahead_guide and not a.lookahead:  # it was ignored
+        ap.error("--lookahead-guide chooses the lookahead of --lookahead; give both")
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     for spec in a.models:  # an unknown model is refused before the runs, not reported as a row of nulls
         if ":" in spec:
@@ -55,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
                 t0 = time.perf_counter()
                 try:
                     mode: bool | str = ("fast" if inst.n_jobs >= 50 else True) if la else False
-                    if la and a.lookahead_guide and load_agent(spec.split(":", 1)[1]).guide is not None:
+                    model = spec.split(":", 1)[1] if ":" in spec else default_model_name(inst)
+                    if la and a.lookahead_guide and load_agent(model).guide is not None:
                         mode = "guide"
                     s = ppo_solver(spec)(inst, lookahead=mode)
                 except ValueError as exc:  # the model does not fit the shop or its net
