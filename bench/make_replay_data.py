@@ -105,6 +105,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--only", metavar="PATTERN", help="redo only the files whose stem matches (fnmatch)")
     args = ap.parse_args()
+    if args.only is not None and not any(fnmatch.fnmatchcase(stem(*job[:3]), args.only) for job in JOBS):
+        ap.error(f"--only {args.only!r} matches no file (stems such as sl00_tools_list, EX11_agvs_cpsat)")
     OUT.mkdir(parents=True, exist_ok=True)
     index = []
     for name, mode, method, limit in JOBS:

@@ -6,8 +6,8 @@ node, recorder attached), their gap, the wall time of ``fms up`` and whether the
 (BU instances carry their optimum). Goals (issue 18): within 1 % of the offline makespan on sl00-sl79, exactly
 the optimum on the BU instances that cpsat proves.
 
-Usage: ``python bench/plan_live.py [--set bu|sl] [--per-group K] [--skip K] [--limit N] [--time-limit S]`` (ROS 2 Jazzy installed; each
-run gets a random ROS domain).
+Usage: ``python bench/plan_live.py [--set bu|sl] [--per-group K] [--skip K] [--limit N] [--time-limit S] [--json F]``
+(ROS 2 Jazzy installed; each run gets a random ROS domain).
 """
 
 from __future__ import annotations

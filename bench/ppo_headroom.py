@@ -7,7 +7,7 @@ shops (checked like training specs), nominal or disrupted (noise on every durati
 decider learns a duration only when it ends)::
 
     python bench/ppo_headroom.py [--model guided] [--shops 'genbu:**1@31' ...] [--samples 10]
-                                 [--temperatures 1 4 8] [--noise 0 0.2] [--breakdowns 1] [--seeds 2]
+                                 [--temperatures 1 4 8] [--noise 0 0.2] [--breakdowns 1] [--seeds 2] [--seed 0]
 
 Per temperature and disruption level: the mean makespan of the deterministic runs (arg-max, as the solver
 decides), the mean of the sampled runs (each decision drawn from softmax(logits / temperature); temperature 1

@@ -7,7 +7,7 @@ seconds per re-plan): once per tabu search time in ``--tabu`` (seconds per opera
 schedules, the CP-SAT-guided schedule and the restarts alone)::
 
     python bench/replan_tabu.py [--shops SPEC ...] [--tabu 0 0.0025] [--seeds 3] [--noise 0.1] [--budget 1]
-                                [--json FILE]
+                                [--breakdowns 2] [--cpsat 5] [--json FILE]
 
 Prints each way's total realised makespan, how many runs it ends below / above the first way, and its re-plans.
 Every schedule is validated against its scenario.

@@ -3,7 +3,8 @@
 * ``python bench/rl_eval.py bu [--model bu]`` — BU layout 2 (EX12..EX102, 2 AGVs): PPO makespan with and
   without lookahead, seconds per instance, the best of the 24 rule pairs per instance, the optimum.
   Targets: average <= 99 with lookahead, every instance <= best rule pair, <= 0.1 s per instance.
-* ``python bench/rl_eval.py sl [--model large] [--no-tools] [--per-group N]`` — the large benchmark (10 AGVs,
+* ``python bench/rl_eval.py sl [--model large] [--no-tools] [--per-group N] [--groups G ...] [--rules-cache F]
+  [--rules-only]`` — the large benchmark (10 AGVs,
   5 transporters): per size group the PPO mean (and with ``--lookahead`` the lookahead mean), the mean of the
   best single rule pair of the group, and the mean of the per-instance best pair (over the 36 pairs of the
   baselines: 12 job rules x first / least-work / nearest). Target: PPO better than the best rule pair in every
