@@ -85,6 +85,8 @@ def main() -> None:
             if a.env and net == "paper":
                 edps, espe, _ = env_episodes(inst, secs, 1)
                 row += f" {edps:,.0f} | {espe:.4f} |"
+            elif a.env:  # the env is measured on the paper net only: its cells stay empty here
+                row += " | |"
             print(row, flush=True)
 
 
