@@ -90,8 +90,8 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
         jobs = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
-    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message: its id and run too (they were dropped:
-        return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")  # a re-sent file got a new id)
+    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message: its id and run too (re-sending the
+        return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")  # file is then the same order)
     return jobs, None, None
 
 

@@ -7,9 +7,8 @@ leave their order open. The validator (:mod:`fms_sim.validate`) and replay (:mod
   order the tool can follow (each carried use's trip leaving from where the tool is, a job's operations in order);
 * and all of those orders together with each part's operations and trips and each vehicle's recorded legs: some
   one sequence of the tied events must follow them all (:func:`settle`). A tool's order chosen on its own can
-  contradict the others (two jobs each needing the other's tool first at one instant: its uses by job number
-  were such a choice), so where the orders so chosen close a cycle, the tools' orders at that instant are searched
-  together (:func:`_search`); only where no order exists is the schedule's record contradictory (a transporter that
+  contradict the others (two jobs at one instant, each needing the other's tool first), so where the orders so
+  chosen close a cycle, the tools' orders at that instant are searched together (:func:`_search`); only where no order exists is the schedule's record contradictory (a transporter that
   records carrying a tool away from a machine before carrying it there).
 """
 
@@ -40,8 +39,8 @@ class _GiveUp(Exception):
 def tool_order(us: list[tuple], trips: dict) -> list[tuple]:
     """The uses of one tool (``(start, end, job, op, machine)``) in the order the tool serves them: by time; uses at
     the same instant (zero durations) in an order the tool can follow (:func:`_tied_order`), else, for the errors to
-    name, one on the machine where the tool is before one it must be carried to, carried ones by their trip's start.
-    (Job numbers decided ties once: a feasible schedule whose trip served job 1 before job 0's use was refused.)"""
+    name, one on the machine where the tool is before one it must be carried to, carried ones by their trip's start
+    (job numbers do not decide: a trip may serve job 1 before job 0's use)."""
     out: list[tuple] = []
     loc, free = 0, 0  # where the tool is, and until when the uses so far hold it
     for _, group in groupby(sorted(us), key=lambda u: u[:2]):
@@ -51,7 +50,7 @@ def tool_order(us: list[tuple], trips: dict) -> list[tuple]:
             out += found
             loc, free = found[-1][4], max(free, found[0][1])  # the group's uses share their end
             continue
-        while tied:  # a group holds more than one use only for zero durations: it is small
+        while tied:  # no order the tool can follow: one for the checks to name what is wrong
             here = [u for u in tied if not trips.get((u[2], u[3])) and u[4] == loc]
             carried = sorted((u for u in tied if trips.get((u[2], u[3]))), key=lambda u: trips[u[2], u[3]][0].start)
             u = (here or carried or tied)[0]
@@ -70,8 +69,7 @@ def _tied_order(tied: list[tuple], trips: dict, loc: int, free: int) -> list[tup
     An uncarried use where the tool is (its job's earlier uses done) is taken at once: it neither moves the tool
     nor can be needed later, so only the carried uses are choices: each in its transporter's route order (a
     transporter carries the tool in the order it drives), tried by trip start and the schedule's order of the trips,
-    the dead ends remembered. So a group of dozens of uses is ordered at once
-    (a cap of 16 uses once refused valid schedules of shops with many operations of zero duration)."""
+    the dead ends remembered. So a group of dozens of uses is ordered at once."""
     def source(u: tuple) -> int:  # where the tool must be for the use (a carried one: where its trip leaves from)
         ts = trips.get((u[2], u[3]))
         return ts[0].from_ if ts else u[4]
