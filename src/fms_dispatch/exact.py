@@ -1052,8 +1052,10 @@ def _callback_class() -> type:
                 # is; kept if it is the best so far
                 sch = greedy_schedule(self.fm.inst, rule="guided", priority={(o.job, o.op): o.start
                                                                              for o in sch.operations})
-                if (self.best is not None and sch.makespan >= self.best.makespan) or validate(self.fm.inst, sch):
+                if validate(self.fm.inst, sch):
                     return
+            if self.best is not None and sch.makespan >= self.best.makespan:
+                return  # (a stand-in may be better than CP-SAT's next solutions)
             self.best = sch
             if self.progress is not None:
                 self.progress(sch.makespan, int(self.best_objective_bound), time.monotonic() - self.t0)

@@ -8,8 +8,9 @@ leave their order open. The validator (:mod:`fms_sim.validate`) and replay (:mod
 * and all of those orders together with each part's operations and trips and each vehicle's recorded legs: some
   one sequence of the tied events must follow them all (:func:`settle`). A tool's order chosen on its own can
   contradict the others (two jobs at one instant, each needing the other's tool first), so where the orders so
-  chosen close a cycle, the tools' orders at that instant are searched together (:func:`_search`); only where no order exists is the schedule's record contradictory (a transporter that
-  records carrying a tool away from a machine before carrying it there).
+  chosen close a cycle, the tools' orders at that instant are searched together (:func:`_search`); only where no
+  order exists is the schedule's record contradictory (a transporter that records carrying a tool away from a
+  machine before carrying it there).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ __all__ = ["tool_use_orders", "has_ties"]
 #: the most states :func:`_tied_order` visits for one tool at one instant before it gives up
 _TIED_STATES = 100_000
 
-#: the most states :func:`_search` visits at one instant before it gives up (the order is then left contradictory)
+#: the most states :func:`_search` visits at one instant before it gives up (the schedule is then refused, saying so)
 _SEARCH_STATES = 100_000
 
 #: the most operations and trips of one cycle a message names
@@ -201,7 +202,13 @@ def settle(instance: Instance, schedule: Schedule, ops: dict) -> tuple[dict[int,
         if cycle is None:
             return orders, None
         instant = when[cycle[0]]
-        found = None if instant in searched else _search(instant, fixed, orders, when, carrier, schedule)
+        try:
+            found = None if instant in searched else _search(instant, fixed, orders, when, carrier, schedule)
+        except _GiveUp:
+            return orders, (f"at time {instant} the order of the tied events could not be settled within "
+                            f"{_SEARCH_STATES:,} states of the search (the tools' orders on their own close a cycle "
+                            "with the parts' and routes' orders; a shop with fewer tied carries at one instant "
+                            "is checked in full)")
         searched.add(instant)
         if found is None:
             names = [_event(schedule, e) for e in cycle]
@@ -273,9 +280,10 @@ def _with_tools(fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]],
 def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]], when: dict[tuple, int],
             carrier: dict[tuple, int], schedule: Schedule) -> dict[int, list[tuple]] | None:
     """Orders of the tools' uses at instant ``t`` that agree with ``fixed`` (a sequence of all the tied events at
-    ``t`` that each tool can follow), per tool the uses at ``t`` in order; None if there is none (or the search
-    gave up). Events that involve no tool are taken as soon as what precedes them is done (that never blocks
-    anything); the tools' choices are searched depth-first, remembering the dead ends."""
+    ``t`` that each tool can follow), per tool the uses at ``t`` in order; None if there is none; raises
+    :class:`_GiveUp` past :data:`_SEARCH_STATES`. An event without a tool, a use where its free tool is and the use
+    a tool is held for are taken as soon as what precedes them is done (none moves or holds a tool, so taking it
+    never blocks anything); the carries are the choices, searched depth-first, the dead ends remembered."""
     items = [e for e, w in when.items() if w == t]
     indeg0 = dict.fromkeys(items, 0)
     for a in items:
@@ -310,16 +318,26 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
         nonlocal visits
         indeg = dict(indeg)
         done_l = set(done)
-        while True:  # events that involve no tool's choice, as soon as they may happen
-            free = [e for e in items if e not in done_l and not indeg[e] and e not in use_of and e not in carry_of]
-            if not free:
-                break
-            for e in free:
+        state = dict(state)
+        while True:  # what is no choice, as soon as it may happen: events without a tool, a use where its tool is
+            fired = False  # (free) or of the use its tool is held for; neither moves or holds a tool
+            for e in items:
+                if e in done_l or indeg[e] or e in carry_of:
+                    continue
+                if e in use_of:
+                    tool, machine, carried = use_of[e]
+                    where, held, left = state[tool]
+                    if (held != e) if carried else (held is not None or where != machine):
+                        continue
+                    state[tool] = (machine, None, left - 1)
                 done_l.add(e)
                 seq = seq + [e]
+                fired = True
                 for b in fixed.get(e, ()):
                     if b in indeg:
                         indeg[b] -= 1
+            if not fired:
+                break
         if len(done_l) == len(items):
             return seq
         key = (frozenset(done_l), tuple(sorted(state.items())))
@@ -328,23 +346,14 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
         visits += 1
         if visits > _SEARCH_STATES:
             raise _GiveUp
-        for e in items:
-            if e in done_l or indeg[e]:
+        for e in items:  # the choices: which carry next
+            if e in done_l or indeg[e] or e not in carry_of:
                 continue
-            if e in use_of:
-                tool, machine, carried = use_of[e]
-                where, held, left = state[tool]
-                if (held != e) if carried else (held is not None or where != machine):
-                    continue
-                after: tuple[int, tuple | None, int] = (machine, None, left - 1)
-            elif e in carry_of:
-                tool, use, src, dst = carry_of[e]
-                where, held, left = state[tool]
-                if held is not None or where != src or (use not in use_of and left):
-                    continue  # (a carry for a later use comes after the tool's uses at the instant)
-                after = (dst, use if use in use_of else None, left)
-            else:
-                continue
+            tool, use, src, dst = carry_of[e]
+            where, held, left = state[tool]
+            if held is not None or where != src or (use not in use_of and left):
+                continue  # (a carry for a later use comes after the tool's uses at the instant)
+            after: tuple[int, tuple | None, int] = (dst, use if use in use_of else None, left)
             nxt = dict(indeg)
             for b in fixed.get(e, ()):
                 if b in nxt:
@@ -357,8 +366,8 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
 
     try:
         seq = go(frozenset(), indeg0, start, [])
-    except (_GiveUp, RecursionError):  # (a choice per level: only a shop with hundreds of tied tool uses)
-        return None
+    except RecursionError:  # (a carry per level: only a shop with hundreds of tied carries)
+        raise _GiveUp from None
     if seq is None:
         return None
     place = {e: i for i, e in enumerate(seq)}

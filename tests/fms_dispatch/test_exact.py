@@ -410,3 +410,36 @@ def test_bad_origins_and_cp_sat_parameters_are_refused():
     assert greedy_schedule(same, origin=Snapshot.initial(builtin("ra01"))).makespan == greedy_schedule(same).makespan
     with pytest.raises(ValueError, match="^unknown CP-SAT parameter 'bogus'$"):
         solve_exact(builtin("EX12"), time_limit=1.0, cp_params={"bogus": 1})
+
+
+def test_a_stand_in_for_an_impossible_solution_is_not_replaced_by_a_worse_one(monkeypatch):
+    """The solution callback: CP-SAT's first solution (20) ties events in orders no shop can follow, so a list
+    schedule following its start times (15) stands in; CP-SAT's next solution (18, valid) overwrote it, and the
+    run returned 18. Kept only if better, as CP-SAT's own solutions are."""
+    import fms_dispatch.exact as exact
+    from fms_sim.schedule import OperationRecord
+
+    def sched(makespan: int, tied: bool) -> Schedule:
+        ops = [OperationRecord(0, 0, 1, None, 0, 0 if tied else makespan - 1),
+               OperationRecord(0, 1, 1, None, makespan - 1, makespan)]
+        return Schedule("x", makespan, 0, 0, ops, [], [])
+
+    solutions = iter([sched(20, True), sched(18, False)])
+
+    class Model:
+        inst = None
+
+        def extract(self, value, bool_value):
+            return next(solutions)
+
+    monkeypatch.setattr(exact, "validate", lambda inst, s: ["no order follows"] if s.makespan == 20 else [])
+    monkeypatch.setattr(exact, "greedy_schedule", lambda inst, **kw: sched(15, False))
+    seen = []
+
+    class Callback(exact._callback_class()):  # type: ignore[misc]
+        best_objective_bound = 10  # (CP-SAT's, read by the progress report)
+
+    cb = Callback(Model(), lambda best, bound, t: seen.append(best), 0.0)
+    cb.on_solution_callback()
+    cb.on_solution_callback()
+    assert cb.best.makespan == 15 and seen == [15]  # progress never reports a makespan going up

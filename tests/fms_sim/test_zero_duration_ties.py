@@ -175,3 +175,41 @@ def test_cpsat_never_returns_ties_no_shop_can_follow(shop, seed):
     assert (s.meta["status"] == "OPTIMAL") == (s.makespan == s.meta["lower_bound"])
     out = replay(inst, s)
     assert validate(inst, out) == [] and out.makespan <= s.makespan
+
+
+def test_many_tied_uses_beside_a_search_are_settled_at_once():
+    """The crossed instant of the test above makes the tools' orders be searched together at t=4, where tool 3 may
+    leave machine 4 only after job 4's use there (which waits for a carry on the other transporter) and 40 jobs use
+    tool 5 on machine 7. The search branched on every use and met its state budget after about 9 s, refusing the
+    schedule (a review built it); uses where their tool is are now taken at once, only carries are choices."""
+    n = 40
+    jobs = [[{"machine": 2, "tool": None, "duration": 4}, {"machine": 1, "tool": 2, "duration": 0},
+             {"machine": 1, "tool": 1, "duration": 0}],
+            [{"machine": 3, "tool": None, "duration": 4}, {"machine": 1, "tool": 1, "duration": 0},
+             {"machine": 1, "tool": 2, "duration": 0}],
+            [{"machine": 1, "tool": 1, "duration": 2}], [{"machine": 4, "tool": 3, "duration": 4}],
+            [{"machine": 6, "tool": 4, "duration": 0}, {"machine": 4, "tool": 3, "duration": 0}],
+            [{"machine": 5, "tool": 3, "duration": 0}]] + [[{"machine": 7, "tool": 5, "duration": 0}]] * (n + 1)
+    inst = Instance.from_dict({"name": "settled", "jobs": jobs, "tool_travel": [[0] * 8 for _ in range(8)],
+                               "n_tool_transporters": 2, "n_machines": 7})
+
+    def op(j: int, k: int, m: int, tool: int | None, s: int, e: int) -> dict:
+        return {"job": j, "op": k, "machine": m, "tool": tool, "start": s, "end": e}
+
+    def trip(r: int, tool: int | None, j: int | None, a: int, b: int, s: int) -> dict:
+        k = {2: 0, 3: 0, 5: 0, 6: 0, 1: 2, 4: 0}.get(j) if j is not None else None  # (the carried op of job j)
+        return {"transporter": r, "tool": tool, "job": j, "op": k, "from": a, "to": b, "start": s, "end": s,
+                "loaded": tool is not None}
+
+    ops = [op(2, 0, 1, 1, 0, 2), op(0, 0, 2, None, 0, 4), op(1, 0, 3, None, 0, 4), op(3, 0, 4, 3, 0, 4),
+           op(1, 1, 1, 1, 4, 4), op(1, 2, 1, 2, 4, 4), op(0, 1, 1, 2, 4, 4), op(0, 2, 1, 1, 4, 4),
+           op(4, 0, 6, 4, 4, 4), op(4, 1, 4, 3, 4, 4), op(5, 0, 5, 3, 4, 4)] + [op(6 + i, 0, 7, 5, 4, 4)
+                                                                                for i in range(n + 1)]
+    trips = [trip(0, 1, 2, 0, 1, 0), trip(0, None, None, 1, 0, 0), trip(0, 3, 3, 0, 4, 0), trip(0, 3, 5, 4, 5, 4),
+             trip(0, None, None, 5, 0, 4), trip(0, 5, 6, 0, 7, 4), trip(1, 2, 1, 0, 1, 4),
+             trip(1, None, None, 1, 0, 4), trip(1, 4, 4, 0, 6, 4)]
+    sched = Schedule.from_dict({"instance": "settled", "makespan": 4, "n_agvs": 0, "n_tool_transporters": 2,
+                                "agv_trips": [], "meta": {}, "operations": ops, "tool_trips": trips})
+    assert validate(inst, sched) == []
+    out = replay(inst, sched)
+    assert validate(inst, out) == [] and out.makespan == 4
