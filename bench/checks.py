@@ -26,9 +26,10 @@ def checked(inst: Any, sched: Any, what: str, scenario: Any = None) -> int:
     return sched.makespan
 
 
-def report(lines: list[str], rows: list[dict], path: str | None) -> None:
-    """Print the summary ``lines``; with ``path``, write them there as JSON with the ``rows`` and the command."""
-    print("\n".join(lines))
+def report(lines: list[str], rows: list[dict], path: str | None, shown: int = 0) -> None:
+    """Print the summary ``lines`` (but the first ``shown``, printed as the bench went); with ``path``, write them
+    all there as JSON with the ``rows`` and the command."""
+    print("\n".join(lines[shown:]))
     if path:
         os.makedirs(os.path.dirname(path) or ".", exist_ok=True)  # (a missing folder lost the finished bench's rows)
         with open(path, "w") as f:

@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the rows and the summary here")
     add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
+    if a.replan_margins and not a.replan_tabu:  # they would be ignored
+        ap.error("--replan-margins sets the margins of the --replan-tabu ways; give --replan-tabu too")
     if a.heldout:
         insts = heldout_shops()
     else:

@@ -34,6 +34,7 @@ from pathlib import Path
 from fms_dispatch.cli import add_guide_args, guide_effort_from_args
 from fms_dispatch.full_rules import FullRulePolicy, run_full
 from fms_dispatch.rl import ppo_solver
+from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rules import JOB_RULES
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import heldout_shops
@@ -188,6 +189,10 @@ def main(argv: list[str] | None = None) -> int:
     shops = shops[:a.limit] if a.limit else shops
     earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
     effort = guide_effort_from_args(a)
+    for spec in a.models:  # an unknown model stops the bench now, not after the first shop's CP-SAT run
+        ppo_solver(spec)
+        if ":" in spec:
+            load_agent(spec.split(":", 1)[1].strip())
     rows = []
     t0 = time.perf_counter()
     for inst in shops:

@@ -86,7 +86,7 @@ def main() -> None:
         print(line, flush=True)
         lines.append(line)
     lines.append(f"ratio {min(r['ratio'] for r in rows)}-{max(r['ratio'] for r in rows)} (SIM_COST = {SIM_COST})")
-    report(lines[-1:], rows, a.json)
+    report(lines, rows, a.json, shown=len(lines) - 1)  # (the shops' lines were printed as they came)
 
 
 if __name__ == "__main__":

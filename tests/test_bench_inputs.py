@@ -35,6 +35,8 @@ def bench(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
     (("guide_effort.py", "--efforts", "8+foo"), "bad effort '8+foo'"),  # exit 1
     (("sim_cost.py", "--share", "2"), "--share must be in [0, 1)"),  # exit 1
     (("make_replay_data.py", "--only", "nomatch*"), "--only 'nomatch*' matches no file"),  # exit 0, nothing said
+    (("guide_replan.py", "--replan-margins", "0.01"), "give --replan-tabu too"),  # ignored
+    (("heldout.py", "--models", "ppo:no-such-model", "--limit", "1"), "no model named 'no-such-model'"),  # after CP-SAT
 ])
 def test_bad_input_is_one_line_and_exit_2(argv: tuple[str, ...], needle: str) -> None:
     res = bench(*argv)
