@@ -46,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--lookahead-guide chooses the lookahead of --lookahead; give both")
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     for spec in a.models:  # an unknown model is refused before the runs, not reported as a row of nulls
+        if "+" in spec:  # (it was looked up as a model named 'guided+lookahead-guide')
+            ap.error(f"--models {spec}: give model names without a lookahead (--lookahead runs each with one)")
         if ":" in spec:
             load_agent(spec.split(":", 1)[1])
     rows = []

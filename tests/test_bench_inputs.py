@@ -37,6 +37,7 @@ def bench(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
     (("make_replay_data.py", "--only", "nomatch*"), "--only 'nomatch*' matches no file"),  # exit 0, nothing said
     (("guide_replan.py", "--replan-margins", "0.01"), "give --replan-tabu too"),  # ignored
     (("heldout.py", "--models", "ppo:no-such-model", "--limit", "1"), "no model named 'no-such-model'"),  # after CP-SAT
+    (("validation.py", "--models", "ppo:guided+lookahead-guide"), "give model names without a lookahead"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv: tuple[str, ...], needle: str) -> None:
     res = bench(*argv)
