@@ -884,26 +884,13 @@ class _FullModel:
             assert tr is not None
             routes = _routes(self.agv_arcs, bool_value)
             for a, route in enumerate(routes):
-                def agv_legs(route: list[int], check: bool = True) -> list[AgvTrip] | None:
-                    """The route's trips; None if ``check`` and the AGV cannot keep to them (a re-sequencing)."""
-                    legs: list[AgvTrip] = []
-                    here, free = 0, 0
-                    for node in route:
-                        t = self.tasks[node - 1]
-                        st = value(self.ts[node - 1])
-                        if check and free + (tr[here][t.pickup] if here != t.pickup else 0) > st:
-                            return None
-                        if here != t.pickup:
-                            legs.append(AgvTrip(a, None, None, here, t.pickup, free, free + tr[here][t.pickup], False))
-                        legs.append(AgvTrip(a, t.job, t.op, t.pickup, t.drop, st, st + t.dur, True))
-                        here, free = t.drop, st + t.dur
-                    return legs
-
-                tied = _tie_order(route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].dur,
-                                  lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), tr,
-                                  lambda n: ((self.tasks[n - 1].job, self.tasks[n - 1].op),))
-                legs = agv_legs(tied) if tied != route else None
-                agv_trips += legs if legs is not None else agv_legs(route, check=False) or []
+                for n, src, dst, st, end in _route_legs(
+                        route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].dur,
+                        lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), tr,
+                        lambda n: ((self.tasks[n - 1].job, self.tasks[n - 1].op),)):
+                    t = self.tasks[n - 1] if n is not None else None
+                    agv_trips.append(AgvTrip(a, t.job if t else None, t.op if t else None, src, dst, st, end,
+                                             t is not None))
         tool_trips: list[ToolTrip] = []
         if self.uses:
             tt = inst.tool_travel
@@ -916,33 +903,19 @@ class _FullModel:
                 for route in _routes(self.tool_arcs[tool], bool_value):
                     rank.update((us[n - 1], i) for i, n in enumerate(route))
             routes = _routes([a for a in self.tr_arcs if a[0] != a[1]], bool_value)
+
+            def ends(n: int) -> tuple[int, int]:  # a delivery's pickup (where its tool is) and drop
+                _, j, k = self.deliveries[n - 1]
+                return origin[j, k], jobs[j][k].machine
+
             for r, route in enumerate(routes):
-                def tool_legs(route: list[int], check: bool = True) -> list[ToolTrip] | None:
-                    """The route's trips; None if ``check`` and the transporter cannot keep to them."""
-                    legs: list[ToolTrip] = []
-                    here, free = 0, 0
-                    for node in route:
-                        tool, j, k = self.deliveries[node - 1]
-                        src, dst = origin[j, k], jobs[j][k].machine
-                        st = value(self.dts[j, k])
-                        if check and free + (tt[here][src] if here != src else 0) > st:
-                            return None
-                        if here != src:
-                            legs.append(ToolTrip(r, None, None, None, here, src, free, free + tt[here][src], False))
-                        legs.append(ToolTrip(r, tool, j, k, src, dst, st, st + tt[src][dst], True))
-                        here, free = dst, st + tt[src][dst]
-                    return legs
-
-                def ends(n: int) -> tuple[int, int]:
-                    _, j, k = self.deliveries[n - 1]
-                    return origin[j, k], jobs[j][k].machine
-
-                tied = _tie_order(route, lambda n: value(self.dts[self.deliveries[n - 1][1:]]),
-                                  lambda n: tt[ends(n)[0]][ends(n)[1]], ends, tt,
-                                  lambda n: ((("tool", self.deliveries[n - 1][0]), rank[self.deliveries[n - 1][1:]]),
-                                             (self.deliveries[n - 1][1], self.deliveries[n - 1][2])))
-                tlegs = tool_legs(tied) if tied != route else None
-                tool_trips += tlegs if tlegs is not None else tool_legs(route, check=False) or []
+                for n, src, dst, st, end in _route_legs(
+                        route, lambda n: value(self.dts[self.deliveries[n - 1][1:]]),
+                        lambda n: tt[ends(n)[0]][ends(n)[1]], ends, tt,
+                        lambda n: ((("tool", self.deliveries[n - 1][0]), rank[self.deliveries[n - 1][1:]]),
+                                   (self.deliveries[n - 1][1], self.deliveries[n - 1][2]))):
+                    d = self.deliveries[n - 1] if n is not None else (None, None, None)
+                    tool_trips.append(ToolTrip(r, d[0], d[1], d[2], src, dst, st, end, n is not None))
         return Schedule(instance=inst.name, makespan=max(o.end for o in ops), n_agvs=inst.n_agvs,
                         n_tool_transporters=inst.n_tool_transporters, operations=ops, agv_trips=agv_trips,
                         tool_trips=tool_trips)
@@ -950,6 +923,31 @@ class _FullModel:
 
 #: the most partial orders :func:`_tie_order` tries for one instant of one route
 _TIE_TRIES = 10_000
+
+
+def _route_legs(route: list[int], start: Callable[[int], int], length: Callable[[int], int],
+                ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+                keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[tuple[int | None, int, int, int, int]]:
+    """A vehicle's legs along ``route`` (its nodes' loaded trips: ``start``, ``length``, ``ends`` pickup and drop),
+    each ``(node, from, to, start, end)``, ``node`` None for an empty leg, which leaves as soon as the previous trip
+    ended. Nodes that start at one instant are re-sequenced for their owners (:func:`_tie_order`, ``keys``) where the
+    vehicle can keep to the new order; else the route's own order (which the model's arcs make reachable)."""
+    def legs(order: list[int], check: bool) -> list[tuple[int | None, int, int, int, int]] | None:
+        out: list[tuple[int | None, int, int, int, int]] = []
+        here, free = 0, 0
+        for n in order:
+            (src, dst), st = ends(n), start(n)
+            if check and free + (travel[here][src] if here != src else 0) > st:
+                return None
+            if here != src:
+                out.append((None, here, src, free, free + travel[here][src]))
+            out.append((n, src, dst, st, st + length(n)))
+            here, free = dst, st + length(n)
+        return out
+
+    tied = _tie_order(route, start, length, ends, travel, keys)
+    found = legs(tied, True) if tied != route else None
+    return found if found is not None else legs(route, False) or []
 
 
 def _tie_order(route: list[int], start: Callable[[int], int], length: Callable[[int], int],
