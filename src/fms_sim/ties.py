@@ -172,10 +172,12 @@ def has_ties(schedule: Schedule) -> bool:
             or any(t.start == t.end for t in schedule.tool_trips))
 
 
-def settle(instance: Instance, schedule: Schedule, ops: dict) -> tuple[dict[int, list[tuple]], str | None]:
-    """Each tool's uses in the order it serves them (:func:`tool_order`, re-ordered at an instant where those
-    orders contradict the parts' and vehicles' orders and some other order agrees with them all), and the
-    contradiction that remains as an error message (None: some one sequence of the tied events follows them all).
+def settle(instance: Instance, schedule: Schedule, ops: dict,
+           orders: dict[int, list[tuple]] | None = None) -> tuple[dict[int, list[tuple]], str | None]:
+    """Each tool's uses in the order it serves them (:func:`tool_order`, or ``orders`` where the caller made them
+    already, re-ordered in place at an instant where those orders contradict the parts' and vehicles' orders and
+    some other order agrees with them all), and the contradiction that remains as an error message (None: some one
+    sequence of the tied events follows them all).
 
     The events are the operations and trips of zero length (``ops``: ``(job, op) -> (start, end)``); what must
     precede what among them (a part's operations and trips, each vehicle's legs in the schedule's order, a tool's
@@ -183,12 +185,13 @@ def settle(instance: Instance, schedule: Schedule, ops: dict) -> tuple[dict[int,
     edge between two operations or trips leads from one's end to the other's start, so a cycle passes only through
     operations and trips of zero length at one instant, and the graph is built over those alone (none in most
     shops). Meant for a schedule that passed the validator's other checks."""
-    moves: dict[int, list] = defaultdict(list)
-    for t in schedule.tool_trips:
-        if t.loaded and t.tool is not None and t.job is not None and t.op is not None:
-            moves[t.tool].append(t)
-    orders = {tool: tool_order(us, trips_by_op(moves.get(tool, [])))
-              for tool, us in uses_by_tool(instance, ops).items()} if instance.has_tools else {}
+    if orders is None:
+        moves: dict[int, list] = defaultdict(list)
+        for t in schedule.tool_trips:
+            if t.loaded and t.tool is not None and t.job is not None and t.op is not None:
+                moves[t.tool].append(t)
+        orders = {tool: tool_order(us, trips_by_op(moves.get(tool, [])))
+                  for tool, us in uses_by_tool(instance, ops).items()} if instance.has_tools else {}
     when: dict[tuple, int] = {("op", j, k): s for (j, k), (s, e) in ops.items() if s == e}
     when.update((("agv", i), t.start) for i, t in enumerate(schedule.agv_trips) if t.start == t.end)
     when.update((("tt", i), t.start) for i, t in enumerate(schedule.tool_trips) if t.start == t.end)

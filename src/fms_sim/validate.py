@@ -93,15 +93,16 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
                 prev_end = ops[j, k - 1][1] if k else 0
                 if ops[j, k][0] < prev_end:
                     errs.append(f"op ({j},{k}) starts at {ops[j, k][0]} before its part is ready at {prev_end}")
+    orders: dict[int, list[tuple]] = {}
     if instance.has_tools:
-        _check_tools(instance, schedule, ops, errs)
+        orders = _check_tools(instance, schedule, ops, errs)
         _check_routes("tool transporter", "transporter", instance.tool_travel, schedule.n_tool_transporters,
                       instance.n_tool_transporters,
                       [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs, scenario)
     elif schedule.tool_trips:
         errs.append("schedule has tool trips but the instance has no tools")
     if not errs:  # every resource's own order holds; now they must hold together where events tie in time
-        _, contradiction = settle(instance, schedule, ops)
+        _, contradiction = settle(instance, schedule, ops, orders)
         if contradiction is not None:
             errs.append(contradiction)
     ends = [e for (_, e) in ops.values()]
@@ -236,8 +237,10 @@ def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
             here, free = b, max(free, e)
 
 
-def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> None:
+def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[str]) -> dict[int, list[tuple]]:
+    """Each tool's route and uses, into ``errs``; returns the order of each tool's uses it checked."""
     uses = uses_by_tool(instance, ops)
+    orders: dict[int, list[tuple]] = {}
     moves: dict[int, list] = defaultdict(list)
     for t in schedule.tool_trips:
         if t.loaded:
@@ -256,7 +259,8 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
             if key not in used_keys:
                 errs.append(f"tool {tool} is carried for op ({key[0]},{key[1]}), which does not use it")
         loc, free = 0, 0
-        for s, e, j, k, machine in tool_order(us, trips):
+        orders[tool] = tool_order(us, trips)
+        for s, e, j, k, machine in orders[tool]:
             ts = trips.get((j, k), [])
             if len(ts) > 1:
                 errs.append(f"tool {tool} is carried {len(ts)} times for op ({j},{k})")
@@ -276,3 +280,4 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
             if s < free:
                 errs.append(f"tool {tool} is used by op ({j},{k}) from {s} while busy until {free} (two places at once)")
             loc, free = machine, max(free, e)
+    return orders
