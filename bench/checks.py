@@ -50,6 +50,16 @@ def versus_line(rows: list[dict], key: str, ref: str) -> str:
     return f"  {key:12s} total {total:7d}  {ratio:.4f} x {ref}   below / above: {below} / {above}"
 
 
+def limits_label(rows: list[dict], method: str = "cpsat") -> str:
+    """The time limits of ``method``'s rows (``fms bench`` rows carry ``time_limit``) for a column's title:
+    ``10 s``, or ``10 s, 60 s`` where the rows mix limits, or ``limit not recorded``; so a table says which limit its
+    figures came from rather than the limit a script usually asks for."""
+    limits = sorted({r.get("time_limit") for r in rows if r.get("method") == method}, key=lambda x: (x is None, x))
+    if not limits or limits == [None]:
+        return "limit not recorded"
+    return ", ".join("?" if x is None else f"{x:g} s" for x in limits)
+
+
 def positive(text: str) -> int:
     """An argparse type: an integer >= 1 (a count of shops, scenarios, samples, runs)."""
     try:

@@ -76,3 +76,41 @@ def test_replan_says_when_the_run_ended_before_its_re_plan() -> None:
     res = bench("replan.py", "--instance", "EX12", "--at", "10", "--jobs", "1", "--budget", "0.5", timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "0 re-plans" not in res.stdout or "one more still running when the run ended" in res.stdout, res.stdout
+
+
+def _row(inst: str, method: str, makespan: int, time_limit: float | None = None, variant: str = "agvs") -> dict:
+    return {"benchmark": "sl", "instance": inst, "variant": variant, "method": method, "time_limit": time_limit,
+            "seed": 0, "makespan": makespan, "valid": True, "lower_bound": 90 if method == "cpsat" else None,
+            "wall_time": 1.0}
+
+
+def test_sl_summary_titles_cp_sat_with_the_limit_of_its_runs(tmp_path: Path) -> None:
+    rows = [_row("sl00", "cpsat", 100, 60.0), _row("sl00", "ppo", 110), _row("sl00", "rule:SPT+first", 120)]
+    path = tmp_path / "bench_sl.json"
+    path.write_text(json.dumps({"rows": rows}))
+    res = bench("sl_summary.py", str(path))
+    assert res.returncode == 0, res.stderr
+    assert "| CP-SAT (60 s) |" in res.stdout and "10 s" not in res.stdout  # it said "CP-SAT (10 s)" whatever ran
+
+
+def test_decisions_summary_reads_cp_sat_at_its_own_limit(tmp_path: Path) -> None:
+    rows = [_row("sl00", m, v) for m, v in (("rules:paper", 130), ("rules:full", 121), ("list", 125))]
+    rows += [_row("sl00", "cpsat", 110, 10.0), _row("sl00", "cpsat", 100, 60.0)]  # the 60-s run came later
+    (tmp_path / "bench_cache.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    res = bench("decisions.py", "--summary", "--results-dir", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    line = next(x for x in res.stdout.splitlines() if x.startswith("| sl group 0"))
+    assert "| +10.0 % |" in line and "cpsat 10 s" in line  # rules:full against the 10-s run, not the 60-s one
+    assert "1 cached CP-SAT runs with a limit other than 10 s left out" in res.stdout
+
+
+def test_full_ppo_sl_takes_cp_sat_at_the_goals_limit(tmp_path: Path) -> None:
+    cache = tmp_path / "bench_cache.jsonl"
+    cache.write_text("".join(json.dumps(r) + "\n" for r in (_row("sl00", "cpsat", 110, 10.0),
+                                                            _row("sl00", "cpsat", 100, 60.0))))
+    code = ("import sys; sys.path.insert(0, 'bench'); from full_ppo_sl import references; "
+            f"print(references({str(cache)!r}))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "{('sl00', 'agvs', 'cpsat'): 110}"
+    assert "1 cached CP-SAT runs with a limit other than 10 s left out" in res.stderr
