@@ -65,6 +65,13 @@ def write_gz(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
+def _untimed(sch: Schedule) -> dict:
+    """The schedule as JSON data without its meta's wall time (which differs run by run for the same schedule)."""
+    data = json.loads(sch.to_json(indent=None))
+    data.get("meta", {}).pop("wall_time", None)
+    return data
+
+
 def read_gz(path: Path) -> Schedule:
     with gzip.open(path, "rt") as f:
         return Schedule.from_json(f.read())
@@ -122,10 +129,14 @@ def main() -> int:
             continue  # not asked for: leave it for a full run
         else:
             sch, secs = make(name, mode, method, limit)
-            write_gz(path, sch.to_json(indent=None) + "\n")
+            same = path.exists() and _untimed(read_gz(path)) == _untimed(sch)
+            if same:  # the same schedule: the file keeps its bytes (only the solver's wall time would change)
+                sch = read_gz(path)
+            else:
+                write_gz(path, sch.to_json(indent=None) + "\n")
             status = sch.meta.get("status", "-")
-            print(f"{name:5s} {mode:5s} {method:5s} makespan={sch.makespan:6d} {status:8s} {secs:6.1f}s",
-                  flush=True)
+            print(f"{name:5s} {mode:5s} {method:5s} makespan={sch.makespan:6d} {status:8s} {secs:6.1f}s"
+                  + (" (unchanged)" if same else ""), flush=True)
         index.append(entry(name, mode, method, limit, sch))
     (OUT / "index.json").write_text(json.dumps(index, indent=1) + "\n")
     print(f"{len(index)} schedules indexed in {OUT / 'index.json'}", flush=True)
