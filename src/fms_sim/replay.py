@@ -24,7 +24,8 @@ from .instance import Instance
 from .petri import InvalidAction
 from .schedule import Schedule
 from .stepping import Move, Stepper, moves_label, parse_moves
-from .validate import tool_use_orders, validate
+from .ties import plan_orders
+from .validate import validate
 
 __all__ = ["replay", "execute", "ReplayError", "PlanPolicy"]
 
@@ -36,68 +37,6 @@ class ReplayError(ValueError):
     def __init__(self, message: str, violations: list[str] | None = None):
         super().__init__(message)
         self.violations = violations or []
-
-
-def _plan_order(instance: Instance, schedule: Schedule,
-                tools: dict[int, list[tuple[int, int]]]) -> list[tuple[int, int]]:
-    """The schedule's operations in an order its orders can be carried out in: by start (then end), and among
-    operations at one instant (zero durations) as their precedences require — a job's operations in order, each
-    tool's uses in ``tools``' order, a carry after the use or operation it waits for and before the one it serves,
-    each vehicle's carries in its route's order. Sorting ties by the schedule's list order could close a circular
-    wait (a machine's tied operations in one order, a transporter's carries for them in the other), and the
-    replay of a valid schedule got stuck."""
-    import heapq
-
-    nodes: dict[tuple, tuple] = {}  # node -> its sort key (start, end, list index)
-    succ: dict[tuple, list[tuple]] = defaultdict(list)
-    indeg: dict[tuple, int] = defaultdict(int)
-
-    def edge(a: tuple, b: tuple) -> None:
-        if a in nodes and b in nodes:
-            succ[a].append(b)
-            indeg[b] += 1
-
-    for i, r in enumerate(schedule.operations):
-        nodes[("op", r.job, r.op)] = (r.start, r.end, 1, i)
-    for j, job in enumerate(instance.jobs):
-        for k in range(1, len(job)):
-            edge(("op", j, k - 1), ("op", j, k))
-    for uses in tools.values():
-        for a, b in zip(uses, uses[1:]):
-            edge(("op", *a), ("op", *b))
-    before = {b: a for uses in tools.values() for a, b in zip(uses, uses[1:])}  # the use each use waits for
-    for kind, trips, vehicle in (("agv", schedule.agv_trips, "agv"), ("tt", schedule.tool_trips, "transporter")):
-        route: dict[int, list[tuple]] = defaultdict(list)
-        for i, t in sorted(enumerate(trips), key=lambda it: (it[1].start, it[1].end, it[0])):
-            if not t.loaded or t.job is None or t.from_ == t.to:
-                continue
-            node = (kind, i)
-            nodes[node] = (t.start, t.end, 0, i)
-            route[getattr(t, vehicle)].append(node)
-            # a part leaves when its previous operation has ended, a tool when its previous use has
-            wait = (t.job, t.op - 1) if kind == "agv" else before.get((t.job, t.op))
-            if wait is not None:
-                edge(("op", *wait), node)
-            edge(node, ("op", t.job, t.op))
-        for legs in route.values():
-            for a, b in zip(legs, legs[1:]):
-                edge(a, b)
-    heap = [(key, node) for node, key in nodes.items() if not indeg[node]]
-    heapq.heapify(heap)
-    out: list[tuple[int, int]] = []
-    while heap:
-        _, node = heapq.heappop(heap)
-        if node[0] == "op":
-            out.append((node[1], node[2]))
-        for nxt in succ[node]:
-            indeg[nxt] -= 1
-            if not indeg[nxt]:
-                heapq.heappush(heap, (nodes[nxt], nxt))
-    if len(out) < len(schedule.operations):  # a cycle: not a valid schedule (the caller validates); time order
-        seen = set(out)
-        out += [(r.job, r.op) for r in sorted(schedule.operations, key=lambda r: (r.start, r.end))
-                if (r.job, r.op) not in seen]
-    return out
 
 
 class PlanPolicy:
@@ -131,11 +70,14 @@ class PlanPolicy:
                 if t.loaded:
                     self.tool_carrier[t.job, t.op] = t.transporter
         self.part_carrier = {(t.job, t.op): t.agv for t in schedule.agv_trips if t.loaded and t.from_ != t.to}
-        tools = tool_use_orders(instance, schedule)
-        machine_of = {(r.job, r.op): r.machine for r in schedule.operations}
+        # each machine's operations by start (then end), those of zero duration at one instant in an order that
+        # every resource's order agrees with (fms_sim.ties.plan_orders: the list's order could close a circular wait
+        # with a transporter's carries for them, and the replay of a valid schedule got stuck)
+        tools, tied = plan_orders(instance, schedule)
         self.machine: dict[int, Deque[tuple[int, int]]] = defaultdict(deque)
-        for op in _plan_order(instance, schedule, tools):
-            self.machine[machine_of[op]].append(op)
+        for _, r in sorted(enumerate(schedule.operations),
+                           key=lambda ir: (ir[1].start, ir[1].end, tied.get((ir[1].job, ir[1].op), -1), ir[0])):
+            self.machine[r.machine].append((r.job, r.op))
         self.tool: dict[int, Deque[tuple[int, int]]] = defaultdict(deque, {t: deque(q) for t, q in tools.items()})
 
     @classmethod

@@ -21,7 +21,7 @@ from itertools import groupby
 from .instance import Instance
 from .schedule import Schedule
 
-__all__ = ["tool_use_orders", "has_ties"]
+__all__ = ["tool_use_orders", "plan_orders", "has_ties"]
 
 #: the most states :func:`_tied_order` visits for one tool at one instant before it gives up
 _TIED_STATES = 100_000
@@ -172,6 +172,48 @@ def has_ties(schedule: Schedule) -> bool:
             or any(t.start == t.end for t in schedule.tool_trips))
 
 
+def plan_orders(instance: Instance, schedule: Schedule) -> tuple[dict[int, list[tuple[int, int]]],
+                                                                  dict[tuple[int, int], int]]:
+    """What a replay of ``schedule`` must keep: per tool its uses ``(job, op)`` in the order the tool serves them (as
+    :func:`tool_use_orders`), and per operation of zero duration its place in one sequence of all the tied events
+    that follows every resource (a topological order of the graph :func:`settle` checks, the same graph: ties by
+    time, trips before operations, then list order). A machine serves its operations at one instant in that order;
+    by their list order instead, it could close a circular wait with a transporter's carries for them, and the replay
+    of a valid schedule got stuck. Where the graph has a cycle (not a valid schedule) the events on it come last, in
+    time and list order."""
+    import heapq
+
+    ops = {(r.job, r.op): (r.start, r.end) for r in schedule.operations}
+    orders, _, when, succ = _settle(instance, schedule, ops, None)
+    tools = {tool: [(u[2], u[3]) for u in us] for tool, us in orders.items()}
+    if not when:
+        return tools, {}
+    index = {("op", r.job, r.op): i for i, r in enumerate(schedule.operations)}
+
+    def key(e: tuple) -> tuple:
+        return (when[e], 1, index[e]) if e[0] == "op" else (when[e], 0, e[1])
+
+    indeg = dict.fromkeys(when, 0)
+    for a, bs in succ.items():
+        for b in bs:
+            indeg[b] += 1
+    heap = [(key(e), e) for e, d in indeg.items() if not d]
+    heapq.heapify(heap)
+    seq: list[tuple] = []
+    while heap:
+        _, e = heapq.heappop(heap)
+        seq.append(e)
+        for b in succ.get(e, ()):
+            indeg[b] -= 1
+            if not indeg[b]:
+                heapq.heappush(heap, (key(b), b))
+    if len(seq) < len(when):  # a cycle
+        done = set(seq)
+        seq += sorted((e for e in when if e not in done), key=key)
+    rank = {(e[1], e[2]): i for i, e in enumerate(e for e in seq if e[0] == "op")}
+    return tools, rank
+
+
 def settle(instance: Instance, schedule: Schedule, ops: dict,
            orders: dict[int, list[tuple]] | None = None) -> tuple[dict[int, list[tuple]], str | None]:
     """Each tool's uses in the order it serves them (:func:`tool_order`, or ``orders`` where the caller made them
@@ -185,6 +227,14 @@ def settle(instance: Instance, schedule: Schedule, ops: dict,
     edge between two operations or trips leads from one's end to the other's start, so a cycle passes only through
     operations and trips of zero length at one instant, and the graph is built over those alone (none in most
     shops). Meant for a schedule that passed the validator's other checks."""
+    orders, message, _, _ = _settle(instance, schedule, ops, orders)
+    return orders, message
+
+
+def _settle(instance: Instance, schedule: Schedule, ops: dict, orders: dict[int, list[tuple]] | None
+            ) -> tuple[dict[int, list[tuple]], str | None, dict[tuple, int], dict[tuple, list[tuple]]]:
+    """:func:`settle`, also returning the tied events (event -> its instant) and the graph over them with the tools'
+    orders as settled (empty where nothing is tied)."""
     if orders is None:
         moves: dict[int, list] = defaultdict(list)
         for t in schedule.tool_trips:
@@ -196,14 +246,15 @@ def settle(instance: Instance, schedule: Schedule, ops: dict,
     when.update((("agv", i), t.start) for i, t in enumerate(schedule.agv_trips) if t.start == t.end)
     when.update((("tt", i), t.start) for i, t in enumerate(schedule.tool_trips) if t.start == t.end)
     if not when:
-        return orders, None
+        return orders, None, when, {}
     carrier = {(t.tool, t.job, t.op): i for i, t in enumerate(schedule.tool_trips) if t.loaded}
     fixed = _fixed_edges(instance, schedule, when, carrier)
     searched: set[int] = set()
     while True:
-        cycle = _find_cycle(_with_tools(fixed, orders, when, carrier))
+        succ = _with_tools(fixed, orders, when, carrier)
+        cycle = _find_cycle(succ)
         if cycle is None:
-            return orders, None
+            return orders, None, when, succ
         instant = when[cycle[0]]
         try:
             found = None if instant in searched else _search(instant, fixed, orders, when, carrier, schedule)
@@ -211,14 +262,14 @@ def settle(instance: Instance, schedule: Schedule, ops: dict,
             return orders, (f"at time {instant} the order of the tied events could not be settled within "
                             f"{_SEARCH_STATES:,} states of the search (the tools' orders on their own close a cycle "
                             "with the parts' and routes' orders; a shop with fewer tied carries at one instant "
-                            "is checked in full)")
+                            "is checked in full)"), when, succ
         searched.add(instant)
         if found is None:
             names = [_event(schedule, e) for e in cycle]
             shown = names[:_CYCLE_SHOWN] + (["..."] if len(names) > _CYCLE_SHOWN else [])
             return orders, (f"at time {instant} no order of the events follows every resource: "
                             f"{' -> '.join(shown + names[:1])} (each must come before the next; zero-length trips "
-                            "or operations recorded in contradicting orders)")
+                            "or operations recorded in contradicting orders)"), when, succ
         for tool, seq in found.items():  # the tool's uses at the instant, in the order found
             us = orders[tool]
             at = [i for i, u in enumerate(us) if u[0] == u[1] == instant]
