@@ -22,12 +22,12 @@ import os
 import sys
 import time
 import uuid
-from pathlib import Path
 from typing import Any, Sequence
 
 from fms_msgs_json import (
     TOPIC_ERRORS, TOPIC_EVENTS, TOPICS, MessageError, decode, encode, make_disruption, make_order,
 )
+from fms_sim.files import loads, read_text
 
 __all__ = ["add_send_parser", "cmd_send", "build", "answer", "exchange", "main", "SendError"]
 
@@ -81,13 +81,15 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
     (then its ``order_id`` and ``run_id`` too, None where it has none): ``(jobs, order_id, run_id)``."""
     if spec.startswith("@"):
         try:
-            text = Path(spec[1:]).read_text()
+            text = read_text(spec[1:])
         except OSError as exc:
             raise SendError(f"cannot read {spec[1:]}: {exc.strerror or exc}") from None
+        except UnicodeDecodeError:
+            raise SendError(f"{spec[1:]} is not a text (UTF-8 JSON) file") from None
     else:
         text = spec
     try:
-        jobs = json.loads(text)
+        jobs = loads(text)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
     if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message: its id and run too (re-sending the

@@ -320,7 +320,7 @@ class _ScheduleDict:
     def __call__(self, value: Any, path: str) -> None:
         check_object(value, _SCHEDULE_BODY, path)
         try:
-            Schedule.from_dict(value)
+            Schedule.from_dict(value, strict=False)  # unknown extra fields are allowed in messages (docs/ros.md)
         except ScheduleError as exc:
             raise FieldError(path, f"field {path!r} is not a valid schedule: {exc}") from None
 

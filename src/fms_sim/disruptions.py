@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .files import write_atomically
+from .files import loads, read_text, write_atomically
 from .instance import MAX_TIME, Instance
 
 __all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS", "MAX_NOISE"]
@@ -226,13 +226,13 @@ class Scenario:
     @classmethod
     def load(cls, path: str | Path) -> "Scenario":
         try:
-            text = Path(path).read_text(encoding="utf-8")
+            text = read_text(path)
         except OSError as exc:
             raise ScenarioError(f"cannot read scenario {path}: {exc.strerror}") from None
         except UnicodeDecodeError:
             raise ScenarioError(f"scenario {path} is not a text (UTF-8 JSON) file") from None
         try:
-            data = json.loads(text)
+            data = loads(text)
         except json.JSONDecodeError as exc:
             raise ScenarioError(f"scenario {path} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
         try:

@@ -1,37 +1,74 @@
-"""Writing output files safely: into a temporary file beside the target, then renamed over it.
+"""Reading and writing the project's files safely.
 
-A schedule, an instance, a scenario or a chart written straight into its target is destroyed by a failed write (a
-full disk, a quota, an interrupt): the old content is gone and half a file is left. Written here, the target is
-replaced only by a complete file (``os.replace`` is atomic on one file system), a failed write leaves the old file
-as it was and removes its temporary, and a watcher of the folder never sees half a file.
+Writing: into a temporary file beside the target, then renamed over it. A schedule, an instance, a scenario or a
+chart written straight into its target is destroyed by a failed write (a full disk, a quota, an interrupt): the old
+content is gone and half a file is left. Written here, the target is replaced only by a complete file
+(``os.replace`` is atomic on one file system), a failed write leaves the old file as it was and removes its
+temporary, and a watcher of the folder never sees half a file. A symbolic link stays a link (its target is
+replaced), and a device or a pipe (``/dev/null``, a FIFO) is written straight into, never replaced by a file.
+
+Reading: :func:`read_text` and :func:`loads` take a UTF-8 file with or without a byte-order mark (editors on Windows
+write one) and turn JSON nested too deeply for the parser into a JSON error, not a crash.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import stat
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-__all__ = ["replacing", "write_atomically"]
+__all__ = ["replacing", "write_atomically", "read_text", "loads"]
+
+
+def read_text(path: str | Path) -> str:
+    """The text of a UTF-8 file, a leading byte-order mark dropped. Raises OSError and UnicodeDecodeError."""
+    return Path(path).read_text(encoding="utf-8-sig")
+
+
+def loads(text: str) -> Any:
+    """``json.loads(text)``, a leading byte-order mark dropped; JSON nested too deeply for the parser (a crash with a
+    RecursionError) raises :class:`json.JSONDecodeError` like any other malformed JSON."""
+    try:
+        return json.loads(text.removeprefix("\ufeff"))
+    except RecursionError:
+        raise json.JSONDecodeError("nested too deeply", text, 0) from None
 
 
 @contextlib.contextmanager
 def replacing(path: str | Path) -> Iterator[Path]:
     """A temporary path to write ``path``'s new content to; on leaving without an error it replaces ``path``
-    (with the permissions a new file gets), on an error it is removed and ``path`` is left as it was. The parent
-    folders are created."""
-    out = Path(path)
+    (an existing file keeps its permissions, a new one gets the usual ones), on an error it is removed and ``path``
+    is left as it was. The parent folders are created. Through a symbolic link the link's target is replaced; a
+    device or a pipe is given as it is (written straight into); and an existing file that this user may write in a
+    folder they may not is written in place (no temporary can be made beside it)."""
+    given = Path(path)
+    if given.exists() and not given.is_file() and not given.is_dir():  # /dev/null, /dev/stdout, a FIFO
+        yield given
+        return
+    out = Path(os.path.realpath(given))  # a link stays a link: its target gets the content
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=str(out.parent))
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=str(out.parent))
+    except PermissionError:
+        if out.is_file() and os.access(out, os.W_OK):
+            yield out
+            return
+        raise PermissionError(f"the folder {out.parent} may not be written (permission denied)") from None
     os.close(fd)
     tmp = Path(name)
     try:
         yield tmp
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual permissions
+        if out.is_file():
+            mode = stat.S_IMODE(out.stat().st_mode)
+        else:
+            mask = os.umask(0)
+            os.umask(mask)
+            mode = 0o666 & ~mask
+        os.chmod(tmp, mode)  # mkstemp makes 0600
         os.replace(tmp, out)
     except BaseException:
         with contextlib.suppress(OSError):

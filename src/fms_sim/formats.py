@@ -17,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .benchmarks import NAME_PATTERNS, builtin, is_builtin_name
+from .files import read_text
 from .instance import MAX_COUNT, Instance, InstanceError, Operation
 
 __all__ = ["parse_text_jobshop", "format_standard", "format_taillard", "load_instance"]
@@ -66,12 +67,19 @@ def parse_text_jobshop(text: str, name: str) -> Instance:
     if i == len(lines):
         raise InstanceError(f"{name}: no header line 'n_jobs n_machines' found")
     hno, htoks = lines[i]
-    header = _ints(hno, htoks)
+    # a header the parser could not read as one ('2,2') was skipped as a title, and a job's line read as the header
+    title = (f" (line {lines[0][0]}, {' '.join(lines[0][1])!r}, was skipped as a title: the header is the first "
+             "line that starts with a number, 'n_jobs n_machines' separated by spaces)") if i else ""
+    try:
+        header = _ints(hno, htoks)
+    except InstanceError as exc:
+        raise InstanceError(f"{exc}{title}") from None
     if len(header) < 2:
-        raise InstanceError(f"line {hno}: the header needs at least 'n_jobs n_machines', got {' '.join(htoks)!r}")
+        raise InstanceError(f"line {hno}: the header needs at least 'n_jobs n_machines', got {' '.join(htoks)!r}"
+                            f"{title}")
     n, m = header[0], header[1]
     if n < 1 or m < 1:
-        raise InstanceError(f"line {hno}: n_jobs and n_machines must be >= 1, got {n} and {m}")
+        raise InstanceError(f"line {hno}: n_jobs and n_machines must be >= 1, got {n} and {m}{title}")
     body = lines[i + 1:]
     labelled = any(len(t) == 1 and t[0].rstrip(":").lower() in _LABELS for _, t in body)
     if labelled:
@@ -178,7 +186,7 @@ def format_taillard(instance: Instance) -> str:
 # ---------------------------------------------------------------------------------------------- loading
 def _load_file(path: Path) -> Instance:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text(path)
     except (OSError, UnicodeDecodeError) as exc:
         raise InstanceError(f"cannot read {str(path)!r}: {exc}") from None
     if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):

@@ -36,7 +36,7 @@ from .files import replacing
 from .instance import Instance
 from .schedule import Schedule
 
-__all__ = ["plot_gantt", "save_gantt"]
+__all__ = ["plot_gantt", "save_gantt", "chart_formats"]
 
 # Layout constants, in row units (vertical) and inches (margins). Fixed margins (instead of tight_layout) keep
 # the geometry known before drawing, which the label-fitting test relies on, and avoid an extra render pass.
@@ -283,6 +283,11 @@ def _save(fig: Figure, out: Path) -> None:
     fmt = out.suffix[1:].lower()
     with replacing(out) as tmp:
         fig.savefig(tmp, dpi=_DPI, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
+
+
+def chart_formats() -> list[str]:
+    """The file suffixes (without the dot) a chart can be written as: matplotlib's formats (png, pdf, svg, ...)."""
+    return sorted(FigureCanvasAgg.get_supported_filetypes())
 
 
 def save_gantt(schedule: Schedule, path: str | Path, instance: Instance | None = None,

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from .files import write_atomically
+from .files import loads, write_atomically
 
 __all__ = ["Operation", "Instance", "InstanceError", "require_instance"]
 
@@ -164,13 +164,13 @@ class Instance:
             if not _is_int(v) or not 0 <= v <= MAX_COUNT:
                 raise InstanceError(f"{name} must be an integer from 0 to {MAX_COUNT}, got {v!r}")
         if self.agv_travel is not None and self.n_agvs < 1:
-            raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs = 0); use --no-agvs")
+            raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs is 0): give n_agvs, or "
+                                "leave agv_travel out for a shop without AGVs")
         if self.agv_travel is None and self.n_agvs:
             set_(self, "n_agvs", 0)
         if self.tool_travel is not None and self.n_tool_transporters < 1:
-            raise InstanceError(
-                "the instance has a tool travel matrix but no tool transporters; use --no-tools"
-            )
+            raise InstanceError("the instance has a tool travel matrix but no tool transporters (n_tool_transporters "
+                                "is 0): give n_tool_transporters, or leave tool_travel out for a shop without tools")
         if self.tool_travel is None:
             if used_t:
                 raise InstanceError("operations need tools but tool_travel is null (use --no-tools to drop tools)")
@@ -250,6 +250,8 @@ class Instance:
     def from_dict(cls, data: Any) -> "Instance":
         if not isinstance(data, dict):
             raise InstanceError("an instance must be a JSON object")
+        if "jobs" not in data and "operations" in data and "makespan" in data:  # said: missing the field 'name'
+            raise InstanceError("this is a schedule, not an instance (it has operations and a makespan, no jobs)")
         for key in ("name", "jobs"):
             if key not in data:
                 raise InstanceError(f"instance is missing the field {key!r}")
@@ -262,6 +264,9 @@ class Instance:
             if _is_int(n) and n > 0 and data.get(matrix) is None:  # was dropped without a word
                 raise InstanceError(f"{count} is {n} but {matrix} is missing: {what} need a travel matrix (or "
                                     f"leave {count} out)")
+            if data.get(matrix) is not None and count not in data:  # it said "n_agvs = 0; use --no-agvs"
+                raise InstanceError(f"{matrix} is given but {count} is missing: give the number of {what} "
+                                    f"({count}), or leave {matrix} out")
 
         def given(key: str) -> Any:  # null: derived; false, "" or [] are not counts (they were read as 0)
             v = data.get(key)
@@ -281,7 +286,7 @@ class Instance:
     @classmethod
     def from_json(cls, text: str) -> "Instance":
         try:
-            data = json.loads(text)
+            data = loads(text)
         except json.JSONDecodeError as exc:
             raise InstanceError(f"malformed JSON: {exc}") from None
         return cls.from_dict(data)

@@ -238,7 +238,7 @@ class RecorderStore:
 
     def schedule(self, run_id: str) -> Schedule | None:
         row = self.db.execute("SELECT schedule FROM schedules WHERE run_id = ?", (run_id,)).fetchone()
-        return None if row is None else Schedule.from_json(row[0])
+        return None if row is None else Schedule.from_json(row[0], strict=False)  # as its message carried it
 
     def gantt(self, run_id: str) -> str | None:
         row = self.db.execute("SELECT gantt FROM runs WHERE run_id = ?", (run_id,)).fetchone()

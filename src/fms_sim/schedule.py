@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .files import write_atomically
+from .files import loads, read_text, write_atomically
 
 __all__ = ["OperationRecord", "AgvTrip", "ToolTrip", "Schedule", "ScheduleError"]
 
@@ -110,11 +110,24 @@ class Schedule:
         write_atomically(path, self.to_json() + "\n")
 
     @classmethod
-    def from_dict(cls, d: Any) -> "Schedule":
-        """Parse the JSON form strictly: integers must be integers (not strings, floats or booleans)."""
+    def from_dict(cls, d: Any, *, strict: bool = True) -> "Schedule":
+        """Parse the JSON form strictly: integers must be integers (not strings, floats or booleans), and a field the
+        format does not have is refused by name (a misspelt ``tool_trip`` was dropped: dozens of violations instead
+        of its name). ``strict=False`` ignores unknown fields: a schedule inside a ROS message, whose newer senders
+        may add fields (docs/ros.md)."""
         if not isinstance(d, dict):
             raise ScheduleError("a schedule must be a JSON object")
+        if "jobs" in d and "operations" not in d:  # it said: field 'operations' must be a list
+            raise ScheduleError("this is an instance, not a schedule (it has jobs, no operations)")
+        if strict:
+            _known(d, _FIELDS, "schedule field")
         try:
+            for key, fields in (("operations", _OP_FIELDS), ("agv_trips", _AGV_FIELDS), ("tool_trips", _TT_FIELDS)):
+                rows = d.get(key)
+                if strict and isinstance(rows, list):
+                    for row in rows:
+                        if isinstance(row, dict):
+                            _known(row, fields, f"field of {key}")
             ops = [OperationRecord(_int(o, "job"), _int(o, "op"), _int(o, "machine"), _int(o, "tool", True),
                                    _int(o, "start"), _int(o, "end")) for o in _list(d, "operations")]
             agv = [AgvTrip(_int(t, "agv"), _int(t, "job", True), _int(t, "op", True), _int(t, "from"),
@@ -136,9 +149,9 @@ class Schedule:
             raise ScheduleError(f"malformed schedule: {exc}") from None
 
     @classmethod
-    def from_json(cls, text: str) -> "Schedule":
+    def from_json(cls, text: str, *, strict: bool = True) -> "Schedule":
         try:
-            return cls.from_dict(json.loads(text))
+            return cls.from_dict(loads(text), strict=strict)
         except json.JSONDecodeError as exc:
             raise ScheduleError(f"malformed JSON: {exc}") from None
 
@@ -147,13 +160,26 @@ class Schedule:
         """The schedule in a JSON file; OSError if it cannot be read, :class:`ScheduleError` (naming the file) if
         it is not a schedule."""
         try:
-            text = Path(path).read_text(encoding="utf-8")
+            text = read_text(path)
         except UnicodeDecodeError:  # was the codec's message alone, without the file's name
             raise ScheduleError(f"{path}: not a text (UTF-8 JSON) file") from None
         try:
             return cls.from_json(text)
         except ScheduleError as exc:
             raise ScheduleError(f"{path}: {exc}") from None
+
+
+#: the fields of a schedule's JSON object and of its records (:meth:`Schedule.to_dict`)
+_FIELDS = ("instance", "makespan", "n_agvs", "n_tool_transporters", "operations", "agv_trips", "tool_trips", "meta")
+_OP_FIELDS = ("job", "op", "machine", "tool", "start", "end")
+_AGV_FIELDS = ("agv", "job", "op", "from", "to", "start", "end", "loaded")
+_TT_FIELDS = ("transporter", "tool", "job", "op", "from", "to", "start", "end", "loaded")
+
+
+def _known(d: dict, fields: tuple[str, ...], what: str) -> None:
+    unknown = sorted(k for k in d if k not in fields)
+    if unknown:
+        raise ScheduleError(f"unknown {what} {unknown[0]!r}; the fields are {', '.join(fields)}")
 
 
 def _list(d: dict, key: str, optional: bool = False) -> list:

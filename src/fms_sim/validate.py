@@ -77,13 +77,20 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
             return [f"the scenario does not fit the instance: {exc}"]
         if scenario.empty:
             scenario = None
+    # the fleet the schedule was made for, first: a schedule of the shop without its AGVs or tools breaks many rules
+    # after it, and a reader of the first lines (fms replay shows ten) should see the cause
+    if instance.has_agvs and schedule.n_agvs != instance.n_agvs:
+        errs.append(f"schedule declares {schedule.n_agvs} AGVs, the instance has {instance.n_agvs}")
+    if instance.has_tools and schedule.n_tool_transporters != instance.n_tool_transporters:
+        errs.append(f"schedule declares {schedule.n_tool_transporters} tool transporters, the instance has "
+                    f"{instance.n_tool_transporters}")
     ops = _check_operations(instance, schedule, errs, scenario)
     if ops is None:
         return errs
     _check_machines(schedule, errs)
     if instance.has_agvs:
         _check_parts_with_agvs(instance, schedule, ops, errs)
-        _check_routes("AGV", "agv", instance.agv_travel, schedule.n_agvs, instance.n_agvs,
+        _check_routes("AGV", "agv", instance.agv_travel, instance.n_agvs,
                       [(t.agv, t.from_, t.to, t.start, t.end) for t in schedule.agv_trips], errs, scenario)
     else:
         if schedule.agv_trips:
@@ -96,8 +103,7 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     orders: dict[int, list[tuple]] = {}
     if instance.has_tools:
         orders = _check_tools(instance, schedule, ops, errs)
-        _check_routes("tool transporter", "transporter", instance.tool_travel, schedule.n_tool_transporters,
-                      instance.n_tool_transporters,
+        _check_routes("tool transporter", "transporter", instance.tool_travel, instance.n_tool_transporters,
                       [(t.transporter, t.from_, t.to, t.start, t.end) for t in schedule.tool_trips], errs, scenario)
     elif schedule.tool_trips:
         errs.append("schedule has tool trips but the instance has no tools")
@@ -199,11 +205,9 @@ def _check_parts_with_agvs(instance: Instance, schedule: Schedule, ops: dict, er
                 errs.append(f"op ({j},{k}) starts at {ops[j, k][0]} before its part arrives at {t.end}")
 
 
-def _check_routes(what: str, key: str, travel, n_declared: int, n_fleet: int,
+def _check_routes(what: str, key: str, travel, n_fleet: int,
                   trips: Iterable[tuple[int, int, int, int, int]], errs: list[str],
                   scenario: Scenario | None = None) -> None:
-    if n_declared != n_fleet:
-        errs.append(f"schedule declares {n_declared} {what}s, the instance has {n_fleet}")
     size = len(travel)
     routes: dict[int, list] = defaultdict(list)
     for v, a, b, s, e in trips:

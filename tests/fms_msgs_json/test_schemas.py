@@ -204,6 +204,17 @@ def test_unknown_extra_fields_are_kept() -> None:
     assert "future_field" in decode(encode(msg))
 
 
+def test_unknown_extra_fields_inside_a_schedule_message_are_allowed_too() -> None:
+    # a schedule file refuses an unknown field by name (Schedule.from_dict); a message keeps the rule above
+    msg = m.make_schedule("run-1", tiny_schedule())
+    msg["schedule"]["future_field"] = 1
+    msg["schedule"]["operations"][0]["label"] = "x"
+    assert decode(json.dumps(msg)) == msg
+    with pytest.raises(ValueError, match="unknown schedule field 'future_field'"):
+        Schedule.from_dict(msg["schedule"])
+    assert Schedule.from_dict(msg["schedule"], strict=False).to_dict() == tiny_schedule().to_dict()
+
+
 def test_optional_fields_may_be_null_or_absent() -> None:
     state = changed("state", instance=None, makespan=None)
     assert decode(json.dumps(state)) == state

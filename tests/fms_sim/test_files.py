@@ -56,3 +56,69 @@ def test_an_error_while_writing_removes_the_temporary(tmp_path):
             tmp.write_bytes(b"part")
             raise RuntimeError("interrupted")
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_an_existing_file_keeps_its_permissions(tmp_path):
+    out = tmp_path / "s.json"
+    out.write_text("old\n")
+    out.chmod(0o640)
+    write_atomically(out, "new\n")
+    assert out.read_text() == "new\n" and stat.S_IMODE(out.stat().st_mode) == 0o640
+
+
+def test_through_a_link_the_target_is_replaced_and_the_link_stays(tmp_path):
+    target, link = tmp_path / "target.json", tmp_path / "link.json"
+    target.write_text("old\n")
+    link.symlink_to(target.name)
+    write_atomically(link, "new\n")  # it replaced the link by a file and left the target as it was
+    assert link.is_symlink() and target.read_text() == "new\n"
+    write_atomically(tmp_path / "dangling.json", "x\n")  # (a plain new file still works beside them)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling.json", "link.json", "target.json"]
+
+
+def test_a_pipe_is_written_into_not_replaced_by_a_file(tmp_path):
+    import threading
+
+    fifo = tmp_path / "out.fifo"
+    os.mkfifo(fifo)
+    got: list[str] = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    write_atomically(fifo, "through the pipe\n")  # (/dev/null, /dev/stdout: the same path)
+    reader.join(timeout=10)
+    assert got == ["through the pipe\n"] and stat.S_ISFIFO(fifo.stat().st_mode)
+
+
+def test_a_writable_file_in_a_folder_that_is_not_is_written_in_place(tmp_path, monkeypatch):
+    import tempfile
+
+    out = tmp_path / "s.json"
+    out.write_text("old\n")
+
+    def refused(*args, **kwargs):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)  # as in a folder this user may not write (tests run as root)
+    write_atomically(out, "new\n")
+    assert out.read_text() == "new\n"
+    with pytest.raises(PermissionError, match=f"the folder {tmp_path} may not be written"):
+        write_atomically(tmp_path / "new.json", "x\n")  # (it named the temporary file it could not make)
+
+
+def test_json_with_a_byte_order_mark_or_nested_too_deeply_is_read_or_refused_as_json(tmp_path):
+    import json
+
+    from fms_sim.files import loads, read_text
+    from fms_sim.schedule import Schedule, ScheduleError
+
+    sched = run_first(builtin("EX12"))
+    path = tmp_path / "bom.json"
+    path.write_bytes(b"\xef\xbb\xbf" + sched.to_json().encode())  # "Unexpected UTF-8 BOM (decode using utf-8-sig)"
+    assert Schedule.load(path).makespan == sched.makespan and not read_text(path).startswith("\ufeff")
+    assert loads("\ufeff[1]") == [1]
+    deep = "[" * 5000 + "]" * 5000
+    with pytest.raises(json.JSONDecodeError, match="nested too deeply"):  # a RecursionError
+        loads(deep)
+    path.write_text(deep)
+    with pytest.raises(ScheduleError, match="nested too deeply"):
+        Schedule.load(path)
