@@ -299,6 +299,8 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     """
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {jobs}")
+    if not str(results_dir).strip():  # Path("") is the current folder: the tables and cache went there
+        raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")
     out_dir = Path(results_dir)
     from .cli import file_above
 

@@ -152,7 +152,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
     check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
     inst = load_from_args(a)
-    opts: dict = {"seed": a.seed}
+    opts: dict = {"seed": a.seed if a.seed is not None else 0}
     if a.time_limit is not None:
         if not 0 < a.time_limit < math.inf:
             raise CliError(f"--time-limit must be a positive, finite number of seconds, got {a.time_limit:g}")
@@ -243,13 +243,19 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
     instance; None for an undisrupted run."""
     from fms_sim.disruptions import MAX_NOISE, Scenario
 
-    scenario = Scenario.load(a.scenario) if getattr(a, "scenario", None) else None
+    path = getattr(a, "scenario", None)
+    if path is not None and not path.strip():
+        raise CliError("--scenario names no file (an empty name); leave it out for an undisrupted run")
+    scenario = Scenario.load(path) if path else None
     noise = getattr(a, "noise", None)
+    seed = getattr(a, "seed", None)
     if noise is not None:
         if not 0 <= noise <= MAX_NOISE:
             raise CliError(f"--noise must be a spread from 0 to {MAX_NOISE:g}, got {noise:g}")
         base = scenario or Scenario()
-        scenario = Scenario(base.breakdowns, base.outages, noise, a.seed)
+        scenario = Scenario(base.breakdowns, base.outages, noise, seed if seed is not None else 0)
+    elif seed is not None and scenario is not None and scenario.noise:  # the file's seed was silently kept
+        scenario = Scenario(scenario.breakdowns, scenario.outages, scenario.noise, seed)
     if scenario is not None:
         scenario.check(inst)
     return scenario
@@ -284,8 +290,9 @@ def check_output(path: str | None, what: str) -> None:
 
 def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
     """:func:`check_output` for ``--out`` and ``--gantt``, and refuse an empty name (it was silently ignored), the
-    two naming one file (the chart overwrote the schedule) or an output that is one of the ``inputs`` (``fms
-    solve shop.json --out shop.json`` overwrote the instance)."""
+    two naming one file (the chart overwrote the schedule), an output that is one of the ``inputs`` (``fms
+    solve shop.json --out shop.json`` overwrote the instance) or a chart name whose suffix names no format a chart
+    is written in (it was written as a PNG, over a ``.json`` file too)."""
     named = {}
     for flag, path in (("--out", a.out), ("--gantt", a.gantt)):
         if path is not None and not path.strip():
@@ -299,6 +306,13 @@ def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
         for src in inputs:
             if src and Path(src).is_file() and Path(src).resolve() == where:
                 raise CliError(f"{flag} {src} is an input of this command; name another file")
+    if a.gantt:  # any other name was written as a PNG: over a .json schedule, or as g.txt
+        from fms_sim.gantt import chart_formats
+
+        fmt = Path(a.gantt).suffix[1:].lower()
+        if fmt not in chart_formats():
+            raise CliError(f"--gantt {a.gantt}: name the chart's format by its suffix, one of "
+                           f"{', '.join('.' + f for f in chart_formats())}")
 
 
 def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
@@ -336,16 +350,38 @@ def cmd_validate(a: argparse.Namespace) -> int:
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
     scenario = scenario_from_args(a, inst)
+    recorded = sched.meta.get("scenario")
+    if scenario is None and recorded is not None:  # a file that is not what it claims: bad input, not infeasible
+        from fms_sim.disruptions import Scenario, ScenarioError
+
+        try:
+            if not isinstance(recorded, dict):
+                raise ScenarioError(f"meta.scenario must be an object, got {type(recorded).__name__}")
+            Scenario.from_dict(recorded)
+        except ScenarioError as exc:
+            raise CliError(f"{a.schedule}: the schedule's recorded scenario is malformed: {exc}") from None
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
     problems = validate(inst, sched, scenario)
-    if problems:
-        print(f"INVALID: {len(problems)} violation(s)")
-        for p in problems:
-            print(f"  - {p}")
-        return EXIT_INFEASIBLE
-    print(f"valid: {inst.name}, makespan {sched.makespan}")
-    return 0
+    code = EXIT_INFEASIBLE if problems else 0
+    try:
+        if problems:
+            print(f"INVALID: {len(problems)} violation(s)")
+            for p in problems:
+                print(f"  - {p}")
+        else:
+            print(f"valid: {inst.name}, makespan {sched.makespan}")
+        sys.stdout.flush()
+    except BrokenPipeError:  # `fms validate ... | head`: the reader left, the verdict stands (it exited 0)
+        _reader_left()
+    return code
+
+
+def _reader_left() -> None:
+    """The reader of our standard output left (a closed pipe): send what is still buffered nowhere, so that
+    Python's flush at exit does not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -377,9 +413,14 @@ def cmd_generate(a: argparse.Namespace) -> int:
 
     if Path(a.prefix).name != a.prefix or a.prefix in ("", ".", ".."):
         raise CliError(f"--prefix {a.prefix!r} must be a plain name (the files go into --out-dir)")
+    if not a.out_dir.strip():  # it wrote into the current folder
+        raise CliError("--out-dir names no folder (an empty name); give one, e.g. --out-dir .")
     out = Path(a.out_dir)
     if out.exists() and not out.is_dir():
         raise CliError(f"--out-dir {a.out_dir} is a file, not a folder")
+    folder = next((q for q in out.absolute().parents if q.exists()), None) if not out.exists() else out
+    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):  # it failed at the first file, naming a
+        raise CliError(f"--out-dir {a.out_dir}: the folder {folder} may not be written (permission denied)")  # temp
     if a.no_tools and (a.tools is not None or a.tool_transporters is not None):
         raise CliError("--tools/--tool-transporters and --no-tools contradict each other")
     if a.no_agvs and a.agvs is not None:
@@ -440,7 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
                         "combinations); refused for the solvers that run once")
-    s.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
+    s.add_argument("--seed", type=int, default=None, help="seed of the random solver (default 0) and of the noise "
+                   "(--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "
@@ -449,7 +491,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--replan", type=float, metavar="SECONDS", help="plan: solvers: re-plan within SECONDS when the "
                    "disrupted shop departs from the plan (breakdown, outage, lateness); default: keep the plan")
     s.add_argument("--out", help="write the schedule JSON here")
-    s.add_argument("--gantt", help="write a Gantt chart here (PNG; PDF or SVG for a .pdf or .svg name)")
+    s.add_argument("--gantt", help="write a Gantt chart here, in the format its suffix names (.png, .pdf, .svg, "
+                   "or another matplotlib writes)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     s.set_defaults(fn=cmd_solve)
 
@@ -465,8 +508,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_instance_args(s)
     s.add_argument("schedule", help="schedule JSON file (any valid schedule: cpsat, another tool, a person)")
     s.add_argument("--out", help="write the replayed schedule JSON here")
-    s.add_argument("--gantt", help="write a Gantt chart of the replayed schedule here (PNG; PDF or SVG for a .pdf or "
-                                   ".svg name)")
+    s.add_argument("--gantt", help="write a Gantt chart of the replayed schedule here, in the format its suffix "
+                                   "names (.png, .pdf, .svg, or another matplotlib writes)")
     s.set_defaults(fn=cmd_replay)
 
     s = sub.add_parser("generate", help="write random instances with Taillard's LCG family")
@@ -516,7 +559,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("fms: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # e.g. `fms bench bu | head`: the reader left; not an error of ours
-        sys.stderr.close()
+        _reader_left()
         return 0
     except OSError as exc:  # a file that cannot be written or read (a folder where a file was named, no rights)
         where = f": {exc.filename}" if exc.filename else ""

@@ -950,14 +950,19 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _cmd(a: argparse.Namespace) -> int:
     from .cli import file_above
 
+    if not a.results_dir.strip():  # Path("") is the current folder
+        raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")
     out = Path(a.results_dir)
     blocker = out if out.exists() and not out.is_dir() else file_above(out)
     if blocker is not None:  # found before the work, not after hours of it
         raise ValueError(f"--results-dir {a.results_dir}: {blocker} is a file; name a folder")
     for flag in ("steps", "seeds", "cpsat_time", "replan_budget", "sos_time"):  # 0 would silently mean the default
         v = getattr(a, flag, None)
-        if v is not None and not v > 0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be positive, got {v}")
+        if v is not None and not 0 < v < math.inf:  # (inf: a search that never ends)
+            raise ValueError(f"--{flag.replace('_', '-')} must be positive and finite, got {v}")
+    if a.experiment == "ablation" and a.model is not None and a.studies and "lookahead" not in a.studies:
+        raise ValueError("--model is the lookahead study's model; these studies train their own agents (add "
+                         "--studies lookahead, or leave --model out)")
     if a.experiment == "ablation":
         run_ablation(a.quick, a.results_dir, a.seed, a.steps, a.studies, decisions=a.decisions, model=a.model)
     elif a.experiment == "generalization":

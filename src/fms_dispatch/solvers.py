@@ -182,6 +182,10 @@ def get_solver(name: str) -> Solver:
 
             return with_lookahead
         return fn
+    head, colon, tail = low.partition(":")
+    if colon and head in ("cpsat", "sos", "tabu", "rules"):  # a limit in the name works for plan: solvers only
+        raise UnknownSolver(f"unknown solver {name!r}: give {head}'s time limit as --time-limit {tail or 'SECONDS'} "
+                            f"(time_limit=...); only plan:{head}:SECONDS takes it in its name")
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 
 

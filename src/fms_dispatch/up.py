@@ -96,7 +96,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
                         "instead of the pair) (default: first)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random solver and of --noise")
+    p.add_argument("--seed", type=int, default=None, help="seed of the random solver (default 0) and of the noise "
+                   "(--noise, or the --scenario file's: this seed replaces the file's)")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
                    "full-net ppo model")
@@ -343,7 +344,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     if a.replan is not None and not needs_full_net(solver):
         raise UpError(f"--replan applies to plan: solvers only, not to {solver!r}")
     try:
-        decider, _ = make_decider(solver, a.seed, inst, guide_effort=effort)
+        decider, _ = make_decider(solver, a.seed or 0, inst, guide_effort=effort)
     except UnavailableSolver as exc:
         msg = str(exc)
         raise UpError(msg + ("; fms up also takes best" if msg.startswith("unknown solver") else "")) from None
@@ -419,7 +420,7 @@ def cmd_up(a: argparse.Namespace) -> int:
 
     full = needs_full_net(solver) or disrupted or full_model
     twin = needs_twin(solver) or needs_full_net(solver)
-    agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed}
+    agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed or 0}
     if needs_full_net(solver):
         agent_params["replan"] = float(replan)
     if wait:
@@ -445,7 +446,7 @@ def cmd_up(a: argparse.Namespace) -> int:
             "instance_out": str(inst_final), "history": twin, "history_delta": twin, "features": not twin,
             "idle_stops": needs_idle_stops(solver) or needs_full_net(solver), "decisions": "full" if full else "paper",
             **({"time_scale": float(a.time_scale)} if a.time_scale else {}),
-            **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed}
+            **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed or 0}
                if disrupted else {})}),
             log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
