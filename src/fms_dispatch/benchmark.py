@@ -187,7 +187,9 @@ def parse_index_spec(spec: str, lo: int, hi: int, what: str = "index") -> list[i
             first, last = (int(a), int(b)) if sep else (int(part), int(part))
         except ValueError:
             raise ValueError(f"bad {what} spec {spec!r}; {syntax}") from None
-        if first > last or first < lo or last > hi:
+        if first > last:  # it said the sets are 1-10, which they were
+            raise ValueError(f"bad {what} spec {spec!r}: the range {part} runs backwards; give {last}..{first}")
+        if first < lo or last > hi:
             raise ValueError(f"bad {what} spec {spec!r}: {what}s are {lo}-{hi}; {syntax}")
         out.update(range(first, last + 1))
     return sorted(out)

@@ -142,7 +142,10 @@ def get_solver(name: str) -> Solver:
     if low == "list" or low.startswith("list:"):
         from .full_rules import LIST_ORDERS, solve_list
 
-        order = name.partition(":")[2] or "est"
+        head, colon, order = name.partition(":")
+        if colon and not order.strip():  # 'list:' ran as list, while 'rule:' and 'plan:' were refused
+            raise UnknownSolver(f"{name!r} names no list order; use list, list:ect or list:<JOB RULE>")
+        order = order or "est"
         if order.lower() not in ("est", "ect") and order.upper() not in LIST_ORDERS:
             raise UnknownSolver(f"unknown list order in {name!r}; use list, list:ect or list:<JOB RULE>")
         return lambda inst, **kw: solve_list(inst, order)

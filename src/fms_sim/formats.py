@@ -231,23 +231,24 @@ def load_instance(
     else:
         raise InstanceError(f"no built-in instance or file named {spec!r} (built-ins: {NAME_PATTERNS})")
 
-    if agvs is not None:
-        if no_agvs:
-            raise InstanceError("agvs and no_agvs conflict: give one or the other")
-        _fleet_size("agvs", agvs, "no-agvs")
-    if tool_transporters is not None:
-        if no_tools:
-            raise InstanceError("tool_transporters and no_tools conflict: give one or the other")
-        _fleet_size("tool_transporters", tool_transporters, "no-tools")
+    if agvs is not None and no_agvs:
+        raise InstanceError("agvs and no_agvs conflict: give one or the other")
+    if tool_transporters is not None and no_tools:
+        raise InstanceError("tool_transporters and no_tools conflict: give one or the other")
     if no_tools:
         inst = inst.without_tools()
     if no_agvs:
         inst = inst.without_agvs()
+    # a shop without the vehicles first (EX12 --tool-transporters 0 was told to use --no-tools: it has no tools)
     if agvs is not None and not inst.has_agvs:
         raise InstanceError(f"{inst.name} has no AGV travel matrix, so the number of AGVs cannot be set")
     if tool_transporters is not None and not inst.has_tools:
         raise InstanceError(f"{inst.name} has no tool travel matrix, so the number of tool transporters "
                             "cannot be set")
+    if agvs is not None:
+        _fleet_size("agvs", agvs, "no-agvs")
+    if tool_transporters is not None:
+        _fleet_size("tool_transporters", tool_transporters, "no-tools")
     if agvs is not None or tool_transporters is not None:
         inst = inst.with_fleet(agvs, tool_transporters)
     return inst

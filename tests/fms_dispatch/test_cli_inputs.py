@@ -110,6 +110,9 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--gantt", "{d}/g.txt"], "--gantt {d}/g.txt: name the chart's format by its suffix"),  # a PNG
     (["solve", "EX12", "--gantt", "{d}/g"], "name the chart's format by its suffix, one of ."),
     (["solve", "EX12", "--solver", "cpsat:5"], "give cpsat's time limit as --time-limit 5"),
+    (["solve", "EX12", "--solver", "list:"], "'list:' names no list order"),  # ran as list
+    (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
+    (["bench", "bu", "--instances", "3..1", "--results-dir", "{d}/r"], "the range 3..1 runs backwards"),
 ])
 def test_empty_names_and_ignored_values_are_refused(tmp_path, capsys, monkeypatch, ex12, argv, needle):
     monkeypatch.chdir(tmp_path)  # where an empty name wrote
