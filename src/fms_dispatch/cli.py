@@ -171,6 +171,11 @@ def cmd_solve(a: argparse.Namespace) -> int:
     scenario = scenario_from_args(a, inst)
     if scenario is not None:
         opts["scenario"] = scenario
+    low = a.solver.lower()
+    if a.seed is not None and not (scenario is not None and scenario.noise) and not (
+            low in ("random", "cpsat", "sos", "tabu") or low.startswith("plan:")):  # taken and ignored
+        raise CliError(f"--seed does not apply to {a.solver}: it draws nothing at random (the seed is the random, "
+                       "cpsat, sos, tabu and plan: solvers', and the noise's)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
@@ -481,8 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
                         "combinations); refused for the solvers that run once")
-    s.add_argument("--seed", type=int, default=None, help="seed of the random solver (default 0) and of the noise "
-                   "(--noise, or the --scenario file's: this seed replaces the file's)")
+    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers "
+                   "(default 0) and of the noise (--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "

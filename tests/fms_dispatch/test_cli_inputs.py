@@ -93,6 +93,7 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
 
     assert makespan(7)[0] == 7 and makespan(7, "--seed", "3")[0] == 3  # --seed was silently dropped
     assert makespan(7, "--seed", "3")[1] == makespan(3)[1]
+    assert run(["solve", "EX42", "--solver", "random", "--seed", "3", "-q"], capsys)[0] == 0  # (its own seed)
 
 
 @pytest.mark.parametrize("argv, needle", [
@@ -111,6 +112,7 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--gantt", "{d}/g"], "name the chart's format by its suffix, one of ."),
     (["solve", "EX12", "--solver", "cpsat:5"], "give cpsat's time limit as --time-limit 5"),
     (["solve", "EX12", "--solver", "list:"], "'list:' names no list order"),  # ran as list
+    (["solve", "EX12", "--seed", "5"], "--seed does not apply to first: it draws nothing at random"),  # ignored
     (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
     (["bench", "bu", "--instances", "3..1", "--results-dir", "{d}/r"], "the range 3..1 runs backwards"),
 ])
