@@ -331,8 +331,17 @@ class Replanner:
 
     @staticmethod
     def _disruptions(shop: FullShop) -> set[tuple]:
-        down = {("breakdown", m) for m, d in enumerate(shop.m_down) if d}
-        out = {("outage", kind, v) for kind, flags in shop.out.items() for v, o in enumerate(flags) if o}
+        """The disruptions in force: each down machine and each vehicle out of service, with the start of its latest
+        window begun (a window that starts where the one before ends is a new disruption: by the flags alone it was
+        none, and the plan waited for the vehicle through the second window)."""
+        sc, now = shop.scenario, shop.now
+
+        def since(windows: Any) -> int | None:
+            return max((w.start for w in windows if w.start <= now), default=None)
+
+        down = {("breakdown", m, since(sc.windows(m)) if sc else None) for m, d in enumerate(shop.m_down) if d}
+        out = {("outage", kind, v, since(o for o in sc.outages if o.kind == kind and o.vehicle == v) if sc else None)
+               for kind, flags in shop.out.items() for v, o in enumerate(flags) if o}
         return down | out
 
     # ------------------------------------------------------------------ triggers

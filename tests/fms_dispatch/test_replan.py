@@ -321,3 +321,26 @@ def test_simulations_are_skipped_where_they_would_take_most_of_the_budget(monkey
     Stepper(small, idle_stops=True).advance()
     res = replan(snapshot(small), None, 1.0, sim=nominal_copy(small))
     assert calls and res.plan.meta["method"] == res.method
+
+
+@pytest.mark.parametrize("kind", ["outage", "breakdown"])
+def test_a_window_that_starts_where_the_one_before_ends_is_re_planned_for(kind):
+    # the disruptions in force were compared by their flags alone: a second window of the same vehicle starting at
+    # the first's end added nothing, the plan waited for the vehicle through it (EX12: makespan 100,082 for 100)
+    from fms_sim.disruptions import Outage
+
+    inst = builtin("EX12")
+    if kind == "outage":
+        first, second = Outage("agv", 1, 36, 10), Outage("agv", 1, 46, 100_000)
+        both, alone = Scenario(outages=(first, second)), Scenario(outages=(second,))
+    else:
+        first, second = Breakdown(2, 20, 10), Breakdown(2, 30, 100_000)
+        both, alone = Scenario(breakdowns=(first, second)), Scenario(breakdowns=(second,))
+    runs = {}
+    for name, sc in (("both", both), ("alone", alone)):
+        s = solve(inst, "plan:list", scenario=sc, replan=1.0)
+        assert validate(inst, s, sc) == []
+        runs[name] = s
+    assert (kind, second.start) in [(e["reason"], e["time"]) for e in runs["both"].meta["replans"]]
+    if kind == "outage":  # the other AGV takes the parts (a machine has no stand-in: a breakdown is waited out)
+        assert runs["both"].makespan == runs["alone"].makespan < 1000
