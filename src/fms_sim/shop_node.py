@@ -99,7 +99,9 @@ class TopicIO:
                 log.error(f"cannot publish a {msg.get('schema')} message on {topic}: {exc}")
                 continue
             if msg["schema"] == "fms/error/v1":
-                log.error(f"[{msg['code']}] {msg['message']}")
+                # an answer to an older state is a race every disruption or order can cause, not a fault: a warning
+                # (fms up names the first [ERROR] line of a node's log as the likely cause of a stalled run)
+                (log.warning if msg["code"] == "stale_state" else log.error)(f"[{msg['code']}] {msg['message']}")
 
     def matched(self, topic: str) -> int:
         """How many subscribers the publisher on ``topic`` is matched with."""

@@ -518,6 +518,14 @@ def test_topic_io_logs_a_message_it_cannot_send_and_sends_the_rest() -> None:
     assert [json.loads(t)["message"] for t in node.pub.sent] == ["order 'o1' rejected"]
     assert any("cannot publish a fms/error/v1 message on fms/errors" in e and "lone surrogate" in e
                for e in node.log.errors)
+    # an answer to an older state is a race, logged as a warning: fms up named it as the cause of a stalled run
+    node.log.warnings = []
+    node.log.warning = node.log.warnings.append
+    node.log.errors.clear()
+    io.publish([(m.TOPIC_ERRORS, m.make_error("fms_shop", "stale_state", "command answers state 31 but the current "
+                                              "state is 32"))])
+    assert node.log.errors == [] and node.log.warnings == [
+        "[stale_state] command answers state 31 but the current state is 32"]
 
 
 # ------------------------------------------------------------------------------------------------ fms send
