@@ -335,6 +335,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         effort = guide_effort_from_args(a)
     except ValueError as exc:
         raise UpError(str(exc)) from None
+    if a.scenario is not None and not a.scenario.strip():  # ran undisrupted
+        raise UpError("--scenario names no file (an empty name); leave it out for an undisrupted run")
     disrupted = bool(a.scenario) or bool(a.noise)
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort, disrupted)
@@ -386,9 +388,15 @@ def cmd_up(a: argparse.Namespace) -> int:
     if not 0 <= domain <= 232:
         raise UpError(f"ROS domain id {domain} is out of range (0..232; 0..101 is safe everywhere)")
 
+    for flag, value in (("--out", a.out), ("--db", a.db), ("--run-id", a.run_id), ("--gantt-dir", a.gantt_dir),
+                        ("--log-dir", a.log_dir)):
+        if value is not None and not value.strip():  # fell back to the default (--log-dir: the current folder)
+            raise UpError(f"{flag} names nothing (an empty name); leave it out for the default")
     run_id = a.run_id or new_run_id(inst.name)
     out = Path(a.out) if a.out else Path(f"{safe_run_name(inst.name)}.schedule.json")  # a name is no path
     db = Path(a.db)
+    if out.resolve() == db.resolve():  # the schedule was written over the recorder's database: every run lost
+        raise UpError(f"--out and --db name the same file {a.out}; the schedule would overwrite the database")
     gantt_dir = Path(a.gantt_dir) if a.gantt_dir else (db.parent if str(db.parent) else Path("."))
     png = gantt_path(gantt_dir, run_id)
     # every output is checked before the nodes start: a run that cannot be written is not run

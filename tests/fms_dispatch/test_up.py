@@ -346,7 +346,12 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--solver", "ppo:bu", "--replan-wait"], "re-plan their guide, not to 'ppo:bu'"),
              (["--solver", "ppo", "--no-guide-replan", "--replan-wait"], "not to 'ppo' with --no-guide-replan"),
              (["--solver", "plan:list", "--replan", "0", "--replan-wait"], "--replan-wait needs re-planning"),
-             (["--db", str(db)], "run id 't1' is already in")]
+             (["--db", str(db)], "run id 't1' is already in"),
+             (["--out", str(tmp_path / "x.sqlite"), "--db", str(tmp_path / "x.sqlite")],
+              "--out and --db name the same file"),  # the schedule replaced the database: every run lost
+             (["--scenario", ""], "--scenario names no file"),  # ran undisrupted
+             *((["--" + flag, ""], f"--{flag} names nothing (an empty name)")  # a default, or the current folder
+               for flag in ("out", "db", "run-id", "gantt-dir", "log-dir"))]
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])
