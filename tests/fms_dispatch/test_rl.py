@@ -137,7 +137,8 @@ def test_train_refuses_bad_input(tmp_path):
                      (dict(steps="100"), 'config: steps must be an integer >= 0, got "100"'),
                      (dict(warm_start={"lr": -1}), "config: warm_start.lr must be a number > 0, got -1"),
                      (dict(fleet=[1]), "config key fleet must be an object"),
-                     (dict(net_arch=[64, 0]), "config: net_arch must be a list of layer widths")]:
+                     (dict(net_arch=[64, 0]), "config: net_arch must be a list of layer widths"),
+                     (dict(seed=-1), "config: seed must be an integer from 0 to 2147483647, got -1")]:  # gym's error
         with pytest.raises(ValueError, match=msg):
             train(dict(TINY, train=["gen:6x4x3*1@5"], **bad), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="cannot read the shop specs") as info:  # a typo, not a benchmark
@@ -155,6 +156,26 @@ def test_train_refuses_bad_input(tmp_path):
     (tmp_path / "f").write_text("")
     with pytest.raises(ValueError, match="is a file"):
         train(dict(TINY, train=["EX12"], steps=10), tmp_path / "f", progress=False)
+
+
+def test_fms_train_refuses_a_config_that_is_no_object_and_empty_names(tmp_path, capsys, monkeypatch):
+    from fms_dispatch.cli import main
+
+    monkeypatch.chdir(tmp_path)  # (where --out '' would have trained)
+
+    for text in ("[]", '[["steps", 5]]', "5", "null"):  # [] trained 100,000 default steps, 5 was a traceback
+        (tmp_path / "c.json").write_text(text)
+        code = main(["train", "gen:5x4x2*2@1", "--config", str(tmp_path / "c.json"), "--out", str(tmp_path / "m")])
+        err = capsys.readouterr().err
+        assert code == 2 and "must hold a JSON object of hyper-parameters" in err, (text, err)
+    (tmp_path / "afile").write_text("x")
+    for extra, msg in ((["--out", ""], "--out names nothing"), (["--out", str(tmp_path / "m"), "--tensorboard", ""],
+                                                                 "--tensorboard names nothing"),
+                       (["--out", str(tmp_path / "m"), "--tensorboard", str(tmp_path / "afile")], "is a file")):
+        code = main(["train", "gen:5x4x2*2@1", *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and msg in err, (extra, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "c.json"]  # nothing trained, no folder made
 
 
 def test_init_names_a_shipped_model_from_any_folder(tmp_path, monkeypatch):

@@ -177,13 +177,15 @@ _KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "dict": (lambda v: isinstance(v, dict), "an object"),
     "list": (lambda v: isinstance(v, list), "a list"),
     "vec_env": (lambda v: v in ("subproc", "dummy"), "subproc or dummy"),
+    # numpy and gymnasium take seeds from 0 to 2**32 - 1, and the training adds each env's and stage's number to it
+    "seed": (lambda v: _is_int(v) and 0 <= v < 2**31, f"an integer from 0 to {2**31 - 1}"),
 }
 _CONFIG_KINDS: dict[str, Any] = {
     "name": "str", "train": "specs", "eval": "specs",
     "fleet": {"agvs": "int>=1", "tool_transporters": "int>=1", "no_tools": "bool"},
     "padding": "padding", "decisions": "str", "guide": "str", "guide_effort": "dict", "disruptions": "dict",
     "init": "str", "baseline": "str", "allow_benchmarks": "bool", "reward": "str", "steps": "int>=0",
-    "seed": "int", "arch": "str", "hidden": "int>=1", "net_arch": "layers", "n_envs": "int>=1",
+    "seed": "seed", "arch": "str", "hidden": "int>=1", "net_arch": "layers", "n_envs": "int>=1",
     "vec_env": "vec_env", "eval_freq": "int>=1", "save_freq": "int>=1",
     "warm_start": {"expert": "str", "instances": "int>=1", "search_iters": "int>=0", "search_insert": "num>=0",
                    "search_restarts": "int>=1", "search_starts": "int>=1", "workers": "int>=1", "epochs": "int>=0",
@@ -766,11 +768,21 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg: dict[str, Any] = {}
     if a.config:
         try:
-            cfg = json.loads(Path(a.config).read_text())
+            cfg = json.loads(Path(a.config).read_text(encoding="utf-8-sig"))
         except OSError as exc:
             raise ValueError(f"cannot read config {a.config}: {exc.strerror}") from None
         except json.JSONDecodeError as exc:
             raise ValueError(f"config {a.config} is not valid JSON: {exc.msg} (line {exc.lineno})") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"config {a.config} is not a text (UTF-8 JSON) file") from None
+        if not isinstance(cfg, dict):  # [] trained with the defaults, [["steps", 5]] was read as {"steps": 5}
+            raise ValueError(f"config {a.config} must hold a JSON object of hyper-parameters, got "
+                             f"{type(cfg).__name__}")
+    for flag, value in (("--out", a.out), ("--tensorboard", a.tensorboard)):
+        if value is not None and not value.strip():  # --out '': a model named '' in the current folder
+            raise ValueError(f"{flag} names nothing (an empty name)")
+    if a.tensorboard and Path(a.tensorboard).exists() and not Path(a.tensorboard).is_dir():
+        raise ValueError(f"--tensorboard {a.tensorboard} is a file, not a folder")  # found after the model was built
     over: dict[str, Any] = {"steps": a.steps, "reward": a.reward, "seed": a.seed, "padding": a.padding,
                             "arch": a.arch, "n_envs": a.n_envs, "eval_freq": a.eval_freq,
                             "train": a.instances or None, "eval": a.eval, "decisions": a.decisions,
