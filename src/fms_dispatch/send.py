@@ -147,9 +147,16 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
 
     from fms_sim.shop_node import qos_profile
 
+    from rclpy.signals import SignalHandlerOptions
+
+    from .up import _TermAsInterrupt
+
     text = encode(msg)
     topic = TOPICS[kind]
-    rclpy.init(args=[])
+    # rclpy's own handlers turned SIGTERM (and SIGINT to a background job) into a shutdown that spin_once raised as
+    # a traceback; without them SIGTERM and SIGINT are a KeyboardInterrupt: "interrupted", exit 130
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
+    stop = _TermAsInterrupt()
     node = rclpy.create_node(f"{SOURCE}_{uuid.uuid4().hex[:8]}")
     heard: list[tuple[str, str]] = []
     try:
@@ -177,6 +184,7 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
             heard.clear()
         return EXIT_FAILED, f"sent {kind} {msg[f'{kind}_id']}, but the shop did not answer within {timeout:g} s"
     finally:
+        stop.restore()
         node.destroy_node()
         rclpy.try_shutdown()
 
@@ -192,9 +200,17 @@ def cmd_send(a: argparse.Namespace) -> int:
         if not 0 <= a.domain_id <= 232:
             raise SendError(f"--domain-id must be in 0..232, got {a.domain_id}")
         os.environ["ROS_DOMAIN_ID"] = str(a.domain_id)
-    elif not os.environ.get("ROS_DOMAIN_ID"):
-        raise SendError("give the shop's ROS domain: --domain-id N or ROS_DOMAIN_ID (fms up prints "
-                        "ROS_DOMAIN_ID=N when it starts)")
+    else:
+        env = os.environ.get("ROS_DOMAIN_ID")
+        if not env:
+            raise SendError("give the shop's ROS domain: --domain-id N or ROS_DOMAIN_ID (fms up prints "
+                            "ROS_DOMAIN_ID=N when it starts)")
+        try:  # abc was an RCLError traceback, 300 Fast DDS's colours on stdout, -5 a wait for the whole --timeout
+            domain = int(env)
+        except ValueError:
+            raise SendError(f"ROS_DOMAIN_ID must be an integer, got {env!r}") from None
+        if not 0 <= domain <= 232:
+            raise SendError(f"ROS_DOMAIN_ID must be in 0..232, got {domain}")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     missing = rclpy_missing()
     if missing:
@@ -214,6 +230,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SendError as exc:
         print(f"fms send: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("fms send: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -102,6 +102,14 @@ def test_bad_input_is_refused_before_anything_is_sent(monkeypatch, capsys) -> No
         cmd_send(args("breakdown", "--machine", "1", "--duration", "3", "--timeout", "0", "--domain-id", "3"))
     with pytest.raises(SendError, match="--domain-id must be in 0..232"):
         cmd_send(args("breakdown", "--machine", "1", "--duration", "3", "--domain-id", "300"))
+    # the environment's domain is checked as --domain-id is (abc: an RCLError traceback; 300: Fast DDS's colours on
+    # stdout; -5: a wait for the whole --timeout)
+    for env, msg in (("abc", "ROS_DOMAIN_ID must be an integer, got 'abc'"), ("300", "must be in 0..232, got 300"),
+                     ("-5", "must be in 0..232, got -5")):
+        monkeypatch.setenv("ROS_DOMAIN_ID", env)
+        with pytest.raises(SendError, match=msg):
+            cmd_send(args("breakdown", "--machine", "1", "--duration", "3"))
+    monkeypatch.delenv("ROS_DOMAIN_ID")
     assert cli.main(["send", "order", "--jobs", "nope", "--domain-id", "3"]) == 2
     assert "fms: error: --jobs is not JSON" in capsys.readouterr().err
     for empty in ("", "  "):  # it was replaced by a generated id without a word

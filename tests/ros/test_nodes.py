@@ -529,6 +529,18 @@ def test_topic_io_logs_a_message_it_cannot_send_and_sends_the_rest() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ fms send
+def test_fms_send_stops_cleanly_on_sigterm(ros_env: dict[str, str]) -> None:
+    # rclpy's signal handlers made a SIGTERM a 25-line ExternalShutdownException traceback, exit 1
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.send", "order", "--jobs", "[[[1, null, 5]]]",
+                             "--timeout", "30"], env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(3)  # waiting for a shop that does not come
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+
+
 def test_fms_send_delivers_orders_and_disruptions_and_prints_the_shops_answer(nodes: NodeProcs, observer: Observer,
                                                                              ros_env: dict[str, str]) -> None:
     """`fms send` (a separate process, as an operator runs it) waits for the shop, sends, and reports the shop's
