@@ -25,7 +25,7 @@ import uuid
 from typing import Any, Sequence
 
 from fms_msgs_json import (
-    TOPIC_ERRORS, TOPIC_EVENTS, TOPICS, MessageError, decode, encode, make_disruption, make_order,
+    SCHEMA_ORDER, TOPIC_ERRORS, TOPIC_EVENTS, TOPICS, MessageError, decode, encode, make_disruption, make_order,
 )
 from fms_sim.files import loads, read_text
 
@@ -80,6 +80,8 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
     """What ``--jobs`` holds: JSON, or ``@FILE`` holding JSON: a list of jobs, or a whole ``fms/order/v1`` message
     (then its ``order_id`` and ``run_id`` too, None where it has none): ``(jobs, order_id, run_id)``."""
     if spec.startswith("@"):
+        if not spec[1:].strip():  # "cannot read : Is a directory"
+            raise SendError("--jobs @ names no file; give @FILE")
         try:
             text = read_text(spec[1:])
         except OSError as exc:
@@ -90,11 +92,36 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
         text = spec
     try:
         jobs = loads(text)
+        dup = _first_duplicate_key(text)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
-    if isinstance(jobs, dict) and "jobs" in jobs:  # a whole order message: its id and run too (re-sending the
-        return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")  # file is then the same order)
+    if dup is not None:  # silently the last value; docs/ros.md calls duplicate keys malformed JSON
+        raise SendError(f"--jobs is not JSON as fms reads it: duplicate key {dup!r} in an object")
+    if isinstance(jobs, dict):  # a whole order message: its id and run too (re-sending the file is the same order)
+        if jobs.get("schema", SCHEMA_ORDER) != SCHEMA_ORDER:  # an fms/order/v2 or a disruption was sent as v1
+            raise SendError(f"--jobs holds a {jobs['schema']!r} message, not an order ({SCHEMA_ORDER})")
+        if "jobs" not in jobs:  # it said "field 'jobs' must be a non-empty array, got an object"
+            raise SendError(f"--jobs holds an object without 'jobs': give a list of jobs or a whole {SCHEMA_ORDER} "
+                            "message")
+        return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")
     return jobs, None, None
+
+
+def _first_duplicate_key(text: str) -> str | None:
+    """The first key that appears twice in one object of the JSON ``text`` (which ``loads`` read, keeping the last
+    value as Python does), or None."""
+    found: list[str] = []
+
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        seen: set[str] = set()
+        for k, _ in items:
+            if k in seen and not found:
+                found.append(k)
+            seen.add(k)
+        return dict(items)
+
+    json.loads(text.removeprefix("\ufeff"), object_pairs_hook=pairs)
+    return found[0] if found else None
 
 
 def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
@@ -111,7 +138,7 @@ def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
             return "disruption", make_disruption(mid, "breakdown", a.duration, machine=a.machine, start=a.start,
                                                  run_id=a.run_id)
         kind, _, number = a.vehicle.partition(":")
-        if kind not in ("agv", "tt") or not number.isdigit():
+        if kind not in ("agv", "tt") or not (number.isascii() and number.isdigit()):  # ('²' and '٣' are digits)
             raise SendError(f"--vehicle must be agv:V or tt:V with V a vehicle number from 0, got {a.vehicle!r}")
         return "disruption", make_disruption(mid, "outage", a.duration, vehicle_kind=kind, vehicle=int(number),
                                              start=a.start, run_id=a.run_id)

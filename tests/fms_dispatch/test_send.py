@@ -110,6 +110,19 @@ def test_bad_input_is_refused_before_anything_is_sent(monkeypatch, capsys) -> No
         with pytest.raises(SendError, match=msg):
             cmd_send(args("breakdown", "--machine", "1", "--duration", "3"))
     monkeypatch.delenv("ROS_DOMAIN_ID")
+    # message files: a duplicate key kept its last value, another schema was sent as an order, an object without
+    # jobs read as the jobs, @ alone was "cannot read : Is a directory", a superscript two failed in int()
+    for argv, msg in ((["order", "--jobs", '[[{"machine": 1, "machine": 2, "duration": 5}]]'],
+                       "duplicate key 'machine' in an object"),
+                      (["order", "--jobs", '{"schema": "fms/order/v2", "jobs": [[[1, null, 5]]]}'],
+                       "holds a 'fms/order/v2' message, not an order"),
+                      (["order", "--jobs", '{"order_id": "o1"}'], "holds an object without 'jobs'"),
+                      (["order", "--jobs", "@"], "--jobs @ names no file"),
+                      (["outage", "--vehicle", "agv:\u00b2", "--duration", "3"], "--vehicle must be agv:V or tt:V"),
+                      (["outage", "--vehicle", "agv:\u0663", "--duration", "3"], "--vehicle must be agv:V or tt:V")):
+        argv = [x.encode().decode("unicode_escape") if x.startswith("agv:") else x for x in argv]
+        assert cli.main(["send", *argv, "--domain-id", "3"]) == 2
+        assert msg in capsys.readouterr().err
     assert cli.main(["send", "order", "--jobs", "nope", "--domain-id", "3"]) == 2
     assert "fms: error: --jobs is not JSON" in capsys.readouterr().err
     for empty in ("", "  "):  # it was replaced by a generated id without a word
