@@ -392,6 +392,8 @@ def cmd_up(a: argparse.Namespace) -> int:
                         ("--log-dir", a.log_dir)):
         if value is not None and not value.strip():  # fell back to the default (--log-dir: the current folder)
             raise UpError(f"{flag} names nothing (an empty name); leave it out for the default")
+    if a.run_id is not None and len(safe_run_name(a.run_id)) > MAX_RUN_NAME:  # "File name too long: ...gantt.png"
+        raise UpError(f"--run-id is too long to name the run's files (at most {MAX_RUN_NAME} characters)")
     run_id = a.run_id or new_run_id(inst.name)
     out = Path(a.out) if a.out else Path(f"{safe_run_name(inst.name)}.schedule.json")  # a name is no path
     db = Path(a.db)
@@ -660,6 +662,9 @@ def _stop_with(parent: int) -> Callable[[], None]:
 
 #: the signals that stop ``fms up`` (and so its nodes) as Ctrl-C does: ``kill``, a supervisor, a closed terminal
 #: or a dropped SSH session (SIGHUP), SIGQUIT
+#: the longest run id (as a file name) fms up takes: its chart and work folder are named by it, 255 bytes at most
+MAX_RUN_NAME = 200
+
 STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 
 

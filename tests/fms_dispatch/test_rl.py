@@ -526,6 +526,8 @@ def test_dagger_rounds_in_training_and_on_resume(tmp_path, capsys):
     assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []
     with pytest.raises(ValueError, match="--dagger N adds rounds"):
         train(dict(cfg, warm_start={"expert": "rules"}), tmp_path / "y", progress=False, dagger=1)
+    with pytest.raises(ValueError, match="--dagger must be >= 0 .DAgger rounds to add., got -1"):  # of a resumed
+        train({"steps": 0}, out, resume=True, progress=False, dagger=-1)  # model: "adds rounds to a model resumed"
     with pytest.raises(ValueError, match="DAgger needs a rule-pair or plan warm-start expert"):
         train(dict(cfg, warm_start={"expert": "search", "dagger": 1}), tmp_path / "y", progress=False)
     assert not (tmp_path / "y").exists()

@@ -351,7 +351,8 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
               "--out and --db name the same file"),  # the schedule replaced the database: every run lost
              (["--scenario", ""], "--scenario names no file"),  # ran undisrupted
              *((["--" + flag, ""], f"--{flag} names nothing (an empty name)")  # a default, or the current folder
-               for flag in ("out", "db", "run-id", "gantt-dir", "log-dir"))]
+               for flag in ("out", "db", "run-id", "gantt-dir", "log-dir")),
+             (["--run-id", "x" * 300], "--run-id is too long to name the run's files")]  # File name too long
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])

@@ -500,7 +500,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if not planned and decisions == "full":
             raise ValueError(f"the expert {warm['expert']!r} acts on the paper's net; on the full net use a plan "
                              "expert (plan:SOLVER[:SECONDS], e.g. plan:cpsat:5 or plan:list)")
-    if dagger < 0 or (dagger and not resume):
+    if dagger < 0:  # it said the rounds are for a model being resumed, of a model being resumed
+        raise ValueError(f"--dagger must be >= 0 (DAgger rounds to add), got {dagger}")
+    if dagger and not resume:
         raise ValueError("--dagger N adds rounds to a model being resumed; for a new model set "
                          "warm_start.dagger in its config")
     rounds = dagger if resume else int(warm["dagger"])
