@@ -11,7 +11,7 @@ Solvers (the ``solver`` parameter):
 
 * ``first`` — the lowest enabled action (like the offline ``first`` solver);
 * ``random`` — uniform among the enabled actions, from ``seed``;
-* ``rule:<JOB>+<first|least-work|nearest>`` — a dispatching rule pair;
+* ``rule:<JOB>[+<first|least-work|nearest>]`` — a dispatching rule pair (vehicle rule default first);
 * ``ppo`` / ``ppo:<model>`` — the trained PPO policy (:mod:`fms_dispatch.rl`; ``ppo`` picks the shipped model
   that fits the instance). The policy reads the whole shop, not just rule features, so :class:`TwinDecider`
   keeps a local twin :class:`~fms_sim.shop.Shop` of the same instance (the agent's own ``instance``) and
@@ -71,7 +71,7 @@ __all__ = ["AgentLogic", "UnavailableSolver", "DecisionError", "FallbackDecision
            "needs_idle_stops", "PlanDecider", "needs_full_net"]
 
 SOURCE = "fms_agent"
-AGENT_SOLVERS = ("first", "random", "rule:<JOB>+<first|least-work|nearest>", "ppo", "ppo:<model>",
+AGENT_SOLVERS = ("first", "random", "rule:<JOB>[+<first|least-work|nearest>]", "ppo", "ppo:<model>",
                  "ppo[:<model>]+lookahead", "ppo[:<model>]+lookahead-fast", "ppo[:<model>]+lookahead-guide",
                  "plan:<SOLVER>[:SECONDS]", "plan:file:PATH")
 _OFFLINE = {"sos", "cpsat"}

@@ -9,7 +9,7 @@ twin cannot follow (a restarted agent receives the latched state, which carries 
 again with the whole history (``fms/replay_request``, ``what: "state"``), again every ``resend_s`` until it comes.
 An unknown or unavailable solver stops the node at start with a one-line error and exit code 2.
 
-Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>+<first|least-work|nearest>``, ``ppo``,
+Parameters: ``solver`` (``first``, ``random``, ``rule:<JOB>[+<first|least-work|nearest>]``, ``ppo``,
 ``ppo:<model>``, ``ppo[:<model>]+lookahead`` or ``+lookahead-fast``; default ``first``), ``seed`` (for
 ``random``), ``instance`` with
 ``layout``, ``agvs``, ``tool_transporters``, ``no_tools``, ``no_agvs`` (the shop's instance, the same values

@@ -1,7 +1,7 @@
 """One solver signature for every method: ``solver(instance, **options) -> Schedule``, selected by name.
 
 Names: ``first`` (baseline: always the lowest enabled action), ``random`` (uniform among legal actions,
-seeded), ``rule:<JOB>+<first|least-work|nearest>[+<TOOL>]`` (see :mod:`fms_dispatch.rules`; a tool rule only
+seeded), ``rule:<JOB>[+<first|least-work|nearest>[+<TOOL>]]`` (see :mod:`fms_dispatch.rules`; a tool rule only
 on the full net, :mod:`fms_dispatch.full_rules`) — these three take ``decisions="paper"`` (the default here,
 which the shipped models and the benchmarks' rule pairs use) or ``"full"`` (the default of ``fms solve``) —,
 ``list[:ect|:<JOB>]`` (a list schedule executed through the full net), ``rules`` / ``rules:full`` (the best
@@ -123,7 +123,7 @@ def lookahead_suffix(mode: bool | str) -> str:
 
 
 def solver_names() -> list[str]:
-    return ["first", "random", "rule:<JOB>+<first|least-work|nearest>[+<TOOL>]", "list[:ect|:<JOB>]",
+    return ["first", "random", "rule:<JOB>[+<first|least-work|nearest>[+<TOOL>]]", "list[:ect|:<JOB>]",
             "rules[:full|:paper]", "sos", "tabu", "cpsat", "plan:<SOLVER>[:SECONDS]", "plan:file:PATH",
             "ppo[:MODEL][+lookahead|+lookahead-fast|+lookahead-guide]"]
 

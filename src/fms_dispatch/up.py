@@ -89,7 +89,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_instance_args(p)
     p.add_argument("--solver", default="first",
-                   help="agent solver: first | random | rule:<JOB>+<first|least-work|nearest> | ppo | ppo:<model> | "
+                   help="agent solver: first | random | rule:<JOB>[+<first|least-work|nearest>] | ppo | ppo:<model> | "
                         "ppo[:<model>]+lookahead | ppo[:<model>]+lookahead-fast | ppo[:<model>]+lookahead-guide | "
                         "lookahead (ppo+lookahead) | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
                         "state, then execute the plan) | plan:file:PATH (execute a schedule made beforehand) | "

@@ -91,7 +91,7 @@ def test_first_and_random() -> None:
     ("ppo:", "solver 'ppo:' names no model"),
     ("cpsat", "plans a whole schedule offline"),
     ("sos", "plans a whole schedule offline"),
-    ("magic", "unknown solver 'magic'; the agent node accepts first, random, rule:<JOB>+"),
+    ("magic", "unknown solver 'magic'; the agent node accepts first, random, rule:<JOB>[+"),
     ("rule:XYZ", "unknown job rule 'XYZ'"),
     ("rule:FIFO+fastest", "unknown vehicle rule 'fastest'"),
     ("  ", "a solver must be named"),
