@@ -690,3 +690,19 @@ def test_a_plain_run_that_ends_after_its_plan_names_the_plan_and_the_lookahead(c
     assert "plan ends at" not in capsys.readouterr().err
     assert main(["solve", "EX24", "--solver", "ppo:bu", "--out", str(out), "-q"]) == 0  # no guide, no plan
     assert "guide_plan_makespan" not in json.loads(out.read_text())["meta"]
+
+
+def test_an_outage_re_plans_the_guide_around_the_vehicle_out_of_service():
+    # outages were no trigger: the guide kept routing carries through AGV 0 and the model waited out its window
+    # (EX12: 100,134); after an outage the new plan is put in force whatever it promises (the plan in force, re-timed
+    # by a list schedule free to choose other vehicles, looked as good)
+    from fms_dispatch.solvers import solve
+    from fms_sim.disruptions import Outage, Scenario
+
+    inst = builtin("EX12")
+    sc = Scenario(outages=(Outage("agv", 0, 14, 100_000),))
+    s = solve(inst, "ppo", scenario=sc)
+    assert validate(inst, s, sc) == [] and s.makespan < 1000
+    assert [(e["reason"], e["status"]) for e in s.meta["replans"]][0] == ("outage", "adopted")
+    kept = solve(inst, "ppo", scenario=sc, guide_replan=False)  # (the start's plan acted out: the window waited out)
+    assert kept.makespan > 100_000

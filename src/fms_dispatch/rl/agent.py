@@ -289,8 +289,10 @@ class GuideReplanner:
     :attr:`events` (``{reason, time, wall_time, budget, before, after, status, method}``, as plan re-planning
     records them). A shop seen at its start begins a new run; another shop object of the same run (a twin rebuilt
     from the history) keeps what was answered and checks the operations it starts from then on. Only the run's own
-    shop should be checked (lookahead twins are not: pass them the agent's ``act``). Outages do not trigger it; a
-    live order re-plans the guide by itself (the jobs changed), and the lateness check follows the new plan."""
+    shop should be checked (lookahead twins are not: pass them the agent's ``act``). After an outage the new plan is
+    put in force whatever it promises: the plan in force routes carries through the vehicle out of service (its
+    order continued from the state, which the margin compares against, lets a list schedule choose other vehicles).
+    A live order re-plans the guide by itself (the jobs changed), and the lateness check follows the new plan."""
 
     def __init__(self, agent: Agent, margin: float | None = REPLAN_MARGIN, drift: float | None = REPLAN_DRIFT,
                  budget: float | None = REPLAN_BUDGET, effort: Any = None) -> None:
@@ -301,7 +303,7 @@ class GuideReplanner:
         self.agent, self.margin, self.drift, self.budget, self.effort = agent, margin, drift, budget, effort
         self.events: list[dict[str, Any]] = []
         self._shop: Shop | None = None
-        self._answered: set[tuple[int, int]] = set()  # (machine, start) of the breakdowns re-planned for
+        self._answered: set[tuple] = set()  # the breakdowns and outages re-planned for (kind, which, start)
         self._guide: Any = None  # the guide whose plan the lateness check reads
         self._planned: dict[tuple[int, int], int] = {}
         self._tol = 0.0
@@ -323,7 +325,7 @@ class GuideReplanner:
         return late
 
     def trigger(self, shop: Shop) -> str | None:
-        """Why the guide should be re-planned in ``shop`` now (``breakdown`` or ``late``; each trigger is answered
+        """Why the guide should be re-planned in ``shop`` now (``breakdown``, ``outage`` or ``late``; each trigger is answered
         once), or None. :meth:`check` re-plans at once; the agent node starts the re-plan beside its decisions
         (:meth:`inputs`, then :meth:`adopt`)."""
         if shop is not self._shop:
@@ -335,10 +337,12 @@ class GuideReplanner:
         if scenario is None:  # a nominal shop keeps to the plan: nothing to re-plan (a live order re-plans anyway)
             return None
         reason = None
-        begun = {(b.machine, b.start) for b in scenario.breakdowns if b.start <= shop.now} - self._answered
-        if begun:
+        begun = ({("breakdown", b.machine, b.start) for b in scenario.breakdowns if b.start <= shop.now}
+                 | {("outage", o.kind, o.vehicle, o.start) for o in scenario.outages if o.start <= shop.now})
+        begun -= self._answered
+        if begun:  # an outage too: the plan's carries for the vehicle waited out its window (EX12: 100,088 for 98)
             self._answered |= begun
-            reason = "breakdown"
+            reason = min(b[0] for b in begun)  # "breakdown" before "outage"
         if self.drift is not None and self._late(shop) and reason is None:
             reason = "late"
         return reason
@@ -348,8 +352,13 @@ class GuideReplanner:
         reason = self.trigger(shop)
         if reason is None:
             return None
-        result = self.agent.replan_guide(shop, self.margin, self.budget, self.effort)
+        result = self.agent.replan_guide(shop, self._margin(reason), self.budget, self.effort)
         return self._record(shop, reason, result)
+
+    def _margin(self, reason: str) -> float | None:
+        """The margin a re-plan for ``reason`` must beat the plan in force by: none after an outage (see the class
+        docstring: the plan in force has the out vehicle's carries)."""
+        return None if reason == "outage" else self.margin
 
     def inputs(self, shop: Shop) -> tuple[Any, Any]:
         """``(plan in force, search)`` of a re-plan from ``shop`` now, to run
@@ -365,7 +374,7 @@ class GuideReplanner:
         (:func:`fms_dispatch.replan.retime_from`; ``shop`` must allow a snapshot): the decisions taken meanwhile
         (hundreds on a large simulated shop) leave a plan's start times and vehicle routes behind, and a guide
         read from them leads the model astray."""
-        adopted = self.agent.adopt_replan(shop, plan, before, self.margin, retime=moved)
+        adopted = self.agent.adopt_replan(shop, plan, before, self._margin(reason), retime=moved)
         event = self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
         if moved and adopted:
             event["retimed"] = self.agent.guide_of(shop).plan.meta.get("retime")
