@@ -101,7 +101,11 @@ class TopicIO:
             if msg["schema"] == "fms/error/v1":
                 # an answer to an older state is a race every disruption or order can cause, not a fault: a warning
                 # (fms up names the first [ERROR] line of a node's log as the likely cause of a stalled run)
-                (log.warning if msg["code"] == "stale_state" else log.error)(f"[{msg['code']}] {msg['message']}")
+                # (two call sites: rclpy refuses one site logging at two severities)
+                if msg["code"] == "stale_state":
+                    log.warning(f"[{msg['code']}] {msg['message']}")
+                else:
+                    log.error(f"[{msg['code']}] {msg['message']}")
 
     def matched(self, topic: str) -> int:
         """How many subscribers the publisher on ``topic`` is matched with."""
