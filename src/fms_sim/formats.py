@@ -194,10 +194,11 @@ def _load_file(path: Path) -> Instance:
             return Instance.from_json(text)
         except InstanceError as exc:
             raise InstanceError(f"{path.name}: {exc}") from None
+    name = path.stem or path.name
     try:
-        return parse_text_jobshop(text, path.stem or path.name)
-    except InstanceError as exc:  # name the file, as for JSON ("line 3: ..." alone did not)
-        raise InstanceError(f"{path.name}: {exc}") from None
+        return parse_text_jobshop(text, name)
+    except InstanceError as exc:  # name the file, as for JSON ("line 3: ..." alone did not), once ("std.txt: std: ")
+        raise InstanceError(f"{path.name}: {str(exc).removeprefix(name + ': ')}") from None
 
 
 def load_instance(

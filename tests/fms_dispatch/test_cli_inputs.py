@@ -86,10 +86,11 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     def makespan(seed_in_file, *flags):
         f = tmp_path / f"n{seed_in_file}.json"
         f.write_text(json.dumps({"schema": "fms/scenario/v1", "noise": 0.3, "seed": seed_in_file}))
-        code, out, _ = run(["solve", "EX42", "--scenario", str(f), "-q", "--out", str(tmp_path / "o.json"),
-                            *flags], capsys)
+        code, _, _ = run(["solve", "EX42", "--scenario", str(f), "-q", "--out", str(tmp_path / "o.json"), *flags],
+                         capsys)
         assert code == 0
-        return Schedule.load(tmp_path / "o.json").meta["scenario"]["seed"], out
+        sched = Schedule.load(tmp_path / "o.json")
+        return sched.meta["scenario"]["seed"], sched.to_dict()["operations"]  # (the same run: the same times)
 
     assert makespan(7)[0] == 7 and makespan(7, "--seed", "3")[0] == 3  # --seed was silently dropped
     assert makespan(7, "--seed", "3")[1] == makespan(3)[1]
@@ -183,3 +184,10 @@ def test_a_schedule_given_as_the_instance_and_the_other_way_round_say_so(tmp_pat
     assert code == 2 and "this is a schedule, not an instance" in err
     code, _, err = run(["validate", "EX12", str(shop)], capsys)  # "field 'operations' must be a list"
     assert code == 2 and "this is an instance, not a schedule" in err
+
+
+def test_a_text_file_is_named_once_in_its_errors(tmp_path, capsys):
+    text = tmp_path / "std.txt"
+    text.write_text("2 2\n0 3 1 4\n")
+    code, _, err = run(["solve", str(text), "-q"], capsys)
+    assert code == 2 and "fms: error: std.txt: expected 2 lines after the header" in err  # "std.txt: std: expected"
