@@ -447,6 +447,12 @@ def cmd_generate(a: argparse.Namespace) -> int:
         route_seed=a.route_seed, tool_seed=a.tool_seed, agv_seed=a.agv_seed, tool_travel_seed=a.tool_travel_seed,
         n_agvs=10 if a.agvs is None else a.agvs, n_tool_transporters=5 if a.tool_transporters is None
         else a.tool_transporters, tools=not a.no_tools, agvs=not a.no_agvs, name_prefix=a.prefix)
+    from fms_sim.benchmarks import is_builtin_name
+
+    shadow = next((inst.name for inst in insts if is_builtin_name(inst.name)), None)
+    if shadow is not None:  # `fms validate sl00 file.json` then checked against the built-in sl00
+        raise CliError(f"--prefix {a.prefix!r} names the files like built-in instances ({shadow}); choose another "
+                       "prefix")
     for inst in insts:  # every target before the first file: a folder in the way left a partial set
         if (out / f"{inst.name}.json").is_dir():
             raise CliError(f"{out / (inst.name + '.json')} is a folder; nothing was written")

@@ -116,6 +116,8 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--seed", "5"], "--seed does not apply to first: it draws nothing at random"),  # ignored
     (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
     (["bench", "bu", "--instances", "3..1", "--results-dir", "{d}/r"], "the range 3..1 runs backwards"),
+    (["generate", "--jobs", "3", "--machines", "3", "--prefix", "sl", "--out-dir", "{d}/g"],
+     "--prefix 'sl' names the files like built-in instances (sl00)"),  # shadowed the built-in sl00
 ])
 def test_empty_names_and_ignored_values_are_refused(tmp_path, capsys, monkeypatch, ex12, argv, needle):
     monkeypatch.chdir(tmp_path)  # where an empty name wrote
