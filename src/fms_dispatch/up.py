@@ -660,11 +660,11 @@ def _stop_with(parent: int) -> Callable[[], None]:
     return arm
 
 
-#: the signals that stop ``fms up`` (and so its nodes) as Ctrl-C does: ``kill``, a supervisor, a closed terminal
-#: or a dropped SSH session (SIGHUP), SIGQUIT
 #: the longest run id (as a file name) fms up takes: its chart and work folder are named by it, 255 bytes at most
 MAX_RUN_NAME = 200
 
+#: the signals that stop ``fms up`` (and so its nodes) as Ctrl-C does: ``kill``, a supervisor, a closed terminal
+#: or a dropped SSH session (SIGHUP), SIGQUIT
 STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 
 
