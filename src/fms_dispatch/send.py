@@ -90,13 +90,22 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
             raise SendError(f"{spec[1:]} is not a text (UTF-8 JSON) file") from None
     else:
         text = spec
+    duplicates: list[str] = []  # keys that appear twice in one object (JSON keeps the last value)
+
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        seen: set[str] = set()
+        for k, _ in items:
+            if k in seen:
+                duplicates.append(k)
+            seen.add(k)
+        return dict(items)
+
     try:
-        jobs = loads(text)
-        dup = _first_duplicate_key(text)
+        jobs = loads(text, object_pairs_hook=pairs)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
-    if dup is not None:  # silently the last value; docs/ros.md calls duplicate keys malformed JSON
-        raise SendError(f"--jobs is not JSON as fms reads it: duplicate key {dup!r} in an object")
+    if duplicates:  # silently the last value; docs/ros.md calls duplicate keys malformed JSON
+        raise SendError(f"--jobs is not JSON as fms reads it: duplicate key {duplicates[0]!r} in an object")
     if isinstance(jobs, dict):  # a whole order message: its id and run too (re-sending the file is the same order)
         if jobs.get("schema", SCHEMA_ORDER) != SCHEMA_ORDER:  # an fms/order/v2 or a disruption was sent as v1
             raise SendError(f"--jobs holds a {jobs['schema']!r} message, not an order ({SCHEMA_ORDER})")
@@ -106,22 +115,6 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
         return jobs["jobs"], jobs.get("order_id"), jobs.get("run_id")
     return jobs, None, None
 
-
-def _first_duplicate_key(text: str) -> str | None:
-    """The first key that appears twice in one object of the JSON ``text`` (which ``loads`` read, keeping the last
-    value as Python does), or None."""
-    found: list[str] = []
-
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        seen: set[str] = set()
-        for k, _ in items:
-            if k in seen and not found:
-                found.append(k)
-            seen.add(k)
-        return dict(items)
-
-    json.loads(text.removeprefix("\ufeff"), object_pairs_hook=pairs)
-    return found[0] if found else None
 
 
 def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:

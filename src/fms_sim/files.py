@@ -19,7 +19,7 @@ import os
 import stat
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 __all__ = ["replacing", "write_atomically", "read_text", "loads"]
 
@@ -29,11 +29,11 @@ def read_text(path: str | Path) -> str:
     return Path(path).read_text(encoding="utf-8-sig")
 
 
-def loads(text: str) -> Any:
-    """``json.loads(text)``, a leading byte-order mark dropped; JSON nested too deeply for the parser (a crash with a
-    RecursionError) raises :class:`json.JSONDecodeError` like any other malformed JSON."""
+def loads(text: str, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
+    """``json.loads(text)`` (with ``object_pairs_hook``), a leading byte-order mark dropped; JSON nested too deeply for
+    the parser (a crash with a RecursionError) raises :class:`json.JSONDecodeError` like any other malformed JSON."""
     try:
-        return json.loads(text.removeprefix("\ufeff"))
+        return json.loads(text.removeprefix("\ufeff"), object_pairs_hook=object_pairs_hook)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply", text, 0) from None
 
