@@ -134,7 +134,7 @@ def search_summary(sched: Schedule) -> str:
 def cmd_solve(a: argparse.Namespace) -> int:
     from fms_sim.validate import validate
 
-    from .solvers import get_solver, parse_plan_name, solve, takes_time_limit
+    from .solvers import get_solver, parse_plan_name, solve, takes_seed, takes_time_limit
 
     get_solver(a.solver)  # unknown names fail before any work or output
     if a.solver.lower().startswith("ppo:"):  # and unknown models (a ppo solver finds its model when it runs)
@@ -171,9 +171,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     scenario = scenario_from_args(a, inst)
     if scenario is not None:
         opts["scenario"] = scenario
-    low = a.solver.lower()
-    if a.seed is not None and not (scenario is not None and scenario.noise) and not (
-            low in ("random", "cpsat", "sos", "tabu") or low.startswith("plan:")):  # taken and ignored
+    if a.seed is not None and not (scenario is not None and scenario.noise) and not takes_seed(a.solver):  # ignored
         raise CliError(f"--seed does not apply to {a.solver}: it draws nothing at random (the seed is the random, "
                        "cpsat, sos, tabu and plan: solvers', and the noise's)")
     if a.solver.lower().startswith(DECISION_SOLVERS):

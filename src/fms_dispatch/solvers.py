@@ -309,6 +309,14 @@ def takes_time_limit(method: str) -> bool:
     return low.startswith("rules") or (searches_time(low) and not low.startswith("ppo"))
 
 
+def takes_seed(method: str) -> bool:
+    """Whether a seed means something to a solver: ``random``, the searches ``cpsat``, ``sos`` and ``tabu``, and the
+    ``plan:`` solvers (their searches and re-plans). The others draw nothing at random (a seed still seeds a noisy
+    shop's noise)."""
+    low = method.lower()
+    return low in ("random", "cpsat", "sos", "tabu") or low.startswith("plan:")
+
+
 #: solvers that can run in a disrupted shop (option ``scenario``): online deciders on the full net (rules,
 #: full-net PPO models), and plans executed without re-planning
 DISRUPTABLE = ("first", "random", "rule:", "plan:", "ppo")
