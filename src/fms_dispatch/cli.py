@@ -348,21 +348,17 @@ def _load_schedule(path: str) -> Schedule:
 
 
 def cmd_validate(a: argparse.Namespace) -> int:
-    from fms_sim.validate import validate
+    from fms_sim.disruptions import ScenarioError
+    from fms_sim.validate import recorded_scenario, validate
 
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
     scenario = scenario_from_args(a, inst)
-    recorded = sched.meta.get("scenario")
-    if scenario is None and recorded is not None:  # a file that is not what it claims: bad input, not infeasible
-        from fms_sim.disruptions import Scenario, ScenarioError
-
+    if scenario is None:  # a malformed recorded one is a file that is not what it claims: bad input, not infeasible
         try:
-            if not isinstance(recorded, dict):
-                raise ScenarioError(f"meta.scenario must be an object, got {type(recorded).__name__}")
-            Scenario.from_dict(recorded)
+            scenario = recorded_scenario(sched)
         except ScenarioError as exc:
-            raise CliError(f"{a.schedule}: the schedule's recorded scenario is malformed: {exc}") from None
+            raise CliError(f"{a.schedule}: {exc}") from None
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
     problems = validate(inst, sched, scenario)

@@ -33,7 +33,7 @@ from .instance import Instance, require_instance
 from .schedule import Schedule
 from .ties import settle, tool_order, tool_use_orders, trips_by_op, uses_by_tool
 
-__all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders"]
+__all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders", "recorded_scenario"]
 
 
 class ScheduleInvalid(ValueError):
@@ -53,6 +53,20 @@ def check(instance: Instance, schedule: Schedule, scenario: Scenario | None = No
         raise ScheduleInvalid(v)
 
 
+def recorded_scenario(schedule: Schedule) -> Scenario | None:
+    """The scenario ``schedule`` records in ``meta["scenario"]`` (None: none); raises :class:`ScenarioError` saying
+    it is malformed (a value that is no object was silently ignored)."""
+    recorded = schedule.meta.get("scenario")
+    if recorded is None:
+        return None
+    try:
+        if not isinstance(recorded, dict):
+            raise ScenarioError(f"meta.scenario must be an object, got {type(recorded).__name__}")
+        return Scenario.from_dict(recorded)
+    except ScenarioError as exc:
+        raise ScenarioError(f"the schedule's recorded scenario is malformed: {exc}") from None
+
+
 def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None = None) -> list[str]:
     """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
     (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
@@ -61,15 +75,11 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
         raise TypeError(f"validate takes a Schedule (Schedule.from_dict or Schedule.load reads one), got "
                         f"{type(schedule).__name__}")
     errs: list[str] = []
-    recorded = schedule.meta.get("scenario")
-    if scenario is None and recorded is not None and not isinstance(recorded, dict):  # it was silently ignored
-        return [f"the schedule's recorded scenario is malformed: meta.scenario must be an object, got "
-                f"{type(recorded).__name__}"]
-    if scenario is None and isinstance(recorded, dict):
+    if scenario is None:
         try:
-            scenario = Scenario.from_dict(schedule.meta["scenario"])
+            scenario = recorded_scenario(schedule)
         except ScenarioError as exc:
-            return [f"the schedule's recorded scenario is malformed: {exc}"]
+            return [str(exc)]
     if scenario is not None:
         try:
             scenario.check(instance)
