@@ -286,9 +286,16 @@ def check_output(path: str | None, what: str) -> None:
         if not os.access(p, os.W_OK):
             raise CliError(f"{what} {path}: the file may not be written (permission denied)")
         return
-    folder = next((q for q in p.absolute().parents if q.exists()), None)
-    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
-        raise CliError(f"{what} {path}: the folder {folder} may not be written (permission denied)")
+    check_folder(p.parent, what, path)
+
+
+def check_folder(folder: Path, what: str, path: str) -> None:
+    """Refuse ``folder`` (or, where it does not exist yet, the nearest folder above it, in which it would be made)
+    if this user may not write it; ``what path`` names the option in the message."""
+    folder = folder.absolute()
+    where = next((q for q in (folder, *folder.parents) if q.exists()), None)
+    if where is not None and not os.access(where, os.W_OK | os.X_OK):
+        raise CliError(f"{what} {path}: the folder {where} may not be written (permission denied)")
 
 
 def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
@@ -417,9 +424,7 @@ def cmd_generate(a: argparse.Namespace) -> int:
     out = Path(a.out_dir)
     if out.exists() and not out.is_dir():
         raise CliError(f"--out-dir {a.out_dir} is a file, not a folder")
-    folder = next((q for q in out.absolute().parents if q.exists()), None) if not out.exists() else out
-    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):  # it failed at the first file, naming a
-        raise CliError(f"--out-dir {a.out_dir}: the folder {folder} may not be written (permission denied)")  # temp
+    check_folder(out, "--out-dir", a.out_dir)  # it failed at the first file, naming a temporary
     if a.no_tools and (a.tools is not None or a.tool_transporters is not None):
         raise CliError("--tools/--tool-transporters and --no-tools contradict each other")
     if a.no_agvs and a.agvs is not None:
