@@ -53,6 +53,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from fms_sim.files import loads, read_text
 from fms_sim.instance import Instance
 
 from .models import CONFIG_FILE, METRICS_FILE
@@ -770,7 +771,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg: dict[str, Any] = {}
     if a.config:
         try:
-            cfg = json.loads(Path(a.config).read_text(encoding="utf-8-sig"))
+            cfg = loads(read_text(a.config))
         except OSError as exc:
             raise ValueError(f"cannot read config {a.config}: {exc.strerror}") from None
         except json.JSONDecodeError as exc:
