@@ -121,13 +121,12 @@ class Schedule:
             raise ScheduleError("this is an instance, not a schedule (it has jobs, no operations)")
         if strict:
             _known(d, _FIELDS, "schedule field")
-        try:
             for key, fields in (("operations", _OP_FIELDS), ("agv_trips", _AGV_FIELDS), ("tool_trips", _TT_FIELDS)):
                 rows = d.get(key)
-                if strict and isinstance(rows, list):
-                    for row in rows:
-                        if isinstance(row, dict):
-                            _known(row, fields, f"field of {key}")
+                for row in rows if isinstance(rows, list) else ():
+                    if isinstance(row, dict):
+                        _known(row, fields, f"field of {key}")
+        try:
             ops = [OperationRecord(_int(o, "job"), _int(o, "op"), _int(o, "machine"), _int(o, "tool", True),
                                    _int(o, "start"), _int(o, "end")) for o in _list(d, "operations")]
             agv = [AgvTrip(_int(t, "agv"), _int(t, "job", True), _int(t, "op", True), _int(t, "from"),
