@@ -109,7 +109,7 @@ def builtin(name: str, *, layout: int | None = None) -> Instance:
         if not 1 <= s <= 10 or not 1 <= lay <= 4 or digits[0] == "0":
             raise _unknown(name, "EX sets are 1-10 and layouts 1-4")
         if layout is not None and layout != lay:
-            raise InstanceError(f"{name} already names layout {lay}; layout={layout} conflicts (use EX{s}{layout})")
+            raise InstanceError(f"{name} already names layout {lay}; layout {layout} conflicts (use EX{s}{layout})")
         return _copy(_ex(s, lay))
 
     if m := _RA_RE.fullmatch(key):
@@ -122,7 +122,8 @@ def builtin(name: str, *, layout: int | None = None) -> Instance:
             if not 1 <= named <= 4:
                 raise _unknown(name, "layouts are 1-4, e.g. ra01L3")
             if layout is not None and layout != named:
-                raise InstanceError(f"{name} already names layout {named}; layout={layout} conflicts")
+                raise InstanceError(f"{name} already names layout {named}; layout {layout} conflicts "
+                                    f"(use ra{i:02d}L{layout})")
             lay = named
         return _copy(_ra(i, RA_DEFAULT_LAYOUT if lay is None else lay))
 

@@ -233,9 +233,10 @@ def load_instance(
         raise InstanceError(f"no built-in instance or file named {spec!r} (built-ins: {NAME_PATTERNS})")
 
     if agvs is not None and no_agvs:
-        raise InstanceError("agvs and no_agvs conflict: give one or the other")
+        raise InstanceError("set the number of AGVs or drop them, not both (agvs / no_agvs: --agvs / --no-agvs)")
     if tool_transporters is not None and no_tools:
-        raise InstanceError("tool_transporters and no_tools conflict: give one or the other")
+        raise InstanceError("set the number of tool transporters or drop the tools, not both (tool_transporters / "
+                            "no_tools: --tool-transporters / --no-tools)")
     if no_tools:
         inst = inst.without_tools()
     if no_agvs:

@@ -50,7 +50,7 @@ def test_ex_layout_is_last_digit() -> None:
     assert ex101.agv_travel == tuple(map(tuple, _data("bu_layouts.json")["layouts"]["1"]))
     assert builtin("EX104").meta["optimal_makespan"] == 157
     assert builtin("EX12", layout=2).name == "EX12"
-    with pytest.raises(InstanceError, match="conflicts"):
+    with pytest.raises(InstanceError, match=r"EX12 already names layout 2; layout 3 conflicts \(use EX13\)"):
         builtin("EX12", layout=3)
 
 
@@ -84,7 +84,7 @@ def test_ra_layouts() -> None:
     assert builtin("ra05L2").name == "ra05"
     assert builtin("ra05", layout=2).name == "ra05"
     assert builtin("ra12L4").name == "ra12L4"
-    with pytest.raises(InstanceError, match="conflicts"):
+    with pytest.raises(InstanceError, match=r"ra01L3 already names layout 3; layout 1 conflicts \(use ra01L1\)"):
         builtin("ra01L3", layout=1)
     with pytest.raises(InstanceError, match="layout"):
         builtin("ra01", layout=5)

@@ -181,8 +181,10 @@ def test_overrides() -> None:
         ("EX12", {"tool_transporters": 2}, "EX12 has no tool travel matrix"),
         ("ra01", {"agvs": 0}, r"agvs must be an integer from 1 to 1000, got 0 \(use --no-agvs"),
         ("ra01", {"tool_transporters": -1}, "tool_transporters must be an integer from 1 to 1000"),
-        ("ra01", {"agvs": 2, "no_agvs": True}, "conflict"),
-        ("ra01", {"tool_transporters": 2, "no_tools": True}, "conflict"),
+        # the keywords and the command line's flags named (the message serves both)
+        ("ra01", {"agvs": 2, "no_agvs": True}, r"AGVs or drop them, not both \(agvs / no_agvs: --agvs / --no-agvs\)"),
+        ("ra01", {"tool_transporters": 2, "no_tools": True},
+         r"not both \(tool_transporters / no_tools: --tool-transporters / --no-tools\)"),
     ],
 )
 def test_override_errors(spec: str, kwargs: dict, match: str) -> None:
