@@ -96,8 +96,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
                         "instead of the pair) (default: first)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the random solver (default 0) and of the noise "
-                   "(--noise, or the --scenario file's: this seed replaces the file's)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
+                   "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
+                   "solver that draws nothing in a run without noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
                    "full-net ppo model")
@@ -356,6 +357,7 @@ def cmd_up(a: argparse.Namespace) -> int:
                       f"not to {solver!r}" + (" with --no-guide-replan" if a.guide_replan is False else ""))
     # a full-net PPO model (ppo:full) decides on the full net too: the shop must run it
     full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
+    scenario = None
     if disrupted:
         from .cli import scenario_from_args
 
@@ -366,6 +368,12 @@ def cmd_up(a: argparse.Namespace) -> int:
         if not (needs_full_net(solver) or full_model or solver.lower() in ("first", "random")):
             raise UpError(f"--scenario and --noise need a solver that decides on the full net (plan:..., first, "
                           f"random, a full-net model such as ppo:full), not {solver}")
+    from .solvers import takes_seed
+
+    noisy = disrupted and bool(scenario is not None and scenario.noise)
+    if a.seed is not None and not noisy and a.solver.lower() != "best" and not takes_seed(solver):  # as fms solve
+        raise UpError(f"--seed does not apply to {solver}: it draws nothing at random (the seed is the random and "
+                      "plan: solvers', and the noise's)")
     if not 0 < a.timeout < float("inf"):  # NaN would never time out
         raise UpError("--timeout must be a positive number of seconds")
     if not 0 <= a.time_scale < float("inf"):

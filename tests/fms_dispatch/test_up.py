@@ -352,12 +352,25 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--scenario", ""], "--scenario names no file"),  # ran undisrupted
              *((["--" + flag, ""], f"--{flag} names nothing (an empty name)")  # a default, or the current folder
                for flag in ("out", "db", "run-id", "gantt-dir", "log-dir")),
-             (["--run-id", "x" * 300], "--run-id is too long to name the run's files")]  # File name too long
+             (["--run-id", "x" * 300], "--run-id is too long to name the run's files"),  # File name too long
+             (["--seed", "3"], "--seed does not apply to first: it draws nothing at random")]  # as fms solve
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])
         err = capsys.readouterr().err
         assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, (extra, err)
+
+
+def test_a_seed_is_taken_where_it_draws_something(fake_nodes, tmp_path: Path, monkeypatch) -> None:
+    """--seed passes for a solver that draws (random), for the noise of any solver, and for best (which picks the
+    solver: the seed applies if it picks one that draws); the agent and the shop get it."""
+    fake_nodes()
+    seen = _record_params(monkeypatch)
+    for i, extra in enumerate((["--solver", "random"], ["--noise", "0.1"], ["--solver", "best"])):
+        (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)
+        assert _up(tmp_path, "--seed", "7", "--db", str(tmp_path / "out" / f"{i}.sqlite"), *extra) == up.EXIT_OK, extra
+        assert seen["agent_node"]["seed"] == 7 and seen["shop_node"].get("noise_seed", 7) == 7, (extra, seen)
+        assert ("noise_seed" in seen["shop_node"]) == (extra[0] == "--noise")
 
 
 def test_ctrl_c_stops_the_run_with_exit_130_and_no_node_logs(fake_nodes, tmp_path: Path, capsys) -> None:
