@@ -3,6 +3,7 @@
 It checks a :class:`~fms_sim.schedule.Schedule` against its :class:`~fms_sim.instance.Instance` by the
 project's semantic contract, without using the Petri net, and reports *every* violation it finds:
 
+* times, indices and counts are integers (a record of another type is reported and nothing else is judged);
 * every operation appears once, on its machine, with its tool and its exact duration;
 * a machine runs one operation at a time;
 * without AGVs, operation (j,k) starts after (j,k-1) ends (and at >= 0);
@@ -25,12 +26,15 @@ project's semantic contract, without using the Petri net, and reports *every* vi
 
 from __future__ import annotations
 
+import numbers
 from collections import defaultdict
-from typing import Iterable
+from typing import Any, Iterable
+
+import numpy as np
 
 from .disruptions import Scenario, ScenarioError
 from .instance import Instance, require_instance
-from .schedule import Schedule
+from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .ties import settle, tool_order, tool_use_orders, trips_by_op, uses_by_tool
 
 __all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders", "recorded_scenario"]
@@ -74,7 +78,9 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     if not isinstance(schedule, Schedule):
         raise TypeError(f"validate takes a Schedule (Schedule.from_dict or Schedule.load reads one), got "
                         f"{type(schedule).__name__}")
-    errs: list[str] = []
+    errs = _check_types(schedule)
+    if errs:  # times and indices that are no integers: nothing below can be judged (or computed) with them
+        return errs
     if scenario is None:
         try:
             scenario = recorded_scenario(schedule)
@@ -125,6 +131,42 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     true_ms = max(ends) if ends else 0
     if schedule.makespan != true_ms:
         errs.append(f"makespan is {schedule.makespan} but the latest operation ends at {true_ms}")
+    return errs
+
+
+#: per record type, its integer fields (``None`` allowed in the second group) and what a message calls it
+_FIELDS: tuple[tuple[type, str, tuple[str, ...], tuple[str, ...]], ...] = (
+    (OperationRecord, "operations", ("job", "op", "machine", "start", "end"), ("tool",)),
+    (AgvTrip, "agv_trips", ("agv", "from_", "to", "start", "end"), ("job", "op")),
+    (ToolTrip, "tool_trips", ("transporter", "from_", "to", "start", "end"), ("tool", "job", "op")),
+)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+
+
+def _check_types(schedule: Schedule) -> list[str]:
+    """The schedule's fields that are not of the contract's types (times, indices and counts are integers: a
+    schedule built in Python with ``start=2.5`` was judged feasible, one with ``start=None`` crashed the checks);
+    each record as ``operations[3].start`` (the index in its list) with the value found."""
+    errs = [f"{name} must be an integer, got {v!r}" for name in ("makespan", "n_agvs", "n_tool_transporters")
+            if not _is_int(v := getattr(schedule, name))]
+    for cls, where, ints, optional in _FIELDS:
+        records = getattr(schedule, where)
+        if not isinstance(records, (list, tuple)):
+            errs.append(f"{where} must be a list of {cls.__name__} records, got {type(records).__name__}")
+            continue
+        for i, r in enumerate(records):
+            if not isinstance(r, cls):
+                errs.append(f"{where}[{i}] must be of type {cls.__name__}, got {type(r).__name__}")
+                continue
+            errs.extend(f"{where}[{i}].{f.rstrip('_')} must be an integer, got {v!r}"
+                        for f in ints if not _is_int(v := getattr(r, f)))
+            errs.extend(f"{where}[{i}].{f} must be an integer or None, got {v!r}"
+                        for f in optional if (v := getattr(r, f)) is not None and not _is_int(v))
+            if cls is AgvTrip and not isinstance(r.loaded, (bool, np.bool_)):
+                errs.append(f"{where}[{i}].loaded must be true or false, got {r.loaded!r}")
     return errs
 
 

@@ -267,3 +267,36 @@ def test_zero_duration_uses_of_a_tool_at_one_instant_follow_its_trip():
     assert validate(inst, Schedule.from_dict(doc)) == []
     doc["tool_trips"][0].update(start=3, end=6)  # the tool arrives after both uses: still wrong
     assert validate(inst, Schedule.from_dict(doc))
+
+
+@pytest.mark.parametrize("mutate, msg", [
+    # a schedule built in Python with fractional times was judged feasible (a file with them is refused on reading)
+    (lambda s: replace(s, operations=[replace(o, start=o.start + 0.5, end=o.end + 0.5) if i == 0 else o
+                                      for i, o in enumerate(s.operations)]),
+     "operations[0].start must be an integer, got "),
+    (lambda s: replace(s, makespan=float(s.makespan)), "makespan must be an integer, got "),
+    (lambda s: replace(s, n_agvs=True), "n_agvs must be an integer, got True"),
+    # these crashed the checks (TypeError, AttributeError)
+    (lambda s: replace(s, operations=[replace(o, start=None) if i == 1 else o for i, o in enumerate(s.operations)]),
+     "operations[1].start must be an integer, got None"),
+    (lambda s: replace(s, agv_trips=[replace(t, to="2") for t in s.agv_trips[:1]] + s.agv_trips[1:]),
+     "agv_trips[0].to must be an integer, got '2'"),
+    (lambda s: replace(s, agv_trips=[replace(t, loaded=1) for t in s.agv_trips]),
+     "agv_trips[0].loaded must be true or false, got 1"),
+    (lambda s: replace(s, tool_trips=[replace(t, tool=1.0) for t in s.tool_trips]),
+     "tool_trips[0].tool must be an integer or None, got 1.0"),
+    (lambda s: replace(s, operations=s.operations[:1] + [{"job": 0}] + s.operations[2:]),
+     "operations[1] must be of type OperationRecord, got dict"),
+    (lambda s: replace(s, tool_trips=None), "tool_trips must be a list of ToolTrip records, got NoneType"),
+])
+def test_fields_of_the_wrong_type_are_violations(good, mutate, msg):
+    errs = validate(INST, mutate(good))
+    assert any(e.startswith(msg) for e in errs), errs
+
+
+def test_numpy_integers_are_integers(good):
+    import numpy as np
+
+    s = replace(good, makespan=np.int64(good.makespan),
+                operations=[replace(o, start=np.int32(o.start), end=np.int64(o.end)) for o in good.operations])
+    assert validate(INST, s) == []
