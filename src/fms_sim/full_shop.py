@@ -36,7 +36,7 @@ from dataclasses import replace
 from functools import partial
 from .disruptions import Breakdown, Outage, Scenario, ScenarioError
 from .instance import Instance, require_instance
-from .petri import Arc, InvalidAction, Output, Place, Transition
+from .petri import Arc, InvalidAction, Output, Place, Transition, index_arg
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop import _P_ALLOC, _P_DONE, _P_JOB, _P_VEHICLE, Shop, ShopState
 
@@ -676,8 +676,11 @@ class FullShop(Shop):
     def action_kind(self, action: int) -> tuple[str, int]:
         """``(kind, number)`` for an action index: kinds job, agv, tt, start, tool, use; ``("hold", 0)``."""
         ctrl = self.net.controllable
+        action = index_arg(action)
         if action == len(ctrl):
             return HOLD, 0
+        if not 0 <= action < len(ctrl):  # a negative index read the list from its end
+            raise InvalidAction(f"action {action} is out of range (0..{len(ctrl)})")
         kinds = self._kinds
         if len(kinds) != len(ctrl):  # parsed once per layout (a live order adds transitions)
             kinds = self._kinds = [(k, int(n)) for k, n in (t.label.split(":") for t in ctrl)]
@@ -686,7 +689,7 @@ class FullShop(Shop):
     def action_index(self, label: str) -> int:
         try:
             return self._label_index[label]
-        except KeyError:
+        except (KeyError, TypeError):  # TypeError: a label that is no string (a list)
             raise InvalidAction(f"unknown action label {label!r} (full net: job:J, agv:V, tt:R, start:J, tool:T, "
                                 "use:J or hold)") from None
 
@@ -714,6 +717,7 @@ class FullShop(Shop):
 
     def fire_action(self, action: int) -> None:
         """Fire one action without running on (``hold`` moves the clock to the next event)."""
+        action = index_arg(action)
         if action == self.hold_action:
             if not self.hold_allowed():
                 raise InvalidAction(f"hold is not allowed at time {self.now} (a vehicle choice is due or nothing "

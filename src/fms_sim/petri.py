@@ -30,6 +30,7 @@ only when their bucket turns empty or non-empty. Masks are cached and only dirty
 from __future__ import annotations
 
 import heapq
+import operator
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable, Iterator, Sequence
 
@@ -40,6 +41,15 @@ Binding = dict[str, Any]
 
 class InvalidAction(ValueError):
     """A controllable transition was fired while not enabled (its guard or arcs do not allow it)."""
+
+
+def index_arg(value: Any, what: str = "action") -> int:
+    """``value`` as an index (an int or a numpy integer), else :class:`InvalidAction` naming ``what``: a float or a
+    string was taken by list indexing far from the call (a TypeError there), or compared equal to an index."""
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise InvalidAction(f"{what} must be an integer, got {value!r}") from None
 
 
 class Deadlock(RuntimeError):
@@ -529,6 +539,7 @@ class Net:
 
     def act(self, action: int) -> Binding:
         """Fire the controllable transition with this action index (must be offered now)."""
+        action = index_arg(action)
         if not (0 <= action < len(self.controllable)):
             raise InvalidAction(f"action {action} is out of range (0..{len(self.controllable) - 1})")
         self._refresh_ctrl()

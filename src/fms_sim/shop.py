@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Iterator, Sequence
 
 from .instance import Instance, InstanceError, Operation, require_instance
-from .petri import Arc, Deadlock, InvalidAction, Net, NetState, Output, Place, Transition
+from .petri import Arc, Deadlock, InvalidAction, Net, NetState, Output, Place, Transition, index_arg
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 
 __all__ = ["Shop", "ShopState", "ActionKind", "run_policy"]
@@ -437,7 +437,10 @@ class Shop:
         return [t.label for t in self.net.controllable]
 
     def action_kind(self, action: int) -> tuple[str, int]:
-        """``("job", j)``, ``("agv", v)`` or ``("tt", r)`` for an action index."""
+        """``("job", j)``, ``("agv", v)`` or ``("tt", r)`` for an action index (InvalidAction for no action's)."""
+        action = index_arg(action)
+        if not 0 <= action < self.n_jobs + self.n_agvs + self.n_tts:
+            raise InvalidAction(f"action {action} is out of range (0..{self.n_jobs + self.n_agvs + self.n_tts - 1})")
         if action < self.n_jobs:
             return ActionKind.JOB, action
         if action < self.n_jobs + self.n_agvs:
@@ -448,8 +451,8 @@ class Shop:
         """Inverse of the labels: ``"job:3"`` -> 3, ``"agv:1"`` -> n_jobs + 1, ..."""
         try:
             kind, num = label.split(":")
-            i = int(num)
-        except ValueError:
+            i = int(num) if num.isdigit() and num.isascii() else int("x")  # "job: 1", "job:+1" are no labels
+        except (ValueError, AttributeError):  # AttributeError: no string
             raise InvalidAction(f"malformed action label {label!r} (expected job:J, agv:V or tt:R)") from None
         base, size = {"job": (0, self.n_jobs), "agv": (self.n_jobs, self.n_agvs),
                       "tt": (self.n_jobs + self.n_agvs, self.n_tts)}.get(kind, (0, -1))
@@ -497,6 +500,7 @@ class Shop:
         :class:`fms_sim.stepping.Stepper` does). Raises :class:`InvalidAction` (see
         :meth:`check_reposition`)."""
         self.check_reposition(kind, vehicle, location)
+        vehicle, location = index_arg(vehicle), index_arg(location)  # a numpy integer: the token's colour an int
         self.net.put(self.p_agv_orders if kind == "agv" else self.p_tt_orders, (vehicle, location))
         if advance:
             self.net.advance()
@@ -504,8 +508,11 @@ class Shop:
 
     def check_reposition(self, kind: str, vehicle: int, location: int) -> None:
         """Raise :class:`InvalidAction` unless :meth:`reposition` may send this vehicle there now."""
+        if kind not in ("agv", "tt"):  # anything else moved a tool transporter
+            raise InvalidAction(f"unknown vehicle kind {kind!r} (agv or tt)")
         agv = kind == "agv"
         what, n = ("AGV", self.n_agvs) if agv else ("tool transporter", self.n_tts)
+        vehicle, location = index_arg(vehicle, f"the {what} number"), index_arg(location, "the location")
         idle = getattr(self, "p_agv_idle" if agv else "p_tt_idle", None)
         if self.done:
             raise InvalidAction("the run is complete; no vehicle can be repositioned")

@@ -270,3 +270,37 @@ def test_incremental_engine_matches_naive_reevaluation(name):
     assert shops[1].done
     assert shops[0].schedule().to_dict() == shops[1].schedule().to_dict()
     assert validate(inst, shops[0].schedule()) == []
+
+
+@pytest.mark.parametrize("decisions", ["paper", "full"])
+def test_arguments_that_name_no_action_or_vehicle_are_invalid_actions(decisions):
+    # reposition("bus", ...) sent a tool transporter on the paper net (KeyError on the full net); a float vehicle was
+    # accepted and broke the run later; act(1.0) and act("0") were TypeErrors from list indexing; action_kind(-1)
+    # answered through negative indexing, and action_kind(10**6) as a tool transporter
+    import numpy as np
+
+    from fms_sim import builtin, make_shop
+
+    shop = make_shop(builtin("ra01"), decisions)
+    n = len(shop.action_mask())
+    for call, msg in [(lambda: shop.reposition("bus", 0, 3), "unknown vehicle kind 'bus' \\(agv or tt\\)"),
+                      (lambda: shop.reposition("agv", 0.0, 3), "the AGV number must be an integer, got 0.0"),
+                      (lambda: shop.reposition("tt", 0, 1.5), "the location must be an integer, got 1.5"),
+                      (lambda: shop.reposition("agv", None, 1), "the AGV number must be an integer, got None"),
+                      (lambda: shop.act(1.0), "action must be an integer, got 1.0"),
+                      (lambda: shop.act("0"), "action must be an integer, got '0'"),
+                      (lambda: shop.fire_action(None), "action must be an integer, got None"),
+                      (lambda: shop.action_kind(-1), "action -1 is out of range"),
+                      (lambda: shop.action_kind(n + 5), f"action {n + 5} is out of range"),
+                      (lambda: shop.action_index(None), "action label None"),
+                      (lambda: shop.action_index("job: 1"), "action label 'job: 1'")]:
+        with pytest.raises(InvalidAction, match=msg):
+            call()
+    inst = builtin("ra01")  # nothing moved
+    assert shop.now == 0 and len(shop.idle_agvs()) == inst.n_agvs
+    assert len(shop.idle_transporters()) == inst.n_tool_transporters
+    shop.reposition("agv", np.int64(0), np.int64(3))  # numpy integers are integers
+    while not shop.done:
+        shop.act(np.int64(shop.legal_actions()[0]))
+    assert validate(builtin("ra01"), shop.schedule()) == []
+    assert shop.schedule().agv_trips[0].to == 3 and type(shop.schedule().agv_trips[0].to) is int
