@@ -41,6 +41,8 @@ the activity ends, as a live dispatcher does.
 
 from __future__ import annotations
 
+import math
+import numbers
 import zlib
 from typing import Any, Callable, Sequence
 
@@ -51,7 +53,7 @@ from gymnasium import spaces
 from .disruptions import MAX_NOISE, Scenario
 from .full_shop import DECISIONS, FullShop, make_shop
 from .instance import Instance, require_instance
-from .petri import InvalidAction
+from .petri import InvalidAction, index_arg
 from .shop import Shop
 
 __all__ = ["ShopEnv", "padding_excess", "GLOBAL_FEATURES", "JOB_FEATURES", "MACHINE_FEATURES", "TOOL_FEATURES",
@@ -97,16 +99,19 @@ def check_disruptions(disruptions: dict[str, Any] | None, decisions: str = "full
     if unknown:
         raise ValueError(f"unknown disruption keys {unknown}; use {', '.join(DISRUPTION_KEYS)}")
     noise, bds = disruptions.get("noise", 0.0), disruptions.get("breakdowns", 0)
-    if not isinstance(noise, (int, float)) or isinstance(noise, bool) or not 0 <= noise <= MAX_NOISE:
+    seed, fixed = disruptions.get("seed", 0), disruptions.get("fixed", False)
+    flag = (bool, np.bool_)  # numpy's scalars are numbers like Python's (a np.int64 count was refused)
+    if not isinstance(noise, numbers.Real) or isinstance(noise, flag) or not 0 <= noise <= MAX_NOISE:
         raise ValueError(f"disruption noise must be a spread from 0 to {MAX_NOISE:g}, got {noise!r}")
-    if not isinstance(bds, int) or isinstance(bds, bool) or bds < 0:
+    if not isinstance(bds, numbers.Integral) or isinstance(bds, flag) or bds < 0:
         raise ValueError(f"disruption breakdowns must be an integer >= 0, got {bds!r}")
-    if not isinstance(disruptions.get("seed", 0), int):
-        raise ValueError(f"disruption seed must be an integer, got {disruptions['seed']!r}")
+    if not isinstance(seed, numbers.Integral) or isinstance(seed, flag):  # True was taken as seed 1
+        raise ValueError(f"disruption seed must be an integer, got {seed!r}")
+    if not isinstance(fixed, flag):  # "no" was taken as True
+        raise ValueError(f"disruption fixed must be true or false, got {fixed!r}")
     if decisions != "full":
         raise ValueError("disruptions run on the full-decision net only (decisions='full')")
-    return {"noise": float(noise), "breakdowns": bds, "fixed": bool(disruptions.get("fixed", False)),
-            "seed": disruptions.get("seed", 0)}
+    return {"noise": float(noise), "breakdowns": int(bds), "fixed": bool(fixed), "seed": int(seed)}
 
 
 def episode_scenario(inst: Instance, disruptions: dict[str, Any], rng: np.random.Generator | None = None
@@ -187,7 +192,10 @@ class ShopEnv(gym.Env):
                  *, reward: str = "shaped", max_jobs: int | None = None, max_machines: int | None = None,
                  max_tools: int | None = None, max_agvs: int | None = None, max_tts: int | None = None,
                  invalid_action: str = "penalty", invalid_penalty: float = -10.0, decisions: str = "paper",
-                 disruptions: dict[str, Any] | None = None):
+                 disruptions: dict[str, Any] | None = None, render_mode: str | None = None):
+        if render_mode is not None:  # gymnasium passes render_mode=None to every env it makes
+            raise ValueError(f"this env renders nothing (no render modes), got render_mode {render_mode!r}")
+        self.render_mode = None
         if decisions not in DECISIONS:
             raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")
         self.decisions = decisions
@@ -228,6 +236,8 @@ class ShopEnv(gym.Env):
             self._check_fits(i)
         self.reward_mode = reward
         self.invalid_action = invalid_action
+        if not isinstance(invalid_penalty, numbers.Real) or not math.isfinite(invalid_penalty):  # NaN: a NaN return
+            raise ValueError(f"invalid_penalty must be a finite number, got {invalid_penalty!r}")
         self.invalid_penalty = float(invalid_penalty)
         self.n_actions = self.max_jobs + self.max_agvs + self.max_tts
         size = (len(GLOBAL_FEATURES) + self.max_jobs * len(JOB_FEATURES) + self.max_machines * len(MACHINE_FEATURES)
@@ -261,6 +271,11 @@ class ShopEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        if options is not None and not isinstance(options, dict):
+            raise TypeError(f"reset's options must be a dict (instance, scenario) or None, got {options!r:.60}")
+        unknown = sorted(map(str, set(options or ()) - {"instance", "scenario"}))
+        if unknown:  # a misspelt key ran another instance, or without the scenario, silently
+            raise ValueError(f"unknown reset options {unknown}; use instance, scenario")
         inst = require_instance((options or {}).get("instance") or self._sample(self.np_random),
                                 "the env's episode (reset's options['instance'] or its instance sampler)")
         self._check_fits(inst)
@@ -287,7 +302,7 @@ class ShopEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._ended:  # was answered as an invalid action (-10), as if the finished shop could go on
             raise RuntimeError("the episode has ended; call reset() before step()")
-        a = int(action)
+        a = index_arg(action)  # 0.9 and "0" were taken as action 0 (neither is in the action space)
         net_action = self._to_net(a)
         if net_action is None or not self._mask_net()[net_action]:
             if self.invalid_action == "raise":

@@ -461,10 +461,48 @@ def test_disrupted_episodes_draw_scenarios_and_stay_valid():
 
 @pytest.mark.parametrize("bad, match", [({"noise": -1}, "noise"), ({"noise": float("inf")}, "noise"),
                                         ({"breakdowns": 1.5}, "breakdowns"),
-                                        ({"jitter": 1}, "unknown disruption keys"), ("noise", "must be a dict")])
+                                        ({"jitter": 1}, "unknown disruption keys"), ("noise", "must be a dict"),
+                                        ({"fixed": "no"}, "fixed must be true or false, got 'no'"),  # was True
+                                        ({"seed": True}, "seed must be an integer, got True"),  # was seed 1
+                                        ({"noise": float("nan")}, "noise")])
 def test_bad_disruptions_are_refused(bad, match):
     with pytest.raises(ValueError, match=match):
         ShopEnv(builtin("EX12"), decisions="full", disruptions=bad)
+
+
+def test_numpy_numbers_are_numbers_in_disruptions():
+    # a np.int64 breakdown count was refused while a np.float64 noise passed; values come back as Python's
+    got = ShopEnv(builtin("EX12"), decisions="full", disruptions={
+        "breakdowns": np.int64(2), "noise": np.float32(0.25), "seed": np.int32(4), "fixed": np.bool_(True)}).disruptions
+    assert got == {"noise": 0.25, "breakdowns": 2, "fixed": True, "seed": 4}
+    assert [type(got[k]) for k in ("noise", "breakdowns", "fixed", "seed")] == [float, int, bool, int]
+
+
+@pytest.mark.parametrize("decisions", ["paper", "full"])
+def test_actions_that_are_no_integers_are_refused(decisions):
+    # step took int(action): 0.9 and "0" ran action 0, though the action space holds neither
+    env = ShopEnv(builtin("EX12"), decisions=decisions)
+    env.reset(seed=0)
+    legal = int(np.flatnonzero(env.action_masks())[0])
+    for bad in (legal + 0.9, str(legal), None, float(legal)):
+        with pytest.raises(InvalidAction, match="action must be an integer, got"):
+            env.step(bad)
+    _, _, _, _, info = env.step(np.int64(legal))  # numpy integers are integers (sb3 passes them)
+    assert not info.get("invalid_action")
+
+
+def test_render_mode_none_is_taken_and_options_are_checked():
+    # gym.make(..., render_mode=None) was a TypeError; a misspelt reset option was ignored (another instance ran)
+    env = gym.make("fms/Shop-v0", instances=builtin("EX12"), render_mode=None)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="renders nothing"):
+        ShopEnv(builtin("EX12"), render_mode="human")
+    with pytest.raises(ValueError, match=r"unknown reset options \['instanc'\]; use instance, scenario"):
+        env.reset(options={"instanc": builtin("EX11")})
+    with pytest.raises(TypeError, match="options must be a dict"):
+        env.reset(options=[1])
+    with pytest.raises(ValueError, match="invalid_penalty must be a finite number"):
+        ShopEnv(builtin("EX12"), invalid_penalty=float("nan"))
 
 
 def test_disruptions_need_the_full_net():
