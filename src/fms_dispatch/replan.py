@@ -30,6 +30,7 @@ Each re-plan is an event ``{reason, time, wall_time, budget, before, after, stat
 from __future__ import annotations
 
 import copy
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -40,11 +41,12 @@ from fms_msgs_json import REPLAN_REASONS  # why a re-plan happens (the values of
 
 from fms_sim.disruptions import Scenario
 from fms_sim.full_shop import FullShop
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.replay import PlanPolicy, ReplayError, execute
 from fms_sim.schedule import Schedule
 from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
+from fms_sim.validate import validate
 
 from .exact import _improve_by_priorities, greedy_schedule
 from .full_rules import parse_full_rule
@@ -306,12 +308,21 @@ class Replanner:
     tabu: float = REPLAN_TABU
 
     def __post_init__(self) -> None:
-        if not self.budget > 0:
-            raise ValueError(f"the re-planning budget must be positive, got {self.budget}")
-        if not self.drift > 0:
-            raise ValueError(f"the re-planning drift must be positive, got {self.drift}")
-        if not self.tabu >= 0:
-            raise ValueError(f"the re-planning tabu search must be >= 0 seconds per operation, got {self.tabu}")
+        """Check the arguments (a ValueError naming the first bad one) before anything runs: a budget of inf ran a
+        search with no deadline (it never ended), and an invalid plan was followed as far as it went, then dropped
+        for a silent re-plan from scratch (replay and ``plan:file:`` refuse one with the validator's errors)."""
+        require_instance(self.instance, "Replanner")
+        for name, v, least in (("budget", self.budget, "positive"), ("drift", self.drift, "positive"),
+                               ("tabu search", self.tabu, ">= 0 seconds per operation")):
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (0 < v if least == "positive" else 0 <= v)
+            if not ok or not math.isfinite(v):
+                raise ValueError(f"the re-planning {name} must be {least} and finite, got {v!r}")
+        if not isinstance(self.plan, Schedule):
+            raise TypeError(f"the plan must be a Schedule (Schedule.load reads one), got {type(self.plan).__name__}")
+        problems = validate(self.instance, self.plan)
+        if problems:
+            head = "; ".join(problems[:5]) + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else "")
+            raise ValueError(f"the plan is not valid for {self.instance.name}: {head}")
         self._rules = [(name, parse_full_rule(name)) for name in self.rules]
         self.policy: PlanPolicy | None = None
         self._pending: str | None = None

@@ -1,6 +1,7 @@
 """Re-planning from the shop's state: triggers, budget, events, and valid realised schedules."""
 
 import time
+from dataclasses import replace
 
 import pytest
 
@@ -8,6 +9,7 @@ from fms_sim.benchmarks import builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.instance import Operation
+from fms_sim.schedule import Schedule
 from fms_sim.snapshot import nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
@@ -117,6 +119,20 @@ def test_bad_replanning_options_are_refused():
         Replanner(inst, plan, drift=-1)
     with pytest.raises(ValueError, match="tabu"):
         Replanner(inst, plan, tabu=-0.001)
+    # an infinite budget ran a search with no deadline (it never ended); a plan that is not valid was followed as far
+    # as it went, then silently replaced by a re-plan from scratch
+    for kw in ({"budget": float("inf")}, {"budget": float("nan")}, {"drift": float("inf")}, {"tabu": float("inf")},
+               {"budget": "2"}):
+        with pytest.raises(ValueError, match="must be .* and finite, got"):
+            Replanner(inst, plan, **kw)
+        with pytest.raises(ValueError, match="must be .* and finite, got"):
+            solve_with_replanning(inst, plan, **kw)
+    with pytest.raises(ValueError, match="the plan is not valid for EX12: "):
+        solve_with_replanning(inst, replace(plan, operations=plan.operations[3:]), budget=0.5)
+    with pytest.raises(ValueError, match="the plan is not valid for EX12: "):
+        Replanner(inst, Schedule("EX12", 0), budget=0.5)
+    with pytest.raises(TypeError, match="the plan must be a Schedule"):
+        Replanner(inst, plan.to_dict())
     with pytest.raises(ValueError, match="budget"):
         solve(inst, "plan:list", replan=-1.0)
 
