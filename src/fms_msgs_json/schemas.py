@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from collections.abc import Iterable
 from typing import Any, Callable, NamedTuple
 
@@ -589,6 +590,11 @@ def decode(text: str, expect: str | Iterable[str] | None = None) -> dict[str, An
                                              f"{exc.msg}") from None
     except RecursionError:
         raise MessageError("malformed_json", "malformed JSON: nested too deeply") from None
+    except MessageError:
+        raise
+    except ValueError:  # a number with more digits than Python converts (its limit, sys.get_int_max_str_digits)
+        raise MessageError("malformed_json", f"malformed JSON: a number has more than {sys.get_int_max_str_digits()} "
+                                             "digits") from None
     _check_unicode(text, "malformed_json", "the text")
     if "\\u" in text:  # an escape may decode to a lone surrogate: the decoded strings must be Unicode too
         _check_unicode(json.dumps(msg, ensure_ascii=False), "malformed_json", "a string of the message")

@@ -16,7 +16,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import stat
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -31,11 +33,21 @@ def read_text(path: str | Path) -> str:
 
 def loads(text: str, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
     """``json.loads(text)`` (with ``object_pairs_hook``), a leading byte-order mark dropped; JSON nested too deeply for
-    the parser (a crash with a RecursionError) raises :class:`json.JSONDecodeError` like any other malformed JSON."""
+    the parser (a crash with a RecursionError) and a number with more digits than Python converts (a plain
+    ValueError) raise :class:`json.JSONDecodeError` like any other malformed JSON."""
     try:
         return json.loads(text.removeprefix("\ufeff"), object_pairs_hook=object_pairs_hook)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply", text, 0) from None
+    except json.JSONDecodeError:
+        raise
+    except ValueError as exc:
+        if "digits" not in str(exc):  # the hook's own error
+            raise
+        limit = sys.get_int_max_str_digits()
+        where = re.search(r"\d{%d,}" % (limit + 1), text)
+        raise json.JSONDecodeError(f"a number has more than {limit} digits", text,
+                                   where.start() if where else 0) from None
 
 
 @contextlib.contextmanager

@@ -239,6 +239,9 @@ def test_malformed_json_nan_duplicates_and_non_str() -> None:
     with pytest.raises(MessageError, match="expected the message text as a str, got bytes") as info:
         decode(b'{"schema":"fms/command/v1"}')  # type: ignore[arg-type]
     assert info.value.code == "malformed_json"
+    # a number longer than Python converts was a plain ValueError ("Exceeds the limit (4300 digits)...")
+    err = rejected('{"schema":"fms/command/v1","state_seq":1' + "0" * 5000 + "}")
+    assert err.code == "malformed_json" and str(err) == "malformed JSON: a number has more than 4300 digits"
 
 
 @pytest.mark.parametrize("text", ["[]", "3", '"fms/state/v1"', "null", "true"])

@@ -109,6 +109,7 @@ def test_json_with_a_byte_order_mark_or_nested_too_deeply_is_read_or_refused_as_
     import json
 
     from fms_sim.files import loads, read_text
+    from fms_sim.instance import Instance, InstanceError
     from fms_sim.schedule import Schedule, ScheduleError
 
     sched = run_first(builtin("EX12"))
@@ -122,3 +123,13 @@ def test_json_with_a_byte_order_mark_or_nested_too_deeply_is_read_or_refused_as_
     path.write_text(deep)
     with pytest.raises(ScheduleError, match="nested too deeply"):
         Schedule.load(path)
+    # a number longer than Python converts was a plain ValueError (not the reader's error), with no position
+    long = '{"instance": "EX12", "makespan": 1' + "0" * 5000 + "}"
+    with pytest.raises(json.JSONDecodeError, match=r"a number has more than 4300 digits: line 1 column 34 "):
+        loads(long)
+    with pytest.raises(ScheduleError, match="a number has more than 4300 digits"):
+        Schedule.from_json(long)
+    with pytest.raises(InstanceError, match="a number has more than 4300 digits"):
+        Instance.from_json(long.replace('"instance"', '"name"'))
+    with pytest.raises(ValueError, match="the hook's"):  # a hook's own error is its own
+        loads("{}", object_pairs_hook=lambda pairs: (_ for _ in ()).throw(ValueError("the hook's")))
