@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import random
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -249,7 +250,19 @@ class Scenario:
              duration: tuple[int, int] = (0, 0), seed: int = 0) -> "Scenario":
         """A random scenario: ``breakdowns`` machine breakdowns starting uniformly in ``[0, horizon)`` with
         durations uniform in ``duration`` (default: 5-15 % of the horizon), at most one per machine; noise
-        ``noise``. Reproducible from ``seed``."""
+        ``noise``. Reproducible from ``seed``. Raises :class:`ScenarioError` for arguments that draw nothing
+        sensible (a negative count or horizon, a duration range that is empty or allows 0)."""
+        def whole(v: Any) -> bool:
+            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+        if not whole(breakdowns) or breakdowns < 0:
+            raise ScenarioError(f"breakdowns must be an integer >= 0, got {breakdowns!r}")
+        if not whole(horizon) or horizon < 0:
+            raise ScenarioError(f"horizon must be an integer >= 0 (breakdowns start in [0, horizon)), got {horizon!r}")
+        if duration != (0, 0) and not (isinstance(duration, (tuple, list)) and len(duration) == 2
+                                       and all(whole(d) for d in duration) and 1 <= duration[0] <= duration[1]):
+            raise ScenarioError(f"duration must be a range (low, high) of integers with 1 <= low <= high (a breakdown "
+                                f"lasts at least 1; (0, 0): 5-15 % of the horizon), got {duration!r}")
         rng = random.Random(f"scenario:{seed}")
         lo, hi = duration if duration != (0, 0) else (max(1, horizon // 20), max(1, horizon // 7))
         machines = rng.sample(range(1, instance.n_machines + 1), min(breakdowns, instance.n_machines))

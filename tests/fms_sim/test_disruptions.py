@@ -264,3 +264,27 @@ def test_back_to_back_windows_keep_the_machine_or_vehicle_out(sc):
     for seed in range(4):
         s = _run(inst, sc, seed=seed)
         assert validate(inst, s) == [], seed
+
+
+@pytest.mark.parametrize("kwargs, msg", [
+    # each was an error of the random module (empty range, sample larger than population, non-integer arg), or a
+    # ScenarioError about a drawn window of duration 0 that never named the argument; a negative horizon passed
+    ({"breakdowns": 2, "horizon": 50, "duration": (5, 2)}, r"duration must be a range .* got \(5, 2\)"),
+    ({"breakdowns": 2, "horizon": 50, "duration": (0, 5)}, r"1 <= low <= high"),
+    ({"breakdowns": -1, "horizon": 50}, "breakdowns must be an integer >= 0, got -1"),
+    ({"breakdowns": 1.5, "horizon": 50}, "breakdowns must be an integer >= 0, got 1.5"),
+    ({"breakdowns": 1, "horizon": 50.5}, "horizon must be an integer >= 0"),
+    ({"breakdowns": 1, "horizon": -5}, "horizon must be an integer >= 0"),
+])
+def test_draw_refuses_arguments_that_draw_nothing_sensible(kwargs, msg):
+    with pytest.raises(ScenarioError, match=msg):
+        Scenario.draw(builtin("sl00"), **kwargs)
+
+
+def test_draw_takes_numpy_integers_and_a_list_range():
+    import numpy as np
+
+    inst = builtin("sl00")
+    got = Scenario.draw(inst, breakdowns=np.int64(2), horizon=np.int64(100), duration=[3, 4], seed=1)
+    assert got == Scenario.draw(inst, breakdowns=2, horizon=100, duration=(3, 4), seed=1)
+    assert len(got.breakdowns) == 2 and all(3 <= b.duration <= 4 for b in got.breakdowns)
