@@ -166,16 +166,17 @@ class Instance:
         if self.agv_travel is not None and self.n_agvs < 1:
             raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs is 0): give n_agvs, or "
                                 "leave agv_travel out for a shop without AGVs")
-        if self.agv_travel is None and self.n_agvs:
-            set_(self, "n_agvs", 0)
+        for count, matrix, what in (("n_agvs", "agv_travel", "AGVs"),
+                                    ("n_tool_transporters", "tool_travel", "tool transporters")):
+            if getattr(self, count) and getattr(self, matrix) is None:  # was set to 0 without a word
+                raise InstanceError(f"{count} is {getattr(self, count)} but {matrix} is missing: {what} need a travel "
+                                    f"matrix (or leave {count} out)")
         if self.tool_travel is not None and self.n_tool_transporters < 1:
             raise InstanceError("the instance has a tool travel matrix but no tool transporters (n_tool_transporters "
                                 "is 0): give n_tool_transporters, or leave tool_travel out for a shop without tools")
         if self.tool_travel is None:
             if used_t:
                 raise InstanceError("operations need tools but tool_travel is null (use --no-tools to drop tools)")
-            if self.n_tool_transporters:
-                set_(self, "n_tool_transporters", 0)
 
     # ------------------------------------------------------------------ derived facts
     @property
@@ -260,10 +261,6 @@ class Instance:
             raise InstanceError(f"unknown instance field {unknown[0]!r}; the fields are {', '.join(_FIELDS)}")
         for count, matrix, what in (("n_agvs", "agv_travel", "AGVs"),
                                     ("n_tool_transporters", "tool_travel", "tool transporters")):
-            n = data.get(count)
-            if _is_int(n) and n > 0 and data.get(matrix) is None:  # was dropped without a word
-                raise InstanceError(f"{count} is {n} but {matrix} is missing: {what} need a travel matrix (or "
-                                    f"leave {count} out)")
             if data.get(matrix) is not None and count not in data:  # it said "n_agvs = 0; use --no-agvs"
                 raise InstanceError(f"{matrix} is given but {count} is missing: give the number of {what} "
                                     f"({count}), or leave {matrix} out")

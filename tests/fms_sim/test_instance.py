@@ -42,6 +42,10 @@ def _inst(**kw: Any) -> Instance:
     (dict(agv_travel=Z3), "AGV travel matrix but no AGVs"),
     (dict(tool_travel=Z3), "tool travel matrix but no tool transporters"),
     (dict(), "operations need tools but tool_travel is null"),
+    # the constructor set these to 0 without a word (Instance.from_dict refused them)
+    (dict(jobs=[[(1, None, 2)]], n_agvs=3), "n_agvs is 3 but agv_travel is missing"),
+    (dict(jobs=[[(1, None, 2)]], agv_travel=Z3, n_agvs=1, n_tool_transporters=2),
+     "n_tool_transporters is 2 but tool_travel is missing"),
 ])
 def test_refused(kw: dict, match: str) -> None:
     with pytest.raises(InstanceError, match=match):
