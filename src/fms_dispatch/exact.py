@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import random
 import time
 import warnings
@@ -60,7 +61,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 if TYPE_CHECKING:
     from ortools.sat.python import cp_model
 
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.snapshot import Snapshot
 from fms_sim.ties import has_ties
@@ -367,6 +368,7 @@ def greedy_schedule(
     *residual plan* is not a schedule of the instance (the validator would miss the past); re-planning executes
     it with :meth:`fms_sim.replay.PlanPolicy.resume`.
     """
+    require_instance(inst, "greedy_schedule")  # a name was an AttributeError (every list and tabu solver)
     if rule not in ("est", "ect", "guided"):
         raise ValueError(f"unknown greedy rule {rule!r}; use 'est', 'ect' or 'guided'")
     if vehicle not in ("earliest", "nearest"):
@@ -1166,8 +1168,8 @@ def solve_exact(
     t0 = time.monotonic()
     if time_limit <= 0:
         raise ValueError(f"time_limit must be positive, got {time_limit}")
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    if not isinstance(workers, numbers.Integral) or isinstance(workers, bool) or workers < 1:  # "2": a TypeError
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if model not in ("auto", "full", "relaxed"):
         raise ValueError(f"unknown model {model!r}; use 'auto', 'full' or 'relaxed'")
     if hint is not None:

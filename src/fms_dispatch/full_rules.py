@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 from fms_sim.disruptions import Scenario
 from fms_sim.full_shop import FullShop
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.replay import replay
 from fms_sim.schedule import Schedule
 
@@ -257,6 +257,7 @@ def solve_list(instance: Instance, order: str = "est", **_: Any) -> Schedule:
     operations in the order of the rule's key, each as early as its resources allow)."""
     from .exact import greedy_schedule
 
+    require_instance(instance, "solve_list")
     up = order.upper()
     if order.lower() in ("est", "ect"):
         plan = greedy_schedule(instance, rule=order.lower())
@@ -277,6 +278,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     ``progress`` a line goes to stderr every 10 s. ``time_limit`` (seconds; None: try them all, the default, as
     the benchmarks do) stops trying new combinations once it has passed, after at least one;
     ``meta["tried"]`` says how many were run."""
+    require_instance(instance, "solve_best_rules")  # a name was an AttributeError
     if time_limit is not None and not time_limit > 0:
         raise ValueError(f"the time limit must be positive, got {time_limit}")
     from fms_sim.shop import run_policy

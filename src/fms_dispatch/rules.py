@@ -115,6 +115,8 @@ def choose_vehicle(rule: str, cands: list[int], free_at: list[int], work: list[i
 
 def parse_rule_name(name: str) -> RulePolicy:
     """``"MTWR+nearest"`` or ``"rule:MTWR+nearest"`` -> policy (vehicle rule defaults to ``first``)."""
+    if not isinstance(name, str):  # None was an AttributeError
+        raise ValueError(f"a rule name is a string such as rule:MTWR+nearest, got {name!r}")
     body = name.split(":", 1)[1] if name.lower().startswith("rule:") else name
     job, plus, vehicle = body.partition("+")
     if not job or (plus and not vehicle):  # "rule:" or "rule:MTWR+" ran as FIFO or MTWR+first: a typo

@@ -201,6 +201,8 @@ def keys_from_policy(decoder: KeyDecoder, policy: Callable[[Shop], int],
 
 def _policy_for(name: str) -> Callable[[Shop], int]:
     """A seed name -> policy: ``first`` (lowest legal action) or a rule ``rule:JOB+veh`` / ``JOB+veh``."""
+    if not isinstance(name, str):  # an AttributeError from .lower()
+        raise ValueError(f"initial names seed policies (strings such as rule:MTWR+first or first), got {name!r}")
     if name.lower() == "first":
         return lambda shop: shop.legal_actions()[0]
     policy: RulePolicy = parse_rule_name(name)
@@ -296,6 +298,8 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     if time_limit is None and iterations is None:
         time_limit = 10.0
     _check_args(time_limit, iterations, population, seed)
+    if config is not None and not isinstance(config, SOSConfig):  # an AttributeError (no __dict__) further down
+        raise TypeError(f"config must be an SOSConfig or None, got {type(config).__name__}")
     cfg = SOSConfig(**{**(config.__dict__ if config else {}), "population": population})
     if isinstance(initial, str):
         raise ValueError("initial must be a list of rule names, not a single string")

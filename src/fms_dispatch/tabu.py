@@ -42,7 +42,7 @@ import random
 import time
 from typing import Callable, Iterator, Sequence
 
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.snapshot import Snapshot
 
@@ -681,6 +681,7 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     result."""
     from .exact import greedy_schedule, simple_lower_bound
 
+    require_instance(instance, "solve_tabu")
     t0 = time.monotonic()
     limit = 10.0 if time_limit is None else time_limit
     if not limit > 0:
@@ -721,10 +722,12 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
     when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
     is a residual plan from the same state."""
+    if budget == float("inf"):
+        budget = None  # no time limit, as None says: an iteration limit must then be set (it ran without an end)
     if budget is None and max_iters is None:
         raise ValueError("tabu_plan needs a time budget or an iteration limit")
-    if budget is not None and budget < 0:
-        raise ValueError(f"budget must be >= 0 seconds, got {budget}")
+    if budget is not None and not (isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget >= 0):
+        raise ValueError(f"budget must be >= 0 seconds (None: no time limit), got {budget!r}")  # NaN passed
     if max_iters is not None and max_iters < 0:
         raise ValueError(f"max_iters must be >= 0, got {max_iters}")
     if origin is None and "residual" in plan.meta:

@@ -43,6 +43,34 @@ def test_a_name_or_a_dict_for_an_instance_schedule_or_scenario_is_named() -> Non
         nominal_copy(paper)
 
 
+def test_the_solvers_public_functions_name_their_mistakes() -> None:
+    # each was an AttributeError or a TypeError from deep inside (a name for an instance, a string for a config, a
+    # count or a seed rule), or ran on (a NaN budget)
+    from fms_dispatch import parse_rule_name, solve_best_rules, solve_list, solve_tabu, tabu_plan
+    from fms_dispatch.exact import greedy_schedule
+
+    ex11 = builtin("EX11")
+    for call, who in ((lambda: solve_list("EX11"), "solve_list"), (lambda: solve_tabu("EX11"), "solve_tabu"),
+                      (lambda: solve_best_rules("EX11"), "solve_best_rules"),
+                      (lambda: greedy_schedule("EX11"), "greedy_schedule")):
+        with pytest.raises(TypeError, match=f"^{who} takes an Instance .*got str 'EX11'"):
+            call()
+    with pytest.raises(ValueError, match="a rule name is a string such as rule:MTWR.nearest, got None"):
+        parse_rule_name(None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="config must be an SOSConfig or None, got str"):
+        solve(ex11, "sos", time_limit=0.5, config="x")
+    with pytest.raises(ValueError, match="initial names seed policies .*got 1"):
+        solve(ex11, "sos", time_limit=0.5, initial=[1])
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got '2'"):
+        solve(ex11, "cpsat", time_limit=1, workers="2")
+    plan = greedy_schedule(ex11)
+    with pytest.raises(ValueError, match="budget must be >= 0 seconds .None: no time limit., got nan"):
+        tabu_plan(ex11, plan, budget=float("nan"))
+    with pytest.raises(ValueError, match="needs a time budget or an iteration limit"):  # inf: no limit, as None
+        tabu_plan(ex11, plan, budget=float("inf"))
+    assert validate(ex11, tabu_plan(ex11, plan, budget=float("inf"), max_iters=3)) == []
+
+
 def test_an_env_used_before_reset_or_given_the_wrong_shop_says_so() -> None:
     ex12 = builtin("EX12")
     for call in (lambda e: e.observe(), lambda e: e.potential(), lambda e: e.to_net_action(0),
