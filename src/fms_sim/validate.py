@@ -95,11 +95,12 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
             scenario = None
     # the fleet the schedule was made for, first: a schedule of the shop without its AGVs or tools breaks many rules
     # after it, and a reader of the first lines (fms replay shows ten) should see the cause
-    if instance.has_agvs and schedule.n_agvs != instance.n_agvs:
-        errs.append(f"schedule declares {schedule.n_agvs} AGVs, the instance has {instance.n_agvs}")
-    if instance.has_tools and schedule.n_tool_transporters != instance.n_tool_transporters:
+    # (an instance without AGVs or tools has none: a schedule that declares some was made for another shop)
+    if schedule.n_agvs != instance.n_agvs:
+        errs.append(f"schedule declares {schedule.n_agvs} AGVs, the instance has {instance.n_agvs or 'none'}")
+    if schedule.n_tool_transporters != instance.n_tool_transporters:
         errs.append(f"schedule declares {schedule.n_tool_transporters} tool transporters, the instance has "
-                    f"{instance.n_tool_transporters}")
+                    f"{instance.n_tool_transporters or 'none'}")
     ops = _check_operations(instance, schedule, errs, scenario)
     if ops is None:
         return errs
@@ -184,9 +185,9 @@ def _check_operations(instance: Instance, schedule: Schedule, errs: list[str],
         spec = instance.jobs[r.job][r.op]
         if r.machine != spec.machine:
             errs.append(f"op ({r.job},{r.op}) runs on machine {r.machine}, needs machine {spec.machine}")
-        want_tool = spec.tool if instance.has_tools else None
-        if instance.has_tools and r.tool != want_tool:
-            errs.append(f"op ({r.job},{r.op}) uses tool {r.tool}, needs tool {want_tool}")
+        if r.tool != spec.tool:  # (without tools every operation's is None: a tool there was never checked)
+            errs.append(f"op ({r.job},{r.op}) uses tool {r.tool}, needs "
+                        + (f"tool {spec.tool}" if spec.tool is not None else "none"))
         if scenario is None:
             if r.end - r.start != spec.duration:
                 errs.append(f"op ({r.job},{r.op}) lasts {r.end - r.start}, its duration is {spec.duration}")

@@ -300,3 +300,15 @@ def test_numpy_integers_are_integers(good):
     s = replace(good, makespan=np.int64(good.makespan),
                 operations=[replace(o, start=np.int32(o.start), end=np.int64(o.end)) for o in good.operations])
     assert validate(INST, s) == []
+
+
+def test_a_schedule_that_declares_vehicles_or_tools_a_plain_shop_lacks_is_refused():
+    # only instances with AGVs or tools had their fleet and tools checked: a plain job shop took any declaration
+    plain = Instance("p", [[(1, 2), (2, 3)]])
+    s = run_first(plain)
+    assert validate(plain, s) == []
+    assert validate(plain, replace(s, n_agvs=7)) == ["schedule declares 7 AGVs, the instance has none"]
+    assert validate(plain, replace(s, n_tool_transporters=3)) == [
+        "schedule declares 3 tool transporters, the instance has none"]
+    tooled = replace(s, operations=[replace(o, tool=5) if i == 0 else o for i, o in enumerate(s.operations)])
+    assert validate(plain, tooled) == ["op (0,0) uses tool 5, needs none"]
