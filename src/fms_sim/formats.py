@@ -232,6 +232,9 @@ def load_instance(
     else:
         raise InstanceError(f"no built-in instance or file named {spec!r} (built-ins: {NAME_PATTERNS})")
 
+    for flag, value in (("no_tools", no_tools), ("no_agvs", no_agvs)):
+        if not isinstance(value, bool):  # "yes" (or "no") read as True
+            raise InstanceError(f"{flag} must be True or False, got {value!r}")
     if agvs is not None and no_agvs:
         raise InstanceError("set the number of AGVs or drop them, not both (agvs / no_agvs: --agvs / --no-agvs)")
     if tool_transporters is not None and no_tools:

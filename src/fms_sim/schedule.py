@@ -8,6 +8,7 @@ without using the Petri net.
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -99,7 +100,7 @@ class Schedule:
             "tool_trips": [t.to_dict() for t in sorted(self.tool_trips, key=lambda t: (t.transporter, t.start, t.end))],
         }
         if self.meta:
-            out["meta"] = self.meta
+            out["meta"] = copy.deepcopy(self.meta)  # the caller's to change (it changed the schedule's own)
         return out
 
     def to_json(self, indent: int | None = 1) -> str:

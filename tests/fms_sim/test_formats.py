@@ -204,3 +204,10 @@ def test_an_error_in_a_text_file_names_the_file(tmp_path) -> None:
     path.write_text("2 2\n0 3 1 4\n1 2 0 x\n")
     with pytest.raises(InstanceError, match=r"^shop\.txt: line 3: expected integers, got 'x'$"):
         load_instance(str(path))
+
+
+def test_the_drop_flags_take_booleans_only():
+    with pytest.raises(InstanceError, match="no_tools must be True or False, got 'yes'"):
+        load_instance("ra01", no_tools="yes")  # type: ignore[arg-type]
+    with pytest.raises(InstanceError, match="no_agvs must be True or False, got 1"):
+        load_instance("ra01", no_agvs=1)  # type: ignore[arg-type]

@@ -312,3 +312,11 @@ def test_a_schedule_that_declares_vehicles_or_tools_a_plain_shop_lacks_is_refuse
         "schedule declares 3 tool transporters, the instance has none"]
     tooled = replace(s, operations=[replace(o, tool=5) if i == 0 else o for i, o in enumerate(s.operations)])
     assert validate(plain, tooled) == ["op (0,0) uses tool 5, needs none"]
+
+
+def test_to_dict_gives_a_copy_of_the_meta(good):
+    s = replace(good, meta={"solver": "first", "scenario": {"noise": 0.1}})
+    d = s.to_dict()
+    d["meta"]["x"] = 1
+    d["meta"]["scenario"]["noise"] = 0.5
+    assert s.meta == {"solver": "first", "scenario": {"noise": 0.1}}
