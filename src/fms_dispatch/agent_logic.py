@@ -127,6 +127,18 @@ _PAPER_KINDS = ("job", "agv", "tt")
 _FULL_KINDS = ("start", "use", "tool")  # and "hold", without a number
 
 
+#: what replaying a state's history into the twin can raise on a history the shop could not have sent (its schema
+#: leaves fields of a disruption optional, and a twin cannot check every entry before it applies it): the twin is then
+#: rebuilt or the state answered by the fallback, as for a twin that disagrees (KeyError, TypeError: they crashed the
+#: agent; ScenarioError is a ValueError)
+_REPLAY_FAILURES = (InvalidAction, InstanceError, ValueError, KeyError, TypeError)
+
+
+def _failure(exc: BaseException) -> str:
+    """A replay failure in words (a KeyError alone says only the key)."""
+    return f"{exc}" if isinstance(exc, (InvalidAction, InstanceError, ValueError)) else f"{type(exc).__name__}: {exc}"
+
+
 def _legal(state: dict[str, Any]) -> list[tuple[str, int, str]]:
     """The enabled actions of a state as ``(kind, number, label)``, in action order (``hold``: number 0)."""
     out = []
@@ -136,7 +148,7 @@ def _legal(state: dict[str, Any]) -> list[tuple[str, int, str]]:
                 out.append(("hold", 0, label))
                 continue
             kind, _, num = label.partition(":")
-            if kind not in _PAPER_KINDS + _FULL_KINDS or not num.isdigit():
+            if kind not in _PAPER_KINDS + _FULL_KINDS or not (num.isascii() and num.isdigit()):  # "²" is a digit
                 raise DecisionError(f"state {state['seq']} has an action label {label!r} this agent does not know "
                                     "(expected job:J, agv:V, tt:R, or on the full net start:J, use:J, tool:T, hold)")
             out.append((kind, int(num), label))
@@ -394,15 +406,15 @@ class TwinDecider:
                  or len(disruptions) < k or disruptions[:k] != self._disruptions)
         problem = None
         for attempt in range(2):
-            if fresh or attempt:
-                self._reset(state["run_id"], idle_stops)
             try:
+                if fresh or attempt:
+                    self._reset(state["run_id"], idle_stops)  # (a scenario in the history that cannot be read)
                 tail = text[len(self._text) + 1:] if self._text else text
                 applied = self._replay(tail.split(" ") if tail else [], orders, disruptions)
                 self._text = text
                 problem = self._agrees(state)
-            except (InvalidAction, InstanceError, ValueError) as exc:  # ScenarioError is a ValueError
-                problem = f"replaying the history failed: {exc}"
+            except _REPLAY_FAILURES as exc:
+                problem = f"replaying the history failed: {_failure(exc)}"
             if problem is None:
                 # the planner's cached completion holds while the run moves one answer at a time
                 if self.planner is not None and (fresh or attempt or applied != 1):
@@ -438,8 +450,8 @@ class TwinDecider:
         try:
             applied = self._replay(labels[n - actions_from:], orders, disruptions, orders_from, disruptions_from)
             problem = self._agrees(state)
-        except (InvalidAction, InstanceError, ValueError) as exc:  # ScenarioError is a ValueError
-            problem = f"replaying the history failed: {exc}"
+        except _REPLAY_FAILURES as exc:
+            problem = f"replaying the history failed: {_failure(exc)}"
         self._text = None
         if problem is not None:
             self.stepper = None
@@ -1127,6 +1139,11 @@ class AgentLogic:
         except DecisionError as exc:
             return [Outgoing(TOPIC_ERRORS, make_error(self.source, "bad_schema", str(exc), run_id=run_id,
                                                       received=text))]
+        except Exception as exc:  # a state that none of the checks caught (or a bug): answered by an error, not by
+            # the agent's end (the shop waits for an answer; a later state, or the same one re-sent, is tried afresh)
+            return [Outgoing(TOPIC_ERRORS, make_error(
+                self.source, "internal", f"state {seq}: cannot decide: {type(exc).__name__}: {exc}",
+                run_id=run_id, received=text))]
         except NeedHistory:
             if self._asked == (run_id, seq):  # asked already; the node asks again if it does not come
                 return []

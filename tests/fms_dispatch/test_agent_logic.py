@@ -742,3 +742,43 @@ def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkey
     (msg,) = [m.decode(encode(o.msg), expect="replan") for o in out]
     assert msg["status"] == "timeout" and "the run ended" in msg["message"] and msg["method"] == "guide"
     assert agent.decide.finish(svc.state) == []  # said once
+
+
+def test_states_the_checks_let_through_are_answered_not_fatal() -> None:
+    # each of these took the agent node down: a history disruption without its (optional) start (KeyError), a
+    # history scenario that cannot be read (ScenarioError from the twin's rebuild), a label whose number is a
+    # digit but no ASCII one ("²": int() failed), a number longer than Python converts, a decider that fails
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="p", history=True, decisions="full")
+    svc.start()
+    svc.handle_disruption(encode(m.make_disruption("d1", "breakdown", 5, machine=1, run_id="p")))
+    state = json.loads(encode(svc.state))
+    agent = AgentLogic("ppo", instance=inst)
+    (cmd,) = agent.on_state(json.dumps(state))
+    good_label = cmd.msg["action"]
+    no_start = json.loads(json.dumps(state))
+    del no_start["history"]["disruptions"][0]["disruption"]["start"]
+    bad_scenario = dict(json.loads(json.dumps(state)), seq=state["seq"] + 2)
+    bad_scenario["history"]["scenario"] = {"breakdowns": "x"}
+    for bad, said in ((dict(no_start, seq=state["seq"] + 1), "replaying the history failed: KeyError: 'start'"),
+                      (bad_scenario, "replaying the history failed: 'breakdowns' and 'outages' must be lists")):
+        err, cmd = agent.on_state(json.dumps(bad))
+        assert err.msg["code"] == "internal" and said in err.msg["message"], err.msg
+        assert cmd.msg["action"] == legal_labels(bad)[0]  # the fallback
+    (cmd,) = agent.on_state(json.dumps(dict(state, seq=state["seq"] + 3)))  # a good state: the model again
+    assert cmd.msg["action"] == good_label
+    odd = dict(state, seq=state["seq"] + 4, actions=["job:\u00b2"] + state["actions"][1:],
+               mask=[True] + [False] * (len(state["mask"]) - 1))
+    (err,) = AgentLogic("first").on_state(json.dumps(odd))
+    assert err.msg["code"] == "bad_schema" and "action label 'job:\u00b2' this agent does not know" in err.msg["message"]
+    (err,) = AgentLogic("first").on_state(json.dumps(state).replace('"seq": ', '"seq": 1' + "0" * 5000, 1))
+    assert err.msg["code"] == "malformed_json" and "more than 4300 digits" in err.msg["message"]
+    failing = AgentLogic("first")
+
+    def broken(state: dict) -> str:
+        raise RuntimeError("boom")
+
+    failing.decide = broken  # type: ignore[assignment]
+    (err,) = failing.on_state(json.dumps(state))
+    assert err.msg["code"] == "internal" and err.msg["message"] == f"state {state['seq']}: cannot decide: " \
+        "RuntimeError: boom"
