@@ -1139,17 +1139,21 @@ class AgentLogic:
         except DecisionError as exc:
             return [Outgoing(TOPIC_ERRORS, make_error(self.source, "bad_schema", str(exc), run_id=run_id,
                                                       received=text))]
-        except Exception as exc:  # a state that none of the checks caught (or a bug): answered by an error, not by
-            # the agent's end (the shop waits for an answer; a later state, or the same one re-sent, is tried afresh)
-            return [Outgoing(TOPIC_ERRORS, make_error(
-                self.source, "internal", f"state {seq}: cannot decide: {type(exc).__name__}: {exc}",
-                run_id=run_id, received=text))]
         except NeedHistory:
             if self._asked == (run_id, seq):  # asked already; the node asks again if it does not come
                 return []
             self._asked = (run_id, seq)
             self.history_requests += 1
             return [Outgoing(TOPIC_REPLAY, make_replay_request(run_id, 0, self.source, what="state"))]
+        except Exception as exc:  # a state that none of the checks caught (or a bug): it took the agent down; now
+            # an error, and the safe answer (the shop waits for one) where the state names one
+            why = f"state {seq}: cannot decide: {type(exc).__name__}: {exc}"
+            try:
+                label = _fallback(state)
+            except DecisionError:
+                return [Outgoing(TOPIC_ERRORS, make_error(self.source, "internal", why, run_id=run_id, received=text))]
+            out.append(Outgoing(TOPIC_ERRORS, make_error(self.source, "internal", f"{why}; sending {label!r}",
+                                                         run_id=run_id, received=text)))
         self._asked = None
         self.answered_seq = seq
         self.decisions += 1

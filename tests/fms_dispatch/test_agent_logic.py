@@ -779,6 +779,7 @@ def test_states_the_checks_let_through_are_answered_not_fatal() -> None:
         raise RuntimeError("boom")
 
     failing.decide = broken  # type: ignore[assignment]
-    (err,) = failing.on_state(json.dumps(state))
+    err, cmd = failing.on_state(json.dumps(state))  # the error, and the safe answer: the shop waits for one
     assert err.msg["code"] == "internal" and err.msg["message"] == f"state {state['seq']}: cannot decide: " \
-        "RuntimeError: boom"
+        f"RuntimeError: boom; sending {legal_labels(state)[0]!r}"
+    assert cmd.msg["action"] == legal_labels(state)[0]
