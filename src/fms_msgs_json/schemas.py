@@ -20,6 +20,7 @@ field, so a node can answer with an ``fms/error/v1`` message directly.
 from __future__ import annotations
 
 import json
+import math
 import re
 import sys
 from collections.abc import Iterable
@@ -573,18 +574,29 @@ def _reject_constant(name: str) -> Any:
     raise MessageError("malformed_json", f"malformed JSON: {name} is not a JSON number")
 
 
+def _finite_float(text: str) -> float:
+    """A JSON number with a fraction or exponent; one too large for a float (``1e400``) is refused: it became
+    infinity, which no message may hold (the recorder stored ``Infinity``, which is not JSON)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise MessageError("malformed_json", f"malformed JSON: the number {text[:40]} is too large")
+    return value
+
+
 def decode(text: str, expect: str | Iterable[str] | None = None) -> dict[str, Any]:
     """Parse and strictly validate one message; return it as a dict.
 
     ``expect`` (a kind name such as ``"command"`` or a schema id such as ``"fms/command/v1"``, or a set of
     them) rejects every other kind. Raises :class:`MessageError`: ``malformed_json`` if ``text`` is not one
-    JSON value (NaN/Infinity and duplicate keys included), ``bad_schema`` otherwise.
+    JSON value (NaN/Infinity, a number too large for a float or with more digits than Python converts, and
+    duplicate keys included), ``bad_schema`` otherwise.
     """
     kinds = _normalise_expect(expect) if expect is not None else None
     if not isinstance(text, str):
         raise MessageError("malformed_json", f"expected the message text as a str, got {type(text).__name__}")
     try:
-        msg = json.loads(text, object_pairs_hook=_pairs_without_duplicates, parse_constant=_reject_constant)
+        msg = json.loads(text, object_pairs_hook=_pairs_without_duplicates, parse_constant=_reject_constant,
+                         parse_float=_finite_float)
     except json.JSONDecodeError as exc:
         raise MessageError("malformed_json", f"malformed JSON at line {exc.lineno} column {exc.colno}: "
                                              f"{exc.msg}") from None

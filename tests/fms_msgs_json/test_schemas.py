@@ -242,6 +242,9 @@ def test_malformed_json_nan_duplicates_and_non_str() -> None:
     # a number longer than Python converts was a plain ValueError ("Exceeds the limit (4300 digits)...")
     err = rejected('{"schema":"fms/command/v1","state_seq":1' + "0" * 5000 + "}")
     assert err.code == "malformed_json" and str(err) == "malformed JSON: a number has more than 4300 digits"
+    # 1e400 became infinity in the message (the recorder stored it as Infinity, which is not JSON)
+    err = rejected('{"schema":"fms/command/v1","x":1e400}')
+    assert err.code == "malformed_json" and str(err) == "malformed JSON: the number 1e400 is too large"
 
 
 @pytest.mark.parametrize("text", ["[]", "3", '"fms/state/v1"', "null", "true"])
