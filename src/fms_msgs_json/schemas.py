@@ -119,7 +119,7 @@ EVENT_KINDS: tuple[str, ...] = (
 
 ERROR_CODES: tuple[str, ...] = (
     "malformed_json", "bad_schema", "stale_state", "unknown_run", "forbidden_action", "bad_order", "internal",
-    "bad_disruption",
+    "bad_disruption", "run_conflict",
 )
 
 RECEIVED_MAX_CHARS = 1000

@@ -10,7 +10,10 @@ the log can be checked against the published schedule.
 in a run's event numbers, or a final schedule whose run has not all its events. It then asks the shop to
 replay the run from the first missing event (``fms/replay_request/v1``), again every ``retry_s`` seconds while
 something is missing. When a run is complete (schedule stored, events ``0..run_end`` all present) it renders
-the Gantt chart once (:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id>.gantt.png``.
+the Gantt chart once (:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id>.gantt.png``. A message that
+contradicts what the log holds for its run (:class:`RunConflict`: another run under the same run id, a stray event
+after the end) is not stored and is answered with a ``run_conflict`` error; a run whose stored schedule is not the
+one its events give is not called complete.
 
 Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
 data, received)``, ``schedules(run_id, makespan, schedule, received)``, ``errors(id, source, code, message,
@@ -28,7 +31,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from fms_msgs_json import (
-    ERROR_MAX_CHARS, TOPIC_ERRORS, TOPIC_REPLAY, MessageError, bounded, decode, error_reply, make_replay_request,
+    ERROR_MAX_CHARS, TOPIC_ERRORS, TOPIC_REPLAY, MessageError, bounded, decode, error_reply, make_error,
+    make_replay_request,
 )
 
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
@@ -100,14 +104,30 @@ def gantt_path(gantt_dir: str | Path, run_id: str) -> Path:
 #: the first bytes of every SQLite 3 database file
 _SQLITE_HEADER = b"SQLite format 3\x00"
 
+#: the columns of each table (a database holding a table of the same name laid out otherwise is someone else's)
+_COLUMNS = {"runs": {"run_id", "instance", "first_seen", "end_seq", "makespan", "gantt"},
+            "events": {"run_id", "seq", "time", "kind", "data", "received"},
+            "schedules": {"run_id", "makespan", "schedule", "received"},
+            "replans": {"run_id", "source", "state_seq", "time", "reason", "status", "data", "received"},
+            "errors": {"id", "source", "code", "message", "run_id", "received_text", "at"}}
+
+
+class RunConflict(ValueError):
+    """A message that contradicts what the log holds for its run (another run under the same run id, or a stray
+    event): it is not stored, and the recorder answers it with a ``run_conflict`` error."""
+
 
 class RecorderStore:
     """The SQLite log (see the module docstring). Not thread-safe: one recorder, one thread."""
 
     def __init__(self, path: str | Path = DEFAULT_DB) -> None:
         self.path = Path(path)
+        where = f"cannot open the recorder database {str(self.path)!r}"
         if self.path.parent and not self.path.parent.exists():
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:  # under a file, in /proc, in a folder this user may not write: a traceback
+                raise ValueError(f"{where}: its folder cannot be made ({exc.strerror or exc})") from None
         if self.path.is_file() and self.path.stat().st_size:  # SQLite made a database of a file shorter than its
             with open(self.path, "rb") as fh:               # header (a one-line text file): never overwrite one
                 head = fh.read(len(_SQLITE_HEADER))
@@ -120,8 +140,19 @@ class RecorderStore:
             self.db.execute("PRAGMA synchronous=NORMAL")
             self.db.executescript(_SCHEMA)
             self.db.commit()
+            for table, columns in _COLUMNS.items():  # another program's table of the same name was taken as ours
+                have = {row[1] for row in self.db.execute(f"PRAGMA table_info({table})")}
+                if not columns <= have:
+                    self.db.close()
+                    raise ValueError(f"{where}: its table {table!r} is laid out otherwise (columns "
+                                     f"{', '.join(sorted(have))}): not a recorder database (left as it is)")
+            # a database this user may read but not write was taken, and every message then failed to be stored
+            self.db.execute("INSERT INTO errors (source, code, message, at) VALUES ('', '', '', 0)")
+            self.db.rollback()
         except sqlite3.Error as exc:
-            raise ValueError(f"cannot open the recorder database {str(self.path)!r}: {exc}") from None
+            if getattr(self, "db", None) is not None:
+                self.db.close()
+            raise ValueError(f"{where}: {exc}") from None
 
     def close(self) -> None:
         """Commit and close (a WAL checkpoint folds the log into the main file)."""
@@ -142,9 +173,23 @@ class RecorderStore:
         self.db.commit()
 
     def add_event(self, event: dict[str, Any], now: float | None = None, *, commit: bool = True) -> bool:
-        """Store a decoded ``fms/event/v1``; False if ``(run_id, seq)`` was already stored."""
+        """Store a decoded ``fms/event/v1``; False if ``(run_id, seq)`` was already stored as it is. Raises
+        :class:`RunConflict` (and stores nothing) for an event that differs from the one stored under its
+        ``(run_id, seq)`` — another run under the same id; it was dropped without a word, and the run's log mixed
+        two runs — or that comes after the run's ``run_end``."""
         now = time.time() if now is None else now
-        run_id, data = event["run_id"], event["data"]
+        run_id, data, seq = event["run_id"], event["data"], event["seq"]
+        row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
+                              (run_id, seq)).fetchone()
+        if row is not None:
+            if (row[0], row[1], json.loads(row[2])) == (event["time"], event["kind"], data):
+                return False  # a replay or a duplicate
+            raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
+                              f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
+        end = self.end_seq(run_id)
+        if end is not None and seq > end:
+            raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']}) comes after the run's end (event {end}, "
+                              "run_end): not stored")
         self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
         cur = self.db.execute(
             "INSERT OR IGNORE INTO events (run_id, seq, time, kind, data, received) VALUES (?, ?, ?, ?, ?, ?)",
@@ -159,7 +204,16 @@ class RecorderStore:
 
     def add_schedule(self, run_id: str, schedule: dict[str, Any], now: float | None = None, *,
                      commit: bool = True) -> bool:
-        """Store a run's final schedule (the Schedule JSON); False if the run already has one."""
+        """Store a run's final schedule (the Schedule JSON); False if the run already has it. Raises
+        :class:`RunConflict` (and stores nothing) for another schedule of a run that has one (the first was kept,
+        and the other dropped without a word)."""
+        row = self.db.execute("SELECT schedule FROM schedules WHERE run_id = ?", (run_id,)).fetchone()
+        if row is not None:
+            if json.loads(row[0]) == schedule:
+                return False
+            raise RunConflict(f"run {run_id!r}: a schedule (makespan {schedule.get('makespan')!r}) that differs from "
+                              f"the one stored (makespan {json.loads(row[0]).get('makespan')!r}): another run with "
+                              "the same run id? (not stored)")
         now = time.time() if now is None else now
         self._touch_run(run_id, now, schedule.get("instance"))
         cur = self.db.execute("INSERT OR IGNORE INTO schedules (run_id, makespan, schedule, received) "
@@ -250,6 +304,15 @@ class RecorderStore:
                                (run_id,) if run_id else ())
         return [{"source": s, "code": c, "message": m, "run_id": r, "received": t} for s, c, m, r, t in rows]
 
+    def after_end(self, run_id: str) -> list[int]:
+        """The seqs of the run's stored events that come after its ``run_end`` (stored before it arrived: strays,
+        or another run's under the same id); they are not part of the run (its schedule is rebuilt without them)."""
+        end = self.end_seq(run_id)
+        if end is None:
+            return []
+        return [r[0] for r in self.db.execute("SELECT seq FROM events WHERE run_id = ? AND seq > ? ORDER BY seq",
+                                              (run_id, end))]
+
     def is_complete(self, run_id: str) -> bool:
         """The run's schedule is stored and every event ``0..run_end`` is present."""
         end = self.end_seq(run_id)
@@ -264,7 +327,8 @@ class RecorderStore:
         The header (instance name, fleet sizes) comes from the stored schedule if there is one, else from the
         ``run_start`` event and the vehicles seen. Raises ``ValueError`` if the run has no ``run_end`` event.
         """
-        evs = self.events(run_id)
+        last = self.end_seq(run_id)
+        evs = [e for e in self.events(run_id) if last is None or e["seq"] <= last]  # (strays after the end: not)
         end = [e for e in evs if e["kind"] == "run_end"]
         if not end:
             raise ValueError(f"run {run_id!r} has no run_end event in the log; it is not complete")
@@ -321,6 +385,9 @@ class Recorder:
         self._has_schedule: dict[str, bool] = {}
         self._asked: dict[str, float] = {}     # run -> when a replay was last requested
         self._finished: set[str] = set()
+        self._given_up: set[str] = set()       # runs the shop does not know (it answered unknown_run): not asked
+        self._conflicts: set[tuple[str, int | None]] = set()  # (run, seq; None: its schedule) reported once
+        self._outbox: list[Outgoing] = []      # errors found outside a message's handling, sent by the next poll
         self.rendered: list[tuple[str, Path]] = []
 
     # ------------------------------------------------------------------ bookkeeping
@@ -350,14 +417,14 @@ class Recorder:
     def missing_from(self, run_id: str) -> int | None:
         """The first seq to ask for if the run is known to miss events (a gap, or events after a stored
         schedule's run_end), else None."""
-        if run_id not in self._next:
+        if run_id not in self._next or run_id in self._given_up:
             return None
         nxt = self._next[run_id]
+        end = self._end[run_id]
+        if end is not None:  # (events stored past the end are strays: they make no gap)
+            return nxt if nxt <= end else None
         if self._above[run_id]:
             return nxt
-        end = self._end[run_id]
-        if end is not None:
-            return nxt if nxt <= end else None
         if self._has_schedule[run_id]:  # the run is over but its run_end never arrived
             return nxt
         return None
@@ -396,12 +463,29 @@ class Recorder:
             return [self._error(exc, text)]
         run_id = ev["run_id"]
         self._seen(run_id)
-        self.store.add_event(ev, commit=False)
+        try:
+            new = self.store.add_event(ev, commit=False)
+        except RunConflict as exc:
+            return self._conflict(run_id, ev["seq"], exc, text)
         self._wrote(now)
-        if ev["kind"] == "run_end":
+        out: list[Outgoing] = []
+        if new and ev["kind"] == "run_end":
             self._end[run_id] = ev["seq"]
+            strays = self.store.after_end(run_id)
+            if strays:  # stored before the end was known (a stray, or another run's): kept, not part of the run
+                out += self._conflict(run_id, ev["seq"], RunConflict(
+                    f"run {run_id!r}: {len(strays)} event(s) stored before its run_end (event {ev['seq']}) come "
+                    f"after it (from event {strays[0]}): kept in the log, left out of the run"), None)
         self._advance(run_id, ev["seq"])
-        return self._ask(run_id, now)
+        return out + self._ask(run_id, now)
+
+    def _conflict(self, run_id: str, seq: int | None, exc: RunConflict, text: str | None) -> list[Outgoing]:
+        """The ``run_conflict`` error answering ``exc`` (once per run and event, or the run's schedule)."""
+        if (run_id, seq) in self._conflicts:
+            return []
+        self._conflicts.add((run_id, seq))
+        return [Outgoing(TOPIC_ERRORS, make_error(self.source, "run_conflict", str(exc), run_id=run_id,
+                                                  received=text))]
 
     def handle_schedule(self, text: str, now: float) -> list[Outgoing]:
         try:
@@ -410,7 +494,10 @@ class Recorder:
             return [self._error(exc, text)]
         run_id = msg["run_id"]
         self._seen(run_id)
-        self.store.add_schedule(run_id, msg["schedule"], commit=False)
+        try:
+            self.store.add_schedule(run_id, msg["schedule"], commit=False)
+        except RunConflict as exc:
+            return self._conflict(run_id, -1, exc, text)
         self._has_schedule[run_id] = True
         self._wrote(now)
         return self._ask(run_id, now)
@@ -419,7 +506,17 @@ class Recorder:
         return self._store(text, "replan", self.store.add_replan, now)
 
     def handle_error(self, text: str, now: float = 0.0) -> list[Outgoing]:
-        return self._store(text, "error", self.store.add_error, now)
+        """Store an error; one that answers this recorder's replay request with ``unknown_run`` (a run the shop
+        does not run: one stray event named it) ends the requests for that run (they went on every ``retry_s``)."""
+        out = self._store(text, "error", self.store.add_error, now)
+        try:
+            err = decode(text, expect="error")
+            asked = decode(err.get("received") or "", expect="replay_request") if err["code"] == "unknown_run" else None
+        except MessageError:
+            return out
+        if asked is not None and asked["requester"] == self.source and asked["run_id"] in self._next:
+            self._given_up.add(asked["run_id"])
+        return out
 
     def _store(self, text: str, kind: str, add: Callable[..., Any], now: float) -> list[Outgoing]:
         """Decode a message of ``kind`` that is stored as it is (no run bookkeeping) and store it."""
@@ -436,7 +533,7 @@ class Recorder:
         misses events."""
         if self._dirty and now - self._committed_at >= self.commit_s:
             self.flush(now)
-        out: list[Outgoing] = []
+        out, self._outbox = self._outbox, []
         for run_id in list(self._next):
             out += self._ask(run_id, now)
         return out
@@ -454,9 +551,28 @@ class Recorder:
                 self.store.commit()
                 self._dirty = False
             self._finished.add(run_id)
+            problem = self._disagreement(run_id)
+            if problem is not None:  # the schedule and the events are of two runs: no chart, no "complete"
+                self._outbox += self._conflict(run_id, None, RunConflict(problem), None)
+                continue
             path = self._render(run_id) if self.render else None
             done.append((run_id, path))
         return done
+
+    def _disagreement(self, run_id: str) -> str | None:
+        """Why the run's stored schedule is not the one its events give (None: it is): a schedule of another run
+        under the same id arrived first (it was kept, and the run called complete)."""
+        stored, rebuilt = self.store.schedule(run_id), self.store.schedule_from_events(run_id)
+        assert stored is not None
+        for what, a, b in (("makespan", [stored.makespan], [rebuilt.makespan]),
+                           ("operations", stored.operations, rebuilt.operations),
+                           ("AGV trips", stored.agv_trips, rebuilt.agv_trips),
+                           ("tool trips", stored.tool_trips, rebuilt.tool_trips)):
+            if sorted(map(repr, a)) != sorted(map(repr, b)):
+                return (f"run {run_id!r}: the schedule stored (makespan {stored.makespan}) is not the one its events "
+                        f"give (makespan {rebuilt.makespan}; the {what} differ): another run with the same run id? "
+                        "(no chart; the run is not called complete)")
+        return None
 
     def _render(self, run_id: str) -> Path:
         existing = self.store.gantt(run_id)

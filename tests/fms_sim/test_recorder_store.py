@@ -225,3 +225,95 @@ def test_recorder_renders_a_real_gantt_chart(tmp_path: Path) -> None:
     assert run_id == "EX12 run/1" and png == tmp_path / "charts" / "EX12_run_1.gantt.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list((tmp_path / "charts").glob("*.tmp.png"))
+
+
+# ------------------------------------------------------------------------------------------------ bad databases
+def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(tmp_path: Path, monkeypatch) -> None:
+    # a folder that cannot be made was a traceback (FileNotFoundError, NotADirectoryError); another program's
+    # table named "events" and a read-only database were taken, and every message then failed to be stored
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="its folder cannot be made"):
+        RecorderStore(tmp_path / "afile" / "sub" / "db.sqlite")
+    theirs = tmp_path / "theirs.sqlite"
+    with sqlite3.connect(theirs) as con:
+        con.execute("CREATE TABLE events (a, b)")
+    con.close()
+    with pytest.raises(ValueError, match=r"its table 'events' is laid out otherwise \(columns a, b\): not a "
+                                         r"recorder database"):
+        RecorderStore(theirs)
+    ours = tmp_path / "ours.sqlite"
+    RecorderStore(ours).close()
+    real = sqlite3.connect
+
+    def read_only(path: str, *args: Any, **kw: Any) -> sqlite3.Connection:  # as for a user who may not write it
+        return real(f"file:{path}?mode=ro", *args, uri=True, **kw)
+
+    monkeypatch.setattr(sqlite3, "connect", read_only)
+    with pytest.raises(ValueError, match="cannot open the recorder database .*readonly"):
+        RecorderStore(ours)
+
+
+# ------------------------------------------------------------------------------------------------ conflicts
+def test_a_second_run_under_the_same_id_is_reported_not_mixed_in(tmp_path: Path) -> None:
+    """Run 2 under run 1's id: its events that differ from run 1's were dropped without a word (the log mixed the
+    two runs) and its schedule too (the first one kept); the run was then called complete."""
+    one, two = finished_run("EX12"), ShopService(builtin("EX12"), run_id="run-1")
+    two.start()
+    while not two.done:  # another policy: the last enabled action
+        label = [a for a, ok in zip(two.state["actions"], two.state["mask"]) if ok][-1]
+        two.handle_command(encode(m.make_command("run-1", two.state_seq, label)))
+    ev1, sched1 = texts(one)
+    ev2, sched2 = texts(two)
+    assert ev1 != ev2 and one.final_schedule.makespan != two.final_schedule.makespan
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    for t in ev1[:10]:  # run 1 stopped after 10 events
+        assert rec.handle_event(t, now=0.0) == []
+    differ = [i for i in range(10) if ev1[i] != ev2[i]]
+    out = [o for t in ev2 for o in rec.handle_event(t, now=0.0)]
+    errs = [o.msg for o in out if o.topic == m.TOPIC_ERRORS]
+    assert len(errs) == len(differ) and all(e["code"] == "run_conflict" for e in errs)
+    assert f"run 'run-1': event {differ[0]} " in errs[0]["message"] and "another run with the same run id" in \
+        errs[0]["message"]
+    assert [o.msg for o in rec.handle_event(ev2[differ[0]], now=1.0) if o.topic == m.TOPIC_ERRORS] == []  # once
+    rec.handle_schedule(sched2, now=0.0)
+    assert rec.finish_ready() == []  # the events and the schedule are of two runs: not complete, no chart
+    (err,) = [o.msg for o in rec.poll(now=5.0) if o.topic == m.TOPIC_ERRORS]
+    assert err["code"] == "run_conflict" and "the schedule stored" in err["message"] and "is not the one its " \
+        "events give" in err["message"]
+    # a second schedule for a run that has one is reported, not dropped in silence
+    (err,) = rec.handle_schedule(sched1, now=6.0)
+    assert err.msg["code"] == "run_conflict" and "a schedule (makespan" in err.msg["message"]
+
+
+def test_a_stray_event_after_the_end_is_kept_out_of_the_run(tmp_path: Path) -> None:
+    """One bogus event numbered past the run's end made the run incomplete for ever (or, after the end, its
+    schedule rebuilt from events invalid), with a replay request every second."""
+    svc = finished_run("EX12")
+    events, schedule = texts(svc)
+    stray = decode(events[3])
+    stray["seq"] = 500
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    assert rec.handle_event(encode(stray), now=0.0)[0].msg["from_seq"] == 0  # a gap, for all it knows
+    out = [o for t in events for o in rec.handle_event(t, now=0.0)]
+    (err,) = [o.msg for o in out if o.topic == m.TOPIC_ERRORS]  # when the end arrives
+    assert err["code"] == "run_conflict" and "1 event(s) stored before its run_end" in err["message"]
+    rec.handle_schedule(schedule, now=0.0)
+    assert rec.missing_from("run-1") is None and rec.poll(now=9.0) == []
+    assert rec.finish_ready() == [("run-1", None)]
+    assert validate(svc.instance, rec.store.schedule_from_events("run-1")) == []
+    late = dict(stray, seq=501)  # after the end is known: refused
+    (err,) = rec.handle_event(encode(late), now=10.0)
+    assert err.msg["code"] == "run_conflict" and "comes after the run's end" in err.msg["message"]
+    assert 501 not in rec.store.event_seqs("run-1")
+
+
+def test_a_run_the_shop_does_not_know_is_asked_for_no_more(tmp_path: Path) -> None:
+    svc = finished_run("EX12", run_id="ghost")
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False, retry_s=1.0)
+    (ask,) = rec.handle_event(encode(svc.events[5]), now=0.0)
+    shop = ShopService(builtin("EX12"), run_id="real")
+    shop.start()
+    (answer,) = shop.handle_replay(encode(ask.msg))
+    assert answer.msg["code"] == "unknown_run"
+    assert rec.handle_error(encode(answer.msg), now=0.5) == []
+    assert rec.poll(now=2.0) == [] and rec.poll(now=9.0) == []  # it asked every second, for ever
