@@ -155,23 +155,42 @@ class _EventQueue:
     a loaded trip after an empty one, their start) lies in the future. Events wait in a heap until the clock
     reaches them. At one time, ends of earlier-started activities come first, then starts, then the ends of
     zero-length activities (so every end follows its own start).
+
+    A breakdown lengthens the operation running on its machine (the shop replaces its record): its end event,
+    queued at the old end, is then queued again at the new one and the old one dropped (it was published at the
+    old end, and the schedule rebuilt from the events differed from the shop's).
     """
 
     def __init__(self) -> None:
         self._heap: list[tuple[int, int, int, str, dict[str, Any]]] = []
         self._count = itertools.count()
         self._seen = [0, 0, 0]  # records of rec.ops, rec.agv, rec.tt already queued
+        self._op_ends: dict[int, tuple[int, int]] = {}  # rec.ops index -> (queued end, its heap entry's number)
+        self._dropped: set[int] = set()  # heap entry numbers of end events queued again later
 
-    def _push(self, start: int, end: int, kind: str, data: dict[str, Any]) -> None:
+    def _push(self, start: int, end: int, kind: str, data: dict[str, Any]) -> int:
+        """Queue the start and end events of one record; returns the end event's entry number."""
         heapq.heappush(self._heap, (start, 1, next(self._count), f"{kind}_start", data))
-        heapq.heappush(self._heap, (end, 0 if end > start else 2, next(self._count), f"{kind}_end",
-                                    dict(data, start=start)))
+        return self._push_end(start, end, kind, data)
+
+    def _push_end(self, start: int, end: int, kind: str, data: dict[str, Any]) -> int:
+        number = next(self._count)
+        heapq.heappush(self._heap, (end, 0 if end > start else 2, number, f"{kind}_end", dict(data, start=start)))
+        return number
 
     def collect(self, shop: Shop) -> None:
-        """Queue the start and end events of every record the shop added since the last call."""
+        """Queue the start and end events of every record the shop added since the last call, and again the end
+        of each operation whose end has moved since it was queued."""
         rec = shop.rec
-        for r in rec.ops[self._seen[0]:]:
-            self._push(r.start, r.end, "op", {"job": r.job, "op": r.op, "machine": r.machine, "tool": r.tool})
+        for i, (end, number) in list(self._op_ends.items()):
+            r = rec.ops[i]
+            if r.end != end:
+                self._dropped.add(number)
+                self._op_ends[i] = (r.end, self._push_end(r.start, r.end, "op", {
+                    "job": r.job, "op": r.op, "machine": r.machine, "tool": r.tool}))
+        for i, r in enumerate(rec.ops[self._seen[0]:], start=self._seen[0]):
+            self._op_ends[i] = (r.end, self._push(r.start, r.end, "op", {"job": r.job, "op": r.op,
+                                                                         "machine": r.machine, "tool": r.tool}))
         for t in rec.agv[self._seen[1]:]:
             self._push(t.start, t.end, "agv_trip", {"agv": t.agv, "job": t.job, "op": t.op, "from": t.from_,
                                                     "to": t.to, "loaded": t.loaded})
@@ -185,8 +204,12 @@ class _EventQueue:
         out = []
         heap = self._heap
         while heap and (until is None or heap[0][0] <= until):
-            t, _, _, kind, data = heapq.heappop(heap)
+            t, _, number, kind, data = heapq.heappop(heap)
+            if number in self._dropped:  # an operation's old end (a breakdown lengthened it)
+                self._dropped.discard(number)
+                continue
             out.append((t, kind, data))
+        self._op_ends = {i: v for i, v in self._op_ends.items() if v[0] > (until if until is not None else v[0])}
         return out
 
 

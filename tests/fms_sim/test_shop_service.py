@@ -659,3 +659,36 @@ def test_full_net_states_name_their_net_and_idle_stops_offer_no_action() -> None
         assert not [o for o in out if o.topic == "fms/errors"]
     assert idle_seen and validate(svc.instance, svc.final_schedule) == []
     assert {"start:0", "tool:1", "use:0", "hold"} <= set(svc.state["actions"])
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_an_operation_lengthened_by_a_breakdown_ends_once_at_its_new_end(live: bool) -> None:
+    """The end event of an operation was queued when it started: a breakdown of its machine while it ran
+    lengthened the operation in the schedule, but its op_end was still published at the old end, so the schedule
+    rebuilt from the events (as the recorder rebuilds it) differed from the shop's."""
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    inst = builtin("ra01")
+    nominal = ShopService(inst, run_id="n", decisions="full")
+    nominal.start()
+    run_to_end(nominal)
+    first = min((o for o in nominal.final_schedule.operations if o.end - o.start >= 2), key=lambda o: o.start)
+    bd = Breakdown(first.machine, first.start + 1, 40)  # while it runs (the decisions before are the same)
+    svc = ShopService(inst, run_id="r", decisions="full", scenario=None if live else Scenario(breakdowns=(bd,)))
+    out = svc.start()
+    while not svc.done:
+        if live and svc.shop.now >= bd.start and not svc.shop.scenario:
+            out += svc.handle_disruption(encode(m.make_disruption("d", "breakdown", bd.duration, machine=bd.machine,
+                                                                  run_id="r")))
+        out += svc.handle_command(command(svc))
+    (smsg,) = by_topic(out, m.TOPIC_SCHEDULE)
+    sched = Schedule.from_dict(smsg["schedule"])
+    assert validate(inst, sched) == []
+    events = by_topic(out, m.TOPIC_EVENTS)
+    assert [e["seq"] for e in events] == list(range(len(events)))
+    assert [e["time"] for e in events] == sorted(e["time"] for e in events)
+    (hit,) = [o for o in sched.operations if (o.job, o.op) == (first.job, first.op)]
+    assert (hit.start, hit.end) == (first.start, first.end + bd.duration)  # lengthened
+    rebuilt = rebuild(events, inst.name, sched.n_agvs, sched.n_tool_transporters)
+    assert sorted(map(repr, rebuilt.operations)) == sorted(map(repr, sched.operations))
+    assert [e["kind"] for e in events].count("op_end") == inst.n_operations
