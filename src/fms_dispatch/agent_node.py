@@ -37,8 +37,8 @@ import time
 from typing import Sequence
 
 from fms_msgs_json import TOPIC_COMMAND, TOPIC_REPLAY
-from fms_sim.instance import Instance, InstanceError
-from fms_sim.shop_node import FmsNode, StartupError, TopicIO, param, run_node
+from fms_sim.instance import Instance
+from fms_sim.shop_node import FmsNode, StartupError, TopicIO, instance_param, param, run_node
 from fms_sim.shop_service import Outgoing
 
 from .agent_logic import AgentLogic, UnavailableSolver
@@ -99,19 +99,8 @@ class AgentNode(FmsNode):
 
     def _instance(self) -> Instance | None:
         """The instance named by the parameters (as the shop node reads them), or None without ``instance``."""
-        from fms_sim.formats import load_instance
-
-        n = self.node
-        spec = param(n, "instance", "")
-        layout, agvs, tts = param(n, "layout", 0), param(n, "agvs", 0), param(n, "tool_transporters", 0)
-        no_tools, no_agvs = param(n, "no_tools", False), param(n, "no_agvs", False)
-        if not spec:
-            return None
-        try:
-            return load_instance(spec, layout=layout or None, agvs=agvs or None, tool_transporters=tts or None,
-                                 no_tools=no_tools, no_agvs=no_agvs)
-        except (InstanceError, OSError) as exc:
-            raise StartupError(str(exc).splitlines()[0]) from None
+        inst: Instance | None = instance_param(self.node, required=False)
+        return inst
 
     def _on_state(self, text: str) -> None:
         out = self.logic.on_state(text)

@@ -304,7 +304,7 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     if not str(results_dir).strip():  # Path("") is the current folder: the tables and cache went there
         raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")
     out_dir = Path(results_dir)
-    from .cli import file_above
+    from fms_sim.files import file_above
 
     blocker = out_dir if out_dir.exists() and not out_dir.is_dir() else file_above(out_dir)
     if blocker is not None:  # "File exists: afile" said nothing of the option

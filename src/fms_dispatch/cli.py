@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+from fms_sim.files import folder_problem, output_problem
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
 
@@ -264,38 +265,20 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
     return scenario
 
 
-def file_above(path: Path) -> Path | None:
-    """The file that ``path`` would have to lie inside (its nearest existing ancestor, when that is not a folder):
-    no output can be written there. None when ``path`` can be made."""
-    parent = next((q for q in path.parents if q.exists()), None)
-    return parent if parent is not None and not parent.is_dir() else None
-
-
 def check_output(path: str | None, what: str) -> None:
-    """Refuse an output file that cannot be written, before any work: a folder, one inside a file, an existing
-    file or a folder to write in that this user may not write."""
-    if not path:
-        return
-    p = Path(path)
-    if p.is_dir():
-        raise CliError(f"{what} {path} is a folder; name a file")
-    above = file_above(p)
-    if above is not None:
-        raise CliError(f"{what} {path}: {above} is a file, not a folder")
-    if p.exists():
-        if not os.access(p, os.W_OK):
-            raise CliError(f"{what} {path}: the file may not be written (permission denied)")
-        return
-    check_folder(p.parent, what, path)
+    """Refuse an output file that cannot be written, before any work (:func:`fms_sim.files.output_problem`)."""
+    if path:
+        problem = output_problem(path)
+        if problem is not None:
+            raise CliError(f"{what} {path}{'' if problem.startswith('is a folder') else ':'} {problem}")
 
 
 def check_folder(folder: Path, what: str, path: str) -> None:
-    """Refuse ``folder`` (or, where it does not exist yet, the nearest folder above it, in which it would be made)
-    if this user may not write it; ``what path`` names the option in the message."""
-    folder = folder.absolute()
-    where = next((q for q in (folder, *folder.parents) if q.exists()), None)
-    if where is not None and not os.access(where, os.W_OK | os.X_OK):
-        raise CliError(f"{what} {path}: the folder {where} may not be written (permission denied)")
+    """Refuse ``folder`` if this user may not write it (:func:`fms_sim.files.folder_problem`); ``what path`` names
+    the option in the message."""
+    problem = folder_problem(folder)
+    if problem is not None:
+        raise CliError(f"{what} {path}: {problem}")
 
 
 def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:

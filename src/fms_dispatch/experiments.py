@@ -948,7 +948,7 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _cmd(a: argparse.Namespace) -> int:
-    from .cli import file_above
+    from fms_sim.files import file_above
 
     if not a.results_dir.strip():  # Path("") is the current folder
         raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")

@@ -464,8 +464,8 @@ def cmd_up(a: argparse.Namespace) -> int:
             "instance_out": str(inst_final), "history": twin, "history_delta": twin, "features": not twin,
             "idle_stops": needs_idle_stops(solver) or needs_full_net(solver), "decisions": "full" if full else "paper",
             **({"time_scale": float(a.time_scale)} if a.time_scale else {}),
-            **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0), "noise_seed": a.seed or 0}
-               if disrupted else {})}),
+            **({"scenario": str(scenario_file), "noise": float(a.noise or 0.0)} if disrupted else {}),
+            **({"noise_seed": a.seed or 0} if a.noise else {})}),  # (the scenario file holds the seed otherwise)
             log_dir / "shop.log", env),
         NodeProcess("agent", node_command("fms_dispatch.agent_node", agent_params), log_dir / "agent.log", env),
     ]
@@ -585,7 +585,7 @@ def cmd_up(a: argparse.Namespace) -> int:
 
 def _check_parent(path: Path, what: str) -> None:
     """Refuse an output under a file (its folder could never be made)."""
-    from .cli import file_above
+    from fms_sim.files import file_above
 
     above = file_above(path)
     if above is not None:

@@ -93,3 +93,40 @@ def write_atomically(path: str | Path, text: str) -> Path:
     with replacing(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def file_above(path: Path) -> Path | None:
+    """The file that ``path`` would have to lie inside (its nearest existing ancestor, when that is not a folder):
+    no output can be written there. None when ``path`` can be made."""
+    parent = next((q for q in path.parents if q.exists()), None)
+    return parent if parent is not None and not parent.is_dir() else None
+
+
+def output_problem(path: str | Path) -> str | None:
+    """Why an output file cannot be written at ``path`` (None: it can), found before any work: a folder, a path
+    inside a file, an existing file or a folder to write in that this user may not write."""
+    p = Path(path)
+    if p.is_dir():
+        return "is a folder; name a file"
+    above = file_above(p)
+    if above is not None:
+        return f"{above} is a file, not a folder"
+    if p.exists():
+        return None if os.access(p, os.W_OK) else "the file may not be written (permission denied)"
+    return folder_problem(p.parent)
+
+
+def folder_problem(folder: str | Path) -> str | None:
+    """Why files cannot be written in ``folder`` (None: they can): it is a file, lies inside one, or it (or, where
+    it does not exist yet, the nearest folder above it, in which it would be made) may not be written by this
+    user."""
+    folder = Path(folder).absolute()
+    if folder.exists() and not folder.is_dir():
+        return f"{folder} is a file, not a folder"
+    above = file_above(folder)
+    if above is not None:
+        return f"{above} is a file, not a folder"
+    where = next((q for q in (folder, *folder.parents) if q.exists()), None)
+    if where is not None and not os.access(where, os.W_OK | os.X_OK):
+        return f"the folder {where} may not be written (permission denied)"
+    return None

@@ -23,6 +23,7 @@ from typing import Callable, Sequence
 
 from fms_msgs_json import TOPIC_ERRORS, TOPIC_REPLAY, error_reply
 
+from .files import folder_problem
 from .recorder_store import DEFAULT_DB, Recorder, RecorderStore
 from .shop_node import FmsNode, StartupError, TopicIO, param, run_node
 from .shop_service import Outgoing
@@ -49,8 +50,13 @@ class RecorderNode(FmsNode):
             raise StartupError(f"parameter 'retry_s' must be positive, got {retry_s}")
         if commit_s < 0:
             raise StartupError(f"parameter 'commit_s' must be >= 0, got {commit_s}")
+        if not db.strip():  # it was the default file, silently
+            raise StartupError(f"parameter 'db' names no file (an empty name); leave it out for {DEFAULT_DB}")
+        problem = folder_problem(gantt_dir) if render and gantt_dir else None
+        if problem is not None:  # found when the chart was due: the run's chart lost, the error "File exists"
+            raise StartupError(f"parameter 'gantt_dir' ({gantt_dir}): {problem}")
         try:
-            self.store = RecorderStore(db or DEFAULT_DB)
+            self.store = RecorderStore(db)
         except ValueError as exc:
             raise StartupError(str(exc)) from None
         self.recorder = Recorder(self.store, gantt_dir=gantt_dir or None, render=render, retry_s=retry_s,

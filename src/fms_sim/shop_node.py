@@ -30,6 +30,7 @@ one; without it, :func:`main` exits with code 2 and says how to install it.
 from __future__ import annotations
 
 import faulthandler
+import math
 import signal
 import sys
 import threading
@@ -48,7 +49,7 @@ except (ImportError, OSError) as _exc:  # pragma: no cover - exercised by a subp
 
 from fms_msgs_json import KINDS, TOPIC_QOS, TOPICS, encode
 
-from .files import write_atomically
+from .files import output_problem, write_atomically
 from .instance import InstanceError
 from .shop_service import Outgoing, ShopService
 
@@ -123,7 +124,9 @@ def _asked(node: Any) -> set[str]:
 
 def param(node: Any, name: str, default: Any) -> Any:
     """Declare a parameter and return its value; a value of the wrong type is a :class:`StartupError`. A number
-    parameter also takes an integer (``resend_s:=2``, which ROS parses as an integer)."""
+    parameter also takes an integer (``resend_s:=2``, which ROS parses as an integer), and must be finite (no
+    parameter of these nodes means anything by ``.nan`` or ``.inf``: ``resend_s:=.nan`` re-sent every 20 ms,
+    ``delay_s:=.inf`` crashed the agent at its first state)."""
     _asked(node).add(name)  # a known parameter even when its value is refused (not "unknown")
     try:
         if isinstance(default, float):
@@ -132,12 +135,41 @@ def param(node: Any, name: str, default: Any) -> Any:
             value = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise TypeError(f"got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"got {value!r}")
             return float(value)
         return node.declare_parameter(name, default).value
     except Exception as exc:  # rclpy raises several exception types for bad overrides
-        kind = {bool: "a boolean (true/false)", int: "an integer", float: "a number", str: "a string"}.get(
+        kind = {bool: "a boolean (true/false)", int: "an integer", float: "a finite number", str: "a string"}.get(
             type(default), type(default).__name__)
         raise StartupError(f"parameter {name!r} must be {kind}: {exc}") from None
+
+
+def instance_param(node: Any, required: bool = True) -> Any:
+    """The instance named by a node's ``instance`` parameter, with ``layout``, ``agvs``, ``tool_transporters``,
+    ``no_tools`` and ``no_agvs`` applied (the shop's and the agent's, which must agree); None without ``instance``
+    where it is not ``required``. A bad value is a :class:`StartupError` in the parameters' words (the loader names
+    the command line's flags: "use --no-agvs")."""
+    from .formats import load_instance
+
+    spec = param(node, "instance", "")
+    layout, agvs, tts = param(node, "layout", 0), param(node, "agvs", 0), param(node, "tool_transporters", 0)
+    no_tools, no_agvs = param(node, "no_tools", False), param(node, "no_agvs", False)
+    if not spec:
+        if not required:
+            return None
+        raise StartupError("parameter 'instance' is required (a built-in name such as EX12, or a file): "
+                           "--ros-args -p instance:=EX12")
+    try:
+        return load_instance(spec, layout=layout or None, agvs=agvs or None, tool_transporters=tts or None,
+                             no_tools=no_tools, no_agvs=no_agvs)
+    except (InstanceError, OSError) as exc:
+        text = str(exc).splitlines()[0]
+        for flag, name in (("--no-agvs", "no_agvs:=true"), ("--no-tools", "no_tools:=true"),
+                           ("--tool-transporters", "tool_transporters:=N"), ("--agvs", "agvs:=N"),
+                           ("--layout", "layout:=L")):
+            text = text.replace(flag, name)
+        raise StartupError(text) from None
 
 
 #: parameters every rclpy node declares by itself
@@ -198,15 +230,7 @@ class ShopNode(FmsNode):
     default_name = NODE_NAME
 
     def _setup(self) -> None:
-        from .formats import load_instance
-
         n = self.node
-        spec = param(n, "instance", "")
-        layout = param(n, "layout", 0)
-        agvs = param(n, "agvs", 0)
-        tts = param(n, "tool_transporters", 0)
-        no_tools = param(n, "no_tools", False)
-        no_agvs = param(n, "no_agvs", False)
         run_id = param(n, "run_id", "")
         features = param(n, "features", True)
         history = param(n, "history", False)
@@ -223,14 +247,15 @@ class ShopNode(FmsNode):
 
         if decisions not in DECISIONS:
             raise StartupError(f"parameter 'decisions' must be one of {', '.join(DECISIONS)}, got {decisions!r}")
-        if not spec:
-            raise StartupError("parameter 'instance' is required (a built-in name such as EX12, or a file): "
-                               "--ros-args -p instance:=EX12")
-        try:
-            inst = load_instance(spec, layout=layout or None, agvs=agvs or None, tool_transporters=tts or None,
-                                 no_tools=no_tools, no_agvs=no_agvs)
-        except (InstanceError, OSError) as exc:
-            raise StartupError(str(exc).splitlines()[0]) from None
+        inst = instance_param(n)
+        for name in ("schedule_out", "instance_out"):  # found at the end: the file was lost, named confusingly
+            path = getattr(self, name)
+            problem = output_problem(path) if path else None
+            if problem is not None:
+                raise StartupError(f"parameter {name!r} ({path}): {problem}")
+        if noise_seed and not noise:  # ignored: a scenario file's noise keeps its own seed
+            raise StartupError("parameter 'noise_seed' seeds the noise of parameter 'noise', which is 0 (a scenario "
+                               "file's noise has its own seed)")
         scenario = None
         if scenario_file or noise:
             from .disruptions import Scenario, ScenarioError

@@ -445,7 +445,20 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (RECORDER, ["-p", "retry_s:=0.0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
         # an integer is a number: it reaches the range check (it was refused as "must be a number")
         (RECORDER, ["-p", "retry_s:=0"], "fms-recorder: error: parameter 'retry_s' must be positive"),
-        (AGENT, ["-p", "resend_s:=abc"], "fms-agent: error: parameter 'resend_s' must be a number"),
+        (AGENT, ["-p", "resend_s:=abc"], "fms-agent: error: parameter 'resend_s' must be a finite number"),
+        # NaN re-sent every 20 ms, inf crashed the agent at its first state (OverflowError)
+        (AGENT, ["-p", "resend_s:=.nan"], "parameter 'resend_s' must be a finite number: got nan"),
+        (AGENT, ["-p", "delay_s:=.inf"], "parameter 'delay_s' must be a finite number: got inf"),
+        (RECORDER, ["-p", "commit_s:=.nan"], "parameter 'commit_s' must be a finite number: got nan"),
+        # found at the end, or a traceback: a database folder that cannot be made, outputs inside a file
+        (RECORDER, ["-p", "db:=/proc/fms-no-such/db.sqlite"], "its folder cannot be made"),
+        (RECORDER, ["-p", "db:=''"], "parameter 'db' names no file (an empty name)"),
+        (RECORDER, ["-p", "gantt_dir:=/proc/self/status"], "parameter 'gantt_dir' (/proc/self/status): "
+                                                           "/proc/self/status is a file, not a folder"),
+        (SHOP, ["-p", "instance:=EX12", "-p", "instance_out:=/proc/self/status/i.json"],
+         "parameter 'instance_out' (/proc/self/status/i.json): /proc/self/status is a file, not a folder"),
+        (SHOP, ["-p", "instance:=EX12", "-p", "noise_seed:=5"], "parameter 'noise_seed' seeds the noise"),  # ignored
+        (SHOP, ["-p", "instance:=EX12", "-p", "agvs:=-2"], "got -2 (use no_agvs:=true to drop them)"),  # not a flag
         (SHOP, ["-p", "instance"], "fms-shop: error: bad ROS arguments"),  # malformed: rclpy's RCLError
         # a misspelt parameter is named where the one it was meant to be is missing
         (SHOP, ["-p", "instnace:=EX12"], "parameter 'instance' is required (a built-in name such as EX12, or a "
