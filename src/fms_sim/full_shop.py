@@ -810,14 +810,23 @@ class FullShop(Shop):
 
     # ------------------------------------------------------------------ saving
     def save_state(self) -> ShopState:
+        """As :meth:`Shop.save_state`, with the full net's own state, and the records of the operations running
+        now: a breakdown lengthens one in place (records are otherwise only appended), and a trial run across a
+        breakdown's start left it lengthened, so that the real run lengthened it again (a schedule the validator
+        refuses)."""
         base = super().save_state()
         extra = copy.deepcopy({name: getattr(self, name) for name in _FULL_STATE})
-        return ShopState(base.net, base.lists, {**base.scalars, "__full__": extra}, base.records, base.instance)
+        running = {i: self.rec.ops[i] for i in self._running_rec if i >= 0}
+        return ShopState(base.net, base.lists, {**base.scalars, "__full__": extra, "__running__": running},
+                         base.records, base.instance)
 
     def restore_state(self, state: ShopState) -> None:
         scalars = dict(state.scalars)
         extra = scalars.pop("__full__")
+        running = scalars.pop("__running__")
         super().restore_state(ShopState(state.net, state.lists, scalars, state.records, state.instance))
+        for i, record in running.items():
+            self.rec.ops[i] = record
         for name, value in copy.deepcopy(extra).items():
             setattr(self, name, value)
         self._danger_cache = {}

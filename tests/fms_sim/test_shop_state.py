@@ -150,3 +150,26 @@ def test_state_keys_follow_the_state_not_the_object():
     v, loc = idle[0]
     twin.reposition("agv", v, (loc + 1) % (inst.n_machines + 1), advance=False)
     assert twin.state_key() != key
+
+
+def test_a_trial_across_a_breakdown_leaves_the_running_operation_as_it_was():
+    """A breakdown lengthens the operation running on its machine in place (records are otherwise only appended):
+    a trial run across the breakdown's start left it lengthened, and the real run lengthened it again (five trials:
+    op (1,0) of ra01 ended at 270 instead of 70, a schedule the validator refuses)."""
+    from fms_sim import validate
+    from fms_sim.disruptions import Breakdown, Scenario
+    from fms_sim.full_shop import make_shop
+
+    inst = builtin("ra01")
+    shop = make_shop(inst, "full", Scenario(breakdowns=(Breakdown(1, 11, 40),)))
+    trials = 0
+    while not shop.done:
+        if shop.now < 11 and any(o.machine == 1 and o.start < 11 < o.end for o in shop.rec.ops):
+            before = list(shop.rec.ops)
+            with shop.trial():  # as the lookahead's twins run on the shop itself
+                while not shop.done and shop.now < 20:
+                    shop.act(shop.legal_actions()[0])
+            assert shop.rec.ops == before
+            trials += 1
+        shop.act(shop.legal_actions()[0])
+    assert trials and validate(inst, shop.schedule()) == []
