@@ -285,6 +285,8 @@ def test_zero_duration_uses_of_a_tool_at_one_instant_follow_its_trip():
      "agv_trips[0].loaded must be true or false, got 1"),
     (lambda s: replace(s, tool_trips=[replace(t, tool=1.0) for t in s.tool_trips]),
      "tool_trips[0].tool must be an integer or None, got 1.0"),
+    (lambda s: replace(s, tool_trips=[replace(t, loaded="no") for t in s.tool_trips]),
+     "tool_trips[0].loaded must be true or false, got 'no'"),
     (lambda s: replace(s, operations=s.operations[:1] + [{"job": 0}] + s.operations[2:]),
      "operations[1] must be of type OperationRecord, got dict"),
     (lambda s: replace(s, tool_trips=None), "tool_trips must be a list of ToolTrip records, got NoneType"),
