@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -314,7 +315,7 @@ class Replanner:
         require_instance(self.instance, "Replanner")
         for name, v, least in (("budget", self.budget, "positive"), ("drift", self.drift, "positive"),
                                ("tabu search", self.tabu, ">= 0 seconds per operation")):
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (0 < v if least == "positive" else 0 <= v)
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and (0 < v if least == "positive" else 0 <= v)
             if not ok or not math.isfinite(v):
                 raise ValueError(f"the re-planning {name} must be {least} and finite, got {v!r}")
         if not isinstance(self.plan, Schedule):

@@ -38,6 +38,7 @@ delivery (a move that puts another use before it is refused, as a cycle is).
 
 from __future__ import annotations
 
+import numbers
 import random
 import time
 from typing import Callable, Iterator, Sequence
@@ -684,8 +685,8 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     require_instance(instance, "solve_tabu")
     t0 = time.monotonic()
     limit = 10.0 if time_limit is None else time_limit
-    if not limit > 0:
-        raise ValueError(f"time_limit must be positive, got {time_limit}")
+    if not 0 < limit < float("inf"):  # inf: "tabu_plan needs a time budget", a function it was not given
+        raise ValueError(f"time_limit must be a positive, finite number of seconds, got {time_limit}")
     plans = [greedy_schedule(instance, rule=rule, vehicle=vehicle) for rule in ("est", "ect")
              for vehicle in ("earliest", "nearest")]
     start = min(plans, key=lambda p: p.makespan)
@@ -726,7 +727,7 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
         budget = None  # no time limit, as None says: an iteration limit must then be set (it ran without an end)
     if budget is None and max_iters is None:
         raise ValueError("tabu_plan needs a time budget or an iteration limit")
-    if budget is not None and not (isinstance(budget, (int, float)) and not isinstance(budget, bool) and budget >= 0):
+    if budget is not None and not (isinstance(budget, numbers.Real) and not isinstance(budget, bool) and budget >= 0):
         raise ValueError(f"budget must be >= 0 seconds (None: no time limit), got {budget!r}")  # NaN passed
     if max_iters is not None and max_iters < 0:
         raise ValueError(f"max_iters must be >= 0, got {max_iters}")

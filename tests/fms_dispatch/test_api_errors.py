@@ -69,6 +69,9 @@ def test_the_solvers_public_functions_name_their_mistakes() -> None:
     with pytest.raises(ValueError, match="needs a time budget or an iteration limit"):  # inf: no limit, as None
         tabu_plan(ex11, plan, budget=float("inf"))
     assert validate(ex11, tabu_plan(ex11, plan, budget=float("inf"), max_iters=3)) == []
+    assert validate(ex11, tabu_plan(ex11, plan, budget=np.float32(0.01))) == []  # numpy numbers are numbers
+    with pytest.raises(ValueError, match="time_limit must be a positive, finite number of seconds, got inf"):
+        solve_tabu(ex11, time_limit=float("inf"))  # it said "tabu_plan needs a time budget", never called by name
 
 
 def test_an_env_used_before_reset_or_given_the_wrong_shop_says_so() -> None:

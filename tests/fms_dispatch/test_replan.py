@@ -133,6 +133,9 @@ def test_bad_replanning_options_are_refused():
         Replanner(inst, Schedule("EX12", 0), budget=0.5)
     with pytest.raises(TypeError, match="the plan must be a Schedule"):
         Replanner(inst, plan.to_dict())
+    import numpy as np
+
+    Replanner(inst, plan, budget=np.int64(2), drift=np.float32(0.1), tabu=np.float64(0))  # numpy numbers are numbers
     with pytest.raises(ValueError, match="budget"):
         solve(inst, "plan:list", replan=-1.0)
 
