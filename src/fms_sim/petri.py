@@ -45,7 +45,10 @@ class InvalidAction(ValueError):
 
 def index_arg(value: Any, what: str = "action") -> int:
     """``value`` as an index (an int or a numpy integer), else :class:`InvalidAction` naming ``what``: a float or a
-    string was taken by list indexing far from the call (a TypeError there), or compared equal to an index."""
+    string was taken by list indexing far from the call (a TypeError there), or compared equal to an index; a bool
+    (True ran action 1) is no index either."""
+    if type(value) is bool:
+        raise InvalidAction(f"{what} must be an integer, got {value!r}")
     try:
         return operator.index(value)
     except TypeError:

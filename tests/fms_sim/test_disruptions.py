@@ -288,3 +288,6 @@ def test_draw_takes_numpy_integers_and_a_list_range():
     got = Scenario.draw(inst, breakdowns=np.int64(2), horizon=np.int64(100), duration=[3, 4], seed=1)
     assert got == Scenario.draw(inst, breakdowns=2, horizon=100, duration=(3, 4), seed=1)
     assert len(got.breakdowns) == 2 and all(3 <= b.duration <= 4 for b in got.breakdowns)
+    # [0, 0] is the default range, as (0, 0) (it was refused by a message that offered (0, 0))
+    assert Scenario.draw(inst, breakdowns=2, horizon=100, duration=[0, 0], seed=1) == \
+        Scenario.draw(inst, breakdowns=2, horizon=100, seed=1)

@@ -289,6 +289,7 @@ def test_arguments_that_name_no_action_or_vehicle_are_invalid_actions(decisions)
                       (lambda: shop.reposition("agv", None, 1), "the AGV number must be an integer, got None"),
                       (lambda: shop.act(1.0), "action must be an integer, got 1.0"),
                       (lambda: shop.act("0"), "action must be an integer, got '0'"),
+                      (lambda: shop.act(True), "action must be an integer, got True"),  # ran action 1
                       (lambda: shop.fire_action(None), "action must be an integer, got None"),
                       (lambda: shop.action_kind(-1), "action -1 is out of range"),
                       (lambda: shop.action_kind(n + 5), f"action {n + 5} is out of range"),
