@@ -27,6 +27,7 @@ import json
 import re
 import sqlite3
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable
 
@@ -122,6 +123,7 @@ class RecorderStore:
 
     def __init__(self, path: str | Path = DEFAULT_DB) -> None:
         self.path = Path(path)
+        self._ends: dict[str, int | None] = {}  # run -> the seq of its run_end (None: not stored), as read or stored
         where = f"cannot open the recorder database {str(self.path)!r}"
         if self.path.parent and not self.path.parent.exists():
             try:
@@ -179,28 +181,30 @@ class RecorderStore:
         two runs — or that comes after the run's ``run_end``."""
         now = time.time() if now is None else now
         run_id, data, seq = event["run_id"], event["data"], event["seq"]
-        row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
-                              (run_id, seq)).fetchone()
-        if row is not None:
-            if (row[0], row[1], json.loads(row[2])) == (event["time"], event["kind"], data):
-                return False  # a replay or a duplicate
-            raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
-                              f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
-        end = self.end_seq(run_id)
+        if run_id not in self._ends:
+            self._ends[run_id] = self.end_seq(run_id)
+        end = self._ends[run_id]
         if end is not None and seq > end:
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']}) comes after the run's end (event {end}, "
                               "run_end): not stored")
-        self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
         cur = self.db.execute(
             "INSERT OR IGNORE INTO events (run_id, seq, time, kind, data, received) VALUES (?, ?, ?, ?, ?, ?)",
-            (run_id, event["seq"], event["time"], event["kind"], json.dumps(data, separators=(",", ":")), now))
-        new = cur.rowcount == 1
-        if new and event["kind"] == "run_end":
+            (run_id, seq, event["time"], event["kind"], json.dumps(data, separators=(",", ":")), now))
+        if cur.rowcount != 1:  # stored already: a replay or a duplicate, unless it differs
+            row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
+                                  (run_id, seq)).fetchone()
+            if (row[0], row[1], json.loads(row[2])) == (event["time"], event["kind"], data):
+                return False
+            raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
+                              f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
+        self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
+        if event["kind"] == "run_end":
             self.db.execute("UPDATE runs SET end_seq = ?, makespan = ? WHERE run_id = ?",
-                            (event["seq"], data.get("makespan"), run_id))
+                            (seq, data.get("makespan"), run_id))
+            self._ends[run_id] = seq
         if commit:
             self.db.commit()
-        return new
+        return True
 
     def add_schedule(self, run_id: str, schedule: dict[str, Any], now: float | None = None, *,
                      commit: bool = True) -> bool:
@@ -568,7 +572,7 @@ class Recorder:
                            ("operations", stored.operations, rebuilt.operations),
                            ("AGV trips", stored.agv_trips, rebuilt.agv_trips),
                            ("tool trips", stored.tool_trips, rebuilt.tool_trips)):
-            if sorted(map(repr, a)) != sorted(map(repr, b)):
+            if Counter(a) != Counter(b):  # (the records are values: the orders may differ)
                 return (f"run {run_id!r}: the schedule stored (makespan {stored.makespan}) is not the one its events "
                         f"give (makespan {rebuilt.makespan}; the {what} differ): another run with the same run id? "
                         "(no chart; the run is not called complete)")
