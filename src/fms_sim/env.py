@@ -101,7 +101,7 @@ def check_disruptions(disruptions: dict[str, Any] | None, decisions: str = "full
     noise, bds = disruptions.get("noise", 0.0), disruptions.get("breakdowns", 0)
     seed, fixed = disruptions.get("seed", 0), disruptions.get("fixed", False)
     flag = (bool, np.bool_)  # numpy's scalars are numbers like Python's (a np.int64 count was refused)
-    if not isinstance(noise, numbers.Real) or isinstance(noise, flag) or not 0 <= noise <= MAX_NOISE:
+    if not isinstance(noise, numbers.Real) or isinstance(noise, flag) or not 0 <= float(noise) <= MAX_NOISE:
         raise ValueError(f"disruption noise must be a spread from 0 to {MAX_NOISE:g}, got {noise!r}")
     if not isinstance(bds, numbers.Integral) or isinstance(bds, flag) or bds < 0:
         raise ValueError(f"disruption breakdowns must be an integer >= 0, got {bds!r}")
@@ -236,7 +236,8 @@ class ShopEnv(gym.Env):
             self._check_fits(i)
         self.reward_mode = reward
         self.invalid_action = invalid_action
-        if not isinstance(invalid_penalty, numbers.Real) or not math.isfinite(invalid_penalty):  # NaN: a NaN return
+        if (not isinstance(invalid_penalty, (int, float, np.integer, np.floating)) or isinstance(invalid_penalty, bool)
+                or not math.isfinite(invalid_penalty)):  # NaN: every invalid action's return NaN
             raise ValueError(f"invalid_penalty must be a finite number, got {invalid_penalty!r}")
         self.invalid_penalty = float(invalid_penalty)
         self.n_actions = self.max_jobs + self.max_agvs + self.max_tts
