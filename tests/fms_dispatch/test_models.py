@@ -27,6 +27,20 @@ def test_a_checkout_uses_its_models_folder() -> None:
     assert resolve_model("bu").folder == REPO / "models" / "bu"
 
 
+def test_a_folder_here_named_like_a_model_does_not_replace_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a folder guided-dagger in the working directory took the place of the default model: `ppo` ran another
+    # model's weights (or failed for want of best_model.zip); a path names the folder here
+    shutil.copytree(REPO / "models" / "full", tmp_path / "guided-dagger")
+    (tmp_path / "mine").mkdir()
+    for name in ("best_model.zip", "config.json"):
+        shutil.copy(REPO / "models" / "bu" / name, tmp_path / "mine" / name)
+    monkeypatch.chdir(tmp_path)
+    assert resolve_model("guided-dagger").folder == REPO / "models" / "guided-dagger"
+    assert resolve_model("./guided-dagger").folder == Path("./guided-dagger")
+    assert resolve_model(str(tmp_path / "guided-dagger")).folder == tmp_path / "guided-dagger"
+    assert resolve_model("mine").folder == Path("mine")  # a name no search place holds: the folder here
+
+
 def test_ament_prefixes_are_searched(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     shutil.copytree(REPO / "models" / "bu", tmp_path / SHARE_SUBDIR / "mine")
     with pytest.raises(ModelNotFoundError):

@@ -155,14 +155,20 @@ class ModelRef:
 
 
 def resolve_model(spec: str) -> ModelRef:
-    """A model by shipped name (``bu``), folder (``models/bu``) or weights file (``models/bu/model.zip``)."""
+    """A model by shipped name (``bu``), folder (``models/bu``) or weights file (``models/bu/model.zip``). A bare
+    name is looked up in :func:`model_dirs` first, then as a folder here: a folder named ``guided-dagger`` in the
+    working directory took the place of the default model (``ppo``) without a word."""
     p = Path(spec)
     if p.is_file() and p.suffix == ".zip":
         return ModelRef(p.parent, p)
-    if p.is_dir():
+    known = None if len(p.parts) != 1 or spec.startswith(".") else next(
+        (d / spec for d in model_dirs() if (d / spec).is_dir()), None)
+    if known is not None:
+        folder = known
+    elif p.is_dir():
         folder = p
     else:
-        folder = next((d / spec for d in model_dirs() if (d / spec).is_dir()), p)
+        folder = p
         if not folder.is_dir():
             names = ", ".join(SHIPPED)
             raise ModelNotFoundError(f"no model named {spec!r} (shipped models: {names}; or give a model folder or "
