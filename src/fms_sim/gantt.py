@@ -33,7 +33,7 @@ from matplotlib.ticker import MaxNLocator
 from matplotlib.transforms import blended_transform_factory
 
 from .files import replacing
-from .instance import Instance
+from .instance import MAX_COUNT, Instance
 from .schedule import Schedule
 
 __all__ = ["plot_gantt", "save_gantt", "chart_formats"]
@@ -82,11 +82,17 @@ def _text_colour(rgba: Sequence[float]) -> str:
 
 def _layout(schedule: Schedule, instance: Instance | None) -> tuple[list[_Row], list[tuple[str, float, float]], float]:
     """Rows and sections (name, header centre, section start) top-down, and the total height in row units."""
-    bad = ([f"machine {r.machine}" for r in schedule.operations if r.machine < 1]
-           + [f"AGV {t.agv}" for t in schedule.agv_trips if t.agv < 0]
-           + [f"tool transporter {t.transporter}" for t in schedule.tool_trips if t.transporter < 0])
+    # (one row per number up to the largest: machine 5000 took 14 s and 720 MB, 10**6 was killed at 24 GB; no
+    # instance has more than MAX_COUNT of each)
+    bad = ([f"machine {r.machine}" for r in schedule.operations if not 1 <= r.machine <= MAX_COUNT]
+           + [f"AGV {t.agv}" for t in schedule.agv_trips if not 0 <= t.agv < MAX_COUNT]
+           + [f"tool transporter {t.transporter}" for t in schedule.tool_trips if not 0 <= t.transporter < MAX_COUNT])
     if bad:
         raise ValueError(f"cannot plot: the schedule names {bad[0]}, which does not exist")
+    for n, what in ((schedule.n_agvs, "AGVs"), (schedule.n_tool_transporters, "tool transporters")):
+        if n > MAX_COUNT:
+            raise ValueError(f"cannot plot: the schedule declares {n} {what}, more than an instance has "
+                             f"(at most {MAX_COUNT})")
     n_m = max(r.machine for r in schedule.operations)
     n_agv = max([schedule.n_agvs] + [t.agv + 1 for t in schedule.agv_trips])
     n_tt = max([schedule.n_tool_transporters] + [t.transporter + 1 for t in schedule.tool_trips])
@@ -120,8 +126,12 @@ def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[t
     if not isinstance(sc, dict):
         return []
     out = []
-    windows = [("machine", b.get("machine"), b.get("start"), b.get("duration")) for b in sc.get("breakdowns", [])]
-    windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in sc.get("outages", [])]
+    def entries(key: str) -> list[dict]:  # a malformed record (outages as a string) draws nothing, as no record
+        items = sc.get(key)
+        return [d for d in items if isinstance(d, dict)] if isinstance(items, list) else []
+
+    windows = [("machine", b.get("machine"), b.get("start"), b.get("duration")) for b in entries("breakdowns")]
+    windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in entries("outages")]
     for kind, i, start, dur in windows:
         y = row_y.get((kind, i))
         if y is not None and isinstance(start, int) and isinstance(dur, int):
@@ -270,7 +280,7 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
               fontsize=8, handlelength=2.2, borderaxespad=0.2)
     fig.text(_LEFT_IN / width_in, 1 - 0.12 / height_in, title if title is not None else
              f"{schedule.instance} — makespan {schedule.makespan}", ha="left", va="top", fontsize=11,
-             fontweight="bold")
+             fontweight="bold", parse_math=False)  # a name with "$...$" is text (unbalanced: a parse error)
 
     if path is not None:
         _save(fig, Path(path))
@@ -281,6 +291,8 @@ def _save(fig: Figure, out: Path) -> None:
     """Write ``fig`` to ``out`` in the format its suffix names where matplotlib writes it (png, pdf, svg, eps, ...),
     else PNG, through a temporary file, so that a failed write leaves an existing chart as it was."""
     fmt = out.suffix[1:].lower()
+    if out.is_dir():  # (an IsADirectoryError naming the temporary file)
+        raise ValueError(f"cannot write the chart: {out} is a folder; name a file")
     with replacing(out) as tmp:
         fig.savefig(tmp, dpi=_DPI, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
 

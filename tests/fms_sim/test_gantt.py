@@ -208,6 +208,16 @@ def test_impossible_rows_raise() -> None:
     sched.agv_trips.append(AgvTrip(-1, None, None, 1, 0, 20, 22, False))
     with pytest.raises(ValueError, match="names AGV -1, which does not exist"):
         plot_gantt(sched)
+    # one row per number up to the largest: machine 10**6 was killed at 24 GB (no instance has more than 1000)
+    from dataclasses import replace
+
+    from fms_sim.schedule import OperationRecord
+
+    far = Schedule("x", 5, operations=[OperationRecord(0, 0, 10**6, None, 0, 5)])
+    with pytest.raises(ValueError, match="names machine 1000000, which does not exist"):
+        plot_gantt(far)
+    with pytest.raises(ValueError, match=r"declares 5000 AGVs, more than an instance has \(at most 1000\)"):
+        plot_gantt(replace(hand_schedule(), n_agvs=5000))
 
 
 def test_large_schedule_renders_fast(tmp_path: Path) -> None:
@@ -261,3 +271,17 @@ def test_disruptions_are_drawn_behind_their_rows():
     while not nominal.done:
         nominal.act(nominal.legal_actions()[0])
     assert "down / out of service" not in legend(plot_gantt(nominal.schedule(), inst))
+
+
+def test_odd_titles_scenarios_and_paths(tmp_path: Path) -> None:
+    # an unbalanced "$" in a title (or an instance name) was matplotlib's parse error; a malformed recorded scenario
+    # an AttributeError; a folder as the path an IsADirectoryError naming a temporary file
+    from dataclasses import replace
+
+    sched = replace(hand_schedule(), instance="cell $\\frac{$")
+    assert save_gantt(sched, tmp_path / "a.png").read_bytes()[:8] == PNG_MAGIC
+    assert save_gantt(sched, tmp_path / "b.png", title="$x").exists()
+    for bad in ({"outages": "x"}, {"breakdowns": None}, {"breakdowns": [1, 2]}):
+        assert save_gantt(replace(sched, meta={"scenario": bad}), tmp_path / "c.png").exists()
+    with pytest.raises(ValueError, match=f"cannot write the chart: {tmp_path} is a folder; name a file"):
+        save_gantt(sched, tmp_path)
