@@ -771,3 +771,20 @@ def test_guided_dagger_acts_as_its_expert_in_a_disrupted_shop_where_guided_does_
     assert validate(inst, dagger, sc) == [] and dagger.makespan == follower.makespan < clone.makespan
     replanned = ppo_solver("ppo:guided-dagger")(inst, scenario=sc, guide_effort=effort)
     assert validate(inst, replanned, sc) == [] and replanned.meta["replans"]
+
+
+def test_train_refuses_shops_named_alike_and_resume_options_it_would_drop(tmp_path):
+    # two gen: shops differing in their tool count got one name: metrics.json kept one result (and a wrong mean)
+    with pytest.raises(ValueError, match="two shops of the train set are named 'gen6x4s1_00'"):
+        train(dict(TINY, train=["gen:6x4x3*1@1", "gen:6x4x4*1@1"], steps=10), tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()
+    # resume took every config key but steps and dropped it without a word; a damaged saved config was a traceback
+    out = tmp_path / "m"
+    out.mkdir()
+    (out / "model.zip").write_bytes(b"")
+    with pytest.raises(ValueError, match="the config gives only steps, not reward, seed"):
+        train({"steps": 1, "reward": "makespan", "seed": 99}, out, resume=True, progress=False)
+    for text in ('{"steps": ', "[1]", "\udcff"):
+        (out / "config.json").write_text(text, errors="surrogateescape")
+        with pytest.raises(ValueError, match=f"cannot resume: {out / 'config.json'}"):
+            train({"steps": 1}, out, resume=True, progress=False)

@@ -92,6 +92,28 @@ DEFAULT_CONFIG: dict[str, Any] = {
             "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.01, "vf_coef": 0.5, "max_grad_norm": 0.5},
 }
 
+def _saved_config(path: Path) -> dict[str, Any]:
+    """A model's saved config, read as ``fms train --config`` reads one (a damaged file was a traceback that did not
+    name it: JSONDecodeError, UnicodeDecodeError, or a TypeError for a file holding a list)."""
+    try:
+        saved = loads(read_text(path))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot resume: {path} cannot be read ({exc})") from None
+    if not isinstance(saved, dict):
+        raise ValueError(f"cannot resume: {path} holds no JSON object of hyper-parameters")
+    return saved
+
+
+def _named_twice(shops: Sequence[Instance]) -> str | None:
+    """A name two different shops of ``shops`` share (the same shop listed twice is no clash), else None."""
+    seen: dict[str, Instance] = {}
+    for inst in shops:
+        other = seen.setdefault(inst.name, inst)
+        if other is not inst and other != inst:
+            return inst.name
+    return None
+
+
 def expand_instances(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> list[Instance]:
     """Load instance specs (see the module docstring), applying the fleet overrides to each."""
     from fms_sim.shopsets import expand_specs
@@ -428,7 +450,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"{out} already holds a model ({', '.join(p.name for p in held)}): continue it with "
                          "--resume, give another --out, or --force to replace it")
     if resume:
-        saved = json.loads((out / CONFIG_FILE).read_text()) if (out / CONFIG_FILE).is_file() else None
+        ignored = sorted(k for k, v in config.items() if k != "steps" and v is not None)
+        if ignored:  # they were dropped without a word (the CLI refuses their flags)
+            raise ValueError(f"resume continues the model in {out} with its own {CONFIG_FILE}: the config gives only "
+                             f"steps, not {', '.join(ignored)} (train a new model for those)")
+        saved = _saved_config(out / CONFIG_FILE) if (out / CONFIG_FILE).is_file() else None
         if saved is None or not (out / "model.zip").is_file():
             raise ValueError(f"cannot resume: {out} has no {CONFIG_FILE} and model.zip from an earlier run")
         cfg = _merge(saved, {"steps": config.get("steps")})
@@ -520,6 +546,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError("warm_start.refine clones rule pairs of the paper's net; it does not apply to the full net")
     train_set = expand_instances(cfg["train"], cfg["fleet"])
     eval_set = expand_instances(cfg["eval"], cfg["fleet"]) if cfg["eval"] else train_set[:10]
+    for what, shops in (("train", train_set), ("eval", eval_set)):
+        twice = _named_twice(shops)
+        if twice is not None:  # results are kept by name: metrics.json lost one of them (and its mean was wrong)
+            raise ValueError(f"two shops of the {what} set are named {twice!r} (gen: names leave out the tool count "
+                             "and the fleet): give them different seeds")
     everything = train_set + eval_set + [i for st in refine for i in st[1]]
     padding = padding_for(cfg["padding"], everything)
     misfit = _misfit(everything, padding)
