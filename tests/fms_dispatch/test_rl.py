@@ -658,6 +658,16 @@ def test_stale_or_broken_export_falls_back_to_torch(tmp_path):
     for broken in (b"", good[:1000], good[:-200]):  # empty, truncated (an interrupted copy or a full disk)
         actor_path(weights).write_bytes(broken)
         assert Agent(weights, ref.padding).uses_torch
+    import json
+
+    import numpy as np
+
+    with np.load(ref.weights.with_name("best_model.actor.npz")) as data:
+        arrays = dict(data)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    for bad in ([meta], {k: v for k, v in meta.items() if k != "source_sha256"}):  # an AttributeError, a KeyError
+        np.savez(actor_path(weights), **dict(arrays, meta=np.frombuffer(json.dumps(bad).encode(), dtype=np.uint8)))
+        assert Agent(weights, ref.padding).uses_torch
     shutil.copy(ref.weights.with_name("best_model.actor.npz"), actor_path(weights))  # the right export
     fast = Agent(weights, ref.padding)
     assert not fast.uses_torch

@@ -301,7 +301,7 @@ def load_actor(path: str | Path) -> tuple[Actor, str]:
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(bytes(data["meta"]).decode())
-            if meta.get("format") != _FORMAT:
+            if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
                 raise ValueError(f"{path} is not an actor export ({_FORMAT})")
             if meta["kind"] == "entity":
                 actor: Actor = NumpyEntityActor(
@@ -310,7 +310,8 @@ def load_actor(path: str | Path) -> tuple[Actor, str]:
                     {b: _unpack(f"head.{b}", t, data) for b, t in meta["heads"].items()})
             else:
                 actor = NumpyMlpActor(_unpack("mlp", meta["layers"], data))
-    except (OSError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError,
-            UnicodeDecodeError) as exc:  # empty, truncated or damaged (an interrupted copy, a full disk)
+            sha = meta["source_sha256"]  # (read outside this guard, its absence was a KeyError)
+    except (OSError, EOFError, KeyError, TypeError, AttributeError, zipfile.BadZipFile, zlib.error,
+            json.JSONDecodeError, UnicodeDecodeError) as exc:  # empty, truncated or damaged (an interrupted copy)
         raise ValueError(f"cannot read the actor export {path}: {exc}") from None
-    return actor, meta["source_sha256"]
+    return actor, sha
