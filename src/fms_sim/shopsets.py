@@ -180,6 +180,18 @@ def expand_specs(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> l
     """
     if isinstance(specs, str):
         raise ValueError(f"instance specs must be a list of strings, got the string {specs!r}")
+    if fleet is not None and not isinstance(fleet, dict):  # a TypeError from dict(**...)
+        raise ValueError(f"the fleet must be a dict ({', '.join(_DEFAULT_FLEET)}), got {type(fleet).__name__}")
+    unknown = sorted(set(fleet or ()) - set(_DEFAULT_FLEET))
+    if unknown:  # a misspelt "agv" was ignored
+        raise ValueError(f"unknown fleet key(s) {', '.join(map(repr, unknown))}; the keys are "
+                         f"{', '.join(_DEFAULT_FLEET)}")
+    for key in ("agvs", "tool_transporters"):
+        v = (fleet or {}).get(key)
+        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):  # 0 gave the default 10
+            raise ValueError(f"fleet {key} must be an integer >= 1 or None (the shop's own), got {v!r}")
+    if not isinstance((fleet or {}).get("no_tools", False), (bool, type(None))):  # "false" dropped the tools
+        raise ValueError(f"fleet no_tools must be true, false or None, got {fleet['no_tools']!r}")
     fl = dict(_DEFAULT_FLEET, **(fleet or {}))
     out: list[Instance] = []
     for spec in specs:

@@ -267,3 +267,15 @@ def test_check_training_specs_reports_typos_as_typos_on_one_line() -> None:
     assert msg.startswith("cannot read the shop specs: ") and "\n" not in msg
     assert "train: 'notapattern' does not expand" in msg and "eval: 'gen:5x3x3' does not expand" in msg
     assert "benchmark" not in msg.split(":")[0]
+
+
+@pytest.mark.parametrize("fleet, msg", [
+    ({"agv": 3}, r"unknown fleet key\(s\) 'agv'"),  # ignored
+    ({"agvs": 0}, "fleet agvs must be an integer >= 1 or None"),  # gave the default 10 AGVs
+    ({"tool_transporters": 1.5}, "fleet tool_transporters must be an integer >= 1 or None"),
+    ({"no_tools": "false"}, "fleet no_tools must be true, false or None, got 'false'"),  # dropped the tools
+    ([("agvs", 3)], "the fleet must be a dict"),  # a TypeError
+])
+def test_a_fleet_that_means_nothing_is_refused(fleet, msg):
+    with pytest.raises(ValueError, match=msg):
+        expand_specs(["gen:6x4x3*1@1"], fleet)
