@@ -455,6 +455,13 @@ def test_refine_stage_clones_one_pair_after_the_warm_start(tmp_path):
     for bad, why in (([dict(stage, pair="BEST+nearest")], "unknown job rule"),
                      ([{"pair": "MTWR+nearest"}], r"refine\[0\] needs train"),
                      ([dict(stage, epochs=0)], "epochs must be"),
+                     # int() and float() took these (2, 1, a NaN or infinite rate), a string train its letters
+                     ([dict(stage, epochs=2.9)], "epochs must be an integer >= 1, got 2.9"),
+                     ([dict(stage, epochs=True)], "epochs must be an integer >= 1, got True"),
+                     ([dict(stage, lr="nan")], "lr must be a positive, finite number, got 'nan'"),
+                     ([dict(stage, lr=float("inf"))], "lr must be a positive, finite number, got inf"),
+                     ([dict(stage, seed=-3)], "seed must be an integer from 0"),
+                     ([dict(stage, train="gen:7x5x3*2@7")], "train must be a list of instance specs"),
                      ({"train": ["EX12"]}, "must be a list")):
         with pytest.raises(ValueError, match=why):
             train(dict(base, warm_start={"expert": "rules+nearest", "refine": bad}), tmp_path / "bad",

@@ -365,11 +365,17 @@ def _refine_stages(stages: Any, fleet: dict[str, Any], seed: int
             raise ValueError(f"warm_start.refine[{k}] needs train (instance specs) and pair (e.g. "
                              f"'MTWR+nearest'), with optional epochs, lr and seed, not {st!r}")
         parse_rule_name(str(st["pair"]))  # unknown rules fail here, before any work
-        epochs, lr = int(st.get("epochs", 10)), float(st.get("lr", 3e-4))
-        if epochs < 1 or lr <= 0:
-            raise ValueError(f"warm_start.refine[{k}]: epochs must be ≥ 1 and lr > 0")
-        out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, lr,
-                    int(st.get("seed", seed + 1 + k))))
+        # (int() and float() took 2.9 epochs as 2, True as 1, "nan" and inf as rates, and 'x' was a bare error)
+        epochs, lr, stage_seed = st.get("epochs", 10), st.get("lr", 3e-4), st.get("seed", seed + 1 + k)
+        if not isinstance(epochs, int) or isinstance(epochs, bool) or epochs < 1:
+            raise ValueError(f"warm_start.refine[{k}]: epochs must be an integer >= 1, got {epochs!r}")
+        if not isinstance(lr, (int, float)) or isinstance(lr, bool) or not 0 < lr < math.inf:
+            raise ValueError(f"warm_start.refine[{k}]: lr must be a positive, finite number, got {lr!r}")
+        if not isinstance(stage_seed, int) or isinstance(stage_seed, bool) or not 0 <= stage_seed < 2 ** 31:
+            raise ValueError(f"warm_start.refine[{k}]: seed must be an integer from 0 to 2**31 - 1, got {stage_seed!r}")
+        if isinstance(st["train"], str):  # split into its letters
+            raise ValueError(f"warm_start.refine[{k}]: train must be a list of instance specs, got {st['train']!r}")
+        out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, float(lr), stage_seed))
     return out
 
 
