@@ -326,6 +326,12 @@ def test_plan_effort_is_validated():
                 dict(exact=float("inf"))):
         with pytest.raises(ValueError, match="plan"):
             PlanEffort(**bad)
+    # numpy's numbers were refused; they are kept as Python's (budget=False was taken as no limit)
+    got = effort_from(np.int64(3), np.float32(0.5), np.bool_(True), np.float64(0), np.float64(0.001))
+    assert got == PlanEffort(3, 0.5, DEFAULT_EFFORT.seed, True, 0.0, 0.001)
+    assert [type(v) for v in got.as_dict().values()] == [int, float, int, bool, float, float]
+    with pytest.raises(ValueError, match="plan budget must be a finite number of seconds >= 0 .*got False"):
+        effort_from(budget=False)
 
 
 def test_a_searched_plan_guides_from_scratch_and_from_a_state():

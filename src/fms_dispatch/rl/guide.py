@@ -36,6 +36,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import numbers
 import time
 from typing import Any, Callable
 
@@ -90,11 +91,11 @@ class PlanEffort:
     tabu: float = 0.0
 
     def __post_init__(self) -> None:
-        def whole(v: Any) -> bool:
-            return isinstance(v, int) and not isinstance(v, bool)
+        def whole(v: Any) -> bool:  # (numpy's integers too: they are made Python's below)
+            return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
 
         def seconds(v: Any) -> bool:  # a string was a TypeError at the first comparison; inf never ended
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < math.inf
+            return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and 0 <= v < math.inf
 
         if not whole(self.restarts) or self.restarts < 0:
             raise ValueError(f"plan restarts must be an integer >= 0, got {self.restarts!r}")
@@ -102,13 +103,18 @@ class PlanEffort:
             raise ValueError(f"plan budget must be a finite number of seconds >= 0 (or None), got {self.budget!r}")
         if not whole(self.seed):
             raise ValueError(f"plan seed must be an integer, got {self.seed!r}")
-        if not isinstance(self.rules, bool):
+        if not isinstance(self.rules, (bool, np.bool_)):
             raise ValueError(f"plan rules must be True or False, got {self.rules!r}")
+        object.__setattr__(self, "rules", bool(self.rules))  # (np.bool_)
         if not seconds(self.exact):
             raise ValueError(f"plan polish (exact) must be a finite number of seconds >= 0, got {self.exact!r}")
         if not seconds(self.tabu):
             raise ValueError(f"plan tabu search must be a finite number of seconds >= 0 per operation, got "
                              f"{self.tabu!r}")
+        for name in ("restarts", "seed", "exact", "tabu", "budget"):
+            value = getattr(self, name)
+            if isinstance(value, np.generic):  # numpy's numbers as Python's (in meta, configs, JSON)
+                object.__setattr__(self, name, value.item())
 
     def as_dict(self) -> dict[str, Any]:
         return {"restarts": self.restarts, "budget": self.budget, "seed": self.seed, "rules": self.rules,
@@ -134,8 +140,8 @@ def effort_from(restarts: int | None = None, budget: float | None = None, rules:
         changes["exact"] = exact
     if restarts is not None:
         changes["restarts"] = restarts
-    if budget is not None:
-        changes["budget"] = budget or None
+    if budget is not None:  # 0: no limit (False was taken as 0: refused as PlanEffort refuses True)
+        changes["budget"] = None if budget == 0 and not isinstance(budget, bool) else budget
     if rules is not None:
         changes["rules"] = rules
     return dataclasses.replace(DEFAULT_EFFORT, **changes)
