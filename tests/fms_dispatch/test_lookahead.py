@@ -326,3 +326,14 @@ def test_nominal_twins_do_not_see_the_disrupted_future(name):
             trial = [run_agent(FullShop(inst, scenario=sc), choose, lookahead=True) for sc in (a, b)]
             seen_future += _started_before(trial[0], t0) != _started_before(trial[1], t0)
     assert seen_future > 0  # the property is not vacuous: trial runs of the shop itself do see the future
+
+
+def test_a_horizon_that_is_no_count_of_decisions_is_refused():
+    # -1 sliced the trajectory nearly to its end (as a long horizon); '5' and 2.5 were TypeErrors deep inside
+    from fms_dispatch.rl.lookahead import run_agent
+    from fms_sim.benchmarks import builtin
+    from fms_sim.full_shop import make_shop
+
+    for h in (-1, "5", 2.5, True):
+        with pytest.raises(ValueError, match="the lookahead horizon must be an integer >= 0"):
+            run_agent(make_shop(builtin("EX12"), "paper"), lambda s: s.legal_actions()[0], lookahead=True, horizon=h)

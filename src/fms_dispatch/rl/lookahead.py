@@ -258,6 +258,8 @@ class LookaheadPlanner:
                  reference: bool = False, retry: bool = True, twin: TwinMaker | None = None) -> None:
         self.choose = choose
         self.twin = twin
+        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 0:  # -1 sliced nearly to the end
+            raise ValueError(f"the lookahead horizon must be an integer >= 0 (decisions), got {horizon!r}")
         self.horizon = horizon
         self.verify = verify
         self.reference = reference
