@@ -158,6 +158,9 @@ def generate_instances(
     """
     _check_size("n_jobs", n_jobs)
     _check_size("n_machines", n_machines)
+    for flag, value in (("tools", tools), ("agvs", agvs)):
+        if not isinstance(value, bool):  # "no" read as True
+            raise InstanceError(f"{flag} must be True or False, got {value!r}")
     _check_size("n_tools", n_tools, 1 if tools else 0)
     _check_size("count", count, top=10**6)
     if agvs:

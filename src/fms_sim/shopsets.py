@@ -95,10 +95,13 @@ def bu_shop(layout: int, seed: int, name: str | None = None, *, n_agvs: int = BU
 
     The project's BU names (``EX{set}{layout}``) encode no processing-time scaling, so none is reproduced.
     """
-    if layout not in (1, 2, 3, 4) or isinstance(layout, bool):
+    # (2.0 was a KeyError; numpy integers pass, as Python's)
+    if isinstance(layout, bool) or not isinstance(layout, (int, np.integer)) or layout not in (1, 2, 3, 4):
         raise InstanceError(f"BU layout must be 1, 2, 3 or 4, got {layout!r}")
-    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+    layout = int(layout)
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:  # (np.int64: as the layout)
         raise InstanceError(f"seed must be a non-negative integer, got {seed!r}")
+    seed = int(seed)
     rng = np.random.default_rng(seed)
     lengths = _bu_job_lengths(rng)
     jobs = tuple(_bu_job(rng, k) for k in lengths)

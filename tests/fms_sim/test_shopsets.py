@@ -279,3 +279,17 @@ def test_check_training_specs_reports_typos_as_typos_on_one_line() -> None:
 def test_a_fleet_that_means_nothing_is_refused(fleet, msg):
     with pytest.raises(ValueError, match=msg):
         expand_specs(["gen:6x4x3*1@1"], fleet)
+
+
+def test_bu_shop_and_the_generator_check_their_kinds():
+    # bu_shop(2.0, 5) was a KeyError, np.int64 seeds refused while np.int64 layouts passed; tools="no" read as True
+    import numpy as np
+
+    from fms_sim.generate import generate_instances
+    from fms_sim.instance import InstanceError
+
+    with pytest.raises(InstanceError, match="BU layout must be 1, 2, 3 or 4, got 2.0"):
+        bu_shop(2.0, 5)  # type: ignore[arg-type]
+    assert bu_shop(np.int64(2), np.int64(5)) == bu_shop(2, 5)
+    with pytest.raises(InstanceError, match="tools must be True or False, got 'no'"):
+        generate_instances(5, 4, 3, 1, tools="no")  # type: ignore[arg-type]
