@@ -106,3 +106,13 @@ def test_an_attached_shop_can_be_stepped_from_its_state() -> None:
     fresh = FastShopEnv(ex12)
     fresh.attach(make_shop(ex12, "paper"))  # never reset: stepping works too
     fresh.step(int(np.flatnonzero(fresh.action_masks())[0]))
+
+
+def test_a_ppo_solver_names_its_mistakes() -> None:
+    # ppo_solver(None) and a name for an instance were AttributeErrors
+    from fms_dispatch.rl import ppo_solver
+
+    with pytest.raises(ValueError, match="bad PPO solver name None"):
+        ppo_solver(None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^a ppo solver takes an Instance .*got str 'EX12'"):
+        ppo_solver("ppo")("EX12")

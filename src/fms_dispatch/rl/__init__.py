@@ -19,7 +19,7 @@ import sys
 import time
 from typing import Any, Callable
 
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import Schedule
 
 from .train import add_train_parser
@@ -53,6 +53,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     plan's empty trips, which ``lookahead="guide"`` makes; ``meta["guide_search_time"]`` is the seconds of the plan
     search at the start (of the run's ``wall_time``).
     """
+    if not isinstance(spec, str):  # None was an AttributeError
+        raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
     low = spec.strip()
     if low.lower() == "ppo":
         model: str | None = None
@@ -69,6 +71,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         from .lookahead import nominal_twin, run_agent
         from .models import default_model_name, load_agent
 
+        require_instance(instance, "a ppo solver")  # a name was an AttributeError
         suffix = lookahead_suffix(lookahead)  # also rejects a bad value before any work
         fast = lookahead == "fast"
 
