@@ -116,3 +116,14 @@ def test_a_ppo_solver_names_its_mistakes() -> None:
         ppo_solver(None)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="^a ppo solver takes an Instance .*got str 'EX12'"):
         ppo_solver("ppo")("EX12")
+
+
+def test_a_model_given_a_missing_file_or_an_incomplete_padding_says_so(tmp_path) -> None:
+    # export_actor named "nope.zip.zip" (sb3 adds ".zip"); a padding without max_machines was a KeyError
+    from fms_dispatch.rl.agent import Agent, export_actor
+    from fms_dispatch.rl.models import resolve_model
+
+    with pytest.raises(ValueError, match=f"the weights {tmp_path / 'nope.zip'} are no file"):
+        export_actor(tmp_path / "nope.zip")
+    with pytest.raises(ValueError, match="the padding lacks max_machines, max_tools, max_agvs, max_tts"):
+        Agent(resolve_model("bu").weights, {"max_jobs": 8})

@@ -32,6 +32,8 @@ def load_torch_policy(weights: str | Path) -> Any:
     from sb3_contrib import MaskablePPO
 
     torch.set_num_threads(1)
+    if not Path(weights).is_file():  # sb3 adds ".zip" and names that file: "nope.zip.zip"
+        raise ValueError(f"the weights {weights} are no file")
     try:
         policy = MaskablePPO.load(str(weights), device="cpu").policy
     except OSError:
@@ -82,6 +84,9 @@ class Agent:
         """How hard the guide's plan of a new run is searched (:class:`~fms_dispatch.rl.guide.PlanEffort`);
         read when the run's first observation is made."""
         self.path = path
+        missing = [k for k in ("max_jobs", "max_machines", "max_tools", "max_agvs", "max_tts") if k not in padding]
+        if missing:  # a KeyError deep inside
+            raise ValueError(f"model {self.name}: the padding lacks {', '.join(missing)}")
         self.padding = dict(padding)
         self.policy: Any = None  # the torch policy, when loaded
         self.actor: Actor | None = None if torch else self._exported_actor()
