@@ -76,6 +76,9 @@ class Snapshot:
         if any(getattr(mine, f) != getattr(instance, f) for f in fleet):
             raise ValueError(f"the snapshot is of another shop than {instance.name} (machines, vehicles or tools "
                              f"differ)")
+        if mine.agv_travel != instance.agv_travel or mine.tool_travel != instance.tool_travel:  # EX12's for EX11:
+            # its vehicles' times were of other travel times, and a residual plan mixed the two layouts
+            raise ValueError(f"the snapshot is of another layout than {instance.name}'s (travel times differ)")
 
     @classmethod
     def initial(cls, instance: Instance) -> "Snapshot":

@@ -406,6 +406,9 @@ def test_bad_origins_and_cp_sat_parameters_are_refused():
     fewer = builtin("sl00").with_fleet(n_agvs=3)
     with pytest.raises(ValueError, match="^the snapshot is of another shop than sl00 .machines, vehicles or tools"):
         greedy_schedule(builtin("sl00"), origin=Snapshot.initial(fewer))
+    # EX11 and EX12 share their jobs, not their travel times: a residual plan mixed the two layouts
+    with pytest.raises(ValueError, match="^the snapshot is of another layout than EX11's .travel times differ.$"):
+        greedy_schedule(builtin("EX11"), origin=Snapshot.initial(builtin("EX12")))
     same = builtin("ra01")  # an equal instance, another object: accepted
     assert greedy_schedule(same, origin=Snapshot.initial(builtin("ra01"))).makespan == greedy_schedule(same).makespan
     with pytest.raises(ValueError, match="^unknown CP-SAT parameter 'bogus'$"):
