@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 from matplotlib import colormaps
@@ -126,7 +126,7 @@ def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[t
     if not isinstance(sc, dict):
         return []
     out = []
-    def entries(key: str) -> list[dict]:  # a malformed record (outages as a string) draws nothing, as no record
+    def entries(key: str) -> list[Any]:  # a malformed record (outages as a string) draws nothing, as no record
         items = sc.get(key)
         return [d for d in items if isinstance(d, dict)] if isinstance(items, list) else []
 

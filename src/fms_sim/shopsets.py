@@ -194,7 +194,7 @@ def expand_specs(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> l
         if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):  # 0 gave the default 10
             raise ValueError(f"fleet {key} must be an integer >= 1 or None (the shop's own), got {v!r}")
     if not isinstance((fleet or {}).get("no_tools", False), (bool, type(None))):  # "false" dropped the tools
-        raise ValueError(f"fleet no_tools must be true, false or None, got {fleet['no_tools']!r}")
+        raise ValueError(f"fleet no_tools must be true, false or None, got {(fleet or {}).get('no_tools')!r}")
     fl = dict(_DEFAULT_FLEET, **(fleet or {}))
     out: list[Instance] = []
     for spec in specs:

@@ -95,7 +95,7 @@ class PlanEffort:
             return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
 
         def seconds(v: Any) -> bool:  # a string was a TypeError at the first comparison; inf never ended
-            return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and 0 <= v < math.inf
+            return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and 0 <= float(v) < math.inf
 
         if not whole(self.restarts) or self.restarts < 0:
             raise ValueError(f"plan restarts must be an integer >= 0, got {self.restarts!r}")

@@ -460,10 +460,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         if ignored:  # they were dropped without a word (the CLI refuses their flags)
             raise ValueError(f"resume continues the model in {out} with its own {CONFIG_FILE}: the config gives only "
                              f"steps, not {', '.join(ignored)} (train a new model for those)")
-        saved = _saved_config(out / CONFIG_FILE) if (out / CONFIG_FILE).is_file() else None
-        if saved is None or not (out / "model.zip").is_file():
+        earlier = _saved_config(out / CONFIG_FILE) if (out / CONFIG_FILE).is_file() else None
+        if earlier is None or not (out / "model.zip").is_file():
             raise ValueError(f"cannot resume: {out} has no {CONFIG_FILE} and model.zip from an earlier run")
-        cfg = _merge(saved, {"steps": config.get("steps")})
+        cfg = _merge(earlier, {"steps": config.get("steps")})
     else:
         cfg = _merge(DEFAULT_CONFIG, config)
     cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
