@@ -390,7 +390,7 @@ class Recorder:
         self._asked: dict[str, float] = {}     # run -> when a replay was last requested
         self._finished: set[str] = set()
         self._given_up: set[str] = set()       # runs the shop does not know (it answered unknown_run): not asked
-        self._conflicts: set[tuple[str, int | None]] = set()  # (run, seq; None: its schedule) reported once
+        self._conflicts: set[tuple[str, int | str]] = set()  # (run, the event's seq or what else) reported once
         self._outbox: list[Outgoing] = []      # errors found outside a message's handling, sent by the next poll
         self.rendered: list[tuple[str, Path]] = []
 
@@ -477,17 +477,19 @@ class Recorder:
             self._end[run_id] = ev["seq"]
             strays = self.store.after_end(run_id)
             if strays:  # stored before the end was known (a stray, or another run's): kept, not part of the run
-                out += self._conflict(run_id, ev["seq"], RunConflict(
+                out += self._conflict(run_id, "strays", RunConflict(
                     f"run {run_id!r}: {len(strays)} event(s) stored before its run_end (event {ev['seq']}) come "
                     f"after it (from event {strays[0]}): kept in the log, left out of the run"), None)
         self._advance(run_id, ev["seq"])
         return out + self._ask(run_id, now)
 
-    def _conflict(self, run_id: str, seq: int | None, exc: RunConflict, text: str | None) -> list[Outgoing]:
-        """The ``run_conflict`` error answering ``exc`` (once per run and event, or the run's schedule)."""
-        if (run_id, seq) in self._conflicts:
+    def _conflict(self, run_id: str, about: int | str, exc: RunConflict, text: str | None) -> list[Outgoing]:
+        """The ``run_conflict`` error answering ``exc``, once per run and what it is about: an event's seq, or
+        ``"strays"``, ``"schedule"``, ``"disagreement"`` (one key each: the strays and a later disagreement shared
+        one, and the second went unreported)."""
+        if (run_id, about) in self._conflicts:
             return []
-        self._conflicts.add((run_id, seq))
+        self._conflicts.add((run_id, about))
         return [Outgoing(TOPIC_ERRORS, make_error(self.source, "run_conflict", str(exc), run_id=run_id,
                                                   received=text))]
 
@@ -501,7 +503,7 @@ class Recorder:
         try:
             self.store.add_schedule(run_id, msg["schedule"], commit=False)
         except RunConflict as exc:
-            return self._conflict(run_id, -1, exc, text)
+            return self._conflict(run_id, "schedule", exc, text)
         self._has_schedule[run_id] = True
         self._wrote(now)
         return self._ask(run_id, now)
@@ -557,7 +559,7 @@ class Recorder:
             self._finished.add(run_id)
             problem = self._disagreement(run_id)
             if problem is not None:  # the schedule and the events are of two runs: no chart, no "complete"
-                self._outbox += self._conflict(run_id, None, RunConflict(problem), None)
+                self._outbox += self._conflict(run_id, "disagreement", RunConflict(problem), None)
                 continue
             path = self._render(run_id) if self.render else None
             done.append((run_id, path))

@@ -317,3 +317,26 @@ def test_a_run_the_shop_does_not_know_is_asked_for_no_more(tmp_path: Path) -> No
     assert answer.msg["code"] == "unknown_run"
     assert rec.handle_error(encode(answer.msg), now=0.5) == []
     assert rec.poll(now=2.0) == [] and rec.poll(now=9.0) == []  # it asked every second, for ever
+
+
+def test_strays_a_differing_end_and_a_disagreement_of_one_run_are_each_reported(tmp_path: Path) -> None:
+    # the strays were reported under the run_end's seq: a differing run_end that came later went unreported
+    one, two = finished_run("EX12"), ShopService(builtin("EX12"), run_id="run-1")
+    two.start()
+    while not two.done:
+        label = [a for a, ok in zip(two.state["actions"], two.state["mask"]) if ok][-1]
+        two.handle_command(encode(m.make_command("run-1", two.state_seq, label)))
+    events, _ = texts(one)
+    _, other_schedule = texts(two)
+    stray = dict(decode(events[3]), seq=500)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    rec.handle_event(encode(stray), now=0.0)
+    out = [o.msg for t in events for o in rec.handle_event(t, now=0.0) if o.topic == m.TOPIC_ERRORS]
+    assert [e["code"] for e in out] == ["run_conflict"] and "stored before its run_end" in out[0]["message"]
+    end = decode(events[-1])
+    (err,) = rec.handle_event(encode(dict(end, time=end["time"] + 1)), now=1.0)
+    assert err.msg["code"] == "run_conflict" and f"event {end['seq']} (run_end" in err.msg["message"]
+    rec.handle_schedule(other_schedule, now=0.0)
+    assert rec.finish_ready() == []
+    (err,) = [o.msg for o in rec.poll(now=5.0) if o.topic == m.TOPIC_ERRORS]
+    assert err["code"] == "run_conflict" and "is not the one its events give" in err["message"]
