@@ -116,7 +116,6 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
     return jobs, None, None
 
 
-
 def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     """The message the arguments describe, checked: ``("order" | "disruption", message)``; raises
     :class:`SendError`."""

@@ -261,7 +261,7 @@ class Scenario:
             raise ScenarioError(f"horizon must be an integer >= 0 (breakdowns start in [0, horizon)), got {horizon!r}")
         if isinstance(duration, list):
             duration = tuple(duration)  # [0, 0] was refused by a message that offered (0, 0)
-        if duration != (0, 0) and not (isinstance(duration, (tuple, list)) and len(duration) == 2
+        if duration != (0, 0) and not (isinstance(duration, tuple) and len(duration) == 2
                                        and all(whole(d) for d in duration) and 1 <= duration[0] <= duration[1]):
             raise ScenarioError(f"duration must be a range (low, high) of integers with 1 <= low <= high (a breakdown "
                                 f"lasts at least 1; (0, 0): 5-15 % of the horizon), got {duration!r}")

@@ -23,7 +23,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-__all__ = ["replacing", "write_atomically", "read_text", "loads"]
+__all__ = ["replacing", "write_atomically", "read_text", "loads", "file_above", "output_problem", "folder_problem"]
 
 
 def read_text(path: str | Path) -> str:

@@ -449,11 +449,10 @@ class Shop:
 
     def action_index(self, label: str) -> int:
         """Inverse of the labels: ``"job:3"`` -> 3, ``"agv:1"`` -> n_jobs + 1, ..."""
-        try:
-            kind, num = label.split(":")
-            i = int(num) if num.isdigit() and num.isascii() else int("x")  # "job: 1", "job:+1" are no labels
-        except (ValueError, AttributeError):  # AttributeError: no string
-            raise InvalidAction(f"malformed action label {label!r} (expected job:J, agv:V or tt:R)") from None
+        parts = label.split(":") if isinstance(label, str) else []
+        if len(parts) != 2 or not (parts[1].isascii() and parts[1].isdigit()):  # "job: 1", "job:+1" are no labels
+            raise InvalidAction(f"malformed action label {label!r} (expected job:J, agv:V or tt:R)")
+        kind, i = parts[0], int(parts[1])
         base, size = {"job": (0, self.n_jobs), "agv": (self.n_jobs, self.n_agvs),
                       "tt": (self.n_jobs + self.n_agvs, self.n_tts)}.get(kind, (0, -1))
         if not 0 <= i < size:

@@ -66,7 +66,7 @@ from fms_msgs_json import (
 from .instance import Instance, InstanceError, Operation
 from .petri import InvalidAction
 from .full_shop import make_shop
-from .schedule import Schedule
+from .schedule import OperationRecord, Schedule
 from .shop import Shop
 from .stepping import Stepper, parse_moves
 
@@ -148,6 +148,11 @@ def shop_features(shop: Shop, table: _JobTable | None = None) -> dict[str, Any]:
     return out
 
 
+def _op_data(r: OperationRecord) -> dict[str, Any]:
+    """An operation's event data (its end event adds ``start``)."""
+    return {"job": r.job, "op": r.op, "machine": r.machine, "tool": r.tool}
+
+
 class _EventQueue:
     """Turns the shop's growing records into time-ordered start/end events.
 
@@ -186,11 +191,9 @@ class _EventQueue:
             r = rec.ops[i]
             if r.end != end:
                 self._dropped.add(number)
-                self._op_ends[i] = (r.end, self._push_end(r.start, r.end, "op", {
-                    "job": r.job, "op": r.op, "machine": r.machine, "tool": r.tool}))
+                self._op_ends[i] = (r.end, self._push_end(r.start, r.end, "op", _op_data(r)))
         for i, r in enumerate(rec.ops[self._seen[0]:], start=self._seen[0]):
-            self._op_ends[i] = (r.end, self._push(r.start, r.end, "op", {"job": r.job, "op": r.op,
-                                                                         "machine": r.machine, "tool": r.tool}))
+            self._op_ends[i] = (r.end, self._push(r.start, r.end, "op", _op_data(r)))
         for t in rec.agv[self._seen[1]:]:
             self._push(t.start, t.end, "agv_trip", {"agv": t.agv, "job": t.job, "op": t.op, "from": t.from_,
                                                     "to": t.to, "loaded": t.loaded})
@@ -209,7 +212,8 @@ class _EventQueue:
                 self._dropped.discard(number)
                 continue
             out.append((t, kind, data))
-        self._op_ends = {i: v for i, v in self._op_ends.items() if v[0] > (until if until is not None else v[0])}
+        # the operations whose end is still to come (a breakdown can move only those)
+        self._op_ends = {} if until is None else {i: v for i, v in self._op_ends.items() if v[0] > until}
         return out
 
 
