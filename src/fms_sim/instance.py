@@ -163,17 +163,17 @@ class Instance:
             v = getattr(self, name)
             if not _is_int(v) or not 0 <= v <= MAX_COUNT:
                 raise InstanceError(f"{name} must be an integer from 0 to {MAX_COUNT}, got {v!r}")
-        if self.agv_travel is not None and self.n_agvs < 1:
-            raise InstanceError("the instance has an AGV travel matrix but no AGVs (n_agvs is 0): give n_agvs, or "
-                                "leave agv_travel out for a shop without AGVs")
-        for count, matrix, what in (("n_agvs", "agv_travel", "AGVs"),
-                                    ("n_tool_transporters", "tool_travel", "tool transporters")):
-            if getattr(self, count) and getattr(self, matrix) is None:  # was set to 0 without a word
-                raise InstanceError(f"{count} is {getattr(self, count)} but {matrix} is missing: {what} need a travel "
-                                    f"matrix (or leave {count} out)")
-        if self.tool_travel is not None and self.n_tool_transporters < 1:
-            raise InstanceError("the instance has a tool travel matrix but no tool transporters (n_tool_transporters "
-                                "is 0): give n_tool_transporters, or leave tool_travel out for a shop without tools")
+        # a fleet and its travel matrix come together (a count without its matrix was set to 0 without a word)
+        for count, matrix, what, matrix_words, shop_without in (
+                ("n_agvs", "agv_travel", "AGVs", "an AGV", "AGVs"),
+                ("n_tool_transporters", "tool_travel", "tool transporters", "a tool", "tools")):
+            n = getattr(self, count)
+            if getattr(self, matrix) is not None and n < 1:
+                raise InstanceError(f"the instance has {matrix_words} travel matrix but no {what} ({count} is 0): give "
+                                    f"{count}, or leave {matrix} out for a shop without {shop_without}")
+            if n and getattr(self, matrix) is None:
+                raise InstanceError(f"{count} is {n} but {matrix} is missing: {what} need a travel matrix (or leave "
+                                    f"{count} out)")
         if self.tool_travel is None:
             if used_t:
                 raise InstanceError("operations need tools but tool_travel is null (use --no-tools to drop tools)")
