@@ -367,12 +367,11 @@ def _refine_stages(stages: Any, fleet: dict[str, Any], seed: int
         parse_rule_name(str(st["pair"]))  # unknown rules fail here, before any work
         # (int() and float() took 2.9 epochs as 2, True as 1, "nan" and inf as rates, and 'x' was a bare error)
         epochs, lr, stage_seed = st.get("epochs", 10), st.get("lr", 3e-4), st.get("seed", seed + 1 + k)
-        if not isinstance(epochs, int) or isinstance(epochs, bool) or epochs < 1:
-            raise ValueError(f"warm_start.refine[{k}]: epochs must be an integer >= 1, got {epochs!r}")
-        if not isinstance(lr, (int, float)) or isinstance(lr, bool) or not 0 < lr < math.inf:
-            raise ValueError(f"warm_start.refine[{k}]: lr must be a positive, finite number, got {lr!r}")
-        if not isinstance(stage_seed, int) or isinstance(stage_seed, bool) or not 0 <= stage_seed < 2 ** 31:
-            raise ValueError(f"warm_start.refine[{k}]: seed must be an integer from 0 to 2**31 - 1, got {stage_seed!r}")
+        for name, value, kind, words in (("epochs", epochs, "int>=1", "an integer >= 1"),
+                                         ("lr", lr, "num>0", "a positive, finite number"),
+                                         ("seed", stage_seed, "seed", "an integer from 0 to 2**31 - 1")):
+            if not _KINDS[kind][0](value):  # the config's own tests (_KINDS)
+                raise ValueError(f"warm_start.refine[{k}]: {name} must be {words}, got {value!r}")
         if isinstance(st["train"], str):  # split into its letters
             raise ValueError(f"warm_start.refine[{k}]: train must be a list of instance specs, got {st['train']!r}")
         out.append((str(st["pair"]), expand_instances(list(st["train"]), fleet), epochs, float(lr), stage_seed))
