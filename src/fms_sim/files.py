@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import stat
@@ -31,16 +32,50 @@ def read_text(path: str | Path) -> str:
     return Path(path).read_text(encoding="utf-8-sig")
 
 
+class _NotJson(ValueError):
+    """A value Python's parser takes but JSON has not (``NaN``, ``Infinity``, a number too large for a float)."""
+
+
+def _constant(name: str) -> Any:
+    raise _NotJson(f"{name} is not a JSON number")
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if value in (math.inf, -math.inf):  # 1e400: infinity after decoding, written back as Infinity
+        raise _NotJson(f"{text} is too large for a number")
+    return value
+
+
+#: a JSON string (skipped) or a token that JSON has not
+_TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|(-?Infinity|NaN|-?\d+(?:\.\d+)?[eE][+-]?\d+|-?\d+\.\d+)')
+
+
+def _where(text: str) -> int:
+    """Where in ``text`` the first token :func:`_constant` or :func:`_finite` refused stands (0 if none is found)."""
+    for m in _TOKEN.finditer(text):
+        tok = m.group(1)
+        if tok and (tok[-1] in "yN" or not math.isfinite(float(tok))):
+            return m.start(1)
+    return 0
+
+
 def loads(text: str, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
     """``json.loads(text)`` (with ``object_pairs_hook``), a leading byte-order mark dropped; JSON nested too deeply for
-    the parser (a crash with a RecursionError) and a number with more digits than Python converts (a plain
-    ValueError) raise :class:`json.JSONDecodeError` like any other malformed JSON."""
+    the parser (a crash with a RecursionError), a number with more digits than Python converts (a plain
+    ValueError) and what JSON has not but Python's parser takes (``NaN``, ``Infinity``, ``1e400``, which became
+    infinity: a file read so was written back with them, which other JSON readers refuse) raise
+    :class:`json.JSONDecodeError` like any other malformed JSON."""
+    text = text.removeprefix("\ufeff")
     try:
-        return json.loads(text.removeprefix("\ufeff"), object_pairs_hook=object_pairs_hook)
+        return json.loads(text, object_pairs_hook=object_pairs_hook, parse_constant=_constant,
+                          parse_float=_finite)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply", text, 0) from None
     except json.JSONDecodeError:
         raise
+    except _NotJson as exc:
+        raise json.JSONDecodeError(str(exc), text, _where(text)) from None
     except ValueError as exc:
         if "digits" not in str(exc):  # the hook's own error
             raise

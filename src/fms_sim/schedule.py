@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,7 +105,13 @@ class Schedule:
         return out
 
     def to_json(self, indent: int | None = 1) -> str:
-        return json.dumps(self.to_dict(), indent=indent)
+        """The JSON form; :class:`ScheduleError` naming the entry if ``meta`` holds what JSON has not (NaN, an
+        infinity: Python wrote them as ``NaN``/``Infinity``, which other JSON readers and this one refuse; an object
+        such as a set)."""
+        try:
+            return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        except (ValueError, TypeError) as exc:
+            raise ScheduleError(f"meta{_unwritable(self.meta) or ''} cannot be written as JSON: {exc}") from None
 
     def save(self, path: str | Path) -> None:
         """Write the JSON form to ``path``; a failed write leaves an existing file as it was (:mod:`.files`)."""
@@ -215,6 +222,27 @@ def _bool(d: dict, key: str) -> bool:
     if not isinstance(v, bool):
         raise ScheduleError(f"field {key!r} must be true or false, got {v!r}")
     return v
+
+
+def _unwritable(v: Any, at: str = "") -> str | None:
+    """Where in ``v`` (as ``['key'][index]``) the first value JSON cannot hold stands; None if there is none."""
+    if isinstance(v, dict):
+        for k, x in v.items():
+            if k is not None and not isinstance(k, (str, int, float, bool)):
+                return at
+            found = _unwritable(x, f"{at}[{k!r}]")
+            if found is not None:
+                return found
+        return None
+    if isinstance(v, (list, tuple)):
+        for i, x in enumerate(v):
+            found = _unwritable(x, f"{at}[{i}]")
+            if found is not None:
+                return found
+        return None
+    if isinstance(v, float):
+        return None if math.isfinite(v) else at
+    return None if v is None or isinstance(v, (str, int, bool)) else at
 
 
 def _short(d: dict) -> str:

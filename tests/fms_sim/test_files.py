@@ -133,3 +133,35 @@ def test_json_with_a_byte_order_mark_or_nested_too_deeply_is_read_or_refused_as_
         Instance.from_json(long.replace('"instance"', '"name"'))
     with pytest.raises(ValueError, match="the hook's"):  # a hook's own error is its own
         loads("{}", object_pairs_hook=lambda pairs: (_ for _ in ()).throw(ValueError("the hook's")))
+
+
+def test_what_json_has_not_is_refused_on_reading_and_on_writing(tmp_path):
+    """Python's parser takes NaN, Infinity and 1e400 (infinity after decoding) and its writer writes them back as
+    NaN/Infinity, which other JSON readers refuse: a schedule whose meta held one was read, then written, as
+    non-JSON. Both directions refuse them now, naming where they stand."""
+    import json
+    import re
+
+    import numpy as np
+
+    from fms_sim.files import loads
+    from fms_sim.schedule import Schedule, ScheduleError
+
+    for text, what, col in (('{"a": NaN}', "NaN is not a JSON number", 7),
+                            ('{"s": "NaN", "a": [1.5, -Infinity]}', "-Infinity is not a JSON number", 25),
+                            ('{"s": "1e400", "a": 1e400}', "1e400 is too large for a number", 21)):
+        with pytest.raises(json.JSONDecodeError, match=f"{what}: line 1 column {col} "):
+            loads(text)
+    assert loads('{"a": [1.5, -2e3, "NaN"]}') == {"a": [1.5, -2000.0, "NaN"]}
+    sched = run_first(builtin("EX12"))
+    with pytest.raises(ScheduleError, match="malformed JSON: NaN is not a JSON number"):
+        Schedule.from_json(sched.to_json().replace('"instance"', '"meta": {"gap": NaN}, "instance"'))
+    out = tmp_path / "s.json"
+    sched.save(out)
+    for meta, where in (({"gap": float("nan")}, "meta['gap']"),
+                        ({"runs": [1, {"t": float("inf")}]}, "meta['runs'][1]['t']"),
+                        ({"seen": {1, 2}}, "meta['seen']"), ({"t": np.float32(0.5)}, "meta['t']")):
+        sched.meta = meta
+        with pytest.raises(ScheduleError, match="^" + re.escape(where) + " cannot be written as JSON"):
+            sched.save(out)
+        assert Schedule.load(out).meta == {}  # the file written before is kept
