@@ -38,6 +38,7 @@ __all__ = [
     "TOOL_SEED",
     "AGV_SEED",
     "TOOL_TRAVEL_SEED",
+    "MAX_GENERATED_OPERATIONS",
 ]
 
 TIME_SEED = 840612802
@@ -45,6 +46,9 @@ ROUTE_SEED = 398197754
 TOOL_SEED = 170719940
 AGV_SEED = 180119550
 TOOL_TRAVEL_SEED = 280219920
+#: the most operations one call of :func:`generate_instances` builds (``count x n_jobs x n_machines``: a ``gen:`` spec's
+#: shops are held in memory at once; 10**7 operations take about 850 MB and 25 s)
+MAX_GENERATED_OPERATIONS = 10**7
 
 Grid = list[list[int]]
 
@@ -163,6 +167,9 @@ def generate_instances(
             raise InstanceError(f"{flag} must be True or False, got {value!r}")
     _check_size("n_tools", n_tools, 1 if tools else 0)
     _check_size("count", count, top=10**6)
+    if count * n_jobs * n_machines > MAX_GENERATED_OPERATIONS:  # (about 85 bytes and 2.4 us each: 10**7 is 850 MB)
+        raise InstanceError(f"count x n_jobs x n_machines is {count * n_jobs * n_machines:,} operations; at most "
+                            f"{MAX_GENERATED_OPERATIONS:,} are generated at once")
     if agvs:
         _check_size("n_agvs", n_agvs)
     if tools:

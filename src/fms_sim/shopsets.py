@@ -17,7 +17,8 @@ Instance specs (:func:`expand_specs`; ``fms train`` and model configs use them):
 * ``gen:JxMxT*COUNT@SEED`` — COUNT Taillard-LCG shops of J jobs x M machines x T tools, their time, routing
   and tool streams seeded from SEED (``derived_seed(SEED, 1..3)``), the large benchmark's travel matrices for
   M machines, 10 AGVs and 5 tool transporters, named ``genJxMsSEED_00``.. (unchanged since the first models:
-  the same spec gives the same shops and names);
+  the same spec gives the same shops and names); all are built at once, so COUNT x J x M is at most 10**7
+  operations (``generate.MAX_GENERATED_OPERATIONS``, about 850 MB);
 * ``gen:JxMxT*COUNT@SEED/OPT[/OPT]`` — the same shops with a fleet of their own; OPT is ``aN`` (N AGVs),
   ``tN`` (N tool transporters), both as ``aNtN``, or ``notools`` (operations without tools, no tool
   transport; the tool stream is not drawn). The names carry the options: ``gen20x15s7-a4t2_00``;

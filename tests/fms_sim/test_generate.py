@@ -150,6 +150,8 @@ def test_generate_seeds_and_fleet() -> None:
         ((3, 3, 3, 1), {"time_seed": 0}, "seed"),
         ((3, 3, 3, 1), {"name_prefix": ""}, "name_prefix"),
         ((2.5, 3, 3, 1), {}, "n_jobs"),
+        # all of them are built at once: 1000x1000 shops 11 times over were 11 GB before a word was said
+        ((1000, 1000, 3, 11), {}, "is 11,000,000 operations; at most 10,000,000 are generated at once"),
     ],
 )
 def test_generate_validates_arguments(args: tuple, kwargs: dict, match: str) -> None:

@@ -293,3 +293,9 @@ def test_bu_shop_and_the_generator_check_their_kinds():
     assert bu_shop(np.int64(2), np.int64(5)) == bu_shop(2, 5)
     with pytest.raises(InstanceError, match="tools must be True or False, got 'no'"):
         generate_instances(5, 4, 3, 1, tools="no")  # type: ignore[arg-type]
+
+
+def test_a_gen_spec_of_more_operations_than_are_generated_at_once_is_refused_by_its_spec() -> None:
+    with pytest.raises(ValueError, match=r"'gen:100x20x20\*5001@7': count x n_jobs x n_machines is 10,002,000 "):
+        expand_specs(["gen:100x20x20*5001@7"])
+    assert len(expand_specs(["gen:100x20x20*2@7"])) == 2
