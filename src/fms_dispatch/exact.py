@@ -1106,14 +1106,25 @@ def _relaxation_model(inst: Instance, ub: int) -> tuple[cp_model.CpModel, dict[t
     return m, s
 
 
+def _check_seconds(time_limit: Any, zero: bool = False) -> None:
+    """Refuse a ``time_limit`` that is no number, negative (zero too unless ``zero``), NaN or infinite: CP-SAT ran
+    NaN as a fraction of a second and infinity without end, where :func:`fms_dispatch.solvers.solve` refuses both."""
+    if isinstance(time_limit, bool) or not isinstance(time_limit, numbers.Real):
+        raise TypeError(f"time_limit must be a number of seconds, got {time_limit!r}")
+    if not (0 <= time_limit if zero else 0 < time_limit) or not math.isfinite(time_limit):
+        raise ValueError(f"time_limit must be a {'non-negative' if zero else 'positive'}, finite number of seconds, "
+                         f"got {time_limit!r}")
+
+
 def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int = 2, seed: int = 0,
                      ub: int | None = None) -> tuple[int, dict[tuple[int, int], int] | None]:
     """A valid lower bound from the relaxation (see :func:`_relaxation_model`) solved within ``time_limit``
     seconds, at least :func:`simple_lower_bound`; also the relaxed start times (``None`` if none found)."""
+    _check_seconds(time_limit, zero=True)
     lb = simple_lower_bound(inst)
     if ub is None:
         ub = greedy_schedule(inst).makespan
-    if time_limit <= 0 or lb >= ub:
+    if time_limit == 0 or lb >= ub:
         return lb, None
     model, s = _relaxation_model(inst, ub)
     cp_model = _cp()
@@ -1166,8 +1177,7 @@ def solve_exact(
     ``cp_params`` sets extra CP-SAT parameters of the full model (e.g. ``{"use_objective_lb_search": True}``).
     """
     t0 = time.monotonic()
-    if time_limit <= 0:
-        raise ValueError(f"time_limit must be positive, got {time_limit}")
+    _check_seconds(time_limit)
     if not isinstance(workers, numbers.Integral) or isinstance(workers, bool) or workers < 1:  # "2": a TypeError
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if model not in ("auto", "full", "relaxed"):
@@ -1247,7 +1257,7 @@ def _solve_fallback(inst: Instance, incumbent: Schedule, lb: int, t0: float, tim
     """Relaxation bound, then iterated guided list scheduling until the time is up (see module docstring)."""
     deadline = t0 + 0.97 * time_limit
     left = deadline - time.monotonic()
-    bound, starts = relaxation_bound(inst, time_limit=0.4 * left, workers=workers, seed=seed,
+    bound, starts = relaxation_bound(inst, time_limit=max(0.0, 0.4 * left), workers=workers, seed=seed,
                                      ub=incumbent.makespan)
     bound = max(bound, lb)
     best = incumbent
@@ -1324,8 +1334,7 @@ def polish_plan(inst: Instance, plan: Schedule, *, time_limit: float, workers: i
     :data:`FULL_MODEL_MAX_TASKS` transport tasks), when it meets the simple lower bound, or when nothing better is
     found in time. ``plan`` must be a whole schedule of ``inst`` (not a residual plan). Not reproducible in
     general: CP-SAT's parallel search depends on timing."""
-    if time_limit < 0:
-        raise ValueError(f"time_limit must be >= 0 seconds, got {time_limit}")
+    _check_seconds(time_limit, zero=True)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if "residual" in plan.meta:

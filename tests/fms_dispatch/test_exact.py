@@ -19,6 +19,7 @@ from fms_dispatch.exact import (
     _heads_tails,
     cpsat,
     greedy_schedule,
+    polish_plan,
     relaxation_bound,
     simple_lower_bound,
     solve_exact,
@@ -339,6 +340,16 @@ def test_invalid_arguments_are_refused():
         solve_exact(inst, time_limit=0)
     with pytest.raises(ValueError, match="workers"):
         solve_exact(inst, workers=0)
+    # NaN ran as a fraction of a second, infinity without end (solve() refused both; these are public too)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"time_limit must be a positive, finite number of seconds, got {bad}"):
+            solve_exact(inst, time_limit=bad)
+        with pytest.raises(ValueError, match=f"time_limit must be a non-negative, finite number of seconds, got {bad}"):
+            relaxation_bound(inst, time_limit=bad)
+        with pytest.raises(ValueError, match="time_limit must be a non-negative, finite"):
+            polish_plan(inst, greedy_schedule(inst), time_limit=bad)
+    with pytest.raises(TypeError, match="time_limit must be a number of seconds, got '3'"):
+        solve_exact(inst, time_limit="3")
     with pytest.raises(ValueError, match="model"):
         solve_exact(inst, model="magic")
     with pytest.raises(ValueError, match="greedy rule"):
