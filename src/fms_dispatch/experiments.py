@@ -53,6 +53,7 @@ import csv
 import dataclasses
 import json
 import math
+import numbers
 import tempfile
 import time
 from pathlib import Path
@@ -491,6 +492,9 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
 # ---------------------------------------------------------------------- dynamic
 def partition_jobs(n_jobs: int, parts: int = 10) -> list[list[int]]:
     """Job j goes to partition ``j*parts//n_jobs`` (contiguous blocks; empty ones when n_jobs < parts)."""
+    for name, v in (("n_jobs", n_jobs), ("parts", parts)):  # parts=0 was an IndexError
+        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
     out: list[list[int]] = [[] for _ in range(parts)]
     for j in range(n_jobs):
         out[j * parts // n_jobs].append(j)

@@ -37,6 +37,9 @@ def _outputs(folder: Path, name: str, columns: tuple[str, ...]) -> tuple[list[di
 def test_partition_and_lower_bound() -> None:
     assert partition_jobs(15) == [[0, 1], [2], [3, 4], [5], [6, 7], [8], [9, 10], [11], [12, 13], [14]]
     assert partition_jobs(3, 4) == [[0], [1], [2], []]
+    for bad in ((3, 0), (3, -2), (0, 4), (3, 2.0), (3, True)):  # parts=0 was an IndexError
+        with pytest.raises(ValueError, match="must be an integer >= 1"):
+            partition_jobs(*bad)
     inst = Instance(name="t", jobs=((Operation(1, None, 5), Operation(2, None, 4)), (Operation(1, None, 7),)),
                     n_machines=2)
     assert lower_bound(inst) == 12  # machine 1: 5 + 7
