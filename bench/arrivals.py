@@ -25,7 +25,7 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rl.train import expand_instances
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, positive, report, versus_line
+from checks import checked, output_file, positive, report, versus_line
 
 DEFAULT_SHOPS = ["gen:10x5x5*3@216", "gen:20x10x10*3@216", "gen:20x10x10*2@219/notools", "gen:50x15x15*1@217",
                  "gen:50x15x15*1@220/notools"]
@@ -38,8 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tabu", type=float, nargs="+", default=[0.0, 0.0025],
                     help="tabu search times to compare (s per operation to plan)")
     ap.add_argument("--parts", type=positive, default=10, help="partitions per shop")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     a = ap.parse_args(argv)
+    if len(set(a.tabu)) < len(a.tabu):  # one column each: a repeated time overwrote its own
+        ap.error(f"--tabu: each time once, got {' '.join(f'{s:g}' for s in a.tabu)}")
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     insts = expand_instances(a.shops)
     agent = load_agent(a.model)

@@ -16,7 +16,6 @@ scratch, its plan search included (the model is loaded before), plain and with l
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
@@ -27,13 +26,13 @@ from fms_dispatch.rl.models import load_agent
 from fms_dispatch.rules import all_rule_pairs, parse_rule_name
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
 from fms_sim.shop import run_policy
-from checks import checked
+from checks import checked, output_file, write_json
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="bu", help="model name or folder (default bu)")
-    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--json", type=output_file, help="write the rows here")
     ap.add_argument("--lookahead-guide", action="store_true", help="guided model: lookahead = the guide's empty trips")
     add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
@@ -73,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                                            for k in ("optimum", "rules", "ppo", "ppo+la")))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(rows, indent=2) + "\n")
+        write_json(a.json, rows)
     return 0
 
 

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from typing import Any, Callable
 
+from fms_sim.files import output_problem, write_atomically
 from fms_sim.validate import validate
 
 
@@ -31,9 +33,23 @@ def report(lines: list[str], rows: list[dict], path: str | None, shown: int = 0)
     all there as JSON with the ``rows`` and the command."""
     print("\n".join(lines[shown:]))
     if path:
-        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)  # (a missing folder lost the finished bench's rows)
-        with open(path, "w") as f:
-            json.dump({"rows": rows, "summary": lines, "command": " ".join(sys.argv)}, f, indent=2)
+        write_json(path, {"rows": rows, "summary": lines, "command": " ".join(sys.argv)})
+
+
+def output_file(text: str) -> str:
+    """An argparse type for a file a bench writes when it ends (``--json``, a cache): a path no file can be written
+    to (a folder, a path inside a file, one this user may not write) is refused before any work, not after the whole
+    run with its rows lost. A missing folder is made when the file is written (:func:`write_json`)."""
+    problem = output_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{text}: {problem}")
+    return text
+
+
+def write_json(path: str | os.PathLike, doc: Any, indent: int | None = 2) -> None:
+    """Write ``doc`` as JSON to ``path``: its folder made if missing, the file replaced only by a complete one
+    (:func:`fms_sim.files.write_atomically`)."""
+    write_atomically(path, json.dumps(doc, indent=indent) + "\n")
 
 
 def versus(rows: list[dict], key: str, ref: str) -> tuple[int, float, int, int]:
@@ -69,6 +85,28 @@ def positive(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
     return n
+
+
+def at_least_zero(text: str) -> int:
+    """An argparse type: an integer >= 0 (a size bound where 0 means none: -1 was taken and meant none too)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
+    return n
+
+
+def finite(text: str) -> float:
+    """An argparse type: a finite number (NaN and infinity were taken and ran as something else)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return x
 
 
 def run_main(main: Callable[[], Any]) -> None:

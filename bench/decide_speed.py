@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
-from checks import checked, positive, report
+from checks import checked, output_file, positive, report
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,8 +47,8 @@ def _load(name: str) -> Any:
     """The shop ``name`` (a built-in or a file); ``NAME/notools``: without its tools, as ``fms solve --no-tools``."""
     from fms_sim.formats import load_instance
 
-    base, _, flag = name.partition("/")
-    return load_instance(base, no_tools=flag == "notools")
+    base = name.removesuffix("/notools")  # (partitioned at the first "/", a file's path was cut at its first folder)
+    return load_instance(base, no_tools=base != name)
 
 
 def _agent(inst: Any, model: str) -> Any:
@@ -231,9 +231,12 @@ def main() -> None:
     ap.add_argument("--solve", action="store_true", help="time the whole default solve (fresh process per run)")
     ap.add_argument("--parts", action="store_true",
                     help="where a run's time goes: the net's steps, the observation, the guide's features, the actor")
-    ap.add_argument("--json", help="write the rows and summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if not a.worker:  # the workers run in the repository's root: a file is named there by its absolute path
+        a.instances = [str(Path(n.removesuffix("/notools")).resolve()) + n[len(n.removesuffix("/notools")):]
+                       if Path(n.removesuffix("/notools")).is_file() else n for n in a.instances]
     if a.worker:
         print(json.dumps([solve_once(n, a.model) for n in a.instances] if a.solve
                          else parts(a.instances, a.model, a.repeat) if a.parts

@@ -35,7 +35,7 @@ from fms_dispatch.solvers import get_solver, solve
 from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked, positive, report
+from checks import checked, output_file, positive, report
 
 #: validation shops (seeds no model trains or is selected on): BU size, small and mid-size with and without tools
 DEFAULT_SHOPS = ["genbu:**2@31", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenarios", type=positive, default=3, help="scenarios per shop and disrupted level")
     ap.add_argument("--follower", action="store_true",
                     help="also the guide follower (the expert the guided models are cloned from) on the same plans")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     add_guide_args(ap)
     a = ap.parse_args(argv)
     if a.heldout:

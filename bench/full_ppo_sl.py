@@ -26,7 +26,7 @@ from pathlib import Path
 from fms_dispatch.rl import ppo_solver
 from fms_sim.benchmarks import SL_GROUPS, builtin
 
-from checks import checked, positive
+from checks import checked, output_file, positive, write_json
 
 MODES = {"agvs+tools": False, "agvs": True}
 
@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-group", type=positive, default=10, help="instances per group (the first N)")
     ap.add_argument("--reference", default="results/decisions/bench_cache.jsonl",
                     help="glob of fms bench caches (default: where bench/decisions.py writes)")
-    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--json", type=output_file, help="write the rows here")
     ap.add_argument("--lookahead-guide", action="store_true", help="a guided model with its plan's empty trips")
     a = ap.parse_args(argv)
     if a.per_group > 10:
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{max(r['seconds'] for r in sel):.1f} |")
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(rows, indent=2) + "\n")
+        write_json(a.json, rows)
     return 0
 
 

@@ -12,7 +12,6 @@ exact replay (``fms_sim.replay``, orders consumed as they are carried out), the 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 from fms_dispatch.full_rules import run_full
@@ -23,6 +22,8 @@ from fms_sim.benchmarks import builtin
 from fms_sim.full_shop import FullShop
 from fms_sim.replay import replay
 from fms_sim.validate import validate
+
+from checks import output_file, write_json
 
 
 def _valid(inst, s):
@@ -43,13 +44,13 @@ def follower_with_empty_trips(inst) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("instances", nargs="+")
-    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--json", type=output_file, help="write the rows here")
     a = ap.parse_args(argv)
+    insts = [builtin(name) for name in a.instances]  # an unknown name stops the bench now, not after the others
     rows = []
     print("| instance | list plan | replay | PlanPriorityPolicy | GuideFollower | follower s | + empty trips |")
     print("|---|---|---|---|---|---|---|")
-    for name in a.instances:
-        inst = builtin(name)
+    for name, inst in zip(a.instances, insts):
         plan = guide_plan(FullShop(inst))
         t0 = time.perf_counter()
         follower = _valid(inst, run_full(inst, GuideFollower()))
@@ -61,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         cells = [name] + [row[k] for k in ("plan", "replay", "priority", "follower", "follower_s", "with_empty_trips")]
         print("| " + " | ".join(map(str, cells)) + " |", flush=True)
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(rows, f, indent=2)
+        write_json(a.json, rows)
     return 0
 
 

@@ -24,7 +24,7 @@ from fms_dispatch.rl.models import load_agent
 from fms_sim.benchmarks import builtin
 from fms_sim.full_shop import FullShop
 
-from checks import checked, report, run_main
+from checks import checked, output_file, report, run_main
 
 BU = [f"EX{s}{lay}" for s in range(1, 11) for lay in range(1, 5)]
 HELD_OUT = [f"ho{i:02d}" for i in range(50)]
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="guided-dagger", help="a guided model (name or folder)")
     ap.add_argument("--instances", nargs="+", help="built-in instances (default: EX11-EX104 and ho00-ho49)")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
     agent = load_agent(a.model)
@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     effort = guide_effort_from_args(a)
     kw = {} if effort is None else {"guide_effort": effort}
     sets = {"instances": a.instances} if a.instances else {"Bilge-Ulusoy": BU, "held-out": HELD_OUT}
+    for names in sets.values():  # an unknown name stops the bench now, not after the shops before it
+        for name in names:
+            builtin(name)
     rows = []
     lines = [f"{agent.name}: the plan's empty trips against the plain run, the same plan acted out"]
     for label, names in sets.items():

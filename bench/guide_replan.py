@@ -39,7 +39,7 @@ from fms_sim.env import check_disruptions, episode_scenario
 from fms_sim.full_shop import FullShop
 from fms_sim.shopsets import check_training_specs, heldout_shops
 
-from checks import checked, positive, report, versus
+from checks import checked, output_file, positive, report, versus
 
 #: validation shops (seeds no model trains or is selected on), as bench/disrupted.py's selection run
 DEFAULT_SHOPS = ["genbu:**3@31", "genbu:**5@33", "gen:10x5x5*3@216", "gen:20x10x10*2@216", "gen:10x5x5*3@219/notools",
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
                          "budget) while the start's plan keeps --guide-tabu's: the tabu search's share of re-plans")
     ap.add_argument("--replan-margins", type=float, nargs="+", default=[],
                     help="with --replan-tabu: these margins for its ways (default: the solver's)")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     add_guide_args(ap, replan=False)
     a = ap.parse_args(argv)
     if a.replan_margins and not a.replan_tabu:  # they would be ignored

@@ -39,7 +39,7 @@ from fms_dispatch.rules import JOB_RULES
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import heldout_shops
 
-from checks import checked, positive
+from checks import at_least_zero, checked, output_file, positive, write_json
 
 
 def _timed(fn):
@@ -155,24 +155,25 @@ def write_metrics(rows: list[dict], models: list[str], command: str, effort=None
                 entry[f"mean_gap_to_cpsat_{k}"] = round(statistics.mean(100 * (s[k] / s["cpsat"] - 1) for s in got), 2)
         entry["ppo_at_most_list"] = sum(s["ppo"] <= s["list"] for s in shops if "ppo" in s)
         path = folder / "metrics.json"
-        metrics = json.loads(path.read_text())
+        metrics = json.loads(path.read_text()) if path.exists() else {}  # (a missing one was an error at the end)
         metrics["heldout"] = entry
-        path.write_text(json.dumps(metrics, indent=2) + "\n")
+        write_json(path, metrics)
         print(f"held-out figures of {len(entry['shops'])} shops written to {path}")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", nargs="*", default=["ppo"], help="PPO solver specs (ppo, ppo:NAME, ppo:FOLDER)")
-    ap.add_argument("--cpsat", type=float, default=10.0, help="CP-SAT seconds per shop (reference)")
+    ap.add_argument("--cpsat", type=float, help="CP-SAT seconds per shop (reference; default 10, or the --reference "
+                                                "file's, whose shops keep their figures)")
     ap.add_argument("--limit", type=positive, help="only the first N shops")
-    ap.add_argument("--lookahead-max-jobs", type=int, default=100,
+    ap.add_argument("--lookahead-max-jobs", type=at_least_zero, default=100,
                     help="run the lookahead only on shops with at most this many jobs (it takes minutes on 100)")
     ap.add_argument("--lookahead-guide", action="store_true",
                     help="'+la' of a guided model is its guide's empty trips (lookahead='guide', every size)")
     add_guide_args(ap, replan=False)
     ap.add_argument("--only", nargs="*", help="only these shops (ho names)")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     ap.add_argument("--write-metrics", action="store_true",
                     help="store each model's held-out figures under 'heldout' in its metrics.json")
     ap.add_argument("--reference", help="a JSON file of an earlier run: reuse its CP-SAT, list and rule figures "
@@ -187,7 +188,15 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--only: no held-out shop {unknown[0]!r} (ho00..ho49)")
         shops = [s for s in shops if s.name in set(a.only)]
     shops = shops[:a.limit] if a.limit else shops
-    earlier = {r["shop"]: r for r in json.loads(Path(a.reference).read_text())["rows"]} if a.reference else {}
+    ref = json.loads(Path(a.reference).read_text()) if a.reference else {}
+    earlier = {r["shop"]: r for r in ref.get("rows", [])}
+    if a.reference:  # one CP-SAT limit per table: the reference's figures are of its own limit
+        if a.cpsat is not None and a.cpsat != ref.get("cpsat_seconds"):
+            ap.error(f"--cpsat {a.cpsat:g}: the reference {a.reference} holds CP-SAT figures of "
+                     f"{ref.get('cpsat_seconds')} s; its shops and the others must share one limit")
+        a.cpsat = ref.get("cpsat_seconds", 10.0)
+    elif a.cpsat is None:
+        a.cpsat = 10.0
     effort = guide_effort_from_args(a)
     for spec in a.models:  # an unknown model stops the bench now, not after the first shop's CP-SAT run
         ppo_solver(spec)
@@ -205,17 +214,14 @@ def main(argv: list[str] | None = None) -> int:
                         (k.startswith("ppo") and not k.endswith(("_s", "_why", "_model"))))
         print(f"{inst.name} {row['size']}{' tools' if row['tools'] else ''}: {cols}", file=sys.stderr, flush=True)
     models = [label(m, effort) for m in a.models]
-    models += [m for m in (json.loads(Path(a.reference).read_text())["models"] if a.reference else [])
-               if m not in models]
+    models += [m for m in ref.get("models", []) if m not in models]
     lines = summary(rows, models)
     print("\n".join(lines))
     print(f"({time.perf_counter() - t0:.0f} s)")
+    if a.json:  # (before the metrics: a failure there lost the rows)
+        write_json(a.json, {"cpsat_seconds": a.cpsat, "models": models, "rows": rows, "summary": lines})
     if a.write_metrics:
         write_metrics(rows, models, " ".join(["python", "bench/heldout.py"] + (argv or sys.argv[1:])), effort)
-    if a.json:
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({"cpsat_seconds": a.cpsat, "models": models, "rows": rows,
-                                            "summary": lines}, indent=2) + "\n")
     return 0
 
 

@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from checks import checked, positive, report
+from checks import checked, output_file, positive, report
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -99,7 +99,7 @@ def main() -> None:
     ap.add_argument("--baseline", help="git revision to measure alongside, run by run")
     ap.add_argument("--history", choices=("delta", "whole", "both"), default="delta",
                     help="the states' history: deltas (as fms up runs the shop; default), whole, or both in turn")
-    ap.add_argument("--json", help="write the rows and summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and summary here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.worker:

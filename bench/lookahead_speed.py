@@ -56,12 +56,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=positive, default=1, help="runs per planner (the best time counts)")
     ap.add_argument("--fast", action="store_true", help="also time the fast lookahead (retry=False)")
     args = ap.parse_args()
+    shops = [(name, *instance_and_model(name)) for name in args.instances.split(",")]  # an unknown one: now
     agents: dict[str, object] = {}
     tot_ref = tot_new = tot_fast = 0.0
     fast_head = f" {'fast makespan':>13} {'fast s':>8} {'fast speed-up':>13}" if args.fast else ""
     print(f"{'instance':10} {'makespan':>8} {'reference s':>12} {'trial+cache s':>14} {'speed-up':>9}{fast_head}")
-    for name in args.instances.split(","):
-        inst, model = instance_and_model(name)
+    for name, inst, model in shops:
         agent = agents.setdefault(model, load_agent(model))
         ref, t_ref = timed(inst, agent, True, args.repeat)
         new, t_new = timed(inst, agent, False, args.repeat)

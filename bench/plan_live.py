@@ -13,7 +13,6 @@ Usage: ``python bench/plan_live.py [--set bu|sl] [--per-group K] [--skip K] [--l
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import subprocess
@@ -26,7 +25,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.benchmarks import builtin
 from fms_sim.schedule import Schedule
 
-from checks import checked, positive
+from checks import checked, output_file, positive, write_json
 
 
 def live(name: str, solver: str, work: Path) -> tuple[int | None, float, str]:
@@ -52,7 +51,7 @@ def main() -> None:
     ap.add_argument("--skip", type=int, default=0,
                     help="sl: skip the first K instances of each group (e.g. --skip 5: sl05-sl09, ..., sl75-sl79)")
     ap.add_argument("--time-limit", type=float, default=10.0)
-    ap.add_argument("--json", help="also write the rows here")
+    ap.add_argument("--json", type=output_file, help="also write the rows here")
     a = ap.parse_args()
     if not 0 <= a.skip <= 9:
         ap.error(f"--skip must be 0..9 (the instances of an sl group), got {a.skip}")
@@ -80,7 +79,7 @@ def main() -> None:
     print(f"\nlive within 1 % of offline: {within}/{len(rows)}; at the proven optimum: "
           f"{sum(1 for r in proven if r['live'] == r['offline'])}/{len(proven)}; failed runs: {len(rows) - len(ok)}")
     if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")
+        write_json(a.json, rows, indent=1)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ acts out the same plan. Every schedule is validated.
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 
 import numpy as np
@@ -31,7 +32,7 @@ from fms_dispatch.rl.train import expand_instances
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, positive
+from checks import at_least_zero, checked, positive
 
 
 def _run(agent, inst, scenario, temperature: float, rng: np.random.Generator, stats: list[int]) -> int:
@@ -65,10 +66,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--temperatures", type=float, nargs="+", default=[1.0, 4.0, 8.0])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.2],
                     help="disruption levels: the spread of the lognormal noise on durations (0: nominal)")
-    ap.add_argument("--breakdowns", type=int, default=1, help="machine breakdowns per disrupted run")
+    ap.add_argument("--breakdowns", type=at_least_zero, default=1, help="machine breakdowns per disrupted run")
     ap.add_argument("--seeds", type=positive, default=2, help="scenarios per shop and disrupted level")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
+    for noise in a.noise:  # -0.5 ran nominal runs labelled -0.5
+        if not 0 <= noise <= 1:
+            ap.error(f"--noise: a spread from 0 to 1, got {noise:g}")
+    for temp in a.temperatures:  # NaN failed after the deterministic runs ("Probabilities contain NaN")
+        if not 0 < temp < math.inf:
+            ap.error(f"--temperatures: positive, finite numbers, got {temp:g}")
     check_training_specs({"train": [], "eval": a.shops})
     insts = expand_instances(a.shops)
     agent = load_agent(a.model)

@@ -33,18 +33,18 @@ from fms_msgs_json import encode, make_order
 from fms_sim.benchmarks import builtin
 from fms_sim.shop_service import ShopService
 
-from checks import checked, positive
+from checks import at_least_zero, checked, finite, positive
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--instance", default="sl70")
     p.add_argument("--plan", default="plan:list")
-    p.add_argument("--budget", type=float, default=2.0)
-    p.add_argument("--at", type=int, default=800, help="answered states before the order")
+    p.add_argument("--budget", type=finite, default=2.0)
+    p.add_argument("--at", type=at_least_zero, default=800, help="answered states before the order")
     p.add_argument("--jobs", type=positive, default=3)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--pace", type=float, default=0.0,
+    p.add_argument("--pace", type=finite, default=0.0,
                    help="seconds the shop takes per state at least (0: as fast as the agent answers; a real shop "
                         "goes on at its own pace however fast the agent is)")
     p.add_argument("--wait", action="store_true",
@@ -101,6 +101,11 @@ def main() -> None:
         steps += 1
     s = svc.final_schedule
     checked(svc.instance, s, a.plan, scenario)
+    if scenario is None and steps <= a.at:  # nothing was measured (it printed the figures of a run without an order)
+        raise ValueError(f"the run ended after {steps} states, before the order (--at {a.at}): give a smaller --at")
+    if scenario is not None and s.makespan <= a.breakdown:
+        raise ValueError(f"the run ended at t={s.makespan}, before the breakdown (--breakdown {a.breakdown}): give "
+                         "an earlier one")
     where = ("a process" if agent_logic.REPLAN_IN_PROCESS else "a thread") + (", the shop waiting" if a.wait else "")
     if a.no_guide_replan:
         where = "none: the start's plan acted out"

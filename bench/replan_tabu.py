@@ -24,7 +24,7 @@ from fms_dispatch.solvers import solve
 from fms_sim.disruptions import Scenario
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, positive, report, versus_line
+from checks import checked, output_file, positive, report, versus_line
 
 DEFAULT_SHOPS = ["genbu:**1@31", "gen:10x5x5*2@216", "gen:10x5x5*2@219/notools", "gen:20x10x10*2@216",
                  "gen:20x10x10*2@219/notools"]
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--breakdowns", type=int, default=2)
     ap.add_argument("--budget", type=float, default=1.0, help="seconds per re-plan")
     ap.add_argument("--cpsat", type=float, default=5.0, help="seconds for each shop's nominal CP-SAT plan")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     a = ap.parse_args(argv)
     check_training_specs({"train": a.shops, "eval": [], "warm_start": {}})
     rows = []

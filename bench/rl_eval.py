@@ -34,7 +34,7 @@ from fms_sim.full_shop import make_shop
 from fms_sim.shop import Shop, run_policy
 from fms_sim.validate import validate
 
-from checks import checked, positive
+from checks import checked, output_file, positive, write_json
 
 
 CPU: dict[str, float] = {}  # CPU seconds of the last run_ppo call (wall time suffers on a shared machine)
@@ -188,10 +188,19 @@ def bench_sl(model: str, no_tools: bool, per_group: int, lookahead: bool | str, 
 
 
 def parse_groups(text: str) -> list[int]:
-    if "-" in text and "," not in text:
-        lo, hi = (int(x) for x in text.split("-"))
-        return list(range(lo, hi + 1))
-    return [int(x) for x in text.split(",")]
+    """An argparse type: sl size groups as ``LO-HI`` or ``G,G,...``, each 0..7 (``3-1`` ran nothing and exited 0;
+    a negative group was int()'s message)."""
+    try:
+        if "-" in text and "," not in text:
+            lo, hi = (int(x) for x in text.split("-"))
+            groups = list(range(lo, hi + 1))
+        else:
+            groups = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LO-HI or G,G,... (groups 0..7), got {text!r}") from None
+    if not groups or not all(0 <= g <= 7 for g in groups):
+        raise argparse.ArgumentTypeError(f"groups are 0..7 (LO <= HI), got {text!r}")
+    return groups
 
 
 def main() -> None:
@@ -200,7 +209,7 @@ def main() -> None:
     ap.add_argument("--model", help="model name/folder (default: bu for bu, large / large-agv for sl)")
     ap.add_argument("--no-tools", action="store_true", help="sl without tools (AGV-only)")
     ap.add_argument("--per-group", type=positive, default=10, help="sl instances per group (1-10)")
-    ap.add_argument("--groups", default="0-7", help="sl groups, e.g. 0-7 or 0,3,7")
+    ap.add_argument("--groups", type=parse_groups, default="0-7", help="sl groups, e.g. 0-7 or 0,3,7")
     ap.add_argument("--lookahead", action="store_true", help="sl: also run with lookahead")
     ap.add_argument("--lookahead-fast", action="store_true",
                     help="sl: also run with the fast lookahead (no retries of rejected moves)")
@@ -209,8 +218,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=positive, default=1,
                     help="sl: instances measured at once in separate processes (default 1; the seconds columns "
                          "are then measured on a busier machine)")
-    ap.add_argument("--json", help="write the results here")
-    ap.add_argument("--rules-cache", help="JSON file caching the rule pairs' makespans (read and updated)")
+    ap.add_argument("--json", type=output_file, help="write the results here")
+    ap.add_argument("--rules-cache", type=output_file, help="JSON file caching the rule pairs' makespans (read and updated)")
     ap.add_argument("--rules-only", action="store_true", help="sl: only compute (and cache) the rule pairs")
     ap.add_argument("--write-metrics", action="store_true", help="store results in the model's metrics.json")
     a = ap.parse_args()
@@ -229,12 +238,12 @@ def main() -> None:
         run(a)
     finally:
         if a.rules_cache:
-            Path(a.rules_cache).write_text(json.dumps(RULE_CACHE) + "\n")
+            write_json(a.rules_cache, RULE_CACHE, indent=None)
 
 
 def run(a: argparse.Namespace) -> None:
     if a.rules_only:
-        for g in parse_groups(a.groups):
+        for g in a.groups:
             for k in range(a.per_group):
                 inst = builtin(f"sl{g}{k}")
                 rule_makespans(inst.without_tools() if a.no_tools else inst, include_nearest=a.which == "sl")
@@ -246,7 +255,7 @@ def run(a: argparse.Namespace) -> None:
         key = "bu_layout2"
     else:
         model = a.model or ("large-agv" if a.no_tools else "large")
-        groups = parse_groups(a.groups)
+        groups = a.groups
         if a.lookahead and a.lookahead_fast:
             raise ValueError("give --lookahead or --lookahead-fast, not both")
         look: bool | str = "fast" if a.lookahead_fast else a.lookahead
@@ -257,13 +266,13 @@ def run(a: argparse.Namespace) -> None:
         res["sl70"] = {"makespan": m, "seconds": round(dt, 3), "cpu_seconds": round(CPU["last"], 3)}
         print(f"sl70: makespan {m}, {dt:.2f} s wall, {CPU['last']:.2f} s CPU")
     if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1) + "\n")
+        write_json(a.json, res, indent=1)
     if a.write_metrics:
         ref = resolve_model(model)
         path = ref.folder / "metrics.json"
         metrics = json.loads(path.read_text()) if path.is_file() else {}
         metrics.setdefault("benchmark", {})[key] = res
-        path.write_text(json.dumps(metrics, indent=1) + "\n")
+        write_json(path, metrics, indent=1)
         print(f"metrics: {path}")
 
 

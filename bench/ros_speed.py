@@ -79,6 +79,9 @@ def fms_up(name: str, solver: str, work: Path, run: int) -> tuple[float, Schedul
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     wall = time.perf_counter() - t0
     if res.returncode != 0:
+        last = (res.stderr.strip().splitlines() or ["(no output)"])[-1]
+        if res.returncode == 2 and ": error: " in last:  # a refusal of the input: that one line, exit 2
+            raise ValueError(last.split(": error: ", 1)[1])
         raise SystemExit(f"fms up {name} failed ({res.returncode}):\n{res.stderr}")
     sched = Schedule.load(out)
     problems = validate(builtin(name), sched)
@@ -96,6 +99,8 @@ def main() -> None:
     ap.add_argument("--solver", default="rule:SPTN+nearest", help="agent solver (default rule:SPTN+nearest)")
     ap.add_argument("--repeat", type=positive, default=3)
     a = ap.parse_args()
+    for name in a.instances:  # an unknown name is one line and exit 2 now, not fms up's failure (two lines, exit 1)
+        builtin(name)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# ros_speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
           f"{platform.python_version()}, load average {load:.1f} at start; solver {a.solver}; "

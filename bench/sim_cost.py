@@ -27,7 +27,7 @@ from fms_sim.replay import PlanPolicy
 from fms_sim.snapshot import can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 
-from checks import checked, positive, report
+from checks import checked, output_file, positive, report
 
 SHOPS = ["EX74", "ra05", "sl00", "sl20", "sl40", "sl45", "sl70"]
 
@@ -56,10 +56,12 @@ def main() -> None:
     p.add_argument("--shops", nargs="+", default=SHOPS)
     p.add_argument("--share", type=float, default=0.1, help="share of the run done before the re-plan's state")
     p.add_argument("--repeat", type=positive, default=3)
-    p.add_argument("--json")
+    p.add_argument("--json", type=output_file, help="write the rows and the summary here")
     a = p.parse_args()
     if not 0 <= a.share < 1:
         raise ValueError(f"--share must be in [0, 1), got {a.share}")
+    for name in a.shops:  # an unknown name stops the bench now, not after the shops before it
+        builtin(name)
     rows, lines = [], []
     print(f"{platform.node()}, {time.strftime('%Y-%m-%d')}; SIM_COST = {SIM_COST}")
     for name in a.shops:

@@ -26,7 +26,7 @@ from fms_dispatch.rl.train import expand_instances
 from fms_dispatch.solvers import solve
 from fms_sim.shopsets import check_training_specs
 
-from checks import checked, report
+from checks import checked, output_file, report
 
 #: the validation shops of the default choice in docs/benchmarks.md §9 (seeds used by no model's config)
 DEFAULT_SHOPS = ["gen:20x10x10*2@216", "gen:50x15x15*2@217", "gen:100x20x20*1@218", "gen:20x10x10*2@219/notools",
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lookahead", action="store_true", help="also each model with the lookahead")
     ap.add_argument("--lookahead-guide", action="store_true",
                     help="with --lookahead: a guided model's lookahead is its guide's empty trips")
-    ap.add_argument("--json", help="write the rows and the summary here")
+    ap.add_argument("--json", type=output_file, help="write the rows and the summary here")
     a = ap.parse_args(argv)
     if a.lookahead_guide and not a.lookahead:  # it was ignored
         ap.error("--lookahead-guide chooses the lookahead of --lookahead; give both")

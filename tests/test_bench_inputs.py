@@ -38,6 +38,22 @@ def bench(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
     (("guide_replan.py", "--replan-margins", "0.01"), "give --replan-tabu too"),  # ignored
     (("heldout.py", "--models", "ppo:no-such-model", "--limit", "1"), "no model named 'no-such-model'"),  # after CP-SAT
     (("validation.py", "--models", "ppo:guided+lookahead-guide"), "give model names without a lookahead"),
+    # a second sweep (output paths, unknown names, values taken and run as something else)
+    (("bu_all.py", "--json", "bench"), "argument --json: bench: is a folder; name a file"),  # after the whole run
+    (("sim_cost.py", "--shops", "EX12", "EX99", "--repeat", "1"), "unknown built-in instance 'EX99'"),  # after EX12
+    (("guide_follower.py", "EX12", "EX99"), "unknown built-in instance 'EX99'"),
+    (("guide_lookahead.py", "--model", "guided", "--instances", "EX12", "EX99"), "unknown built-in instance 'EX99'"),
+    (("lookahead_speed.py", "--instances", "EX12,foo"), "unknown built-in instance 'foo'"),
+    (("ros_speed.py", "--instances", "EX99", "--repeat", "1"), "unknown built-in instance 'EX99'"),  # rc 1, 2 lines
+    (("cpsat_bu.py", "5", "--layout", "4", "--time-limit", "nan"), "time_limit must be a positive, finite number"),
+    (("ppo_headroom.py", "--noise", "-0.5"), "--noise: a spread from 0 to 1, got -0.5"),  # ran nominal runs
+    (("ppo_headroom.py", "--temperatures", "nan"), "--temperatures: positive, finite numbers, got nan"),
+    (("replan.py", "--at", "-5"), "argument --at: must be >= 0, got -5"),  # reported an order never sent
+    (("replan.py", "--instance", "EX12", "--at", "100000"), "the run ended after 56 states, before the order"),
+    (("replan.py", "--instance", "EX12", "--breakdown", "500"), "the run ended at t=84, before the breakdown"),
+    (("rl_eval.py", "sl", "--groups", "3-1"), "groups are 0..7 (LO <= HI), got '3-1'"),  # ran nothing, exit 0
+    (("heldout.py", "--lookahead-max-jobs", "-1"), "argument --lookahead-max-jobs: must be >= 0, got -1"),
+    (("arrivals.py", "--tabu", "0", "0"), "--tabu: each time once, got 0 0"),  # one column overwritten
 ])
 def test_bad_input_is_one_line_and_exit_2(argv: tuple[str, ...], needle: str) -> None:
     res = bench(*argv)
@@ -114,3 +130,62 @@ def test_full_ppo_sl_takes_cp_sat_at_the_goals_limit(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "{('sl00', 'agvs', 'cpsat'): 110}"
     assert "1 cached CP-SAT runs with a limit other than 10 s left out" in res.stderr
+
+
+def test_bench_json_goes_into_a_missing_folder_and_a_reference_keeps_its_cp_sat_limit(tmp_path: Path) -> None:
+    out = tmp_path / "new" / "deeper" / "rows.json"  # a missing folder was an error after the whole run
+    res = bench("guide_follower.py", "EX12", "--json", str(out))
+    assert res.returncode == 0, res.stderr
+    assert json.loads(out.read_text())[0]["instance"] == "EX12"
+    ref = tmp_path / "ref.json"
+    ref.write_text(json.dumps({"cpsat_seconds": 1.0, "models": [], "rows": []}))
+    res = bench("heldout.py", "--models", "ppo", "--only", "ho00", "--reference", str(ref), "--cpsat", "30")
+    assert res.returncode == 2 and "holds CP-SAT figures of 1.0 s" in res.stderr, res.stderr  # a mix, labelled 30
+
+
+def test_guide_effort_compares_each_shop_with_its_own_list_schedule() -> None:
+    """Two generated shops that differ only in their tool count share a name: one shop's list makespan served
+    both (0.7721 for the list schedule against itself)."""
+    res = bench("guide_effort.py", "--shops", "gen:5x3x3*1@216", "gen:5x3x1*1@216", "--efforts", "0")
+    assert res.returncode == 0, res.stderr
+    assert "plan 1.0000" in res.stdout and "guided 1.0000" in res.stdout, res.stdout
+
+
+def test_sl_summary_compares_means_over_the_same_instances(tmp_path: Path) -> None:
+    """PPO failed on the larger instance: its mean over the smaller one alone was compared with the rules' mean
+    over both (-80 % and a 'yes')."""
+    rows = []
+    for inst, lb, ppo, rule in (("sl00", 100, 110, 120), ("sl01", 1000, None, 1050)):
+        base = {"benchmark": "sl", "instance": inst, "variant": "agvs", "wall_time": 1.0, "reference": None}
+        rows += [dict(base, method="cpsat", makespan=lb, lower_bound=lb, valid=True, time_limit=10.0),
+                 dict(base, method="ppo", makespan=ppo, lower_bound=None, valid=ppo is not None),
+                 dict(base, method="rule:A+first", makespan=rule, lower_bound=None, valid=True)]
+    path = tmp_path / "sl.json"
+    path.write_text(json.dumps({"rows": rows}))
+    res = bench("sl_summary.py", str(path))
+    assert res.returncode == 0, res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.startswith("| 0 "))
+    assert "| +10.0 % | +20.0 % | yes, over 1 (-8.3 %) |" in row, row
+
+
+def test_heldout_records_metrics_in_a_model_folder_without_them(tmp_path: Path) -> None:
+    import importlib.util
+    import shutil
+
+    folder = tmp_path / "mbu"
+    folder.mkdir()
+    for name in ("config.json", "model.zip", "model.actor.npz"):
+        shutil.copy(REPO / "models" / "bu" / name, folder / name)
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        spec = importlib.util.spec_from_file_location("heldout_bench", REPO / "bench" / "heldout.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(REPO / "bench"))
+    label = f"ppo:{folder}"
+    rows = [{"shop": "ho00", "cpsat": 100, "list": 110, "rule": 120, label: 105, label + "_model": str(folder)}]
+    mod.write_metrics(rows, [label], "python bench/heldout.py ...")  # a missing metrics.json was an error
+    entry = json.loads((folder / "metrics.json").read_text())["heldout"]
+    assert entry["shops"]["ho00"] == {"cpsat": 100, "list": 110, "rule": 120, "ppo": 105}
+    assert entry["mean_gap_to_cpsat_ppo"] == 5.0
