@@ -565,7 +565,10 @@ def cmd_up(a: argparse.Namespace) -> int:
     meta = sched.meta
     from .cli import replans_summary
 
-    extra = replans_summary(_recorded_replans(db, run_id) or None)  # nothing recorded: the agent does not re-plan
+    recorded = _recorded_replans(db, run_id)
+    # the count as fms solve gives it: in a disrupted run of an agent that re-plans even when it made none (it was
+    # left out, as if the agent did not re-plan); otherwise only where the agent made some (a live order's)
+    extra = replans_summary(recorded if recorded or (replans and disrupted) else None)
     print(f"{inst.name}: makespan {sched.makespan} ({meta.get('solver', solver)} over ROS 2 topics, "
           f"{meta.get('decisions', '?')} decisions{extra}, valid) in {wall:.2f} s")
     print(f"schedule: {out}")

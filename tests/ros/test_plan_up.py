@@ -52,6 +52,23 @@ def test_fms_up_runs_a_plan_in_a_noisy_shop_like_the_offline_run(ros_env: dict[s
     assert res.returncode == 2 and "decides on the full net" in res.stderr
 
 
+def test_fms_up_counts_the_re_plans_of_a_disrupted_guided_run_as_fms_solve_does(ros_env: dict[str, str],
+                                                                                  tmp_path: Path) -> None:
+    """A disrupted run of the default model that made no re-plan said nothing of re-plans (as if the agent did not
+    re-plan), where fms solve says '0 re-plans (0 adopted)' of the same run."""
+    from fms_dispatch.solvers import solve
+    from fms_sim.disruptions import Scenario
+
+    offline = solve(builtin("ra01"), "ppo", scenario=Scenario(noise=0.1, seed=0))
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "ppo", "--noise", "0.1",
+                          "--out", str(tmp_path / "s.json"), "--db", str(tmp_path / "fms.sqlite"), "--domain-id",
+                          ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr + res.stdout
+    line = res.stdout.splitlines()[0]
+    n = len(offline.meta["replans"])
+    assert f"ra01: makespan {offline.makespan} (" in line and f" decisions, {n} re-plans (" in line, line
+
+
 def test_a_breakdown_and_an_order_mid_run_are_replanned_by_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
     import fms_msgs_json as m
 
