@@ -11,7 +11,9 @@ Markdown table with a row per size group (group g = sl{g}0..sl{g}9, only the ins
   rule pair of the baselines in every size group");
 
 followed by PPO's wall time on the largest group present (target <= 5 s per instance on sl70..sl79).
-Instances where a method failed or has no valid schedule are left out of that method's mean and counted.
+Instances where a method failed or has no valid schedule are left out of that method's mean and counted; the gaps
+and the verdict compare means over the instances where the bound, PPO and the best pair are all present (the
+verdict says over how many where that is not every instance).
 """
 
 from __future__ import annotations

@@ -189,3 +189,17 @@ def test_heldout_records_metrics_in_a_model_folder_without_them(tmp_path: Path) 
     entry = json.loads((folder / "metrics.json").read_text())["heldout"]
     assert entry["shops"]["ho00"] == {"cpsat": 100, "list": 110, "rule": 120, "ppo": 105}
     assert entry["mean_gap_to_cpsat_ppo"] == 5.0
+
+
+def test_decide_speed_runs_a_shop_file_named_from_the_users_folder(tmp_path: Path) -> None:
+    """A path was cut at its first '/' (the '/notools' suffix), and the workers ran in the repository's root."""
+    from fms_sim.benchmarks import builtin
+
+    builtin("EX12").save(tmp_path / "shop.json")
+    res = subprocess.run([sys.executable, str(REPO / "bench" / "decide_speed.py"), "--instances", "shop.json",
+                          str(tmp_path / "shop.json") + "/notools", "--repeat", "1"], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    shop = tmp_path / "shop.json"
+    assert lines[1].startswith(f"{shop}: ") and lines[2].startswith(f"{shop}/notools: "), res.stdout
