@@ -1111,7 +1111,8 @@ def _check_seconds(time_limit: Any, zero: bool = False) -> None:
     NaN as a fraction of a second and infinity without end, where :func:`fms_dispatch.solvers.solve` refuses both."""
     if isinstance(time_limit, bool) or not isinstance(time_limit, numbers.Real):
         raise TypeError(f"time_limit must be a number of seconds, got {time_limit!r}")
-    if not (0 <= time_limit if zero else 0 < time_limit) or not math.isfinite(time_limit):
+    seconds = float(time_limit)
+    if not (0 <= seconds if zero else 0 < seconds) or not math.isfinite(seconds):
         raise ValueError(f"time_limit must be a {'non-negative' if zero else 'positive'}, finite number of seconds, "
                          f"got {time_limit!r}")
 
