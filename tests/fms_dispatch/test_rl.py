@@ -89,6 +89,19 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
                               "wall_seconds": m2["resumes"][0]["wall_seconds"], "interrupted": False}]
     assert json.loads((out / "metrics.json").read_text())["resumes"] == m2["resumes"]
 
+    # figures measured on the solving weights go when a resume replaces them, and stay when it does not (a resume
+    # kept the held-out results of weights it had replaced)
+    def resume_against(best: float) -> dict:
+        m = json.loads((out / "metrics.json").read_text())
+        m["heldout"] = {"shops": {"ho00": {"ppo": 1}}}
+        m["training"]["best_mean_reward"] = best
+        (out / "metrics.json").write_text(json.dumps(m))
+        return train({"steps": 128}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
+
+    before = (out / "best_model.zip").read_bytes()
+    assert "heldout" in resume_against(1e9) and (out / "best_model.zip").read_bytes() == before  # none beats it
+    assert "heldout" not in resume_against(-1e9) and (out / "best_model.zip").read_bytes() != before
+
     # a new model is not trained over this one (it kept the old best_model.zip and reported it as its own) ...
     again = dict(TINY, train=["EX12"], steps=128, seed=6, padding="bu", eval_freq=10_000)  # no evaluation: no best
     with pytest.raises(ValueError, match=r"already holds a model \(config.json, metrics.json, model.zip, "
@@ -116,8 +129,29 @@ def test_resume_refuses_options_it_cannot_apply(tmp_path, capsys):
 
 
 def test_resume_without_model_is_refused(tmp_path):
-    with pytest.raises(ValueError, match="cannot resume"):
+    with pytest.raises(ValueError, match="cannot resume: .* has no config.json and no model.zip from an earlier run$"):
         train({"steps": 10}, tmp_path / "none", resume=True, progress=False)
+    (tmp_path / "half").mkdir()  # it said "no config.json and model.zip" of a folder holding its config.json
+    (tmp_path / "half" / "config.json").write_text(json.dumps(dict(TINY, train=["EX12"], steps=10)))
+    with pytest.raises(ValueError, match=r"cannot resume: .*half has no model.zip from an earlier run \(the latest"):
+        train({"steps": 10}, tmp_path / "half", resume=True, progress=False)
+
+
+def test_an_interrupted_warm_start_leaves_a_folder_a_new_run_takes(tmp_path, monkeypatch):
+    """config.json was written before the warm start: Ctrl-C in it left a folder that a new run refused (it holds a
+    model) and --resume too (no model.zip)."""
+    from fms_dispatch.rl import imitation
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    cfg = dict(TINY, train=["EX12"], steps=0, padding="bu", warm_start={"expert": "rules", "epochs": 1})
+    monkeypatch.setattr(imitation, "clone", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "m", progress=False)
+    assert list((tmp_path / "m").iterdir()) == []
+    monkeypatch.undo()
+    assert train(cfg, tmp_path / "m", progress=False)["ppo_steps"] == 0
 
 
 def test_train_refuses_bad_input(tmp_path):
@@ -209,6 +243,17 @@ def test_training_on_benchmark_or_held_out_shops_is_refused_unless_allowed(tmp_p
     m = train(dict(base, train=["EX12"], steps=0, allow_benchmarks=True, padding="bu",
                    warm_start={"expert": "rules", "epochs": 1}), tmp_path / "ok", progress=False)
     assert json.loads((tmp_path / "ok" / "config.json").read_text())["allow_benchmarks"] is True
+    # nor from a model that trained on them (a fine-tuned model was recorded as trained apart: its config's own
+    # specs were all that was checked), whether its config says so or only its recorded shops
+    fine = dict(base, train=["genbu:1*1@1"], steps=10, padding="bu", init=str(tmp_path / "ok"))
+    with pytest.raises(ValueError, match=r"init .*ok: a model trained on benchmark instances or held-out shops "
+                                         r"\(its training shops include EX12\); a model fine-tuned from it"):
+        train(fine, tmp_path / "ft", progress=False)
+    card = tmp_path / "ok" / "metrics.json"
+    card.write_text(json.dumps(dict(json.loads(card.read_text()), training_shops=[])))
+    with pytest.raises(ValueError, match=r"\(its config sets allow_benchmarks\)"):
+        train(fine, tmp_path / "ft", progress=False)
+    assert not (tmp_path / "ft").exists()
     assert m["training"]["eval_makespan"]["EX12"] > 0
     # no PPO step, no evaluation: the best reward is null, and the metrics are strict JSON (no -Infinity)
     strict = json.loads((tmp_path / "ok" / "metrics.json").read_text(),
@@ -222,9 +267,12 @@ def test_shipped_models_train_apart():
 
     from fms_sim.shopsets import check_training_specs, expand_specs
 
+    from fms_dispatch.rl.models import SHIPPED
+
     root = Path(__file__).resolve().parents[2] / "models"
-    folders = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
-    assert len(folders) >= 3
+    # the shipped ones (a folder of the user's own, `fms train --out models/mine`, failed the suite)
+    folders = [root / name for name in SHIPPED]
+    assert all((p / "config.json").is_file() for p in folders)
     for folder in folders:
         cfg = json.loads((folder / "config.json").read_text())
         assert not cfg.get("allow_benchmarks"), folder.name

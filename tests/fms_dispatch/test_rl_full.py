@@ -271,6 +271,12 @@ def test_fine_tuning_options_are_checked(tmp_path):
     train({**base, "train": ["gen:9x3x3*1@7"]}, other, progress=False)
     with pytest.raises(ValueError, match="another layout"):
         train({**base, "init": str(other)}, tmp_path / "g", progress=False)
+    assert not (tmp_path / "g").exists()  # refused before the folder is made (it was left empty)
+    (tmp_path / "g").mkdir()
+    first = {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()}
+    with pytest.raises(ValueError, match="another layout"):  # --force removed the model in the way first
+        train({**base, "init": str(other)}, other, progress=False, force=True)
+    assert {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()} == first
 
 
 def test_relative_returns_score_the_reference_zero_and_fine_tuning_uses_them(tmp_path):

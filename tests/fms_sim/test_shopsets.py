@@ -299,3 +299,11 @@ def test_a_gen_spec_of_more_operations_than_are_generated_at_once_is_refused_by_
     with pytest.raises(ValueError, match=r"'gen:100x20x20\*5001@7': count x n_jobs x n_machines is 10,002,000 "):
         expand_specs(["gen:100x20x20*5001@7"])
     assert len(expand_specs(["gen:100x20x20*2@7"])) == 2
+
+
+def test_a_refusal_of_many_reserved_shops_names_the_first_and_counts_the_rest() -> None:
+    with pytest.raises(ValueError) as err:  # 'ho*' listed all 50 held-out shops on one line of 3.5 KB
+        check_training_specs({"train": ["gen:5x3x3*1@7", "ho*"]})
+    msg = str(err.value)
+    assert "'ho*' gives ho00, which has the jobs of held-out ho00" in msg and "'ho*' gives ho09, " in msg
+    assert msg.endswith("; and 40 more of it") and "ho10" not in msg and len(msg) < 1000

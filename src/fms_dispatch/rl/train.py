@@ -313,6 +313,40 @@ def _init_shops(init: str | Path) -> list[str]:
         return []
 
 
+def _check_init_apart(init: Path) -> None:
+    """Refuse initial weights that saw a benchmark instance or a held-out shop: a model trained with
+    ``allow_benchmarks`` (its config says so) or whose recorded training shops carry such a name. Its shops join the
+    new model's record, and the new config's own specs are all that :func:`fms_sim.shopsets.check_training_specs`
+    sees (a model fine-tuned from one trained on EX12 was recorded as trained apart)."""
+    from fms_sim.benchmarks import builtin_names
+    from fms_sim.shopsets import heldout_names
+
+    folder = init if init.is_dir() else init.parent
+    try:
+        allowed = bool(_saved_config(folder / CONFIG_FILE).get("allow_benchmarks"))
+    except (OSError, ValueError):
+        allowed = False  # no readable config: its recorded shops decide
+    reserved = set(builtin_names()) | set(heldout_names())
+    seen = [name for name in _init_shops(init) if name in reserved or name.partition("L")[0] in reserved]
+    if allowed or seen:
+        what = f"its training shops include {', '.join(seen[:5])}" if seen else "its config sets allow_benchmarks"
+        raise ValueError(f"init {init}: a model trained on benchmark instances or held-out shops ({what}); a model "
+                         "fine-tuned from it has seen them too: set allow_benchmarks for such a model, or start "
+                         "from one trained on generated shops")
+
+
+#: the entries of a model's metrics.json measured on its solving weights (bench/heldout.py, bench/rl_eval.py)
+_WEIGHT_FIGURES = ("heldout", "benchmark")
+
+
+def _solving_weights_sha(out: Path) -> str | None:
+    """The SHA-256 of the weights a model in ``out`` solves with (``best_model.zip``, else ``model.zip``)."""
+    from .actors import file_sha256
+
+    weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
+    return file_sha256(weights) if weights.is_file() else None
+
+
 def _load_init(model: Any, init: str | Path) -> None:
     """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
     ``model.zip``) into ``model``; raises ValueError if they do not fit (another padding, net, guide or
@@ -460,8 +494,13 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             raise ValueError(f"resume continues the model in {out} with its own {CONFIG_FILE}: the config gives only "
                              f"steps, not {', '.join(ignored)} (train a new model for those)")
         earlier = _saved_config(out / CONFIG_FILE) if (out / CONFIG_FILE).is_file() else None
-        if earlier is None or not (out / "model.zip").is_file():
-            raise ValueError(f"cannot resume: {out} has no {CONFIG_FILE} and model.zip from an earlier run")
+        missing = [name for name, there in ((CONFIG_FILE, earlier is not None), ("model.zip", (out / "model.zip")
+                                                                                  .is_file())) if not there]
+        if missing:  # (it said "no config.json and model.zip" of a folder holding its config.json)
+            raise ValueError(f"cannot resume: {out} has no {' and no '.join(missing)} from an earlier run"
+                             + ("" if len(missing) == 2 or missing[0] == CONFIG_FILE else
+                                " (the latest weights, which a model shipped without them or a run that ended "
+                                "before its first save does not have: train a new model, from it with --init)"))
         cfg = _merge(earlier, {"steps": config.get("steps")})
     else:
         cfg = _merge(DEFAULT_CONFIG, config)
@@ -498,7 +537,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         raise ValueError(f"unknown reward {cfg['reward']!r}; choose from idle, makespan, shaped")
     steps = int(cfg["steps"])
     warm = dict(DEFAULT_CONFIG["warm_start"], **(cfg.get("warm_start") or {}))
-    init = _resolve_init(cfg["init"]) if cfg.get("init") else None
+    # a resumed run continues its own weights: the initial model is needed again only as the baseline (resolving it
+    # made a resume fail once that model was moved, or from another working folder)
+    init = _resolve_init(cfg["init"]) if cfg.get("init") and (not resume or cfg.get("baseline")) else None
+    if init and not resume and not cfg.get("allow_benchmarks"):
+        _check_init_apart(init)
     if init and not resume and warm["expert"] and not int(warm["dagger"]):
         raise ValueError("init starts from a trained model's weights: it replaces the cloning of a warm-start "
                          "expert (unset warm_start.expert, or set warm_start.dagger for DAgger rounds from the "
@@ -566,9 +609,6 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         cfg["padding"] = padding
     if int(cfg["n_envs"]) < 1:
         raise ValueError(f"n_envs must be >= 1, got {cfg['n_envs']}")
-    for stale in held:  # force: the model replaced (checked above: only with force)
-        stale.unlink()
-    out.mkdir(parents=True, exist_ok=True)
     tb = Path(tensorboard) if tensorboard else Path("runs") / cfg["name"]
 
     n_envs = int(cfg["n_envs"])
@@ -595,11 +635,19 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         model = MaskablePPO(policy, venv, policy_kwargs=pkw, seed=seed, device="cpu", verbose=verbose,
                             tensorboard_log=str(tb), **ppo)
         if init:
-            _load_init(model, init)
-    (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
+            try:
+                _load_init(model, init)
+            except ValueError:  # weights that do not fit: refused before the folder is made or a model removed
+                venv.close()
+                eval_env.close()
+                raise
+    for stale in held:  # force: the model replaced (checked above: only with force)
+        stale.unlink()
+    out.mkdir(parents=True, exist_ok=True)
 
     metrics_path = out / METRICS_FILE
     old = json.loads(metrics_path.read_text()) if resume and metrics_path.is_file() else {}
+    best_before = _solving_weights_sha(out) if resume else None
     eval_cb = MaskableEvalCallback(eval_env, n_eval_episodes=len(eval_set),
                                    eval_freq=max(1, int(cfg["eval_freq"]) // n_envs),
                                    best_model_save_path=str(out), log_path=None, deterministic=True, verbose=0)
@@ -673,7 +721,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         else:
             warm_metrics = dict(warm, **bc, expert_makespan=expert_ms, refine=refined)  # stages with figures
             if init:  # the rounds started from these weights: no clone ran, so no clone epochs either
-                warm_metrics["init"] = str(init)
+                warm_metrics["init"] = str(cfg["init"])  # as given (resolved, a shipped one was this machine's path)
                 warm_metrics.pop("epochs", None)
         warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
@@ -688,9 +736,12 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         eval_cb.best_mean_reward = float(mean_r)
         for name in ("best_model.zip", "model.zip", "warm_start.zip"):
             model.save(str(out / name))
-        warm_metrics = {"init": str(init), "mean_reward": round(float(mean_r), 4)}
+        warm_metrics = {"init": str(cfg["init"]), "mean_reward": round(float(mean_r), 4)}
         if verbose or progress:
             print(f"initial weights {init}: eval mean reward {mean_r:.4f}", flush=True)
+    # written once the folder holds weights to continue from: written before the warm start, an interrupted one left
+    # a folder that a new run refused (it holds a model) and --resume too (it has no model.zip)
+    (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
     interrupted = False
     rollout = int(model.n_steps) * n_envs
     if steps and steps % rollout:  # PPO learns from whole rollouts
@@ -722,6 +773,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                disruptions=disruptions)
     prev = old.get("training", {})
     metrics = dict(old)
+    if resume and _solving_weights_sha(out) != best_before:  # figures measured on the weights this run replaced
+        dropped = [k for k in _WEIGHT_FIGURES if metrics.pop(k, None) is not None]
+        if dropped and (verbose or progress):
+            print(f"note: {weights.name} changed, so its {' and '.join(dropped)} figures in {METRICS_FILE} were of the "
+                  "old weights and are dropped (measure them again: bench/heldout.py --write-metrics)", flush=True)
     if warm_metrics is not None:
         metrics["warm_start"] = warm_metrics
     metrics["training"] = {
