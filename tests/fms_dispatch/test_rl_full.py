@@ -167,6 +167,10 @@ def test_dagger_from_a_trained_models_weights_in_disrupted_shops(tmp_path):
     src = MaskablePPO.load(str(first / "best_model.zip"), device="cpu").policy.state_dict()
     after = MaskablePPO.load(str(out / "warm_start.zip"), device="cpu").policy.state_dict()
     assert any(not torch.equal(after[k], src[k]) for k in src)  # the DAgger round trained the initial weights
+    # a resume continues its own weights: the initial model need not be where it was (it had to resolve from here)
+    first.rename(tmp_path / "moved")
+    m2 = train({"steps": 64}, out, resume=True, progress=False)
+    assert m2["ppo_steps"] == 64 and m2["training_shops"] == m["training_shops"]
 
 
 def test_train_on_the_full_net_with_a_plan_expert_dagger_and_ppo(tmp_path, capsys):
