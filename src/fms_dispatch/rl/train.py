@@ -501,6 +501,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                              + ("" if len(missing) == 2 or missing[0] == CONFIG_FILE else
                                 " (the latest weights, which a model shipped without them or a run that ended "
                                 "before its first save does not have: train a new model, from it with --init)"))
+        assert earlier is not None  # (missing above otherwise)
         cfg = _merge(earlier, {"steps": config.get("steps")})
     else:
         cfg = _merge(DEFAULT_CONFIG, config)
