@@ -484,7 +484,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         deadline = time.monotonic() + a.timeout
         next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
         next_report = time.monotonic() + PROGRESS_S
-        seen = _progress(db, run_id)
+        seen = _progress(db, run_id) or (0, None)
         while True:
             if sched_tmp.exists() and inst_final.exists() and png.exists():
                 break
@@ -495,7 +495,8 @@ def cmd_up(a: argparse.Namespace) -> int:
             now = time.monotonic()
             if now >= min(next_check, next_report, deadline):
                 progress = _progress(db, run_id)
-                if progress != seen:
+                if progress is not None and progress != seen:  # (a read that failed is no progress: flipping
+                    # between it and the real figures reset the deadline, and a stuck run outlived --timeout)
                     seen, deadline = progress, now + a.timeout
                 next_check = now + min(PROGRESS_S, a.timeout / 4)
             if now > deadline:
@@ -701,10 +702,11 @@ class _TermAsInterrupt:
         self._old = {}
 
 
-def _progress(db: Path, run_id: str) -> tuple[int, int | None]:
-    """How far the run is as the recorder stored it: operations ended and the latest event's time (None: none
-    stored yet, or the database cannot be read). What ``--timeout`` watches and the progress lines say."""
-    return _from_store(db, lambda store: store.progress(run_id), (0, None))
+def _progress(db: Path, run_id: str) -> tuple[int, int | None] | None:
+    """How far the run is as the recorder stored it: operations ended and the latest event's time (None as the time:
+    none stored yet); None when the database is not there or cannot be read now. What ``--timeout`` watches and the
+    progress lines say."""
+    return _from_store(db, lambda store: store.progress(run_id), None)
 
 
 def _progress_text(progress: tuple[int, int | None], n_operations: int) -> str:

@@ -187,10 +187,13 @@ class RecorderStore:
         if end is not None and seq > end:
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']}) comes after the run's end (event {end}, "
                               "run_end): not stored")
+        fresh = not self.db.in_transaction
         cur = self.db.execute(
             "INSERT OR IGNORE INTO events (run_id, seq, time, kind, data, received) VALUES (?, ?, ?, ?, ?, ?)",
             (run_id, seq, event["time"], event["kind"], json.dumps(data, separators=(",", ":")), now))
         if cur.rowcount != 1:  # stored already: a replay or a duplicate, unless it differs
+            if fresh:  # the ignored insert opened a write transaction with nothing in it: it held the database's
+                self.db.rollback()  # write lock until a later write was committed (other writers: "locked")
             row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
                                   (run_id, seq)).fetchone()
             if (row[0], row[1], json.loads(row[2])) == (event["time"], event["kind"], data):

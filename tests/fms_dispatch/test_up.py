@@ -474,3 +474,15 @@ def test_an_unpaced_shop_waits_for_re_plans_by_default(extra, waits, fake_nodes,
     assert _up(tmp_path, *extra) == up.EXIT_OK, capsys.readouterr().err
     assert seen["agent_node"].get("replan_wait", False) is waits
     assert ("the shop waits for each re-plan" in capsys.readouterr().err) is waits
+
+
+def test_progress_is_none_where_the_database_cannot_be_read(tmp_path):
+    """A read that failed counted as "no operation done": flipping between it and the real figures reset the
+    --timeout deadline, and a stuck run outlived its timeout by minutes."""
+    from fms_sim.recorder_store import RecorderStore
+
+    assert up._progress(tmp_path / "none.sqlite", "r") is None
+    (tmp_path / "junk.sqlite").write_bytes(b"not a database at all" * 100)
+    assert up._progress(tmp_path / "junk.sqlite", "r") is None
+    RecorderStore(tmp_path / "db.sqlite").close()
+    assert up._progress(tmp_path / "db.sqlite", "r") == (0, None)

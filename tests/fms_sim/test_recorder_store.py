@@ -73,6 +73,31 @@ def test_store_dedups_events_and_schedules(tmp_path: Path) -> None:
     assert n == len(svc.events)
 
 
+def test_a_duplicate_or_conflicting_event_leaves_the_database_unlocked(tmp_path: Path) -> None:
+    """The ignored insert of a duplicate or a conflicting event opened a write transaction with nothing in it: the
+    recorder (batching its commits) held the write lock until a later write, so fms up's progress reader and any
+    other writer waited 10 s and failed ("database is locked"), and two runs under one id blocked each other."""
+    from fms_sim.recorder_store import RunConflict
+
+    svc = finished_run()
+    store = RecorderStore(tmp_path / "log.sqlite")
+    store.add_event(svc.events[0])
+    other = sqlite3.connect(tmp_path / "log.sqlite", timeout=0.2)
+    for event in (svc.events[0], dict(svc.events[0], time=svc.events[0]["time"] + 5)):
+        try:
+            store.add_event(event, commit=False)  # as the recorder stores events
+        except RunConflict:
+            pass
+        assert not store.db.in_transaction
+        other.execute("INSERT INTO errors (source, code, message, at) VALUES ('t', 't', 't', 0)")
+        other.commit()  # it was "database is locked"
+    store.add_event(svc.events[1], commit=False)  # a pending write is kept for the batch's commit ...
+    with pytest.raises(RunConflict):
+        store.add_event(dict(svc.events[0], time=99), commit=False)
+    store.commit()
+    assert store.event_seqs("run-1") == [0, 1]  # ... not rolled back with the conflict
+
+
 def test_store_progress_counts_ended_operations_and_the_latest_time(tmp_path: Path) -> None:
     svc = finished_run()
     store = RecorderStore(tmp_path / "log.sqlite")
