@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
 from fms_sim.benchmarks import SL_GROUPS, SL_PER_GROUP, builtin
+from fms_sim.files import replacing, write_atomically
 from fms_sim.instance import Instance
 
 __all__ = [
@@ -368,7 +369,13 @@ def _execute(todo: list[Task], jobs: int, progress: bool) -> Iterator[dict[str, 
                     bar.update(1)
                     yield row
             except BaseException:  # interrupted: drop the queued tasks, finished ones are cached already
+                # stop the running ones too: leaving the pool waited for them (a CP-SAT task's whole time limit), and
+                # a SIGTERM left them running on without their parent (the executor's own list: it has no terminate;
+                # read before the shutdown, which drops it)
+                running = list((getattr(pool, "_processes", None) or {}).values())
                 pool.shutdown(wait=False, cancel_futures=True)
+                for proc in running:
+                    proc.terminate()
                 raise
     finally:
         bar.close()
@@ -588,7 +595,8 @@ def write_outputs(rows: Sequence[dict[str, Any]], results_dir: str | Path, stem:
     out.mkdir(parents=True, exist_ok=True)
     full = _with_gaps(rows)
     paths = {k: out / f"{stem}.{k}" for k in ("csv", "json", "md", "png")}
-    with paths["csv"].open("w", newline="", encoding="utf-8") as fh:
+    # each file replaced only by a complete one (an interrupt while writing left half a chart over the last run's)
+    with replacing(paths["csv"]) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=CSV_FIELDS, extrasaction="ignore")
         w.writeheader()
         for r in full:
@@ -597,8 +605,8 @@ def write_outputs(rows: Sequence[dict[str, Any]], results_dir: str | Path, stem:
            "best_rule": {f"{i}/{v}": _best_rule_json([r for r in rows if (r["instance"], r["variant"]) == (i, v)])
                          for i, v in _instances_of(rows)},
            "rows": full}
-    paths["json"].write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-    paths["md"].write_text(render_markdown(rows, title) + "\n", encoding="utf-8")
+    write_atomically(paths["json"], json.dumps(doc, indent=1) + "\n")
+    write_atomically(paths["md"], render_markdown(rows, title) + "\n")
     plot_bench(rows, paths["png"], title=title)
     return paths
 
@@ -708,7 +716,8 @@ def plot_bench(rows: Sequence[dict[str, Any]], path: str | Path, *, title: str =
     fig.subplots_adjust(left=left_in / fig_w, right=(left_in + plot_in) / fig_w, top=0.94,
                         bottom=(bottom + (0.3 if multi_variant else 0.0)) / 7.5, hspace=0.08)
     path = Path(path)
-    fig.savefig(path)
+    with replacing(path) as tmp:  # (the format from the name: the temporary's is .tmp)
+        fig.savefig(tmp, format=path.suffix.lstrip(".").lower() or "png")
     return path
 
 

@@ -539,9 +539,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    a = parser.parse_args(argv)
+    from .up import _TermAsInterrupt
+
+    # SIGTERM (kill, a supervisor) and SIGHUP stop every command as Ctrl-C does: temporary files removed, workers
+    # stopped, "interrupted" (they ended it without a word, leaving hidden temporaries and a bench's workers behind)
+    stops = _TermAsInterrupt()
     try:
+        a = build_parser().parse_args(argv)  # (an interrupt while the parser's modules load was a traceback)
         return a.fn(a)
     except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
         # one line, but all of it: a message of several lines (a list of offending specs) is joined, not cut
@@ -558,6 +562,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"fms: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:
+        stops.restore()
 
 
 if __name__ == "__main__":

@@ -149,6 +149,63 @@ def test_interrupted_run_loses_nothing(tmp_path: Path, monkeypatch: pytest.Monke
     assert [r["instance"] for r in rows] == ["EX12", "EX12", "EX22", "EX22"] and all(r["valid"] for r in rows)
 
 
+def test_an_interrupt_while_the_outputs_are_written_keeps_the_last_ones(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """They were written in place: an interrupt while the chart was saved left half a PNG over the last run's."""
+    from matplotlib.figure import Figure
+
+    rows = bm.run_bench(bm.bu_tasks(RULES, sets=[1]), jobs=1, results_dir=tmp_path)
+    paths = bm.write_outputs(rows, tmp_path, "t", title="t")
+    before = {p: p.read_bytes() for p in paths.values()}
+
+    def cut(self, fname, **kwargs):
+        Path(fname).write_bytes(b"\x89PNG half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", cut)
+    with pytest.raises(KeyboardInterrupt):
+        bm.write_outputs(rows, tmp_path, "t", title="t")
+    assert {p: p.read_bytes() for p in paths.values()} == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
+
+
+def test_a_stopped_parallel_bench_stops_its_workers(tmp_path: Path) -> None:
+    """SIGTERM (kill, a supervisor) left the workers running on for their task's whole time limit without their
+    parent; an interrupt waited for them, then dropped their results."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "bench", "sl", "--group", "0", "--instances",
+                             "0..1", "--methods", "cpsat", "--cpsat-time-limit", "60", "--tools", "no", "--jobs", "2",
+                             "-q", "--results-dir", str(tmp_path)], stderr=subprocess.PIPE, text=True)
+    children: set[int] = set()
+    deadline = time.monotonic() + 60
+    while len(children) < 2 and time.monotonic() < deadline:  # the two workers (and spawn's resource tracker)
+        time.sleep(0.2)
+        try:
+            text = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text()
+        except OSError:
+            break
+        children |= {int(c) for c in text.split()}
+    time.sleep(3)  # into their CP-SAT searches
+    proc.send_signal(signal.SIGTERM)
+    t0 = time.monotonic()
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "fms: interrupted" in err, err
+    assert time.monotonic() - t0 < 10  # not the searches' 60 s
+    time.sleep(1)
+
+    def alive(pid: int) -> bool:
+        try:
+            return "\nState:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return False
+
+    assert len(children) >= 2 and not [pid for pid in children if alive(pid)]
+
+
 def test_parallel_run_gives_the_same_table(tmp_path: Path) -> None:
     tasks = bm.bu_tasks(RULES, sets=[1, 2, 3])
     serial = bm.run_bench(tasks, jobs=1, results_dir=tmp_path / "serial")

@@ -410,3 +410,19 @@ def test_generate_checks_every_flag_by_name_before_writing(tmp_path, capsys):
     code, _, err = run(base + ["--count", "2", "--prefix", "gen"], capsys)
     assert code == 2 and "is a folder; nothing was written" in err
     assert not (tmp_path / "g" / "gen00.json").exists()
+
+
+def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
+    """SIGTERM (kill, a supervisor) ended fms solve without a word and left the Gantt chart's hidden temporary;
+    it is an interrupt now: exit 130, 'fms: interrupted', temporaries removed."""
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl70", "--solver", "rules",
+                             "--out", str(tmp_path / "s.json")], stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    time.sleep(3)  # past the start, into the search
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err.strip().endswith("fms: interrupted"), err
+    assert list(tmp_path.iterdir()) == []

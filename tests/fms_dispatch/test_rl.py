@@ -116,6 +116,25 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
     assert json.loads((out / "config.json").read_text())["seed"] == 6
 
 
+def test_an_interrupted_training_says_so_and_exits_130(tmp_path, capsys, monkeypatch):
+    """Ctrl-C in PPO keeps the model (--resume continues it), but fms train exited 0 without a word: only
+    metrics.json said it was interrupted."""
+    from sb3_contrib import MaskablePPO
+
+    from fms_dispatch.cli import main
+
+    def stop(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(MaskablePPO, "learn", stop)
+    out = tmp_path / "m"
+    assert main(["train", "EX12", "--allow-benchmarks", "--padding", "bu", "--n-envs", "1", "--steps", "128",
+                 "--out", str(out), "--no-progress"]) == 130
+    err = capsys.readouterr().err
+    assert f"fms: interrupted: the model is saved at 0 steps; fms train --out {out} --resume --steps N" in err
+    assert json.loads((out / "metrics.json").read_text())["training"]["interrupted"] is True
+
+
 def test_resume_refuses_options_it_cannot_apply(tmp_path, capsys):
     from fms_dispatch.cli import main
 

@@ -144,6 +144,11 @@ def _make_env(instances: Sequence[Instance] | _Cycle, padding: dict[str, int], r
         from .guide import PlanEffort
 
         torch.set_num_threads(1)
+        import multiprocessing
+
+        if multiprocessing.parent_process() is not None:  # a SubprocVecEnv worker: Ctrl-C in a terminal reaches
+            import signal  # the whole group; the worker died of it and the main process's clean stop (weights,
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # metrics, exports) ended in an EOFError traceback
         effort = guide_effort or PlanEffort()
         env = FastShopEnv(instances, reward=reward, invalid_action="raise", decisions=decisions, guide=guide,
                           guide_effort=effort, disruptions=disruptions, **padding)
@@ -761,7 +766,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             interrupted = True
     wall = time.perf_counter() - t0
     model.save(str(out / "model.zip"))
-    venv.close()
+    try:
+        venv.close()
+    except (EOFError, BrokenPipeError, ConnectionResetError):  # a worker already gone (killed): nothing to close
+        if not interrupted:
+            raise
     eval_env.close()
 
     from .agent import export_actor
@@ -894,4 +903,8 @@ def cmd_train(a: argparse.Namespace) -> int:
     t = m["training"]
     print(f"{a.out}: {t['timesteps']} steps, {t['wall_seconds']} s; eval mean makespan {t['eval_mean_makespan']} "
           f"({t['weights']})")
+    if t["interrupted"]:  # (it exited 0 without a word: only metrics.json said so)
+        print(f"fms: interrupted: the model is saved at {t['timesteps']} steps; fms train --out {a.out} --resume "
+              "--steps N continues it", file=sys.stderr)
+        return 130
     return 0
