@@ -1100,7 +1100,9 @@ class AgentLogic:
 
     def __init__(self, solver: str = "first", *, seed: int = 0, source: str = SOURCE,
                  instance: Instance | None = None, replan: float = 0.0, drift: float | None = None,
-                 guide_effort: Any = None, guide_replan: bool = True, replan_wait: bool = False) -> None:
+                 guide_effort: Any = None, guide_replan: bool = True, replan_wait: bool = False,
+                 only_run: str | None = None) -> None:
+        self.only_run = only_run or None  # answer the states of this run only (None: of any run)
         self.decide, self.name = make_decider(solver, seed, instance, replan=replan, drift=drift,
                                               guide_effort=guide_effort, guide_replan=guide_replan,
                                               replan_wait=replan_wait)
@@ -1119,6 +1121,8 @@ class AgentLogic:
         except MessageError as exc:
             return [Outgoing(TOPIC_ERRORS, error_reply(self.source, exc, received=text))]
         run_id, seq = state["run_id"], state["seq"]
+        if self.only_run is not None and run_id != self.only_run:  # another run's shop on the same domain: its
+            return []  # own agent answers it (two fms up runs on one domain steered each other's shops)
         if run_id != self.run_id:
             self.run_id, self.last_seq, self.answered_seq, self._asked = run_id, -1, -1, None
         if seq < self.last_seq or (seq == self.last_seq and self._asked != (run_id, seq)):

@@ -69,6 +69,7 @@ class AgentNode(FmsNode):
         exact = float(param(n, "guide_exact", -1.0))
         tabu = float(param(n, "guide_tabu", -1.0))
         guide_replan = bool(param(n, "guide_replan", True))
+        only_run = str(param(n, "run_id", ""))
         effort = None
         if restarts != -1 or budget != -1.0 or rules or exact != -1.0 or tabu != -1.0:
             from .rl.guide import effort_from
@@ -81,7 +82,7 @@ class AgentNode(FmsNode):
                                    ) from None
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
-                                    guide_replan=guide_replan, replan_wait=replan_wait)
+                                    guide_replan=guide_replan, replan_wait=replan_wait, only_run=only_run)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
         if self.delay_s < 0 or self.resend_s <= 0:

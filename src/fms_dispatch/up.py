@@ -438,7 +438,9 @@ def cmd_up(a: argparse.Namespace) -> int:
 
     full = needs_full_net(solver) or disrupted or full_model
     twin = needs_twin(solver) or needs_full_net(solver)
-    agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed or 0}
+    # the agent answers this run's states only: another fms up on the same domain (an exported ROS_DOMAIN_ID) had its
+    # shop steered by both agents, and its schedule reported as the solver's
+    agent_params: dict[str, Any] = {"solver": solver, "seed": a.seed or 0, "run_id": run_id}
     if needs_full_net(solver):
         agent_params["replan"] = float(replan)
     if wait:

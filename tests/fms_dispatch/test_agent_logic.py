@@ -124,6 +124,11 @@ def test_each_state_is_answered_once() -> None:
     other = ShopService(builtin("EX12"), run_id="r2")          # a new run starts from seq 0 again
     other.start()
     assert len(agent.on_state(encode(other.state))) == 1 and agent.decisions == 3
+    # an agent of one run (fms up's) leaves other runs on its domain to their own agents: both answered a shop's
+    # states, and its schedule was of two solvers, reported as the requested one's
+    mine = AgentLogic("first", only_run="r2")
+    assert mine.on_state(s0) == [] and mine.decisions == 0
+    assert len(mine.on_state(encode(other.state))) == 1 and mine.decisions == 1
 
 
 def test_undecidable_states_give_errors() -> None:

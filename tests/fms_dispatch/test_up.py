@@ -370,6 +370,7 @@ def test_a_seed_is_taken_where_it_draws_something(fake_nodes, tmp_path: Path, mo
         (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)
         assert _up(tmp_path, "--seed", "7", "--db", str(tmp_path / "out" / f"{i}.sqlite"), *extra) == up.EXIT_OK, extra
         assert seen["agent_node"]["seed"] == 7 and seen["shop_node"].get("noise_seed", 7) == 7, (extra, seen)
+        assert seen["agent_node"]["run_id"] == "t1"  # it answers its own run's states only
         assert ("noise_seed" in seen["shop_node"]) == (extra[0] == "--noise")
 
 
