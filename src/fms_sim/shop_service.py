@@ -300,9 +300,11 @@ class ShopService:
         if self.done:
             return [self._error("stale_state", f"command answers state {seq} but the run is complete (final "
                                                f"state {self.state_seq}); no command is accepted", text)]
-        if seq < self.state_seq:
+        if seq < self.state_seq:  # with the current state again: an agent that lost it (a state overwritten in a
+            # subscriber's queue of depth 1 by another shop's on the same domain) re-sent its last command for ever
             return [self._error("stale_state", f"command answers state {seq} but the current state is "
-                                               f"{self.state_seq}", text)]
+                                               f"{self.state_seq}", text)] + \
+                ([Outgoing(TOPIC_STATE, self.state)] if self.state is not None else [])
         if seq > self.state_seq:
             return [self._error("stale_state", f"command answers state {seq}, which was never published "
                                                f"(the current state is {self.state_seq})", text)]

@@ -236,8 +236,11 @@ def test_stale_and_late_commands() -> None:
     svc.start()
     first = command(svc, "job:0")
     svc.handle_command(first)
-    (err,) = by_topic(svc.handle_command(first), m.TOPIC_ERRORS)   # the same command again: stale
+    again = svc.handle_command(first)
+    (err,) = by_topic(again, m.TOPIC_ERRORS)   # the same command again: stale
     assert err["code"] == "stale_state" and "answers state 0 but the current state is 1" in err["message"]
+    # and the current state is published again: an agent that lost it re-sent its old command for ever
+    assert by_topic(again, m.TOPIC_STATE) == [svc.state] and svc.state["seq"] == 1
     run_to_end(svc)
     (err,) = by_topic(svc.handle_command(command(svc, "job:0")), m.TOPIC_ERRORS)
     assert err["code"] == "stale_state" and "the run is complete" in err["message"]
