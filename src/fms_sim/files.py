@@ -86,8 +86,9 @@ def loads(text: str, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] |
 
 
 @contextlib.contextmanager
-def replacing(path: str | Path) -> Iterator[Path]:
-    """A temporary path to write ``path``'s new content to; on leaving without an error it replaces ``path``
+def replacing(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
+    """A temporary path (ending in ``suffix``: ``".tmp.png"`` for a writer that reads the format from the name) to
+    write ``path``'s new content to; on leaving without an error it replaces ``path``
     (an existing file keeps its permissions, a new one gets the usual ones), on an error it is removed and ``path``
     is left as it was. The parent folders are created. Through a symbolic link the link's target is replaced; a
     device or a pipe is given as it is (written straight into); and an existing file that this user may write in a
@@ -99,7 +100,7 @@ def replacing(path: str | Path) -> Iterator[Path]:
     out = Path(os.path.realpath(given))  # a link stays a link: its target gets the content
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=str(out.parent))
+        fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=suffix, dir=str(out.parent))
     except PermissionError:
         if out.is_file() and os.access(out, os.W_OK):
             yield out

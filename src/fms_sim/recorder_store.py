@@ -36,6 +36,7 @@ from fms_msgs_json import (
     make_replay_request,
 )
 
+from .files import replacing
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop_service import Outgoing
 
@@ -591,14 +592,14 @@ class Recorder:
         schedule = self.store.schedule(run_id)
         assert schedule is not None
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(target.name + ".tmp.png")
-        if self._renderer is not None:
-            self._renderer(schedule, tmp)
-        else:
-            from .gantt import save_gantt
+        # a temporary of its own (a fixed name was shared by two recorders charting one run into one folder)
+        with replacing(target, suffix=".tmp" + target.suffix) as tmp:  # atomic: no half-written chart is seen
+            if self._renderer is not None:
+                self._renderer(schedule, tmp)
+            else:
+                from .gantt import save_gantt
 
-            save_gantt(schedule, tmp, title=f"{schedule.instance} — run {run_id} — makespan {schedule.makespan}")
-        tmp.replace(target)  # atomic: a watcher never sees a half-written chart
+                save_gantt(schedule, tmp, title=f"{schedule.instance} — run {run_id} — makespan {schedule.makespan}")
         self.store.set_gantt(run_id, target)
         self.rendered.append((run_id, target))
         return target

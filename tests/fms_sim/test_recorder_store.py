@@ -163,8 +163,13 @@ def test_recorder_complete_run_renders_once(tmp_path: Path) -> None:
         assert rec.finish_ready() == []                          # no schedule yet
     assert rec.handle_schedule(schedule, now=0.0) == []
     png = tmp_path / "run-1.gantt.png"
+    other = tmp_path / "run-1.gantt.png.tmp.png"  # the fixed temporary name, which two recorders charting one run
+    other.write_bytes(b"another recorder's")      # into one folder shared: each has its own now
     assert rec.finish_ready() == [("run-1", png)]
-    assert calls == [(svc.final_schedule.makespan, tmp_path / "run-1.gantt.png.tmp.png")] and png.exists()
+    ((made, tmp),) = calls
+    assert made == svc.final_schedule.makespan and tmp.parent == tmp_path and tmp.name.startswith(".run-1.gantt.png.")
+    assert tmp.suffix == ".png" and not tmp.exists() and png.read_bytes() == b"png"
+    assert other.read_bytes() == b"another recorder's"
     assert rec.store.gantt("run-1") == str(png)
     assert rec.handle_schedule(schedule, now=1.0) == [] and rec.finish_ready() == [] and len(calls) == 1
 
