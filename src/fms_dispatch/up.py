@@ -531,38 +531,43 @@ def cmd_up(a: argparse.Namespace) -> int:
         print("fms: interrupted" + (f"; {stop_note}" if stop_note else "") + f" (logs: {log_dir})", file=sys.stderr)
         _print_logs([n for n in nodes if n.name in unclean])
         return EXIT_INTERRUPTED
-    sched: Schedule | None = None
-    if failure is None:
+    try:  # the nodes stopped: a signal now (the CLI makes it an interrupt) must not hide the run's kept output
+        sched: Schedule | None = None
+        if failure is None:
+            try:
+                sched = Schedule.load(sched_tmp)
+                final = Instance.from_json(inst_final.read_text())
+            except (OSError, ScheduleError, InstanceError) as exc:
+                failure = f"cannot read the shop's output: {exc}"
+            else:
+                problems = validate(final, sched)
+                if problems:
+                    failure = f"the schedule is infeasible: {problems[0]}"
+        if failure is not None or sched is None:
+            print(f"fms up: error: {failure}" + (f"; {stop_note}" if stop_note else ""), file=sys.stderr)
+            _print_logs(nodes)
+            return EXIT_FAILED
+        if stop_note:
+            # the run was delivered (schedule, final instance and chart written, schedule valid): a node that then
+            # fails to stop — e.g. a stalled DDS teardown — loses nothing, so it is reported, not a failed run
+            keep_logs = True
+            print(f"fms up: warning: the run is complete and valid, but {stop_note}", file=sys.stderr)
+            _print_logs([n for n in nodes if n.name in unclean])
+        # a run that took live orders has jobs the instance has not: its final instance goes beside the schedule, so
+        # that `fms validate` can check it afterwards (the work folder holding it is removed)
+        ordered = out.with_name(f"{out.name[:-5] if out.name.endswith('.json') else out.name}.instance.json")
         try:
-            sched = Schedule.load(sched_tmp)
-            final = Instance.from_json(inst_final.read_text())
-        except (OSError, ScheduleError, InstanceError) as exc:
-            failure = f"cannot read the shop's output: {exc}"
-        else:
-            problems = validate(final, sched)
-            if problems:
-                failure = f"the schedule is infeasible: {problems[0]}"
-    if failure is not None or sched is None:
-        print(f"fms up: error: {failure}" + (f"; {stop_note}" if stop_note else ""), file=sys.stderr)
-        _print_logs(nodes)
-        return EXIT_FAILED
-    if stop_note:
-        # the run was delivered (schedule, final instance and chart written, schedule valid): a node that then
-        # fails to stop — e.g. a stalled DDS teardown — loses nothing, so it is reported, not a failed run
-        keep_logs = True
-        print(f"fms up: warning: the run is complete and valid, but {stop_note}", file=sys.stderr)
-        _print_logs([n for n in nodes if n.name in unclean])
-    # a run that took live orders has jobs the instance has not: its final instance goes beside the schedule, so
-    # that `fms validate` can check it afterwards (the work folder holding it is removed)
-    ordered = out.with_name(f"{out.name[:-5] if out.name.endswith('.json') else out.name}.instance.json")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        sched.save(out)
-        if final.n_jobs != inst.n_jobs:
-            final.save(ordered)
-    except OSError as exc:
-        print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
-        return EXIT_FAILED
+            out.parent.mkdir(parents=True, exist_ok=True)
+            sched.save(out)
+            if final.n_jobs != inst.n_jobs:
+                final.save(ordered)
+        except OSError as exc:
+            print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
+            return EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f"fms: interrupted while the run's output was checked and written; the shop's output is kept in "
+              f"{log_dir}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if not keep_logs and not chart_missing:
         shutil.rmtree(log_dir, ignore_errors=True)
     meta = sched.meta

@@ -487,3 +487,23 @@ def test_progress_is_none_where_the_database_cannot_be_read(tmp_path):
     assert up._progress(tmp_path / "junk.sqlite", "r") is None
     RecorderStore(tmp_path / "db.sqlite").close()
     assert up._progress(tmp_path / "db.sqlite", "r") == (0, None)
+
+
+def test_an_interrupt_while_the_output_is_written_names_the_kept_output(fake_nodes, tmp_path: Path, capsys,
+                                                                        monkeypatch) -> None:
+    """After the nodes stopped, a signal (SIGTERM or Ctrl-C) while the schedule was checked and written said only
+    'fms: interrupted' (from the CLI): the folder holding the shop's finished schedule was kept, unnamed."""
+    import importlib
+
+    validate_module = importlib.import_module("fms_sim.validate")  # (the package's name is the function)
+    fake_nodes()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(validate_module, "validate", interrupted)  # (cmd_up imports it when it runs)
+    assert _up(tmp_path) == up.EXIT_INTERRUPTED
+    err = capsys.readouterr().err
+    assert "fms: interrupted while the run's output was checked and written; the shop's output is kept in " in err
+    kept = Path(err.rsplit("kept in ", 1)[1].strip())
+    assert kept.is_dir() and list(kept.rglob("schedule.json")) and not (tmp_path / "out" / "s.json").exists()
