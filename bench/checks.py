@@ -76,26 +76,24 @@ def limits_label(rows: list[dict], method: str = "cpsat") -> str:
     return ", ".join("?" if x is None else f"{x:g} s" for x in limits)
 
 
-def positive(text: str) -> int:
-    """An argparse type: an integer >= 1 (a count of shops, scenarios, samples, runs)."""
+def _integer(text: str, low: int) -> int:
     try:
         n = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    if n < low:
+        raise argparse.ArgumentTypeError(f"must be >= {low}, got {n}")
     return n
+
+
+def positive(text: str) -> int:
+    """An argparse type: an integer >= 1 (a count of shops, scenarios, samples, runs)."""
+    return _integer(text, 1)
 
 
 def at_least_zero(text: str) -> int:
     """An argparse type: an integer >= 0 (a size bound where 0 means none: -1 was taken and meant none too)."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
-    return n
+    return _integer(text, 0)
 
 
 def finite(text: str) -> float:

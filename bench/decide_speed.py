@@ -47,8 +47,15 @@ def _load(name: str) -> Any:
     """The shop ``name`` (a built-in or a file); ``NAME/notools``: without its tools, as ``fms solve --no-tools``."""
     from fms_sim.formats import load_instance
 
-    base = name.removesuffix("/notools")  # (partitioned at the first "/", a file's path was cut at its first folder)
-    return load_instance(base, no_tools=base != name)
+    base, notools = _split(name)
+    return load_instance(base, no_tools=notools)
+
+
+def _split(name: str) -> tuple[str, bool]:
+    """``NAME/notools`` as ``(NAME, True)``, another name as ``(name, False)`` (partitioned at the first "/", a file's
+    path was cut at its first folder)."""
+    base = name.removesuffix("/notools")
+    return base, base != name
 
 
 def _agent(inst: Any, model: str) -> Any:
@@ -235,8 +242,8 @@ def main() -> None:
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if not a.worker:  # the workers run in the repository's root: a file is named there by its absolute path
-        a.instances = [str(Path(n.removesuffix("/notools")).resolve()) + n[len(n.removesuffix("/notools")):]
-                       if Path(n.removesuffix("/notools")).is_file() else n for n in a.instances]
+        a.instances = [str(Path(base).resolve()) + ("/notools" if notools else "") if Path(base).is_file() else n
+                       for n in a.instances for base, notools in [_split(n)]]
     if a.worker:
         print(json.dumps([solve_once(n, a.model) for n in a.instances] if a.solve
                          else parts(a.instances, a.model, a.repeat) if a.parts

@@ -716,8 +716,8 @@ def plot_bench(rows: Sequence[dict[str, Any]], path: str | Path, *, title: str =
     fig.subplots_adjust(left=left_in / fig_w, right=(left_in + plot_in) / fig_w, top=0.94,
                         bottom=(bottom + (0.3 if multi_variant else 0.0)) / 7.5, hspace=0.08)
     path = Path(path)
-    with replacing(path) as tmp:  # (the format from the name: the temporary's is .tmp)
-        fig.savefig(tmp, format=path.suffix.lstrip(".").lower() or "png")
+    with replacing(path, suffix=".tmp" + path.suffix) as tmp:  # (a temporary matplotlib reads the format from)
+        fig.savefig(tmp)
     return path
 
 

@@ -302,9 +302,9 @@ class ShopService:
                                                f"state {self.state_seq}); no command is accepted", text)]
         if seq < self.state_seq:  # with the current state again: an agent that lost it (a state overwritten in a
             # subscriber's queue of depth 1 by another shop's on the same domain) re-sent its last command for ever
+            assert self.state is not None  # (a state newer than seq was published)
             return [self._error("stale_state", f"command answers state {seq} but the current state is "
-                                               f"{self.state_seq}", text)] + \
-                ([Outgoing(TOPIC_STATE, self.state)] if self.state is not None else [])
+                                               f"{self.state_seq}", text), Outgoing(TOPIC_STATE, self.state)]
         if seq > self.state_seq:
             return [self._error("stale_state", f"command answers state {seq}, which was never published "
                                                f"(the current state is {self.state_seq})", text)]

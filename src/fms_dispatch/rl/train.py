@@ -499,14 +499,14 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             raise ValueError(f"resume continues the model in {out} with its own {CONFIG_FILE}: the config gives only "
                              f"steps, not {', '.join(ignored)} (train a new model for those)")
         earlier = _saved_config(out / CONFIG_FILE) if (out / CONFIG_FILE).is_file() else None
-        missing = [name for name, there in ((CONFIG_FILE, earlier is not None), ("model.zip", (out / "model.zip")
-                                                                                  .is_file())) if not there]
-        if missing:  # (it said "no config.json and model.zip" of a folder holding its config.json)
-            raise ValueError(f"cannot resume: {out} has no {' and no '.join(missing)} from an earlier run"
-                             + ("" if len(missing) == 2 or missing[0] == CONFIG_FILE else
-                                " (the latest weights, which a model shipped without them or a run that ended "
-                                "before its first save does not have: train a new model, from it with --init)"))
-        assert earlier is not None  # (missing above otherwise)
+        has_model = (out / "model.zip").is_file()
+        if earlier is None:
+            raise ValueError(f"cannot resume: {out} has no {CONFIG_FILE}{'' if has_model else ' and no model.zip'} "
+                             "from an earlier run")
+        if not has_model:  # (it said "no config.json and model.zip" of a folder holding its config.json)
+            raise ValueError(f"cannot resume: {out} has no model.zip from an earlier run (the latest weights, which a "
+                             "model shipped without them or a run that ended before its first save does not have: "
+                             "train a new model, from it with --init)")
         cfg = _merge(earlier, {"steps": config.get("steps")})
     else:
         cfg = _merge(DEFAULT_CONFIG, config)
