@@ -52,6 +52,7 @@ import functools
 import math
 import numbers
 import random
+import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -93,6 +94,52 @@ def _cp() -> ModuleType:
     from ortools.sat.python import cp_model
 
     return cp_model
+
+
+def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
+    """``solver.solve(model, callback)``, stopped within a fraction of a second by Ctrl-C (or ``fms``'s SIGTERM).
+
+    CP-SAT searches in C++ with the GIL released, and Python runs a signal handler only in the main thread, once
+    that thread is back in Python: an interrupt during ``solve`` waited for the search's end (``fms solve sl00
+    --solver cpsat --time-limit 60`` took 22 s to stop). So, called from the main thread, the search runs in a
+    thread of its own while the main thread waits in short steps; an interrupt stops the search
+    (``stop_search``), waits for it to end and is raised again. The wait is on an event the search thread sets,
+    not on ``Thread.join``: an interrupt during ``join`` can leave the thread taken as ended while it still runs
+    (and the process aborts at exit). Outside the main thread (a node's planning thread) no signal arrives: the
+    search runs in place. The status is returned; an error of the search is raised here."""
+    if threading.current_thread() is not threading.main_thread():
+        return solver.solve(model, callback)
+    done = threading.Event()
+    out: dict[str, Any] = {}
+
+    def search() -> None:
+        try:
+            out["status"] = solver.solve(model, callback)
+        except BaseException as e:  # (raised in the caller's thread below)
+            out["error"] = e
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=search, name="cp-sat", daemon=True)
+    thread.start()
+    try:
+        while not done.wait(0.05):
+            pass
+    except BaseException:
+        solver.stop_search()
+        while True:  # a second interrupt must not leave the search running: it is already told to stop
+            try:
+                done.wait()
+                break
+            except BaseException:
+                continue
+        raise
+    finally:
+        if done.is_set():
+            thread.join()
+    if "error" in out:
+        raise out["error"]
+    return out["status"]
 
 
 @dataclass
@@ -1134,7 +1181,7 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
     solver.parameters.num_workers = max(1, workers)
     solver.parameters.random_seed = seed
     solver.parameters.catch_sigint_signal = False  # see _solve_full
-    status = solver.solve(model)
+    status = run_solver(solver, model)
     starts = None
     if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         starts = {key: solver.value(v) for key, v in s.items()}
@@ -1233,7 +1280,7 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
         else:
             setattr(p, key, val)
     cb = _callback_class()(fm, progress, t0)
-    status = solver.solve(fm.model, cb)
+    status = run_solver(solver, fm.model, cb)
     bound = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6))) if status != cp_model.INFEASIBLE else lb
     best = incumbent
     if cb.best is not None and cb.best.makespan <= best.makespan:

@@ -4,7 +4,11 @@ every greedy schedule (it must not cut off feasible schedules), and the error pa
 
 from __future__ import annotations
 
+import os
 import random
+import signal
+import threading
+import time
 
 import pytest
 from ortools.sat.python import cp_model
@@ -21,6 +25,7 @@ from fms_dispatch.exact import (
     greedy_schedule,
     polish_plan,
     relaxation_bound,
+    run_solver,
     simple_lower_bound,
     solve_exact,
 )
@@ -457,3 +462,73 @@ def test_a_stand_in_for_an_impossible_solution_is_not_replaced_by_a_worse_one(mo
     cb.on_solution_callback()
     cb.on_solution_callback()
     assert cb.best.makespan == 15 and seen == [15]  # progress never reports a makespan going up
+
+
+# ---------------------------------------------------------------------------------- interrupts
+class _Stop(Exception):
+    """Raised by the test's SIGINT handler (a KeyboardInterrupt would stop pytest itself)."""
+
+
+def _raise_stop(signum, frame):
+    raise _Stop
+
+
+def _long_model() -> cp_model.CpModel:
+    """A model CP-SAT does not close within the tests' limits (300 variables, all different, a wide objective)."""
+    m = cp_model.CpModel()
+    xs = [m.new_int_var(0, 10**6, f"x{i}") for i in range(300)]
+    for i in range(299):
+        m.add(xs[i] + 3 * (i % 7) != xs[i + 1])
+    m.add_all_different(xs)
+    m.minimize(sum(xs[::3]) - sum(xs[1::3]))
+    return m
+
+
+@pytest.fixture
+def sigint_raises_stop():
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach only the main thread")
+    old = signal.signal(signal.SIGINT, _raise_stop)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_an_interrupt_stops_a_cp_sat_search_at_once(sigint_raises_stop):
+    # CP-SAT searches in C++: the interrupt waited for the search's end (fms solve sl00 --solver cpsat
+    # --time-limit 60 stopped 22 s after Ctrl-C); run_solver stops the search and raises it at once
+    solver = cp_model.CpSolver()
+    solver.parameters.max_time_in_seconds = 60
+    solver.parameters.num_workers = 2
+    solver.parameters.catch_sigint_signal = False
+    timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+    t0 = time.monotonic()
+    timer.start()
+    with pytest.raises(_Stop):
+        run_solver(solver, _long_model())
+    assert time.monotonic() - t0 < 10
+    timer.join()
+    # the stopped search ended (nothing of it runs on), and the solver's next search is a normal one
+    solver.parameters.max_time_in_seconds = 3
+    assert run_solver(solver, _long_model()) in (cp_model.FEASIBLE, cp_model.OPTIMAL)
+
+
+def test_every_cp_sat_search_of_the_package_runs_interruptibly(monkeypatch, sigint_raises_stop):
+    # called from the main thread, each search (the full model, the relaxation bound, the polish, the re-plan's
+    # relaxed starts) runs in a thread of its own, which is what lets the main thread take the interrupt
+    threads = []
+    solve = cp_model.CpSolver.solve
+
+    def spy(self, *args, **kwargs):
+        threads.append(threading.current_thread() is threading.main_thread())
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp_model.CpSolver, "solve", spy)
+    inst = builtin("EX12")
+    solve_exact(inst, time_limit=5)
+    relaxation_bound(builtin("sl00"), time_limit=0.5)
+    polish_plan(inst, greedy_schedule(inst), time_limit=1)
+    from fms_dispatch.replan import _relaxed_starts
+    from fms_sim.snapshot import Snapshot
+
+    _relaxed_starts(Snapshot.initial(inst), greedy_schedule(inst).makespan, None, 0.5, 2, 0)
+    assert len(threads) >= 4 and not any(threads)
