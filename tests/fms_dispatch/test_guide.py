@@ -554,6 +554,57 @@ def test_a_guided_model_re_plans_its_guide_from_a_disrupted_state():
         agent.replan_guide(FullShop(inst, scenario=sc), margin=-0.1)
 
 
+def test_a_guide_plans_from_the_state_when_something_is_down_from_time_0():
+    """A breakdown or outage that begins at time 0 is in the shop's state only: the guide's plans there (the first
+    one and the re-plan the breakdown triggers) start from that state, so none promises what the shop cannot do.
+    They were planned from scratch: with every machine of EX12 down for its first 100 time units the re-plan at time
+    0 promised the nominal 82 and was adopted (the run took 178; and 148 instead of 116 with AGV 0 out for 80)."""
+    from fms_dispatch.rl.guide import at_start, effort_from, plans_from_scratch
+    from fms_dispatch.solvers import solve
+    from fms_sim.disruptions import Breakdown, Outage, Scenario
+
+    inst = builtin("EX12")
+    longest = max(sum(op.duration for op in job) for job in inst.jobs)
+    everything_down = Scenario(tuple(Breakdown(machine=m, start=0, duration=100)
+                                     for m in range(1, inst.n_machines + 1)), (), 0.0, 0)
+    assert plans_from_scratch(FullShop(inst)) and plans_from_scratch(FullShop(inst, scenario=Scenario((), (), 0.2, 1)))
+    shop = FullShop(inst, scenario=everything_down)
+    assert at_start(shop) and not plans_from_scratch(shop)
+    plan = guide_plan(shop, effort_from(restarts=8, tabu=0.0, budget=0))
+    assert plan.meta["residual"] == 0 and plan.makespan >= 100 + longest
+    later = Scenario((Breakdown(machine=1, start=5, duration=10),), (), 0.0, 0)
+    assert plans_from_scratch(FullShop(inst, scenario=later))  # nothing down yet: the nominal shop at its start
+    sched = solve(inst, "ppo", scenario=everything_down, guide_effort=effort_from(tabu=0.0))
+    assert validate(inst, sched, everything_down) == []
+    promised = [(e["before"], e["after"]) for e in sched.meta["replans"]]
+    assert promised and all(min(p) >= 100 + longest for p in promised), promised
+    out = Scenario((), (Outage(kind="agv", vehicle=0, start=0, duration=80),), 0.0, 0)
+    sched = solve(inst, "ppo", scenario=out, guide_effort=effort_from(tabu=0.0))
+    assert validate(inst, sched, out) == []
+    first = sched.meta["replans"][0]
+    assert (first["reason"], first["time"]) == ("outage", 0)
+    # the plan from the state promises what a list schedule from that state does, not the nominal optimum 82
+    from fms_dispatch.rl.guide import _state
+    from fms_dispatch.exact import greedy_schedule
+
+    start = FullShop(inst, scenario=out)
+    floor = min(greedy_schedule(inst, rule=r, origin=_state(start)).makespan for r in ("est", "ect"))
+    assert first["after"] > 82 and sched.makespan <= floor
+    # a model's guide at time 0 is kept while the shop is there, and serves only a run with the same things down:
+    # not the nominal start, nor another scenario's (one agent runs many scenarios of a shop in the benches)
+    from fms_dispatch.rl.models import load_agent
+
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(restarts=8, tabu=0.0, budget=0))
+    for sc in (everything_down, out, None, everything_down):
+        shop = FullShop(inst, scenario=sc)
+        guide = agent.guide_of(shop)
+        assert agent.guide_of(shop) is guide and agent.guide_of(copy.deepcopy(shop)) is guide
+        alone = guide_plan(FullShop(inst, scenario=sc), agent.guide_effort)
+        assert guide.origin == alone.meta.get("residual") and guide.plan.makespan == alone.makespan
+        assert (guide.origin is None) == (sc is None)
+
+
 def test_the_guide_replanner_answers_each_breakdown_once_per_run():
     """``GuideReplanner`` (breakdowns only: ``drift=None``) re-plans once per breakdown begun: not again on another
     shop object of the same run (a twin, a rebuilt replay), again in a new run (a shop at its start); refused for a

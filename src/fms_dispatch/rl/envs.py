@@ -177,8 +177,7 @@ class FastShopEnv(ShopEnv):
         if guide is not None and guide.effort not in (None, self.guide_effort):
             guide = None  # planned with another search effort than this env's
         if guide is not None:
-            fresh = at_start(shop)
-            if (guide.origin is None) if fresh else (guide.origin is None or shop.now >= guide.origin):
+            if guide.fits_start(shop) if at_start(shop) else (guide.origin is None or shop.now >= guide.origin):
                 return guide
         guide = self._plan_guide = PlanGuide.for_shop(shop, self.guide_effort)
         self._guide_for = inst
@@ -231,6 +230,7 @@ class FastShopEnv(ShopEnv):
                 plan = retime_from(snapshot(self.shop), plan)
             # labelled with the env's effort (what the guide is searched with), whatever the re-plan's budget
             self._plan_guide, self._guide_for = PlanGuide(self.instance, plan, self.guide_effort), self.instance
+            self._plan_guide.mark(self.shop)
         return adopted
 
     def bridge_guide(self) -> Schedule | None:

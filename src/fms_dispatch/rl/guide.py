@@ -185,15 +185,15 @@ class GuideReplan:
 def guide_plan(shop: FullShop, effort: PlanEffort = PlanEffort()) -> Schedule:
     """The guide's plan for ``shop``: the better of the earliest-start and earliest-completion list schedules
     (the project's ``list`` reference; earliest start on ties), searched further as ``effort`` says (rule pairs,
-    restarts, tabu search, polish), from scratch when the run has not started, else from its state (residual plans:
-    no rule pairs and no polish). A
+    restarts, tabu search, polish), from scratch when the run has not started and nothing is down
+    (:func:`plans_from_scratch`), else from its state (residual plans: no rule pairs and no polish). A
     state with a vehicle or tool-use choice pending cannot be snapshot; the plans then start from a copy that
     answers those choices (first offered) and stops at the next state that can."""
     from ..exact import fits_full_model, greedy_schedule, polish_plan, restart_list_plan, simple_lower_bound
     from ..tabu import residual_lower_bound, tabu_plan
 
     t0 = time.monotonic()
-    origin = None if at_start(shop) else _state(shop)
+    origin = None if plans_from_scratch(shop) else _state(shop)
     inst = shop.instance
     t1 = time.monotonic()
     plans = [greedy_schedule(inst, rule=rule, origin=origin) for rule in ("est", "ect")]
@@ -286,6 +286,24 @@ def replan_search(shop: FullShop, old: Schedule, effort: PlanEffort) -> tuple[Sc
     return plan, before
 
 
+def plans_from_scratch(shop: FullShop) -> bool:
+    """Whether the guide plans ``shop`` from scratch, as the nominal shop at time 0 (rule pairs and the polish
+    allowed, :func:`guide_plan`): its run has not started (:func:`at_start`) and no machine is broken down and no
+    vehicle out of service now. A breakdown or outage from time 0 is in the shop's state only: a plan from scratch
+    ignored it (EX12 with AGV 0 out for its first 80: the re-plan at time 0 promised the nominal 82, it was adopted
+    and the run took 148, 108 with the outage one time unit later)."""
+    return at_start(shop) and not any(any(flags) for flags in down_now(shop)[:3])
+
+
+def down_now(shop: FullShop) -> tuple:
+    """What is down in ``shop`` now, with the disruptions it knows: which machines are broken down, which AGVs and
+    transporters out of service, and its scenario. At time 0 the state, and so the plan from it, depends on nothing
+    else: a guide planned from it serves a run (a twin of it too) with the same, not another run's."""
+    out = getattr(shop, "out", {})
+    return (tuple(getattr(shop, "m_down", ())), tuple(out.get("agv", ())), tuple(out.get("tt", ())),
+            getattr(shop, "scenario", None))
+
+
 def at_start(shop: FullShop) -> bool:
     """Whether ``shop``'s run has not started: time 0, no operation started and, with AGVs, no part dispatched (a
     shop without AGVs has its first parts at their machines from time 0, without a decision)."""
@@ -341,6 +359,8 @@ class PlanGuide:
         self.effort = effort
         #: the time a residual plan starts from (a run's state); None for a plan from scratch
         self.origin: int | None = plan.meta.get("residual")
+        #: a plan from a state at time 0 (something down from the start): :func:`down_now` of that state
+        self.down: tuple | None = None
         inst = instance
         L = max(len(ops) for ops in inst.jobs)
         self.start = np.full((inst.n_jobs, L + 1), np.inf)
@@ -393,7 +413,20 @@ class PlanGuide:
     @classmethod
     def for_shop(cls, shop: FullShop, effort: PlanEffort = PlanEffort()) -> "PlanGuide":
         """The guide of :func:`guide_plan` for ``shop``."""
-        return cls(shop.instance, guide_plan(shop, effort), effort)
+        guide = cls(shop.instance, guide_plan(shop, effort), effort)
+        guide.mark(shop)
+        return guide
+
+    def mark(self, shop: FullShop) -> None:
+        """Record what is down in ``shop`` (:attr:`down`) if this is a plan from its state at time 0."""
+        self.down = down_now(shop) if self.origin == 0 and at_start(shop) else None
+
+    def fits_start(self, shop: FullShop) -> bool:
+        """Whether this guide serves ``shop`` at its start (:func:`at_start`): planned from scratch for the
+        nominal start, or from a state at time 0 with the same things down (:func:`down_now`)."""
+        if plans_from_scratch(shop):
+            return self.origin is None
+        return self.origin == 0 and self.down == down_now(shop)
 
     # ------------------------------------------------------------------ the heads of a state
     @staticmethod
