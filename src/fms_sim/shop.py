@@ -106,6 +106,7 @@ class Shop:
         self.job_done_ops = [0] * self.n_jobs             # operations finished per job
         self.job_ready_since = [0] * self.n_jobs          # time the job's part became ready
         self.job_entry = list(range(self.n_jobs))         # FIFO key: order of entry
+        self.arrivals: dict[int, int] = {}                 # job of a live order -> when it arrived (add_jobs)
         self.agv_work = [0] * self.n_agvs                 # cumulative busy time per AGV
         self.tt_work = [0] * self.n_tts
         self.agv_loc = [0] * self.n_agvs                  # last known / destination location per vehicle
@@ -559,6 +560,7 @@ class Shop:
             self.job_done_ops.append(0)
             self.job_ready_since.append(self.now)
             self.job_entry.append(j)
+            self.arrivals[j] = self.now
             self._add_job_transition(j)
             self.net.put(self.p_parts, (j, 0, 0))
         self.n_jobs = inst.n_jobs
@@ -654,14 +656,19 @@ class Shop:
 
     # ------------------------------------------------------------------ result
     def schedule(self) -> Schedule:
+        """The run's schedule (its instance with every job added); jobs of live orders are listed with the time they
+        arrived in ``meta["arrivals"]`` (``[job, time]`` pairs), which the validator checks."""
         if not self.done:
             raise RuntimeError(f"the run is not complete ({self.p_done.count}/{self.n_jobs} jobs done)")
         inst = self.instance
-        return Schedule(
+        out = Schedule(
             instance=inst.name, makespan=self.makespan,
             n_agvs=self.n_agvs, n_tool_transporters=self.n_tts,
             operations=list(self.rec.ops), agv_trips=list(self.rec.agv), tool_trips=list(self.rec.tt),
         )
+        if self.arrivals:  # the jobs of live orders: the validator checks that nothing of them came earlier
+            out.meta["arrivals"] = [[j, t] for j, t in sorted(self.arrivals.items())]
+        return out
 
 
 def run_policy(instance: Instance, choose: Callable[[Shop], int]) -> Schedule:

@@ -21,7 +21,9 @@ project's semantic contract, without using the Petri net, and reports *every* vi
 * with disruptions (a :class:`~fms_sim.disruptions.Scenario`, given or recorded in ``meta["scenario"]``): each
   operation lasts its realised duration (noise) plus every breakdown of its machine that began while it ran,
   none starts while its machine is down, each trip lasts its realised travel time, and no vehicle starts a trip
-  while out of service. The realised times are recomputed from the scenario's seed, not read from the run.
+  while out of service. The realised times are recomputed from the scenario's seed, not read from the run;
+* jobs of live orders (``meta["arrivals"]``: ``[job, time]`` pairs, recorded by the shop the order joined): none
+  of the job's operations, and no trip for it (its part's carries, its tools' carries), starts before it arrived.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from .instance import Instance, require_instance
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .ties import settle, tool_order, tool_use_orders, trips_by_op, uses_by_tool
 
-__all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders", "recorded_scenario"]
+__all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders", "recorded_scenario", "recorded_arrivals"]
 
 
 class ScheduleInvalid(ValueError):
@@ -72,6 +74,44 @@ def recorded_scenario(schedule: Schedule) -> Scenario | None:
         raise ScenarioError(f"the schedule's recorded scenario is malformed: {exc}") from None
 
 
+def recorded_arrivals(schedule: Schedule, instance: Instance) -> dict[int, int]:
+    """When each job of a live order arrived, as ``schedule`` records it in ``meta["arrivals"]`` (``[job, time]``
+    pairs; none: ``{}``); raises ValueError saying how the record is malformed."""
+    recorded = schedule.meta.get("arrivals")
+    if recorded is None:
+        return {}
+    if not isinstance(recorded, list):
+        raise ValueError(f"meta.arrivals must be a list of [job, time] pairs, got {type(recorded).__name__}")
+    out: dict[int, int] = {}
+    for i, pair in enumerate(recorded):
+        if (not isinstance(pair, (list, tuple)) or len(pair) != 2
+                or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in pair)):
+            raise ValueError(f"meta.arrivals[{i}] must be a [job, time] pair of integers, got {pair!r}")
+        job, time = int(pair[0]), int(pair[1])
+        if not 0 <= job < instance.n_jobs:
+            raise ValueError(f"meta.arrivals[{i}]: job {job} does not exist (0..{instance.n_jobs - 1})")
+        if time < 0:
+            raise ValueError(f"meta.arrivals[{i}]: job {job} arrives at {time}, before the run began")
+        if job in out:
+            raise ValueError(f"meta.arrivals[{i}]: job {job} arrives twice")
+        out[job] = time
+    return out
+
+
+def _check_arrivals(schedule: Schedule, arrivals: dict[int, int], errs: list[str]) -> None:
+    """No operation of a job of a live order, and no trip for it, starts before the job arrived."""
+    for r in schedule.operations:
+        t = arrivals.get(r.job)
+        if t is not None and r.start < t:
+            errs.append(f"op ({r.job},{r.op}) starts at {r.start}, before its job arrived (a live order) at {t}")
+    for what, trips in (("AGV", schedule.agv_trips), ("tool transporter", schedule.tool_trips)):
+        for trip in trips:
+            t = arrivals.get(trip.job) if trip.job is not None else None
+            if t is not None and trip.start < t:
+                errs.append(f"{what} trip {trip.from_}->{trip.to} for op ({trip.job},{trip.op}) starts at "
+                            f"{trip.start}, before its job arrived (a live order) at {t}")
+
+
 def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None = None) -> list[str]:
     """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
     (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
@@ -94,6 +134,10 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
             return [f"the scenario does not fit the instance: {exc}"]
         if scenario.empty:
             scenario = None
+    try:
+        arrivals = recorded_arrivals(schedule, instance)
+    except ValueError as exc:
+        return [str(exc)]
     # the fleet the schedule was made for, first: a schedule of the shop without its AGVs or tools breaks many rules
     # after it, and a reader of the first lines (fms replay shows ten) should see the cause
     # (an instance without AGVs or tools has none: a schedule that declares some was made for another shop)
@@ -106,6 +150,8 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     if ops is None:
         return errs
     _check_machines(schedule, errs)
+    if arrivals:
+        _check_arrivals(schedule, arrivals, errs)
     if instance.has_agvs:
         _check_parts_with_agvs(instance, schedule, ops, errs)
         _check_routes("AGV", "agv", instance.agv_travel, instance.n_agvs,

@@ -12,7 +12,7 @@ from fms_sim.shop import _LIST_STATE, _SCALAR_STATE, Shop
 from fms_sim.stepping import Stepper
 
 # attributes fixed once the shop is built (or changed only by add_jobs, which restore refuses to cross)
-_STRUCTURE = {"instance", "net", "rec", "n_jobs", "n_agvs", "n_tts", "_jobs", "_job_gate", "_job_outputs"}
+_STRUCTURE = {"instance", "net", "rec", "n_jobs", "n_agvs", "n_tts", "_jobs", "_job_gate", "_job_outputs", "arrivals"}
 
 
 def _fingerprint(shop: Shop) -> dict:

@@ -322,3 +322,76 @@ def test_to_dict_gives_a_copy_of_the_meta(good):
     d["meta"]["x"] = 1
     d["meta"]["scenario"]["noise"] = 0.5
     assert s.meta == {"solver": "first", "scenario": {"noise": 0.1}}
+
+
+# ---------------------------------------------------------------------------------- live orders
+def _ordered_run():
+    """ra01 (tools, AGVs) run by random choices, with two jobs ordered after 25 decisions: the shop, the order's
+    jobs and when they arrived."""
+    import random
+
+    from fms_sim.benchmarks import builtin
+    from fms_sim.full_shop import FullShop
+    from fms_sim.instance import Operation
+
+    rng = random.Random(3)
+    shop = FullShop(builtin("ra01"))
+    for _ in range(25):
+        shop.act(rng.choice(shop.legal_actions()))
+    t0 = shop.now
+    ids = shop.add_jobs([[Operation(1, 1, 3), Operation(2, 2, 4)], [Operation(3, None, 5)]])
+    while not shop.done:
+        shop.act(rng.choice(shop.legal_actions()))
+    return shop, ids, t0
+
+
+def test_a_schedule_records_when_the_jobs_of_live_orders_arrived():
+    shop, ids, t0 = _ordered_run()
+    assert t0 > 0
+    sched = shop.schedule()
+    assert sched.meta["arrivals"] == [[j, t0] for j in ids]
+    assert validate(shop.instance, sched) == []
+    back = Schedule.from_json(sched.to_json())  # written and read back, the record still holds
+    assert back.meta["arrivals"] == sched.meta["arrivals"] and validate(shop.instance, back) == []
+    assert "arrivals" not in run_first(replace(shop.instance, jobs=shop.instance.jobs[:-2])).meta  # no order: none
+
+
+def test_nothing_of_an_ordered_job_may_start_before_it_arrived():
+    # a schedule of the final instance that starts an ordered job at time 0 was valid: the validator did not know
+    # when the order came (it was in the recorder's events only)
+    from fms_dispatch.exact import greedy_schedule
+
+    shop, ids, t0 = _ordered_run()
+    inst = shop.instance
+    # a list schedule of the final instance that takes the ordered jobs first
+    early = greedy_schedule(inst, rule="guided", priority={(j, k): k + (0 if j in ids else 100)
+                                                           for j, job in enumerate(inst.jobs) for k in range(len(job))})
+    assert validate(inst, early) == [] and min(r.start for r in early.operations if r.job in ids) < t0
+    early.meta["arrivals"] = shop.schedule().meta["arrivals"]
+    errs = validate(inst, early)
+    assert any(e.startswith(f"op ({ids[0]},0) starts at ") and e.endswith(f"before its job arrived (a live order) "
+                                                                          f"at {t0}") for e in errs), errs
+    assert any(e.startswith("AGV trip") and f"for op ({ids[0]},0)" in e for e in errs), errs
+    assert any(e.startswith("tool transporter trip") and f"({ids[0]}," in e for e in errs), errs
+    # the same schedule with the jobs ordered at time 0 is valid
+    early.meta["arrivals"] = [[j, 0] for j in ids]
+    assert validate(inst, early) == []
+
+
+@pytest.mark.parametrize("record, message", [
+    ({"5": 3}, "meta.arrivals must be a list of [job, time] pairs, got dict"),
+    ([[1]], "meta.arrivals[0] must be a [job, time] pair of integers, got [1]"),
+    ([[1, 2.5]], "meta.arrivals[0] must be a [job, time] pair of integers, got [1, 2.5]"),
+    ([[1, True]], "meta.arrivals[0] must be a [job, time] pair of integers, got [1, True]"),
+    ([[99, 2]], "meta.arrivals[0]: job 99 does not exist (0..2)"),
+    ([[1, -1]], "meta.arrivals[0]: job 1 arrives at -1, before the run began"),
+    ([[1, 0], [1, 2]], "meta.arrivals[1]: job 1 arrives twice"),
+])
+def test_a_malformed_arrivals_record_is_reported(record, message):
+    from fms_sim.benchmarks import builtin
+
+    inst = builtin("EX11")
+    inst = replace(inst, jobs=inst.jobs[:3])
+    sched = run_first(inst)
+    sched.meta["arrivals"] = record
+    assert validate(inst, sched) == [message]
