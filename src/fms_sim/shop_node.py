@@ -355,7 +355,8 @@ def _arm_stop_watchdog() -> None:
 
 
 class _Spinning:
-    """What :func:`_watch_busy_stop` returns: :meth:`release` says that spin returned (no busy callback to bound)."""
+    """What :func:`_watch_busy_stop` watches with: :meth:`release` says that spin returned (no busy callback to
+    bound)."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
@@ -368,17 +369,16 @@ class _Spinning:
                 faulthandler.cancel_dump_traceback_later()  # the stop reached spin in time: close() is unbounded
 
 
-def _watch_busy_stop(node: Any, poll_s: float = 0.1) -> _Spinning:
+def _watch_busy_stop(node: Any, spinning: _Spinning, poll_s: float = 0.1) -> None:
     """Bound a stop that arrives while a callback is busy: once the node's context is shut down (SIGINT/SIGTERM:
     rclpy shuts it down at once, even while a callback runs), spin returns only when that callback does, which
     for a plan search can be a minute (``plan:cpsat:60`` at the first state). A watcher thread arms the stop
     watchdog (:func:`_arm_stop_watchdog`: stacks in the log, exit code 1 after :data:`STOP_STALL_S` s) when it sees
     the shutdown, unless spin has returned by then (:meth:`_Spinning.release` cancels it). A node without a context
     (a stand-in) is not watched."""
-    spinning = _Spinning()
     context = getattr(node, "context", None)
     if context is None:
-        return spinning
+        return
 
     def watch() -> None:
         while True:
@@ -391,7 +391,6 @@ def _watch_busy_stop(node: Any, poll_s: float = 0.1) -> _Spinning:
                     return
 
     threading.Thread(target=watch, name="fms-stop-watch", daemon=True).start()
-    return spinning
 
 
 def _shutting_down(grace_s: float) -> bool:
@@ -417,8 +416,11 @@ def spin_until_shutdown(node: Any, close: Callable[[], None]) -> int:
     middleware teardown after it is bounded by :func:`_arm_stop_watchdog` (stacks in the log and exit code 1
     if it stalls).
     """
-    spinning = _watch_busy_stop(node)
+    spinning = _Spinning()
     try:
+        # (in the try: a stop signal while the watcher starts, just after the node said it is up, ended in a
+        # traceback and exit -2 without close())
+        _watch_busy_stop(node, spinning)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

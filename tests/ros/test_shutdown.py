@@ -80,6 +80,20 @@ def test_executor_error_while_rclpy_stays_up_is_raised(fake) -> None:
     assert closed == [1] and node.destroyed == 1 and f.shutdowns == 1  # still closed (data flushed), shut down
 
 
+def test_a_stop_while_the_stop_watcher_starts_is_a_clean_stop(fake, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the node said it is up, then Ctrl-C came while the watcher thread started (before spin): that ended in a
+    # KeyboardInterrupt traceback and exit -2, without close() (tests/ros/test_colcon.py hit it)
+    f = fake(AssertionError("spin is not reached"), ok_calls=None)
+
+    def interrupted(node: Any, spinning: Any) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shop_node, "_watch_busy_stop", interrupted)
+    closed, node = [], FakeNode()
+    assert shop_node.spin_until_shutdown(node, lambda: closed.append(1)) == 0
+    assert closed == [1] and node.destroyed == 1 and f.shutdowns == 1
+
+
 #: a node process whose stop is replayed: ``close()`` takes argv[1] s, the rclpy shutdown argv[2] s
 STALL_SCRIPT = textwrap.dedent('''
     import sys, time
