@@ -417,11 +417,11 @@ class PlanGuide:
         guide.mark(shop)
         return guide
 
-    def mark(self, shop: FullShop) -> None:
+    def mark(self, shop: Any) -> None:
         """Record what is down in ``shop`` (:attr:`down`) if this is a plan from its state at time 0."""
         self.down = down_now(shop) if self.origin == 0 and at_start(shop) else None
 
-    def fits_start(self, shop: FullShop) -> bool:
+    def fits_start(self, shop: Any) -> bool:
         """Whether this guide serves ``shop`` at its start (:func:`at_start`): planned from scratch for the
         nominal start, or from a state at time 0 with the same things down (:func:`down_now`)."""
         if plans_from_scratch(shop):
