@@ -96,6 +96,12 @@ def _cp() -> ModuleType:
     return cp_model
 
 
+def cp_seed(seed: int) -> int:
+    """``seed`` as CP-SAT's ``random_seed`` takes it (a 32-bit integer): unchanged within that range, else folded
+    into it (``fms solve --seed 4294967296`` with a re-plan ended in a TypeError traceback at the first re-plan)."""
+    return seed if -2 ** 31 <= seed < 2 ** 31 else seed % 2 ** 31
+
+
 def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
     """``solver.solve(model, callback)``, stopped within a fraction of a second by Ctrl-C (or ``fms``'s SIGTERM).
 
@@ -1179,7 +1185,7 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
     solver = cp_model.CpSolver()
     solver.parameters.max_time_in_seconds = time_limit
     solver.parameters.num_workers = max(1, workers)
-    solver.parameters.random_seed = seed
+    solver.parameters.random_seed = cp_seed(seed)
     solver.parameters.catch_sigint_signal = False  # see _solve_full
     status = run_solver(solver, model)
     starts = None
@@ -1267,7 +1273,7 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
     p = solver.parameters
     p.max_time_in_seconds = max(min_time, time_limit - (time.monotonic() - t0), 1e-3)
     p.num_workers = workers
-    p.random_seed = seed
+    p.random_seed = cp_seed(seed)
     # CP-SAT's own SIGINT handler would outlive the solve: a node that planned with it then dies of the SIGINT
     # that should stop it cleanly (the agent node running plan:cpsat); the caller's handler stays in charge
     p.catch_sigint_signal = False

@@ -49,7 +49,7 @@ from fms_sim.snapshot import Snapshot, can_snapshot, nominal_copy, snapshot
 from fms_sim.stepping import Stepper
 from fms_sim.validate import validate
 
-from .exact import _improve_by_priorities, greedy_schedule, run_solver
+from .exact import _improve_by_priorities, cp_seed, greedy_schedule, run_solver
 from .full_rules import parse_full_rule
 from .tabu import residual_lower_bound, tabu_plan
 
@@ -167,7 +167,7 @@ def _relaxed_starts(snap: Snapshot, ub: int, hint: dict[tuple[int, int], int] | 
     p = solver.parameters
     p.max_time_in_seconds = max(0.01, time_limit)
     p.num_workers = max(1, workers)
-    p.random_seed = seed
+    p.random_seed = cp_seed(seed)
     p.catch_sigint_signal = False  # the caller (a node) keeps its own SIGINT handler
     status = run_solver(solver, m)
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):

@@ -94,10 +94,10 @@ def _sos(instance: Instance, **kw: Any) -> Schedule:
 
 
 def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2, progress: bool = False,
-           **_: Any) -> Schedule:
+           seed: int = 0, **_: Any) -> Schedule:
     from .exact import cpsat
 
-    kw: dict[str, Any] = {"workers": workers}
+    kw: dict[str, Any] = {"workers": workers, "seed": seed}  # (the seed was dropped: every run used 0)
     if time_limit is not None:
         kw["time_limit"] = time_limit
     if progress:

@@ -308,7 +308,9 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
 
     t0 = time.perf_counter()
     deadline = None if time_limit is None else t0 + time_limit
-    rng = np.random.default_rng(seed)
+    # a negative seed by its absolute value, as Python's random takes it (numpy's generator refuses one: 'fms solve
+    # --solver sos --seed=-1' said only 'expected non-negative integer', where random and tabu take it)
+    rng = np.random.default_rng(abs(seed))
     dec = KeyDecoder(instance)
     from .exact import simple_lower_bound
 

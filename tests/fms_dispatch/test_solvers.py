@@ -116,3 +116,37 @@ def test_a_models_run_does_not_depend_on_the_shop_solved_before():
         load_agent("full").forget()
         solve(builtin(before), "ppo:full")
         assert plain(solve(builtin("EX13"), "ppo:full")) == plain(ref), before
+
+
+def test_cpsat_takes_the_seed(monkeypatch):
+    # the seed was dropped on the way (every cpsat and plan:cpsat run searched with seed 0)
+    from fms_dispatch import exact
+
+    seen = []
+    real = exact.solve_exact
+
+    def spy(inst, **kw):
+        seen.append(kw.get("seed"))
+        return real(inst, **kw)
+
+    monkeypatch.setattr(exact, "solve_exact", spy)
+    inst = builtin("EX12")
+    assert validate(inst, solve(inst, "cpsat", seed=12345, time_limit=2)) == []
+    assert validate(inst, solve(inst, "plan:cpsat:1", seed=7)) == []
+    assert seen == [12345, 7]
+
+
+def test_seeds_beyond_32_bits_reach_cp_sat():
+    # CP-SAT takes a 32-bit seed: --seed 4294967296 with a re-plan ended in a TypeError traceback at the first
+    # re-plan (after the plan and part of the run), and cpsat would have failed at once with the seed passed on
+    from fms_dispatch.exact import cp_seed
+    from fms_sim.disruptions import Scenario
+
+    assert [cp_seed(s) for s in (0, 5, -5, 2 ** 31 - 1, -2 ** 31)] == [0, 5, -5, 2 ** 31 - 1, -2 ** 31]
+    assert [cp_seed(s) for s in (2 ** 31, 2 ** 32 + 3, -2 ** 31 - 1)] == [0, 3, 2 ** 31 - 1]
+    inst = builtin("EX12")
+    sc = Scenario((), (), 0.3, 1)
+    for seed in (2 ** 32, 2 ** 31 - 1, 10 ** 30):
+        s = solve(inst, "plan:cpsat:0.5", scenario=sc, replan=0.2, seed=seed)
+        assert validate(inst, s, sc) == [] and s.meta["replans"], seed
+    assert validate(inst, solve(inst, "cpsat", seed=2 ** 40, time_limit=1)) == []

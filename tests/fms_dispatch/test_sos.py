@@ -242,3 +242,11 @@ def test_the_search_stops_at_the_lower_bound():
     assert time.perf_counter() - t0 < 2.0
     assert s.makespan == simple_lower_bound(inst) == 5 and s.meta["stopped"] == "lower_bound"
     assert solve_sos(builtin("EX12"), iterations=1, population=4).meta["stopped"] == "iterations"  # 82 > its bound
+
+
+def test_a_negative_seed_is_taken_by_its_absolute_value():
+    # as Python's random takes it (random, tabu); numpy's generator refused it: "expected non-negative integer"
+    inst = builtin("EX12")
+    neg = _valid(inst, solve_sos(inst, time_limit=None, seed=-3, iterations=2, population=6))
+    pos = _valid(inst, solve_sos(inst, time_limit=None, seed=3, iterations=2, population=6))
+    assert neg.makespan == pos.makespan and neg.meta["evaluations"] == pos.meta["evaluations"]
