@@ -59,6 +59,8 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
+import numpy as np
+
 if TYPE_CHECKING:
     from ortools.sat.python import cp_model
 
@@ -200,16 +202,14 @@ def _tool_uses(inst: Instance) -> dict[int, list[tuple[int, int]]]:
 
 
 def _shortest_paths(mat: Sequence[Sequence[int]]) -> list[list[int]]:
-    """All-pairs shortest travel times (Floyd–Warshall); matrices need not satisfy the triangle inequality."""
-    n = len(mat)
-    d = [list(r) for r in mat]
-    for k in range(n):
-        for i in range(n):
-            dik = d[i][k]
-            for j in range(n):
-                if dik + d[k][j] < d[i][j]:
-                    d[i][j] = dik + d[k][j]
-    return d
+    """All-pairs shortest travel times (Floyd–Warshall); matrices need not satisfy the triangle inequality. One
+    numpy step per intermediate place: the three Python loops took 36 s on a shop of 1,000 machines (every bound,
+    so every search, starts with them), this takes well under a second. Exact in int64: a path has at most
+    ``len(mat)`` legs of at most ``MAX_TIME``."""
+    d = np.array(mat, dtype=np.int64).reshape(len(mat), len(mat))
+    for k in range(len(d)):
+        np.minimum(d, d[:, k:k + 1] + d[k:k + 1, :], out=d)
+    return d.tolist()
 
 
 def _loaded_time(inst: Instance, j: int, k: int) -> int:

@@ -532,3 +532,25 @@ def test_every_cp_sat_search_of_the_package_runs_interruptibly(monkeypatch, sigi
 
     _relaxed_starts(Snapshot.initial(inst), greedy_schedule(inst).makespan, None, 0.5, 2, 0)
     assert len(threads) >= 4 and not any(threads)
+
+
+def test_shortest_paths_are_floyd_warshalls():
+    # (vectorised: the plain loops took 36 s on 1,000 machines) the same distances as the textbook loops, on
+    # matrices that break the triangle inequality, are asymmetric or hold the largest travel times
+    from fms_dispatch.exact import _shortest_paths
+
+    def textbook(mat):
+        d = [list(r) for r in mat]
+        n = len(d)
+        for k in range(n):
+            for i in range(n):
+                for j in range(n):
+                    d[i][j] = min(d[i][j], d[i][k] + d[k][j])
+        return d
+
+    rng = random.Random(5)
+    for n in (1, 2, 3, 7, 20):
+        for high in (1, 30, 10 ** 9):
+            mat = [[0 if i == j else rng.choice((rng.randint(0, high), high)) for j in range(n)] for i in range(n)]
+            assert _shortest_paths(mat) == textbook(mat)
+    assert _shortest_paths([[0, 30, 1], [1, 0, 30], [30, 1, 0]]) == [[0, 2, 1], [1, 0, 2], [2, 1, 0]]
