@@ -255,7 +255,7 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
     seed = getattr(a, "seed", None)
     if noise is not None:
         if not 0 <= noise <= MAX_NOISE:
-            raise CliError(f"--noise must be a spread from 0 to {MAX_NOISE:g}, got {noise:g}")
+            raise CliError(f"--noise must be a spread from 0 to {MAX_NOISE:g}, got {noise!r}")  # (:g said 1.0000001 was 1)
         base = scenario or Scenario()
         scenario = Scenario(base.breakdowns, base.outages, noise, seed if seed is not None else 0)
     elif seed is not None and scenario is not None and scenario.noise:  # the file's seed was silently kept
@@ -473,7 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_guide_args(s)
     s.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
-                        "combinations); refused for the solvers that run once")
+                        "combinations); refused for the solvers that run once. It bounds the search: on shops of "
+                        "thousands of operations the start schedules built before it, and a plan: solver's run "
+                        "through the net after it, take seconds more")
     s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers "
                    "(default 0) and of the noise (--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

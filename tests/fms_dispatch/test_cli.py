@@ -223,6 +223,8 @@ def test_solve_under_disruptions_and_bad_scenarios(tmp_path, capsys):
     for noise in ("1000", "50", "-1", "nan"):  # 1000 was an OverflowError, 50 a "valid" makespan of 3e47
         code, _, err = run(["solve", "EX12", "--noise", noise, "-q"], capsys)
         assert code == 2 and "--noise must be a spread from 0 to 1" in err
+    code, _, err = run(["solve", "EX12", "--noise", "1.0000001", "-q"], capsys)
+    assert code == 2 and err.strip().endswith("got 1.0000001")  # it said "got 1"
     sc.write_text(json.dumps({"breakdowns": [{"machine": 2, "start": 30, "durarion": 20}]}))
     code, _, err = run(["solve", "EX12", "--scenario", str(sc), "-q"], capsys)
     assert code == 2 and "breakdown 0: unknown field(s) 'durarion'" in err

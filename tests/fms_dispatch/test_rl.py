@@ -781,6 +781,8 @@ def test_bu_model_refuses_too_large_instance():
     assert "rule:MTWR+nearest" in msg and "plan:list" in msg
     with pytest.raises(ValueError, match=r"larger than model bu allows: 10 AGVs \(at most 2\); a rule"):
         ppo_solver("ppo:bu")(builtin("EX12").with_fleet(n_agvs=10))
+    with pytest.raises(ValueError, match=r"allows: 4 tools \(at most 0\), 1 tool transporter \(at most 0\); "):
+        ppo_solver("ppo:bu")(builtin("ra01").with_fleet(n_tool_transporters=1))  # (it said "1 tool transporters")
 
 
 def test_models_record_the_net_they_were_trained_on_and_load_with_it(tmp_path):

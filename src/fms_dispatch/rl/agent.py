@@ -152,7 +152,8 @@ class Agent:
     def misfit(self, inst: Instance) -> str:
         """The error message for an ``inst`` that does not :meth:`fit <fits>` this model: what exceeds its padded
         layout, and which solvers take any size (a model decides only within the padding it was trained with)."""
-        over = ", ".join(f"{n} {what} (at most {top})" for what, n, top in self._sizes(inst) if n > top)
+        over = ", ".join(f"{n} {what if n != 1 else what[:-1]} (at most {top})"  # "1 tool", not "1 tools"
+                         for what, n, top in self._sizes(inst) if n > top)
         return (f"instance {inst.name} is larger than model {self.name} allows: {over}; a rule (rule:MTWR+nearest) "
                 "or a plan (plan:list, plan:tabu:5) solves shops of any size")
 
