@@ -126,7 +126,7 @@ def search_summary(sched: Schedule) -> str:
     if m.get("status") == "OPTIMAL":
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
-        out += f", bound {m['lower_bound']}"
+        out += f", bound {m['lower_bound']}" + (", interrupted" if m.get("status") == "INTERRUPTED" else "")
     if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
         out += f", {m['tried']} of {m['combinations']} rule combinations within the time limit"
     return out
@@ -211,7 +211,15 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
-    sched = solve(inst, a.solver, **opts)
+    from .exact import SearchInterrupted
+
+    try:
+        sched = solve(inst, a.solver, **opts)
+        interrupted = False
+    except SearchInterrupted as exc:  # Ctrl-C in a cpsat search: its best schedule so far is kept, not lost
+        if a.solver.lower() != "cpsat":
+            raise
+        sched, interrupted = exc.best, True
     problems = validate(inst, sched)
     if problems:  # a solver bug: never hand out an infeasible schedule silently
         print(f"fms: internal error: the {a.solver} schedule is infeasible: {problems[0]}", file=sys.stderr)
@@ -225,6 +233,11 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if hint and not a.quiet:
         print(f"{inst.name}: {hint}", file=sys.stderr)
     _write_outputs(sched, inst, a.out, a.gantt)
+    if interrupted:
+        kept = [str(p) for p in (a.out, a.gantt) if p]
+        print(f"fms: interrupted: the search stopped early; its best schedule so far is above"
+              f"{' and in ' + ' and '.join(kept) if kept else ''}", file=sys.stderr)
+        return 130
     return 0
 
 

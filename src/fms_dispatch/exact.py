@@ -72,6 +72,7 @@ from fms_sim.validate import validate
 
 __all__ = [
     "ExactResult",
+    "SearchInterrupted",
     "solve_exact",
     "cpsat",
     "greedy_schedule",
@@ -148,6 +149,17 @@ def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
     if "error" in out:
         raise out["error"]
     return out["status"]
+
+
+class SearchInterrupted(KeyboardInterrupt):
+    """An interrupt (Ctrl-C, or ``fms``'s SIGTERM) during :func:`solve_exact`, carrying the best schedule found
+    before it (``best``: CP-SAT's best solution or the start schedule; its ``meta`` says so when it comes from
+    :func:`cpsat`), the lower bound known then and the seconds spent. Every handler of KeyboardInterrupt takes it
+    as one; ``fms solve --solver cpsat`` keeps the schedule (a long search stopped by hand is not lost)."""
+
+    def __init__(self, best: Schedule, lower_bound: int, wall_time: float):
+        super().__init__()
+        self.best, self.lower_bound, self.wall_time = best, lower_bound, wall_time
 
 
 @dataclass
@@ -1246,11 +1258,16 @@ def solve_exact(
     if hint is not None and hint.makespan <= incumbent.makespan:
         incumbent = _copy_schedule(hint)
     lb = simple_lower_bound(instance)
-    if full:
-        incumbent = _improve_by_priorities(instance, incumbent, None, lb, t0 + 0.1 * time_limit, seed, None, t0,
-                                           max_stall=300)
-        return _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
-    return _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
+    try:
+        if full:
+            incumbent = _improve_by_priorities(instance, incumbent, None, lb, t0 + 0.1 * time_limit, seed, None, t0,
+                                               max_stall=300)
+            return _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
+        return _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
+    except SearchInterrupted:
+        raise
+    except KeyboardInterrupt:  # before CP-SAT's search (or in the fallback's): the best start schedule
+        raise SearchInterrupted(incumbent, lb, time.monotonic() - t0) from None
 
 
 def _copy_schedule(s: Schedule) -> Schedule:
@@ -1286,7 +1303,15 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
         else:
             setattr(p, key, val)
     cb = _callback_class()(fm, progress, t0)
-    status = run_solver(solver, fm.model, cb)
+    try:
+        status = run_solver(solver, fm.model, cb)
+    except KeyboardInterrupt:  # the search stopped (run_solver): its best solution, with the bound it had proved
+        best = cb.best if cb.best is not None and cb.best.makespan <= incumbent.makespan else incumbent
+        try:
+            lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+        except Exception:  # (no response to read: the search had not begun)
+            pass
+        raise SearchInterrupted(best, min(lb, best.makespan), time.monotonic() - t0) from None
     bound = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6))) if status != cp_model.INFEASIBLE else lb
     best = incumbent
     if cb.best is not None and cb.best.makespan <= best.makespan:
@@ -1339,27 +1364,32 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
         return best
     mean_p = max(1.0, sum(inst.jobs[j][k].duration for j, k in keys) / len(keys))
     it = stall = 0
-    while (best.makespan > bound and (max_stall is None or stall < max_stall)
-           and (max_tries is None or it < max_tries)):
-        t1 = time.monotonic()
-        scale = mean_p * rng.choice((0.05, 0.2, 0.5))
-        if it == 0 and starts is not None:
-            cand = greedy_schedule(inst, rule="guided", priority=dict(starts), origin=origin)
-        elif rng.random() < 2 / 3:
-            cand = greedy_schedule(inst, rule="est", noise={key: scale * rng.random() for key in keys},
-                                   origin=origin)
-        else:
-            prio = {(o.job, o.op): o.start + 4 * scale * rng.random() for o in best.operations}
-            cand = greedy_schedule(inst, rule="guided", priority=prio, origin=origin)
-        stall += 1
-        if cand.makespan < best.makespan:
-            best, stall = cand, 0
-            if progress is not None:
-                progress(best.makespan, bound, time.monotonic() - t0)
-        it += 1
-        now = time.monotonic()
-        if now + (now - t1) > deadline:
-            break
+    try:
+        while (best.makespan > bound and (max_stall is None or stall < max_stall)
+               and (max_tries is None or it < max_tries)):
+            t1 = time.monotonic()
+            scale = mean_p * rng.choice((0.05, 0.2, 0.5))
+            if it == 0 and starts is not None:
+                cand = greedy_schedule(inst, rule="guided", priority=dict(starts), origin=origin)
+            elif rng.random() < 2 / 3:
+                cand = greedy_schedule(inst, rule="est", noise={key: scale * rng.random() for key in keys},
+                                       origin=origin)
+            else:
+                prio = {(o.job, o.op): o.start + 4 * scale * rng.random() for o in best.operations}
+                cand = greedy_schedule(inst, rule="guided", priority=prio, origin=origin)
+            stall += 1
+            if cand.makespan < best.makespan:
+                best, stall = cand, 0
+                if progress is not None:
+                    progress(best.makespan, bound, time.monotonic() - t0)
+            it += 1
+            now = time.monotonic()
+            if now + (now - t1) > deadline:
+                break
+    except SearchInterrupted:
+        raise
+    except KeyboardInterrupt:  # the best found so far goes with the interrupt (solve_exact's large shops)
+        raise SearchInterrupted(best, min(bound, best.makespan), time.monotonic() - t0) from None
     return best
 
 
@@ -1410,7 +1440,12 @@ def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **k
 
     Raises ``RuntimeError`` if no feasible schedule was found within the time limit.
     """
-    res = solve_exact(instance, time_limit=time_limit, workers=workers, **kw)  # type: ignore[arg-type]
+    try:
+        res = solve_exact(instance, time_limit=time_limit, workers=workers, **kw)  # type: ignore[arg-type]
+    except SearchInterrupted as exc:
+        exc.best.meta = {"solver": "cpsat", "status": "INTERRUPTED", "lower_bound": exc.lower_bound,
+                         "wall_time": round(exc.wall_time, 3)}
+        raise
     if res.schedule is None:
         raise RuntimeError(f"cpsat found no feasible schedule for {instance.name} within {time_limit:g} s "
                            f"(status {res.status})")

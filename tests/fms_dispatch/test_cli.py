@@ -428,3 +428,38 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and err.strip().endswith("fms: interrupted"), err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupted_cpsat_search_keeps_its_best_schedule(tmp_path):
+    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat search lost everything it had found; the
+    best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
+    import signal
+    import subprocess
+
+    out, chart = tmp_path / "s.json", tmp_path / "s.png"
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "cpsat",
+                             "--time-limit", "120", "--out", str(out), "--gantt", str(chart)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert proc.stdout is not None
+    first = proc.stdout.readline()  # CP-SAT's first solution: the search is under way
+    assert first.startswith("  cpsat: makespan "), first
+    proc.send_signal(signal.SIGTERM)
+    rest, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    line = [ln for ln in rest.splitlines() if ln.startswith("ra20: makespan ")]
+    assert line and ", interrupted, valid)" in line[0], rest
+    assert err.strip().endswith(f"fms: interrupted: the search stopped early; its best schedule so far is above and "
+                                f"in {out} and {chart}"), err
+    sched = Schedule.load(out)
+    assert validate(builtin("ra20"), sched) == [] and chart.stat().st_size > 0
+    assert sched.meta["status"] == "INTERRUPTED" and sched.meta["lower_bound"] <= sched.makespan
+    assert f"makespan {sched.makespan} " in line[0]
+    # another solver's interrupt is an interrupt as before: nothing written
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
+                             "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    assert proc.stdout is not None and proc.stdout.readline().startswith("  cpsat: makespan ")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip().endswith("fms: interrupted"), err
+    assert not (tmp_path / "p.json").exists()

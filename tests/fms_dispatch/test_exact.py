@@ -554,3 +554,30 @@ def test_shortest_paths_are_floyd_warshalls():
             mat = [[0 if i == j else rng.choice((rng.randint(0, high), high)) for j in range(n)] for i in range(n)]
             assert _shortest_paths(mat) == textbook(mat)
     assert _shortest_paths([[0, 30, 1], [1, 0, 30], [30, 1, 0]]) == [[0, 2, 1], [1, 0, 2], [2, 1, 0]]
+
+
+def test_an_interrupted_search_carries_its_best_schedule():
+    # the interrupt is a KeyboardInterrupt to every handler, with the best schedule found before it
+    from fms_dispatch.exact import SearchInterrupted
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach only the main thread")
+    inst = builtin("ra20")  # the full model, not proved optimal within seconds
+    seen = []
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    try:
+        t0 = time.monotonic()
+        timer.start()
+        with pytest.raises(KeyboardInterrupt) as info:
+            cpsat(inst, time_limit=120, progress=lambda obj, bound, secs: seen.append(obj))
+    finally:
+        timer.cancel()
+        timer.join()
+        signal.signal(signal.SIGINT, old)
+    exc = info.value
+    assert isinstance(exc, SearchInterrupted) and time.monotonic() - t0 < 20
+    best = exc.best
+    assert validate(inst, best) == [] and best.makespan == min(seen) and exc.lower_bound <= best.makespan
+    assert best.meta == {"solver": "cpsat", "status": "INTERRUPTED", "lower_bound": exc.lower_bound,
+                         "wall_time": round(exc.wall_time, 3)}
