@@ -126,7 +126,9 @@ def search_summary(sched: Schedule) -> str:
     if m.get("status") == "OPTIMAL":
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
-        out += f", bound {m['lower_bound']}" + (", interrupted" if m.get("status") == "INTERRUPTED" else "")
+        out += f", bound {m['lower_bound']}"
+    if m.get("status") == "INTERRUPTED":
+        out += ", interrupted"
     if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
         out += f", {m['tried']} of {m['combinations']} rule combinations within the time limit"
     return out
@@ -216,8 +218,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         sched = solve(inst, a.solver, **opts)
         interrupted = False
-    except SearchInterrupted as exc:  # Ctrl-C in a cpsat search: its best schedule so far is kept, not lost
-        if a.solver.lower() != "cpsat":
+    except SearchInterrupted as exc:  # Ctrl-C in a cpsat or tabu search: its best schedule so far is kept, not lost
+        if a.solver.lower() not in ("cpsat", "tabu"):
             raise
         sched, interrupted = exc.best, True
     problems = validate(inst, sched)

@@ -699,8 +699,15 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
 
     if progress:
         print(f"  tabu: list schedule {start.makespan}", flush=True)
-    best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
-                     bound=simple_lower_bound(instance), progress=report if progress else None)
+    try:
+        best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
+                         bound=simple_lower_bound(instance), progress=report if progress else None)
+    except KeyboardInterrupt as exc:  # the best so far (the start schedule before the search), for fms solve to keep
+        from .exact import SearchInterrupted
+
+        done = exc.best if isinstance(exc, SearchInterrupted) else start
+        done.meta = {"solver": "tabu", "status": "INTERRUPTED", "wall_time": round(time.monotonic() - t0, 3)}
+        raise SearchInterrupted(done, simple_lower_bound(instance), time.monotonic() - t0) from None
     if progress:
         print(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations", flush=True)
     best.meta["solver"] = "tabu"
@@ -767,60 +774,69 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     tabu: dict[tuple, int] = {}
     it = last = 0
     where = [-1] * (3 * n)  # the vehicle of each trip and delivery node
-    while (max_iters is None or it < max_iters) and (deadline is None or time.monotonic() < deadline):
-        if max_stall is not None and it - last >= max_stall:
-            break
-        it += 1
-        for v, seq in enumerate(o[1]):
-            for i in seq:
-                where[n + i] = v
-        for v, seq in enumerate(o[3]):
-            for i in seq:
-                where[2 * n + i] = v
-        q = g.tails(cur)
-        moves = _neighbours(g, cur, q, o, where)
-        # full evaluations first for the moves without an estimate, then the estimates in order
-        exact: list[tuple[int, float, tuple, tuple, Orders, _Eval]] = []
-        ranked: list[tuple[int, float, _Move]] = []
-        for mv in moves:
-            if deadline is not None and time.monotonic() > deadline:
+    interrupted = False
+    try:
+        while (max_iters is None or it < max_iters) and (deadline is None or time.monotonic() < deadline):
+            if max_stall is not None and it - last >= max_stall:
                 break
-            if mv[0] >= 0:
-                ranked.append((mv[0], rng.random(), mv))
-                continue
-            o2 = _apply(mv[3], mv[4], g, o, cur, where)
-            res = g.evaluate(o2)
-            if res is None or (tabu.get(mv[1], 0) >= it and res.makespan >= best_val):
-                continue
-            exact.append((res.makespan, rng.random(), mv[1], mv[2], o2, res))
-        ranked.sort(key=lambda r: (r[0], r[1]))
-        chosen = min(exact, key=lambda e: (e[0], e[1])) if exact else None
-        for est, _, (_, attr, reverse, kind, args) in ranked:
-            if chosen is not None and est >= chosen[0]:
+            it += 1
+            for v, seq in enumerate(o[1]):
+                for i in seq:
+                    where[n + i] = v
+            for v, seq in enumerate(o[3]):
+                for i in seq:
+                    where[2 * n + i] = v
+            q = g.tails(cur)
+            moves = _neighbours(g, cur, q, o, where)
+            # full evaluations first for the moves without an estimate, then the estimates in order
+            exact: list[tuple[int, float, tuple, tuple, Orders, _Eval]] = []
+            ranked: list[tuple[int, float, _Move]] = []
+            for mv in moves:
+                if deadline is not None and time.monotonic() > deadline:
+                    break
+                if mv[0] >= 0:
+                    ranked.append((mv[0], rng.random(), mv))
+                    continue
+                o2 = _apply(mv[3], mv[4], g, o, cur, where)
+                res = g.evaluate(o2)
+                if res is None or (tabu.get(mv[1], 0) >= it and res.makespan >= best_val):
+                    continue
+                exact.append((res.makespan, rng.random(), mv[1], mv[2], o2, res))
+            ranked.sort(key=lambda r: (r[0], r[1]))
+            chosen = min(exact, key=lambda e: (e[0], e[1])) if exact else None
+            for est, _, (_, attr, reverse, kind, args) in ranked:
+                if chosen is not None and est >= chosen[0]:
+                    break
+                if tabu.get(attr, 0) >= it and est >= best_val:
+                    continue
+                o2 = _apply(kind, args, g, o, cur, where)
+                res = g.evaluate(o2)
+                if res is None or (tabu.get(attr, 0) >= it and res.makespan >= best_val):
+                    continue
+                if chosen is None or res.makespan < chosen[0]:
+                    chosen = (res.makespan, 0.0, attr, reverse, o2, res)
                 break
-            if tabu.get(attr, 0) >= it and est >= best_val:
+            if chosen is None:
+                if not tabu or not moves:
+                    break  # no move at all, or only moves into cycles
+                tabu.clear()  # every move is forbidden: forget them
                 continue
-            o2 = _apply(kind, args, g, o, cur, where)
-            res = g.evaluate(o2)
-            if res is None or (tabu.get(attr, 0) >= it and res.makespan >= best_val):
-                continue
-            if chosen is None or res.makespan < chosen[0]:
-                chosen = (res.makespan, 0.0, attr, reverse, o2, res)
-            break
-        if chosen is None:
-            if not tabu or not moves:
-                break  # no move at all, or only moves into cycles
-            tabu.clear()  # every move is forbidden: forget them
-            continue
-        _, _, _, reverse, o, cur = chosen
-        tabu[reverse] = it + TENURE + rng.randrange(TENURE_SPREAD)
-        if cur.makespan < best_val:
-            best_val, last = cur.makespan, it
-            best = (o, cur)
-            if progress is not None:
-                progress(best_val, it, time.monotonic() - t0)
-            if best_val <= bound:
-                break
+            _, _, _, reverse, o, cur = chosen
+            tabu[reverse] = it + TENURE + rng.randrange(TENURE_SPREAD)
+            if cur.makespan < best_val:
+                best_val, last = cur.makespan, it
+                best = (o, cur)
+                if progress is not None:
+                    progress(best_val, it, time.monotonic() - t0)
+                if best_val <= bound:
+                    break
+    except KeyboardInterrupt:  # the best found so far goes with the interrupt (fms solve --solver tabu keeps it)
+        interrupted = True
+    if interrupted:
+        from .exact import SearchInterrupted
+
+        out = plan if best[1].makespan >= plan.makespan else _schedule(g, plan, *best)
+        raise SearchInterrupted(out, min(bound, out.makespan), time.monotonic() - t0)
     if best_val >= plan.makespan:
         return plan
     out = _schedule(g, plan, *best)

@@ -430,11 +430,12 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_an_interrupted_cpsat_search_keeps_its_best_schedule(tmp_path):
-    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat search lost everything it had found; the
-    best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
+def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
+    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat or tabu search lost everything it had found;
+    the best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
     import signal
     import subprocess
+    import time
 
     out, chart = tmp_path / "s.json", tmp_path / "s.png"
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "cpsat",
@@ -454,6 +455,19 @@ def test_an_interrupted_cpsat_search_keeps_its_best_schedule(tmp_path):
     assert validate(builtin("ra20"), sched) == [] and chart.stat().st_size > 0
     assert sched.meta["status"] == "INTERRUPTED" and sched.meta["lower_bound"] <= sched.makespan
     assert f"makespan {sched.makespan} " in line[0]
+    # the tabu search too (interrupted in the search, or before it: then its start schedule)
+    for wait in (1.0, 0.0):
+        proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl30", "--solver", "tabu",
+                                 "--time-limit", "600", "--out", str(tmp_path / "t.json")], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+        assert proc.stdout is not None and proc.stdout.readline().startswith("  tabu: list schedule ")
+        time.sleep(wait)
+        proc.send_signal(signal.SIGTERM)
+        rest, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130 and ", interrupted, valid)" in rest, (rest, err)
+        sched = Schedule.load(tmp_path / "t.json")
+        assert validate(builtin("sl30"), sched) == [] and sched.meta["status"] == "INTERRUPTED"
+        assert f"sl30: makespan {sched.makespan} (tabu, " in rest
     # another solver's interrupt is an interrupt as before: nothing written
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
                              "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
