@@ -43,6 +43,9 @@ def bench(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
     (("sim_cost.py", "--shops", "EX12", "EX99", "--repeat", "1"), "unknown built-in instance 'EX99'"),  # after EX12
     (("guide_follower.py", "EX12", "EX99"), "unknown built-in instance 'EX99'"),
     (("guide_lookahead.py", "--model", "guided", "--instances", "EX12", "EX99"), "unknown built-in instance 'EX99'"),
+    (("asymmetric.py", "--skew", "2"), "argument --skew: a skew is a factor in (0, 1], got '2'"),
+    (("asymmetric.py", "--model", "bu"), "model bu has no plan guide"),
+    (("asymmetric.py", "--max-jobs", "4"), "no held-out shop has at most 4 jobs"),
     (("lookahead_speed.py", "--instances", "EX12,foo"), "unknown built-in instance 'foo'"),
     (("ros_speed.py", "--instances", "EX99", "--repeat", "1"), "unknown built-in instance 'EX99'"),  # rc 1, 2 lines
     (("cpsat_bu.py", "5", "--layout", "4", "--time-limit", "nan"), "time_limit must be a positive, finite number"),
@@ -203,3 +206,16 @@ def test_decide_speed_runs_a_shop_file_named_from_the_users_folder(tmp_path: Pat
     lines = res.stdout.splitlines()
     shop = tmp_path / "shop.json"
     assert lines[1].startswith(f"{shop}: ") and lines[2].startswith(f"{shop}/notools: "), res.stdout
+
+
+def test_asymmetric_runs_the_model_and_its_expert_on_one_way_travel(tmp_path: Path) -> None:
+    """bench/asymmetric.py on its five smallest shops, the travel as it is and one-way cheap: every row has the three
+    makespans, and with the travel as it is the model decides as its expert (docs/benchmarks.md §9)."""
+    pytest.importorskip("sb3_contrib")
+    out = tmp_path / "a.json"
+    res = bench("asymmetric.py", "--max-jobs", "5", "--skew", "1", "0.5", "--json", str(out), timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert len(rows) == 10 and all(r["follower"] > 0 and r["model"] > 0 and r["list"] > 0 for r in rows)
+    assert all(r["model"] == r["follower"] for r in rows if r["skew"] == 1)
+    assert "skew 0.5: model" in res.stdout
