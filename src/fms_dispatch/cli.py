@@ -218,8 +218,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         sched = solve(inst, a.solver, **opts)
         interrupted = False
-    except SearchInterrupted as exc:  # Ctrl-C in a cpsat or tabu search: its best schedule so far is kept, not lost
-        if a.solver.lower() not in ("cpsat", "tabu"):
+    except SearchInterrupted as exc:  # Ctrl-C in a cpsat, tabu or sos search: its best schedule so far is kept
+        if a.solver.lower() not in ("cpsat", "tabu", "sos"):
             raise
         sched, interrupted = exc.best, True
     problems = validate(inst, sched)

@@ -317,47 +317,53 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     search = _Search(dec, rng, deadline, progress, t0, bound=simple_lower_bound(instance))
     stopped = "iterations"
 
-    # 1. rule seeds (time-capped), best distinct ones enter the population
-    seed_deadline = None if time_limit is None else t0 + time_limit * cfg.seed_time_share
-    seeded: list[tuple[int, int, str, np.ndarray]] = []
-    seen: set[bytes] = set()
-    best_seed: list[Any] | None = None
-    for order, (name, policy) in enumerate(policies):
-        if seed_deadline is not None and search.evaluations > 0 and time.perf_counter() >= seed_deadline:
-            break
+    interrupted = False
+    try:
+        # 1. rule seeds (time-capped), best distinct ones enter the population
+        seed_deadline = None if time_limit is None else t0 + time_limit * cfg.seed_time_share
+        seeded: list[tuple[int, int, str, np.ndarray]] = []
+        seen: set[bytes] = set()
+        best_seed: list[Any] | None = None
+        for order, (name, policy) in enumerate(policies):
+            if seed_deadline is not None and search.evaluations > 0 and time.perf_counter() >= seed_deadline:
+                break
+            try:
+                keys, shop = keys_from_policy(dec, policy, search.budget())
+            except TimeUp:
+                stopped = "time_limit"
+                break
+            ms = search.evaluate(keys, shop)
+            if best_seed is None or ms < best_seed[1]:
+                best_seed = [name, ms]
+            sig = keys.tobytes()
+            if sig not in seen:
+                seen.add(sig)
+                seeded.append((ms, order, name, keys))
+        seeded.sort(key=lambda s: (s[0], s[1]))
+        n_seeded = min(len(seeded), round(cfg.population * cfg.seed_fraction))
+        if seeded and n_seeded == 0 and cfg.seed_fraction > 0:
+            n_seeded = 1
+        pop: list[np.ndarray] = [s[3] for s in seeded[:n_seeded]]
+        fit: list[int] = [s[0] for s in seeded[:n_seeded]]
+
+        # 2. random organisms fill the ecosystem
         try:
-            keys, shop = keys_from_policy(dec, policy, search.budget())
+            while stopped != "time_limit" and len(pop) < cfg.population:
+                if search.out_of_time():
+                    raise TimeUp("time limit reached while building the population")
+                x = rng.random(dec.dim)
+                f = search.evaluate(x)
+                pop.append(x)
+                fit.append(f)
+            # 3. SOS iterations
+            if stopped != "time_limit":
+                stopped = _iterate(search, cfg, pop, fit, iterations)
         except TimeUp:
             stopped = "time_limit"
-            break
-        ms = search.evaluate(keys, shop)
-        if best_seed is None or ms < best_seed[1]:
-            best_seed = [name, ms]
-        sig = keys.tobytes()
-        if sig not in seen:
-            seen.add(sig)
-            seeded.append((ms, order, name, keys))
-    seeded.sort(key=lambda s: (s[0], s[1]))
-    n_seeded = min(len(seeded), round(cfg.population * cfg.seed_fraction))
-    if seeded and n_seeded == 0 and cfg.seed_fraction > 0:
-        n_seeded = 1
-    pop: list[np.ndarray] = [s[3] for s in seeded[:n_seeded]]
-    fit: list[int] = [s[0] for s in seeded[:n_seeded]]
-
-    # 2. random organisms fill the ecosystem
-    try:
-        while stopped != "time_limit" and len(pop) < cfg.population:
-            if search.out_of_time():
-                raise TimeUp("time limit reached while building the population")
-            x = rng.random(dec.dim)
-            f = search.evaluate(x)
-            pop.append(x)
-            fit.append(f)
-        # 3. SOS iterations
-        if stopped != "time_limit":
-            stopped = _iterate(search, cfg, pop, fit, iterations)
-    except TimeUp:
-        stopped = "time_limit"
+    except KeyboardInterrupt:  # the best found so far goes with the interrupt (fms solve --solver sos keeps it)
+        if search.best_shop is None:
+            raise
+        interrupted, stopped = True, "interrupted"
     if search.at_bound:  # proven optimal: the search stopped there (a 1-operation shop ran its whole budget)
         stopped = "lower_bound"
 
@@ -369,6 +375,11 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
         "iterations": search.iteration, "best_makespan_history": hist, "best_seed": best_seed,
         "stopped": stopped, "time_limit": time_limit,
     })
+    if interrupted:
+        from .exact import SearchInterrupted
+
+        sched.meta.update(status="INTERRUPTED", wall_time=round(time.perf_counter() - t0, 3))
+        raise SearchInterrupted(sched, min(search.bound, sched.makespan), time.perf_counter() - t0)
     return sched
 
 

@@ -431,7 +431,7 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
 
 
 def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
-    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat or tabu search lost everything it had found;
+    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat, tabu or sos search lost all it had found;
     the best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
     import signal
     import subprocess
@@ -455,19 +455,25 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     assert validate(builtin("ra20"), sched) == [] and chart.stat().st_size > 0
     assert sched.meta["status"] == "INTERRUPTED" and sched.meta["lower_bound"] <= sched.makespan
     assert f"makespan {sched.makespan} " in line[0]
-    # the tabu search too (interrupted in the search, or before it: then its start schedule)
-    for wait in (1.0, 0.0):
-        proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl30", "--solver", "tabu",
+    # the tabu search too (interrupted in the search, or before it: then its start schedule), and sos
+    for solver, first, wait in (("tabu", "  tabu: list schedule ", 1.0), ("tabu", "  tabu: list schedule ", 0.0),
+                                ("sos", "  sos: ", 0.5)):
+        proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl30", "--solver", solver,
                                  "--time-limit", "600", "--out", str(tmp_path / "t.json")], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-        assert proc.stdout is not None and proc.stdout.readline().startswith("  tabu: list schedule ")
+        stream = proc.stderr if solver == "sos" else proc.stdout  # (sos reports its progress on stderr)
+        assert stream is not None
+        line = stream.readline()
+        while solver == "sos" and line and not line.startswith(first):  # past the header line
+            line = stream.readline()
+        assert line.startswith(first), line
         time.sleep(wait)
         proc.send_signal(signal.SIGTERM)
         rest, err = proc.communicate(timeout=60)
         assert proc.returncode == 130 and ", interrupted, valid)" in rest, (rest, err)
         sched = Schedule.load(tmp_path / "t.json")
         assert validate(builtin("sl30"), sched) == [] and sched.meta["status"] == "INTERRUPTED"
-        assert f"sl30: makespan {sched.makespan} (tabu, " in rest
+        assert f"sl30: makespan {sched.makespan} ({solver}, " in rest and sched.meta["wall_time"] > 0
     # another solver's interrupt is an interrupt as before: nothing written
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
                              "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
