@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .benchmarks import NAME_PATTERNS, builtin, is_builtin_name
 from .files import read_text
-from .instance import MAX_COUNT, Instance, InstanceError, Operation
+from .instance import MAX_COUNT, MAX_TIME, Instance, InstanceError, Operation
 
 __all__ = ["parse_text_jobshop", "format_standard", "format_taillard", "load_instance"]
 
@@ -26,10 +26,11 @@ _LABELS = {"times", "machines"}
 
 
 def _int(tok: str) -> int | None:
-    try:
-        return int(tok)
-    except ValueError:
+    """``tok`` as an integer if it is one written in ASCII digits (an optional sign), else None: ``int()`` alone took
+    ``1_000`` and other scripts' digits (``٣``), which no OR-Library or Taillard file holds."""
+    if not tok.lstrip("+-").isascii() or not tok.lstrip("+-").isdigit() or len(tok) - len(tok.lstrip("+-")) > 1:
         return None
+    return int(tok)
 
 
 def _lines(text: str) -> list[tuple[int, list[str]]]:
@@ -47,7 +48,8 @@ def _ints(no: int, toks: list[str]) -> list[int]:
     for tok in toks:
         v = _int(tok)
         if v is None:
-            raise InstanceError(f"line {no}: expected integers, got {tok!r}")
+            shown = tok if len(tok) <= 40 else f"{tok[:20]}...{tok[-8:]} ({len(tok)} characters)"
+            raise InstanceError(f"line {no}: expected integers, got {shown!r}")
         vals.append(v)
     return vals
 
@@ -117,6 +119,8 @@ def _parse_standard(body: list[tuple[int, list[str]]], n: int, m: int, name: str
                 raise InstanceError(f"line {no}: machine {mach} out of range 0..{m - 1} (standard format is 0-based)")
             if t < 0:
                 raise InstanceError(f"line {no}: negative processing time {t}")
+            if t > MAX_TIME:  # (Operation refused it without the line)
+                raise InstanceError(f"line {no}: processing time {t} is above the largest, {MAX_TIME:,}")
             ops.append(Operation(mach + 1, None, t))
         jobs.append(tuple(ops))
     return Instance(name=name, jobs=tuple(jobs), n_machines=m, meta={"format": "standard"})
@@ -150,6 +154,8 @@ def _parse_taillard(
         for t in times:
             if t < 0:
                 raise InstanceError(f"line {tno}: negative processing time {t}")
+            if t > MAX_TIME:  # (Operation refused it without the line)
+                raise InstanceError(f"line {tno}: processing time {t} is above the largest, {MAX_TIME:,}")
         for mach in machines:
             if not 1 <= mach <= m:
                 raise InstanceError(f"line {mno}: machine {mach} out of range 1..{m} (Taillard format is 1-based)")

@@ -92,6 +92,15 @@ def test_taillard_text_of_ta01_round_trips() -> None:
         ("2 2\nTimes\n3 4\n5 6\n7 8\nMachines\n1 2\n2 1\n", "line 5: more than 2 times rows"),
         ("2 2\nTimes\n3 4 5\n", "line 3: expected 2 numbers"),
         ("2 2\nTimes\n3 4\n5 6\nMachines\n1 2\n2 1\nMachines\n", "line 8: a second 'Machines' section"),
+        # int() alone took these, which no such file holds; a huge token is shown cut; a time above the largest
+        # (10**9) was refused without its line
+        ("2 2\n0 3 1 4\n1 2 0 1_000\n", "line 3: expected integers, got '1_000'"),
+        ("2 2\n0 3 1 4\n1 2 0 \u0663\n", "line 3: expected integers, got '\u0663'"),
+        ("2 2\n0 3 1 4\n1 2 0 --5\n", "line 3: expected integers, got '--5'"),
+        ("2 2\n0 3 1 4\n1 2 0 x" + "9" * 5000 + "\n",
+         r"line 3: expected integers, got 'x9{19}\.\.\.9{8} \(5001 characters\)'$"),
+        ("2 2\n0 3 1 4\n1 2 0 1000000001\n", "line 3: processing time 1000000001 is above the largest, 1,000,000,000"),
+        ("2 2\n3 4\n5 2000000000\n1 2\n2 1\n", "line 3: processing time 2000000000 is above the largest"),
     ],
 )
 def test_malformed_text(text: str, match: str) -> None:
