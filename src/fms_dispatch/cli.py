@@ -117,8 +117,8 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
 
 def search_summary(sched: Schedule) -> str:
     """What the summary line adds about the search: a guided model's plan search at the start (``", 1.02 s of it the
-    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``) and the rule combinations a time limit left
-    untried."""
+    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``), the rule combinations a time limit (or an
+    interrupt) left untried, and ``", interrupted"`` for a search stopped by Ctrl-C."""
     m = sched.meta
     out = ""
     if m.get("guide_search_time") is not None:
@@ -127,10 +127,11 @@ def search_summary(sched: Schedule) -> str:
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
         out += f", bound {m['lower_bound']}"
+    if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
+        out += f", {m['tried']} of {m['combinations']} rule combinations"
+        out += "" if m.get("status") == "INTERRUPTED" else " within the time limit"
     if m.get("status") == "INTERRUPTED":
         out += ", interrupted"
-    if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
-        out += f", {m['tried']} of {m['combinations']} rule combinations within the time limit"
     return out
 
 
@@ -218,8 +219,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
     try:
         sched = solve(inst, a.solver, **opts)
         interrupted = False
-    except SearchInterrupted as exc:  # Ctrl-C in a cpsat, tabu or sos search: its best schedule so far is kept
-        if a.solver.lower() not in ("cpsat", "tabu", "sos"):
+    except SearchInterrupted as exc:  # Ctrl-C in a cpsat, tabu, sos or rules search: its best schedule so far is kept
+        if a.solver.lower() not in ("cpsat", "tabu", "sos") and not a.solver.lower().startswith("rules"):
             raise
         sched, interrupted = exc.best, True
     problems = validate(inst, sched)

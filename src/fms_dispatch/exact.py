@@ -155,7 +155,8 @@ class SearchInterrupted(KeyboardInterrupt):
     """An interrupt (Ctrl-C, or ``fms``'s SIGTERM) during :func:`solve_exact`, carrying the best schedule found
     before it (``best``: CP-SAT's best solution or the start schedule; its ``meta`` says so when it comes from
     :func:`cpsat`), the lower bound known then and the seconds spent. Every handler of KeyboardInterrupt takes it
-    as one; ``fms solve --solver cpsat`` keeps the schedule (a long search stopped by hand is not lost)."""
+    as one; ``fms solve`` keeps the schedule of a search it ran (cpsat, tabu, sos, rules: a long search stopped by
+    hand is not lost). The tabu search, sos and the rule combinations raise it too (``lower_bound`` 0: none known)."""
 
     def __init__(self, best: Schedule, lower_bound: int, wall_time: float):
         super().__init__()

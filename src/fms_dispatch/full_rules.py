@@ -294,27 +294,38 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     best: Schedule | None = None
     t0 = last = time.perf_counter()
     tried = 0
-    for i, name in enumerate(names):
-        if time_limit is not None and best is not None and time.perf_counter() - t0 >= time_limit:
-            break
-        tried += 1
-        if name.startswith("list"):
-            s = solve_list(instance, name.partition(":")[2] or "est")
-        elif decisions == "full":
-            s = run_full(instance, parse_full_rule(name))
-        else:
-            s = run_policy(instance, parse_rule_name(name))
-        if best is None or s.makespan < best.makespan:
-            best = s
-            best.meta["rule"] = name
-        now = time.perf_counter()
-        if progress and now - last >= 10:
-            print(f"  rules: {i + 1}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
-                  f"{now - t0:.0f} s", file=sys.stderr, flush=True)
-            last = now
+    interrupted = False
+    try:
+        for i, name in enumerate(names):
+            if time_limit is not None and best is not None and time.perf_counter() - t0 >= time_limit:
+                break
+            tried += 1
+            if name.startswith("list"):
+                s = solve_list(instance, name.partition(":")[2] or "est")
+            elif decisions == "full":
+                s = run_full(instance, parse_full_rule(name))
+            else:
+                s = run_policy(instance, parse_rule_name(name))
+            if best is None or s.makespan < best.makespan:
+                best = s
+                best.meta["rule"] = name
+            now = time.perf_counter()
+            if progress and now - last >= 10:
+                print(f"  rules: {i + 1}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
+                      f"{now - t0:.0f} s", file=sys.stderr, flush=True)
+                last = now
+    except KeyboardInterrupt:  # the best combination so far goes with the interrupt (fms solve keeps it)
+        if best is None:
+            raise
+        interrupted, tried = True, tried - 1  # (the combination under way did not finish)
     assert best is not None
     best.meta["solver"] = "rules" if decisions == "full" else "rules:paper"
     best.meta["combinations"] = len(names)
     best.meta["tried"] = tried
     best.meta["decisions"] = decisions
+    if interrupted:
+        from .exact import SearchInterrupted
+
+        best.meta.update(status="INTERRUPTED", wall_time=round(time.perf_counter() - t0, 3))
+        raise SearchInterrupted(best, 0, time.perf_counter() - t0)
     return best

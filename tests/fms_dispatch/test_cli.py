@@ -431,7 +431,7 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
 
 
 def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
-    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat, tabu or sos search lost all it had found;
+    """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat, tabu, sos or rules search lost all it found;
     the best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
     import signal
     import subprocess
@@ -474,6 +474,17 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
         sched = Schedule.load(tmp_path / "t.json")
         assert validate(builtin("sl30"), sched) == [] and sched.meta["status"] == "INTERRUPTED"
         assert f"sl30: makespan {sched.makespan} ({solver}, " in rest and sched.meta["wall_time"] > 0
+    # the rule combinations (no progress line: a few seconds in, many have run on sl00)
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl00", "--solver", "rules",
+                             "--out", str(tmp_path / "r.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    time.sleep(5)
+    proc.send_signal(signal.SIGTERM)
+    rest, err = proc.communicate(timeout=60)
+    sched = Schedule.load(tmp_path / "r.json")
+    assert proc.returncode == 130 and validate(builtin("sl00"), sched) == [], (rest, err)
+    assert f"rules, {sched.meta['wall_time']:.3f} s, {sched.meta['tried']} of {sched.meta['combinations']} rule " \
+           "combinations, interrupted, valid)" in rest, rest
     # another solver's interrupt is an interrupt as before: nothing written
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
                              "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
