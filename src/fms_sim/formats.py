@@ -14,6 +14,7 @@ Taillard's "Nb of jobs, Nb of Machines, ..." line) are skipped. Instances read f
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from .benchmarks import NAME_PATTERNS, builtin, is_builtin_name
@@ -208,7 +209,7 @@ def _load_file(path: Path) -> Instance:
 
 
 def load_instance(
-    spec: str,
+    spec: str | os.PathLike[str],
     *,
     layout: int | None = None,
     agvs: int | None = None,
@@ -216,14 +217,16 @@ def load_instance(
     no_tools: bool = False,
     no_agvs: bool = False,
 ) -> Instance:
-    """Load ``spec`` (an existing file, else a built-in name; a folder is never an instance, so a folder named
-    like a built-in does not hide it) and apply the command-line overrides.
+    """Load ``spec`` (an existing file, also as a ``Path``, else a built-in name; a folder is never an instance, so a
+    folder named like a built-in does not hide it) and apply the command-line overrides.
 
     Files: ``.json`` or content starting with ``{`` is the project's instance JSON, anything else a text job
     shop. ``layout`` applies to built-in ``ra`` names only. Then ``no_tools``/``no_agvs`` drop tools/AGVs and
     ``agvs``/``tool_transporters`` set the fleet sizes (>= 1; refused where the instance has no such
     travel matrix or the matching ``no_*`` flag is set).
     """
+    if isinstance(spec, os.PathLike):  # a Path names a file (it was refused as "must be named")
+        spec = os.fspath(spec)
     if not isinstance(spec, str) or not spec.strip():
         raise InstanceError("an instance must be named: give a built-in name or a file path")
     path = Path(spec)

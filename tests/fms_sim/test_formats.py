@@ -220,3 +220,12 @@ def test_the_drop_flags_take_booleans_only():
         load_instance("ra01", no_tools="yes")  # type: ignore[arg-type]
     with pytest.raises(InstanceError, match="no_agvs must be True or False, got 1"):
         load_instance("ra01", no_agvs=1)  # type: ignore[arg-type]
+
+
+def test_an_instance_file_is_loaded_from_a_path(tmp_path: Path) -> None:
+    # a pathlib.Path was refused as "an instance must be named" (Schedule.load, Instance.save take one)
+    path = tmp_path / "shop.json"
+    builtin("ra01").save(path)
+    assert load_instance(path) == builtin("ra01") and load_instance(path, agvs=3).n_agvs == 3
+    with pytest.raises(InstanceError, match="is a directory"):
+        load_instance(tmp_path)
