@@ -376,7 +376,9 @@ def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule
     ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
     :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
     ``time_limt``) raises TypeError instead of being ignored, and the shared options are checked
-    (:func:`check_options`)."""
+    (:func:`check_options`). The first ``ppo`` solve of a process freezes its heap, so that garbage collection does
+    not pause decisions (``fms_dispatch.rl.models.FREEZE_HEAP``: data alive then in reference cycles stays in
+    memory; set it False before, in a program that frees such data later)."""
     options = check_options(options)
     fn = get_solver(solver)
     require_instance(instance, "solve")

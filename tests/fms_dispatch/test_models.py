@@ -128,3 +128,31 @@ def test_broken_weights_are_named_as_a_model_error(tmp_path: Path, content: byte
         load_torch_policy(weights)
     assert needle in str(info.value)
     assert main(["solve", "EX12", "--solver", f"ppo:{folder}", "-q"]) == 2
+
+
+_FREEZE_SCRIPT = """
+import gc, sys, weakref
+from fms_dispatch.rl import models
+from fms_dispatch.solvers import solve
+from fms_sim.benchmarks import builtin
+models.FREEZE_HEAP = sys.argv[1] == "1"
+class Node: pass
+data = Node(); data.me = data  # a reference cycle alive at the first model load
+alive = weakref.ref(data)
+solve(builtin("EX12"), "ppo:bu")
+del data
+gc.collect()
+print("kept" if alive() is not None else "freed")
+"""
+
+
+@pytest.mark.parametrize("freeze, outcome", [("1", "kept"), ("0", "freed")])
+def test_a_program_can_keep_the_first_model_load_from_freezing_its_heap(freeze, outcome):
+    # the first load freezes the heap (decisions do not pause for the collector's scans): data alive then in
+    # reference cycles stays in memory; FREEZE_HEAP = False (a notebook that frees such data later) does not freeze
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", _FREEZE_SCRIPT, freeze], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == outcome

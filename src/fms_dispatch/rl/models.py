@@ -202,15 +202,21 @@ def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisio
 
 _settled = False
 
+#: whether the first model load freezes the heap (:func:`_settle_heap`). A program that holds data in reference
+#: cycles when it first loads a model, and frees them later (a notebook), sets it False before: frozen objects are
+#: never collected by the cyclic collector, so such data would stay in memory (decisions then pause for the
+#: collector's full scans, 15-25 ms each). Objects without reference cycles are freed either way.
+FREEZE_HEAP = True
+
 
 def _settle_heap() -> None:
-    """Once per process, after the first model load: collect, then freeze what is alive (``gc.freeze``). The
-    modules, the model and the instance tables stay for the process's life; without this every full collection
-    of the cyclic garbage collector scans them all (15-25 ms with the solvers imported), a pause that lands on
-    whichever decision or plan search triggers it (docs/benchmarks.md §9). Objects created later are collected
-    as usual."""
+    """Once per process, after the first model load: collect, then freeze what is alive (``gc.freeze``) unless
+    :data:`FREEZE_HEAP` is False. The modules, the model and the instance tables stay for the process's life;
+    without this every full collection of the cyclic garbage collector scans them all (15-25 ms with the solvers
+    imported), a pause that lands on whichever decision or plan search triggers it (docs/benchmarks.md §9).
+    Objects created later are collected as usual; objects alive then, in reference cycles, are not."""
     global _settled
-    if not _settled:
+    if not _settled and FREEZE_HEAP:
         _settled = True
         gc.collect()
         gc.freeze()
@@ -218,8 +224,8 @@ def _settle_heap() -> None:
 
 def load_agent(spec: str) -> Any:
     """A loaded :class:`~fms_dispatch.rl.agent.Agent` for ``spec`` (cached per weights file). The first load
-    freezes the process's heap as it is then (see :func:`_settle_heap`), so that later full garbage collections
-    do not pause decisions to scan the modules and the model."""
+    freezes the process's heap as it is then (see :func:`_settle_heap`; :data:`FREEZE_HEAP` False: not), so that
+    later full garbage collections do not pause decisions to scan the modules and the model."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
                          ref.name, ref.decisions, ref.guide)
