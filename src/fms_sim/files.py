@@ -60,12 +60,20 @@ def _where(text: str) -> int:
     return 0
 
 
-def loads(text: str, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
+def loads(text: str | bytes, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
     """``json.loads(text)`` (with ``object_pairs_hook``), a leading byte-order mark dropped; JSON nested too deeply for
     the parser (a crash with a RecursionError), a number with more digits than Python converts (a plain
     ValueError) and what JSON has not but Python's parser takes (``NaN``, ``Infinity``, ``1e400``, which became
     infinity: a file read so was written back with them, which other JSON readers refuse) raise
-    :class:`json.JSONDecodeError` like any other malformed JSON."""
+    :class:`json.JSONDecodeError` like any other malformed JSON. Bytes are read as UTF-8 (they failed with "a
+    bytes-like object is required, not 'str'", the reverse of the truth); another type is a TypeError."""
+    if isinstance(text, (bytes, bytearray)):
+        try:
+            text = bytes(text).decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise json.JSONDecodeError(f"not UTF-8 text ({exc.reason})", "", 0) from None
+    elif not isinstance(text, str):
+        raise TypeError(f"JSON text must be a str or bytes, got {type(text).__name__}")
     text = text.removeprefix("\ufeff")
     try:
         return json.loads(text, object_pairs_hook=object_pairs_hook, parse_constant=_constant,

@@ -76,9 +76,20 @@ class ToolTrip:
                 "from": self.from_, "to": self.to, "start": self.start, "end": self.end, "loaded": self.loaded}
 
 
-@dataclass
+#: the ``meta`` entries that change what a schedule means, compared by ``Schedule.__eq__``: the disruptions it was made
+#: under, when live orders' jobs arrived (both checked by the validator) and the time a residual plan starts from
+COMPARED_META = ("scenario", "arrivals", "residual")
+
+
+@dataclass(eq=False)
 class Schedule:
-    """A complete schedule; ``makespan`` is the latest operation end."""
+    """A complete schedule; ``makespan`` is the latest operation end.
+
+    Two schedules are equal when their JSON forms are, but for the ``meta`` entries that only describe how they were
+    made (solver, wall time, bound: :data:`COMPARED_META` are compared, the entries that change what the schedule
+    means): the records in the JSON form's order, which keeps the recorded order of records that tie (it can matter
+    at one instant, docs/semantics.md). A schedule so equals its JSON round trip, and two runs that made the same
+    schedule are equal whatever their wall times."""
 
     instance: str
     makespan: int
@@ -90,8 +101,17 @@ class Schedule:
     meta: dict[str, Any] = field(default_factory=dict)
     """Free-form facts about how it was made (solver, wall time, bound); exported under ``"meta"``."""
 
-    def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Schedule):
+            return NotImplemented
+        mine, theirs = ({k: x.meta.get(k) for k in COMPARED_META} for x in (self, other))
+        return mine == theirs and self._records() == other._records()
+
+    __hash__ = None  # type: ignore[assignment]  # mutable
+
+    def _records(self) -> dict[str, Any]:
+        """The JSON form without ``meta``."""
+        return {
             "instance": self.instance,
             "makespan": self.makespan,
             "n_agvs": self.n_agvs,
@@ -100,6 +120,9 @@ class Schedule:
             "agv_trips": [t.to_dict() for t in sorted(self.agv_trips, key=lambda t: (t.agv, t.start, t.end))],
             "tool_trips": [t.to_dict() for t in sorted(self.tool_trips, key=lambda t: (t.transporter, t.start, t.end))],
         }
+
+    def to_dict(self) -> dict[str, Any]:
+        out = self._records()
         if self.meta:
             out["meta"] = copy.deepcopy(self.meta)  # the caller's to change (it changed the schedule's own)
         return out

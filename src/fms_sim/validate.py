@@ -128,6 +128,8 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
         except ScenarioError as exc:
             return [str(exc)]
     if scenario is not None:
+        if not isinstance(scenario, Scenario):  # (a dict failed with AttributeError: no attribute 'check')
+            raise TypeError(f"scenario must be a Scenario (Scenario.from_dict reads one), got {type(scenario).__name__}")
         try:
             scenario.check(instance)
         except ScenarioError as exc:

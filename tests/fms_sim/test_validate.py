@@ -395,3 +395,40 @@ def test_a_malformed_arrivals_record_is_reported(record, message):
     sched = run_first(inst)
     sched.meta["arrivals"] = record
     assert validate(inst, sched) == [message]
+
+
+def test_a_schedule_equals_its_json_round_trip_and_another_run_of_it():
+    # the JSON form sorts the records and the reader keeps its order, and meta held the wall time: no schedule
+    # equalled its own round trip, nor two runs of a deterministic solver each other
+    from fms_dispatch.solvers import solve
+    from fms_sim.benchmarks import builtin
+
+    inst = builtin("ra01")
+    for solver in ("first", "list", "rule:MTWR+nearest"):
+        a, b = solve(inst, solver), solve(inst, solver)
+        assert a.meta.get("wall_time") is not None
+        assert a == Schedule.from_json(a.to_json()) and a == b, solver
+    c = solve(inst, "rule:SPT+first")
+    assert c.makespan != a.makespan and c != a
+    # what changes the meaning is compared: the disruptions, the orders' arrivals, a residual plan's start
+    for key, value in (("scenario", Scenario((), (), 0.1, 3).to_dict()), ("arrivals", [[0, 0]]), ("residual", 0)):
+        other = Schedule.from_json(a.to_json())
+        other.meta[key] = value
+        assert other != a and Schedule.from_json(other.to_json()) == other, key
+    assert a != a.to_dict() and a.__eq__("x") is NotImplemented
+
+
+def test_library_inputs_of_other_types_are_taken_or_refused_by_name(tmp_path):
+    # JSON bytes were refused as "a bytes-like object is required, not 'str'"; a scenario given as a dict failed
+    # with "'dict' object has no attribute 'check'"
+    from fms_sim.benchmarks import builtin
+
+    inst = builtin("EX12")
+    s = run_first(inst)
+    assert Schedule.from_json(s.to_json().encode()) == s
+    with pytest.raises(ScheduleError, match="malformed JSON: not UTF-8 text"):
+        Schedule.from_json(b"\xff{}")
+    with pytest.raises(TypeError, match="JSON text must be a str or bytes, got int"):
+        Schedule.from_json(3)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"scenario must be a Scenario \(Scenario.from_dict reads one\), got dict"):
+        validate(inst, s, {"breakdowns": []})  # type: ignore[arg-type]
