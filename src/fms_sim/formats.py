@@ -14,6 +14,7 @@ Taillard's "Nb of jobs, Nb of Machines, ..." line) are skipped. Instances read f
 
 from __future__ import annotations
 
+import numbers
 import os
 from pathlib import Path
 
@@ -269,6 +270,6 @@ def load_instance(
 
 
 def _fleet_size(what: str, value: object, drop_flag: str) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
         raise InstanceError(f"{what} must be an integer from 1 to {MAX_COUNT}, got {value!r} (use --{drop_flag} to "
                             "drop them)")

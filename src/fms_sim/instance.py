@@ -19,6 +19,7 @@ Modes follow from the data:
 from __future__ import annotations
 
 import json
+import numbers
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -35,7 +36,19 @@ class InstanceError(ValueError):
 
 
 def _is_int(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
+    """An integer, Python's or another library's (numpy's ``int64``: shops generated with numpy were refused as
+    "must be an integer, got np.int64(1)"); not a bool. The data model stores them as Python ints (:func:`_plain`)."""
+    return type(x) is int or (isinstance(x, numbers.Integral) and not isinstance(x, bool))
+
+
+def _plain(x: Any) -> Any:
+    """A numpy array as nested lists and a numpy integer as a Python int (what JSON and the solvers take); anything
+    else as it is."""
+    if isinstance(x, (list, tuple, dict, str)) or x is None:
+        return x
+    if hasattr(x, "tolist"):  # an array, or a numpy scalar
+        return x.tolist()
+    return int(x) if _is_int(x) else x
 
 
 #: The largest duration or travel time: sums of many still fit CP-SAT's and numpy's 64-bit integers (a time of
@@ -57,6 +70,12 @@ class Operation:
         return self  # a value: twins share it
 
     def __post_init__(self) -> None:
+        if type(self.machine) is not int or type(self.duration) is not int or (  # (the common case: nothing to do)
+                self.tool is not None and type(self.tool) is not int):
+            for name in ("machine", "tool", "duration"):
+                value = getattr(self, name)
+                if type(value) is not int and _is_int(value):
+                    object.__setattr__(self, name, int(value))
         if not _is_int(self.machine) or not 1 <= self.machine <= MAX_COUNT:
             raise InstanceError(f"machine must be an integer from 1 to {MAX_COUNT}, got {self.machine!r}")
         if self.tool is not None and (not _is_int(self.tool) or not 1 <= self.tool <= MAX_COUNT):
@@ -67,6 +86,7 @@ class Operation:
 
 
 def _matrix(name: str, rows: Any, size: int) -> Matrix:
+    rows = _plain(rows)
     if not isinstance(rows, (list, tuple)) or len(rows) != size:
         got = len(rows) if isinstance(rows, (list, tuple)) else type(rows).__name__
         raise InstanceError(f"{name} must be a {size}x{size} matrix (L/U + {size - 1} machines), got {got} rows")
@@ -75,14 +95,17 @@ def _matrix(name: str, rows: Any, size: int) -> Matrix:
         if not isinstance(row, (list, tuple)) or len(row) != size:
             got = len(row) if isinstance(row, (list, tuple)) else type(row).__name__
             raise InstanceError(f"{name} row {i} must have {size} entries, got {got}")
+        plain = True
         for j, x in enumerate(row):
+            if type(x) is not int:
+                plain = False
             if not _is_int(x):
                 raise InstanceError(f"{name}[{i}][{j}] must be an integer, got {x!r}")
             if x < 0:
                 raise InstanceError(f"{name}[{i}][{j}] is negative ({x}); travel times must be >= 0")
             if x > MAX_TIME:
                 raise InstanceError(f"{name}[{i}][{j}] is {x}; travel times must be from 0 to {MAX_TIME:,}")
-        out.append(tuple(row))
+        out.append(tuple(row) if plain else tuple(int(x) for x in row))
     for i in range(size):
         if out[i][i] != 0:
             raise InstanceError(f"{name}[{i}][{i}] must be 0 (no travel within a location), got {out[i][i]}")
@@ -116,6 +139,8 @@ class Instance:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
+        for name in ("jobs", "agv_travel", "tool_travel", "n_machines", "n_tools", "n_agvs", "n_tool_transporters"):
+            set_(self, name, _plain(getattr(self, name)))  # numpy arrays and integers as Python's
         if not isinstance(self.name, str) or not self.name:
             raise InstanceError("instance name must be a non-empty string")
         jobs = tuple(tuple(_op(j, k, op) for k, op in enumerate(ops)) for j, ops in enumerate(_seq(self.jobs, "jobs")))
@@ -310,6 +335,7 @@ def _seq(x: Any, what: str) -> Sequence[Any]:
 def _op(j: int, k: int, op: Any) -> Operation:
     if isinstance(op, Operation):
         return op
+    op = _plain(op)
     try:
         if isinstance(op, dict):
             missing = [f for f in ("machine", "duration") if f not in op]

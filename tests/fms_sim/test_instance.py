@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from fms_sim.benchmarks import builtin
-from fms_sim.instance import Instance, InstanceError
+from fms_sim.instance import Instance, InstanceError, Operation
 
 Z3 = [[0, 1, 2], [1, 0, 1], [2, 1, 0]]  # L/U + 2 machines
 Z4 = [[0, 1, 2, 3], [1, 0, 1, 2], [2, 1, 0, 1], [3, 2, 1, 0]]  # L/U + 3 machines
@@ -107,3 +107,29 @@ def test_sizes_and_times_are_bounded(data, needle):
     # a time of 10**30 was "valid" to the list schedulers and crashed cpsat and ppo; 10**9 AGVs ran out of memory
     with pytest.raises(InstanceError, match=re.escape(needle)):
         Instance.from_dict({"name": "t", **data})
+
+
+def test_numpy_integers_and_arrays_build_an_instance_of_python_ints() -> None:
+    # shops generated with numpy were refused: "machine must be an integer ..., got np.int64(1)", a numpy travel
+    # matrix "must be an (m+1)x(m+1) matrix"; stored as Python ints, they are written as JSON like any other
+    import numpy as np
+
+    from fms_sim.formats import load_instance
+
+    rng = np.random.default_rng(0)
+    jobs = [[Operation(np.int64(m), None, np.int32(d)) for m, d in zip(rng.permutation(3) + 1, rng.integers(1, 9, 3))]
+            for _ in range(2)]
+    travel = np.array([[0, 2, 3, 4], [2, 0, 1, 2], [3, 1, 0, 1], [4, 2, 1, 0]])
+    inst = Instance("np", jobs=jobs, agv_travel=travel, n_agvs=np.int64(2))
+    plain = Instance("np", jobs=[[Operation(int(o.machine), None, int(o.duration)) for o in job] for job in jobs],
+                     agv_travel=travel.tolist(), n_agvs=2)
+    assert inst == plain and Instance.from_json(inst.to_json()) == inst
+    assert all(type(v) is int for job in inst.jobs for op in job for v in (op.machine, op.duration))
+    assert type(inst.n_agvs) is int and all(type(x) is int for row in inst.agv_travel for x in row)
+    assert Instance("a", jobs=np.array([[[1, 3]], [[2, 4]]])).jobs == ((Operation(1, None, 3),), (Operation(2, None, 4),))
+    assert builtin("EX12").with_fleet(n_agvs=np.int64(1)).n_agvs == 1
+    assert load_instance("EX12", agvs=np.int64(3)).n_agvs == 3
+    with pytest.raises(InstanceError, match="machine must be an integer"):
+        Operation(np.float64(1.0), None, 3)  # type: ignore[arg-type]
+    with pytest.raises(InstanceError, match="machine must be an integer"):
+        Operation(True, None, 3)
