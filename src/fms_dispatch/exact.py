@@ -111,11 +111,12 @@ def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
     CP-SAT searches in C++ with the GIL released, and Python runs a signal handler only in the main thread, once
     that thread is back in Python: an interrupt during ``solve`` waited for the search's end (``fms solve sl00
     --solver cpsat --time-limit 60`` took 22 s to stop). So, called from the main thread, the search runs in a
-    thread of its own while the main thread waits in short steps; an interrupt stops the search
-    (``stop_search``), waits for it to end and is raised again. The wait is on an event the search thread sets,
-    not on ``Thread.join``: an interrupt during ``join`` can leave the thread taken as ended while it still runs
-    (and the process aborts at exit). Outside the main thread (a node's planning thread) no signal arrives: the
-    search runs in place. The status is returned; an error of the search is raised here."""
+    thread of its own while the main thread polls a flag the search thread sets (sleeping between polls: a wait on
+    a lock or an event can be broken by a second signal, or leave a running thread taken as ended); an interrupt
+    then asks the search to stop (``stop_search``) until it has ended (further interrupts do not end that wait; a
+    stop asked before CP-SAT has started is lost, hence asking again each poll), and is raised again.
+    Outside the main thread (a node's planning thread) no signal arrives: the search runs in place. The status is
+    returned; an error of the search is raised here."""
     if threading.current_thread() is not threading.main_thread():
         return solver.solve(model, callback)
     done = threading.Event()
@@ -129,23 +130,24 @@ def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
         finally:
             done.set()
 
-    thread = threading.Thread(target=search, name="cp-sat", daemon=True)
-    thread.start()
+    interrupted: BaseException | None = None
+    thread: threading.Thread | None = None
     try:
-        while not done.wait(0.05):
-            pass
-    except BaseException:
-        solver.stop_search()
-        while True:  # a second interrupt must not leave the search running: it is already told to stop
-            try:
-                done.wait()
-                break
-            except BaseException:
-                continue
-        raise
-    finally:
-        if done.is_set():
-            thread.join()
+        thread = threading.Thread(target=search, name="cp-sat", daemon=True)
+        thread.start()
+        while not done.is_set():
+            time.sleep(0.05)
+    except BaseException as exc:  # Ctrl-C, SIGTERM (or an error of the poll): stop the search, then raise
+        interrupted = exc
+    launched = time.monotonic() + 2.0  # (a thread never launched, the interrupt inside start(), sets nothing)
+    while not done.is_set() and thread is not None and (thread.ident is not None or time.monotonic() < launched):
+        try:  # further signals do not end the wait: the search must stop first
+            solver.stop_search()
+            time.sleep(0.02)
+        except BaseException:
+            continue
+    if interrupted is not None:
+        raise interrupted
     if "error" in out:
         raise out["error"]
     return out["status"]

@@ -507,6 +507,37 @@ def test_an_interrupt_stops_a_cp_sat_search_at_once(sigint_raises_stop):
         run_solver(solver, _long_model())
     assert time.monotonic() - t0 < 10
     timer.join()
+    # a second interrupt right after the first (Ctrl-C and a supervisor's SIGTERM), or one before CP-SAT began (a
+    # stop asked then was lost: the search ran its whole limit), still stops it, and nothing of it runs on: the
+    # wait on an event broke with "release unlocked lock" on the second signal, leaving the search running
+    armed = [True]
+
+    def burst_handler(signum, frame):
+        if armed[0]:
+            raise _Stop
+
+    signal.signal(signal.SIGINT, burst_handler)
+    real_solve = solver.solve
+
+    def late_solve(model, callback=None):  # CP-SAT begins its search only after the interrupt came
+        time.sleep(0.3)
+        return real_solve(model, callback)
+
+    for delays, late in (((0.5, 0.505), False), ((0.02,), False), ((0.3, 0.3, 0.301, 0.302), False), ((0.1,), True)):
+        solver.solve = late_solve if late else real_solve
+        timers = [threading.Timer(d, os.kill, (os.getpid(), signal.SIGINT)) for d in delays]
+        t0 = time.monotonic()
+        armed[0] = True
+        with pytest.raises(_Stop):
+            for timer in timers:
+                timer.start()
+            run_solver(solver, _long_model())
+        armed[0] = False  # signals of the burst that come after the search stopped are not the test's
+        for timer in timers:
+            timer.join()
+        assert time.monotonic() - t0 < 10, delays
+        assert not [t for t in threading.enumerate() if t.name == "cp-sat"], delays
+    solver.solve = real_solve
     # the stopped search ended (nothing of it runs on), and the solver's next search is a normal one
     solver.parameters.max_time_in_seconds = 3
     assert run_solver(solver, _long_model()) in (cp_model.FEASIBLE, cp_model.OPTIMAL)
