@@ -164,6 +164,9 @@ class SearchInterrupted(KeyboardInterrupt):
         super().__init__()
         self.best, self.lower_bound, self.wall_time = best, lower_bound, wall_time
 
+    def __reduce__(self) -> tuple:  # (a process pool's worker sends it to the parent: it failed to unpickle)
+        return type(self), (self.best, self.lower_bound, self.wall_time)
+
 
 @dataclass
 class ExactResult:

@@ -299,13 +299,13 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
         for i, name in enumerate(names):
             if time_limit is not None and best is not None and time.perf_counter() - t0 >= time_limit:
                 break
-            tried += 1
             if name.startswith("list"):
                 s = solve_list(instance, name.partition(":")[2] or "est")
             elif decisions == "full":
                 s = run_full(instance, parse_full_rule(name))
             else:
                 s = run_policy(instance, parse_rule_name(name))
+            tried += 1  # (counted once run: an interrupt between two combinations counts neither wrongly)
             if best is None or s.makespan < best.makespan:
                 best = s
                 best.meta["rule"] = name
@@ -317,7 +317,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     except KeyboardInterrupt:  # the best combination so far goes with the interrupt (fms solve keeps it)
         if best is None:
             raise
-        interrupted, tried = True, tried - 1  # (the combination under way did not finish)
+        interrupted = True
     assert best is not None
     best.meta["solver"] = "rules" if decisions == "full" else "rules:paper"
     best.meta["combinations"] = len(names)

@@ -94,10 +94,10 @@ def _sos(instance: Instance, **kw: Any) -> Schedule:
 
 
 def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2, progress: bool = False,
-           seed: int = 0, **_: Any) -> Schedule:
+           seed: int | None = 0, **_: Any) -> Schedule:
     from .exact import cpsat
 
-    kw: dict[str, Any] = {"workers": workers, "seed": seed}  # (the seed was dropped: every run used 0)
+    kw: dict[str, Any] = {"workers": workers, "seed": seed or 0}  # (it was dropped: every run used 0; None: 0)
     if time_limit is not None:
         kw["time_limit"] = time_limit
     if progress:

@@ -421,7 +421,9 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
     import subprocess
     import time
 
-    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl70", "--solver", "rules",
+    # (a plan: solver: an interrupted cpsat, tabu, sos or rules search keeps its best schedule:
+    # test_an_interrupted_search_keeps_its_best_schedule)
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl70", "--solver", "plan:tabu:600",
                              "--out", str(tmp_path / "s.json")], stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     time.sleep(3)  # past the start, into the search
     proc.send_signal(signal.SIGTERM)

@@ -150,3 +150,17 @@ def test_seeds_beyond_32_bits_reach_cp_sat():
         s = solve(inst, "plan:cpsat:0.5", scenario=sc, replan=0.2, seed=seed)
         assert validate(inst, s, sc) == [] and s.meta["replans"], seed
     assert validate(inst, solve(inst, "cpsat", seed=2 ** 40, time_limit=1)) == []
+
+
+def test_cpsat_takes_no_seed_as_seed_0_and_its_interrupt_crosses_processes():
+    # seed=None (check_options takes it) failed in cp_seed; SearchInterrupted failed to unpickle, so a process pool
+    # whose worker was interrupted broke every future
+    import pickle
+
+    from fms_dispatch.exact import SearchInterrupted
+
+    inst = builtin("EX12")
+    assert solve(inst, "cpsat", seed=None, time_limit=2).makespan == solve(inst, "cpsat", time_limit=2).makespan
+    s = solve(inst, "list")
+    back = pickle.loads(pickle.dumps(SearchInterrupted(s, 80, 1.5)))
+    assert isinstance(back, KeyboardInterrupt) and (back.best, back.lower_bound, back.wall_time) == (s, 80, 1.5)
