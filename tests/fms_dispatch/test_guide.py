@@ -605,6 +605,25 @@ def test_a_guide_plans_from_the_state_when_something_is_down_from_time_0():
         assert (guide.origin is None) == (sc is None)
 
 
+def test_a_guide_planned_at_a_start_that_cannot_be_snapshot_serves_that_start():
+    # at time 0 with a tool-use choice pending (no snapshot) the plan starts from the next state that can be one
+    # (origin 4 here); it was taken as not fitting the start, so the model re-planned at every decision there
+    from fms_dispatch.rl.guide import PlanGuide, at_start, effort_from
+    from fms_sim.disruptions import Breakdown, Scenario
+    from fms_sim.snapshot import can_snapshot
+
+    inst = builtin("ra01").without_agvs()
+    sc = Scenario((Breakdown(machine=1, start=0, duration=30),), (), 0.0, 0)
+    shop = FullShop(inst, scenario=sc)
+    labels = shop.action_labels()
+    shop.act(next(a for a in shop.legal_actions() if labels[a].startswith("tool:")))
+    assert at_start(shop) and not can_snapshot(shop)
+    guide = PlanGuide.for_shop(shop, effort_from(restarts=2, tabu=0.0, budget=0))
+    assert guide.origin is not None and guide.origin > 0 and guide.fits_start(shop)
+    other = FullShop(inst, scenario=Scenario((Breakdown(machine=2, start=0, duration=30),), (), 0.0, 0))
+    assert not guide.fits_start(other) and not guide.fits_start(FullShop(inst))
+
+
 def test_the_guide_replanner_answers_each_breakdown_once_per_run():
     """``GuideReplanner`` (breakdowns only: ``drift=None``) re-plans once per breakdown begun: not again on another
     shop object of the same run (a twin, a rebuilt replay), again in a new run (a shop at its start); refused for a

@@ -359,7 +359,7 @@ class PlanGuide:
         self.effort = effort
         #: the time a residual plan starts from (a run's state); None for a plan from scratch
         self.origin: int | None = plan.meta.get("residual")
-        #: a plan from a state at time 0 (something down from the start): :func:`down_now` of that state
+        #: a plan from the state at its run's start (something down then): :func:`down_now` of that state
         self.down: tuple | None = None
         inst = instance
         L = max(len(ops) for ops in inst.jobs)
@@ -418,15 +418,16 @@ class PlanGuide:
         return guide
 
     def mark(self, shop: Any) -> None:
-        """Record what is down in ``shop`` (:attr:`down`) if this is a plan from its state at time 0."""
-        self.down = down_now(shop) if self.origin == 0 and at_start(shop) else None
+        """Record what is down in ``shop`` (:attr:`down`) if this is a plan from its state at its start (the state
+        at time 0, or, where that cannot be snapshot, the first one after it that can: ``origin`` then later)."""
+        self.down = down_now(shop) if self.origin is not None and at_start(shop) else None
 
     def fits_start(self, shop: Any) -> bool:
         """Whether this guide serves ``shop`` at its start (:func:`at_start`): planned from scratch for the
-        nominal start, or from a state at time 0 with the same things down (:func:`down_now`)."""
+        nominal start, or from its state at its start with the same things down (:func:`down_now`)."""
         if plans_from_scratch(shop):
             return self.origin is None
-        return self.origin == 0 and self.down == down_now(shop)
+        return self.down is not None and self.down == down_now(shop)
 
     # ------------------------------------------------------------------ the heads of a state
     @staticmethod
