@@ -398,6 +398,9 @@ def cmd_replay(a: argparse.Namespace) -> int:
     if given.meta.get("scenario"):  # the orders are replayed; the disruptions they answered are not
         print("note: the schedule was made in a disrupted shop (meta.scenario); the replay runs the nominal shop, "
               "so its times differ and it may end later", file=sys.stderr)
+    if given.meta.get("arrivals"):
+        print("note: the schedule's run took live orders (meta.arrivals); the replay has every job from time 0, so "
+              "the ordered jobs may start before their orders came", file=sys.stderr)
     try:
         out = replay(inst, given)
     except ReplayError as exc:

@@ -179,7 +179,8 @@ class Scenario:
         return max(1, round(nominal * self._factor(f"op:{job}:{op}")))
 
     def trip_time(self, kind: str, vehicle: int, n: int, nominal: int) -> int:
-        """The realised time of the ``n``-th trip (from 0, legs of length > 0 only) of a vehicle."""
+        """The realised time of the ``n``-th trip of a vehicle (from 0; counting its legs between two different
+        places, whatever their travel time: docs/semantics.md)."""
         if not self.noise or nominal == 0:
             return nominal
         return max(1, round(nominal * self._factor(f"{kind}:{vehicle}:{n}")))

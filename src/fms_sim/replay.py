@@ -282,7 +282,9 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True,
     """Run ``schedule``'s orders through the full-decision net and return the schedule the net makes.
 
     With a ``scenario`` (breakdowns, outages, noise) the orders are kept and the times shift: the plan executed
-    in a disrupted shop without re-planning (its makespan may then exceed the plan's).
+    in a disrupted shop without re-planning (its makespan may then exceed the plan's). A schedule of a run with live
+    orders (``meta["arrivals"]``) is replayed in ``instance`` as it is, every job there from time 0: the ordered
+    jobs may start before their orders came (the output records no arrivals).
 
     Raises :class:`ReplayError` if ``schedule`` is not valid for ``instance`` (with the validator's first
     errors; nothing is run) or, with ``check``, if the replayed schedule were not valid (never for a valid input;

@@ -181,6 +181,30 @@ def test_replay_writes_a_schedule_no_later_than_the_given_one(tmp_path, capsys):
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_replay_of_a_run_with_live_orders_says_its_jobs_are_there_from_time_0(tmp_path, capsys):
+    # the replay has every job of the final instance from time 0, so an ordered job can start before its order
+    # came: said, as for a disrupted run's schedule (it was silent)
+    import random
+
+    from fms_sim.full_shop import FullShop
+    from fms_sim.instance import Operation
+
+    rng = random.Random(3)
+    shop = FullShop(builtin("ra01"))
+    for _ in range(25):
+        shop.act(rng.choice(shop.legal_actions()))
+    shop.add_jobs([[Operation(1, 1, 3), Operation(2, 2, 4)]])
+    while not shop.done:
+        shop.act(rng.choice(shop.legal_actions()))
+    inst, given = tmp_path / "i.json", tmp_path / "given.json"
+    shop.instance.save(inst)
+    shop.schedule().save(given)
+    code, stdout, err = run(["replay", str(inst), str(given), "--out", str(tmp_path / "r.json")], capsys)
+    assert code == 0 and "replayed makespan" in stdout
+    assert "note: the schedule's run took live orders (meta.arrivals); the replay has every job from time 0" in err
+    assert "arrivals" not in Schedule.load(tmp_path / "r.json").meta
+
+
 def test_replay_refuses_an_invalid_schedule_and_writes_nothing(tmp_path, capsys):
     given, out = tmp_path / "given.json", tmp_path / "out.json"
     assert run(["solve", "EX12", "--solver", "rule:FIFO+first", "--out", str(given), "-q"], capsys)[0] == 0
