@@ -641,12 +641,15 @@ def _best_greedy(inst: Instance, budget: float, seed: int, max_runs: int = 64) -
     one_run = time.monotonic() - t0
     rng = random.Random(seed)
     candidates = [("ect", None)] + [("est", rng)] * max_runs
-    for rule, r in candidates:
-        if time.monotonic() - t0 + one_run > budget:
-            break
-        s = greedy_schedule(inst, rule=rule, rng=r)
-        if s.makespan < best.makespan:
-            best = s
+    try:
+        for rule, r in candidates:
+            if time.monotonic() - t0 + one_run > budget:
+                break
+            s = greedy_schedule(inst, rule=rule, rng=r)
+            if s.makespan < best.makespan:
+                best = s
+    except KeyboardInterrupt:  # the best start schedule so far goes with the interrupt (up to 10 s on large shops)
+        raise SearchInterrupted(best, simple_lower_bound(inst), time.monotonic() - t0) from None
     return best
 
 
