@@ -270,6 +270,6 @@ def load_instance(
 
 
 def _fleet_size(what: str, value: object, drop_flag: str) -> None:
-    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= int(value) <= MAX_COUNT:
         raise InstanceError(f"{what} must be an integer from 1 to {MAX_COUNT}, got {value!r} (use --{drop_flag} to "
                             "drop them)")
