@@ -79,3 +79,13 @@ def test_a_documented_fms_command_takes_its_options(sub: str, capsys: pytest.Cap
     taken = set(OPTION.findall(capsys.readouterr().out))
     missing = sorted(FMS[sub] - taken)
     assert not missing, f"fms {sub} does not take {missing}, which the docs pass it"
+
+
+def test_the_readmes_python_example_runs() -> None:
+    """README.md's Python section runs as written (each of its asserts holds), in a fresh interpreter."""
+    text = (REPO / "README.md").read_text()
+    blocks = re.findall(r"^```python\n(.*?)^```", text, re.S | re.M)
+    assert blocks, "README.md has no Python example"
+    for code in blocks:
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert res.returncode == 0, res.stderr
