@@ -5,6 +5,8 @@ Every method shares one signature, ``solver(instance, **options) -> Schedule``, 
 ``"tabu"``, ``"cpsat"``, ``"list"``, ``"rules"``, ``"plan:cpsat:10"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
 """
 
+from typing import TYPE_CHECKING
+
 from .full_rules import TOOL_RULES, FullRulePolicy, full_rule_names, run_full, solve_best_rules, solve_list
 from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, all_rule_pairs, parse_rule_name, solve_rule
 from .solvers import UnknownSolver, get_solver, solve, solver_names
@@ -12,6 +14,8 @@ from .tabu import solve_tabu, tabu_plan
 
 # these load OR-Tools (the function replan stays in fms_dispatch.replan: the module has its name)
 _LAZY = {"Replanner": "replan", "solve_with_replanning": "replan"}
+if TYPE_CHECKING:  # their types for a type checker (at run time module __getattr__ below imports them)
+    from .replan import Replanner, solve_with_replanning
 
 __all__ = [
     "solve", "get_solver", "solver_names", "UnknownSolver", "Replanner", "solve_with_replanning",
@@ -28,3 +32,7 @@ def __getattr__(name: str) -> object:
 
         return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -127,3 +127,15 @@ def test_a_model_given_a_missing_file_or_an_incomplete_padding_says_so(tmp_path)
         export_actor(tmp_path / "nope.zip")
     with pytest.raises(ValueError, match="the padding lacks max_machines, max_tools, max_agvs, max_tts"):
         Agent(resolve_model("bu").weights, {"max_jobs": 8})
+
+
+def test_the_lazy_re_exports_are_listed_and_load_or_tools_only_when_used():
+    # Replanner and solve_with_replanning load OR-Tools on first use; dir() did not list them
+    import subprocess
+    import sys
+
+    code = ("import sys, fms_dispatch as d; assert 'ortools' not in ' '.join(sys.modules); "
+            "assert {'Replanner', 'solve_with_replanning'} <= set(dir(d)); "
+            "d.Replanner; assert 'ortools.sat.python.cp_model' in sys.modules; print('ok')")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
