@@ -88,6 +88,10 @@ class Shop:
         while not shop.done:
             shop.act(policy(shop.action_mask()))
         schedule = shop.schedule()
+
+    A running shop is not picklable (its net's guards are closures over it): twin it with :meth:`copy` (or
+    ``copy.deepcopy``), try runs with :meth:`save_state` / :meth:`restore_state`, and send another process its
+    instance and the actions taken (``Instance`` and ``Schedule`` pickle).
     """
 
     decisions = "paper"
