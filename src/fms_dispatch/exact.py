@@ -153,16 +153,28 @@ def run_solver(solver: Any, model: Any, callback: Any = None) -> Any:
     return out["status"]
 
 
+def _proved(solver: Any, lb: int) -> int:
+    """``lb`` raised to the lower bound a CP-SAT search proved (its best objective bound, rounded up)."""
+    return max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+
+
 class SearchInterrupted(KeyboardInterrupt):
     """An interrupt (Ctrl-C, or ``fms``'s SIGTERM) during :func:`solve_exact`, carrying the best schedule found
     before it (``best``: CP-SAT's best solution or the start schedule; its ``meta`` says so when it comes from
     :func:`cpsat`), the lower bound known then and the seconds spent. Every handler of KeyboardInterrupt takes it
     as one; ``fms solve`` keeps the schedule of a search it ran (cpsat, tabu, sos, rules: a long search stopped by
-    hand is not lost). The tabu search, sos and the rule combinations raise it too (``lower_bound`` 0: none known)."""
+    hand is not lost). The tabu search, sos and the rule combinations raise it too (``lower_bound`` 0: none known;
+    it is never above the best's makespan, which would claim more than was proved)."""
 
     def __init__(self, best: Schedule, lower_bound: int, wall_time: float):
         super().__init__()
-        self.best, self.lower_bound, self.wall_time = best, lower_bound, wall_time
+        self.best, self.lower_bound, self.wall_time = best, min(lower_bound, best.makespan), wall_time
+
+    @classmethod
+    def of(cls, exc: KeyboardInterrupt, best: Schedule, lower_bound: int, wall_time: float) -> "SearchInterrupted":
+        """What an interrupt ``exc`` caught around a search raises on: ``exc`` itself where it already carries the
+        best of a search inside this one (which knows more), else one carrying ``best``."""
+        return exc if isinstance(exc, cls) else cls(best, lower_bound, wall_time)
 
     def __reduce__(self) -> tuple:  # (a process pool's worker sends it to the parent: it failed to unpickle)
         return type(self), (self.best, self.lower_bound, self.wall_time)
@@ -1212,11 +1224,10 @@ def relaxation_bound(inst: Instance, *, time_limit: float = 10.0, workers: int =
     starts = None
     if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         starts = {key: solver.value(v) for key, v in s.items()}
-        lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
-    elif status == cp_model.INFEASIBLE:
+    if status == cp_model.INFEASIBLE:
         lb = max(lb, ub)  # no relaxed schedule within ub: ub itself is a bound (ub is feasible)
     else:
-        lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+        lb = _proved(solver, lb)
     return min(lb, ub), starts
 
 
@@ -1273,10 +1284,8 @@ def solve_exact(
                                                max_stall=300)
             return _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
         return _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
-    except SearchInterrupted:
-        raise
-    except KeyboardInterrupt:  # before CP-SAT's search (or in the fallback's): the best start schedule
-        raise SearchInterrupted(incumbent, lb, time.monotonic() - t0) from None
+    except KeyboardInterrupt as exc:  # before CP-SAT's search (or in the fallback's): the best start schedule
+        raise SearchInterrupted.of(exc, incumbent, lb, time.monotonic() - t0) from None
 
 
 def _copy_schedule(s: Schedule) -> Schedule:
@@ -1317,11 +1326,11 @@ def _solve_full(inst: Instance, incumbent: Schedule, lb: int, t0: float, time_li
     except KeyboardInterrupt:  # the search stopped (run_solver): its best solution, with the bound it had proved
         best = cb.best if cb.best is not None and cb.best.makespan <= incumbent.makespan else incumbent
         try:
-            lb = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6)))
+            lb = _proved(solver, lb)
         except Exception:  # (no response to read: the search had not begun)
             pass
-        raise SearchInterrupted(best, min(lb, best.makespan), time.monotonic() - t0) from None
-    bound = max(lb, int(math.ceil(solver.best_objective_bound - 1e-6))) if status != cp_model.INFEASIBLE else lb
+        raise SearchInterrupted(best, lb, time.monotonic() - t0) from None
+    bound = _proved(solver, lb) if status != cp_model.INFEASIBLE else lb
     best = incumbent
     if cb.best is not None and cb.best.makespan <= best.makespan:
         best = cb.best
@@ -1395,10 +1404,8 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
             now = time.monotonic()
             if now + (now - t1) > deadline:
                 break
-    except SearchInterrupted:
-        raise
-    except KeyboardInterrupt:  # the best found so far goes with the interrupt (solve_exact's large shops)
-        raise SearchInterrupted(best, min(bound, best.makespan), time.monotonic() - t0) from None
+    except KeyboardInterrupt as exc:  # the best found so far goes with the interrupt (solve_exact's large shops)
+        raise SearchInterrupted.of(exc, best, bound, time.monotonic() - t0) from None
     return best
 
 

@@ -317,13 +317,13 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     search = _Search(dec, rng, deadline, progress, t0, bound=simple_lower_bound(instance))
     stopped = "iterations"
 
+    # 1. rule seeds (time-capped), best distinct ones enter the population
+    seed_deadline = None if time_limit is None else t0 + time_limit * cfg.seed_time_share
+    seeded: list[tuple[int, int, str, np.ndarray]] = []
+    seen: set[bytes] = set()
+    best_seed: list[Any] | None = None
     interrupted = False
     try:
-        # 1. rule seeds (time-capped), best distinct ones enter the population
-        seed_deadline = None if time_limit is None else t0 + time_limit * cfg.seed_time_share
-        seeded: list[tuple[int, int, str, np.ndarray]] = []
-        seen: set[bytes] = set()
-        best_seed: list[Any] | None = None
         for order, (name, policy) in enumerate(policies):
             if seed_deadline is not None and search.evaluations > 0 and time.perf_counter() >= seed_deadline:
                 break
@@ -379,7 +379,7 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
         from .exact import SearchInterrupted
 
         sched.meta.update(status="INTERRUPTED", wall_time=round(time.perf_counter() - t0, 3))
-        raise SearchInterrupted(sched, min(search.bound, sched.makespan), time.perf_counter() - t0)
+        raise SearchInterrupted(sched, search.bound, time.perf_counter() - t0)
     return sched
 
 

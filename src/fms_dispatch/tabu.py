@@ -690,6 +690,7 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     plans = [greedy_schedule(instance, rule=rule, vehicle=vehicle) for rule in ("est", "ect")
              for vehicle in ("earliest", "nearest")]
     start = min(plans, key=lambda p: p.makespan)
+    bound = simple_lower_bound(instance)  # (before the start is reported: an interrupt from then on keeps it)
     shown = [time.monotonic()]
 
     def report(makespan: int, iteration: int, seconds: float) -> None:
@@ -701,13 +702,13 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
         print(f"  tabu: list schedule {start.makespan}", flush=True)
     try:
         best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
-                         bound=simple_lower_bound(instance), progress=report if progress else None)
+                         bound=bound, progress=report if progress else None)
     except KeyboardInterrupt as exc:  # the best so far (the start schedule before the search), for fms solve to keep
         from .exact import SearchInterrupted
 
-        done = exc.best if isinstance(exc, SearchInterrupted) else start
-        done.meta = {"solver": "tabu", "status": "INTERRUPTED", "wall_time": round(time.monotonic() - t0, 3)}
-        raise SearchInterrupted(done, simple_lower_bound(instance), time.monotonic() - t0) from None
+        kept = SearchInterrupted.of(exc, start, bound, time.monotonic() - t0)
+        kept.best.meta = {"solver": "tabu", "status": "INTERRUPTED", "wall_time": round(time.monotonic() - t0, 3)}
+        raise kept from None
     if progress:
         print(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations", flush=True)
     best.meta["solver"] = "tabu"
@@ -836,7 +837,7 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
         from .exact import SearchInterrupted
 
         out = plan if best[1].makespan >= plan.makespan else _schedule(g, plan, *best)
-        raise SearchInterrupted(out, min(bound, out.makespan), time.monotonic() - t0)
+        raise SearchInterrupted(out, bound, time.monotonic() - t0)
     if best_val >= plan.makespan:
         return plan
     out = _schedule(g, plan, *best)
