@@ -14,13 +14,13 @@ Taillard's "Nb of jobs, Nb of Machines, ..." line) are skipped. Instances read f
 
 from __future__ import annotations
 
-import numbers
 import os
 from pathlib import Path
+from typing import Any
 
 from .benchmarks import NAME_PATTERNS, builtin, is_builtin_name
 from .files import read_text
-from .instance import MAX_COUNT, MAX_TIME, Instance, InstanceError, Operation
+from .instance import MAX_COUNT, MAX_TIME, Instance, InstanceError, Operation, _is_int
 
 __all__ = ["parse_text_jobshop", "format_standard", "format_taillard", "load_instance"]
 
@@ -30,9 +30,8 @@ _LABELS = {"times", "machines"}
 def _int(tok: str) -> int | None:
     """``tok`` as an integer if it is one written in ASCII digits (an optional sign), else None: ``int()`` alone took
     ``1_000`` and other scripts' digits (``٣``), which no OR-Library or Taillard file holds."""
-    if not tok.lstrip("+-").isascii() or not tok.lstrip("+-").isdigit() or len(tok) - len(tok.lstrip("+-")) > 1:
-        return None
-    return int(tok)
+    digits = tok[1:] if tok[:1] in ("+", "-") else tok
+    return int(tok) if digits.isascii() and digits.isdigit() else None
 
 
 def _lines(text: str) -> list[tuple[int, list[str]]]:
@@ -43,6 +42,15 @@ def _lines(text: str) -> list[tuple[int, list[str]]]:
         if line and not line.startswith("#"):
             out.append((no, line.split()))
     return out
+
+
+def _check_time(no: int, t: int) -> None:
+    """A processing time read on line ``no``: refused, naming the line, unless from 0 to :data:`MAX_TIME`
+    (``Operation`` refused a larger one without the line)."""
+    if t < 0:
+        raise InstanceError(f"line {no}: negative processing time {t}")
+    if t > MAX_TIME:
+        raise InstanceError(f"line {no}: processing time {t} is above the largest, {MAX_TIME:,}")
 
 
 def _ints(no: int, toks: list[str]) -> list[int]:
@@ -119,10 +127,7 @@ def _parse_standard(body: list[tuple[int, list[str]]], n: int, m: int, name: str
             mach, t = vals[2 * o], vals[2 * o + 1]
             if not 0 <= mach < m:
                 raise InstanceError(f"line {no}: machine {mach} out of range 0..{m - 1} (standard format is 0-based)")
-            if t < 0:
-                raise InstanceError(f"line {no}: negative processing time {t}")
-            if t > MAX_TIME:  # (Operation refused it without the line)
-                raise InstanceError(f"line {no}: processing time {t} is above the largest, {MAX_TIME:,}")
+            _check_time(no, t)
             ops.append(Operation(mach + 1, None, t))
         jobs.append(tuple(ops))
     return Instance(name=name, jobs=tuple(jobs), n_machines=m, meta={"format": "standard"})
@@ -154,10 +159,7 @@ def _parse_taillard(
     jobs = []
     for (tno, times), (mno, machines) in zip(sections["times"], sections["machines"]):
         for t in times:
-            if t < 0:
-                raise InstanceError(f"line {tno}: negative processing time {t}")
-            if t > MAX_TIME:  # (Operation refused it without the line)
-                raise InstanceError(f"line {tno}: processing time {t} is above the largest, {MAX_TIME:,}")
+            _check_time(tno, t)
         for mach in machines:
             if not 1 <= mach <= m:
                 raise InstanceError(f"line {mno}: machine {mach} out of range 1..{m} (Taillard format is 1-based)")
@@ -269,7 +271,7 @@ def load_instance(
     return inst
 
 
-def _fleet_size(what: str, value: object, drop_flag: str) -> None:
-    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= int(value) <= MAX_COUNT:
+def _fleet_size(what: str, value: Any, drop_flag: str) -> None:
+    if not _is_int(value) or not 1 <= int(value) <= MAX_COUNT:
         raise InstanceError(f"{what} must be an integer from 1 to {MAX_COUNT}, got {value!r} (use --{drop_flag} to "
                             "drop them)")

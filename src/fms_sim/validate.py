@@ -85,7 +85,7 @@ def recorded_arrivals(schedule: Schedule, instance: Instance) -> dict[int, int]:
     out: dict[int, int] = {}
     for i, pair in enumerate(recorded):
         if (not isinstance(pair, (list, tuple)) or len(pair) != 2
-                or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in pair)):
+                or not all(_is_int(v) for v in pair)):
             raise ValueError(f"meta.arrivals[{i}] must be a [job, time] pair of integers, got {pair!r}")
         job, time = int(pair[0]), int(pair[1])
         if not 0 <= job < instance.n_jobs:
