@@ -25,6 +25,14 @@ if TYPE_CHECKING:
 EXIT_BAD_INPUT = 2
 EXIT_INFEASIBLE = 1
 
+#: ``fms solve``'s solver when none is named: the earliest-start list schedule, executed through the full net (a
+#: sensible schedule on every shop in seconds; ``first``, the lowest enabled action, ends several times later on
+#: shops with tools: sl70 105,272 against 7,777)
+DEFAULT_SOLVER = "list"
+#: the same in a disrupted run (``--scenario``, ``--noise``), and ``fms up``'s: the list schedule planned on the
+#: nominal shop (disruptions are not known ahead), then executed under the disruptions
+DEFAULT_DISRUPTED_SOLVER = "plan:list"
+
 
 class CliError(Exception):
     """A user error: printed as one line, exit code 2."""
@@ -140,6 +148,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
 
     from .solvers import get_solver, parse_plan_name, solve, takes_seed, takes_time_limit
 
+    defaulted = a.solver is None
+    if defaulted:  # the earliest-start list schedule; in a disrupted run its plan, executed under the disruptions
+        a.solver = DEFAULT_DISRUPTED_SOLVER if (a.scenario or a.noise is not None) else DEFAULT_SOLVER
+    named = f"{a.solver} (the default solver)" if defaulted else a.solver  # for messages
     get_solver(a.solver)  # unknown names fail before any work or output
     if a.solver.lower().startswith("ppo:"):  # and unknown models (a ppo solver finds its model when it runs)
         from .rl.models import resolve_model
@@ -165,7 +177,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
             raise CliError("--time-limit does not apply to ppo (a policy's run); its plan search's limit is "
                            "--guide-budget")
         if not takes_time_limit(a.solver):
-            raise CliError(f"--time-limit does not apply to {a.solver}: it runs once, without a search")
+            raise CliError(f"--time-limit does not apply to {named}: it runs once, without a search")
         if low.startswith("plan:") and parse_plan_name(a.solver)[1] is not None:
             raise CliError(f"{a.solver} gives its plan's budget in its name; give it without the seconds and "
                            "--time-limit, or no --time-limit")
@@ -176,12 +188,12 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if scenario is not None:
         opts["scenario"] = scenario
     if a.seed is not None and not (scenario is not None and scenario.noise) and not takes_seed(a.solver):  # ignored
-        raise CliError(f"--seed does not apply to {a.solver}: it draws nothing at random (the seed is the random, "
+        raise CliError(f"--seed does not apply to {named}: it draws nothing at random (the seed is the random, "
                        "cpsat, sos, tabu and plan: solvers', and the noise's)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
-        raise CliError(f"--decisions applies to the first, random and rule: solvers, not {a.solver} "
+        raise CliError(f"--decisions applies to the first, random and rule: solvers, not {named} "
                        "(rules:paper runs the paper net's rule pairs; a ppo model decides through the net it was "
                        "trained on)")
     if a.replan is not None:
@@ -475,10 +487,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("solve", help="solve an instance, write the schedule and a Gantt chart")
     add_instance_args(s)
-    s.add_argument("--solver", default="first",
+    s.add_argument("--solver", default=None,
                    help="first | random | rule:<JOB>[+<first|least-work|nearest>[+<fifo|same-machine-first|"
                         "nearest|earliest-start>]] (defaults first, fifo) | list[:ect|:<JOB>] | rules[:full|:paper] | sos | tabu | cpsat | "
-                        "plan:<SOLVER>[:SECONDS] | plan:file:PATH | ppo[:MODEL] (default: first)")
+                        f"plan:<SOLVER>[:SECONDS] | plan:file:PATH | ppo[:MODEL] (default: {DEFAULT_SOLVER}, the "
+                        f"earliest-start list schedule; with --scenario or --noise {DEFAULT_DISRUPTED_SOLVER}, its "
+                        "plan executed under the disruptions)")
     s.add_argument("--decisions", choices=("full", "paper"),
                    help="the net that first, random and rule: decide through: full (default; every valid "
                         "schedule reachable) or paper (the paper's FIFO-tool, ready-only net)")

@@ -85,17 +85,18 @@ def add_up_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import add_guide_args, add_instance_args  # late: cli imports this module when it builds its parser
+    from .cli import DEFAULT_DISRUPTED_SOLVER, add_guide_args, add_instance_args  # late: cli imports this module
 
     add_instance_args(p)
-    p.add_argument("--solver", default="first",
+    p.add_argument("--solver", default=DEFAULT_DISRUPTED_SOLVER,
                    help="agent solver: first | random | rule:<JOB>[+<first|least-work|nearest>] | ppo | ppo:<model> | "
                         "ppo[:<model>]+lookahead | ppo[:<model>]+lookahead-fast | ppo[:<model>]+lookahead-guide | "
                         "lookahead (ppo+lookahead) | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
                         "state, then execute the plan) | plan:file:PATH (execute a schedule made beforehand) | "
                         "best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
-                        "instead of the pair) (default: first)")
+                        f"instead of the pair) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
+                        "schedule, planned at the first state and executed live, re-planned when late)")
     p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
                    "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
                    "solver that draws nothing in a run without noise")

@@ -529,3 +529,31 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err.strip().endswith("fms: interrupted"), err
     assert not (tmp_path / "p.json").exists()
+
+
+def test_the_default_solver_is_the_list_schedule_and_its_plan_under_disruptions(tmp_path, capsys):
+    """Without --solver, fms solve runs the earliest-start list schedule (``first``, the lowest enabled action,
+    ended several times later on shops with tools), and in a disrupted run that schedule's plan executed under the
+    disruptions (the list solver plans on the shop it is given, which a disrupted run must not know ahead)."""
+    from fms_dispatch import solve
+    from fms_sim.disruptions import Scenario
+
+    out = tmp_path / "s.json"
+    inst = builtin("sl00")
+    code, stdout, _ = run(["solve", "sl00", "--out", str(out), "-q"], capsys)
+    listed = solve(inst, "list")
+    assert code == 0 and f"makespan {listed.makespan} (list, " in stdout
+    assert Schedule.load(out) == listed and listed.makespan < solve(inst, "first", decisions="full").makespan
+    code, stdout, _ = run(["solve", "sl00", "--noise", "0.1", "--seed", "3", "--out", str(out), "-q"], capsys)
+    noisy = solve(inst, "plan:list", scenario=Scenario((), (), 0.1, 3))
+    assert code == 0 and f"makespan {noisy.makespan} (plan:list, " in stdout
+    assert Schedule.load(out) == noisy and validate(inst, noisy) == []
+    # options the default does not take name it as the default
+    code, _, err = run(["solve", "EX12", "--time-limit", "3"], capsys)
+    assert code == 2 and "--time-limit does not apply to list (the default solver)" in err
+
+
+def test_fms_up_defaults_to_the_list_plan_executed_live():
+    from fms_dispatch.cli import DEFAULT_DISRUPTED_SOLVER, build_parser
+
+    assert build_parser().parse_args(["up", "EX12"]).solver == DEFAULT_DISRUPTED_SOLVER == "plan:list"

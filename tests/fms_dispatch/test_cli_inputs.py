@@ -113,7 +113,7 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--gantt", "{d}/g"], "name the chart's format by its suffix, one of ."),
     (["solve", "EX12", "--solver", "cpsat:5"], "give cpsat's time limit as --time-limit 5"),
     (["solve", "EX12", "--solver", "list:"], "'list:' names no list order"),  # ran as list
-    (["solve", "EX12", "--seed", "5"], "--seed does not apply to first: it draws nothing at random"),  # ignored
+    (["solve", "EX12", "--seed", "5"], "--seed does not apply to list (the default solver): it draws nothing"),
     (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
     (["bench", "bu", "--instances", "3..1", "--results-dir", "{d}/r"], "the range 3..1 runs backwards"),
     (["generate", "--jobs", "3", "--machines", "3", "--prefix", "sl", "--out-dir", "{d}/g"],
