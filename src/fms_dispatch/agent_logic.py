@@ -591,7 +591,7 @@ class TwinDecider:
                 self._handover, what = parse_full_rule("rule:MTWR+nearest+fifo"), "rule:MTWR+nearest+fifo"
             else:
                 self._handover, what = parse_rule_name("MTWR+nearest"), "the rule pair MTWR+nearest"
-            label = WAIT if self.stepper.kind == "idle" else shop.action_labels()[self._handover(shop)]
+            label = WAIT if self.stepper.kind == "idle" else shop.action_label(self._handover(shop))
             raise FallbackDecision(f"state {state['seq']}: the shop ({shop.instance.n_jobs} jobs) has outgrown model "
                                    f"{model.name} ({model.layout()}); {what} decides from here on", label)
         return self._handover
@@ -603,14 +603,14 @@ class TwinDecider:
         try:
             handover = self._outgrown(state, st.shop)
             if handover is not None:  # (no re-plans, no pre-positioning: those are the model's)
-                return WAIT if st.kind == "idle" else st.shop.action_labels()[handover(st.shop)]
+                return WAIT if st.kind == "idle" else st.shop.action_label(handover(st.shop))
             self._check_replan(state, st.shop)
             if st.kind == "idle":
                 return WAIT if self.planner is None else moves_label(self.planner.plan(st))
             legal = _legal(state)
             if len(legal) == 1:
                 return legal[0][2]
-            return st.shop.action_labels()[self._act(st.shop)]
+            return st.shop.action_label(self._act(st.shop))
         except FallbackDecision:
             raise
         except (ValueError, RuntimeError, IndexError) as exc:
@@ -767,7 +767,7 @@ class PlanDecider(TwinDecider):
     def _fallback_answer(self, st: Stepper) -> str:
         if st.kind == "idle":
             return WAIT
-        return st.shop.action_labels()[self.fallback(st.shop)]
+        return st.shop.action_label(self.fallback(st.shop))
 
     # ------------------------------------------------------------------ re-planning beside the decisions
     def _answer_replanning(self, state: dict[str, Any], st: Stepper) -> str:

@@ -494,7 +494,7 @@ class Replanner:
             if fallback is None or stepper.kind == "idle":
                 raise
             self._off_plan = True
-            return shop.action_labels()[fallback(shop)]
+            return shop.action_label(fallback(shop))
 
 
 def retime_from(snap: Snapshot, plan: Schedule) -> Schedule:

@@ -673,6 +673,15 @@ class FullShop(Shop):
     def action_labels(self) -> list[str]:
         return [t.label for t in self.net.controllable] + [HOLD]
 
+    def action_label(self, action: int) -> str:
+        action = index_arg(action)
+        ctrl = self.net.controllable
+        if action == len(ctrl):
+            return HOLD
+        if not 0 <= action < len(ctrl):
+            raise InvalidAction(f"action {action} is out of range (0..{len(ctrl)})")
+        return ctrl[action].label
+
     def action_kind(self, action: int) -> tuple[str, int]:
         """``(kind, number)`` for an action index: kinds job, agv, tt, start, tool, use; ``("hold", 0)``."""
         ctrl = self.net.controllable

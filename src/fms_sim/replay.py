@@ -138,7 +138,7 @@ class PlanPolicy:
                 raise ReplayError(f"replay of {shop.instance.name} is stuck at time {shop.now}: no planned order "
                                   "can be carried out and nothing is in flight")
             return HOLD
-        return shop.action_labels()[action]
+        return shop.action_label(action)
 
     def apply(self, stepper: Stepper, label: str) -> None:
         """Move the plan on by the answer ``label`` about to be applied at ``stepper``'s current stop (call it

@@ -441,6 +441,15 @@ class Shop:
     def action_labels(self) -> list[str]:
         return [t.label for t in self.net.controllable]
 
+    def action_label(self, action: int) -> str:
+        """The label of one action index (``action_labels()[action]`` without building the list: a decider that
+        answers in labels calls it at every step). InvalidAction for no action's index."""
+        action = index_arg(action)
+        ctrl = self.net.controllable
+        if not 0 <= action < len(ctrl):
+            raise InvalidAction(f"action {action} is out of range (0..{len(ctrl) - 1})")
+        return ctrl[action].label
+
     def action_kind(self, action: int) -> tuple[str, int]:
         """``("job", j)``, ``("agv", v)`` or ``("tt", r)`` for an action index (InvalidAction for no action's)."""
         action = index_arg(action)

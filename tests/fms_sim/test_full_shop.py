@@ -67,6 +67,18 @@ def test_layout_and_labels():
         shop.action_index("bogus:1")
 
 
+@pytest.mark.parametrize("cls", [FullShop, Shop])
+def test_one_actions_label_is_its_label_in_the_list(cls):
+    shop = cls(builtin("ra01"))
+    labels = shop.action_labels()
+    assert [shop.action_label(i) for i in range(len(labels))] == labels
+    for bad in (len(labels), -1):
+        with pytest.raises(InvalidAction, match="out of range"):
+            shop.action_label(bad)
+    with pytest.raises(InvalidAction):
+        shop.action_label(True)
+
+
 def test_make_shop_selects_the_net():
     inst = builtin("EX12")
     assert type(make_shop(inst, "paper")) is Shop and make_shop(inst, "paper").decisions == "paper"
