@@ -125,8 +125,9 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
 
 def search_summary(sched: Schedule) -> str:
     """What the summary line adds about the search: a guided model's plan search at the start (``", 1.02 s of it the
-    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``), the rule combinations a time limit (or an
-    interrupt) left untried, and ``", interrupted"`` for a search stopped by Ctrl-C."""
+    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``), the winning rule combination
+    (``", best list"``) and those a time limit (or an interrupt) left untried, and ``", interrupted"`` for a search
+    stopped by Ctrl-C."""
     m = sched.meta
     out = ""
     if m.get("guide_search_time") is not None:
@@ -135,6 +136,8 @@ def search_summary(sched: Schedule) -> str:
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
         out += f", bound {m['lower_bound']}"
+    if m.get("rule") is not None and m.get("combinations") is not None:  # rules: which combination won
+        out += f", best {m['rule']}"
     if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:
         out += f", {m['tried']} of {m['combinations']} rule combinations"
         out += "" if m.get("status") == "INTERRUPTED" else " within the time limit"

@@ -356,7 +356,7 @@ def test_output_paths_are_checked_before_the_work(tmp_path, capsys):
 
 def test_rules_time_limit_and_search_summary(capsys):
     code, out, _ = run(["solve", "sl00", "--solver", "rules", "--time-limit", "0.01", "-q"], capsys)
-    assert code == 0 and "1 of " in out and "rule combinations within the time limit" in out
+    assert code == 0 and ", best list, 1 of " in out and "rule combinations within the time limit" in out
     code, out, _ = run(["solve", "EX12", "--solver", "cpsat", "--time-limit", "20", "-q"], capsys)
     assert code == 0 and "makespan 82 " in out and ", optimal," in out  # EX12's known optimum, proven
 
@@ -518,8 +518,8 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     rest, err = proc.communicate(timeout=60)
     sched = Schedule.load(tmp_path / "r.json")
     assert proc.returncode == 130 and validate(builtin("sl00"), sched) == [], (rest, err)
-    assert f"rules, {sched.meta['wall_time']:.3f} s, {sched.meta['tried']} of {sched.meta['combinations']} rule " \
-           "combinations, interrupted, valid)" in rest, rest
+    assert f"rules, {sched.meta['wall_time']:.3f} s, best {sched.meta['rule']}, {sched.meta['tried']} of " \
+           f"{sched.meta['combinations']} rule combinations, interrupted, valid)" in rest, rest
     # another solver's interrupt is an interrupt as before: nothing written
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
                              "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,

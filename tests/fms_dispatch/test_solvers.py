@@ -27,6 +27,24 @@ def test_rules_stop_trying_combinations_at_the_time_limit():
         solve(inst, "rules", time_limit=0)
 
 
+@pytest.mark.parametrize("name", ["EX12", "ra01", "EX43", "gen:3x3x3*1@8/notools"])  # the last: a rule ties list
+def test_rules_try_the_list_schedules_first_and_keep_the_first_listed_best(name):
+    """A time limit keeps the list schedule (tried first: on shops with tools a rule ends up to twice as late),
+    and a run that tries everything returns the first listed of the best combinations, as in the listed order."""
+    from fms_dispatch.full_rules import full_rule_names, list_names, parse_full_rule, run_full, solve_list
+    from fms_sim.shopsets import expand_specs
+
+    inst = expand_specs([name])[0] if ":" in name else builtin(name)
+    cut = solve(inst, "rules", time_limit=1e-9)
+    assert cut.meta["tried"] == 1 and cut.meta["rule"] == "list" and cut == solve_list(inst, "est")
+    names = full_rule_names(inst) + list_names()
+    spans = [solve_list(inst, n.partition(":")[2] or "est").makespan if n.startswith("list")
+             else run_full(inst, parse_full_rule(n)).makespan for n in names]
+    first_best = names[spans.index(min(spans))]
+    whole = solve(inst, "rules")
+    assert whole.makespan == min(spans) and whole.meta["rule"] == first_best
+
+
 def test_solver_names_list_the_lookahead_suffixes():
     assert any("+lookahead-guide" in n for n in solver_names()) and "plan:file:PATH" in solver_names()
 
