@@ -389,12 +389,31 @@ def cmd_validate(a: argparse.Namespace) -> int:
             print(f"INVALID: {len(problems)} violation(s)")
             for p in problems:
                 print(f"  - {p}")
+            hint = fleet_hint(inst, sched)
+            if hint:
+                print(hint, file=sys.stderr)
         else:
             print(f"valid: {inst.name}, makespan {sched.makespan}")
         sys.stdout.flush()
     except BrokenPipeError:  # `fms validate ... | head`: the reader left, the verdict stands (it exited 0)
         _reader_left()
     return code
+
+
+def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
+    """A hint for a schedule made for another fleet than ``inst``'s, as ``fms solve --agvs 3`` (or ``--no-agvs``,
+    ``--tool-transporters``, ``--no-tools``) makes one: the options that give the instance the schedule's fleet
+    (None if the fleets agree). Checked without them, it breaks the fleet rules and a run of others after them."""
+    opts = []
+    if sched.n_agvs != inst.n_agvs:
+        opts.append("--no-agvs" if not sched.n_agvs else f"--agvs {sched.n_agvs}")
+    if sched.n_tool_transporters != inst.n_tool_transporters:
+        opts.append("--no-tools" if not sched.n_tool_transporters
+                    else f"--tool-transporters {sched.n_tool_transporters}")
+    if not opts:
+        return None
+    return (f"hint: the schedule was made for another fleet than {inst.name}'s; if it was solved with "
+            f"{' '.join(opts)}, give the same here")
 
 
 def _reader_left() -> None:
@@ -424,6 +443,9 @@ def cmd_replay(a: argparse.Namespace) -> int:
                   f"({len(exc.violations)} violation(s)):", file=sys.stderr)
             for v in exc.violations[:10]:
                 print(f"  - {v}", file=sys.stderr)
+            hint = fleet_hint(inst, given)
+            if hint:
+                print(hint, file=sys.stderr)
             return EXIT_BAD_INPUT
         raise
     print(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")

@@ -557,3 +557,16 @@ def test_fms_up_defaults_to_the_list_plan_executed_live():
     from fms_dispatch.cli import DEFAULT_DISRUPTED_SOLVER, build_parser
 
     assert build_parser().parse_args(["up", "EX12"]).solver == DEFAULT_DISRUPTED_SOLVER == "plan:list"
+
+
+@pytest.mark.parametrize("fleet", [["--agvs", "3"], ["--no-agvs"], ["--no-tools"], ["--tool-transporters", "2"]])
+def test_a_schedule_of_an_overridden_fleet_checked_without_it_names_the_option(tmp_path, capsys, fleet):
+    out = tmp_path / "s.json"
+    assert run(["solve", "ra01", *fleet, "--out", str(out), "-q"], capsys)[0] == 0
+    code, stdout, err = run(["validate", "ra01", str(out)], capsys)
+    assert code == 1 and "INVALID" in stdout
+    assert f"if it was solved with {' '.join(fleet)}, give the same here" in err
+    code, _, err = run(["replay", "ra01", str(out)], capsys)
+    assert code == 2 and f"if it was solved with {' '.join(fleet)}, give the same here" in err
+    code, stdout, err = run(["validate", "ra01", str(out), *fleet], capsys)
+    assert code == 0 and "hint" not in err
