@@ -71,8 +71,9 @@ def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
     if not replan:
         return
     p.add_argument("--guide-replan", action=argparse.BooleanOptionalAction, default=None,
-                   help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down "
-                        "or an operation starts later than planned by 5 %% of the plan's makespan, adopting the new "
+                   help="ppo with a guided model in a disrupted run: re-plan the guide when a machine breaks down, "
+                        "a vehicle goes out of service, or an operation starts later than planned by 5 %% of the "
+                        "plan's makespan, adopting the new "
                         "plan where it ends 2 %% earlier than the plan in force (default: yes)")
 
 
@@ -194,6 +195,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
         raise CliError(f"--seed does not apply to {named}: it draws nothing at random (the seed is the random, "
                        "cpsat, sos, tabu and plan: solvers', and the noise's)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
+        if a.decisions == "paper" and scenario is not None:  # (solve() said decisions='full', Python's spelling)
+            raise CliError("--scenario and --noise run on the full-decision net only: drop --decisions paper")
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
         raise CliError(f"--decisions applies to the first, random and rule: solvers, not {named} "
@@ -531,7 +534,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_guide_args(s)
     s.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
-                        "combinations); refused for the solvers that run once. It bounds the search: on shops of "
+                        "combinations; defaults: cpsat 60, sos 10, tabu 10, rules none: every combination, a plan: "
+                        "solver its solver's); refused for the solvers that run once. It bounds the search: on shops of "
                         "thousands of operations the start schedules built before it, and a plan: solver's run "
                         "through the net after it, take seconds more")
     s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers "

@@ -58,6 +58,10 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "EX12", "--solver", "rule:MTWR+"], "rule name 'rule:MTWR+' has an empty part"),
     (["solve", "EX12", "--solver", "plan:cpsat:abc"], "bad plan solver 'plan:cpsat:abc': 'abc' is not a time budget"),
     (["solve", "EX12", "--solver", "ppo:nonexistent"], "no model named 'nonexistent'"),  # before the header line
+    (["solve", "EX12", "--solver", "first", "--decisions", "paper", "--noise", "0.1"],
+     "--scenario and --noise run on the full-decision net only: drop --decisions paper"),  # said decisions='full'
+    (["solve", "EX12", "--solver", "ppo:bu", "--noise", "0.1", "-q"],
+     "use a full-net model: ppo (the default, guided-dagger)"),  # it named only ppo:full, the weaker one
     (["solve", "EX42", "--solver", "ppo:full", "--no-guide-replan"],
      "model full reads no plan guide, so it takes no --[no-]guide-replan"),
     (["solve", "EX42", "--solver", "ppo:full", "--guide-tabu", "0"],

@@ -85,7 +85,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         disrupted = scenario is not None and not scenario.empty
         if disrupted and agent.decisions != "full":
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
-                             "full-net model (ppo:full)")
+                             "full-net model: ppo (the default, guided-dagger), ppo:guided-ppo or ppo:full")
         report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
         planner = None
         if lookahead == "guide":
