@@ -22,7 +22,8 @@ true: the state that triggered it is answered once the re-plan is done, so a sim
 to a guided model's re-plans too). Re-plans are published on ``fms/replans`` (``fms/replan/v1``). A guided PPO model (the default
 ``guided-dagger``) searches its plan as ``guide_restarts`` (randomised restarts), ``guide_budget`` (seconds; 0: no
 limit), ``guide_rules`` (the rule pairs' schedules, shops without tools; default false), ``guide_tabu`` (seconds of
-tabu search per operation; 0: none) and ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) say; -1:
+tabu search per operation; 0: none), ``guide_exact`` (seconds of CP-SAT polish on small shops; 0: none) and
+``guide_seed`` (its restarts' seed) say; -1:
 the solver's default (:data:`fms_dispatch.rl.guide.DEFAULT_EFFORT`); with ``guide_replan`` (default true) it re-plans
 its guide in a disrupted shop when a machine breakdown begins or an operation starts late against its plan, adopting
 the new plan where it ends 2 % earlier than the plan in force (:class:`fms_dispatch.rl.agent.GuideReplanner`), and
@@ -68,6 +69,7 @@ class AgentNode(FmsNode):
         rules = bool(param(n, "guide_rules", False))  # false: DEFAULT_EFFORT's
         exact = float(param(n, "guide_exact", -1.0))
         tabu = float(param(n, "guide_tabu", -1.0))
+        guide_seed = int(param(n, "guide_seed", -1))
         guide_replan = bool(param(n, "guide_replan", True))
         only_run = str(param(n, "run_id", ""))
         effort = None
@@ -80,6 +82,14 @@ class AgentNode(FmsNode):
             except ValueError as exc:
                 raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact: {exc}"
                                    ) from None
+        if guide_seed != -1:  # the seed of its plan search's random restarts (-1: the effort's, 0)
+            import dataclasses
+
+            from .rl.guide import DEFAULT_EFFORT
+
+            if guide_seed < 0:
+                raise StartupError(f"parameter guide_seed must be >= 0 (or -1: the default, 0), got {guide_seed}")
+            effort = dataclasses.replace(effort or DEFAULT_EFFORT, seed=guide_seed)
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
                                     guide_replan=guide_replan, replan_wait=replan_wait, only_run=only_run)

@@ -34,6 +34,7 @@ schedule); 2 bad input.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import os
 import random
@@ -97,8 +98,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
                         f"instead of the pair) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
                         "schedule, planned at the first state and executed live, re-planned when late)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
-                   "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
+    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers and of a guided ppo "
+                   "model's plan search (default 0), and of the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
                    "solver that draws nothing in a run without noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
@@ -372,7 +373,16 @@ def cmd_up(a: argparse.Namespace) -> int:
     from .solvers import takes_seed
 
     noisy = disrupted and bool(scenario is not None and scenario.noise)
-    if a.seed is not None and not noisy and a.solver.lower() != "best" and not takes_seed(solver):  # as fms solve
+    from .cli import _guided_ppo
+
+    guided = (a.solver.lower() != "best" and needs_twin(solver)  # (best compared its choices unseeded)
+              and _guided_ppo("ppo" if solver.lower() == "lookahead" else solver))
+    if guided and a.seed is not None:  # it seeds the plan search's restarts, as fms solve's --seed does
+        from .rl.guide import DEFAULT_EFFORT
+
+        effort = dataclasses.replace(effort or DEFAULT_EFFORT, seed=a.seed)
+    if (a.seed is not None and not noisy and a.solver.lower() != "best" and not takes_seed(solver)
+            and not guided):  # as fms solve
         raise UpError(f"--seed does not apply to {solver}: it draws nothing at random (the seed is the random and "
                       "plan: solvers', and the noise's)")
     if not 0 < a.timeout < float("inf"):  # NaN would never time out
@@ -451,7 +461,7 @@ def cmd_up(a: argparse.Namespace) -> int:
     if effort is not None:
         agent_params.update(guide_restarts=effort.restarts, guide_budget=float(effort.budget or 0.0),
                             guide_rules=effort.rules, guide_exact=float(effort.exact),
-                            guide_tabu=float(effort.tabu))
+                            guide_tabu=float(effort.tabu), guide_seed=effort.seed)
     if a.guide_replan is not None:
         agent_params["guide_replan"] = a.guide_replan
     env = dict(os.environ)

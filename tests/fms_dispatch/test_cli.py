@@ -574,3 +574,21 @@ def test_a_schedule_of_an_overridden_fleet_checked_without_it_names_the_option(t
     assert code == 2 and f"if it was solved with {' '.join(fleet)}, give the same here" in err
     code, stdout, err = run(["validate", "ra01", str(out), *fleet], capsys)
     assert code == 0 and "hint" not in err
+
+
+def test_seed_seeds_a_guided_models_plan_search(tmp_path, capsys):
+    """--seed was refused for ppo as drawing nothing at random, while a guided model's plan search restarts at random
+    (seed 0): it seeds that search now, and is still refused for a model without a guide."""
+    from dataclasses import replace as with_
+
+    from fms_dispatch import solve
+    from fms_dispatch.rl.guide import effort_from
+
+    out = tmp_path / "s.json"
+    assert run(["solve", "EX42", "--solver", "ppo", "--seed", "5", "--guide-tabu", "0", "--out", str(out), "-q"],
+               capsys)[0] == 0
+    got = Schedule.load(out)
+    assert got.meta["guide_effort"]["seed"] == 5
+    assert got == solve(builtin("EX42"), "ppo", guide_effort=with_(effort_from(tabu=0), seed=5))
+    code, _, err = run(["solve", "EX42", "--solver", "ppo:bu", "--seed", "5", "-q"], capsys)
+    assert code == 2 and "--seed does not apply to ppo:bu" in err
