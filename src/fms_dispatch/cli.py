@@ -593,20 +593,26 @@ def build_parser() -> argparse.ArgumentParser:
                                    "names (.png, .pdf, .svg, or another matplotlib writes)")
     s.set_defaults(fn=cmd_replay)
 
-    s = sub.add_parser("generate", help="write random instances with Taillard's LCG family")
+    s = sub.add_parser("generate", help="write random instances with Taillard's LCG family",
+                       description="Write random instances with Taillard's LCG family: each stream (times, routes, "
+                                   "tools, travel) starts at its seed and continues from one instance to the next; "
+                                   "with the default seeds, --jobs 15 --machines 15 --count 10 writes the large "
+                                   "benchmark's group 0 (sl00-sl09).")
     s.add_argument("--jobs", type=int, required=True, help="jobs per instance")
     s.add_argument("--machines", type=int, required=True, help="machines (each job visits every machine once)")
     s.add_argument("--tools", type=int, default=None, help="number of tools (default: = machines)")
     s.add_argument("--count", type=int, default=1, help="instances to write (default 1)")
-    s.add_argument("--agvs", type=int, default=None, help="AGVs (default 10)")
-    s.add_argument("--tool-transporters", type=int, default=None, help="tool transporters (default 5)")
+    s.add_argument("--agvs", type=int, default=None, help="AGVs (default 10, the large benchmark's fleet)")
+    s.add_argument("--tool-transporters", type=int, default=None,
+                   help="tool transporters (default 5, the large benchmark's fleet)")
     s.add_argument("--no-tools", action="store_true", help="no tools (AGVs only)")
     s.add_argument("--no-agvs", action="store_true", help="no AGVs (parts move instantly)")
-    s.add_argument("--time-seed", type=int, default=840612802)
-    s.add_argument("--route-seed", type=int, default=398197754)
-    s.add_argument("--tool-seed", type=int, default=170719940)
-    s.add_argument("--agv-seed", type=int, default=180119550)
-    s.add_argument("--tool-travel-seed", type=int, default=280219920)
+    for flag, default, what in (("--time-seed", 840612802, "processing times"), ("--route-seed", 398197754,
+                                "the machine order of each job"), ("--tool-seed", 170719940, "each operation's tool"),
+                                ("--agv-seed", 180119550, "the AGV travel times"),
+                                ("--tool-travel-seed", 280219920, "the tool transporters' travel times")):
+        s.add_argument(flag, type=int, default=default, metavar="SEED",
+                       help=f"seed of {what} (default {default})")
     s.add_argument("--prefix", default="gen", help="instance name prefix (names: PREFIX00, PREFIX01, ...)")
     s.add_argument("--out-dir", default="instances", help="folder for the JSON files (default: instances; files "
                    "of the same names are replaced)")

@@ -592,3 +592,15 @@ def test_seed_seeds_a_guided_models_plan_search(tmp_path, capsys):
     assert got == solve(builtin("EX42"), "ppo", guide_effort=with_(effort_from(tabu=0), seed=5))
     code, _, err = run(["solve", "EX42", "--solver", "ppo:bu", "--seed", "5", "-q"], capsys)
     assert code == 2 and "--seed does not apply to ppo:bu" in err
+
+
+def test_generate_with_the_default_seeds_writes_the_large_benchmarks_first_group(tmp_path, capsys):
+    """What fms generate --help says of its default seeds: 15 jobs, 15 machines, 10 shops are sl00-sl09."""
+    from fms_sim.formats import load_instance
+
+    assert run(["generate", "--jobs", "15", "--machines", "15", "--count", "10", "--out-dir", str(tmp_path)],
+               capsys)[0] == 0
+    for k in range(10):
+        got, sl = load_instance(str(tmp_path / f"gen{k:02d}.json")), builtin(f"sl{k:02d}")
+        assert (got.jobs, got.agv_travel, got.tool_travel, got.n_agvs, got.n_tool_transporters) == (
+            sl.jobs, sl.agv_travel, sl.tool_travel, sl.n_agvs, sl.n_tool_transporters), k
