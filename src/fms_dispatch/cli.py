@@ -135,11 +135,12 @@ def cmd_instances(a: argparse.Namespace) -> int:
 
 
 def replans_summary(events: list[dict[str, Any]] | None) -> str:
-    """``", R re-plans (A adopted)"`` for a run's re-plan events (``fms solve`` and ``fms up`` summary lines); ""
-    for None (a run that does not re-plan)."""
+    """``", R re-plans (A adopted)"`` (``", 1 re-plan ..."``) for a run's re-plan events (``fms solve`` and ``fms up``
+    summary lines); "" for None (a run that does not re-plan)."""
     if events is None:
         return ""
-    return f", {len(events)} re-plans ({sum(e.get('status') == 'adopted' for e in events)} adopted)"
+    n = len(events)
+    return f", {n} re-plan{'' if n == 1 else 's'} ({sum(e.get('status') == 'adopted' for e in events)} adopted)"
 
 
 def search_summary(sched: Schedule) -> str:

@@ -190,7 +190,7 @@ def test_fms_up_guided_agent_re_plans_at_a_breakdown(ros_env: dict[str, str], tm
         assert rec["status"] == "adopted" and (rec["before"], rec["after"]) == (ev["before"], ev["after"])
         assert ("the shop waits for each re-plan" in res.stderr) is wait
         if wait:
-            assert ", 1 re-plans (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
+            assert ", 1 re-plan (1 adopted), valid)" in res.stdout.splitlines()[0]  # counted from the recorder
             assert later == [] and sched.to_dict()["operations"] == ref.to_dict()["operations"]
     bad = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "ra01", "--solver", "first", "--no-guide-replan",
                           "--db", str(tmp_path / "bad.sqlite"), "--domain-id", ros_env["ROS_DOMAIN_ID"]],

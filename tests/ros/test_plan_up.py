@@ -66,7 +66,7 @@ def test_fms_up_counts_the_re_plans_of_a_disrupted_guided_run_as_fms_solve_does(
     assert res.returncode == 0, res.stderr + res.stdout
     line = res.stdout.splitlines()[0]
     n = len(offline.meta["replans"])
-    assert f"ra01: makespan {offline.makespan} (" in line and f" decisions, {n} re-plans (" in line, line
+    assert f"ra01: makespan {offline.makespan} (" in line and f" decisions, {n} re-plan{'s' * (n != 1)} (" in line, line
 
 
 def test_a_breakdown_and_an_order_mid_run_are_replanned_by_the_plan_agent(nodes, observer, tmp_path: Path) -> None:
