@@ -145,9 +145,9 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
 
 def search_summary(sched: Schedule) -> str:
     """What the summary line adds about the search: a guided model's plan search at the start (``", 1.02 s of it the
-    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``), the winning rule combination
-    (``", best list"``) and those a time limit (or an interrupt) left untried, and ``", interrupted"`` for a search
-    stopped by Ctrl-C."""
+    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``) and its start schedule's makespan, the
+    winning rule combination (``", best list"``) and those a time limit (or an interrupt) left untried, and
+    ``", interrupted"`` for a search stopped by Ctrl-C."""
     m = sched.meta
     out = ""
     if m.get("guide_search_time") is not None:
@@ -156,6 +156,10 @@ def search_summary(sched: Schedule) -> str:
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":
         out += f", bound {m['lower_bound']}"
+    if m.get("solver") == "cpsat" and m.get("start_makespan") is not None:  # what the search itself added
+        start = m["start_makespan"]
+        out += (f", from a start schedule of {start}" if start > sched.makespan
+                else ", no better than its start schedule (a list schedule)")
     if m.get("rule") is not None and m.get("combinations") is not None:  # rules: which combination won
         out += f", best {m['rule']}"
     if m.get("tried") is not None and m.get("combinations") is not None and m["tried"] < m["combinations"]:

@@ -184,12 +184,14 @@ class SearchInterrupted(KeyboardInterrupt):
 class ExactResult:
     """What :func:`solve_exact` found: the best schedule (``None`` only if none was found), a valid lower
     bound on the optimal makespan, the status (``"OPTIMAL"``, ``"FEASIBLE"``, ``"INFEASIBLE"`` or
-    ``"UNKNOWN"``) and the wall time in seconds."""
+    ``"UNKNOWN"``), the wall time in seconds and the start schedule's makespan."""
 
     schedule: Schedule | None
     lower_bound: int
     status: str
     wall_time: float
+    #: the makespan of the start schedule the search began from (the best list schedule or the hint), if any
+    start_makespan: int | None = None
 
 
 # ====================================================================================== instance facts
@@ -1278,12 +1280,16 @@ def solve_exact(
     if hint is not None and hint.makespan <= incumbent.makespan:
         incumbent = _copy_schedule(hint)
     lb = simple_lower_bound(instance)
+    start = incumbent.makespan
     try:
         if full:
             incumbent = _improve_by_priorities(instance, incumbent, None, lb, t0 + 0.1 * time_limit, seed, None, t0,
                                                max_stall=300)
-            return _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
-        return _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
+            res = _solve_full(instance, incumbent, lb, t0, time_limit, workers, seed, log, progress, cp_params)
+        else:
+            res = _solve_fallback(instance, incumbent, lb, t0, time_limit, workers, seed, progress)
+        res.start_makespan = start
+        return res
     except KeyboardInterrupt as exc:  # before CP-SAT's search (or in the fallback's): the best start schedule
         raise SearchInterrupted.of(exc, incumbent, lb, time.monotonic() - t0) from None
 
@@ -1452,7 +1458,8 @@ def polish_plan(inst: Instance, plan: Schedule, *, time_limit: float, workers: i
 
 
 def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **kw: object) -> Schedule:
-    """The best schedule :func:`solve_exact` finds, with ``meta`` = solver, status, lower bound, wall time.
+    """The best schedule :func:`solve_exact` finds, with ``meta`` = solver, status, lower bound, wall time and the
+    makespan of the start schedule the search began from (``start_makespan``).
 
     Raises ``RuntimeError`` if no feasible schedule was found within the time limit.
     """
@@ -1467,5 +1474,5 @@ def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **k
                            f"(status {res.status})")
     sch = res.schedule
     sch.meta = {"solver": "cpsat", "status": res.status, "lower_bound": res.lower_bound,
-                "wall_time": round(res.wall_time, 3)}
+                "wall_time": round(res.wall_time, 3), "start_makespan": res.start_makespan}
     return sch

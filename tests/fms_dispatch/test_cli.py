@@ -363,6 +363,10 @@ def test_rules_time_limit_and_search_summary(capsys):
     assert code == 0 and ", best list, 1 of " in out and "rule combinations within the time limit" in out
     code, out, _ = run(["solve", "EX12", "--solver", "cpsat", "--time-limit", "20", "-q"], capsys)
     assert code == 0 and "makespan 82 " in out and ", optimal," in out  # EX12's known optimum, proven
+    # and what the search added to its start schedule (84: the list schedule's), or that it added nothing
+    assert ", from a start schedule of 84," in out
+    code, out, _ = run(["solve", "sl70", "--solver", "cpsat", "--time-limit", "1", "-q"], capsys)
+    assert code == 0 and "no better than its start schedule (a list schedule)" in out  # 1 s: the start's 7777
 
 
 def test_instances_lists_the_heldout_shops(capsys):
