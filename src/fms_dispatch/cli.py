@@ -320,6 +320,9 @@ def scenario_from_args(a: argparse.Namespace, inst: Instance) -> Scenario | None
         if not 0 <= noise <= MAX_NOISE:
             raise CliError(f"--noise must be a spread from 0 to {MAX_NOISE:g}, got {noise!r}")  # (:g said 1.0000001 was 1)
         base = scenario or Scenario()
+        if seed is None and base.noise and base.seed:  # replaced as the help says, but no longer silently
+            print(f"note: --noise replaces the noise of {path} and its seed {base.seed} (now 0; --seed N chooses "
+                  "one)", file=sys.stderr)
         scenario = Scenario(base.breakdowns, base.outages, noise, seed if seed is not None else 0)
     elif seed is not None and scenario is not None and scenario.noise:  # the file's seed was silently kept
         scenario = Scenario(scenario.breakdowns, scenario.outages, scenario.noise, seed)

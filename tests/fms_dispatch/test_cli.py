@@ -608,3 +608,15 @@ def test_generate_with_the_default_seeds_writes_the_large_benchmarks_first_group
         got, sl = load_instance(str(tmp_path / f"gen{k:02d}.json")), builtin(f"sl{k:02d}")
         assert (got.jobs, got.agv_travel, got.tool_travel, got.n_agvs, got.n_tool_transporters) == (
             sl.jobs, sl.agv_travel, sl.tool_travel, sl.n_agvs, sl.n_tool_transporters), k
+
+
+def test_noise_over_a_scenario_files_seeded_noise_says_it_replaces_the_seed(tmp_path, capsys):
+    path = tmp_path / "sc.json"
+    path.write_text(json.dumps({"schema": "fms/scenario/v1", "breakdowns": [], "outages": [], "noise": 0.1,
+                                "seed": 7}))
+    code, _, err = run(["solve", "ra01", "--scenario", str(path), "--noise", "0.1", "-q"], capsys)
+    assert code == 0 and f"--noise replaces the noise of {path} and its seed 7 (now 0" in err
+    for extra in (["--seed", "7"], []):  # a seed given, or the file's kept (no --noise): nothing to say
+        code, _, err = run(["solve", "ra01", "--scenario", str(path), *(["--noise", "0.1"] if extra else []),
+                            *extra, "-q"], capsys)
+        assert code == 0 and "replaces" not in err
