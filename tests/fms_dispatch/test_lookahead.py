@@ -119,7 +119,23 @@ def test_lookahead_reports_progress_without_changing_the_run():
     assert s.to_dict() == run_agent(Shop(inst), pol, lookahead=True).to_dict()
     total = sum(len(ops) for ops in inst.jobs)
     assert lines and all(line.startswith("  lookahead: ") and f"/{total} operations done" in line for line in lines)
-    assert "idle stops" in lines[-1]
+    assert "idle stops" in lines[-1] and " verified (" in lines[-1]
+
+
+def test_the_guides_empty_trips_report_that_nothing_is_verified():
+    """--lookahead-guide's progress said '0 verified (0 stopped early)': its moves are never verified."""
+    from fms_dispatch.rl.guide import GuideMoves
+    from fms_dispatch.rl.lookahead import run_with_lookahead
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.full_shop import FullShop
+
+    agent = load_agent("guided-dagger")
+    lines: list[str] = []
+    inst = builtin("ra01")
+    s = run_with_lookahead(FullShop(inst), agent.act, progress=lines.append, every_s=0.0,
+                           planner=GuideMoves.for_agent(agent))
+    assert validate(inst, s) == [] and lines
+    assert all("none verified (the plan's empty trips)" in line and "stopped early" not in line for line in lines)
 
 
 def test_plain_run_reports_progress_without_changing_the_run():

@@ -680,7 +680,10 @@ class GuideMoves:
     that departs from its plan is not guaranteed to gain by them.
 
     ``guide_of(shop)`` gives the shop's guide (:meth:`fms_dispatch.rl.agent.Agent.guide_of`). The counters match
-    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s for progress lines (nothing is verified)."""
+    :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s (nothing is verified: :attr:`verifies` is False, and
+    progress lines say so instead of counting)."""
+
+    verifies = False
 
     def __init__(self, guide_of: Callable[[FullShop], PlanGuide]):
         self.guide_of = guide_of

@@ -380,7 +380,9 @@ def run_with_lookahead(shop: Shop, choose: Choose, horizon: int = DEFAULT_HORIZO
         if progress is not None and time.perf_counter() - last >= every_s:
             last = time.perf_counter()
             done = sum(shop.job_done_ops)
+            checks = (f"{planner.verified} verified ({planner.rejoined} stopped early"
+                      + ("" if retry else f", {planner.skipped} moves not retried") + ")"
+                      if getattr(planner, "verifies", True) else "none verified (the plan's empty trips)")
             progress(f"  lookahead: {done}/{total} operations done, time {shop.now}, {stops} idle stops, "
-                     f"{moved} with moves, {planner.verified} verified ({planner.rejoined} stopped early"
-                     + ("" if retry else f", {planner.skipped} moves not retried") + f"), {last - t0:.1f} s")
+                     f"{moved} with moves, {checks}, {last - t0:.1f} s")
     return shop.schedule()
