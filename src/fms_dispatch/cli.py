@@ -403,10 +403,41 @@ def _load_schedule(path: str) -> Schedule:
         raise CliError(f"cannot read schedule {path}: {exc.strerror}") from None
 
 
+def _instance_of(a: argparse.Namespace, sched: Schedule) -> tuple[str, int | None]:
+    """The instance (and ra layout) a schedule given alone (``fms validate SCHEDULE``) was made for: the final
+    instance a run with live orders writes beside it (``OUT.instance.json`` for ``OUT.json``), else the built-in or
+    held-out shop it names (``ra01L3``: ra01 in layout 3)."""
+    import re
+
+    from fms_sim.formats import load_instance
+
+    path = Path(a.schedule)
+    beside = path.with_name(f"{path.stem}.instance.json")
+    if beside.is_file():
+        return str(beside), None
+    m = re.fullmatch(r"(ra\d\d)L([1-4])", sched.instance)
+    name, layout = (m.group(1), int(m.group(2))) if m else (sched.instance, None)
+    if not Path(name).exists():  # a file of that name in the working folder is not what the schedule names
+        try:
+            load_instance(name, layout=layout)
+            return name, layout
+        except (InstanceError, ValueError, OSError):
+            pass
+    raise CliError(f"{a.schedule} was made for instance {sched.instance!r}, which is no built-in shop and has no "
+                   f"{beside.name} beside it: give the instance, fms validate INSTANCE {a.schedule}")
+
+
 def cmd_validate(a: argparse.Namespace) -> int:
     from fms_sim.disruptions import ScenarioError
     from fms_sim.validate import recorded_scenario, validate
 
+    if a.schedule is None:  # fms validate SCHEDULE: the instance it names
+        a.schedule = a.instance
+        a.instance, layout = _instance_of(a, _load_schedule(a.schedule))
+        if layout is not None and a.layout is None:
+            a.layout = layout
+        print(f"note: checking against {a.instance}" + (f" (layout {a.layout})" if layout is not None else "")
+              + ", the instance the schedule was made for", file=sys.stderr)
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
     scenario = scenario_from_args(a, inst)
@@ -585,9 +616,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     s.set_defaults(fn=cmd_solve)
 
-    s = sub.add_parser("validate", help="check a schedule file against an instance (exit 1 if infeasible)")
+    s = sub.add_parser("validate", help="check a schedule file against an instance (exit 1 if infeasible)",
+                       description="Check a schedule against an instance: fms validate INSTANCE SCHEDULE, or fms "
+                                   "validate SCHEDULE for the instance it was made for (OUT.instance.json beside "
+                                   "OUT.json, which a run with live orders writes, else the built-in instance the "
+                                   "schedule names).")
     add_instance_args(s)
-    s.add_argument("schedule", help="schedule JSON file")
+    s.add_argument("schedule", nargs="?", help="schedule JSON file")
     s.add_argument("--scenario", metavar="FILE", help="the disruptions of the run (default: the scenario the "
                    "schedule records, if any)")
     s.set_defaults(fn=cmd_validate)

@@ -620,3 +620,23 @@ def test_noise_over_a_scenario_files_seeded_noise_says_it_replaces_the_seed(tmp_
         code, _, err = run(["solve", "ra01", "--scenario", str(path), *(["--noise", "0.1"] if extra else []),
                             *extra, "-q"], capsys)
         assert code == 0 and "replaces" not in err
+
+
+def test_validate_a_schedule_alone_checks_it_against_the_instance_it_names(tmp_path, capsys):
+    out = tmp_path / "s.json"
+    for args, name in ((["EX12"], "EX12"), (["ra01", "--layout", "3"], "ra01L3"), (["ho03"], "ho03")):
+        assert run(["solve", *args, "--out", str(out), "-q"], capsys)[0] == 0
+        code, stdout, err = run(["validate", str(out)], capsys)
+        assert code == 0 and stdout.startswith(f"valid: {name}, ") and "the instance the schedule was made for" in err
+    # a shop of a file: the final instance a live run writes beside its schedule (OUT.instance.json), else refused
+    shop = tmp_path / "shop.json"
+    shop.write_text(builtin("EX21").to_json().replace('"EX21"', '"myshop"'))
+    assert run(["solve", str(shop), "--out", str(out), "-q"], capsys)[0] == 0
+    code, _, err = run(["validate", str(out)], capsys)
+    assert code == 2 and "made for instance 'myshop', which is no built-in shop and has no s.instance.json" in err
+    (tmp_path / "s.instance.json").write_text(shop.read_text())
+    code, stdout, _ = run(["validate", str(out)], capsys)
+    assert code == 0 and stdout.startswith("valid: myshop, ")
+    # checked against the right shop: another shop's schedule is invalid for it
+    (tmp_path / "s.instance.json").write_text(builtin("EX31").to_json())
+    assert run(["validate", str(out)], capsys)[0] == 1
