@@ -8,10 +8,10 @@ writes it to ``--out``, and stops the nodes with SIGINT (SIGKILL after :data:`ST
 fails to stop cleanly after the run was delivered and validated is reported as a warning (its log is kept),
 not as a failed run: nothing is lost by then. It imports no rclpy itself: the nodes do.
 
-``--solver best`` simulates every rule pair and the shipped PPO model (with and without lookahead) on the
-instance in-process first and runs the winner over the topics: PPO if its makespan is strictly smaller than the
-best rule pair's, else that pair (:func:`best_solver`; it says which; in a disrupted run ``plan:rules`` takes the
-rule pairs' place). A ``ppo`` solver makes the launcher
+``--solver best`` simulates every rule pair, the list schedule and the shipped PPO model (with and without
+lookahead) on the instance in-process first and runs the winner over the topics: PPO if its makespan is strictly
+smaller than the best rule pair's and the list schedule's, else the better of those (:func:`best_solver`; it says
+which; in a disrupted run ``plan:rules`` takes their place). A ``ppo`` solver makes the launcher
 start the shop with ``history:=true`` and ``history_delta:=true`` (each state carries what was applied since the
 one before; and ``features:=false``) and give the agent the instance file, so that the agent can replay the run
 into its twin of the shop; a lookahead solver also sets ``idle_stops:=true``, and
@@ -95,8 +95,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "lookahead (ppo+lookahead) | plan:<SOLVER>[:SECONDS] (e.g. plan:cpsat:10: plan at the first "
                         "state, then execute the plan) | plan:file:PATH (execute a schedule made beforehand) | "
                         "best (the shipped PPO model, with or without lookahead, if "
-                        "it beats the best rule pair in simulation, else that pair; with --scenario/--noise plan:rules "
-                        f"instead of the pair) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
+                        "it beats the best rule pair and the list schedule in simulation, else the better of those; "
+                        "with --scenario/--noise plan:rules instead of them) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
                         "schedule, planned at the first state and executed live, re-planned when late)")
     p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers and of a guided ppo "
                    "model's plan search (default 0), and of the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
@@ -152,9 +152,10 @@ def best_solver(instance: Instance, guide_effort: Any = None, disrupted: bool = 
     plans with ``guide_effort`` (None: its default).
 
     The shipped PPO model (the default one for the instance, plain or with lookahead) is preferred when its
-    simulated makespan is strictly smaller than the best rule pair's; if it cannot run on this instance (larger
-    than the model allows) or here (its dependencies are missing), the best rule pair is used and the reason says
-    why. A shipped model that is not installed is an error (:class:`UpError`, naming the places searched), never
+    simulated makespan is strictly smaller than both the best rule pair's and the list schedule's (``plan:list``,
+    the default solver, which on shops with tools ends far below every rule pair); else the better of those two
+    (the pair on a tie). If the model cannot run on this instance (larger than the model allows) or here (its
+    dependencies are missing), the better of those two is used and the reason says why. A shipped model that is not installed is an error (:class:`UpError`, naming the places searched), never
     a quiet fall-back to a rule. For a ``disrupted`` run (a scenario or noise: the shop runs the full net, where
     the paper net's rule pairs cannot decide) the model is compared with ``plan:rules`` instead (the best
     full-net rule or list schedule, executed as a plan and re-planned); the simulations are nominal, since the
@@ -167,7 +168,12 @@ def best_solver(instance: Instance, guide_effort: Any = None, disrupted: bool = 
         rule, rule_span, what = "plan:rules", solve_best_rules(instance, decisions="full").makespan, \
             "best full-net rule"
     else:
+        from .full_rules import solve_list
+
         (rule, rule_span), what = best_rule(instance), "best rule pair"
+        list_span = solve_list(instance).makespan  # plan:list executes it: nominally the same run
+        if list_span < rule_span:
+            rule, rule_span, what = "plan:list", list_span, "list schedule"
     try:
         from .rl import ppo_solver
 

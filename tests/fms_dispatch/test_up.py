@@ -307,7 +307,8 @@ def test_best_in_a_disrupted_run_compares_the_model_with_plan_rules(fake_nodes, 
     assert up.best_solver(inst, disrupted=True) == (
         "plan:rules", rules_span, f"best full-net rule on EX12: plan:rules (makespan {rules_span} in simulation; "
         "PPO not available: instance EX12 does not fit model guided-dagger)")
-    assert up.best_solver(inst)[0] == up.best_rule(inst)[0]  # nominal: the best rule pair, as before
+    # nominal: the better of the best rule pair (86) and the list schedule (84, executed as plan:list)
+    assert up.best_rule(inst)[1] == 86 and up.best_solver(inst)[:2] == ("plan:list", 84)
     fake_nodes()
     seen = _record_params(monkeypatch)
     code = up.main(["EX12", "--solver", "best", "--noise", "0.1", "--out", str(tmp_path / "out" / "s.json"),

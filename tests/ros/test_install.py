@@ -128,15 +128,15 @@ def _installed_env(prefix: Path, ros_env: dict[str, str]) -> dict[str, str]:
 
 def test_fms_up_best_runs_the_installed_model(prefix: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
     """The issue's case: after a non-editable install ``fms up EX62 --solver best`` runs the shipped PPO model
-    (the default, guided-dagger), not silently the best rule pair (123)."""
+    (the default, guided-dagger), not silently a rule pair or the list schedule (110)."""
     out = tmp_path / "EX62.json"
     res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX62", "--solver", "best", "--out", str(out),
                           "--db", str(tmp_path / "fms.sqlite"), "--log-dir", str(tmp_path / "logs")],
                          env=_installed_env(prefix, ros_env), capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr
-    found = re.search(r"best on EX62: (ppo:guided\S*) \(makespan (\d+) in simulation; best rule pair "
-                      r"rule:SPTN\+least-work: 123\)", res.stderr)
-    assert found and int(found[2]) < 123, res.stderr
+    found = re.search(r"best on EX62: (ppo:guided\S*) \(makespan (\d+) in simulation; list schedule "
+                      r"plan:list: 110\)", res.stderr)
+    assert found and int(found[2]) < 110, res.stderr
     assert str(prefix) in (tmp_path / "logs" / "agent.log").read_text()    # the installed model was used
     assert json.loads(out.read_text())["makespan"] == int(found[2])
 
