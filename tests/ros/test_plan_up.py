@@ -140,3 +140,16 @@ def test_fms_up_seeds_a_guided_models_plan_search_as_fms_solve_does(ros_env: dic
                          timeout=180)
     assert res.returncode == 0, res.stderr + res.stdout
     assert f"EX42: makespan {offline.makespan} (" in res.stdout.splitlines()[0], res.stdout
+
+
+def test_fms_up_without_a_solver_runs_the_list_schedules_plan(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The default of fms up: plan:list, the earliest-start list schedule planned at the first state and executed
+    live (EX12: 84, the offline list schedule; the default it replaced, first, gave 90)."""
+    from fms_dispatch.solvers import solve
+
+    offline = solve(builtin("EX12"), "list")
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX12", "--out", str(tmp_path / "s.json"), "--db",
+                          str(tmp_path / "fms.sqlite"), "--domain-id", ros_env["ROS_DOMAIN_ID"]], env=ros_env,
+                         capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr + res.stdout
+    assert res.stdout.splitlines()[0].startswith(f"EX12: makespan {offline.makespan} (plan:list over ROS 2 topics, ")
