@@ -1005,7 +1005,7 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
         agent.use_guide_effort(guide_effort)  # a cached agent: set for every decider
     except ValueError as exc:
         raise UnavailableSolver(f"solver {name!r}: {exc} (guide_restarts, guide_budget, guide_rules, "
-                                "guide_tabu, guide_exact)") from None
+                                "guide_tabu, guide_exact, guide_seed)") from None
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":
@@ -1052,7 +1052,8 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
     name = solver.strip()
     low = name.lower()
     if guide_effort is not None and not needs_twin(name):
-        raise UnavailableSolver("a guide search (guide_restarts, guide_budget, guide_rules, guide_tabu, guide_exact) "
+        raise UnavailableSolver("a guide search (guide_restarts, guide_budget, guide_rules, guide_tabu, guide_exact, "
+                                "guide_seed) "
                                 f"applies to ppo solvers only, not to {name!r}")
     if low == "first":
         return (lambda state: _legal(state)[0][2]), "first"

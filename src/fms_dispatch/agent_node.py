@@ -73,23 +73,16 @@ class AgentNode(FmsNode):
         guide_replan = bool(param(n, "guide_replan", True))
         only_run = str(param(n, "run_id", ""))
         effort = None
-        if restarts != -1 or budget != -1.0 or rules or exact != -1.0 or tabu != -1.0:
+        if restarts != -1 or budget != -1.0 or rules or exact != -1.0 or tabu != -1.0 or guide_seed != -1:
             from .rl.guide import effort_from
 
             try:
                 effort = effort_from(None if restarts == -1 else restarts, None if budget == -1.0 else budget, rules,
-                                     None if exact == -1.0 else exact, None if tabu == -1.0 else tabu)
+                                     None if exact == -1.0 else exact, None if tabu == -1.0 else tabu,
+                                     None if guide_seed == -1 else guide_seed)
             except ValueError as exc:
-                raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact: {exc}"
-                                   ) from None
-        if guide_seed != -1:  # the seed of its plan search's random restarts (-1: the effort's, 0)
-            import dataclasses
-
-            from .rl.guide import DEFAULT_EFFORT
-
-            if guide_seed < 0:
-                raise StartupError(f"parameter guide_seed must be >= 0 (or -1: the default, 0), got {guide_seed}")
-            effort = dataclasses.replace(effort or DEFAULT_EFFORT, seed=guide_seed)
+                raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact / guide_seed: "
+                                   f"{exc}") from None
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
                                     guide_replan=guide_replan, replan_wait=replan_wait, only_run=only_run)

@@ -7,7 +7,6 @@ with a one-line ``fms: error: ...`` on stderr and exit code 2, never a traceback
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import sys
@@ -51,8 +50,8 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
-    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``: a
-    guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
+    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``,
+    ``--guide-seed``: a guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
     them. With ``replan``, ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays
     (``a.guide_replan``; None: the default); a bench of nominal runs leaves it out."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
@@ -69,6 +68,9 @@ def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
     p.add_argument("--guide-exact", type=float, metavar="SECONDS",
                    help="ppo with a guided model: CP-SAT polishes its plan for this long on shops small enough for "
                         "the full model, within the budget (default 0: no polish)")
+    p.add_argument("--guide-seed", type=int, metavar="N",
+                   help="ppo with a guided model: seed of its plan search's randomised restarts (default 0; "
+                        "--seed seeds the noise)")
     if not replan:
         return
     p.add_argument("--guide-replan", action=argparse.BooleanOptionalAction, default=None,
@@ -81,37 +83,21 @@ def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
     """The plan search of :func:`add_guide_args`' options (None: none given, the solver's default); raises
     ValueError for a negative count, budget, tabu search or polish."""
+    seed = getattr(a, "guide_seed", None)
     if (a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None and a.guide_exact is None
-            and a.guide_tabu is None):
+            and a.guide_tabu is None and seed is None):
         return None
     from .rl.guide import effort_from
 
     for flag, key in (("--guide-restarts", "restarts"), ("--guide-budget", "budget"), ("--guide-exact", "exact"),
-                      ("--guide-tabu", "tabu")):  # each bad value named by its option
-        value = getattr(a, flag[2:].replace("-", "_"))
+                      ("--guide-tabu", "tabu"), ("--guide-seed", "seed")):  # each bad value named by its option
+        value = getattr(a, flag[2:].replace("-", "_"), None)
         if value is not None:
             try:
                 effort_from(**{key: value})
             except ValueError as exc:
                 raise ValueError(f"{flag}: {exc}") from None
-    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu)
-
-
-def _guided_ppo(solver: str) -> bool:
-    """Whether ``solver`` runs a model with a plan guide (``ppo``: the default, guided; ``ppo:NAME``: as its config
-    says; a name that finds no model: False, refused later with its own message)."""
-    low = solver.lower()
-    if not low.startswith("ppo"):
-        return False
-    name = solver[4:].split("+", 1)[0].strip() if low.startswith("ppo:") else ""
-    if not name:
-        return True  # the default model (fms_dispatch.rl.models.default_model_name) is guided on every shop
-    from .rl.models import resolve_model
-
-    try:
-        return bool(resolve_model(name).config.get("guide"))
-    except (ValueError, OSError):
-        return False
+    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu, seed)
 
 
 def load_from_args(a: argparse.Namespace) -> Instance:
@@ -214,11 +200,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
     scenario = scenario_from_args(a, inst)
     if scenario is not None:
         opts["scenario"] = scenario
-    guided = _guided_ppo(a.solver)  # its plan search's restarts are random: --seed seeds them
-    if (a.seed is not None and not (scenario is not None and scenario.noise) and not takes_seed(a.solver)
-            and not guided):  # it would be ignored
+    if a.seed is not None and not (scenario is not None and scenario.noise) and not takes_seed(a.solver):  # ignored
         raise CliError(f"--seed does not apply to {named}: it draws nothing at random (the seed is the random, "
-                       "cpsat, sos, tabu and plan: solvers', a guided ppo model's plan search's, and the noise's)")
+                       "cpsat, sos, tabu and plan: solvers', and the noise's; a guided ppo model's plan search takes "
+                       "--guide-seed)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
         if a.decisions == "paper" and scenario is not None:  # (solve() said decisions='full', Python's spelling)
             raise CliError("--scenario and --noise run on the full-decision net only: drop --decisions paper")
@@ -245,14 +230,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
         effort = guide_effort_from_args(a)
     except ValueError as e:
         raise CliError(str(e)) from None
-    if effort is not None and not a.solver.lower().startswith("ppo"):
-        raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu and --guide-exact "
-                       "apply to the ppo solver only")
-    if guided and a.seed is not None:
-        from .rl.guide import DEFAULT_EFFORT
-
-        effort = dataclasses.replace(effort or DEFAULT_EFFORT, seed=a.seed)
     if effort is not None:
+        if not a.solver.lower().startswith("ppo"):
+            raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu, --guide-exact and "
+                           "--guide-seed apply to the ppo solver only")
         opts["guide_effort"] = effort
     if a.guide_replan is not None:
         if not a.solver.lower().startswith("ppo"):
@@ -601,8 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "solver its solver's); refused for the solvers that run once. It bounds the search: on shops of "
                         "thousands of operations the start schedules built before it, and a plan: solver's run "
                         "through the net after it, take seconds more")
-    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers and "
-                   "of a guided ppo model's plan search (default 0), and of the noise (--noise, or the --scenario file's: this seed replaces the file's)")
+    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers "
+                   "(default 0) and of the noise (--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "

@@ -34,7 +34,6 @@ schedule); 2 bad input.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import os
 import random
@@ -98,8 +97,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "it beats the best rule pair and the list schedule in simulation, else the better of those; "
                         "with --scenario/--noise plan:rules instead of them) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
                         "schedule, planned at the first state and executed live, re-planned when late)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers and of a guided ppo "
-                   "model's plan search (default 0), and of the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
+    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
+                   "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
                    "solver that draws nothing in a run without noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
                    "outages, noise; docs/semantics.md); the shop runs the full net: plan:, first, random or a "
@@ -379,18 +378,9 @@ def cmd_up(a: argparse.Namespace) -> int:
     from .solvers import takes_seed
 
     noisy = disrupted and bool(scenario is not None and scenario.noise)
-    from .cli import _guided_ppo
-
-    guided = (a.solver.lower() != "best" and needs_twin(solver)  # (best compared its choices unseeded)
-              and _guided_ppo("ppo" if solver.lower() == "lookahead" else solver))
-    if guided and a.seed is not None:  # it seeds the plan search's restarts, as fms solve's --seed does
-        from .rl.guide import DEFAULT_EFFORT
-
-        effort = dataclasses.replace(effort or DEFAULT_EFFORT, seed=a.seed)
-    if (a.seed is not None and not noisy and a.solver.lower() != "best" and not takes_seed(solver)
-            and not guided):  # as fms solve
+    if a.seed is not None and not noisy and a.solver.lower() != "best" and not takes_seed(solver):  # as fms solve
         raise UpError(f"--seed does not apply to {solver}: it draws nothing at random (the seed is the random and "
-                      "plan: solvers', and the noise's)")
+                      "plan: solvers', and the noise's; a guided ppo model's plan search takes --guide-seed)")
     if not 0 < a.timeout < float("inf"):  # NaN would never time out
         raise UpError("--timeout must be a positive number of seconds")
     if not 0 <= a.time_scale < float("inf"):

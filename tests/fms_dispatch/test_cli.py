@@ -580,22 +580,25 @@ def test_a_schedule_of_an_overridden_fleet_checked_without_it_names_the_option(t
     assert code == 0 and "hint" not in err
 
 
-def test_seed_seeds_a_guided_models_plan_search(tmp_path, capsys):
-    """--seed was refused for ppo as drawing nothing at random, while a guided model's plan search restarts at random
-    (seed 0): it seeds that search now, and is still refused for a model without a guide."""
-    from dataclasses import replace as with_
-
+def test_guide_seed_seeds_a_guided_models_plan_search(tmp_path, capsys):
+    """A guided model's plan search restarts at random (seed 0): --guide-seed seeds it (--seed keeps to the noise and
+    is refused for ppo in a nominal run, naming --guide-seed); a model without a guide takes no --guide-* option."""
     from fms_dispatch import solve
     from fms_dispatch.rl.guide import effort_from
 
     out = tmp_path / "s.json"
-    assert run(["solve", "EX42", "--solver", "ppo", "--seed", "5", "--guide-tabu", "0", "--out", str(out), "-q"],
+    assert run(["solve", "EX42", "--solver", "ppo", "--guide-seed", "5", "--guide-tabu", "0", "--out", str(out), "-q"],
                capsys)[0] == 0
     got = Schedule.load(out)
     assert got.meta["guide_effort"]["seed"] == 5
-    assert got == solve(builtin("EX42"), "ppo", guide_effort=with_(effort_from(tabu=0), seed=5))
-    code, _, err = run(["solve", "EX42", "--solver", "ppo:bu", "--seed", "5", "-q"], capsys)
-    assert code == 2 and "--seed does not apply to ppo:bu" in err
+    assert got == solve(builtin("EX42"), "ppo", guide_effort=effort_from(tabu=0, seed=5))
+    assert got.makespan != solve(builtin("EX42"), "ppo", guide_effort=effort_from(tabu=0)).makespan  # it matters
+    for argv, needle in ((["--solver", "ppo", "--seed", "5"], "plan search takes --guide-seed"),
+                         (["--solver", "ppo:bu", "--guide-seed", "5"], "reads no plan guide"),
+                         (["--solver", "ppo", "--guide-seed", "-1"], "--guide-seed: plan seed must be an integer >= 0"),
+                         (["--solver", "list", "--guide-seed", "1"], "apply to the ppo solver only")):
+        code, _, err = run(["solve", "EX42", *argv, "-q"], capsys)
+        assert code == 2 and needle in err, (argv, err)
 
 
 def test_generate_with_the_default_seeds_writes_the_large_benchmarks_first_group(tmp_path, capsys):

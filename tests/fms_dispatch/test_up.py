@@ -355,7 +355,8 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
                for flag in ("out", "db", "run-id", "gantt-dir", "log-dir")),
              (["--run-id", "x" * 300], "--run-id is too long to name the run's files"),  # File name too long
              (["--seed", "3"], "--seed does not apply to first: it draws nothing at random"),  # as fms solve
-             (["--solver", "ppo:bu", "--seed", "3"], "--seed does not apply to ppo:bu")]  # no guide: draws nothing
+             (["--solver", "ppo", "--seed", "3"], "a guided ppo model's plan search takes --guide-seed"),
+             (["--solver", "ppo", "--guide-seed", "-2"], "--guide-seed: plan seed must be an integer >= 0")]
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])
@@ -368,15 +369,16 @@ def test_a_seed_is_taken_where_it_draws_something(fake_nodes, tmp_path: Path, mo
     solver: the seed applies if it picks one that draws); the agent and the shop get it."""
     fake_nodes()
     seen = _record_params(monkeypatch)
-    for i, extra in enumerate((["--solver", "random"], ["--noise", "0.1"], ["--solver", "best"],
-                               ["--solver", "ppo"])):
+    for i, extra in enumerate((["--solver", "random"], ["--noise", "0.1"], ["--solver", "best"])):
         (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)
         assert _up(tmp_path, "--seed", "7", "--db", str(tmp_path / "out" / f"{i}.sqlite"), *extra) == up.EXIT_OK, extra
         assert seen["agent_node"]["seed"] == 7 and seen["shop_node"].get("noise_seed", 7) == 7, (extra, seen)
         assert seen["agent_node"]["run_id"] == "t1"  # it answers its own run's states only
         assert ("noise_seed" in seen["shop_node"]) == (extra[0] == "--noise")
-        # a guided model's plan search is seeded by it too (as fms solve's --seed seeds it)
-        assert seen["agent_node"].get("guide_seed") == (7 if extra == ["--solver", "ppo"] else None), seen
+    # a guided model's plan search takes --guide-seed (the agent's guide_seed parameter)
+    (tmp_path / "out" / "t1.gantt.png").unlink(missing_ok=True)
+    assert _up(tmp_path, "--solver", "ppo", "--guide-seed", "7", "--db", str(tmp_path / "out" / "g.sqlite")) == up.EXIT_OK
+    assert seen["agent_node"]["guide_seed"] == 7
 
 
 def test_ctrl_c_stops_the_run_with_exit_130_and_no_node_logs(fake_nodes, tmp_path: Path, capsys) -> None:

@@ -125,16 +125,14 @@ def test_a_breakdown_and_an_order_mid_run_are_replanned_by_the_plan_agent(nodes,
 
 
 def test_fms_up_seeds_a_guided_models_plan_search_as_fms_solve_does(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """--seed reaches the agent node's plan search (parameter guide_seed): on EX42 seed 5 plans a run of 92 where
-    seed 0 gives 95 (no tabu search: reproducible)."""
-    from dataclasses import replace
-
+    """--guide-seed reaches the agent node's plan search (parameter guide_seed): on EX42 seed 5 plans a run of 92
+    where seed 0 gives 95 (no tabu search: reproducible)."""
     from fms_dispatch.rl.guide import effort_from
     from fms_dispatch.solvers import solve
 
-    offline = solve(builtin("EX42"), "ppo", guide_effort=replace(effort_from(tabu=0), seed=5))
+    offline = solve(builtin("EX42"), "ppo", guide_effort=effort_from(tabu=0, seed=5))
     assert offline.makespan != solve(builtin("EX42"), "ppo", guide_effort=effort_from(tabu=0)).makespan
-    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX42", "--solver", "ppo", "--seed", "5",
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", "EX42", "--solver", "ppo", "--guide-seed", "5",
                           "--guide-tabu", "0", "--out", str(tmp_path / "s.json"), "--db", str(tmp_path / "fms.sqlite"),
                           "--domain-id", ros_env["ROS_DOMAIN_ID"]], env=ros_env, capture_output=True, text=True,
                          timeout=180)

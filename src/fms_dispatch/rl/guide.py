@@ -129,11 +129,15 @@ DEFAULT_EFFORT = PlanEffort(restarts=64, budget=1.0, rules=False, exact=0.0, tab
 
 
 def effort_from(restarts: int | None = None, budget: float | None = None, rules: bool | None = None,
-                exact: float | None = None, tabu: float | None = None) -> PlanEffort:
+                exact: float | None = None, tabu: float | None = None, seed: int | None = None) -> PlanEffort:
     """:data:`DEFAULT_EFFORT` with the given settings replaced (the command-line options): ``budget=0`` means no
-    time limit, ``exact=0`` no CP-SAT polish, ``tabu=0`` no tabu search. Raises ValueError for a negative count,
-    budget, polish or tabu search."""
+    time limit, ``exact=0`` no CP-SAT polish, ``tabu=0`` no tabu search, ``seed`` the restarts' seed. Raises
+    ValueError for a negative count, budget, polish, tabu search or seed."""
     changes: dict[str, Any] = {}
+    if seed is not None:
+        if isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed < 0:
+            raise ValueError(f"plan seed must be an integer >= 0, got {seed!r}")
+        changes["seed"] = seed
     if tabu is not None:
         changes["tabu"] = tabu
     if exact is not None:
