@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from fms_sim.files import folder_problem, output_problem
+from fms_sim.files import folder_problem, instance_beside, output_problem
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
 
@@ -205,16 +205,17 @@ def cmd_solve(a: argparse.Namespace) -> int:
                        "cpsat, sos, tabu and plan: solvers', and the noise's; a guided ppo model's plan search takes "
                        "--guide-seed)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
-        if a.decisions == "paper" and scenario is not None:  # (solve() said decisions='full', Python's spelling)
+        if a.decisions == "paper" and scenario is not None and not scenario.empty:  # (solve() said decisions='full')
             raise CliError("--scenario and --noise run on the full-decision net only: drop --decisions paper")
         opts["decisions"] = a.decisions or "full"
     elif a.decisions:
         raise CliError(f"--decisions applies to the first, random and rule: solvers, not {named} "
                        "(rules:paper runs the paper net's rule pairs; a ppo model decides through the net it was "
-                       "trained on)")
+                       "trained on)" + ("; name one of them with --solver" if defaulted else ""))
     if a.replan is not None:
         if not a.solver.lower().startswith("plan:"):
-            raise CliError("--replan applies to the plan: solvers only")
+            raise CliError("--replan applies to the plan: solvers only" + (
+                f", not {named}: --solver plan:list re-plans the list schedule's plan" if defaulted else ""))
         if not 0 < a.replan < math.inf:
             raise CliError(f"--replan must be positive and finite (seconds per re-plan), got {a.replan:g}")
         opts["replan"] = a.replan
@@ -386,39 +387,45 @@ def _load_schedule(path: str) -> Schedule:
 
 def _instance_of(a: argparse.Namespace, sched: Schedule) -> tuple[str, int | None]:
     """The instance (and ra layout) a schedule given alone (``fms validate SCHEDULE``) was made for: the final
-    instance a run with live orders writes beside it (``OUT.instance.json`` for ``OUT.json``), else the built-in or
-    held-out shop it names (``ra01L3``: ra01 in layout 3)."""
+    instance a run with live orders writes beside it (:func:`fms_sim.files.instance_beside`; one of another name is
+    not this run's and is passed over), else the built-in or held-out shop it names (``ra01L3``: ra01 in layout
+    3)."""
     import re
 
+    from fms_sim.benchmarks import is_builtin_name
     from fms_sim.formats import load_instance
 
-    path = Path(a.schedule)
-    beside = path.with_name(f"{path.stem}.instance.json")
+    beside = instance_beside(a.schedule)
     if beside.is_file():
-        return str(beside), None
+        try:
+            if load_instance(str(beside)).name == sched.instance:
+                return str(beside), None
+        except (InstanceError, ValueError, OSError):
+            pass  # not this run's final instance: the name decides
     m = re.fullmatch(r"(ra\d\d)L([1-4])", sched.instance)
     name, layout = (m.group(1), int(m.group(2))) if m else (sched.instance, None)
-    if not Path(name).exists():  # a file of that name in the working folder is not what the schedule names
-        try:
-            load_instance(name, layout=layout)
-            return name, layout
-        except (InstanceError, ValueError, OSError):
-            pass
+    if is_builtin_name(name):
+        if Path(name).is_file():  # fms_sim.formats.load_instance would read that file instead
+            raise CliError(f"a file named {name} in the working folder hides the built-in shop {sched.instance} that "
+                           f"{a.schedule} was made for: run from another folder, or give the instance")
+        return name, layout
     raise CliError(f"{a.schedule} was made for instance {sched.instance!r}, which is no built-in shop and has no "
-                   f"{beside.name} beside it: give the instance, fms validate INSTANCE {a.schedule}")
+                   f"{beside.name} of it beside it: give the instance, fms validate INSTANCE {a.schedule}")
 
 
 def cmd_validate(a: argparse.Namespace) -> int:
+    from fms_sim.benchmarks import is_builtin_name
     from fms_sim.disruptions import ScenarioError
     from fms_sim.validate import recorded_scenario, validate
 
-    if a.schedule is None:  # fms validate SCHEDULE: the instance it names
+    alone = a.schedule is None  # fms validate SCHEDULE: against the shop the schedule was made for
+    if alone:
+        if not Path(a.instance).exists() and is_builtin_name(a.instance):  # the schedule forgotten
+            raise CliError(f"give the schedule file too: fms validate {a.instance} SCHEDULE")
         a.schedule = a.instance
         a.instance, layout = _instance_of(a, _load_schedule(a.schedule))
-        if layout is not None and a.layout is None:
+        if a.layout is None:
             a.layout = layout
-        print(f"note: checking against {a.instance}" + (f" (layout {a.layout})" if layout is not None else "")
-              + ", the instance the schedule was made for", file=sys.stderr)
     inst = load_from_args(a)
     sched = _load_schedule(a.schedule)
     scenario = scenario_from_args(a, inst)
@@ -429,6 +436,9 @@ def cmd_validate(a: argparse.Namespace) -> int:
             raise CliError(f"{a.schedule}: {exc}") from None
     if sched.instance != inst.name:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
+    elif alone:
+        print(f"note: checking against {a.instance}" + (f" (layout {a.layout})" if a.layout is not None else "")
+              + ", the instance the schedule was made for", file=sys.stderr)
     problems = validate(inst, sched, scenario)
     code = EXIT_INFEASIBLE if problems else 0
     try:
@@ -451,12 +461,19 @@ def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
     """A hint for a schedule made for another fleet than ``inst``'s, as ``fms solve --agvs 3`` (or ``--no-agvs``,
     ``--tool-transporters``, ``--no-tools``) makes one: the options that give the instance the schedule's fleet
     (None if the fleets agree). Checked without them, it breaks the fleet rules and a run of others after them."""
+    if sched.instance != inst.name:  # another shop's schedule: no option of this one makes it fit
+        return None
     opts = []
     if sched.n_agvs != inst.n_agvs:
-        opts.append("--no-agvs" if not sched.n_agvs else f"--agvs {sched.n_agvs}")
+        if not sched.n_agvs:
+            opts.append("--no-agvs")
+        elif inst.has_agvs:
+            opts.append(f"--agvs {sched.n_agvs}")
     if sched.n_tool_transporters != inst.n_tool_transporters:
-        opts.append("--no-tools" if not sched.n_tool_transporters
-                    else f"--tool-transporters {sched.n_tool_transporters}")
+        if not sched.n_tool_transporters:
+            opts.append("--no-tools")
+        elif inst.has_tools:
+            opts.append(f"--tool-transporters {sched.n_tool_transporters}")
     if not opts:
         return None
     return (f"hint: the schedule was made for another fleet than {inst.name}'s; if it was solved with "

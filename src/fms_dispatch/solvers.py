@@ -372,7 +372,9 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
 
 
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
-    """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through.
+    """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through. The default
+    stays ``first`` through the paper's net (the benches and models rely on it); ``fms solve`` without ``--solver``
+    runs ``list`` (``plan:list`` in a disrupted run) instead.
     ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
     :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
     ``time_limt``) raises TypeError instead of being ignored, and the shared options are checked

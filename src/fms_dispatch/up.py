@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Callable, Sequence
 
+from fms_sim.files import instance_beside
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.recorder_store import DEFAULT_DB, gantt_path, safe_run_name
 from fms_sim.schedule import Schedule, ScheduleError
@@ -95,8 +96,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "state, then execute the plan) | plan:file:PATH (execute a schedule made beforehand) | "
                         "best (the shipped PPO model, with or without lookahead, if "
                         "it beats the best rule pair and the list schedule in simulation, else the better of those; "
-                        "with --scenario/--noise plan:rules instead of them) (default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list "
-                        "schedule, planned at the first state and executed live, re-planned when late)")
+                        "with --scenario/--noise plan:rules instead of them) "
+                        f"(default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list schedule, planned at the first "
+                        "state and executed live, re-planned when late)")
     p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
                    "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
                    "solver that draws nothing in a run without noise")
@@ -562,7 +564,7 @@ def cmd_up(a: argparse.Namespace) -> int:
             _print_logs([n for n in nodes if n.name in unclean])
         # a run that took live orders has jobs the instance has not: its final instance goes beside the schedule, so
         # that `fms validate` can check it afterwards (the work folder holding it is removed)
-        ordered = out.with_name(f"{out.name[:-5] if out.name.endswith('.json') else out.name}.instance.json")
+        ordered = instance_beside(out)
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
             sched.save(out)

@@ -24,7 +24,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-__all__ = ["replacing", "write_atomically", "read_text", "loads", "file_above", "output_problem", "folder_problem"]
+__all__ = ["replacing", "write_atomically", "read_text", "loads", "file_above", "output_problem", "folder_problem",
+           "instance_beside"]
 
 
 def read_text(path: str | Path) -> str:
@@ -174,3 +175,11 @@ def folder_problem(folder: str | Path) -> str | None:
     if where is not None and not os.access(where, os.W_OK | os.X_OK):
         return f"the folder {where} may not be written (permission denied)"
     return None
+
+
+def instance_beside(schedule: str | Path) -> Path:
+    """Where a run's final instance goes beside its schedule file (a run that took live orders has jobs its instance
+    has not): ``OUT.instance.json`` for ``OUT.json``, ``NAME.instance.json`` for a schedule file ``NAME`` without the
+    ``.json`` suffix. ``fms up`` writes it there and ``fms validate SCHEDULE`` reads it from there."""
+    p = Path(schedule)
+    return p.with_name(f"{p.name[:-5] if p.name.endswith('.json') else p.name}.instance.json")

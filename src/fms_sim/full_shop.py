@@ -674,6 +674,7 @@ class FullShop(Shop):
         return [t.label for t in self.net.controllable] + [HOLD]
 
     def action_label(self, action: int) -> str:
+        """The label of one action index, ``hold`` included (:meth:`Shop.action_label`)."""
         action = index_arg(action)
         ctrl = self.net.controllable
         if action == len(ctrl):

@@ -556,15 +556,26 @@ def test_the_default_solver_is_the_list_schedule_and_its_plan_under_disruptions(
     noisy = solve(inst, "plan:list", scenario=Scenario((), (), 0.1, 3))
     assert code == 0 and f"makespan {noisy.makespan} (plan:list, " in stdout
     assert Schedule.load(out) == noisy and validate(inst, noisy) == []
-    # options the default does not take name it as the default
+    # options the default does not take name it as the default, and the way on
     code, _, err = run(["solve", "EX12", "--time-limit", "3"], capsys)
     assert code == 2 and "--time-limit does not apply to list (the default solver)" in err
+    code, _, err = run(["solve", "EX12", "--decisions", "paper"], capsys)
+    assert code == 2 and "not list (the default solver)" in err and "name one of them with --solver" in err
+    code, _, err = run(["solve", "EX12", "--replan", "1"], capsys)
+    assert code == 2 and "--solver plan:list re-plans the list schedule's plan" in err
+    # an empty disruption is no disruption: the paper net takes it (it was refused as a disrupted run)
+    code, stdout, _ = run(["solve", "EX12", "--solver", "first", "--decisions", "paper", "--noise", "0", "-q"], capsys)
+    assert code == 0 and f"makespan {solve(builtin('EX12'), 'first').makespan} (first, " in stdout
 
 
-def test_fms_up_defaults_to_the_list_plan_executed_live():
+def test_fms_up_defaults_to_the_list_plan_executed_live(capsys):
     from fms_dispatch.cli import DEFAULT_DISRUPTED_SOLVER, build_parser
 
     assert build_parser().parse_args(["up", "EX12"]).solver == DEFAULT_DISRUPTED_SOLVER == "plan:list"
+    with pytest.raises(SystemExit):
+        main(["up", "--help"])
+    up_help = " ".join(capsys.readouterr().out.split())
+    assert "(default: plan:list: the earliest-start list schedule" in up_help  # it printed {DEFAULT_DISRUPTED_SOLVER}
 
 
 @pytest.mark.parametrize("fleet", [["--agvs", "3"], ["--no-agvs"], ["--no-tools"], ["--tool-transporters", "2"]])
@@ -578,6 +589,9 @@ def test_a_schedule_of_an_overridden_fleet_checked_without_it_names_the_option(t
     assert code == 2 and f"if it was solved with {' '.join(fleet)}, give the same here" in err
     code, stdout, err = run(["validate", "ra01", str(out), *fleet], capsys)
     assert code == 0 and "hint" not in err
+    # another shop's schedule: no option of this one makes it fit, so no hint
+    code, _, err = run(["validate", "EX62", str(out)], capsys)
+    assert code == 1 and "hint" not in err
 
 
 def test_guide_seed_seeds_a_guided_models_plan_search(tmp_path, capsys):
@@ -640,6 +654,24 @@ def test_validate_a_schedule_alone_checks_it_against_the_instance_it_names(tmp_p
     (tmp_path / "s.instance.json").write_text(shop.read_text())
     code, stdout, _ = run(["validate", str(out)], capsys)
     assert code == 0 and stdout.startswith("valid: myshop, ")
-    # checked against the right shop: another shop's schedule is invalid for it
+    # an instance file of another shop beside it is not this run's: passed over
     (tmp_path / "s.instance.json").write_text(builtin("EX31").to_json())
-    assert run(["validate", str(out)], capsys)[0] == 1
+    code, _, err = run(["validate", str(out)], capsys)
+    assert code == 2 and "made for instance 'myshop', which is no built-in shop" in err
+
+
+def test_validate_alone_refuses_what_it_cannot_resolve(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "s.json"
+    assert run(["solve", "EX12", "--out", str(out), "-q"], capsys)[0] == 0
+    code, _, err = run(["validate", "EX12"], capsys)  # the schedule forgotten: not "cannot read schedule EX12"
+    assert code == 2 and "give the schedule file too: fms validate EX12 SCHEDULE" in err
+    (tmp_path / "EX12").write_text("junk")  # a file of the shop's name would be read instead of the built-in
+    code, _, err = run(["validate", str(out)], capsys)
+    assert code == 2 and "a file named EX12 in the working folder hides the built-in shop EX12" in err
+    (tmp_path / "EX12").unlink()
+    # a layout given overrides the one the schedule names, and the notes say which was checked
+    assert run(["solve", "ra01", "--layout", "3", "--out", str(out), "-q"], capsys)[0] == 0
+    code, _, err = run(["validate", str(out), "--layout", "2"], capsys)
+    assert code == 1 and "the schedule names instance 'ra01L3', checking against 'ra01'" in err  # layout 2
+    assert "made for" not in err

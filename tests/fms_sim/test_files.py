@@ -165,3 +165,13 @@ def test_what_json_has_not_is_refused_on_reading_and_on_writing(tmp_path):
         with pytest.raises(ScheduleError, match="^" + re.escape(where) + " cannot be written as JSON"):
             sched.save(out)
         assert Schedule.load(out).meta == {}  # the file written before is kept
+
+
+def test_a_runs_final_instance_lies_beside_its_schedule_under_one_name():
+    """fms up writes it there and fms validate SCHEDULE reads it there: the two used different names for a schedule
+    file without the .json suffix (run.sched: run.sched.instance.json against run.instance.json)."""
+    from fms_sim.files import instance_beside
+
+    assert instance_beside("out/run.json") == Path("out/run.instance.json")
+    assert instance_beside(Path("run.sched")) == Path("run.sched.instance.json")
+    assert instance_beside("run") == Path("run.instance.json")

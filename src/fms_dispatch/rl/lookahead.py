@@ -254,6 +254,8 @@ class LookaheadPlanner:
     worse). ``skipped`` counts the moves not proposed again.
     """
 
+    verifies = True  #: its moves are checked in trial runs (progress lines count them)
+
     def __init__(self, choose: Choose, horizon: int = DEFAULT_HORIZON, verify: bool = True,
                  reference: bool = False, retry: bool = True, twin: TwinMaker | None = None) -> None:
         self.choose = choose
