@@ -351,10 +351,16 @@ def cmd_up(a: argparse.Namespace) -> int:
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort, disrupted)
         say(reason + (" (nominal simulations: the disruptions are not known in advance)" if disrupted else ""))
+    from .cli import DEFAULT_DISRUPTED_SOLVER
+
+    named = f"{solver!r}" + (" (the default solver)" if solver == DEFAULT_DISRUPTED_SOLVER else "")
     if a.guide_replan is not None and not needs_twin(solver):
-        raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {solver!r}")
+        raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {named}")
+    if effort is not None and not needs_twin(solver):
+        raise UpError(f"a plan search option (--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu, "
+                      f"--guide-exact, --guide-seed) applies to ppo solvers only, not to {named}")
     if a.replan is not None and not needs_full_net(solver):
-        raise UpError(f"--replan applies to plan: solvers only, not to {solver!r}")
+        raise UpError(f"--replan applies to plan: solvers only, not to {named}")
     try:
         decider, _ = make_decider(solver, a.seed or 0, inst, guide_effort=effort)
     except UnavailableSolver as exc:

@@ -356,7 +356,9 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--run-id", "x" * 300], "--run-id is too long to name the run's files"),  # File name too long
              (["--seed", "3"], "--seed does not apply to first: it draws nothing at random"),  # as fms solve
              (["--solver", "ppo", "--seed", "3"], "a guided ppo model's plan search takes --guide-seed"),
-             (["--solver", "ppo", "--guide-seed", "-2"], "--guide-seed: plan seed must be an integer >= 0")]
+             (["--solver", "ppo", "--guide-seed", "-2"], "--guide-seed: plan seed must be an integer >= 0"),
+             (["--solver", "plan:list", "--guide-tabu", "0"],
+              "applies to ppo solvers only, not to 'plan:list' (the default solver)")]
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])
