@@ -293,8 +293,9 @@ def test_solve_replans_a_plan_under_disruptions_and_refuses_bad_replan_options(t
     assert validate(builtin("sl00"), s) == []
     events = s.meta["replans"]  # 20 % noise makes the shop late: it re-plans (first at the same state every run)
     assert events and events[0]["reason"] == "late" and f", {len(events)} re-plan{'s' * (len(events) != 1)} (" in stdout
-    for e in events:
-        assert e["status"] in ("adopted", "kept") and e["budget"] == 0.3 and e["after"] <= e["before"]
+    for e in events:  # a new plan is adopted exactly when it ends earlier (the search is on the clock: either way)
+        assert e["status"] in ("adopted", "kept") and e["budget"] == 0.3
+        assert (e["status"] == "adopted") == (e["after"] < e["before"]), e
     assert run(["validate", "sl00", str(out)], capsys)[0] == 0
     code, _, err = run(["solve", "EX12", "--solver", "rule:MTWR+nearest", "--replan", "1", "-q"], capsys)
     assert code == 2 and "plan: solvers only" in err
