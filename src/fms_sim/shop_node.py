@@ -374,8 +374,9 @@ def _watch_busy_stop(node: Any, spinning: _Spinning, poll_s: float = 0.1) -> Non
     rclpy shuts it down at once, even while a callback runs), spin returns only when that callback does, which
     for a plan search can be a minute (``plan:cpsat:60`` at the first state). A watcher thread arms the stop
     watchdog (:func:`_arm_stop_watchdog`: stacks in the log, exit code 1 after :data:`STOP_STALL_S` s) when it sees
-    the shutdown, unless spin has returned by then (:meth:`_Spinning.release` cancels it). A node without a context
-    (a stand-in) is not watched."""
+    the shutdown, unless spin has returned by then (:meth:`_Spinning.release` cancels it), and from then on wakes
+    the executor every ``poll_s`` until spin returns (:func:`_wake_executor`). A node without a context (a
+    stand-in) is not watched."""
     context = getattr(node, "context", None)
     if context is None:
         return
@@ -388,9 +389,26 @@ def _watch_busy_stop(node: Any, spinning: _Spinning, poll_s: float = 0.1) -> Non
                     return
                 if not context.ok():
                     _arm_stop_watchdog()
+                    break
+        # then wake the executor until spin returns: the shutdown wakes it once, and once in a fresh-clone test run
+        # a stopped shop node stayed in the executor's wait regardless, until the watchdog ended it (exit 1)
+        while True:
+            with spinning.lock:
+                if spinning.done:
                     return
+            _wake_executor()
+            time.sleep(poll_s)
 
     threading.Thread(target=watch, name="fms-stop-watch", daemon=True).start()
+
+
+def _wake_executor() -> None:
+    """Wake the executor ``rclpy.spin`` waits in (its guard condition), so that its loop looks at the context again;
+    nothing if that cannot be done (a stand-in rclpy, a context already torn down)."""
+    try:
+        rclpy.get_global_executor().wake()
+    except Exception:  # the executor or its guard condition may already be gone: the watchdog still bounds the stop
+        pass
 
 
 def _shutting_down(grace_s: float) -> bool:

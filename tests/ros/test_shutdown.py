@@ -188,3 +188,40 @@ def test_a_stop_during_a_busy_callback_is_bounded(ros_env: dict[str, str], busy_
         assert "saved" not in out
     else:
         assert "saved" in out and "Timeout" not in err
+
+
+def test_a_stopped_node_wakes_its_executor_until_spin_returns(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once in a fresh-clone run a shop node stopped by SIGINT stayed in the executor's wait (the shutdown's own
+    wake-up came to nothing) until the stop watchdog ended it with exit 1. The stop watcher now wakes the executor
+    again and again once the context is down, until spin returns, and then stops."""
+    wakes: list[float] = []
+    armed: list[int] = []
+
+    class Executor:
+        def wake(self) -> None:
+            wakes.append(time.monotonic())
+
+    class Rclpy:
+        def get_global_executor(self) -> Executor:
+            return Executor()
+
+    class Context:
+        def ok(self) -> bool:
+            return False  # shut down (SIGINT)
+
+    class Node:
+        context = Context()
+
+    monkeypatch.setattr(shop_node, "rclpy", Rclpy())
+    monkeypatch.setattr(shop_node, "_arm_stop_watchdog", lambda: armed.append(1))
+    spinning = shop_node._Spinning()
+    shop_node._watch_busy_stop(Node(), spinning, poll_s=0.01)
+    deadline = time.monotonic() + 5
+    while len(wakes) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(wakes) >= 3 and armed == [1]  # woken repeatedly, the watchdog armed once
+    spinning.release()  # spin returned
+    time.sleep(0.1)
+    settled = len(wakes)
+    time.sleep(0.1)
+    assert len(wakes) == settled  # no more wake-ups once spin has returned
