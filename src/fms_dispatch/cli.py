@@ -49,10 +49,13 @@ def add_instance_args(p: argparse.ArgumentParser) -> None:
                    help="drop AGVs (parts move instantly; with --no-tools too, a plain job shop)")
 
 
+#: the options of a guided model's plan search (:func:`add_guide_args`), for messages that refuse them
+GUIDE_OPTIONS = "--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu, --guide-exact, --guide-seed"
+
+
 def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
-    """``--guide-restarts``, ``--guide-budget``, ``--[no-]guide-rules``, ``--guide-tabu``, ``--guide-exact``,
-    ``--guide-seed``: a guided model's plan search (``fms solve``, ``fms up`` and the benches); :func:`guide_effort_from_args` reads
-    them. With ``replan``, ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays
+    """:data:`GUIDE_OPTIONS`: a guided model's plan search (``fms solve``, ``fms up`` and the benches);
+    :func:`guide_effort_from_args` reads them. With ``replan``, ``--[no-]guide-replan``: whether it re-plans at breakdowns and delays
     (``a.guide_replan``; None: the default); a bench of nominal runs leaves it out."""
     p.add_argument("--guide-restarts", type=int, metavar="N",
                    help="ppo with a guided model: randomised restarts that improve the guide's list-schedule plan "
@@ -83,21 +86,20 @@ def add_guide_args(p: argparse.ArgumentParser, replan: bool = True) -> None:
 def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
     """The plan search of :func:`add_guide_args`' options (None: none given, the solver's default); raises
     ValueError for a negative count, budget, tabu search or polish."""
-    seed = getattr(a, "guide_seed", None)
     if (a.guide_restarts is None and a.guide_budget is None and a.guide_rules is None and a.guide_exact is None
-            and a.guide_tabu is None and seed is None):
+            and a.guide_tabu is None and a.guide_seed is None):
         return None
     from .rl.guide import effort_from
 
     for flag, key in (("--guide-restarts", "restarts"), ("--guide-budget", "budget"), ("--guide-exact", "exact"),
                       ("--guide-tabu", "tabu"), ("--guide-seed", "seed")):  # each bad value named by its option
-        value = getattr(a, flag[2:].replace("-", "_"), None)
+        value = getattr(a, flag[2:].replace("-", "_"))
         if value is not None:
             try:
                 effort_from(**{key: value})
             except ValueError as exc:
                 raise ValueError(f"{flag}: {exc}") from None
-    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu, seed)
+    return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu, a.guide_seed)
 
 
 def load_from_args(a: argparse.Namespace) -> Instance:
@@ -233,8 +235,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
         raise CliError(str(e)) from None
     if effort is not None:
         if not a.solver.lower().startswith("ppo"):
-            raise CliError("--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu, --guide-exact and "
-                           "--guide-seed apply to the ppo solver only")
+            raise CliError(f"the plan search options ({GUIDE_OPTIONS}) apply to the ppo solver only")
         opts["guide_effort"] = effort
     if a.guide_replan is not None:
         if not a.solver.lower().startswith("ppo"):
@@ -419,15 +420,18 @@ def cmd_validate(a: argparse.Namespace) -> int:
     from fms_sim.validate import recorded_scenario, validate
 
     alone = a.schedule is None  # fms validate SCHEDULE: against the shop the schedule was made for
+    sched = None
     if alone:
         if not Path(a.instance).exists() and is_builtin_name(a.instance):  # the schedule forgotten
             raise CliError(f"give the schedule file too: fms validate {a.instance} SCHEDULE")
         a.schedule = a.instance
-        a.instance, layout = _instance_of(a, _load_schedule(a.schedule))
+        sched = _load_schedule(a.schedule)
+        a.instance, layout = _instance_of(a, sched)
         if a.layout is None:
             a.layout = layout
     inst = load_from_args(a)
-    sched = _load_schedule(a.schedule)
+    if sched is None:  # (read after the instance: a bad instance is named first)
+        sched = _load_schedule(a.schedule)
     scenario = scenario_from_args(a, inst)
     if scenario is None:  # a malformed recorded one is a file that is not what it claims: bad input, not infeasible
         try:
@@ -648,10 +652,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="tool transporters (default 5, the large benchmark's fleet)")
     s.add_argument("--no-tools", action="store_true", help="no tools (AGVs only)")
     s.add_argument("--no-agvs", action="store_true", help="no AGVs (parts move instantly)")
-    for flag, default, what in (("--time-seed", 840612802, "processing times"), ("--route-seed", 398197754,
-                                "the machine order of each job"), ("--tool-seed", 170719940, "each operation's tool"),
-                                ("--agv-seed", 180119550, "the AGV travel times"),
-                                ("--tool-travel-seed", 280219920, "the tool transporters' travel times")):
+    from fms_sim import generate as g
+
+    for flag, default, what in (("--time-seed", g.TIME_SEED, "processing times"),
+                                ("--route-seed", g.ROUTE_SEED, "the machine order of each job"),
+                                ("--tool-seed", g.TOOL_SEED, "each operation's tool"),
+                                ("--agv-seed", g.AGV_SEED, "the AGV travel times"),
+                                ("--tool-travel-seed", g.TOOL_TRAVEL_SEED, "the tool transporters' travel times")):
         s.add_argument(flag, type=int, default=default, metavar="SEED",
                        help=f"seed of {what} (default {default})")
     s.add_argument("--prefix", default="gen", help="instance name prefix (names: PREFIX00, PREFIX01, ...)")

@@ -351,14 +351,13 @@ def cmd_up(a: argparse.Namespace) -> int:
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort, disrupted)
         say(reason + (" (nominal simulations: the disruptions are not known in advance)" if disrupted else ""))
-    from .cli import DEFAULT_DISRUPTED_SOLVER
+    from .cli import DEFAULT_DISRUPTED_SOLVER, GUIDE_OPTIONS
 
     named = f"{solver!r}" + (" (the default solver)" if solver == DEFAULT_DISRUPTED_SOLVER else "")
     if a.guide_replan is not None and not needs_twin(solver):
         raise UpError(f"--[no-]guide-replan applies to ppo solvers only, not to {named}")
-    if effort is not None and not needs_twin(solver):
-        raise UpError(f"a plan search option (--guide-restarts, --guide-budget, --[no-]guide-rules, --guide-tabu, "
-                      f"--guide-exact, --guide-seed) applies to ppo solvers only, not to {named}")
+    if effort is not None and not needs_twin(solver):  # (the agent's own check names its parameters, not these)
+        raise UpError(f"a plan search option ({GUIDE_OPTIONS}) applies to ppo solvers only, not to {named}")
     if a.replan is not None and not needs_full_net(solver):
         raise UpError(f"--replan applies to plan: solvers only, not to {named}")
     try:
