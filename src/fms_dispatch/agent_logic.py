@@ -980,6 +980,10 @@ def needs_idle_stops(solver: str) -> bool:
     return low == "lookahead" or low.endswith(tuple(LOOKAHEAD_SUFFIXES))
 
 
+#: the agent node's parameters of a guided model's plan search (:mod:`fms_dispatch.agent_node`), for messages
+GUIDE_PARAMETERS = "guide_restarts, guide_budget, guide_rules, guide_tabu, guide_exact, guide_seed"
+
+
 def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
                  guide_replan: bool = True, replan_wait: bool = False) -> tuple[Decider, str]:
     """``ppo`` / ``ppo:<model>`` (optionally ``+lookahead`` or ``+lookahead-fast``; ``lookahead`` alone is
@@ -1004,8 +1008,7 @@ def _ppo_decider(name: str, instance: Instance | None, guide_effort: Any = None,
     try:
         agent.use_guide_effort(guide_effort)  # a cached agent: set for every decider
     except ValueError as exc:
-        raise UnavailableSolver(f"solver {name!r}: {exc} (guide_restarts, guide_budget, guide_rules, "
-                                "guide_tabu, guide_exact, guide_seed)") from None
+        raise UnavailableSolver(f"solver {name!r}: {exc} ({GUIDE_PARAMETERS})") from None
     canonical = f"ppo:{agent.name}"
     planner = None
     if lookahead and LOOKAHEAD_SUFFIXES[suffix] == "guide":
@@ -1052,9 +1055,7 @@ def make_decider(solver: str, seed: int = 0, instance: Instance | None = None, *
     name = solver.strip()
     low = name.lower()
     if guide_effort is not None and not needs_twin(name):
-        raise UnavailableSolver("a guide search (guide_restarts, guide_budget, guide_rules, guide_tabu, guide_exact, "
-                                "guide_seed) "
-                                f"applies to ppo solvers only, not to {name!r}")
+        raise UnavailableSolver(f"a guide search ({GUIDE_PARAMETERS}) applies to ppo solvers only, not to {name!r}")
     if low == "first":
         return (lambda state: _legal(state)[0][2]), "first"
     if low == "random":

@@ -301,7 +301,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     lists = [i for i, name in enumerate(names) if name.startswith("list")]
     order = lists + sorted(set(range(len(names))) - set(lists))
     try:
-        for n_run, at in enumerate(order):
+        for at in order:
             name = names[at]
             if time_limit is not None and best is not None and time.perf_counter() - t0 >= time_limit:
                 break
@@ -317,7 +317,7 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
                 best.meta["rule"] = name
             now = time.perf_counter()
             if progress and now - last >= 10:
-                print(f"  rules: {n_run + 1}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
+                print(f"  rules: {tried}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
                       f"{now - t0:.0f} s", file=sys.stderr, flush=True)
                 last = now
     except KeyboardInterrupt:  # the best combination so far goes with the interrupt (fms solve keeps it)
