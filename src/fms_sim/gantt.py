@@ -9,7 +9,8 @@ The chart has three sections, each with a labelled header band:
 * one row per tool transporter (``TT0``..) with the same two lanes; loaded trips are coloured by the job
   whose operation the tool serves and labelled with the tool (``T3``).
 
-A dashed vertical line marks the makespan. Rendering uses :class:`matplotlib.figure.Figure` with an explicit
+A dashed vertical line marks the makespan; breakdowns and outages that the schedule's ``meta["scenario"]`` records
+are shaded on their rows, and the default title (:func:`chart_title`) says what disrupted the run. Rendering uses :class:`matplotlib.figure.Figure` with an explicit
 Agg canvas, so it works headless and never touches pyplot's global state (callers need no
 ``matplotlib.use``). Bars are drawn as one ``PolyCollection`` per kind and labels only where they fit, so
 thousands of bars render in about a second.
@@ -36,7 +37,7 @@ from .files import replacing
 from .instance import MAX_COUNT, Instance
 from .schedule import Schedule
 
-__all__ = ["plot_gantt", "save_gantt", "chart_formats"]
+__all__ = ["chart_title", "plot_gantt", "save_gantt", "chart_formats"]
 
 # Layout constants, in row units (vertical) and inches (margins). Fixed margins (instead of tight_layout) keep
 # the geometry known before drawing, which the label-fitting test relies on, and avoid an extra render pass.
@@ -137,6 +138,32 @@ def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[t
         if y is not None and isinstance(start, int) and isinstance(dur, int):
             out.append((start, start + dur, y - 0.48, y + 0.48))
     return out
+
+
+def chart_title(schedule: Schedule, run: str | None = None) -> str:
+    """The chart's default title: the instance, the run (when given), the makespan and what the run was disrupted
+    by, as its ``meta["scenario"]`` records it (``"ra01 — makespan 120 (under disruptions: 1 breakdown, 1 outage,
+    noise 0.1)"``), so that a disrupted run's chart is not read as a nominal one."""
+    middle = f" — run {run}" if run is not None else ""
+    return f"{schedule.instance}{middle} — makespan {schedule.makespan}{_disruption_note(schedule)}"
+
+
+def _disruption_note(schedule: Schedule) -> str:
+    """What the recorded scenario disrupted the run with (``" (under disruptions: 1 breakdown, noise 0.1)"``);
+    empty for a nominal run. A malformed record says only what it can."""
+    sc = schedule.meta.get("scenario")
+    if not isinstance(sc, dict):
+        return ""
+    parts = []
+    for key, one in (("breakdowns", "breakdown"), ("outages", "outage")):
+        items = sc.get(key)
+        n = len([d for d in items if isinstance(d, dict)]) if isinstance(items, list) else 0
+        if n:
+            parts.append(f"{n} {one}{'' if n == 1 else 's'}")
+    noise = sc.get("noise")
+    if isinstance(noise, (int, float)) and not isinstance(noise, bool) and noise > 0:
+        parts.append(f"noise {noise:g}")
+    return f" (under disruptions: {', '.join(parts)})" if parts else ""
 
 
 def _rects(spans: Iterable[tuple[float, float, float, float]]) -> np.ndarray:
@@ -279,7 +306,7 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
     ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(handles), frameon=False,
               fontsize=8, handlelength=2.2, borderaxespad=0.2)
     fig.text(_LEFT_IN / width_in, 1 - 0.12 / height_in, title if title is not None else
-             f"{schedule.instance} — makespan {schedule.makespan}", ha="left", va="top", fontsize=11,
+             chart_title(schedule), ha="left", va="top", fontsize=11,
              fontweight="bold", parse_math=False)  # a name with "$...$" is text (unbalanced: a parse error)
 
     if path is not None:

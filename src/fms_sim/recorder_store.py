@@ -597,9 +597,9 @@ class Recorder:
             if self._renderer is not None:
                 self._renderer(schedule, tmp)
             else:
-                from .gantt import save_gantt
+                from .gantt import chart_title, save_gantt
 
-                save_gantt(schedule, tmp, title=f"{schedule.instance} — run {run_id} — makespan {schedule.makespan}")
+                save_gantt(schedule, tmp, title=chart_title(schedule, run_id))
         self.store.set_gantt(run_id, target)
         self.rendered.append((run_id, target))
         return target

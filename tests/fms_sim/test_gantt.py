@@ -12,7 +12,7 @@ import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 
-from fms_sim.gantt import plot_gantt, save_gantt
+from fms_sim.gantt import chart_title, plot_gantt, save_gantt
 from fms_sim.instance import Instance, jobs_from_rows
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.validate import validate
@@ -266,11 +266,23 @@ def test_disruptions_are_drawn_behind_their_rows():
     def legend(fig):
         return [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
 
+    def title(fig):
+        return [t.get_text() for t in fig.texts]
+
     assert "down / out of service" in legend(plot_gantt(sched, inst))
+    # the title says the run was disrupted, and by what (a disrupted chart was titled as a nominal one)
+    assert title(plot_gantt(sched, inst)) == [
+        f"ra01 — makespan {sched.makespan} (under disruptions: 1 breakdown, 1 outage)"]
+    noisy = FullShop(inst, scenario=Scenario(breakdowns=(Breakdown(1, 0, 5), Breakdown(1, 9, 5)), noise=0.1, seed=2))
+    while not noisy.done:
+        noisy.act(noisy.legal_actions()[0])
+    assert chart_title(noisy.schedule(), "r7") == (f"ra01 — run r7 — makespan {noisy.schedule().makespan} "
+                                                   "(under disruptions: 2 breakdowns, noise 0.1)")
     nominal = FullShop(inst)
     while not nominal.done:
         nominal.act(nominal.legal_actions()[0])
     assert "down / out of service" not in legend(plot_gantt(nominal.schedule(), inst))
+    assert title(plot_gantt(nominal.schedule(), inst)) == [f"ra01 — makespan {nominal.schedule().makespan}"]
 
 
 def test_odd_titles_scenarios_and_paths(tmp_path: Path) -> None:
@@ -281,7 +293,8 @@ def test_odd_titles_scenarios_and_paths(tmp_path: Path) -> None:
     sched = replace(hand_schedule(), instance="cell $\\frac{$")
     assert save_gantt(sched, tmp_path / "a.png").read_bytes()[:8] == PNG_MAGIC
     assert save_gantt(sched, tmp_path / "b.png", title="$x").exists()
-    for bad in ({"outages": "x"}, {"breakdowns": None}, {"breakdowns": [1, 2]}):
+    for bad in ({"outages": "x"}, {"breakdowns": None}, {"breakdowns": [1, 2]}, {"noise": "x"}, {"noise": True}):
         assert save_gantt(replace(sched, meta={"scenario": bad}), tmp_path / "c.png").exists()
+        assert chart_title(replace(sched, meta={"scenario": bad})) == chart_title(sched)
     with pytest.raises(ValueError, match=f"cannot write the chart: {tmp_path} is a folder; name a file"):
         save_gantt(sched, tmp_path)
