@@ -164,11 +164,14 @@ class SearchInterrupted(KeyboardInterrupt):
     :func:`cpsat`), the lower bound known then and the seconds spent. Every handler of KeyboardInterrupt takes it
     as one; ``fms solve`` keeps the schedule of a search it ran (cpsat, tabu, sos, rules: a long search stopped by
     hand is not lost). The tabu search, sos and the rule combinations raise it too (``lower_bound`` 0: none known;
-    it is never above the best's makespan, which would claim more than was proved)."""
+    it is never above the best's makespan, which would claim more than was proved). ``start_makespan``: the
+    makespan of the start schedule :func:`solve_exact` began its search from (None: interrupted before it had one,
+    or another search)."""
 
-    def __init__(self, best: Schedule, lower_bound: int, wall_time: float):
+    def __init__(self, best: Schedule, lower_bound: int, wall_time: float, start_makespan: int | None = None):
         super().__init__()
         self.best, self.lower_bound, self.wall_time = best, min(lower_bound, best.makespan), wall_time
+        self.start_makespan = start_makespan
 
     @classmethod
     def of(cls, exc: KeyboardInterrupt, best: Schedule, lower_bound: int, wall_time: float) -> "SearchInterrupted":
@@ -177,7 +180,7 @@ class SearchInterrupted(KeyboardInterrupt):
         return exc if isinstance(exc, cls) else cls(best, lower_bound, wall_time)
 
     def __reduce__(self) -> tuple:  # (a process pool's worker sends it to the parent: it failed to unpickle)
-        return type(self), (self.best, self.lower_bound, self.wall_time)
+        return type(self), (self.best, self.lower_bound, self.wall_time, self.start_makespan)
 
 
 @dataclass
@@ -1281,7 +1284,7 @@ def solve_exact(
         incumbent = _copy_schedule(hint)
     lb = simple_lower_bound(instance)
     start = incumbent.makespan
-    try:
+    try:  # (an interrupt before this point, in the start schedule's search, has no start schedule to report)
         if full:
             incumbent = _improve_by_priorities(instance, incumbent, None, lb, t0 + 0.1 * time_limit, seed, None, t0,
                                                max_stall=300)
@@ -1291,7 +1294,9 @@ def solve_exact(
         res.start_makespan = start
         return res
     except KeyboardInterrupt as exc:  # before CP-SAT's search (or in the fallback's): the best start schedule
-        raise SearchInterrupted.of(exc, incumbent, lb, time.monotonic() - t0) from None
+        stopped = SearchInterrupted.of(exc, incumbent, lb, time.monotonic() - t0)
+        stopped.start_makespan = start
+        raise stopped from None
 
 
 def _copy_schedule(s: Schedule) -> Schedule:
@@ -1467,7 +1472,7 @@ def cpsat(instance: Instance, *, time_limit: float = 60.0, workers: int = 2, **k
         res = solve_exact(instance, time_limit=time_limit, workers=workers, **kw)  # type: ignore[arg-type]
     except SearchInterrupted as exc:
         exc.best.meta = {"solver": "cpsat", "status": "INTERRUPTED", "lower_bound": exc.lower_bound,
-                         "wall_time": round(exc.wall_time, 3)}
+                         "wall_time": round(exc.wall_time, 3), "start_makespan": exc.start_makespan}
         raise
     if res.schedule is None:
         raise RuntimeError(f"cpsat found no feasible schedule for {instance.name} within {time_limit:g} s "

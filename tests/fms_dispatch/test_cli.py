@@ -490,6 +490,9 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     assert validate(builtin("ra20"), sched) == [] and chart.stat().st_size > 0
     assert sched.meta["status"] == "INTERRUPTED" and sched.meta["lower_bound"] <= sched.makespan
     assert f"makespan {sched.makespan} " in line[0]
+    start = sched.meta["start_makespan"]  # what the search had added when it was stopped (it was not said)
+    assert start >= sched.makespan and (f"from a start schedule of {start}" in line[0] if start > sched.makespan
+                                        else "no better than its start schedule" in line[0]), line[0]
     # cpsat interrupted in its start schedules (on a large shop they take up to 10 s of the limit: nothing was kept)
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl70", "--solver", "cpsat",
                              "--time-limit", "200", "--out", str(tmp_path / "c.json")], stdout=subprocess.PIPE,
@@ -499,6 +502,7 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     rest, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and ", interrupted, valid)" in rest, (rest, err)
     assert validate(builtin("sl70"), Schedule.load(tmp_path / "c.json")) == []
+    assert Schedule.load(tmp_path / "c.json").meta["start_makespan"] is None and "start schedule" not in rest
     # the tabu search too (interrupted in the search, or before it: then its start schedule), and sos
     for solver, first, wait in (("tabu", "  tabu: list schedule ", 1.0), ("tabu", "  tabu: list schedule ", 0.0),
                                 ("sos", "  sos: ", 0.5)):

@@ -610,5 +610,7 @@ def test_an_interrupted_search_carries_its_best_schedule():
     assert isinstance(exc, SearchInterrupted) and time.monotonic() - t0 < 20
     best = exc.best
     assert validate(inst, best) == [] and best.makespan == min(seen) and exc.lower_bound <= best.makespan
+    # interrupted in CP-SAT's search: the start schedule it began from is known and said (it was left out)
+    assert isinstance(exc.start_makespan, int) and exc.start_makespan >= best.makespan
     assert best.meta == {"solver": "cpsat", "status": "INTERRUPTED", "lower_bound": exc.lower_bound,
-                         "wall_time": round(exc.wall_time, 3)}
+                         "wall_time": round(exc.wall_time, 3), "start_makespan": exc.start_makespan}

@@ -180,5 +180,6 @@ def test_cpsat_takes_no_seed_as_seed_0_and_its_interrupt_crosses_processes():
     inst = builtin("EX12")
     assert solve(inst, "cpsat", seed=None, time_limit=2).makespan == solve(inst, "cpsat", time_limit=2).makespan
     s = solve(inst, "list")
-    back = pickle.loads(pickle.dumps(SearchInterrupted(s, 80, 1.5)))
-    assert isinstance(back, KeyboardInterrupt) and (back.best, back.lower_bound, back.wall_time) == (s, 80, 1.5)
+    back = pickle.loads(pickle.dumps(SearchInterrupted(s, 80, 1.5, 90)))
+    assert isinstance(back, KeyboardInterrupt)
+    assert (back.best, back.lower_bound, back.wall_time, back.start_makespan) == (s, 80, 1.5, 90)
