@@ -23,7 +23,7 @@ import json
 import math
 import numbers
 import random
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +51,8 @@ def _int(d: dict[str, Any], key: str, where: str) -> int:
 
 
 def _whole(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+    """An integer, numpy's included (which the callers keep as Python's), but not a bool."""
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
 
 
 class _Window:
@@ -64,6 +65,7 @@ class _Window:
         for key, v in {**ids, "start": self.start, "duration": self.duration}.items():
             if not _whole(v):
                 raise ScenarioError(f"{what}: {key} must be an integer, got {v!r}")
+            object.__setattr__(self, key, int(v))  # a numpy integer is kept as Python's (JSON, hashing, messages)
 
     @property
     def end(self) -> int:
@@ -105,14 +107,20 @@ class Scenario:
     outages: tuple[Outage, ...] = ()
     noise: float = 0.0
     seed: int = 0
-    _factors: dict = field(default_factory=dict, compare=False, repr=False)
+    #: the noise factors drawn so far (a memo of :meth:`_factor`); not an argument, so that ``dataclasses.replace``
+    #: with another noise or seed starts an empty one (it handed the memo on, and the new scenario realised the old
+    #: one's durations)
+    _factors: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.noise, (int, float)) or isinstance(self.noise, bool) \
+        if not isinstance(self.noise, numbers.Real) or isinstance(self.noise, bool) \
                 or not 0 <= self.noise <= MAX_NOISE:
             raise ScenarioError(f"noise must be a spread from 0 to {MAX_NOISE:g}, got {self.noise!r}")
+        if type(self.noise) not in (int, float):  # numpy's numbers are kept as Python's (np.float64 is a float)
+            object.__setattr__(self, "noise", float(self.noise))
         if not _whole(self.seed):
             raise ScenarioError(f"seed must be an integer, got {self.seed!r}")
+        object.__setattr__(self, "seed", int(self.seed))
         for what, items, kind in (("breakdowns", self.breakdowns, Breakdown), ("outages", self.outages, Outage)):
             if not isinstance(items, (tuple, list)) or not all(isinstance(w, kind) for w in items):
                 raise ScenarioError(f"{what} must be a sequence of {kind.__name__}, got {items!r}")
@@ -131,6 +139,14 @@ class Scenario:
                                     f"{o.duration}")
         _no_overlap(((b.machine, b) for b in self.breakdowns), "machine")
         _no_overlap((((o.kind, o.vehicle), o) for o in self.outages), "vehicle")
+
+    def adding(self, d: "Breakdown | Outage") -> "Scenario":
+        """This scenario with the breakdown or outage ``d`` added (checked as the constructor checks), sharing the
+        noise factors drawn so far: the same noise and seed draw the same factors."""
+        new = replace(self, breakdowns=self.breakdowns + (d,)) if isinstance(d, Breakdown) \
+            else replace(self, outages=self.outages + (d,))
+        object.__setattr__(new, "_factors", self._factors)
+        return new
 
     def windows(self, machine: int) -> list[Breakdown]:
         """The machine's breakdowns, by start."""
@@ -253,17 +269,16 @@ class Scenario:
         durations uniform in ``duration`` (default: 5-15 % of the horizon), at most one per machine; noise
         ``noise``. Reproducible from ``seed``. Raises :class:`ScenarioError` for arguments that draw nothing
         sensible (a negative count or horizon, a duration range that is empty or allows 0)."""
-        def whole(v: Any) -> bool:
-            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
-
-        if not whole(breakdowns) or breakdowns < 0:
+        if not _whole(seed):
+            raise ScenarioError(f"seed must be an integer, got {seed!r}")
+        if not _whole(breakdowns) or breakdowns < 0:
             raise ScenarioError(f"breakdowns must be an integer >= 0, got {breakdowns!r}")
-        if not whole(horizon) or horizon < 0:
+        if not _whole(horizon) or horizon < 0:
             raise ScenarioError(f"horizon must be an integer >= 0 (breakdowns start in [0, horizon)), got {horizon!r}")
         if isinstance(duration, list):
             duration = tuple(duration)  # [0, 0] was refused by a message that offered (0, 0)
         if duration != (0, 0) and not (isinstance(duration, tuple) and len(duration) == 2
-                                       and all(whole(d) for d in duration) and 1 <= duration[0] <= duration[1]):
+                                       and all(_whole(d) for d in duration) and 1 <= duration[0] <= duration[1]):
             raise ScenarioError(f"duration must be a range (low, high) of integers with 1 <= low <= high (a breakdown "
                                 f"lasts at least 1; (0, 0): 5-15 % of the horizon), got {duration!r}")
         rng = random.Random(f"scenario:{seed}")

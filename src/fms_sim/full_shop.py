@@ -408,10 +408,7 @@ class FullShop(Shop):
         if d.start < self.now:
             raise ScenarioError(f"the disruption starts at {d.start}, before the shop's time {self.now}")
         base = self.scenario or Scenario()
-        if isinstance(d, Breakdown):
-            new = replace(base, breakdowns=base.breakdowns + (d,), _factors=base._factors)
-        else:
-            new = replace(base, outages=base.outages + (d,), _factors=base._factors)
+        new = base.adding(d)
         new.check(self.instance)
         if isinstance(d, Outage) and not any(o.kind == d.kind for o in base.outages):
             self._watch_outages(d.kind, self.t_job if d.kind == "agv" else self.t_tool)

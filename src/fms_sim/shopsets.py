@@ -51,6 +51,7 @@ import functools
 import hashlib
 import json
 import re
+import numbers
 from importlib import resources
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -190,13 +191,16 @@ def expand_specs(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> l
     if unknown:  # a misspelt "agv" was ignored
         raise ValueError(f"unknown fleet key(s) {', '.join(map(repr, unknown))}; the keys are "
                          f"{', '.join(_DEFAULT_FLEET)}")
+    fleet = dict(fleet or {})
     for key in ("agvs", "tool_transporters"):
-        v = (fleet or {}).get(key)
-        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):  # 0 gave the default 10
+        v = fleet.get(key)
+        if v is not None and (not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 1):  # 0: default 10
             raise ValueError(f"fleet {key} must be an integer >= 1 or None (the shop's own), got {v!r}")
-    if not isinstance((fleet or {}).get("no_tools", False), (bool, type(None))):  # "false" dropped the tools
-        raise ValueError(f"fleet no_tools must be true, false or None, got {(fleet or {}).get('no_tools')!r}")
-    fl = dict(_DEFAULT_FLEET, **(fleet or {}))
+        if v is not None:
+            fleet[key] = int(v)  # numpy's integers as Python's
+    if not isinstance(fleet.get("no_tools", False), (bool, type(None))):  # "false" dropped the tools
+        raise ValueError(f"fleet no_tools must be true, false or None, got {fleet.get('no_tools')!r}")
+    fl = dict(_DEFAULT_FLEET, **fleet)
     out: list[Instance] = []
     for spec in specs:
         out.extend(_expand_one(spec, fl))

@@ -80,6 +80,44 @@ def test_scenario_parts_are_checked_when_made(make, msg):
         make()
 
 
+def test_numpy_numbers_make_the_same_scenario_as_pythons():
+    # Instance, PlanEffort and the env take numpy's integers; a Breakdown, an Outage and a Scenario refused them
+    import numpy as np
+
+    b = Breakdown(np.int64(2), np.int64(20), np.int32(40))
+    o = Outage("agv", np.int64(1), np.int64(0), np.int64(5))
+    sc = Scenario((b,), (o,), np.float64(0.5), np.int64(3))
+    assert sc == Scenario((Breakdown(2, 20, 40),), (Outage("agv", 1, 0, 5),), 0.5, 3)
+    assert [type(v) for v in (b.machine, b.start, b.duration, o.vehicle, o.start, sc.seed, sc.noise)] == \
+        [int] * 6 + [float]
+    json.dumps(sc.to_dict())  # (numpy's integers are no JSON)
+    assert sc.op_duration(0, 0, 20) == Scenario(noise=0.5, seed=3).op_duration(0, 0, 20)
+    for bad in (np.bool_(True), 2.0, "2"):
+        with pytest.raises(ScenarioError, match="must be an integer"):
+            Breakdown(1, bad, 5)  # type: ignore[arg-type]
+
+
+def test_a_replaced_scenario_draws_its_own_noise():
+    # dataclasses.replace handed the noise factors drawn so far to the new scenario: with another noise or seed it
+    # realised the old one's durations (equal scenarios, different runs; a plan's replay failed its own check)
+    a = Scenario(noise=0.1, seed=1)
+    a.op_duration(0, 0, 20)
+    b = dataclasses.replace(a, noise=1.0, seed=7)
+    assert b == Scenario(noise=1.0, seed=7)
+    assert [b.op_duration(j, 0, 20) for j in range(5)] == [Scenario(noise=1.0, seed=7).op_duration(j, 0, 20)
+                                                           for j in range(5)]
+    inst = builtin("ra01")
+    for noise, seed in ((0.1, 1), (0.9, 5)):
+        sched = make_shop(inst, "full", scenario=dataclasses.replace(a, noise=noise, seed=seed))
+        while not sched.done:
+            sched.act(sched.legal_actions()[0])
+        assert validate(inst, sched.schedule()) == []
+    # a disruption added during a run keeps the factors drawn so far (the same noise and seed draw the same)
+    c = a.adding(Breakdown(1, 5, 5))
+    assert c == Scenario((Breakdown(1, 5, 5),), (), 0.1, 1) and c.op_duration(0, 0, 20) == a.op_duration(0, 0, 20)
+    assert a.adding(Outage("tt", 0, 3, 4)).outages == (Outage("tt", 0, 3, 4),) and a.breakdowns == ()
+
+
 def test_a_list_of_windows_is_kept_as_a_tuple():
     sc = Scenario(breakdowns=[Breakdown(1, 0, 5)])
     assert sc.breakdowns == (Breakdown(1, 0, 5),) and sc == Scenario(breakdowns=(Breakdown(1, 0, 5),))
@@ -285,7 +323,7 @@ def test_draw_takes_numpy_integers_and_a_list_range():
     import numpy as np
 
     inst = builtin("sl00")
-    got = Scenario.draw(inst, breakdowns=np.int64(2), horizon=np.int64(100), duration=[3, 4], seed=1)
+    got = Scenario.draw(inst, breakdowns=np.int64(2), horizon=np.int64(100), duration=[3, 4], seed=np.int64(1))
     assert got == Scenario.draw(inst, breakdowns=2, horizon=100, duration=(3, 4), seed=1)
     assert len(got.breakdowns) == 2 and all(3 <= b.duration <= 4 for b in got.breakdowns)
     # [0, 0] is the default range, as (0, 0) (it was refused by a message that offered (0, 0))

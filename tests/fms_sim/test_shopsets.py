@@ -291,6 +291,11 @@ def test_bu_shop_and_the_generator_check_their_kinds():
     with pytest.raises(InstanceError, match="BU layout must be 1, 2, 3 or 4, got 2.0"):
         bu_shop(2.0, 5)  # type: ignore[arg-type]
     assert bu_shop(np.int64(2), np.int64(5)) == bu_shop(2, 5)
+    # numpy's integers everywhere the generator takes a count or a seed (they were refused as no integer)
+    got = generate_instances(np.int64(5), np.int32(4), np.int64(3), np.int64(2), time_seed=np.int64(7),
+                             n_agvs=np.int64(3))
+    assert got == generate_instances(5, 4, 3, 2, time_seed=7, n_agvs=3)
+    assert expand_specs(["ra01"], {"agvs": np.int64(3)}) == expand_specs(["ra01"], {"agvs": 3})
     with pytest.raises(InstanceError, match="tools must be True or False, got 'no'"):
         generate_instances(5, 4, 3, 1, tools="no")  # type: ignore[arg-type]
 
