@@ -194,7 +194,9 @@ class ShopEnv(gym.Env):
                  invalid_action: str = "penalty", invalid_penalty: float = -10.0, decisions: str = "paper",
                  disruptions: dict[str, Any] | None = None, render_mode: str | None = None):
         if render_mode is not None:  # gymnasium passes render_mode=None to every env it makes
-            raise ValueError(f"this env renders nothing (no render modes), got render_mode {render_mode!r}")
+            # a TypeError, as for an argument the env does not take: sb3's make_vec_env asks for 'rgb_array' and
+            # goes on without a render mode on a TypeError only (a ValueError stopped it)
+            raise TypeError(f"this env renders nothing (no render modes), got render_mode {render_mode!r}")
         self.render_mode = None
         if decisions not in DECISIONS:
             raise ValueError(f"unknown decisions {decisions!r}; choose from {', '.join(DECISIONS)}")

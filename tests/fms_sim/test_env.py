@@ -495,8 +495,14 @@ def test_render_mode_none_is_taken_and_options_are_checked():
     # gym.make(..., render_mode=None) was a TypeError; a misspelt reset option was ignored (another instance ran)
     env = gym.make("fms/Shop-v0", instances=builtin("EX12"), render_mode=None)
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="renders nothing"):
+    with pytest.raises(TypeError, match="renders nothing"):
         ShopEnv(builtin("EX12"), render_mode="human")
+    # sb3's make_vec_env asks for render_mode='rgb_array' and goes on without one on a TypeError (it stopped on the
+    # ValueError this was)
+    from stable_baselines3.common.env_util import make_vec_env
+
+    venv = make_vec_env("fms/Shop-v0", n_envs=2, env_kwargs={"instances": [builtin("EX12")]})
+    assert venv.reset().shape[0] == 2 and venv.env_method("action_masks")[0].any()
     with pytest.raises(ValueError, match=r"unknown reset options \['instanc'\]; use instance, scenario"):
         env.reset(options={"instanc": builtin("EX11")})
     with pytest.raises(TypeError, match="options must be a dict"):
