@@ -282,7 +282,7 @@ class _Search:
                   f"best makespan {self.best_makespan}, {now - self.t0:.1f} s", file=sys.stderr, flush=True)
 
 
-def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population: int = 20,
+def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population: int | None = None,
               iterations: int | None = None, seed: int = 0, progress: bool = False,
               initial: Sequence[str] | None = None, config: SOSConfig | None = None, **_: Any) -> Schedule:
     """Symbiotic organisms search; returns the best schedule found (always feasible).
@@ -290,16 +290,18 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     Stops after ``iterations`` full SOS iterations or at ``time_limit`` seconds, whichever comes first (if
     both are None the time limit is 10 s). ``initial`` lists the seed policies (rule names such as
     ``"rule:MTWR+first"``, or ``"first"``); default :data:`DEFAULT_SEED_RULES`. ``config`` overrides the
-    tunables; its population is replaced by ``population``. Unknown keyword options (``workers``) are ignored.
+    tunables; ``population`` (given) replaces its population (default: the config's, else 20). Unknown keyword options (``workers``) are ignored.
     ``meta``: solver, seed, population, evaluations, iterations, best_makespan_history ([evaluation,
     makespan] at improvements, at most 20 entries), best_seed ([name, makespan]), stopped ("iterations",
     "time_limit", or "lower_bound": the best makespan is :func:`fms_dispatch.exact.simple_lower_bound`, optimal).
     """
     if time_limit is None and iterations is None:
         time_limit = 10.0
-    _check_args(time_limit, iterations, population, seed)
     if config is not None and not isinstance(config, SOSConfig):  # an AttributeError (no __dict__) further down
         raise TypeError(f"config must be an SOSConfig or None, got {type(config).__name__}")
+    if population is None:  # (a default of 20 here replaced every config's population)
+        population = config.population if config is not None else SOSConfig.population
+    _check_args(time_limit, iterations, population, seed)
     cfg = SOSConfig(**{**(config.__dict__ if config else {}), "population": population})
     if isinstance(initial, str):
         raise ValueError("initial must be a list of rule names, not a single string")

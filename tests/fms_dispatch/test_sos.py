@@ -232,6 +232,17 @@ def test_bad_config():
         SOSConfig(population=1)
 
 
+def test_a_configs_population_is_used_unless_one_is_given():
+    # solve_sos's default population of 20 replaced every config's (SOSConfig(population=50) ran with 20)
+    inst = builtin("EX12")
+    assert solve_sos(inst, time_limit=None, iterations=0, config=SOSConfig(population=6)).meta["population"] == 6
+    assert solve_sos(inst, time_limit=None, iterations=0, config=SOSConfig(population=6),
+                     population=4).meta["population"] == 4
+    assert solve_sos(inst, time_limit=None, iterations=0).meta["population"] == SOSConfig().population == 20
+    with pytest.raises(ValueError, match="population must be an integer >= 2, got 1"):
+        solve_sos(inst, time_limit=None, iterations=0, config=SOSConfig(population=6), population=1)
+
+
 def test_the_search_stops_at_the_lower_bound():
     """Once a schedule meets the lower bound nothing better exists: a one-operation shop ran the whole 10 s."""
     from fms_dispatch.exact import simple_lower_bound
