@@ -178,7 +178,7 @@ def get_solver(name: str) -> Solver:
             raise UnknownSolver(str(exc)) from None
         if plus:  # "ppo[:MODEL]+lookahead[-fast|-guide]": names for benches, as the lookahead option
             def with_lookahead(inst: Instance, **kw: Any) -> Schedule:
-                if kw.get("lookahead") not in (None, False, mode):  # another lookahead: refused, not dropped
+                if kw.get("lookahead") not in (None, mode):  # another lookahead (or none: False): refused, not dropped
                     raise ValueError(f"{name} chooses its lookahead ({plus}{flag}); another one "
                                      f"({kw['lookahead']!r}) cannot be given with it")
                 return fn(inst, **{**kw, "lookahead": mode})
@@ -322,7 +322,8 @@ def takes_seed(method: str) -> bool:
 DISRUPTABLE = ("first", "random", "rule:", "plan:", "ppo")
 
 
-#: the options :func:`solve` passes on (every solver takes them all and uses its own; see each solver)
+#: the options :func:`solve` passes on (every solver takes them all and uses its own, see each solver; those that
+#: change what only some solvers do are refused for the others: :data:`OPTION_SOLVERS`)
 SOLVE_OPTIONS = ("seed", "time_limit", "progress", "scenario", "decisions", "workers", "population", "iterations",
                  "initial", "config", "lookahead", "guide_effort", "guide_replan", "replan", "drift")
 
@@ -371,18 +372,46 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+#: options that change what only some solvers do: the solvers (name prefixes) that read each, and who they are in
+#: words. Given to another solver (not None; ``lookahead`` also not False) :func:`solve` refuses them, where they were
+#: taken and ignored (a ``replan`` given to a rule ran without re-planning and said nothing)
+OPTION_SOLVERS: dict[str, tuple[tuple[str, ...], str]] = {
+    "replan": (("plan:",), "the plan: solvers"),
+    "drift": (("plan:",), "the plan: solvers, with replan"),
+    "lookahead": (("ppo",), "the ppo solvers"),
+    "guide_effort": (("ppo",), "the ppo solvers (a guided model)"),
+    "guide_replan": (("ppo",), "the ppo solvers (a guided model)"),
+    "decisions": (DECISION_SOLVERS, "first, random and the rule: solvers"),
+    **{name: (("sos", "plan:sos"), "sos and plan:sos") for name in ("population", "iterations", "config", "initial")},
+}
+
+
+def check_applicable(solver: str, options: dict[str, Any]) -> None:
+    """Raise ValueError for an option of :data:`OPTION_SOLVERS` given to a solver that does not read it (and for a
+    ``drift`` without ``replan``: it sets when a re-plan starts)."""
+    low = solver.lower()
+    for name, (readers, who) in OPTION_SOLVERS.items():
+        v = options.get(name)
+        if v is None or (name == "lookahead" and v is False):
+            continue
+        if not low.startswith(readers) or (name == "drift" and options.get("replan") is None):
+            raise ValueError(f"{solver} does not take option {name}={v!r}: it would be ignored (it is read by {who})")
+
+
 def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule:
     """Solve ``instance`` with the named solver; options (``time_limit``, ``seed``, ...) pass through. The default
     stays ``first`` through the paper's net (the benches and models rely on it); ``fms solve`` without ``--solver``
     runs ``list`` (``plan:list`` in a disrupted run) instead.
     ``scenario`` (a :class:`fms_sim.disruptions.Scenario`) disrupts the run of the solvers in
     :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
-    ``time_limt``) raises TypeError instead of being ignored, and the shared options are checked
-    (:func:`check_options`). The first ``ppo`` solve of a process freezes its heap, so that garbage collection does
+    ``time_limt``) raises TypeError instead of being ignored, the shared options are checked
+    (:func:`check_options`), and one that only other solvers read (``replan`` for a rule, ``lookahead`` for ``list``:
+    :data:`OPTION_SOLVERS`) raises ValueError. The first ``ppo`` solve of a process freezes its heap, so that garbage collection does
     not pause decisions (``fms_dispatch.rl.models.FREEZE_HEAP``: data alive then in reference cycles stays in
     memory; set it False before, in a program that frees such data later)."""
     options = check_options(options)
     fn = get_solver(solver)
+    check_applicable(solver, options)
     require_instance(instance, "solve")
     scenario = options.get("scenario")
     if scenario is not None and scenario.empty:

@@ -1,5 +1,7 @@
 """``solve()``: every solver by name, with the options it passes on checked."""
 
+import re
+
 import pytest
 
 from fms_dispatch.solvers import SOLVE_OPTIONS, UnknownSolver, solve, solver_names
@@ -15,6 +17,39 @@ def test_a_misspelt_option_is_refused_not_ignored():
         solve(inst, "ppo", lookahed=True)
     s = solve(inst, "random", seed=3, time_limit=1, progress=False)  # known options a solver does not use: fine
     assert validate(inst, s) == [] and {"seed", "time_limit", "guide_effort"} <= set(SOLVE_OPTIONS)
+
+
+@pytest.mark.parametrize("solver, options, message", [
+    # each was taken and ignored: a rule "with re-planning" ran without it and said nothing
+    ("rule:MTWR+nearest", {"decisions": "full", "replan": 1.0}, "option replan=1.0: it would be ignored \\(it is read "
+                                                                 "by the plan: solvers\\)"),
+    ("ppo:full", {"drift": 0.05}, "option drift=0.05: .* read by the plan: solvers, with replan"),
+    ("plan:list", {"drift": 0.05}, "option drift=0.05: .* read by the plan: solvers, with replan"),
+    ("list", {"lookahead": True}, "option lookahead=True: .* read by the ppo solvers"),
+    ("list", {"guide_effort": 0.5}, "option guide_effort=0.5: .* read by the ppo solvers \\(a guided model\\)"),
+    ("plan:list", {"guide_replan": False}, "option guide_replan=False"),
+    ("cpsat", {"decisions": "paper", "time_limit": 1}, "option decisions='paper': .* read by first, random and the "
+                                                        "rule: solvers"),
+    ("rules", {"decisions": "paper"}, "option decisions='paper'"),  # (rules:paper names the paper net's)
+    ("tabu", {"initial": ["first"]}, "option initial=\\['first'\\]: .* read by sos and plan:sos"),
+    ("cpsat", {"population": 50}, "option population=50"),
+])
+def test_an_option_the_solver_does_not_read_is_refused(solver, options, message):
+    with pytest.raises(ValueError, match=f"^{re.escape(solver)} does not take " + message):
+        solve(builtin("EX12"), solver, **options)
+
+
+def test_options_the_solver_reads_or_that_say_none_pass():
+    inst = builtin("EX12")
+    for solver, options in (("plan:list", {"replan": 0.2, "drift": 0.1}), ("plan:sos:1", {"population": 4}),
+                            ("sos", {"iterations": 0, "population": 4}), ("rule:MTWR+nearest", {"decisions": "full"}),
+                            ("list", {"lookahead": False, "replan": None, "guide_effort": None}),
+                            ("ppo", {"lookahead": "guide"}), ("ppo+lookahead", {"lookahead": True})):
+        assert validate(inst, solve(inst, solver, **options)) == [], solver
+    # a ppo name with a lookahead takes no lookahead=False either (it ran with its lookahead)
+    with pytest.raises(ValueError, match="ppo\\+lookahead chooses its lookahead \\(\\+lookahead\\); another one "
+                                         "\\(False\\) cannot be given with it"):
+        solve(inst, "ppo+lookahead", lookahead=False)
 
 
 def test_rules_stop_trying_combinations_at_the_time_limit():
