@@ -546,18 +546,26 @@ class TwinDecider:
                      "guide", None, budget=job.budget)
 
     def finish(self, state: dict[str, Any]) -> list[Outgoing]:
-        """At the run's final state: a re-plan still running is ended and reported ``timeout`` (the run ended before
-        it was done; its plan is dropped), so every trigger gets its ``fms/replan/v1``."""
+        """At the run's final state: a re-plan not yet in force is reported ``timeout`` (its plan is dropped; one still
+        running is ended), so every trigger gets its ``fms/replan/v1``. One that was done but not collected (no
+        decision came after it) says so, with its own wall time: it was reported as not done."""
         job = self._job
         if job is None or job.run_id != state["run_id"]:
             return []
         self._job = None
+        done = job.done.is_set()
         job.cancel()
         elapsed = job.elapsed()
         budget = "no" if job.budget is None else f"{job.budget:g} s"
-        self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, job.method,
-                     f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done (budget "
-                     f"{budget}); its plan was dropped", budget=job.budget)
+        if done:
+            wall, why = job.wall, (f"the run ended before its plan could be put in force (the re-plan was done after "
+                                   f"{job.wall:.1f} s, budget {budget}; no decision came after it); its plan was "
+                                   "dropped")
+        else:
+            wall, why = elapsed, (f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done "
+                                  f"(budget {budget}); its plan was dropped")
+        self._report(job.run_id, job.seq, job.time, job.reason, "timeout", wall, None, None, job.method, why,
+                     budget=job.budget)
         return self.drain()
 
     def _report(self, run_id: str, seq: int, time: int, reason: str, status: str, wall: float, before: Any,
@@ -829,7 +837,7 @@ class PlanDecider(TwinDecider):
         if not job.done.is_set():
             elapsed = self._expired(job)
             if elapsed is not None:
-                rp._follow_state(self.stepper.shop)
+                rp.dropped(self.stepper.shop)
                 self._report(job.run_id, job.seq, job.time, job.reason, "timeout", elapsed, None, None, None,
                              f"no plan {elapsed:.1f} s after the trigger (budget {rp.budget:g} s); the current "
                              "plan stays in force", budget=rp.budget)

@@ -397,6 +397,7 @@ class Replanner:
     def take(self, shop: FullShop) -> tuple[Snapshot, FullShop, PlanPolicy | None]:
         """What :meth:`compute` needs, taken from ``shop`` now (in the thread that runs the shop)."""
         self._taken_at = (shop.now, shop.net.acted, shop.n_jobs)
+        self._taken_disruptions: set[tuple] | None = self._disruptions(shop)
         return snapshot(shop), nominal_copy(shop), copy.deepcopy(self.policy)
 
     def moved_on(self, shop: FullShop) -> bool:
@@ -438,8 +439,25 @@ class Replanner:
             else:
                 event["status"] = "kept"
                 self._follow_state(shop)
+        self._answered_at_take()
         self.events.append(event)
         return event
+
+    def dropped(self, shop: FullShop) -> None:
+        """A re-plan that brought no plan in time (the agent reports it ``timeout``): the current plan stays, and the
+        shop's state is taken as seen, but for the disruptions begun since the re-plan started (see :meth:`adopt`)."""
+        self._follow_state(shop)
+        self._answered_at_take()
+
+    def _answered_at_take(self) -> None:
+        """A re-plan answers the disruptions of the state it started from (:meth:`take`): those begun while it ran
+        (beside the run, as the agent node's re-plans do) stay new, so each triggers a re-plan of its own. Taking the
+        state at the end as seen dropped them: a breakdown begun during a re-plan for an outage was never planned
+        for."""
+        taken = getattr(self, "_taken_disruptions", None)
+        if taken is not None:
+            self._active &= taken
+            self._taken_disruptions = None
 
     def _follow_state(self, shop: FullShop) -> None:
         """Keep the current plan but take the shop's state as seen, its lateness so far included: one deviation

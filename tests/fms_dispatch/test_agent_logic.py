@@ -748,6 +748,17 @@ def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkey
     assert msg["status"] == "timeout" and "the run ended" in msg["message"] and msg["method"] == "guide"
     assert agent.decide.finish(svc.state) == []  # said once
 
+    def late(shop, old, effort):  # done after the run's last decision: no state came to collect it
+        time.sleep(0.5)
+        return real(shop, old, effort)
+
+    svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, late, grace=60, pace=0)
+    assert replans == [] and svc.state["done"] and agent.decide._job.done.wait(10)
+    (msg,) = [m.decode(encode(o.msg), expect="replan") for o in agent.on_state(encode(svc.state))]
+    # it was reported as 'before the re-plan was done', with the time to the final state as its wall time
+    assert msg["status"] == "timeout" and "before its plan could be put in force (the re-plan was done after 0." \
+        in msg["message"] and 500 <= msg["wall_ms"] < 5000, msg
+
 
 def test_states_the_checks_let_through_are_answered_not_fatal() -> None:
     # each of these took the agent node down: a history disruption without its (optional) start (KeyError), a

@@ -323,6 +323,35 @@ def test_an_order_that_arrives_while_a_re_plan_runs_gets_its_own_re_plan():
     assert finish_by(shop, rp.plan).makespan <= rp.plan.makespan and validate(shop.instance, shop.schedule()) == []
 
 
+@pytest.mark.parametrize("outcome", ["adopted", "kept", "timeout"])
+def test_a_disruption_begun_while_a_re_plan_runs_gets_its_own_re_plan(outcome):
+    # a re-plan computed beside the run answers the state it started from; when it was collected, the state at the
+    # end was taken as seen, so a breakdown begun meanwhile never triggered a re-plan (an AGV outage's re-plan ran, a
+    # breakdown began during it, and the run went on with a plan that knew nothing of it)
+    from fms_dispatch.replan import ReplanResult
+
+    rp, st = _est_run("sl00", 0.2)
+    shop, inst = st.shop, rp.instance
+    _follow(rp, st, 100)
+    assert rp.trigger(shop) is None
+    rp.take(shop)  # a re-plan starts, the run goes on
+    made = greedy_schedule(inst, rule="ect", origin=snapshot(shop))
+    before = made.makespan + 1 if outcome == "adopted" else made.makespan
+    result = ReplanResult(made, before, made.makespan, "ect", 0.0, inst.n_jobs)
+    shop.add_disruption(Breakdown(3, shop.now, 60))
+    _follow(rp, st, 20)
+    assert shop.m_down[3]
+    if outcome == "timeout":
+        rp.dropped(shop)
+    else:
+        assert rp.adopt(shop, result, "late")["status"] == outcome
+    assert rp.trigger(shop) == "breakdown"
+    event = rp.replan_now(shop, "breakdown")
+    assert event["reason"] == "breakdown" and rp.trigger(shop) is None  # once: answered by its own re-plan
+    assert finish_by(shop, rp.plan).makespan <= rp.plan.makespan
+    assert validate(shop.instance, shop.schedule(), shop.scenario) == []
+
+
 def test_simulations_are_skipped_where_they_would_take_most_of_the_budget(monkeypatch):
     # a run through the net costs 9-25 list schedules (bench/sim_cost.py), not the 3 once assumed: on sl40 a 1 s re-plan after an order
     # simulated its plan for 0.44 s after the budget (1.46 s in all; 2-3 s while the agent's decisions flowed), and
