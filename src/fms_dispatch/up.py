@@ -500,7 +500,7 @@ def cmd_up(a: argparse.Namespace) -> int:
         deadline = time.monotonic() + a.timeout
         next_check = time.monotonic() + min(PROGRESS_S, a.timeout / 4)
         next_report = time.monotonic() + PROGRESS_S
-        seen = _progress(db, run_id) or (0, None)
+        seen = _progress(db, run_id) or (0, None, 0)
         while True:
             if sched_tmp.exists() and inst_final.exists() and png.exists():
                 break
@@ -723,19 +723,22 @@ class _TermAsInterrupt:
         self._old = {}
 
 
-def _progress(db: Path, run_id: str) -> tuple[int, int | None] | None:
-    """How far the run is as the recorder stored it: operations ended and the latest event's time (None as the time:
-    none stored yet); None when the database is not there or cannot be read now. What ``--timeout`` watches and the
-    progress lines say."""
+def _progress(db: Path, run_id: str) -> tuple[int, int | None, int] | None:
+    """How far the run is as the recorder stored it: operations ended, the latest event's time (None as the time:
+    none stored yet) and the jobs orders added; None when the database is not there or cannot be read now. What
+    ``--timeout`` watches and the progress lines say."""
     return _from_store(db, lambda store: store.progress(run_id), None)
 
 
-def _progress_text(progress: tuple[int, int | None], n_operations: int) -> str:
-    """:func:`_progress` in words: operations ended (of the instance's at the start; orders add more) and the shop's
-    clock."""
-    done, latest = progress
+def _progress_text(progress: tuple[int, int | None, int], n_operations: int) -> str:
+    """:func:`_progress` in words: operations ended, of the instance's at the start (with orders: "14 operations done
+    (the shop's 13 and those of 1 ordered job)", where "14 of 13" was said), and the shop's clock."""
+    done, latest, ordered = progress
     if latest is None:
         return "no event recorded yet"
+    if ordered:
+        return (f"{done} operations done (the shop's {n_operations} and those of {ordered} ordered "
+                f"job{'s' if ordered != 1 else ''}), shop time {latest}")
     return f"{done} of {n_operations} operations done, shop time {latest}"
 
 

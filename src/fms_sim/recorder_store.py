@@ -277,12 +277,18 @@ class RecorderStore:
         rows = self.db.execute("SELECT seq, time, kind, data FROM events WHERE run_id = ? ORDER BY seq", (run_id,))
         return [{"seq": s, "time": t, "kind": k, "data": json.loads(d)} for s, t, k, d in rows]
 
-    def progress(self, run_id: str) -> tuple[int, int | None]:
-        """How far the stored events of a run go: the operations ended (``op_end`` events) and the latest event's
-        time (None: no event stored yet) — for a progress line while the run goes on."""
+    def progress(self, run_id: str) -> tuple[int, int | None, int]:
+        """How far the stored events of a run go: the operations ended (``op_end`` events), the latest event's time
+        (None: no event stored yet) and the jobs live orders added (``order_accepted`` events) — for a progress line
+        while the run goes on."""
         done, latest = self.db.execute("SELECT COUNT(CASE WHEN kind = 'op_end' THEN 1 END), MAX(time) FROM events "
                                        "WHERE run_id = ?", (run_id,)).fetchone()
-        return int(done or 0), latest
+        ordered = 0
+        for (data,) in self.db.execute("SELECT data FROM events WHERE run_id = ? AND kind = 'order_accepted'",
+                                       (run_id,)):
+            jobs = json.loads(data).get("jobs") if data else None
+            ordered += len(jobs) if isinstance(jobs, list) else 0
+        return int(done or 0), latest, ordered
 
     def end_seq(self, run_id: str) -> int | None:
         """The seq of the run's ``run_end`` event, if stored."""

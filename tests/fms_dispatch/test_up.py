@@ -203,6 +203,15 @@ def test_a_long_run_reports_its_progress_and_a_timeout_says_how_far_it_got(fake_
         "(longer pauses need --timeout)" in err, err
 
 
+def test_progress_text_counts_the_operations_of_ordered_jobs() -> None:
+    # after a live order fms up said "14 of 13 operations done"
+    assert up._progress_text((2, 12, 0), 13) == "2 of 13 operations done, shop time 12"
+    assert up._progress_text((14, 143, 1), 13) == ("14 operations done (the shop's 13 and those of 1 ordered job), "
+                                                   "shop time 143")
+    assert up._progress_text((14, 143, 3), 13).startswith("14 operations done (the shop's 13 and those of 3 ordered jobs)")
+    assert up._progress_text((0, None, 0), 13) == "no event recorded yet"
+
+
 @pytest.mark.parametrize("logged, named", [
     ("[INFO] [1.0] [fms_agent]: planning\n[ERROR] [1.5] [fms_agent]: [plan_failed] no plan for EX12\n[ERROR] [2.0] "
      "[fms_agent]: again", "[ERROR] [1.5] [fms_agent]: [plan_failed] no plan for EX12"),
@@ -495,7 +504,7 @@ def test_progress_is_none_where_the_database_cannot_be_read(tmp_path):
     (tmp_path / "junk.sqlite").write_bytes(b"not a database at all" * 100)
     assert up._progress(tmp_path / "junk.sqlite", "r") is None
     RecorderStore(tmp_path / "db.sqlite").close()
-    assert up._progress(tmp_path / "db.sqlite", "r") == (0, None)
+    assert up._progress(tmp_path / "db.sqlite", "r") == (0, None, 0)
 
 
 def test_an_interrupt_while_the_output_is_written_names_the_kept_output(fake_nodes, tmp_path: Path, capsys,

@@ -101,16 +101,21 @@ def test_a_duplicate_or_conflicting_event_leaves_the_database_unlocked(tmp_path:
 def test_store_progress_counts_ended_operations_and_the_latest_time(tmp_path: Path) -> None:
     svc = finished_run()
     store = RecorderStore(tmp_path / "log.sqlite")
-    assert store.progress("run-1") == (0, None)                 # nothing stored yet
+    assert store.progress("run-1") == (0, None, 0)                 # nothing stored yet
     half = len(svc.events) // 2
     for e in svc.events[:half]:
         store.add_event(e)
     ended = sum(e["kind"] == "op_end" for e in svc.events[:half])
-    assert 0 < ended and store.progress("run-1") == (ended, max(e["time"] for e in svc.events[:half]))
+    assert 0 < ended and store.progress("run-1") == (ended, max(e["time"] for e in svc.events[:half]), 0)
     for e in svc.events[half:]:
         store.add_event(e)
-    assert store.progress("run-1") == (svc.instance.n_operations, svc.final_schedule.makespan)
-    assert store.progress("other") == (0, None)
+    assert store.progress("run-1") == (svc.instance.n_operations, svc.final_schedule.makespan, 0)
+    assert store.progress("other") == (0, None, 0)
+    # the jobs live orders added (fms up said "14 of 13 operations done" after an order)
+    for seq, jobs in enumerate(([5, 6], [7])):
+        store.add_event(dict(svc.events[0], run_id="run-2", seq=seq, time=3, kind="order_accepted",
+                             data={"order_id": f"o{seq}", "jobs": jobs}))
+    assert store.progress("run-2") == (0, 3, 3)
 
 
 def test_store_incomplete_runs_and_errors(tmp_path: Path) -> None:
