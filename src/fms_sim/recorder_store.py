@@ -339,7 +339,10 @@ class RecorderStore:
         """Rebuild the run's schedule from its stored ``*_end`` events (which carry ``start``).
 
         The header (instance name, fleet sizes) comes from the stored schedule if there is one, else from the
-        ``run_start`` event and the vehicles seen. Raises ``ValueError`` if the run has no ``run_end`` event.
+        ``run_start`` event and the vehicles seen; so do the disruptions and live orders of the run (``meta``'s
+        ``scenario`` and ``arrivals``, which the validator needs: the events name the disruptions and ordered jobs but
+        not a start scenario's noise, nor the ordered operations). Raises ``ValueError`` if the run has no ``run_end``
+        event.
         """
         last = self.end_seq(run_id)
         evs = [e for e in self.events(run_id) if last is None or e["seq"] <= last]  # (strays after the end: not)
@@ -365,8 +368,9 @@ class RecorderStore:
         makespan = end[-1]["data"].get("makespan")
         if makespan is None:
             makespan = max((o.end for o in ops), default=0)
+        meta = {k: stored.meta[k] for k in ("scenario", "arrivals") if stored and k in stored.meta}
         return Schedule(instance=name, makespan=makespan, n_agvs=n_agvs, n_tool_transporters=n_tts,
-                        operations=ops, agv_trips=agv, tool_trips=tt)
+                        operations=ops, agv_trips=agv, tool_trips=tt, meta=meta)
 
 
 class Recorder:

@@ -320,6 +320,33 @@ def test_a_second_run_under_the_same_id_is_reported_not_mixed_in(tmp_path: Path)
     assert err.msg["code"] == "run_conflict" and "a schedule (makespan" in err.msg["message"]
 
 
+def test_a_disrupted_runs_schedule_rebuilt_from_its_log_keeps_its_disruptions_and_orders(tmp_path: Path) -> None:
+    # the rebuilt schedule carried no meta: against the run's final instance it failed the validator (an operation
+    # lengthened by a breakdown "lasts 50, its duration is 20")
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    svc = ShopService(builtin("EX12"), run_id="run-1", decisions="full", history=True,
+                      scenario=Scenario((Breakdown(1, 5, 30),), (), 0.1, 2))
+    svc.start()
+    steps = 0
+    while not svc.done:
+        if steps == 3:
+            svc.handle_order(encode(m.make_order("o1", [[{"machine": 2, "tool": None, "duration": 4}]])))
+        if steps == 6:
+            svc.handle_disruption(encode(m.make_disruption("d1", "breakdown", 20, machine=3)))
+        label = next(a for a, ok in zip(svc.state["actions"], svc.state["mask"]) if ok)
+        svc.handle_command(encode(m.make_command("run-1", svc.state_seq, label)))
+        steps += 1
+    events, schedule = texts(svc)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    for t in events:
+        rec.handle_event(t, now=0.0)
+    rec.handle_schedule(schedule, now=0.0)
+    rebuilt = rec.store.schedule_from_events("run-1")
+    assert len(rebuilt.meta["scenario"]["breakdowns"]) == 2 and rebuilt.meta["arrivals"]
+    assert validate(svc.instance, rebuilt) == [] and svc.instance.n_jobs == builtin("EX12").n_jobs + 1
+
+
 def test_a_stray_event_after_the_end_is_kept_out_of_the_run(tmp_path: Path) -> None:
     """One bogus event numbered past the run's end made the run incomplete for ever (or, after the end, its
     schedule rebuilt from events invalid), with a replay request every second."""
