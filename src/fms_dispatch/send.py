@@ -125,7 +125,9 @@ def build(a: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     try:
         if a.what == "order":  # --id and --run-id win over a message file's own
             jobs, order_id, run_id = _order(a.jobs)
-            return "order", make_order(a.id or order_id or mid, jobs, run_id=a.run_id or run_id)
+            # (a message's empty order_id is refused by make_order: it was replaced by a generated one without a word)
+            return "order", make_order(a.id or (mid if order_id is None else order_id), jobs,
+                                       run_id=a.run_id or run_id)
         if a.what == "breakdown":
             return "disruption", make_disruption(mid, "breakdown", a.duration, machine=a.machine, start=a.start,
                                                  run_id=a.run_id)

@@ -129,3 +129,6 @@ def test_bad_input_is_refused_before_anything_is_sent(monkeypatch, capsys) -> No
         assert cli.main(["send", "breakdown", "--machine", "1", "--duration", "3", "--id", empty,
                          "--domain-id", "3"]) == 2
         assert "fms: error: --id must be a non-empty name" in capsys.readouterr().err
+    # a message file's empty order id, likewise (before any ROS work)
+    assert cli.main(["send", "order", "--jobs", '{"order_id": "", "jobs": [[[1, null, 5]]]}', "--domain-id", "3"]) == 2
+    assert "field 'order_id' must be a non-empty string, got ''" in capsys.readouterr().err
