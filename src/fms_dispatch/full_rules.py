@@ -25,6 +25,7 @@ order on the instance; ``rules:paper`` — the best of the paper net's 36 rule p
 
 from __future__ import annotations
 
+import numbers
 import sys
 import time
 from typing import Any, Callable
@@ -35,7 +36,7 @@ from fms_sim.instance import Instance, require_instance
 from fms_sim.replay import replay
 from fms_sim.schedule import Schedule
 
-from .rules import JOB_RULES, VEHICLE_RULES, choose_vehicle
+from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, check_rule_names, choose_vehicle
 
 __all__ = ["TOOL_RULES", "FullRulePolicy", "run_full", "full_rule_names", "solve_list", "solve_best_rules"]
 
@@ -59,6 +60,11 @@ class _OpView:
 def run_full(instance: Instance, choose: Callable[[FullShop], int], scenario: Scenario | None = None) -> Schedule:
     """Run the full-decision net to completion, asking ``choose(shop)`` at every decision (in a shop disrupted
     by ``scenario``, if given)."""
+    if isinstance(choose, RulePolicy):  # (it failed inside, reading the paper net's requests off a FullShop)
+        raise TypeError("a RulePolicy decides through the paper's net (fms_sim.shop.run_policy); the full net's rules "
+                        "are FullRulePolicy (or parse_full_rule('rule:MTWR+nearest'))")
+    if not callable(choose):
+        raise TypeError(f"choose must be a callable shop -> action, got {type(choose).__name__}")
     shop = FullShop(instance, scenario=scenario)
     while not shop.done:
         shop.act(choose(shop))
@@ -69,6 +75,7 @@ class FullRulePolicy:
     """A job rule, a vehicle rule and a tool rule acting through the full net's masks (module docstring)."""
 
     def __init__(self, job_rule: str = "FIFO", vehicle_rule: str = "first", tool_rule: str = "fifo"):
+        check_rule_names(job=job_rule, vehicle=vehicle_rule, tool=tool_rule)
         job_rule, vehicle_rule, tool_rule = job_rule.upper(), vehicle_rule.lower(), tool_rule.lower()
         if job_rule not in JOB_RULES:
             raise ValueError(f"unknown job rule {job_rule!r}; choose from {', '.join(JOB_RULES)}")
@@ -258,6 +265,8 @@ def solve_list(instance: Instance, order: str = "est", **_: Any) -> Schedule:
     from .exact import greedy_schedule
 
     require_instance(instance, "solve_list")
+    if not isinstance(order, str):  # (an AttributeError from .upper())
+        raise ValueError(f"the list order is named by a string ({', '.join(LIST_ORDERS)}), got {order!r}")
     up = order.upper()
     if order.lower() in ("est", "ect"):
         plan = greedy_schedule(instance, rule=order.lower())
@@ -281,7 +290,9 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
     tools, where a rule can end twice as late: what a short time limit keeps), ties still going to the first
     listed, so a run that tries them all ends with the same schedule whatever the order."""
     require_instance(instance, "solve_best_rules")  # a name was an AttributeError
-    if time_limit is not None and not time_limit > 0:
+    if time_limit is not None and (not isinstance(time_limit, numbers.Real) or isinstance(time_limit, bool)):
+        raise TypeError(f"time_limit must be a number of seconds or None, got {time_limit!r}")  # ("1": a TypeError
+    if time_limit is not None and not time_limit > 0:                                          # from a comparison)
         raise ValueError(f"the time limit must be positive, got {time_limit}")
     from fms_sim.shop import run_policy
 

@@ -66,10 +66,19 @@ JOB_RULES: dict[str, JobKey] = {
 VEHICLE_RULES = ("first", "least-work", "nearest")
 
 
+def check_rule_names(**rules: object) -> None:
+    """Raise ValueError unless each of ``rules`` (``job=``, ``vehicle=``, ``tool=``) names its rule by a string (None
+    was an AttributeError from ``.upper()``)."""
+    for what, name in rules.items():
+        if not isinstance(name, str):
+            raise ValueError(f"the {what} rule is named by a string (e.g. 'MTWR', 'nearest', 'fifo'), got {name!r}")
+
+
 class RulePolicy:
     """Choose the legal action by a job rule and a vehicle rule; callable as ``policy(shop) -> action``."""
 
     def __init__(self, job_rule: str = "FIFO", vehicle_rule: str = "first"):
+        check_rule_names(job=job_rule, vehicle=vehicle_rule)
         job_rule, vehicle_rule = job_rule.upper(), vehicle_rule.lower()
         if job_rule not in JOB_RULES:
             raise ValueError(f"unknown job rule {job_rule!r}; choose from {', '.join(JOB_RULES)}")

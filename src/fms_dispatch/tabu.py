@@ -44,7 +44,7 @@ import time
 from typing import Callable, Iterator, Sequence
 
 from fms_sim.instance import Instance, require_instance
-from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip, require_schedule
 from fms_sim.snapshot import Snapshot
 
 __all__ = ["tabu_plan", "solve_tabu", "residual_lower_bound"]
@@ -731,6 +731,8 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
     when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
     is a residual plan from the same state."""
+    require_instance(inst, "tabu_plan")  # (the validator's own check named validate; None was an AttributeError)
+    require_schedule(plan, "tabu_plan")
     if budget == float("inf"):
         budget = None  # no time limit, as None says: an iteration limit must then be set (it ran without an end)
     if budget is None and max_iters is None:

@@ -34,8 +34,8 @@ from matplotlib.ticker import MaxNLocator
 from matplotlib.transforms import blended_transform_factory
 
 from .files import replacing
-from .instance import MAX_COUNT, Instance
-from .schedule import Schedule
+from .instance import MAX_COUNT, Instance, require_instance
+from .schedule import Schedule, require_schedule
 
 __all__ = ["chart_title", "plot_gantt", "save_gantt", "chart_formats"]
 
@@ -183,6 +183,9 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
     matplotlib does not write).
     Raises ``ValueError("empty schedule")`` when the schedule has no operations.
     """
+    require_schedule(schedule, "plot_gantt")  # (an instance in its place, the arguments swapped: AttributeError)
+    if instance is not None:
+        require_instance(instance, "plot_gantt's instance")
     if not schedule.operations:
         raise ValueError("empty schedule")
     rows, heads, total = _layout(schedule, instance)

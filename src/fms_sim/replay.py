@@ -20,9 +20,9 @@ from typing import Deque
 
 from .disruptions import Scenario
 from .full_shop import HOLD, FullShop
-from .instance import Instance
+from .instance import Instance, require_instance
 from .petri import InvalidAction
-from .schedule import Schedule
+from .schedule import Schedule, require_schedule
 from .stepping import Move, Stepper, moves_label, parse_moves
 from .ties import plan_orders
 from .validate import validate
@@ -289,6 +289,8 @@ def replay(instance: Instance, schedule: Schedule, *, check: bool = True,
     Raises :class:`ReplayError` if ``schedule`` is not valid for ``instance`` (with the validator's first
     errors; nothing is run) or, with ``check``, if the replayed schedule were not valid (never for a valid input;
     the check is the independent validator's)."""
+    require_instance(instance, "replay")  # (the validator's own check named validate)
+    require_schedule(schedule, "replay")
     problems = validate(instance, schedule)
     if problems:
         head = "; ".join(problems[:5]) + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else "")

@@ -17,7 +17,7 @@ from typing import Any
 
 from .files import loads, read_text, write_atomically
 
-__all__ = ["OperationRecord", "AgvTrip", "ToolTrip", "Schedule", "ScheduleError"]
+__all__ = ["OperationRecord", "AgvTrip", "ToolTrip", "Schedule", "ScheduleError", "require_schedule"]
 
 
 class ScheduleError(ValueError):
@@ -271,3 +271,15 @@ def _unwritable(v: Any, at: str = "") -> str | None:
 def _short(d: dict) -> str:
     text = json.dumps(d)
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def require_schedule(obj: object, who: str) -> "Schedule":
+    """``obj`` if it is a :class:`Schedule`; else a TypeError naming ``who`` (the function given it) and how to get
+    one (a dict or an instance in its place reached attribute errors deep inside, or a message naming another
+    function)."""
+    if isinstance(obj, Schedule):
+        return obj
+    hint = ("Schedule.from_dict reads one from a dict" if isinstance(obj, dict)
+            else "Schedule.load reads one from a file" if isinstance(obj, (str, Path))
+            else "a solver returns one; Schedule.load reads one from a file")
+    raise TypeError(f"{who} takes a Schedule ({hint}), got {type(obj).__name__} {obj!r:.60}")

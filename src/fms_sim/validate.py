@@ -37,7 +37,7 @@ import numpy as np
 
 from .disruptions import Scenario, ScenarioError
 from .instance import Instance, require_instance
-from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip, require_schedule
 from .ties import settle, tool_order, tool_use_orders, trips_by_op, uses_by_tool
 
 __all__ = ["validate", "check", "ScheduleInvalid", "tool_use_orders", "recorded_scenario", "recorded_arrivals"]
@@ -116,9 +116,7 @@ def validate(instance: Instance, schedule: Schedule, scenario: Scenario | None =
     """Every violation of the contract, as human-readable lines; an empty list means feasible. ``scenario``
     (default: the one the schedule records in ``meta["scenario"]``, if any) gives the disruptions of the run."""
     require_instance(instance, "validate")
-    if not isinstance(schedule, Schedule):
-        raise TypeError(f"validate takes a Schedule (Schedule.from_dict or Schedule.load reads one), got "
-                        f"{type(schedule).__name__}")
+    require_schedule(schedule, "validate")
     errs = _check_types(schedule)
     if errs:  # times and indices that are no integers: nothing below can be judged (or computed) with them
         return errs

@@ -25,11 +25,16 @@ def test_a_name_or_a_dict_for_an_instance_schedule_or_scenario_is_named() -> Non
         with pytest.raises(TypeError, match=f"^{who} takes an Instance .fms_sim.benchmarks.builtin or "
                                             "fms_sim.formats.load_instance reads one by name., got str 'EX12'"):
             call()
-    with pytest.raises(TypeError, match=r"^validate takes a Schedule .Schedule.from_dict or Schedule.load reads one., "
-                                        r"got dict$"):
+    with pytest.raises(TypeError, match=r"^validate takes a Schedule .Schedule.from_dict reads one from a dict., "
+                                        r"got dict \{"):
         validate(ex12, s.to_dict())
-    with pytest.raises(TypeError, match="^validate takes a Schedule"):
+    # replay and tabu_plan name themselves (the validator's check they run first said "validate takes ...")
+    with pytest.raises(TypeError, match="^replay takes a Schedule .Schedule.from_dict reads one from a dict"):
         replay(ex12, s.to_dict())
+    with pytest.raises(TypeError, match="^replay takes an Instance"):
+        replay("EX12", s)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^validate takes a Schedule .Schedule.load reads one from a file., got str"):
+        validate(ex12, "s.json")  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"^scenario must be a Scenario .Scenario.from_dict reads a dict., got dict$"):
         FullShop(ex12, scenario={"noise": 0.1})
     with pytest.raises(UnknownSolver, match="^a solver is named by a string, got NoneType None"):
@@ -41,6 +46,41 @@ def test_a_name_or_a_dict_for_an_instance_schedule_or_scenario_is_named() -> Non
         snapshot(paper)
     with pytest.raises(TypeError, match="^a nominal copy is made of a FullShop"):
         nominal_copy(paper)
+
+
+def test_charts_and_rule_policies_name_their_mistakes() -> None:
+    # each was an AttributeError (swapped arguments, a name for an instance, None for a rule) or a TypeError from
+    # deep inside (a paper-net policy on the full net, a time limit given as a string)
+    from fms_dispatch.full_rules import FullRulePolicy, run_full, solve_best_rules, solve_list
+    from fms_dispatch.rules import RulePolicy
+    from fms_dispatch.tabu import tabu_plan
+    from fms_sim.gantt import plot_gantt
+
+    ex12 = builtin("EX12")
+    s = solve(ex12, "list")
+    with pytest.raises(TypeError, match="^plot_gantt takes a Schedule .*got Instance"):
+        plot_gantt(ex12, s)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^plot_gantt's instance takes an Instance .*got str 'EX12'"):
+        plot_gantt(s, "EX12")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^plot_gantt takes a Schedule .Schedule.from_dict reads one from a dict"):
+        plot_gantt(s.to_dict())  # type: ignore[arg-type]
+    for make, what in ((lambda: RulePolicy(None), "job"), (lambda: RulePolicy("MTWR", 3), "vehicle"),
+                       (lambda: FullRulePolicy("MTWR", "nearest", None), "tool")):
+        with pytest.raises(ValueError, match=f"^the {what} rule is named by a string .*got (None|3)$"):
+            make()
+    with pytest.raises(TypeError, match="^a RulePolicy decides through the paper's net"):
+        run_full(ex12, RulePolicy("MTWR", "nearest"))
+    with pytest.raises(TypeError, match="^choose must be a callable shop -> action, got str"):
+        run_full(ex12, "MTWR")  # type: ignore[arg-type]
+    assert validate(ex12, run_full(ex12, FullRulePolicy("MTWR", "nearest"))) == []
+    with pytest.raises(ValueError, match="^the list order is named by a string .est, ect, .*got None"):
+        solve_list(ex12, None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^tabu_plan takes a Schedule"):
+        tabu_plan(ex12, None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^tabu_plan takes an Instance"):
+        tabu_plan("EX12", s)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^time_limit must be a number of seconds or None, got '1'"):
+        solve_best_rules(ex12, time_limit="1")  # type: ignore[arg-type]
 
 
 def test_the_solvers_public_functions_name_their_mistakes() -> None:
