@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 import numbers
 import zlib
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import gymnasium as gym
@@ -179,6 +180,11 @@ def padding_excess(inst: Instance, padding: dict[str, int]) -> tuple[str, int, i
     return None
 
 
+def _draw_one(known: list[Instance], rng: np.random.Generator) -> Instance:
+    """One of ``known``, drawn uniformly by ``rng``: the env's sampler over a sequence of instances."""
+    return known[int(rng.integers(len(known)))]
+
+
 class ShopEnv(gym.Env):
     """Dispatching environment; see the module docstring for spaces and rewards.
 
@@ -221,7 +227,7 @@ class ShopEnv(gym.Env):
             bad = next((i for i in known if not isinstance(i, Instance)), None)
             if bad is not None:
                 raise TypeError(f"ShopEnv takes Instance objects, got {type(bad).__name__} {bad!r:.60}")
-            self._sample = lambda rng: known[int(rng.integers(len(known)))]
+            self._sample = partial(_draw_one, known)  # (a lambda made the env unpicklable)
         if not known and None in (max_jobs, max_machines, max_tools, max_agvs, max_tts):
             raise ValueError("with an instance sampler, give every max_* size")
         for key, v, least in (("max_jobs", max_jobs, 1), ("max_machines", max_machines, 1), ("max_tools", max_tools, 0),

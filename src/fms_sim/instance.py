@@ -201,7 +201,8 @@ class Instance:
                                     f"{count} out)")
         if self.tool_travel is None:
             if used_t:
-                raise InstanceError("operations need tools but tool_travel is null (use --no-tools to drop tools)")
+                raise InstanceError("operations need tools but tool_travel is null: give a tool travel matrix, or "
+                                    "operations without tools")  # (it said --no-tools, which reads the file first)
 
     # ------------------------------------------------------------------ derived facts
     @property
@@ -234,7 +235,8 @@ class Instance:
         if self.has_tools:
             fleet.append(f"{_count(self.n_tools, 'tool')}, {_count(self.n_tool_transporters, 'tool transporter')}")
         return (
-            f"{self.name}: {self.n_jobs} jobs x {self.n_machines} machines, {self.n_operations} operations"
+            f"{self.name}: {_count(self.n_jobs, 'job')} x {_count(self.n_machines, 'machine')}, "
+            f"{_count(self.n_operations, 'operation')}"
             + (f", {', '.join(fleet)}" if fleet else ", plain job shop")
         )
 

@@ -515,3 +515,13 @@ def test_disruptions_need_the_full_net():
     with pytest.raises(ValueError, match="full-decision net only"):
         ShopEnv(builtin("EX12"), disruptions={"noise": 0.1})
     assert ShopEnv(builtin("EX12"), disruptions={}).disruptions is None  # empty: none
+
+
+def test_an_env_over_a_list_of_shops_pickles_before_its_first_episode() -> None:
+    # its sampler was a lambda (vector envs and process pools pickle what they are given)
+    import pickle
+
+    env = ShopEnv([builtin("EX12"), builtin("EX11")])
+    back = pickle.loads(pickle.dumps(env))
+    obs, info = back.reset(seed=3)
+    assert back.observation_space.contains(obs) and info["action_mask"].any()

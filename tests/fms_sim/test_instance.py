@@ -41,7 +41,8 @@ def _inst(**kw: Any) -> Instance:
     (dict(agv_travel=[[0, -1, 2], [1, 0, 1], [2, 1, 0]], n_agvs=1), r"agv_travel\[0\]\[1\] is negative"),
     (dict(agv_travel=Z3), "AGV travel matrix but no AGVs"),
     (dict(tool_travel=Z3), "tool travel matrix but no tool transporters"),
-    (dict(), "operations need tools but tool_travel is null"),
+    (dict(), "operations need tools but tool_travel is null: give a tool travel matrix, or operations without "
+             "tools$"),
     # the constructor set these to 0 without a word (Instance.from_dict refused them)
     (dict(jobs=[[(1, None, 2)]], n_agvs=3), "n_agvs is 3 but agv_travel is missing"),
     (dict(jobs=[[(1, None, 2)]], agv_travel=Z3, n_agvs=1, n_tool_transporters=2),
@@ -133,3 +134,10 @@ def test_numpy_integers_and_arrays_build_an_instance_of_python_ints() -> None:
         Operation(np.float64(1.0), None, 3)  # type: ignore[arg-type]
     with pytest.raises(InstanceError, match="machine must be an integer"):
         Operation(True, None, 3)
+
+
+def test_describe_counts_in_words() -> None:
+    # "1 jobs x 1 machines"
+    one = Instance(name="one", jobs=((Operation(1, None, 5),),), n_machines=1)
+    assert one.describe() == "one: 1 job x 1 machine, 1 operation, plain job shop"
+    assert builtin("EX12").describe() == "EX12: 5 jobs x 4 machines, 13 operations, 2 AGVs"
