@@ -750,9 +750,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
     interrupted = False
     rollout = int(model.n_steps) * n_envs
-    if steps and steps % rollout:  # PPO learns from whole rollouts
+    total = -(-steps // rollout) * rollout  # PPO learns from whole rollouts: what sb3 runs for ``steps``
+    if steps and steps % rollout:
         print(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
-              f"{-(-steps // rollout) * rollout}", file=sys.stderr, flush=True)
+              f"{total}", file=sys.stderr, flush=True)
     if steps:
         try:
             with warnings.catch_warnings():
@@ -760,7 +761,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                 # is meant so
                 warnings.filterwarnings("ignore", message="Training and eval env are not of the same type",
                                         category=UserWarning)
-                model.learn(total_timesteps=steps, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
+                model.learn(total_timesteps=total, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
                             reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
             interrupted = True
