@@ -368,7 +368,7 @@ class RecorderStore:
         makespan = end[-1]["data"].get("makespan")
         if makespan is None:
             makespan = max((o.end for o in ops), default=0)
-        meta = {k: stored.meta[k] for k in ("scenario", "arrivals") if stored and k in stored.meta}
+        meta: dict[str, Any] = {k: stored.meta[k] for k in ("scenario", "arrivals") if stored and k in stored.meta}
         return Schedule(instance=name, makespan=makespan, n_agvs=n_agvs, n_tool_transporters=n_tts,
                         operations=ops, agv_trips=agv, tool_trips=tt, meta=meta)
 
