@@ -547,8 +547,8 @@ class TwinDecider:
 
     def finish(self, state: dict[str, Any]) -> list[Outgoing]:
         """At the run's final state: a re-plan not yet in force is reported ``timeout`` (its plan is dropped; one still
-        running is ended), so every trigger gets its ``fms/replan/v1``. One that was done but not collected (no
-        decision came after it) says so, with its own wall time: it was reported as not done."""
+        running is ended), so every trigger gets its ``fms/replan/v1``. One that was done but not collected says so,
+        with its own wall time (it was reported as not done); one that failed is reported ``failed`` with its error."""
         job = self._job
         if job is None or job.run_id != state["run_id"]:
             return []
@@ -557,10 +557,13 @@ class TwinDecider:
         job.cancel()
         elapsed = job.elapsed()
         budget = "no" if job.budget is None else f"{job.budget:g} s"
+        if done and job.error is not None:  # it failed: no plan to drop, and its error is the news
+            self._report(job.run_id, job.seq, job.time, job.reason, "failed", job.wall, None, None, job.method,
+                         job.error, budget=job.budget)
+            return self.drain()
         if done:
             wall, why = job.wall, (f"the run ended before its plan could be put in force (the re-plan was done after "
-                                   f"{job.wall:.1f} s, budget {budget}; no decision came after it); its plan was "
-                                   "dropped")
+                                   f"{job.wall:.1f} s, budget {budget}); its plan was dropped")
         else:
             wall, why = elapsed, (f"the run ended {elapsed:.1f} s after the trigger, before the re-plan was done "
                                   f"(budget {budget}); its plan was dropped")

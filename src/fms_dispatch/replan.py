@@ -425,6 +425,7 @@ class Replanner:
         if result is None:
             event.update(status="failed", before=None, after=None, error=error or "no plan")
             self._follow_state(shop)
+            self._orders_since_take_stay()
         else:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
@@ -445,9 +446,19 @@ class Replanner:
 
     def dropped(self, shop: FullShop) -> None:
         """A re-plan that brought no plan in time (the agent reports it ``timeout``): the current plan stays, and the
-        shop's state is taken as seen, but for the disruptions begun since the re-plan started (see :meth:`adopt`)."""
+        shop's state is taken as seen, but for the disruptions begun and the jobs ordered since the re-plan started
+        (each triggers a re-plan of its own)."""
         self._follow_state(shop)
+        self._orders_since_take_stay()
         self._answered_at_take()
+
+    def _orders_since_take_stay(self) -> None:
+        """No plan came of a re-plan: jobs ordered since it started (:meth:`take`) were planned by nothing, so they
+        stay an order to re-plan for (taking the state as seen used the trigger up, and they waited until the plan
+        got stuck)."""
+        taken = getattr(self, "_taken_at", None)
+        if taken is not None and taken[2] < self._n_jobs:
+            self._n_jobs = taken[2]
 
     def _answered_at_take(self) -> None:
         """A re-plan answers the disruptions of the state it started from (:meth:`take`): those begun while it ran

@@ -406,9 +406,9 @@ def solve(instance: Instance, solver: str = "first", **options: Any) -> Schedule
     :data:`DISRUPTABLE`; the others refuse it. An option not in :data:`SOLVE_OPTIONS` (a misspelt
     ``time_limt``) raises TypeError instead of being ignored, the shared options are checked
     (:func:`check_options`), and one that only other solvers read (``replan`` for a rule, ``lookahead`` for ``list``:
-    :data:`OPTION_SOLVERS`) raises ValueError. The first ``ppo`` solve of a process freezes its heap, so that garbage collection does
-    not pause decisions (``fms_dispatch.rl.models.FREEZE_HEAP``: data alive then in reference cycles stays in
-    memory; set it False before, in a program that frees such data later)."""
+    :data:`OPTION_SOLVERS`) raises ValueError. The first ``ppo`` solve of a process freezes its heap, so that
+    garbage collection does not pause decisions (``fms_dispatch.rl.models.FREEZE_HEAP``: data alive then in
+    reference cycles stays in memory; set it False before, in a program that frees such data later)."""
     options = check_options(options)
     fn = get_solver(solver)
     check_applicable(solver, options)

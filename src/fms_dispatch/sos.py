@@ -290,7 +290,8 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     Stops after ``iterations`` full SOS iterations or at ``time_limit`` seconds, whichever comes first (if
     both are None the time limit is 10 s). ``initial`` lists the seed policies (rule names such as
     ``"rule:MTWR+first"``, or ``"first"``); default :data:`DEFAULT_SEED_RULES`. ``config`` overrides the
-    tunables; ``population`` (given) replaces its population (default: the config's, else 20). Unknown keyword options (``workers``) are ignored.
+    tunables; ``population`` (given) replaces its population (default: the config's, else 20). Unknown keyword
+    options (``workers``) are ignored.
     ``meta``: solver, seed, population, evaluations, iterations, best_makespan_history ([evaluation,
     makespan] at improvements, at most 20 entries), best_seed ([name, makespan]), stopped ("iterations",
     "time_limit", or "lower_bound": the best makespan is :func:`fms_dispatch.exact.simple_lower_bound`, optimal).

@@ -10,10 +10,10 @@ The chart has three sections, each with a labelled header band:
   whose operation the tool serves and labelled with the tool (``T3``).
 
 A dashed vertical line marks the makespan; breakdowns and outages that the schedule's ``meta["scenario"]`` records
-are shaded on their rows, and the default title (:func:`chart_title`) says what disrupted the run. Rendering uses :class:`matplotlib.figure.Figure` with an explicit
-Agg canvas, so it works headless and never touches pyplot's global state (callers need no
-``matplotlib.use``). Bars are drawn as one ``PolyCollection`` per kind and labels only where they fit, so
-thousands of bars render in about a second.
+are shaded on their rows, and the default title (:func:`chart_title`) says what disrupted the run. Rendering uses
+:class:`matplotlib.figure.Figure` with an explicit Agg canvas, so it works headless and never touches pyplot's global
+state (callers need no ``matplotlib.use``). Bars are drawn as one ``PolyCollection`` per kind and labels only where
+they fit, so thousands of bars render in about a second.
 """
 
 from __future__ import annotations

@@ -50,8 +50,8 @@ import fnmatch
 import functools
 import hashlib
 import json
-import re
 import numbers
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Any, Iterable, Sequence

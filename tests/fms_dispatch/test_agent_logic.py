@@ -759,6 +759,15 @@ def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkey
     assert msg["status"] == "timeout" and "before its plan could be put in force (the re-plan was done after 0." \
         in msg["message"] and 500 <= msg["wall_ms"] < 5000, msg
 
+    def late_failure(shop, old, effort):  # fails after the run's last decision: failed, with its error
+        time.sleep(0.5)
+        raise ValueError("no plan here")
+
+    svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, late_failure, grace=60, pace=0)
+    assert replans == [] and agent.decide._job.done.wait(10)
+    (msg,) = [m.decode(encode(o.msg), expect="replan") for o in agent.on_state(encode(svc.state))]
+    assert (msg["status"], msg["message"]) == ("failed", "no plan here") and 500 <= msg["wall_ms"] < 5000, msg
+
 
 def test_states_the_checks_let_through_are_answered_not_fatal() -> None:
     # each of these took the agent node down: a history disruption without its (optional) start (KeyError), a

@@ -352,6 +352,27 @@ def test_a_disruption_begun_while_a_re_plan_runs_gets_its_own_re_plan(outcome):
     assert validate(shop.instance, shop.schedule(), shop.scenario) == []
 
 
+@pytest.mark.parametrize("outcome", ["failed", "timeout"])
+def test_an_order_that_arrives_while_a_re_plan_brings_no_plan_gets_its_own_re_plan(outcome):
+    # the failed or timed-out re-plan took the state at its end as seen: the order's trigger was used up, and its jobs
+    # waited until the plan got stuck
+    rp, st = _est_run("sl00", 0.2)
+    shop, inst = st.shop, rp.instance
+    _follow(rp, st, 100)
+    rp.take(shop)
+    st.add_jobs([[Operation(m, 1, 50) for m in (1, 2, 3)]])
+    _follow(rp, st, 30)
+    if outcome == "timeout":
+        rp.dropped(shop)
+    else:
+        assert rp.adopt(shop, None, "late", error="no plan here")["status"] == "failed"
+    assert rp.trigger(shop) == "order"
+    event = rp.replan_now(shop, "order")
+    assert event["status"] == "adopted" and rp.trigger(shop) is None  # once
+    assert {r.job for r in rp.plan.operations} >= {inst.n_jobs}
+    assert finish_by(shop, rp.plan).makespan <= rp.plan.makespan and validate(shop.instance, shop.schedule()) == []
+
+
 def test_simulations_are_skipped_where_they_would_take_most_of_the_budget(monkeypatch):
     # a run through the net costs 9-25 list schedules (bench/sim_cost.py), not the 3 once assumed: on sl40 a 1 s re-plan after an order
     # simulated its plan for 0.44 s after the budget (1.46 s in all; 2-3 s while the agent's decisions flowed), and

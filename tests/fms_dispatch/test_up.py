@@ -208,7 +208,8 @@ def test_progress_text_counts_the_operations_of_ordered_jobs() -> None:
     assert up._progress_text((2, 12, 0), 13) == "2 of 13 operations done, shop time 12"
     assert up._progress_text((14, 143, 1), 13) == ("14 operations done (the shop's 13 and those of 1 ordered job), "
                                                    "shop time 143")
-    assert up._progress_text((14, 143, 3), 13).startswith("14 operations done (the shop's 13 and those of 3 ordered jobs)")
+    assert up._progress_text((14, 143, 3), 13).startswith("14 operations done (the shop's 13 and those of 3 "
+                                                          "ordered jobs)")
     assert up._progress_text((0, None, 0), 13) == "no event recorded yet"
 
 
