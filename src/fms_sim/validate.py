@@ -371,7 +371,7 @@ def _check_tools(instance: Instance, schedule: Schedule, ops: dict, errs: list[s
                 errs.append(f"loaded trip of transporter {t.transporter} at {t.start} names no tool/operation")
                 continue
             moves[t.tool].append(t)
-        elif t.tool is not None or t.job is not None:
+        elif t.tool is not None or t.job is not None or t.op is not None:  # (op alone passed; the AGVs' did not)
             errs.append(f"empty trip of transporter {t.transporter} at {t.start} names a tool or operation")
     for tool in set(moves) - set(uses):
         errs.append(f"tool {tool} is moved but no operation uses it")

@@ -158,6 +158,9 @@ RULES = [
      "loaded trip of transporter 0 at 3 names no tool/operation", False),
     ("empty tool trip names a tool", _edit("tool_trips", 1, tool=2),
      "empty trip of transporter 0 at 2 names a tool or operation", True),
+    # an operation alone (no tool, no job) passed, where the AGVs' check refused it
+    ("empty tool trip names an op", _edit("tool_trips", 1, op=0),
+     "empty trip of transporter 0 at 2 names a tool or operation", True),
 ]
 
 
