@@ -39,7 +39,7 @@ from typing import Sequence
 
 from fms_msgs_json import TOPIC_COMMAND, TOPIC_REPLAY
 from fms_sim.instance import Instance
-from fms_sim.shop_node import FmsNode, StartupError, TopicIO, instance_param, param, run_node
+from fms_sim.shop_node import INSTANCE_PARAMETERS, FmsNode, StartupError, TopicIO, instance_param, param, run_node
 from fms_sim.shop_service import Outgoing
 
 from .agent_logic import AgentLogic, UnavailableSolver
@@ -53,6 +53,9 @@ class AgentNode(FmsNode):
     """The dispatcher agent node (see the module docstring)."""
 
     default_name = NODE_NAME
+    parameters = ("solver", "seed", "delay_s", "resend_s", "replan", "drift", "replan_wait", "guide_restarts",
+                  "guide_budget", "guide_rules", "guide_exact", "guide_tabu", "guide_seed", "guide_replan", "run_id",
+                  *INSTANCE_PARAMETERS)
 
     def _setup(self) -> None:
         n = self.node

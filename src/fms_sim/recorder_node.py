@@ -37,6 +37,7 @@ class RecorderNode(FmsNode):
     """The recorder node (see the module docstring)."""
 
     default_name = NODE_NAME
+    parameters = ("db", "gantt", "gantt_dir", "retry_s", "commit_s")
     store: RecorderStore | None = None  # open once the setup has opened the database
 
     def _setup(self) -> None:

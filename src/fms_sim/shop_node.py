@@ -145,6 +145,10 @@ def param(node: Any, name: str, default: Any) -> Any:
         raise StartupError(f"parameter {name!r} must be {kind}: {exc}") from None
 
 
+#: the parameters :func:`instance_param` declares
+INSTANCE_PARAMETERS = ("instance", "layout", "agvs", "tool_transporters", "no_tools", "no_agvs")
+
+
 def instance_param(node: Any, required: bool = True) -> Any:
     """The instance named by a node's ``instance`` parameter, with ``layout``, ``agvs``, ``tool_transporters``,
     ``no_tools`` and ``no_agvs`` applied (the shop's and the agent's, which must agree); None without ``instance``
@@ -181,6 +185,9 @@ class FmsNode:
     :meth:`_setup` fills in; if the setup fails, the node is closed before the error propagates."""
 
     default_name = ""
+    #: every parameter the node declares (a test keeps it equal to what :meth:`_setup` declares): a refused value
+    #: stops the setup before the later ones are declared, and those were then named "unknown, ignored"
+    parameters: tuple[str, ...] = ()
 
     def __init__(self, node_name: str | None = None) -> None:
         self.node = rclpy.create_node(node_name or self.default_name, start_parameter_services=False)
@@ -214,7 +221,8 @@ class FmsNode:
         misspelt name): ROS ignores them."""
         given = getattr(self.node, "_parameter_overrides", None) or {}  # rclpy keeps no public view of them
         asked = _asked(self.node)
-        return sorted(name for name in given if not self.node.has_parameter(name) and name not in asked)
+        return sorted(name for name in given
+                      if not self.node.has_parameter(name) and name not in asked and name not in self.parameters)
 
     def _setup(self) -> None:
         raise NotImplementedError
@@ -228,6 +236,8 @@ class ShopNode(FmsNode):
     """The shop simulator node (see the module docstring)."""
 
     default_name = NODE_NAME
+    parameters = ("run_id", "features", "history", "history_delta", "idle_stops", "decisions", "scenario", "noise",
+                  "noise_seed", "time_scale", "schedule_out", "instance_out", *INSTANCE_PARAMETERS)
 
     def _setup(self) -> None:
         n = self.node

@@ -472,11 +472,40 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "parameter 'instance' must be a string" in res.stderr, res.stderr
     assert "unknown parameters" not in res.stderr
+    # a refused value stops the setup before later parameters are declared: those were named "unknown, ignored"
+    for module, args in ((SHOP, ["instance:=EX12", "time_scale:=.nan", "history:=true"]),
+                         (AGENT, ["instance:=EX12", "resend_s:=.inf"]), (RECORDER, ["db:=5", "retry_s:=2.0"])):
+        res = subprocess.run([sys.executable, "-m", module, "--ros-args", *[x for a in args for x in ("-p", a)]],
+                             env=ros_env, capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and "unknown parameters" not in res.stderr, res.stderr
     # --help describes the node and starts nothing (the recorder would create its database here)
     for module in (AGENT, SHOP, RECORDER):
         res = subprocess.run([sys.executable, "-m", module, "--help"], env=ros_env, capture_output=True, text=True,
                              timeout=60)
         assert res.returncode == 0 and res.stdout.startswith("usage: fms-") and "docs/ros.md" in res.stdout
+
+
+def test_each_nodes_parameter_list_is_what_it_declares(ros_env, tmp_path: Path) -> None:
+    # FmsNode.parameters tells a refused start which parameters are the node's own: it must name every parameter the
+    # node declares, and no other
+    code = (
+        "import rclpy\n"
+        "from fms_sim.shop_node import ShopNode\n"
+        "from fms_dispatch.agent_node import AgentNode\n"
+        "from fms_sim.recorder_node import RecorderNode\n"
+        "import sys\n"
+        "rclpy.init(args=['x', '--ros-args', '-p', 'instance:=EX12', '-p', 'gantt:=false', '-p', 'db:=' + sys.argv[1]])\n"
+        "for cls in (ShopNode, AgentNode, RecorderNode):\n"
+        "    obj = cls()\n"
+        "    print(cls.__name__, sorted(cls.parameters) == obj.declared_parameters(), len(cls.parameters))\n"
+        "    obj.close()\n"
+        "    obj.node.destroy_node()\n"
+        "rclpy.shutdown()\n")
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "p.sqlite")], env=ros_env, capture_output=True,
+                         text=True, timeout=60, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["ShopNode", "True", "18", "AgentNode", "True", "21", "RecorderNode", "True", "5"], \
+        res.stdout
 
 
 def test_node_warns_of_unknown_parameters(nodes: NodeProcs) -> None:
