@@ -373,12 +373,12 @@ def cmd_up(a: argparse.Namespace) -> int:
     full_model = needs_twin(solver) and getattr(decider, "decisions", "paper") == "full"
     scenario = None
     if disrupted:
-        from .cli import scenario_from_args
+        from .cli import CliError, scenario_from_args
 
         try:
             scenario = scenario_from_args(a, inst)
-        except ValueError as exc:  # a bad scenario file (ScenarioError), a bad --noise
-            raise UpError(str(exc).splitlines()[0]) from None
+        except (ValueError, CliError) as exc:  # a bad scenario file (ScenarioError), a bad --noise (a CliError:
+            raise UpError(str(exc).splitlines()[0]) from None  # under python -m fms_dispatch.cli, not main's own)
         if not (needs_full_net(solver) or full_model or solver.lower() in ("first", "random")):
             raise UpError(f"--scenario and --noise need a solver that decides on the full net (plan:..., first, "
                           f"random, a full-net model such as ppo:full), not {solver}")

@@ -526,3 +526,13 @@ def test_an_interrupt_while_the_output_is_written_names_the_kept_output(fake_nod
     assert "fms: interrupted while the run's output was checked and written; the shop's output is kept in " in err
     kept = Path(err.rsplit("kept in ", 1)[1].strip())
     assert kept.is_dir() and list(kept.rglob("schedule.json")) and not (tmp_path / "out" / "s.json").exists()
+
+
+@pytest.mark.parametrize("module", [["fms_dispatch.up"], ["fms_dispatch.cli", "up"]])
+def test_a_bad_noise_is_bad_input_when_run_as_a_module(module, tmp_path: Path) -> None:
+    # under python -m the CLI module is __main__ and up imported a second copy: its CliError for --noise 1.5 was not
+    # the one main catches (a traceback, exit 1); refused before any node starts
+    res = subprocess.run([sys.executable, "-m", *module, "EX12", "--noise", "1.5"], capture_output=True, text=True,
+                         timeout=60, cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert res.stderr.strip().endswith("error: --noise must be a spread from 0 to 1, got 1.5"), res.stderr
