@@ -20,6 +20,7 @@ import pytest
 pytest.importorskip("rclpy")  # fms up refuses to start without it, even with stand-in nodes
 
 from fms_dispatch import up  # noqa: E402
+from fms_sim.benchmarks import builtin  # noqa: E402
 from fms_sim.formats import load_instance  # noqa: E402
 from fms_sim.schedule import Schedule  # noqa: E402
 from fms_sim.validate import validate  # noqa: E402
@@ -239,10 +240,23 @@ def test_time_scale_reaches_the_shop(fake_nodes, tmp_path: Path, monkeypatch) ->
     seen = _record_params(monkeypatch)
     assert _up(tmp_path, "--time-scale", "0.02") == up.EXIT_OK
     assert seen["shop_node"]["time_scale"] == 0.02
+    # the agent waits longer than the shop's longest paced wait before re-sending (with its 1 s every longer wait
+    # re-sent the command, and the shop logged a stale_state error each time)
+    assert seen["agent_node"]["resend_s"] == up.paced_resend_s(builtin("EX12"), 0.02) > 1.0
     seen.clear()
     (tmp_path / "out" / "t1.gantt.png").unlink()
     assert _up(tmp_path, "--db", str(tmp_path / "out" / "b.sqlite")) == up.EXIT_OK
-    assert "time_scale" not in seen["shop_node"]  # unpaced: the shop's default
+    assert "time_scale" not in seen["shop_node"] and "resend_s" not in seen["agent_node"]  # unpaced: the defaults
+
+
+def test_a_paced_agent_waits_past_the_longest_step() -> None:
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    ex12 = builtin("EX12")
+    longest = max([op.duration for job in ex12.jobs for op in job] + [t for row in ex12.agv_travel for t in row])
+    assert up.paced_resend_s(ex12, 0.2) == round(1.0 + 3 * 0.2 * longest, 3)
+    assert up.paced_resend_s(ex12, 0.2, Scenario((Breakdown(1, 0, 500),))) == round(1.0 + 3 * 0.2 * 500, 3)
+    assert up.paced_resend_s(builtin("EX12").without_tools(), 0.0) == 1.0  # never below the agent's default
 
 
 def test_an_invalid_schedule_still_fails_and_names_the_unclean_stop(fake_nodes, tmp_path: Path, capsys) -> None:
