@@ -86,6 +86,11 @@ class AgentNode(FmsNode):
             except ValueError as exc:
                 raise StartupError(f"parameters guide_restarts / guide_budget / guide_tabu / guide_exact / guide_seed: "
                                    f"{exc}") from None
+        # checked for every solver (a plan: agent refused them, any other started with them: a typo went unnoticed)
+        if replan < 0:
+            raise StartupError(f"parameter 'replan' must be >= 0 (seconds per re-plan; 0: never), got {replan:g}")
+        if drift <= 0:
+            raise StartupError(f"parameter 'drift' must be > 0 (a fraction of the plan's makespan), got {drift:g}")
         try:
             self.logic = AgentLogic(solver, seed=seed, instance=inst, replan=replan, drift=drift, guide_effort=effort,
                                     guide_replan=guide_replan, replan_wait=replan_wait, only_run=only_run)

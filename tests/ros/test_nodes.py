@@ -449,6 +449,10 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         # NaN re-sent every 20 ms, inf crashed the agent at its first state (OverflowError)
         (AGENT, ["-p", "resend_s:=.nan"], "parameter 'resend_s' must be a finite number: got nan"),
         (AGENT, ["-p", "delay_s:=.inf"], "parameter 'delay_s' must be a finite number: got inf"),
+        # refused for every solver (a plan: agent refused them, another started with them)
+        (AGENT, ["-p", "replan:=-5.0"], "fms-agent: error: parameter 'replan' must be >= 0 (seconds per re-plan; 0: "
+                                        "never), got -5"),
+        (AGENT, ["-p", "drift:=-1.0"], "parameter 'drift' must be > 0 (a fraction of the plan's makespan), got -1"),
         (RECORDER, ["-p", "commit_s:=.nan"], "parameter 'commit_s' must be a finite number: got nan"),
         # found at the end, or a traceback: a database folder that cannot be made, outputs inside a file
         (RECORDER, ["-p", "db:=/proc/fms-no-such/db.sqlite"], "its folder cannot be made"),
