@@ -499,9 +499,13 @@ def test_render_mode_none_is_taken_and_options_are_checked():
         ShopEnv(builtin("EX12"), render_mode="human")
     # sb3's make_vec_env asks for render_mode='rgb_array' and goes on without one on a TypeError (it stopped on the
     # ValueError this was)
+    import warnings
+
     from stable_baselines3.common.env_util import make_vec_env
 
-    venv = make_vec_env("fms/Shop-v0", n_envs=2, env_kwargs={"instances": [builtin("EX12")]})
+    with warnings.catch_warnings():  # gymnasium's warning for the render mode sb3 asks for first (then refused)
+        warnings.filterwarnings("ignore", message=".*render_mode='rgb_array'", category=UserWarning)
+        venv = make_vec_env("fms/Shop-v0", n_envs=2, env_kwargs={"instances": [builtin("EX12")]})
     assert venv.reset().shape[0] == 2 and venv.env_method("action_masks")[0].any()
     with pytest.raises(ValueError, match=r"unknown reset options \['instanc'\]; use instance, scenario"):
         env.reset(options={"instanc": builtin("EX11")})
