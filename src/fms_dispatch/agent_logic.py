@@ -478,9 +478,9 @@ class TwinDecider:
             if rp.agent.bridge_guide(shop) is not None:
                 reason = "order"
                 job, self._job = self._job, None
-                if job is not None:  # a re-plan without the new jobs: ended, reported failed
-                    job.cancel()
-                    self._drop_guide(job, shop, "failed", job.elapsed(), _JOBS_JOINED)
+                if job is not None:  # a re-plan without the new jobs: ended, reported failed (what it was started
+                    job.cancel()     # for triggers again once the order's re-plan is in)
+                    self._drop_guide(job, shop, "failed", job.elapsed(), _JOBS_JOINED, superseded=True)
         self._guide_jobs = shop.n_jobs
         if self._job is not None:
             return
@@ -513,9 +513,11 @@ class TwinDecider:
         job.cancel()
         return elapsed
 
-    def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str) -> None:
-        """A guide re-plan that brings no plan (``failed`` or ``timeout``): recorded by the replanner, reported."""
-        self.choose.failed(shop, job.reason, job.time, status, wall, job.budget, why)
+    def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str,
+                    superseded: bool = False) -> None:
+        """A guide re-plan that brings no plan (``failed`` or ``timeout``; ``superseded`` by an order's): recorded by
+        the replanner, reported."""
+        self.choose.failed(shop, job.reason, job.time, status, wall, job.budget, why, superseded=superseded)
         self._report(job.run_id, job.seq, job.time, job.reason, status, wall, None, None, "guide", why,
                      budget=job.budget)
 
@@ -531,8 +533,8 @@ class TwinDecider:
                                  f"{job.budget:g} s); the plan in force stays")
             return
         self._job = None
-        if job.error is not None or shop.n_jobs != job.n_jobs:
-            self._drop_guide(job, shop, "failed", job.wall, job.error or _JOBS_JOINED)
+        if job.error is not None or shop.n_jobs != job.n_jobs:  # (jobs joined: an order's re-plan supersedes it)
+            self._drop_guide(job, shop, "failed", job.wall, job.error or _JOBS_JOINED, superseded=job.error is None)
             return
         from fms_sim.snapshot import can_snapshot
 
@@ -603,8 +605,13 @@ class TwinDecider:
             else:
                 self._handover, what = parse_rule_name("MTWR+nearest"), "the rule pair MTWR+nearest"
             label = WAIT if self.stepper.kind == "idle" else shop.action_label(self._handover(shop))
-            raise FallbackDecision(f"state {state['seq']}: the shop ({shop.instance.n_jobs} jobs) has outgrown model "
-                                   f"{model.name} ({model.layout()}); {what} decides from here on", label)
+            why = (f"the shop ({shop.instance.n_jobs} jobs) has outgrown model {model.name} ({model.layout()}); {what} "
+                   "decides from here on")
+            job, self._job = self._job, None
+            if job is not None:  # the model's guide re-plan is of no use now: ended and said so (it was reported
+                job.cancel()     # at the run's end as a plan dropped there)
+                self._drop_guide(job, shop, "failed", job.elapsed(), why)
+            raise FallbackDecision(f"state {state['seq']}: {why}", label)
         return self._handover
 
     def __call__(self, state: dict[str, Any]) -> str:

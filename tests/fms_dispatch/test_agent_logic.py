@@ -705,6 +705,46 @@ def test_a_live_order_to_a_guided_agent_is_bridged_then_re_planned(monkeypatch, 
     assert {r.job for r in svc.final_schedule.operations} == set(range(n))
 
 
+def test_a_guide_re_plan_running_when_the_shop_outgrows_the_model_is_ended_and_reported(monkeypatch) -> None:
+    # the hand-over to the guide follower left it running (a forked process to the end) and unreported until the
+    # run's end, where it was said to be "done, its plan dropped there"
+    import time
+
+    from fms_dispatch import agent_logic
+    from fms_dispatch.rl.guide import effort_from
+    from fms_sim.disruptions import Breakdown, Scenario
+
+    real = agent_logic._guide_replan
+
+    def slow(shop, old, effort):
+        time.sleep(1.0)
+        return real(shop, old, effort)
+
+    monkeypatch.setattr(agent_logic, "_guide_replan", slow)
+    monkeypatch.setattr(agent_logic, "REPLAN_GRACE_S", 60)
+    inst = builtin("EX12")
+    svc = ShopService(inst, run_id="o", history=True, decisions="full", scenario=Scenario((Breakdown(1, 10, 20),)))
+    agent = AgentLogic("ppo", instance=inst, guide_effort=effort_from(tabu=0.0))
+    big = [[{"machine": 1 + j % 4, "tool": None, "duration": 3}] for j in range(96)]  # 101 jobs: past the padding
+    replans, errors, ordered = [], [], False
+    svc.start()
+    while not svc.done:
+        out = agent.on_state(encode(svc.state))
+        replans += [m.decode(encode(o.msg), expect="replan") for o in out if o.topic == m.TOPIC_REPLANS]
+        errors += [o.msg for o in out if o.topic == m.TOPIC_ERRORS]
+        (cmd,) = [o.msg for o in out if o.topic == m.TOPIC_COMMAND]
+        assert not [o for o in svc.handle_command(encode(cmd)) if o.topic == m.TOPIC_ERRORS]
+        job = agent.decide._job
+        if not ordered and job is not None and not job.done.is_set():  # a breakdown's re-plan runs: the order comes
+            svc.handle_order(encode(m.make_order("big", big)))
+            ordered = True
+    assert ordered and [e["code"] for e in errors] == ["internal"] and "has outgrown model" in errors[0]["message"]
+    (msg,) = replans  # said at the hand-over, not at the end
+    assert (msg["reason"], msg["status"]) == ("breakdown", "failed") and "has outgrown model" in msg["message"]
+    assert agent.decide._job is None and agent.on_state(encode(svc.state)) == []
+    assert validate(svc.instance, svc.final_schedule) == [] and svc.instance.n_jobs == 101
+
+
 def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkeypatch) -> None:
     """A re-plan that raises is ``failed`` with its error; one past its budget plus the grace is ``timeout`` (its
     process ended); one whose jobs changed meanwhile (an order) is ``failed`` and dropped; one still running when

@@ -669,6 +669,56 @@ def test_the_guide_replanner_answers_each_breakdown_once_per_run():
         GuideReplanner(agent, drift=0.0)
 
 
+def test_the_guide_replanners_triggers_when_its_re_plans_run_beside_the_run():
+    """Live (the shop goes on while a guide re-plan runs): an outage that begins with a breakdown is re-planned under
+    the outage's rule (it was folded into the breakdown's margin); a window that began and ended while a re-plan ran
+    triggers nothing once it comes in (an outage over for a thousand time units was re-planned for, its plan put in
+    force); one still in force triggers its own; a re-plan ended by an order's leaves what it was started for
+    unanswered (an outage's rule went to the order's margin)."""
+    from fms_dispatch.rl.agent import GuideReplanner
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.disruptions import Breakdown, Outage, Scenario
+
+    inst = builtin("ra01")
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(tabu=0.0))
+
+    def at(sc, t):  # the run's shop at its first stop from time t on
+        agent.forget()
+        rp = GuideReplanner(agent, drift=None)
+        shop = FullShop(inst, scenario=sc)
+        rp.trigger(shop)
+        while shop.now < t:
+            shop.act(agent.act(shop))
+        return rp, shop
+
+    both = Scenario((Breakdown(2, 10, 30),), (Outage("agv", 0, 10, 30),))
+    rp, shop = at(both, 10)
+    assert rp.trigger(shop) == "outage" and rp._margin("outage") is None
+    # began and ended while a re-plan ran: over when it comes in (kept or failed alike); one in force triggers
+    sc = Scenario((Breakdown(3, 12, 30),), (Outage("agv", 1, 12, 3),))
+    for outcome in ("adopt", "failed"):
+        rp, shop = at(sc, 5)
+        assert rp.trigger(shop) is None
+        plan = agent.guide_of(shop).plan  # (as a re-plan's result: what it is does not matter here)
+        while shop.now < 16:  # the outage [12, 15) is over, the breakdown [12, 42) is not
+            shop.act(agent.act(shop))
+        if outcome == "adopt":
+            rp.adopt(shop, "late", 5, plan, plan.makespan, 0.1, 1.0, moved=True)
+        else:
+            rp.failed(shop, "late", 5, "timeout", 6.0, 1.0, "no plan")
+        assert rp._begun(shop) - rp._answered == {("breakdown", 3, 12)}
+        assert rp.trigger(shop) == "breakdown" and rp.trigger(shop) is None
+    # superseded by an order's re-plan: the outage is not answered by it, and triggers again while in force
+    rp, shop = at(Scenario((), (Outage("agv", 0, 10, 30),)), 10)
+    assert rp.trigger(shop) == "outage"
+    rp.failed(shop, "outage", shop.now, "failed", 0.1, 1.0, "jobs joined", superseded=True)
+    assert rp.trigger(shop) == "outage" and rp.trigger(shop) is None
+    rp.failed(shop, "outage", shop.now, "failed", 0.1, 1.0, "no plan here")  # failed by itself: answered
+    assert rp.trigger(shop) is None
+
+
 def test_the_guide_replanner_re_plans_a_late_plan_at_most_once_per_drift():
     """With ``drift`` the guide is re-planned exactly when an operation started since the last decision is later
     than the plan in force says by more than drift x its makespan, and, after a re-plan that kept the plan, the

@@ -286,7 +286,9 @@ class GuideReplanner:
     Before each decision in a disrupted shop (one with a scenario: noise, breakdowns, outages; a nominal shop keeps
     to the plan and is never re-planned) it checks two triggers, as plan re-planning does
     (:mod:`fms_dispatch.replan`): a machine breakdown of ``shop``'s scenario that has begun and was not yet
-    answered (reason ``breakdown``), and, with ``drift``, an operation started since the last check later than the
+    answered (reason ``breakdown``; ``outage`` for a vehicle out of service, also where a breakdown began with it; a
+    window that began and ended while a re-plan ran beside the run triggers nothing: :meth:`_collected`), and, with
+    ``drift``, an operation started since the last check later than the
     plan in force says by more than ``drift`` times that plan's makespan (``late``). After a re-plan that kept the
     plan in force, lateness is not a trigger again until the shop's clock has moved on by that much (so a stale plan
     is re-planned at most about ``1 / drift`` times over its horizon, not at every late operation). Each trigger calls
@@ -310,6 +312,7 @@ class GuideReplanner:
         self.events: list[dict[str, Any]] = []
         self._shop: Shop | None = None
         self._answered: set[tuple] = set()  # the breakdowns and outages re-planned for (kind, which, start)
+        self._asked: set[tuple] = set()  # those the last trigger fired for (answered unless its re-plan brings none)
         self._guide: Any = None  # the guide whose plan the lateness check reads
         self._planned: dict[tuple[int, int], int] = {}
         self._tol = 0.0
@@ -343,15 +346,34 @@ class GuideReplanner:
         if scenario is None:  # a nominal shop keeps to the plan: nothing to re-plan (a live order re-plans anyway)
             return None
         reason = None
-        begun = ({("breakdown", b.machine, b.start) for b in scenario.breakdowns if b.start <= shop.now}
-                 | {("outage", o.kind, o.vehicle, o.start) for o in scenario.outages if o.start <= shop.now})
-        begun -= self._answered
+        begun = self._begun(shop) - self._answered
+        self._asked = begun
         if begun:  # an outage too: the plan's carries for the vehicle waited out its window (EX12: 100,088 for 98)
             self._answered |= begun
-            reason = min(b[0] for b in begun)  # "breakdown" before "outage"
+            # an outage's rule (put in force whatever it promises) wins where one began with a breakdown: both began
+            # while a re-plan ran, and the outage was re-planned under the breakdown's margin
+            reason = "outage" if any(b[0] == "outage" for b in begun) else "breakdown"
         if self.drift is not None and self._late(shop) and reason is None:
             reason = "late"
         return reason
+
+    @staticmethod
+    def _begun(shop: Shop, over: bool = False) -> set[tuple]:
+        """The breakdowns and outages of ``shop``'s scenario begun by now (``over``: only those over by now)."""
+        sc, now = getattr(shop, "scenario", None), shop.now
+        if sc is None:
+            return set()
+        return ({("breakdown", b.machine, b.start) for b in sc.breakdowns
+                 if b.start <= now and (not over or b.end <= now)}
+                | {("outage", o.kind, o.vehicle, o.start) for o in sc.outages
+                   if o.start <= now and (not over or o.end <= now)})
+
+    def _collected(self, shop: Shop) -> None:
+        """A re-plan made beside the run comes in: the breakdowns and outages that began and ended while it ran are
+        over, so none triggers a re-plan now (an outage over for a thousand time units was re-planned for, and its
+        plan put in force whatever it promised); those still in force trigger their own. (Offline the shop waits for
+        each re-plan: nothing begins meanwhile.)"""
+        self._answered |= self._begun(shop, over=True)
 
     def check(self, shop: Shop) -> dict[str, Any] | None:
         """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
@@ -380,6 +402,7 @@ class GuideReplanner:
         (:func:`fms_dispatch.replan.retime_from`; ``shop`` must allow a snapshot): the decisions taken meanwhile
         (hundreds on a large simulated shop) leave a plan's start times and vehicle routes behind, and a guide
         read from them leads the model astray."""
+        self._collected(shop)
         adopted = self.agent.adopt_replan(shop, plan, before, self._margin(reason), retime=moved)
         event = self._record(shop, reason, GuideReplan(adopted, before, plan.makespan, wall_time, budget), time)
         if moved and adopted:
@@ -387,10 +410,17 @@ class GuideReplanner:
         return event
 
     def failed(self, shop: Shop, reason: str, time: int, status: str, wall_time: float, budget: float | None,
-               error: str) -> dict[str, Any]:
+               error: str, *, superseded: bool = False) -> dict[str, Any]:
         """Record a re-plan made beside the run that brought no plan (``status`` ``failed`` or ``timeout``, ``error``
-        says why): the plan in force stays, and as after a kept plan lateness does not trigger again at once."""
+        says why): the plan in force stays, and as after a kept plan lateness does not trigger again at once. One
+        ``superseded`` (ended by an order's re-plan) leaves the breakdowns and outages it was started for unanswered:
+        those still in force trigger a re-plan of their own (the order took an outage's re-plan, which then ran under
+        an order's margin instead of being put in force)."""
         self._quiet_until = shop.now + self._tol
+        if superseded:
+            self._answered -= self._asked
+        self._asked = set()
+        self._collected(shop)
         event = {"reason": reason, "time": time, "wall_time": round(wall_time, 4), "budget": budget, "before": None,
                  "after": None, "status": status, "method": "guide", "error": error}
         self.events.append(event)
