@@ -717,6 +717,13 @@ def test_the_guide_replanners_triggers_when_its_re_plans_run_beside_the_run():
     assert rp.trigger(shop) == "outage" and rp.trigger(shop) is None
     rp.failed(shop, "outage", shop.now, "failed", 0.1, 1.0, "no plan here")  # failed by itself: answered
     assert rp.trigger(shop) is None
+    # a re-plan that came in answered what it was started for: an order's re-plan ended later does not undo that
+    rp, shop = at(Scenario((), (Outage("agv", 0, 10, 30),)), 10)
+    assert rp.trigger(shop) == "outage"
+    plan = agent.guide_of(shop).plan
+    rp.adopt(shop, "outage", shop.now, plan, plan.makespan, 0.1, 1.0)
+    rp.failed(shop, "order", shop.now, "failed", 0.1, 1.0, "jobs joined", superseded=True)
+    assert rp.trigger(shop) is None
 
 
 def test_the_guide_replanner_re_plans_a_late_plan_at_most_once_per_drift():

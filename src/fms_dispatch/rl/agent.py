@@ -372,8 +372,10 @@ class GuideReplanner:
         """A re-plan made beside the run comes in: the breakdowns and outages that began and ended while it ran are
         over, so none triggers a re-plan now (an outage over for a thousand time units was re-planned for, and its
         plan put in force whatever it promised); those still in force trigger their own. (Offline the shop waits for
-        each re-plan: nothing begins meanwhile.)"""
+        each re-plan: nothing begins meanwhile.) What the last trigger fired for is answered by it from now on (an order's
+        re-plan ended later must not undo that)."""
         self._answered |= self._begun(shop, over=True)
+        self._asked = set()
 
     def check(self, shop: Shop) -> dict[str, Any] | None:
         """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
@@ -419,7 +421,6 @@ class GuideReplanner:
         self._quiet_until = shop.now + self._tol
         if superseded:
             self._answered -= self._asked
-        self._asked = set()
         self._collected(shop)
         event = {"reason": reason, "time": time, "wall_time": round(wall_time, 4), "budget": budget, "before": None,
                  "after": None, "status": status, "method": "guide", "error": error}
