@@ -477,10 +477,8 @@ class TwinDecider:
         if self._guide_jobs is not None and shop.n_jobs > self._guide_jobs:  # an order: go on with a bridge plan
             if rp.agent.bridge_guide(shop) is not None:
                 reason = "order"
-                job, self._job = self._job, None
-                if job is not None:  # a re-plan without the new jobs: ended, reported failed (what it was started
-                    job.cancel()     # for triggers again once the order's re-plan is in)
-                    self._drop_guide(job, shop, "failed", job.elapsed(), _JOBS_JOINED, superseded=True)
+                # a re-plan without the new jobs: what it was started for triggers again once the order's is in
+                self._end_guide_job(shop, _JOBS_JOINED, superseded=True)
         self._guide_jobs = shop.n_jobs
         if self._job is not None:
             return
@@ -512,6 +510,13 @@ class TwinDecider:
         self._job = None  # its plan is dropped
         job.cancel()
         return elapsed
+
+    def _end_guide_job(self, shop: "Shop", why: str, superseded: bool = False) -> None:
+        """End the guide re-plan that runs, if one does (a process is ended), and report it ``failed`` for ``why``."""
+        job, self._job = self._job, None
+        if job is not None:
+            job.cancel()
+            self._drop_guide(job, shop, "failed", job.elapsed(), why, superseded)
 
     def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str,
                     superseded: bool = False) -> None:
@@ -607,10 +612,7 @@ class TwinDecider:
             label = WAIT if self.stepper.kind == "idle" else shop.action_label(self._handover(shop))
             why = (f"the shop ({shop.instance.n_jobs} jobs) has outgrown model {model.name} ({model.layout()}); {what} "
                    "decides from here on")
-            job, self._job = self._job, None
-            if job is not None:  # the model's guide re-plan is of no use now: ended and said so (it was reported
-                job.cancel()     # at the run's end as a plan dropped there)
-                self._drop_guide(job, shop, "failed", job.elapsed(), why)
+            self._end_guide_job(shop, why)  # the model's re-plan is of no use now (it ran on, reported at the end)
             raise FallbackDecision(f"state {state['seq']}: {why}", label)
         return self._handover
 

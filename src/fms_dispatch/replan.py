@@ -424,8 +424,7 @@ class Replanner:
                                                     else (result.wall_time if result else 0.0), 4)}
         if result is None:
             event.update(status="failed", before=None, after=None, error=error or "no plan")
-            self._follow_state(shop)
-            self._orders_since_take_stay()
+            self.dropped(shop)
         else:
             event.update(before=result.before, after=result.after, method=result.method)
             if result.better or shop.n_jobs != self._n_jobs or reason == "stuck":
@@ -445,8 +444,8 @@ class Replanner:
         return event
 
     def dropped(self, shop: FullShop) -> None:
-        """A re-plan that brought no plan in time (the agent reports it ``timeout``): the current plan stays, and the
-        shop's state is taken as seen, but for the disruptions begun and the jobs ordered since the re-plan started
+        """A re-plan that brought no plan (it failed, or the agent reports it ``timeout``): the current plan stays, and
+        the shop's state is taken as seen, but for the disruptions begun and the jobs ordered since the re-plan started
         (each triggers a re-plan of its own)."""
         self._follow_state(shop)
         self._orders_since_take_stay()

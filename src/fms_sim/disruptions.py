@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from .files import loads, read_text, write_atomically
-from .instance import MAX_TIME, Instance
+from .instance import MAX_TIME, Instance, _is_int
 
 __all__ = ["Breakdown", "Outage", "Scenario", "ScenarioError", "SCENARIO_SCHEMA", "VEHICLE_KINDS", "MAX_NOISE"]
 
@@ -50,11 +50,6 @@ def _int(d: dict[str, Any], key: str, where: str) -> int:
     return v
 
 
-def _whole(v: Any) -> bool:
-    """An integer, numpy's included (which the callers keep as Python's), but not a bool."""
-    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
-
-
 class _Window:
     """A time window ``[start, start + duration)``."""
 
@@ -63,7 +58,7 @@ class _Window:
 
     def _check(self, what: str, ids: dict[str, Any]) -> None:
         for key, v in {**ids, "start": self.start, "duration": self.duration}.items():
-            if not _whole(v):
+            if not _is_int(v):
                 raise ScenarioError(f"{what}: {key} must be an integer, got {v!r}")
             object.__setattr__(self, key, int(v))  # a numpy integer is kept as Python's (JSON, hashing, messages)
 
@@ -118,7 +113,7 @@ class Scenario:
             raise ScenarioError(f"noise must be a spread from 0 to {MAX_NOISE:g}, got {self.noise!r}")
         if type(self.noise) not in (int, float):  # numpy's numbers are kept as Python's (np.float64 is a float)
             object.__setattr__(self, "noise", float(self.noise))
-        if not _whole(self.seed):
+        if not _is_int(self.seed):
             raise ScenarioError(f"seed must be an integer, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
         for what, items, kind in (("breakdowns", self.breakdowns, Breakdown), ("outages", self.outages, Outage)):
@@ -269,16 +264,16 @@ class Scenario:
         durations uniform in ``duration`` (default: 5-15 % of the horizon), at most one per machine; noise
         ``noise``. Reproducible from ``seed``. Raises :class:`ScenarioError` for arguments that draw nothing
         sensible (a negative count or horizon, a duration range that is empty or allows 0)."""
-        if not _whole(seed):
+        if not _is_int(seed):
             raise ScenarioError(f"seed must be an integer, got {seed!r}")
-        if not _whole(breakdowns) or breakdowns < 0:
+        if not _is_int(breakdowns) or breakdowns < 0:
             raise ScenarioError(f"breakdowns must be an integer >= 0, got {breakdowns!r}")
-        if not _whole(horizon) or horizon < 0:
+        if not _is_int(horizon) or horizon < 0:
             raise ScenarioError(f"horizon must be an integer >= 0 (breakdowns start in [0, horizon)), got {horizon!r}")
         if isinstance(duration, list):
             duration = tuple(duration)  # [0, 0] was refused by a message that offered (0, 0)
         if duration != (0, 0) and not (isinstance(duration, tuple) and len(duration) == 2
-                                       and all(_whole(d) for d in duration) and 1 <= duration[0] <= duration[1]):
+                                       and all(_is_int(d) for d in duration) and 1 <= duration[0] <= duration[1]):
             raise ScenarioError(f"duration must be a range (low, high) of integers with 1 <= low <= high (a breakdown "
                                 f"lasts at least 1; (0, 0): 5-15 % of the horizon), got {duration!r}")
         rng = random.Random(f"scenario:{seed}")

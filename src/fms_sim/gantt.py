@@ -121,18 +121,20 @@ def _layout(schedule: Schedule, instance: Instance | None) -> tuple[list[_Row], 
 _DOWN_FACE, _DOWN_EDGE = (0.9, 0.3, 0.25, 0.18), "#c0392b"
 
 
+def _recorded(scenario: Any, key: str) -> list[dict[str, Any]]:
+    """The windows (``breakdowns`` or ``outages``) of a scenario as a schedule's ``meta`` records it; a malformed record
+    (outages as a string, no scenario object) gives none, as no record."""
+    items = scenario.get(key) if isinstance(scenario, dict) else None
+    return [d for d in items if isinstance(d, dict)] if isinstance(items, list) else []
+
+
 def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[tuple[float, float, float, float]]:
     """Spans of the breakdowns and outages that ``schedule.meta["scenario"]`` records, on their rows."""
     sc = schedule.meta.get("scenario")
-    if not isinstance(sc, dict):
-        return []
-    out = []
-    def entries(key: str) -> list[Any]:  # a malformed record (outages as a string) draws nothing, as no record
-        items = sc.get(key)
-        return [d for d in items if isinstance(d, dict)] if isinstance(items, list) else []
-
-    windows = [("machine", b.get("machine"), b.get("start"), b.get("duration")) for b in entries("breakdowns")]
-    windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in entries("outages")]
+    out: list[tuple[float, float, float, float]] = []
+    windows: list[tuple[Any, Any, Any, Any]] = [("machine", b.get("machine"), b.get("start"), b.get("duration"))
+                                                 for b in _recorded(sc, "breakdowns")]
+    windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in _recorded(sc, "outages")]
     for kind, i, start, dur in windows:
         y = row_y.get((kind, i))
         if y is not None and isinstance(start, int) and isinstance(dur, int):
@@ -156,8 +158,7 @@ def _disruption_note(schedule: Schedule) -> str:
         return ""
     parts = []
     for key, one in (("breakdowns", "breakdown"), ("outages", "outage")):
-        items = sc.get(key)
-        n = len([d for d in items if isinstance(d, dict)]) if isinstance(items, list) else 0
+        n = len(_recorded(sc, key))
         if n:
             parts.append(f"{n} {one}{'' if n == 1 else 's'}")
     noise = sc.get("noise")

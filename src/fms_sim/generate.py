@@ -21,10 +21,9 @@ following instances, one instance after the other; that is what "instance ``k`` 
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Any
 
-from .instance import MAX_COUNT, Instance, InstanceError, Operation
+from .instance import MAX_COUNT, Instance, InstanceError, Operation, _plain
 
 __all__ = [
     "TaillardRNG",
@@ -68,7 +67,7 @@ class TaillardRNG:
     M = 2**31 - 1
 
     def __init__(self, seed: int) -> None:
-        seed = _python_int(seed)
+        seed = _plain(seed)
         if not isinstance(seed, int) or isinstance(seed, bool) or not 0 < seed < self.M:
             raise InstanceError(f"a Taillard seed must be an integer in 1..{self.M - 1}, got {seed!r}")
         self.seed = seed
@@ -130,11 +129,6 @@ def travel_matrix(m: int, seed: int, lo: int = 1, hi: int = 30) -> Grid:
     return rows
 
 
-def _python_int(v: Any) -> Any:
-    """``v`` as a Python int where it is an integer of another type (numpy's), else as it is (for the checks)."""
-    return int(v) if isinstance(v, numbers.Integral) and not isinstance(v, (bool, int)) else v
-
-
 def _check_size(name: str, value: Any, minimum: int = 1, top: int = MAX_COUNT) -> None:
     """``value`` is an integer from ``minimum`` to ``top`` (more than a shop may have ran for minutes)."""
     if not isinstance(value, int) or isinstance(value, bool) or not minimum <= value <= top:
@@ -169,7 +163,7 @@ def generate_instances(
     """
     # numpy's integers are taken as Python's (they were refused as "not an integer"; Instance takes them)
     n_jobs, n_machines, n_tools, count, time_seed, route_seed, tool_seed, agv_seed, tool_travel_seed, n_agvs, \
-        n_tool_transporters = (_python_int(v) for v in (
+        n_tool_transporters = (_plain(v) for v in (
             n_jobs, n_machines, n_tools, count, time_seed, route_seed, tool_seed, agv_seed, tool_travel_seed, n_agvs,
             n_tool_transporters))
     _check_size("n_jobs", n_jobs)
