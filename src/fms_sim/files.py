@@ -149,7 +149,8 @@ def file_above(path: Path) -> Path | None:
 
 def output_problem(path: str | Path) -> str | None:
     """Why an output file cannot be written at ``path`` (None: it can), found before any work: a folder, a path
-    inside a file, an existing file or a folder to write in that this user may not write."""
+    inside a file, an existing file or a folder to write in that this user may not write (or where writing fails when
+    tried: a read-only file system, ``/proc``; the file is opened without being changed)."""
     p = Path(path)
     if p.is_dir():
         return "is a folder; name a file"
@@ -157,14 +158,16 @@ def output_problem(path: str | Path) -> str | None:
     if above is not None:
         return f"{above} is a file, not a folder"
     if p.exists():
-        return None if os.access(p, os.W_OK) else "the file may not be written (permission denied)"
+        if not os.access(p, os.W_OK):
+            return "the file may not be written (permission denied)"
+        return _open_problem(p) if p.is_file() else None
     return folder_problem(p.parent)
 
 
 def folder_problem(folder: str | Path) -> str | None:
     """Why files cannot be written in ``folder`` (None: they can): it is a file, lies inside one, or it (or, where
     it does not exist yet, the nearest folder above it, in which it would be made) may not be written by this
-    user."""
+    user, or no file can be made there when tried (one is made and removed)."""
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         return f"{folder} is a file, not a folder"
@@ -172,8 +175,35 @@ def folder_problem(folder: str | Path) -> str | None:
     if above is not None:
         return f"{above} is a file, not a folder"
     where = next((q for q in (folder, *folder.parents) if q.exists()), None)
-    if where is not None and not os.access(where, os.W_OK | os.X_OK):
+    if where is None:
+        return None
+    if not os.access(where, os.W_OK | os.X_OK):
         return f"the folder {where} may not be written (permission denied)"
+    return _probe_problem(where)
+
+
+def _probe_problem(folder: Path) -> str | None:
+    """Why no file can be made in the existing ``folder`` (None: one was made and removed). ``os.access`` answers
+    from the permission bits, which root passes everywhere: a read-only file system or ``/proc`` is found only by
+    trying."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=".fms-check.", dir=str(folder))
+    except OSError as exc:
+        return f"nothing can be written in the folder {folder} ({exc.strerror or exc})"
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(name)
+    return None
+
+
+def _open_problem(path: Path) -> str | None:
+    """Why the existing file ``path`` cannot be opened for writing (None: it can), tried without changing it (opened
+    to append, nothing written): root passes ``os.access`` on a read-only file system too."""
+    try:
+        with open(path, "ab"):
+            pass
+    except OSError as exc:
+        return f"the file may not be written ({exc.strerror or exc})"
     return None
 
 

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -429,6 +430,13 @@ def test_an_output_folder_without_write_permission_is_refused_before_solving(tmp
                         else real(p, mode))
     code, _, err = run(["solve", "EX12", "--out", str(locked / "s.json"), "-q"], capsys)
     assert code == 2 and "the file may not be written (permission denied)" in err
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_output_where_nothing_can_be_written_is_refused_before_solving_also_for_root(capsys):
+    # root passes os.access everywhere, so the check let the solve run and failed only on writing its result
+    code, stdout, err = run(["solve", "EX12", "--out", "/proc/fms-test/s.json", "-q"], capsys)
+    assert code == 2 and "nothing can be written in the folder /proc" in err and "makespan" not in stdout
 
 
 def test_generate_checks_every_flag_by_name_before_writing(tmp_path, capsys):

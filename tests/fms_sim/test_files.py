@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from fms_sim.benchmarks import builtin
-from fms_sim.files import replacing, write_atomically
+from fms_sim.files import folder_problem, output_problem, replacing, write_atomically
 
 from .conftest import run_first
 
@@ -175,3 +175,23 @@ def test_a_runs_final_instance_lies_beside_its_schedule_under_one_name():
     assert instance_beside("out/run.json") == Path("out/run.instance.json")
     assert instance_beside(Path("run.sched")) == Path("run.sched.instance.json")
     assert instance_beside("run") == Path("run.instance.json")
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_output_where_nothing_can_be_written_is_found_by_trying_also_for_root():
+    # os.access answers from the permission bits, which root passes everywhere: run as root (a container, a robot
+    # computer), a schedule_out under /proc or on a read-only file system passed the check and the run was lost
+    # when the file was written at its end
+    assert "nothing can be written in the folder /proc" in output_problem("/proc/fms-test/s.json")
+    assert "nothing can be written in the folder /proc" in folder_problem("/proc/fms-test/charts")
+    assert output_problem("/proc/version").startswith("the file may not be written (")
+
+
+def test_checking_an_output_leaves_nothing_behind(tmp_path):
+    old = tmp_path / "s.json"
+    old.write_text("old\n")
+    before = old.stat().st_mtime_ns
+    assert output_problem(old) is None and output_problem(tmp_path / "new" / "s.json") is None
+    assert folder_problem(tmp_path / "charts") is None
+    assert old.read_text() == "old\n" and old.stat().st_mtime_ns == before
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["s.json"]  # no probe left, no folder made
