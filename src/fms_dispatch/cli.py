@@ -261,7 +261,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     # a PPO run names the model and lookahead it ran ("ppo --lookahead" ran ppo:guided-dagger+lookahead)
     ran = str(sched.meta.get("solver", ""))
     shown = ran if a.solver.lower().startswith("ppo") and ran.lower().startswith("ppo") else a.solver
-    print(f"{inst.name}: makespan {sched.makespan} ({shown}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
+    _result(f"{inst.name}: makespan {sched.makespan} ({shown}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     hint = plan_hint(sched, scenario)
     if hint and not a.quiet:
         print(f"{inst.name}: {hint}", file=sys.stderr)
@@ -367,7 +367,7 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
             sched.save(out)
         except OSError as exc:
             raise CliError(f"cannot write --out {out}: {exc.strerror or exc}") from None
-        print(f"schedule: {out}")
+        _result(f"schedule: {out}")
     if gantt:
         from fms_sim.gantt import save_gantt
 
@@ -376,7 +376,7 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
         except OSError as exc:
             kept = f" (the schedule was saved to {out})" if out else ""
             raise CliError(f"cannot write --gantt {gantt}: {exc.strerror or exc}{kept}") from None
-        print(f"gantt:    {written}")
+        _result(f"gantt:    {written}")
 
 
 def _load_schedule(path: str) -> Schedule:
@@ -484,6 +484,15 @@ def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
             f"{' '.join(opts)}, give the same here")
 
 
+def _result(line: str) -> None:
+    """A line of a command's result on standard output. If its reader has left (``fms solve ... | head -1``), the
+    command goes on without it: the files it writes after the line are still written."""
+    try:
+        print(line)
+    except BrokenPipeError:
+        _reader_left()
+
+
 def _reader_left() -> None:
     """The reader of our standard output left (a closed pipe): send what is still buffered nowhere, so that
     Python's flush at exit does not fail again."""
@@ -516,7 +525,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
                 print(hint, file=sys.stderr)
             return EXIT_BAD_INPUT
         raise
-    print(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
+    _result(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
     _write_outputs(out, inst, a.out, a.gantt)
     return 0
 
@@ -566,7 +575,7 @@ def cmd_generate(a: argparse.Namespace) -> int:
     for inst in insts:
         path = out / f"{inst.name}.json"
         inst.save(path)
-        print(f"{path}: {inst.describe()}")
+        _result(f"{path}: {inst.describe()}")
     return 0
 
 
@@ -681,14 +690,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .up import _TermAsInterrupt
-
-    # SIGTERM (kill, a supervisor) and SIGHUP stop every command as Ctrl-C does: temporary files removed, workers
-    # stopped, "interrupted" (they ended it without a word, leaving hidden temporaries and a bench's workers behind)
-    stops = _TermAsInterrupt()
+    stops = None
     try:
+        from .up import _TermAsInterrupt  # (in the try: Ctrl-C while it loads was a traceback)
+
+        # SIGTERM (kill, a supervisor) and SIGHUP stop every command as Ctrl-C does: temporary files removed, workers
+        # stopped, "interrupted" (they ended it without a word, leaving hidden temporaries and a bench's workers
+        # behind)
+        stops = _TermAsInterrupt()
         a = build_parser().parse_args(argv)  # (an interrupt while the parser's modules load was a traceback)
-        return a.fn(a)
+        code = a.fn(a)
+        try:  # a reader that left is found here, not by Python's flush at exit (exit 120 after a complete run)
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _reader_left()
+        return code
     except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
         # one line, but all of it: a message of several lines (a list of offending specs) is joined, not cut
         msg = " ".join(line.strip() for line in str(exc).splitlines()) or type(exc).__name__
@@ -705,7 +721,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"fms: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return EXIT_BAD_INPUT
     finally:
-        stops.restore()
+        if stops is not None:
+            stops.restore()
 
 
 if __name__ == "__main__":

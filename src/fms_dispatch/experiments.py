@@ -68,6 +68,8 @@ from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 from fms_sim.validate import validate
 
+from .progress import say
+
 __all__ = ["run_ablation", "run_generalization", "run_dynamic", "run_arrivals", "add_experiment_parser", "lower_bound",
            "partition_jobs", "ABLATION_STUDIES", "ABLATION_COLUMNS", "GENERALIZATION_COLUMNS", "DYNAMIC_COLUMNS"]
 
@@ -323,12 +325,12 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
                 rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
                              "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
             if echo:
-                print(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
+                say(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s")
     # (2) lookahead with the study's model (shipped, of BU scale or general)
     for i, s in enumerate(look_sets):
         inst = load_instance(f"EX{s}2")
         if echo:
-            print(f"lookahead [{i + 1}/{len(look_sets)}] {inst.name}", flush=True)
+            say(f"lookahead [{i + 1}/{len(look_sets)}] {inst.name}")
         for variant, la in (("off", False), ("on", True)):
             if not la:  # a guided model searches its plan once per instance, in the off run; the on run acts out
                 agent.forget()  # the same plan, so the study sees the lookahead alone, not two clock-cut searches
@@ -344,11 +346,11 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     for variant, flag in masking:
         t0 = time.perf_counter()
         if echo:
-            print(f"masking {variant}: training {steps} steps", flush=True)
+            say(f"masking {variant}: training {steps} steps")
         for p in _episode_curve(flag, mask_insts, steps, seed, decisions):
             rows.append(dict(p, study="masking", variant=variant, wall_time=round(time.perf_counter() - t0, 2)))
         if echo:
-            print(f"masking {variant}: {time.perf_counter() - t0:.1f} s", flush=True)
+            say(f"masking {variant}: {time.perf_counter() - t0:.1f} s")
 
     summary: dict[str, Any] = {}
     for study, variants in (("reward_shaping", ("shaped", "sparse")), ("lookahead", ("off", "on"))):
@@ -457,7 +459,7 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
                 rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
                              "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
             if echo:
-                print(f"group {g} ({size}) done", flush=True)
+                say(f"group {g} ({size}) done")
     summary = {str(g): {a: _mean([r["makespan"] for r in rows if r["group"] == g and r["agent"] == a])
                         for a in (f"general ({general})", "specialized")} for g in groups}
     meta = {"experiment": "generalization", "quick": quick, "seed": seed, "steps": steps, "groups": groups,
@@ -752,8 +754,8 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         if mode == "agvs" and inst.has_tools:
             inst = inst.without_tools()
         if echo:
-            print(f"[{i + 1}/{len(insts)}] {inst.name} ({mode}): plans, then {len(noises)} noise levels x "
-                  f"{n_seeds} seeds x {len(methods)} methods", flush=True)
+            say(f"[{i + 1}/{len(insts)}] {inst.name} ({mode}): plans, then {len(noises)} noise levels x "
+                f"{n_seeds} seeds x {len(methods)} methods")
         t0 = time.perf_counter()
         plan = solve(inst, "cpsat", time_limit=cpsat_time)
         plan_time = time.perf_counter() - t0

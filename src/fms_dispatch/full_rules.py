@@ -26,7 +26,6 @@ order on the instance; ``rules:paper`` — the best of the paper net's 36 rule p
 from __future__ import annotations
 
 import numbers
-import sys
 import time
 from typing import Any, Callable
 
@@ -36,6 +35,7 @@ from fms_sim.instance import Instance, require_instance
 from fms_sim.replay import replay
 from fms_sim.schedule import Schedule
 
+from .progress import say
 from .rules import JOB_RULES, VEHICLE_RULES, RulePolicy, check_rule_names, choose_vehicle
 
 __all__ = ["TOOL_RULES", "FullRulePolicy", "run_full", "full_rule_names", "solve_list", "solve_best_rules"]
@@ -328,8 +328,8 @@ def solve_best_rules(instance: Instance, *, progress: bool = False, decisions: s
                 best.meta["rule"] = name
             now = time.perf_counter()
             if progress and now - last >= 10:
-                print(f"  rules: {tried}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
-                      f"{now - t0:.0f} s", file=sys.stderr, flush=True)
+                say(f"  rules: {tried}/{len(names)} tried, best {best.makespan} ({best.meta['rule']}), "
+                    f"{now - t0:.0f} s")
                 last = now
     except KeyboardInterrupt:  # the best combination so far goes with the interrupt (fms solve keeps it)
         if best is None:

@@ -26,6 +26,7 @@ from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import Schedule
 from fms_sim.shop import run_policy
 
+from .progress import say
 from .rules import parse_rule_name
 
 __all__ = ["solve", "get_solver", "solver_names", "UnknownSolver"]
@@ -101,8 +102,7 @@ def _cpsat(instance: Instance, time_limit: float | None = None, workers: int = 2
     if time_limit is not None:
         kw["time_limit"] = time_limit
     if progress:
-        kw["progress"] = lambda obj, bound, secs: print(f"  cpsat: makespan {obj}, bound {bound}, {secs:.1f} s",
-                                                        flush=True)
+        kw["progress"] = lambda obj, bound, secs: say(f"  cpsat: makespan {obj}, bound {bound}, {secs:.1f} s")
     return cpsat(instance, **kw)
 
 

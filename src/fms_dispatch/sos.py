@@ -38,7 +38,6 @@ limit makes the number of evaluations — and thus the result — depend on the 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -49,6 +48,7 @@ from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 
+from .progress import say
 from .rules import RulePolicy, parse_rule_name
 
 __all__ = ["SOSConfig", "KeyDecoder", "TimeUp", "solve_sos", "keys_from_policy", "DEFAULT_SEED_RULES"]
@@ -278,8 +278,8 @@ class _Search:
         now = time.perf_counter()
         if force or now - self.last_print >= 1.0:
             self.last_print = now
-            print(f"  sos: iteration {self.iteration}, evaluations {self.evaluations}, "
-                  f"best makespan {self.best_makespan}, {now - self.t0:.1f} s", file=sys.stderr, flush=True)
+            say(f"  sos: iteration {self.iteration}, evaluations {self.evaluations}, "
+                f"best makespan {self.best_makespan}, {now - self.t0:.1f} s")
 
 
 def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population: int | None = None,

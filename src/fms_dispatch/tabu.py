@@ -47,6 +47,8 @@ from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip, require_schedule
 from fms_sim.snapshot import Snapshot
 
+from .progress import say
+
 __all__ = ["tabu_plan", "solve_tabu", "residual_lower_bound"]
 
 #: how many iterations a move's reverse stays forbidden: this many plus a random 0..TENURE_SPREAD-1
@@ -696,10 +698,10 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     def report(makespan: int, iteration: int, seconds: float) -> None:
         if time.monotonic() - shown[0] >= 1.0:  # at most one line a second
             shown[0] = time.monotonic()
-            print(f"  tabu: makespan {makespan} at iteration {iteration}, {seconds:.1f} s", flush=True)
+            say(f"  tabu: makespan {makespan} at iteration {iteration}, {seconds:.1f} s")
 
     if progress:
-        print(f"  tabu: list schedule {start.makespan}", flush=True)
+        say(f"  tabu: list schedule {start.makespan}")
     try:
         best = tabu_plan(instance, start, budget=max(0.0, limit - (time.monotonic() - t0)), seed=seed,
                          bound=bound, progress=report if progress else None)
@@ -710,7 +712,7 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
         kept.best.meta = {"solver": "tabu", "status": "INTERRUPTED", "wall_time": round(time.monotonic() - t0, 3)}
         raise kept from None
     if progress:
-        print(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations", flush=True)
+        say(f"  tabu: makespan {best.makespan} after {best.meta.get('iterations', 0)} iterations")
     best.meta["solver"] = "tabu"
     return best
 

@@ -473,6 +473,44 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("closed, unbuffered", [("stdout", True), ("stderr", True), ("both", True), ("both", False)])
+def test_a_reader_that_leaves_costs_no_result(tmp_path, closed, unbuffered):
+    """`fms solve ... | head -1`: the search's progress lines went to stdout and the first one after the reader left
+    ended the solve, exit 0, without its --out file; a result line on a closed stdout did the same (at once under
+    PYTHONUNBUFFERED, else exit 120 at Python's flush). Progress goes to stderr now, and a reader that leaves either
+    stream (or both: 2>&1) costs nothing but the lines it would have read."""
+    import subprocess
+
+    out = tmp_path / "s.json"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl00", "--solver", "tabu",
+                             "--time-limit", "1", "--out", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT if closed == "both" else subprocess.PIPE, text=True, env=env,
+                            cwd=tmp_path)
+    gone, kept = (proc.stdout, proc.stderr) if closed in ("stdout", "both") else (proc.stderr, proc.stdout)
+    assert gone is not None and gone.readline()  # the first line (the header or, on stdout, the result), then gone
+    gone.close()
+    rest = kept.read() if kept is not None else ""
+    assert proc.wait(timeout=60) == 0
+    assert validate(builtin("sl00"), Schedule.load(out)) == []
+    if closed == "stderr":  # stdout holds only the result
+        assert rest.splitlines()[0].startswith("sl00: makespan ") and rest.splitlines()[1] == f"schedule: {out}"
+    if closed == "stdout":
+        assert "  tabu: list schedule " in rest
+
+
+def _progress_line(proc, prefix: str) -> str:
+    """The first line of ``proc``'s standard error that starts with ``prefix`` (progress goes there, past the header
+    line), or the last line read before the stream ended."""
+    assert proc.stderr is not None
+    line = proc.stderr.readline()
+    while line and not line.startswith(prefix):
+        line = proc.stderr.readline()
+    return line
+
+
 def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     """Ctrl-C (here SIGTERM, which fms takes as Ctrl-C) in a long cpsat, tabu, sos or rules search lost all it found;
     the best schedule so far is now printed, validated and written, and the exit code still says 'interrupted'."""
@@ -484,8 +522,7 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "cpsat",
                              "--time-limit", "120", "--out", str(out), "--gantt", str(chart)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    assert proc.stdout is not None
-    first = proc.stdout.readline()  # CP-SAT's first solution: the search is under way
+    first = _progress_line(proc, "  cpsat: makespan ")  # CP-SAT's first solution: the search is under way
     assert first.startswith("  cpsat: makespan "), first
     proc.send_signal(signal.SIGTERM)
     rest, err = proc.communicate(timeout=60)
@@ -517,11 +554,7 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
         proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "sl30", "--solver", solver,
                                  "--time-limit", "600", "--out", str(tmp_path / "t.json")], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-        stream = proc.stderr if solver == "sos" else proc.stdout  # (sos reports its progress on stderr)
-        assert stream is not None
-        line = stream.readline()
-        while solver == "sos" and line and not line.startswith(first):  # past the header line
-            line = stream.readline()
+        line = _progress_line(proc, first)
         assert line.startswith(first), line
         time.sleep(wait)
         proc.send_signal(signal.SIGTERM)
@@ -545,7 +578,7 @@ def test_an_interrupted_search_keeps_its_best_schedule(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "solve", "ra20", "--solver", "plan:cpsat:120",
                              "--out", str(tmp_path / "p.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, cwd=tmp_path)
-    assert proc.stdout is not None and proc.stdout.readline().startswith("  cpsat: makespan ")
+    assert _progress_line(proc, "  cpsat: makespan ").startswith("  cpsat: makespan ")
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err.strip().endswith("fms: interrupted"), err

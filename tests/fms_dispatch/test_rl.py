@@ -467,7 +467,7 @@ def test_warm_start_only_training_clones_the_expert(tmp_path, capsys):
     cfg = dict(TINY, train=["gen:6x4x3*2@5"], eval=["gen:6x4x3*1@9"], steps=0, seed=1, padding="auto",
                warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 30})
     m = train(cfg, out, progress=True, tensorboard=tmp_path / "tb")
-    printed = capsys.readouterr().out
+    printed = capsys.readouterr().err  # progress goes to stderr
     assert "demonstrations: 2/2 instances" in printed and "cloning: epoch 30/30" in printed
     w = m["warm_start"]
     assert w["expert"] == "rules+nearest" and w["samples"] > 0 and 0.0 <= w["accuracy"] <= 1.0
@@ -588,7 +588,7 @@ def test_dagger_rounds_in_training_and_on_resume(tmp_path, capsys):
                warm_start={"expert": "rules+nearest", "instances": 2, "epochs": 3, "dagger": 1,
                            "dagger_epochs": 2})
     m = train(cfg, out, progress=True, tensorboard=tmp_path / "tb")
-    printed = capsys.readouterr().out
+    printed = capsys.readouterr().err  # progress goes to stderr
     assert "dagger round 1/1" in printed and "dagger: 2/2 instances" in printed
     rounds = m["warm_start"]["dagger_rounds"]
     assert [r["round"] for r in rounds] == [1] and rounds[0]["policy_vs_expert"] > 0

@@ -15,13 +15,13 @@ Solver entry point: :func:`ppo_solver` (``"ppo"`` or ``"ppo:MODEL"``).
 
 from __future__ import annotations
 
-import sys
 import time
 from typing import Any, Callable
 
 from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import Schedule
 
+from ..progress import say
 from .train import add_train_parser
 
 __all__ = ["ppo_solver", "add_train_parser"]
@@ -86,7 +86,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         if disrupted and agent.decisions != "full":
             raise ValueError(f"model {agent.name} decides through the paper's net, which runs no disruptions; use a "
                              "full-net model: ppo (the default, guided-dagger), ppo:guided-ppo or ppo:full")
-        report = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
+        report = say if progress else None
         planner = None
         if lookahead == "guide":
             from .guide import GuideMoves

@@ -56,6 +56,7 @@ import numpy as np
 from fms_sim.files import loads, read_text
 from fms_sim.instance import Instance
 
+from ..progress import say as progress_line
 from .models import CONFIG_FILE, METRICS_FILE
 
 __all__ = ["train", "expand_instances", "DEFAULT_CONFIG", "check_config", "add_train_parser", "cmd_train",
@@ -681,7 +682,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         from .imitation import clone, dagger as run_dagger, demonstrations
         from .plan_expert import plan_dagger, plan_demonstrations
 
-        say = (lambda line: print(line, flush=True)) if (verbose or progress) else None
+        say = progress_line if (verbose or progress) else None
         warm_set = train_set[:int(warm["instances"])]
         pairs: dict[str, str] = {}
         plans: dict[str, Any] = {}
@@ -733,8 +734,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
                             seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
         if verbose or progress:
-            print(f"warm start ({warm['expert']}, {len(history)} DAgger rounds): {bc or history[-1]}; "
-                  f"eval mean reward {mean_r:.4f}", flush=True)
+            progress_line(f"warm start ({warm['expert']}, {len(history)} DAgger rounds): {bc or history[-1]}; "
+                          f"eval mean reward {mean_r:.4f}")
     if init and not resume and warm_metrics is None:  # the starting weights are the baseline PPO must beat
         from sb3_contrib.common.maskable.evaluation import evaluate_policy
 
@@ -744,7 +745,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             model.save(str(out / name))
         warm_metrics = {"init": str(cfg["init"]), "mean_reward": round(float(mean_r), 4)}
         if verbose or progress:
-            print(f"initial weights {init}: eval mean reward {mean_r:.4f}", flush=True)
+            progress_line(f"initial weights {init}: eval mean reward {mean_r:.4f}")
     # written once the folder holds weights to continue from: written before the warm start, an interrupted one left
     # a folder that a new run refused (it holds a model) and --resume too (it has no model.zip)
     (out / CONFIG_FILE).write_text(json.dumps(cfg, indent=2) + "\n")
@@ -752,8 +753,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     rollout = int(model.n_steps) * n_envs
     total = -(-steps // rollout) * rollout  # PPO learns from whole rollouts: what sb3 runs for ``steps``
     if steps and steps % rollout:
-        print(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
-              f"{total}", file=sys.stderr, flush=True)
+        progress_line(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
+                      f"{total}")
     if steps:
         try:
             with warnings.catch_warnings():
@@ -787,8 +788,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     if resume and _solving_weights_sha(out) != best_before:  # figures measured on the weights this run replaced
         dropped = [k for k in _WEIGHT_FIGURES if metrics.pop(k, None) is not None]
         if dropped and (verbose or progress):
-            print(f"note: {weights.name} changed, so its {' and '.join(dropped)} figures in {METRICS_FILE} were of the "
-                  "old weights and are dropped (measure them again: bench/heldout.py --write-metrics)", flush=True)
+            progress_line(f"note: {weights.name} changed, so its {' and '.join(dropped)} figures in {METRICS_FILE} were "
+                          "of the old weights and are dropped (measure them again: bench/heldout.py --write-metrics)")
     if warm_metrics is not None:
         metrics["warm_start"] = warm_metrics
     metrics["training"] = {
