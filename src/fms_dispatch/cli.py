@@ -432,6 +432,14 @@ def cmd_validate(a: argparse.Namespace) -> int:
     inst = load_from_args(a)
     if sched is None:  # (read after the instance: a bad instance is named first)
         sched = _load_schedule(a.schedule)
+    fleet: dict[str, Any] = {}
+    if alone and not (a.agvs is not None or a.tool_transporters is not None or a.no_tools or a.no_agvs):
+        # the shop it was made for has the fleet it records (fms solve EX12 --agvs 3 was called infeasible)
+        fleet = fleet_of(inst, sched)
+        if fleet:
+            for k, v in fleet.items():
+                setattr(a, k, v)
+            inst = load_from_args(a)
     scenario = scenario_from_args(a, inst)
     if scenario is None:  # a malformed recorded one is a file that is not what it claims: bad input, not infeasible
         try:
@@ -442,7 +450,8 @@ def cmd_validate(a: argparse.Namespace) -> int:
         print(f"note: the schedule names instance {sched.instance!r}, checking against {inst.name!r}", file=sys.stderr)
     elif alone:
         print(f"note: checking against {a.instance}" + (f" (layout {a.layout})" if a.layout is not None else "")
-              + ", the instance the schedule was made for", file=sys.stderr)
+              + (f" with {_options_text(fleet)}" if fleet else "") + ", the instance the schedule was made for",
+              file=sys.stderr)
     problems = validate(inst, sched, scenario)
     code = EXIT_INFEASIBLE if problems else 0
     try:
@@ -461,27 +470,41 @@ def cmd_validate(a: argparse.Namespace) -> int:
     return code
 
 
-def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
-    """A hint for a schedule made for another fleet than ``inst``'s, as ``fms solve --agvs 3`` (or ``--no-agvs``,
-    ``--tool-transporters``, ``--no-tools``) makes one: the options that give the instance the schedule's fleet
-    (None if the fleets agree). Checked without them, it breaks the fleet rules and a run of others after them."""
-    if sched.instance != inst.name:  # another shop's schedule: no option of this one makes it fit
-        return None
-    opts = []
+def fleet_of(inst: Instance, sched: Schedule) -> dict[str, Any]:
+    """The instance options (``argparse`` destinations and values: ``agvs``, ``no_agvs``, ``tool_transporters``,
+    ``no_tools``) that give ``inst`` the fleet ``sched`` was made for, as ``fms solve --agvs 3`` (or ``--no-agvs``,
+    ``--tool-transporters``, ``--no-tools``) makes one; empty if the fleets agree or the schedule is another shop's
+    (no option of this one makes it fit)."""
+    if sched.instance != inst.name:
+        return {}
+    opts: dict[str, Any] = {}
     if sched.n_agvs != inst.n_agvs:
         if not sched.n_agvs:
-            opts.append("--no-agvs")
+            opts["no_agvs"] = True
         elif inst.has_agvs:
-            opts.append(f"--agvs {sched.n_agvs}")
+            opts["agvs"] = sched.n_agvs
     if sched.n_tool_transporters != inst.n_tool_transporters:
         if not sched.n_tool_transporters:
-            opts.append("--no-tools")
+            opts["no_tools"] = True
         elif inst.has_tools:
-            opts.append(f"--tool-transporters {sched.n_tool_transporters}")
+            opts["tool_transporters"] = sched.n_tool_transporters
+    return opts
+
+
+def _options_text(opts: dict[str, Any]) -> str:
+    """:func:`fleet_of`'s options as they are written on the command line."""
+    return " ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}") for k, v in opts.items())
+
+
+def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
+    """A hint for a schedule made for another fleet than ``inst``'s (:func:`fleet_of`): the options that give the
+    instance the schedule's fleet (None if the fleets agree). Checked without them, it breaks the fleet rules and a
+    run of others after them."""
+    opts = fleet_of(inst, sched)
     if not opts:
         return None
     return (f"hint: the schedule was made for another fleet than {inst.name}'s; if it was solved with "
-            f"{' '.join(opts)}, give the same here")
+            f"{_options_text(opts)}, give the same here")
 
 
 def _result(line: str) -> None:
@@ -631,7 +654,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Check a schedule against an instance: fms validate INSTANCE SCHEDULE, or fms "
                                    "validate SCHEDULE for the instance it was made for (OUT.instance.json beside "
                                    "OUT.json, which a run with live orders writes, else the built-in instance the "
-                                   "schedule names).")
+                                   "schedule names, with the fleet it records).")
     add_instance_args(s)
     s.add_argument("schedule", nargs="?", help="schedule JSON file")
     s.add_argument("--scenario", metavar="FILE", help="the disruptions of the run (default: the scenario the "
@@ -698,7 +721,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         # stopped, "interrupted" (they ended it without a word, leaving hidden temporaries and a bench's workers
         # behind)
         stops = _TermAsInterrupt()
-        a = build_parser().parse_args(argv)  # (an interrupt while the parser's modules load was a traceback)
+        parser = build_parser()
+        a, extra = parser.parse_known_args(argv)  # (an interrupt while the parser's modules load was a traceback)
+        if extra and getattr(a, "fn", None) is cmd_validate and a.schedule is None and len(extra) == 1 \
+                and not extra[0].startswith("-"):
+            a.schedule = extra[0]  # `fms validate EX12 --agvs 3 s.json`: argparse gives an optional positional no
+            # place after an option (the same order is taken by fms replay, whose schedule is required)
+        elif extra:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
         code = a.fn(a)
         try:  # a reader that left is found here, not by Python's flush at exit (exit 120 after a complete run)
             sys.stdout.flush()

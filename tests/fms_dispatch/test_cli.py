@@ -706,6 +706,30 @@ def test_validate_a_schedule_alone_checks_it_against_the_instance_it_names(tmp_p
     assert code == 2 and "made for instance 'myshop', which is no built-in shop" in err
 
 
+def test_validate_alone_checks_the_fleet_the_schedule_records_and_takes_the_schedule_after_options(tmp_path, capsys):
+    # `fms solve EX12 --agvs 3 --out s.json; fms validate s.json` called the tool's own valid schedule INVALID (the
+    # shop it names, with its own fleet); and `fms validate EX12 --agvs 3 s.json` was refused by argparse
+    out = tmp_path / "s.json"
+    for args, shown in ((["EX12", "--agvs", "3"], "EX12 with --agvs 3"), (["EX12", "--no-agvs"], "EX12 with --no-agvs"),
+                        (["ra01", "--layout", "3", "--no-tools"], "ra01 (layout 3) with --no-tools"),
+                        (["sl00", "--agvs", "2", "--tool-transporters", "1"],
+                         "sl00 with --agvs 2 --tool-transporters 1")):
+        assert run(["solve", *args, "--out", str(out), "-q"], capsys)[0] == 0
+        code, stdout, err = run(["validate", str(out)], capsys)
+        assert code == 0 and stdout.startswith("valid: ") and f"checking against {shown}, the instance" in err, err
+        code, stdout, _ = run(["validate", args[0], *args[1:], str(out)], capsys)  # the options before the file
+        assert code == 0 and stdout.startswith("valid: ")
+    # an instance named, or a fleet given, is checked as given: the hint says what differs
+    assert run(["solve", "EX12", "--agvs", "3", "--out", str(out), "-q"], capsys)[0] == 0
+    code, _, err = run(["validate", "EX12", str(out)], capsys)
+    assert code == 1 and "if it was solved with --agvs 3, give the same here" in err
+    code, _, err = run(["validate", str(out), "--agvs", "2"], capsys)
+    assert code == 1 and "if it was solved with --agvs 3, give the same here" in err
+    with pytest.raises(SystemExit) as exc:  # a second file is still refused
+        main(["validate", "EX12", str(out), str(out)])
+    assert exc.value.code == 2 and "unrecognized arguments" in capsys.readouterr().err
+
+
 def test_validate_alone_refuses_what_it_cannot_resolve(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "s.json"
