@@ -186,10 +186,23 @@ def get_solver(name: str) -> Solver:
             return with_lookahead
         return fn
     head, colon, tail = low.partition(":")
-    if colon and head in ("cpsat", "sos", "tabu", "rules"):  # a limit in the name works for plan: solvers only
-        raise UnknownSolver(f"unknown solver {name!r}: give {head}'s time limit as --time-limit {tail or 'SECONDS'} "
+    if colon and head in ("cpsat", "sos", "tabu", "rules") and _is_seconds(tail):
+        # a limit in the name works for plan: solvers only
+        raise UnknownSolver(f"unknown solver {name!r}: give {head}'s time limit as --time-limit {tail} "
                             f"(time_limit=...); only plan:{head}:SECONDS takes it in its name")
+    if colon and head == "rules":  # (a misspelt variant was told to be a time limit: --time-limit ful)
+        raise UnknownSolver(f"unknown solver {name!r}: the rules solver's variants are rules:full (the default) and "
+                            "rules:paper")
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
+
+
+def _is_seconds(text: str) -> bool:
+    """Whether ``text`` reads as a number of seconds (``cpsat:10``, a limit given in the wrong place)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def parse_plan_name(name: str) -> tuple[str, float | None]:

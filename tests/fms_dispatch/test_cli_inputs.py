@@ -112,6 +112,9 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--gantt", "{d}/g.txt"], "--gantt {d}/g.txt: name the chart's format by its suffix"),  # a PNG
     (["solve", "EX12", "--gantt", "{d}/g"], "name the chart's format by its suffix, one of ."),
     (["solve", "EX12", "--solver", "cpsat:5"], "give cpsat's time limit as --time-limit 5"),
+    (["solve", "EX12", "--solver", "rules:ful"], "the rules solver's variants are rules:full (the default) and "
+     "rules:paper"),  # "give rules's time limit as --time-limit ful"
+    (["solve", "EX12", "--solver", "cpsat:fast"], "unknown solver 'cpsat:fast'; choose from first"),  # the same
     (["solve", "EX12", "--solver", "list:"], "'list:' names no list order"),  # ran as list
     (["solve", "EX12", "--seed", "5"], "--seed does not apply to list (the default solver): it draws nothing"),
     (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
