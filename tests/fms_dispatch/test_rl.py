@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -135,6 +136,111 @@ def test_an_interrupted_training_says_so_and_exits_130(tmp_path, capsys, monkeyp
     assert json.loads((out / "metrics.json").read_text())["training"]["interrupted"] is True
 
 
+def _interrupt_at(monkeypatch, call: int):
+    """Make the ``call``-th step of a DummyVecEnv raise KeyboardInterrupt (Ctrl-C in the middle of a rollout)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    real, seen = DummyVecEnv.step_wait, [0]
+
+    def step_wait(self):
+        seen[0] += 1
+        if seen[0] == call:
+            raise KeyboardInterrupt
+        return real(self)
+
+    monkeypatch.setattr(DummyVecEnv, "step_wait", step_wait)
+
+
+def test_ppo_steps_count_only_the_steps_ppo_learnt_from(tmp_path, monkeypatch):
+    """An interrupt in a rollout: its steps were collected, never learnt from, yet counted as PPO steps, so a run
+    stopped before PPO's first update (the weights the clone's or the initial ones) was reported as a PPO model."""
+    cfg = dict(TINY, train=["EX12"], steps=1024, seed=3, padding="bu", eval_freq=10_000)
+    _interrupt_at(monkeypatch, 50)  # in the first rollout of 128 steps
+    m = train(cfg, tmp_path / "a", progress=False, tensorboard=tmp_path / "tb")
+    assert m["training"]["interrupted"] is True and m["training"]["timesteps"] == 49 and m["ppo_steps"] == 0
+    _interrupt_at(monkeypatch, 300)  # in the third: two rollouts learnt from
+    m = train(cfg, tmp_path / "b", progress=False, tensorboard=tmp_path / "tb")
+    assert m["training"]["timesteps"] == 299 and m["ppo_steps"] == 256
+    monkeypatch.undo()
+    m = train({"steps": 128}, tmp_path / "b", resume=True, progress=False)  # counted on from the record
+    assert m["ppo_steps"] == 384 and m["resumes"][-1]["ppo_steps_before"] == 256
+    assert m["resumes"][-1]["ppo_steps_after"] == 384 and m["training"]["interrupted"] is False
+
+
+def test_an_interrupt_after_ppo_writes_metrics_of_the_saved_weights(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the finished run's weights were evaluated left the new model.zip beside the old metrics.json
+    (its PPO steps, its figures of other weights, no record of the run); the weights are now described, unevaluated,
+    and fms train says so and exits 130."""
+    import fms_dispatch.rl.train as tr
+    from fms_dispatch.cli import main
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "m"
+    base = ["train", "EX12", "--allow-benchmarks", "--padding", "bu", "--n-envs", "1", "--steps", "128",
+            "--out", str(out), "--no-progress", "--tensorboard", str(tmp_path / "tb")]
+    assert main(base) == 0
+    monkeypatch.setattr(tr, "evaluate_model", stop)
+    assert main(["train", "--out", str(out), "--resume", "--steps", "128", "--no-progress"]) == 130
+    printed = capsys.readouterr()
+    assert "not evaluated" in printed.out and "fms: interrupted: the model is saved at" in printed.err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["training"]["interrupted"] is True and m["training"]["eval_makespan"] is None
+    assert m["ppo_steps"] > 128 and m["resumes"][-1]["ppo_steps_after"] == m["ppo_steps"]
+
+
+def test_a_model_file_is_replaced_only_by_a_complete_one(tmp_path, monkeypatch):
+    """sb3 writes a model's zip in place: interrupted while it wrote best_model.zip, a run left a truncated file that
+    no later run could load (exit 2, and fms solve failed though model.zip was intact)."""
+    import stable_baselines3.common.base_class as bc
+
+    real, calls = bc.save_to_zip_file, []
+
+    def torn(save_path, *args, **kwargs):
+        calls.append(str(save_path))
+        if "best_model" in str(save_path):  # the first evaluation's best: half written, then Ctrl-C
+            path = Path(save_path)
+            (path if path.suffix == ".zip" else path.with_name(path.name + ".zip")).write_bytes(b"PK\x03\x04")
+            raise KeyboardInterrupt
+        return real(save_path, *args, **kwargs)
+
+    monkeypatch.setattr(bc, "save_to_zip_file", torn)
+    cfg = dict(TINY, train=["EX12"], steps=1024, seed=3, padding="bu", eval_freq=128, save_freq=10_000)
+    out = tmp_path / "m"
+    m = train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
+    assert m["training"]["interrupted"] is True and any("best_model" in c for c in calls)
+    assert not (out / "best_model.zip").exists() and m["training"]["weights"] == "model.zip"
+    assert [q.name for q in out.iterdir() if q.name.startswith(".")] == []  # no temporary left
+    inst = builtin("EX12")
+    assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []  # the model loads and solves
+
+
+def test_resume_checks_the_config_it_continues(tmp_path):
+    # an edited config.json ran unchecked: eval_freq 0 evaluated at every step, unknown keys were ignored
+    out = tmp_path / "m"
+    train(dict(TINY, train=["EX12"], steps=128, padding="bu"), out, progress=False, tensorboard=tmp_path / "tb")
+    saved = json.loads((out / "config.json").read_text())
+    for key, value, needle in (("eval_freq", 0, "eval_freq must be an integer >= 1, got 0"),
+                               ("bogus", 1, "unknown config key 'bogus'")):
+        (out / "config.json").write_text(json.dumps(dict(saved, **{key: value})))
+        with pytest.raises(ValueError, match=f"cannot resume: {out / 'config.json'}: .*{needle}"):
+            train({"steps": 128}, out, resume=True, progress=False)
+
+
+def test_a_diverging_ppo_run_says_so_and_leaves_no_config_without_weights(tmp_path):
+    # learning_rate 1e308 ended in a traceback (float32 overflow) or torch's message about NaN logits, and left a
+    # folder holding only config.json, which a new run and --resume both refused
+    out = tmp_path / "m"
+    with pytest.raises(ValueError, match="learning_rate must be a number > 0 and at most 3.4e\\+38"):
+        train(dict(TINY, train=["EX12"], steps=128, padding="bu", ppo={"learning_rate": 1e308}), out,
+              progress=False)
+    with pytest.raises(ValueError, match="PPO diverged: the policy's outputs became NaN"):
+        train(dict(TINY, train=["EX12"], steps=256, padding="bu", eval_freq=10_000, save_freq=10_000,
+                   ppo={"learning_rate": 1e30}), out, progress=False, tensorboard=tmp_path / "tb")
+    assert not (out / "config.json").exists()
+
+
 def test_resume_refuses_options_it_cannot_apply(tmp_path, capsys):
     from fms_dispatch.cli import main
 
@@ -188,7 +294,8 @@ def test_train_refuses_bad_input(tmp_path):
                      (dict(hidden="big"), 'config: hidden must be an integer >= 1, got "big"'),
                      (dict(eval_freq=0), "config: eval_freq must be an integer >= 1, got 0"),
                      (dict(steps="100"), 'config: steps must be an integer >= 0, got "100"'),
-                     (dict(warm_start={"lr": -1}), "config: warm_start.lr must be a number > 0, got -1"),
+                     (dict(warm_start={"lr": -1}),
+                      "config: warm_start.lr must be a number > 0 and at most 3.4e\\+38, got -1"),
                      (dict(fleet=[1]), "config key fleet must be an object"),
                      (dict(net_arch=[64, 0]), "config: net_arch must be a list of layer widths"),
                      (dict(seed=-1), "config: seed must be an integer from 0 to 2147483647, got -1")]:  # gym's error
@@ -595,6 +702,7 @@ def test_dagger_rounds_in_training_and_on_resume(tmp_path, capsys):
     assert rounds[0]["samples"] > m["warm_start"]["samples"]  # the policy's states were added
     m2 = train({"steps": 0}, out, resume=True, progress=False, dagger=1)
     assert len(m2["warm_start"]["dagger_rounds"]) == 2 and m2["warm_start"]["dagger"] == 2
+    assert [r["round"] for r in m2["warm_start"]["dagger_rounds"]] == [1, 2]  # (the added one was round 1 again)
     assert json.loads((out / "config.json").read_text())["warm_start"]["dagger"] == 2
     inst = expand_instances(["gen:6x4x3*1@9"])[0]
     assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []

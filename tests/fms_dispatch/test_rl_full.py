@@ -278,7 +278,9 @@ def test_fine_tuning_options_are_checked(tmp_path):
     assert not (tmp_path / "g").exists()  # refused before the folder is made (it was left empty)
     (tmp_path / "g").mkdir()
     first = {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()}
-    with pytest.raises(ValueError, match="another layout"):  # --force removed the model in the way first
+    # fine-tuning in place: --force removed the model in the way first (its recorded shops with it), and the config
+    # named the folder's new weights as the initial ones
+    with pytest.raises(ValueError, match="is the model folder being trained: fine-tune into another folder"):
         train({**base, "init": str(other)}, other, progress=False, force=True)
     assert {p.name: p.read_bytes() for p in other.iterdir() if p.is_file()} == first
 

@@ -53,7 +53,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fms_sim.files import loads, read_text
+from fms_sim.files import loads, read_text, write_atomically
 from fms_sim.instance import Instance
 
 from ..progress import say as progress_line
@@ -187,6 +187,9 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+#: the largest number a float32 holds (torch's), rounded down
+_F32_MAX = 3.4e38
+
 #: What each config value must be: (test, words for the error); null always passes (it leaves the default). Keys
 #: checked elsewhere (padding, guide_effort, disruptions, warm_start.refine, the names of rules, rewards and
 #: experts) only need the right JSON type here.
@@ -198,6 +201,9 @@ _KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "int>=1": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
     "num>=0": (lambda v: _is_num(v) and v >= 0, "a number >= 0"),
     "num>0": (lambda v: _is_num(v) and v > 0, "a number > 0"),
+    # torch computes in float32: a larger value (1e308) overflowed in a traceback
+    "f32>0": (lambda v: _is_num(v) and 0 < v <= _F32_MAX, f"a number > 0 and at most {_F32_MAX:g}"),
+    "f32>=0": (lambda v: _is_num(v) and 0 <= v <= _F32_MAX, f"a number >= 0 and at most {_F32_MAX:g}"),
     "gamma": (lambda v: _is_num(v) and 0 < v <= 1, "a number in (0, 1]"),
     "specs": (lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of instance specs"),
     "layers": (lambda v: isinstance(v, list) and all(_is_int(x) and x >= 1 for x in v),
@@ -218,10 +224,10 @@ _CONFIG_KINDS: dict[str, Any] = {
     "vec_env": "vec_env", "eval_freq": "int>=1", "save_freq": "int>=1",
     "warm_start": {"expert": "str", "instances": "int>=1", "search_iters": "int>=0", "search_insert": "num>=0",
                    "search_restarts": "int>=1", "search_starts": "int>=1", "workers": "int>=1", "epochs": "int>=0",
-                   "lr": "num>0", "dagger": "int>=0", "dagger_epochs": "int>=1", "refine": "list"},
-    "ppo": {"learning_rate": "num>0", "n_steps": "int>=1", "batch_size": "int>=1", "n_epochs": "int>=1",
-            "gamma": "gamma", "gae_lambda": "gamma", "clip_range": "num>0", "ent_coef": "num>=0", "vf_coef": "num>=0",
-            "max_grad_norm": "num>0"},
+                   "lr": "f32>0", "dagger": "int>=0", "dagger_epochs": "int>=1", "refine": "list"},
+    "ppo": {"learning_rate": "f32>0", "n_steps": "int>=1", "batch_size": "int>=1", "n_epochs": "int>=1",
+            "gamma": "gamma", "gae_lambda": "gamma", "clip_range": "f32>0", "ent_coef": "f32>=0", "vf_coef": "f32>=0",
+            "max_grad_norm": "f32>0"},
 }
 assert set(_CONFIG_KINDS) == set(DEFAULT_CONFIG)
 
@@ -450,6 +456,49 @@ def _misfit(instances: Sequence[Instance], padding: dict[str, int]) -> str | Non
 MODEL_FILES = (CONFIG_FILE, METRICS_FILE, "model.zip", "best_model.zip", "warm_start.zip")
 
 
+def _save_model(model: Any, path: Path) -> None:
+    """``model.save`` to ``path`` through a temporary beside it, renamed when complete: an interrupt while sb3 writes
+    the zip left a truncated model that no run could load (the actor exports are written the same way)."""
+    tmp = path.with_name(f".{path.name}.tmp.zip")
+    try:
+        model.save(str(tmp))
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+class _HeldInterrupts:
+    """While entered, Ctrl-C and the stop signals (SIGTERM, SIGHUP, SIGQUIT) are held instead of raised;
+    :attr:`seen` says whether one came. For the few seconds that write a finished run's files: interrupted there, a
+    run kept weights that its metrics did not describe. Outside the main thread nothing can be held."""
+
+    def __init__(self) -> None:
+        self.seen = False
+        self._old: dict[int, Any] = {}
+
+    def _hold(self, signum: int, frame: Any) -> None:
+        self.seen = True
+
+    def __enter__(self) -> "_HeldInterrupts":
+        import signal
+
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM, *(getattr(signal, n) for n in ("SIGHUP", "SIGQUIT")
+                                                         if hasattr(signal, n))):
+                self._old[sig] = signal.signal(sig, self._hold)
+        except ValueError:  # not the main thread
+            self.__exit__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        import signal
+
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
+
+
 def _model_files(out: Path) -> list[Path]:
     """The files of a trained model that folder ``out`` holds (:data:`MODEL_FILES` and their actor exports)."""
     names = list(MODEL_FILES) + [n[:-len(".zip")] + ".actor.npz" for n in MODEL_FILES if n.endswith(".zip")]
@@ -508,6 +557,10 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             raise ValueError(f"cannot resume: {out} has no model.zip from an earlier run (the latest weights, which a "
                              "model shipped without them or a run that ended before its first save does not have: "
                              "train a new model, from it with --init)")
+        try:  # (an edited config.json ran unchecked: eval_freq 0 evaluated at every step)
+            check_config(earlier)
+        except ValueError as exc:
+            raise ValueError(f"cannot resume: {out / CONFIG_FILE}: {exc}") from None
         cfg = _merge(earlier, {"steps": config.get("steps")})
     else:
         cfg = _merge(DEFAULT_CONFIG, config)
@@ -547,6 +600,11 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     # a resumed run continues its own weights: the initial model is needed again only as the baseline (resolving it
     # made a resume fail once that model was moved, or from another working folder)
     init = _resolve_init(cfg["init"]) if cfg.get("init") and (not resume or cfg.get("baseline")) else None
+    if init and not resume and (init if init.is_dir() else init.parent).resolve() == out.resolve():
+        # --force removed the model it was to start from (its recorded shops with it), and the config then named the
+        # folder's own new weights as the initial ones
+        raise ValueError(f"init {cfg['init']} is the model folder being trained: fine-tune into another folder "
+                         "(--out), which keeps the initial model as it is")
     if init and not resume and not cfg.get("allow_benchmarks"):
         _check_init_apart(init)
     if init and not resume and warm["expert"] and not int(warm["dagger"]):
@@ -655,11 +713,6 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     metrics_path = out / METRICS_FILE
     old = json.loads(metrics_path.read_text()) if resume and metrics_path.is_file() else {}
     best_before = _solving_weights_sha(out) if resume else None
-    eval_cb = MaskableEvalCallback(eval_env, n_eval_episodes=len(eval_set),
-                                   eval_freq=max(1, int(cfg["eval_freq"]) // n_envs),
-                                   best_model_save_path=str(out), log_path=None, deterministic=True, verbose=0)
-    if old.get("training", {}).get("best_mean_reward") is not None:
-        eval_cb.best_mean_reward = float(old["training"]["best_mean_reward"])
 
     class _Saver(BaseCallback):
         """Save ``model.zip`` every ``save_freq`` steps, so that an interrupted run can be resumed."""
@@ -671,8 +724,41 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         def _on_step(self) -> bool:
             if self.num_timesteps - self.last >= self.every:
                 self.last = self.num_timesteps
-                self.model.save(str(out / "model.zip"))
+                _save_model(self.model, out / "model.zip")
             return True
+
+    class _SaveBest(BaseCallback):
+        """Save the best weights (the evaluation callback's new best) to ``best_model.zip``, atomically."""
+
+        def _on_step(self) -> bool:
+            _save_model(self.model, out / "best_model.zip")
+            return True
+
+    class _Trained(BaseCallback):
+        """Count the steps PPO trained on: each rollout once it is collected (its update follows at once). The
+        steps of a rollout cut short by an interrupt were collected but never learnt from (they were counted as PPO
+        steps, so an interrupted clone was reported as a PPO model)."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.steps = 0
+            self._start = 0
+
+        def _on_rollout_start(self) -> None:
+            self._start = self.num_timesteps
+
+        def _on_rollout_end(self) -> None:
+            self.steps += self.num_timesteps - self._start
+
+        def _on_step(self) -> bool:
+            return True
+
+    eval_cb = MaskableEvalCallback(eval_env, n_eval_episodes=len(eval_set),
+                                   eval_freq=max(1, int(cfg["eval_freq"]) // n_envs),
+                                   best_model_save_path=None, callback_on_new_best=_SaveBest(), log_path=None,
+                                   deterministic=True, verbose=0)
+    if old.get("training", {}).get("best_mean_reward") is not None:
+        eval_cb.best_mean_reward = float(old["training"]["best_mean_reward"])
 
     t0 = time.perf_counter()
     warm_metrics = None
@@ -715,9 +801,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
         if not resume or float(mean_r) >= eval_cb.best_mean_reward:  # the best weights are kept
             eval_cb.best_mean_reward = float(mean_r)  # PPO must beat the warm-started policy to replace it
-            model.save(str(out / "best_model.zip"))
-        model.save(str(out / "model.zip"))
-        model.save(str(out / "warm_start.zip"))  # the clone as it was before PPO, to measure what PPO adds
+            _save_model(model, out / "best_model.zip")
+        _save_model(model, out / "model.zip")
+        _save_model(model, out / "warm_start.zip")  # the clone as it was before PPO, to measure what PPO adds
         if resume:  # extend the record of the first warm start
             warm_metrics = dict(old.get("warm_start", {}))
             warm_metrics["dagger"] = int(warm_metrics.get("dagger", 0)) + rounds
@@ -730,7 +816,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
             if init:  # the rounds started from these weights: no clone ran, so no clone epochs either
                 warm_metrics["init"] = str(cfg["init"])  # as given (resolved, a shipped one was this machine's path)
                 warm_metrics.pop("epochs", None)
-        warm_metrics["dagger_rounds"] = list(warm_metrics.get("dagger_rounds", [])) + history
+        earlier_rounds = list(warm_metrics.get("dagger_rounds", []))  # a resumed run's rounds follow them (all
+        warm_metrics["dagger_rounds"] = earlier_rounds + [  # were numbered from 1)
+            dict(r, round=len(earlier_rounds) + int(r.get("round", k + 1))) for k, r in enumerate(history)]
         warm_metrics.update(mean_reward=round(float(mean_r), 4),
                             seconds=round(float(warm_metrics.get("seconds", 0.0)) + time.perf_counter() - t0, 1))
         if verbose or progress:
@@ -742,7 +830,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         mean_r, _ = evaluate_policy(model, eval_env, n_eval_episodes=len(eval_set), deterministic=True)
         eval_cb.best_mean_reward = float(mean_r)
         for name in ("best_model.zip", "model.zip", "warm_start.zip"):
-            model.save(str(out / name))
+            _save_model(model, out / name)
         warm_metrics = {"init": str(cfg["init"]), "mean_reward": round(float(mean_r), 4)}
         if verbose or progress:
             progress_line(f"initial weights {init}: eval mean reward {mean_r:.4f}")
@@ -755,6 +843,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     if steps and steps % rollout:
         progress_line(f"note: PPO collects rollouts of n_steps x n_envs = {rollout} steps, so {steps} steps run as "
                       f"{total}")
+    trained = _Trained()
     if steps:
         try:
             with warnings.catch_warnings():
@@ -762,27 +851,39 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                 # is meant so
                 warnings.filterwarnings("ignore", message="Training and eval env are not of the same type",
                                         category=UserWarning)
-                model.learn(total_timesteps=total, callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"]))]),
+                model.learn(total_timesteps=total,
+                            callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"])), trained]),
                             reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
             interrupted = True
-    wall = time.perf_counter() - t0
-    model.save(str(out / "model.zip"))
-    try:
-        venv.close()
-    except (EOFError, BrokenPipeError, ConnectionResetError):  # a worker already gone (killed): nothing to close
-        if not interrupted:
+        except Exception as exc:
+            if not resume and not (out / "model.zip").is_file():  # a config of no weights: the folder was refused
+                (out / CONFIG_FILE).unlink(missing_ok=True)  # by a new run and by --resume alike
+            if isinstance(exc, ValueError) and "found invalid values" in str(exc):  # torch's check of the logits
+                raise ValueError("PPO diverged: the policy's outputs became NaN (lower ppo.learning_rate, vf_coef or "
+                                 "clip_range)") from None
             raise
-    eval_env.close()
-
+    wall = time.perf_counter() - t0
     from .agent import export_actor
 
-    for saved in ("model.zip", "best_model.zip", "warm_start.zip"):  # numpy exports: inference without torch
-        if (out / saved).is_file():
-            export_actor(out / saved)
+    with _HeldInterrupts() as stop:  # a few seconds: the files of what was learnt, complete
+        _save_model(model, out / "model.zip")
+        try:
+            venv.close()
+        except (EOFError, BrokenPipeError, ConnectionResetError):  # a worker already gone (killed): nothing to close
+            if not interrupted:
+                raise
+        eval_env.close()
+        for saved in ("model.zip", "best_model.zip", "warm_start.zip"):  # numpy exports: inference without torch
+            if (out / saved).is_file():
+                export_actor(out / saved)
+    interrupted = interrupted or stop.seen
     weights = out / "best_model.zip" if (out / "best_model.zip").is_file() else out / "model.zip"
-    makespans = evaluate_model(weights, padding, eval_set, decisions=decisions, guide=guide, guide_effort=effort,
-                               disruptions=disruptions)
+    try:
+        makespans: dict[str, int] | None = evaluate_model(weights, padding, eval_set, decisions=decisions, guide=guide,
+                                                          guide_effort=effort, disruptions=disruptions)
+    except KeyboardInterrupt:  # the weights are saved: the metrics say what they are, without the evaluation
+        interrupted, makespans = True, None
     prev = old.get("training", {})
     metrics = dict(old)
     if resume and _solving_weights_sha(out) != best_before:  # figures measured on the weights this run replaced
@@ -798,20 +899,24 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         # None (JSON null) when no evaluation ran: -inf is not JSON
         "best_mean_reward": float(eval_cb.best_mean_reward) if np.isfinite(eval_cb.best_mean_reward) else None,
         "weights": weights.name,
-        "eval_makespan": makespans,
-        "eval_mean_makespan": round(float(np.mean(list(makespans.values()))), 2),
+        "eval_makespan": makespans,  # None: interrupted before the evaluation of the weights
+        "eval_mean_makespan": round(float(np.mean(list(makespans.values()))), 2) if makespans else None,
         "interrupted": interrupted,
     }
     metrics["training_shops"] = list(dict.fromkeys([inst.name for inst in train_set]
                                                    + [inst.name for st in refine for inst in st[1]]
                                                    + list(old.get("training_shops", []))
                                                    + (_init_shops(init) if init else [])))
-    metrics["ppo_steps"] = int(model.num_timesteps)  # 0: a clone (DAgger included), not a PPO-trained model
+    # the steps PPO learnt from (0: a clone, DAgger included, not a PPO-trained model); timesteps above counts the
+    # steps collected, with those of a rollout an interrupt cut short
+    before = int(old.get("ppo_steps", 0)) if resume else 0
+    metrics["ppo_steps"] = before + trained.steps
     if resume:  # each continuation on record: what it added to the model the config alone would train
         metrics["resumes"] = list(old.get("resumes", [])) + [{
-            "ppo_steps_before": int(prev.get("timesteps", 0)), "ppo_steps_after": int(model.num_timesteps),
+            "ppo_steps_before": before, "ppo_steps_after": metrics["ppo_steps"],
             "dagger_rounds": int(rounds), "wall_seconds": round(wall, 1), "interrupted": interrupted}]
-    metrics_path.write_text(json.dumps(metrics, indent=2) + "\n")
+    with _HeldInterrupts():  # (written whole: an interrupt after it is of a complete run)
+        write_atomically(metrics_path, json.dumps(metrics, indent=2) + "\n")
     return metrics
 
 
@@ -903,7 +1008,9 @@ def cmd_train(a: argparse.Namespace) -> int:
     m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard,
               dagger=a.dagger, force=a.force)
     t = m["training"]
-    print(f"{a.out}: {t['timesteps']} steps, {t['wall_seconds']} s; eval mean makespan {t['eval_mean_makespan']} "
+    evaluated = (f"eval mean makespan {t['eval_mean_makespan']}" if t["eval_mean_makespan"] is not None
+                 else "not evaluated")
+    print(f"{a.out}: {t['timesteps']} steps ({m['ppo_steps']} learnt from by PPO), {t['wall_seconds']} s; {evaluated} "
           f"({t['weights']})")
     if t["interrupted"]:  # (it exited 0 without a word: only metrics.json said so)
         print(f"fms: interrupted: the model is saved at {t['timesteps']} steps; fms train --out {a.out} --resume "
