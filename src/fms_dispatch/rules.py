@@ -130,6 +130,9 @@ def parse_rule_name(name: str) -> RulePolicy:
     job, plus, vehicle = body.partition("+")
     if not job or (plus and not vehicle):  # "rule:" or "rule:MTWR+" ran as FIFO or MTWR+first: a typo
         raise ValueError(f"rule name {name!r} has an empty part; use rule:JOB[+VEHICLE], e.g. rule:MTWR+nearest")
+    if "+" in vehicle:  # (it said "unknown vehicle rule 'nearest+fifo'")
+        raise ValueError(f"rule {name!r}: a tool rule (its third part, {vehicle.split('+', 1)[1]!r}) is read only by "
+                         "the full-decision net's rules of fms solve; here give rule:JOB+VEHICLE")
     return RulePolicy(job, vehicle or "first")
 
 

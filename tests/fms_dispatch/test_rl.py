@@ -216,6 +216,22 @@ def test_a_model_file_is_replaced_only_by_a_complete_one(tmp_path, monkeypatch):
     assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []  # the model loads and solves
 
 
+def test_resume_names_a_damaged_model_zip(tmp_path):
+    out = tmp_path / "m"
+    train(dict(TINY, train=["EX12"], steps=128, padding="bu"), out, progress=False, tensorboard=tmp_path / "tb")
+    (out / "model.zip").write_bytes((out / "model.zip").read_bytes()[:100])  # a copy cut short
+    with pytest.raises(ValueError, match=f"cannot resume: {out / 'model.zip'} is not a readable MaskablePPO model "
+                                         r"\(the file .* wasn't a zip-file\)"):  # (it said "Error: the file ...")
+        train({"steps": 128}, out, resume=True, progress=False)
+
+
+def test_zero_steps_are_refused_with_the_reason(tmp_path):
+    # --steps -5 said ">= 0 (0: the warm start or DAgger rounds only)", then --steps 0 a bare "must be positive"
+    with pytest.raises(ValueError, match="--steps must be positive: 0 trains only a warm start or DAgger rounds, and "
+                                         "this run has no warm-start expert"):
+        train(dict(TINY, train=["EX12"], steps=0, padding="bu"), tmp_path / "m", progress=False)
+
+
 def test_resume_checks_the_config_it_continues(tmp_path):
     # an edited config.json ran unchecked: eval_freq 0 evaluated at every step, unknown keys were ignored
     out = tmp_path / "m"

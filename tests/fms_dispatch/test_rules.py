@@ -67,3 +67,6 @@ def test_bad_rule_names():
     with pytest.raises(ValueError, match="unknown vehicle rule"):
         parse_rule_name("rule:FIFO+teleport")
     assert parse_rule_name("mtwr").name == "rule:MTWR+first"
+    # fms up's agent node was told "unknown vehicle rule 'nearest+fifo'" of a full-net rule with a tool rule
+    with pytest.raises(ValueError, match="a tool rule .its third part, 'fifo'. is read only by the full-decision"):
+        parse_rule_name("rule:MTWR+nearest+fifo")

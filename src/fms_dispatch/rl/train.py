@@ -359,17 +359,39 @@ def _solving_weights_sha(out: Path) -> str | None:
     return file_sha256(weights) if weights.is_file() else None
 
 
-def _load_init(model: Any, init: str | Path) -> None:
+def _load_init(model: Any, init: str | Path, run: dict[str, Any] | None = None) -> None:
     """Copy the policy weights of ``init`` (a ``.zip``, or a model folder: its ``best_model.zip``, else its
     ``model.zip``) into ``model``; raises ValueError if they do not fit (another padding, net, guide or
-    architecture)."""
+    architecture), naming what differs between the initial model's config and ``run`` (this run's ``decisions``,
+    ``guide`` and ``padding``) where the initial model's folder has its config."""
     from sb3_contrib import MaskablePPO
 
     path = _init_weights(init)
     src = MaskablePPO.load(str(path), device="cpu")
     if (src.observation_space.shape != model.observation_space.shape
             or src.action_space.n != model.action_space.n):
-        raise ValueError(f"init: the weights in {path} were trained for another layout (observation "
+        differ = ""
+        try:
+            theirs = json.loads((path.parent / CONFIG_FILE).read_text())
+        except (OSError, ValueError):
+            theirs = None
+        if isinstance(theirs, dict) and run:  # (it gave only the shapes: observation (127,), 10 actions)
+            from .envs import padding_for
+
+            mine = dict(run)
+            theirs = {"decisions": theirs.get("decisions") or "paper", "guide": theirs.get("guide") or None,
+                      "padding": theirs.get("padding")}
+            for side in (mine, theirs):  # a profile's name as its sizes
+                if isinstance(side.get("padding"), str):
+                    try:
+                        side["padding"] = padding_for(side["padding"], [])
+                    except ValueError:
+                        pass
+            what = {"decisions": "net", "guide": "guide", "padding": "padding"}
+            differ = "; ".join(f"its {what[k]} {theirs[k]!r}, this run's {mine[k]!r}" for k in what
+                               if k in mine and theirs[k] != mine[k])
+            differ = f": {differ}" if differ else ""
+        raise ValueError(f"init: the weights in {path} were trained for another layout{differ} (observation "
                          f"{src.observation_space.shape}, {src.action_space.n} actions; this model: "
                          f"{model.observation_space.shape}, {model.action_space.n})")
     try:
@@ -651,7 +673,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                          f"plan:SOLVER[:SECONDS]), not {warm['expert']!r}: only those can label the policy's own "
                          "states")
     if steps < 0 or (steps == 0 and not rounds and (resume or not warm["expert"])):
-        raise ValueError("--steps must be positive")
+        # (after "--steps must be >= 0 (0: the warm start or DAgger rounds only)", a bare "must be positive" for 0)
+        raise ValueError("--steps must be positive: 0 trains only a warm start or DAgger rounds, and this run has "
+                         + ("no --dagger rounds to add" if resume else "no warm-start expert"))
     refine = _refine_stages(warm["refine"], cfg["fleet"], int(cfg["seed"])) if not resume else []
     if refine and not warm["expert"]:
         raise ValueError("warm_start.refine follows the cloning of a warm-start expert: set warm_start.expert")
@@ -686,7 +710,16 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
 
     ppo = dict(cfg["ppo"])
     if resume:
-        model = MaskablePPO.load(str(out / "model.zip"), env=venv, device="cpu", tensorboard_log=str(tb))
+        try:
+            model = MaskablePPO.load(str(out / "model.zip"), env=venv, device="cpu", tensorboard_log=str(tb))
+        except OSError:
+            raise
+        except Exception as exc:  # a damaged save: sb3's own words were "fms: error: Error: the file ... wasn't a
+            venv.close()  # zip-file"
+            eval_env.close()
+            cause = str(exc).removeprefix("Error: ").strip() or type(exc).__name__
+            raise ValueError(f"cannot resume: {out / 'model.zip'} is not a readable MaskablePPO model ({cause})") \
+                from None
     else:
         if cfg["arch"] == "entity":
             from .policy import EntityPolicy
@@ -701,7 +734,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                             tensorboard_log=str(tb), **ppo)
         if init:
             try:
-                _load_init(model, init)
+                _load_init(model, init, {"decisions": decisions, "guide": guide, "padding": padding})
             except ValueError:  # weights that do not fit: refused before the folder is made or a model removed
                 venv.close()
                 eval_env.close()
