@@ -19,7 +19,7 @@ only when the instance changes (live orders), so a 100x20 instance does not re-s
 
 Rewards (``reward=``):
 
-* ``"idle"`` — the paper's: ``-(idle machines / machines)`` after every decision;
+* ``"idle"`` — the paper's: ``-(idle machines / machines)`` after every decision but the last (0: the shop is done);
 * ``"makespan"`` — sparse: ``-makespan / scale`` at the end, 0 before;
 * ``"shaped"`` — ours: potential-based on a makespan estimate ``LB`` (:meth:`ShopEnv._lower_bound`): the largest of
   the clock, the latest end recorded so far, the clock plus the most work a job has not begun, and per machine its
@@ -288,11 +288,11 @@ class ShopEnv(gym.Env):
         inst = require_instance((options or {}).get("instance") or self._sample(self.np_random),
                                 "the env's episode (reset's options['instance'] or its instance sampler)")
         self._check_fits(inst)
-        self.instance = inst
         scenario = (options or {}).get("scenario")
         if scenario is None and self.disruptions is not None:
             scenario = self.draw_scenario(inst)
-        self.shop = make_shop(inst, self.decisions, scenario)
+        shop = make_shop(inst, self.decisions, scenario)  # (before the env changes: a scenario refused here left the
+        self.instance, self.shop = inst, shop  # new instance beside the old run, which step then went on with)
         self._ended = False
         self._map_actions()
         self._scale = max(1.0, sum(o.duration for ops in inst.jobs for o in ops) / inst.n_machines)
@@ -445,9 +445,12 @@ class ShopEnv(gym.Env):
         mm = self.max_machines
         legal = s.legal_actions()
         if self.decisions == "full":  # the decision's kinds from the action table (no kind lookup per action)
+            codes = self._kind_code[legal]
             open_ = np.zeros(len(FULL_KINDS), dtype=bool)
-            open_[self._kind_code[legal]] = True
+            open_[codes] = True
             job, agv, tt = open_[0], open_[1], open_[2]
+            # the jobs whose dispatch is legal (a shop without AGVs has no job actions: its first actions are others)
+            legal_jobs = self._kind_num[legal][codes == 0].tolist() if job else []
         else:
             kinds = s.decision_kind() or ""
             job, agv, tt = "job" in kinds, "agv" in kinds, "tt" in kinds
@@ -467,7 +470,8 @@ class ShopEnv(gym.Env):
         J = np.zeros((self.max_jobs, len(JOB_FEATURES)), dtype=np.float64)
         Jn = J[:n]
         Jn[:, 0] = 1.0
-        legal_jobs = [a for a in legal if a < n]
+        if self.decisions != "full":  # the paper net's first n actions dispatch the jobs
+            legal_jobs = [a for a in legal if a < n]
         Jn[legal_jobs, 1] = 1.0
         Jn[:, 2] = present
         # the next operation's machine, duration and remaining work, and its tool, scaled (0 past the last operation:

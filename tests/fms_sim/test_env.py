@@ -529,3 +529,36 @@ def test_an_env_over_a_list_of_shops_pickles_before_its_first_episode() -> None:
     back = pickle.loads(pickle.dumps(env))
     obs, info = back.reset(seed=3)
     assert back.observation_space.contains(obs) and info["action_mask"].any()
+
+
+@pytest.mark.parametrize("inst", [builtin("ra01").without_agvs(), builtin("ra01").without_agvs().without_tools(),
+                                  builtin("ra01"), builtin("EX42")], ids=["tools", "job shop", "agvs+tools", "agvs"])
+def test_a_jobs_legal_feature_is_its_dispatch_on_the_full_net(inst):
+    """The full net's first actions are the jobs' dispatches only where there are AGVs: without them (tt:0, start:j
+    first) the 'legal' job feature marked job 0 for a legal transporter and job j+1 for a legal start of job j."""
+    env = ShopEnv(inst, decisions="full")
+    obs, info = env.reset(seed=0)
+    rng = np.random.default_rng(1)
+    n = inst.n_jobs
+    while True:
+        J = obs[len(GLOBAL_FEATURES):len(GLOBAL_FEATURES) + env.max_jobs * len(JOB_FEATURES)].reshape(env.max_jobs, -1)
+        jobs = [num for kind, num in map(env.shop.action_kind, env.shop.legal_actions()) if kind == "job"]
+        assert np.flatnonzero(J[:n, JOB_FEATURES.index("legal")]).tolist() == sorted(jobs)
+        obs, _, done, _, info = env.step(int(rng.choice(np.flatnonzero(info["action_mask"]))))
+        if done:
+            break
+
+
+def test_a_refused_reset_leaves_the_env_as_it_was():
+    # the instance was switched before the shop was made: a scenario refused for the new instance left it beside
+    # the old run, and step went on observing that run through the other instance's tables
+    from fms_sim.disruptions import Breakdown, Scenario, ScenarioError
+
+    env = ShopEnv([builtin("ra01"), builtin("EX42")], decisions="full")
+    env.reset(seed=0, options={"instance": builtin("ra01")})
+    with pytest.raises(ScenarioError):
+        env.reset(options={"instance": builtin("EX42"),
+                           "scenario": Scenario((Breakdown(machine=9, start=0, duration=5),), (), 0.0, 0)})
+    assert env.instance.name == env.shop.instance.name == "ra01"
+    obs, *_ = env.step(int(np.flatnonzero(env.action_masks())[0]))
+    assert env.observation_space.contains(obs)
