@@ -3,10 +3,13 @@
 A benchmark is a list of :class:`Task` s, one per (instance, variant, method). :func:`run_bench` solves them
 (in a process pool when ``jobs > 1``), validates every schedule with :func:`fms_sim.validate.validate` and
 appends each finished task at once as one JSON line to ``<results>/bench_cache.jsonl``. The cache key is
-(benchmark, instance, variant, method, time_limit); a rerun skips tasks already cached with a valid result
-(unless ``force``), so an interrupted run loses nothing. Tasks that failed (solver error or invalid schedule)
-are cached too, so that the tables show them, but are tried again on the next run. All outputs (Markdown,
-CSV, JSON, PNG) are rebuilt from the cache.
+(benchmark, instance, variant, method, time_limit, seed), and for ``cpsat`` with ``--cpsat-workers`` given, its
+threads too (the default follows ``--jobs``; a cached row of another thread count is reused then); a rerun skips
+tasks already cached with a valid result (unless ``force``), so an interrupted run loses nothing. Tasks that failed
+(solver error or invalid schedule) are cached too, so that the tables show them, but are tried again on the next
+run. A ``plan:file:PATH`` task is cached by its path: after changing the file, rerun with ``--force``. The outputs
+(Markdown, CSV, JSON, PNG) show this run's tasks, each from the cache (those run before included), and are
+replaced by the next run's of the same benchmark and layout.
 
 Rows (plain dicts, as in the cache): ``benchmark, instance, variant, method, time_limit, seed, workers,
 makespan, wall_time, valid, error, lower_bound, status, optimum, n_jobs, n_machines``. ``error`` is ``None``
@@ -65,9 +68,10 @@ EXIT_FAILED = 1
 class Task:
     """One solve: built-in ``instance`` in ``variant`` by solver ``method`` (a name for ``solvers.solve``).
 
-    ``time_limit`` is ``None`` for methods that do not search (rules, ``first``, ``random``); ``workers`` is
-    passed to ``cpsat`` only and is not part of the cache key; ``seed`` is (a run with another ``--seed`` reused the
-    cached rows of seed 0 and printed their makespans).
+    ``time_limit`` is ``None`` for methods that take none (rules, ``first``, ``random``, ``list``, ``ppo``);
+    ``workers`` is passed to ``cpsat`` only and is not part of the key (a cached row of another thread count is
+    not reused where ``workers`` was given: :func:`run_bench`); ``seed`` is part of it (a run with another
+    ``--seed`` reused the cached rows of seed 0 and printed their makespans).
     """
 
     benchmark: str
@@ -113,6 +117,12 @@ def check_methods(methods: Sequence[str]) -> list[str]:
             raise ValueError(f"{m!r} names a tool rule: fms bench runs first, random and rule:JOB+VEHICLE through "
                              "the paper's net (the paper's table), which has none; rules:full runs the full net's "
                              f"rule combinations, and fms solve --solver {m} runs this one")
+        if low.startswith("plan:file:"):  # a missing plan failed every task, after the others had run
+            from .solvers import parse_plan_name
+
+            plan = Path(parse_plan_name(m)[0][len("file:"):])
+            if not plan.is_file():
+                raise ValueError(f"{m!r}: no plan file {plan}")
         if low.startswith("ppo:"):  # an unknown model would fail every task, after the others have run
             from .rl.models import resolve_model
 
@@ -125,7 +135,9 @@ def check_methods(methods: Sequence[str]) -> list[str]:
 def _time_limit_for(method: str, time_limit: float | None, cpsat_time_limit: float | None) -> float | None:
     """The time limit a task of ``method`` runs with (and is cached under): None for a method without a search,
     the seconds a ``plan:SOLVER:SECONDS`` name gives, the CP-SAT limit for ``cpsat``, else ``time_limit``."""
-    if not searches(method):
+    from .solvers import takes_time_limit
+
+    if not searches(method) or not takes_time_limit(method):  # (ppo was cached under a limit it ignores)
         return None
     if method.lower().startswith("plan:"):
         from .solvers import parse_plan_name
@@ -258,14 +270,37 @@ def read_cache(path: Path) -> dict[tuple[Any, ...], dict[str, Any]]:
     rows: dict[tuple[Any, ...], dict[str, Any]] = {}
     if not path.exists():
         return rows
-    with path.open(encoding="utf-8") as fh:
+    with path.open(encoding="utf-8", errors="replace") as fh:
         for line in fh:
             try:
                 row = json.loads(line)
-                rows[_row_key(row)] = row
-            except (json.JSONDecodeError, KeyError, TypeError):
+                if _row_ok(row):
+                    rows[_row_key(row)] = row
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError):
                 continue
     return rows
+
+
+def _row_ok(row: Any) -> bool:
+    """Whether a cache line is a whole row: a valid one has an integer makespan and a number of seconds (a line
+    that is JSON but not a row crashed the tables with a KeyError after the CSV had been replaced)."""
+    if not isinstance(row, dict) or not isinstance(row.get("valid"), bool):
+        return False
+    if not row["valid"]:
+        return True
+    number = (int, float)
+    return (isinstance(row.get("makespan"), int) and not isinstance(row["makespan"], bool)
+            and isinstance(row.get("wall_time"), number) and not isinstance(row["wall_time"], bool))
+
+
+def _end_line(path: Path) -> None:
+    """End the cache's last line if a run killed mid-write left it cut (the next row was glued onto it and lost)."""
+    try:
+        with path.open("rb+") as fh:
+            if fh.seek(0, os.SEEK_END) and (fh.seek(-1, os.SEEK_END), fh.read(1))[1] != b"\n":
+                fh.write(b"\n")
+    except FileNotFoundError:
+        pass
 
 
 def _append(path: Path, row: dict[str, Any]) -> None:
@@ -312,6 +347,7 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
         raise ValueError(f"--results-dir {results_dir}: {blocker} is a file; name a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     cache_path = out_dir / CACHE_NAME
+    _end_line(cache_path)
     cache = read_cache(cache_path)
     todo: list[Task] = []
     seen: set[tuple[Any, ...]] = set()
@@ -320,7 +356,8 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
             continue
         seen.add(t.key)
         hit = cache.get(t.key)
-        if force or hit is None or not hit.get("valid"):
+        other_threads = t.workers is not None and hit is not None and hit.get("workers") != t.workers
+        if force or hit is None or not hit.get("valid") or other_threads:
             todo.append(t)
     parallel = min(jobs, len(todo))  # tasks that really run at the same time
     todo = [Task(t.benchmark, t.instance, t.variant, t.method, t.time_limit, t.seed, cpsat_threads(parallel))
@@ -494,7 +531,8 @@ def summary(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _makespan_table(rows: Sequence[dict[str, Any]], ref_label: str, show_variant: bool) -> str:
+def _makespan_table(rows: Sequence[dict[str, Any]], ref_label: str, show_variant: bool,
+                    unproven: frozenset[str] = frozenset()) -> str:
     methods = _methods_of(rows)
     insts = _instances_of(rows)
     cell: dict[tuple[str, str, str], dict[str, Any]] = {(r["instance"], r["variant"], r["method"]): r for r in rows}
@@ -507,7 +545,8 @@ def _makespan_table(rows: Sequence[dict[str, Any]], ref_label: str, show_variant
         mine = [cell[(inst, var, m)] for m in methods if (inst, var, m) in cell]
         ref = _reference(mine)
         refs.append(ref)
-        line = [inst] + ([var] if show_variant else []) + ["-" if ref is None else str(ref)]
+        line = [inst] + ([var] if show_variant else []) + ["-" if ref is None else
+                                                           str(ref) + ("†" if inst in unproven else "")]
         line += [_cell(cell.get((inst, var, m))) for m in methods]
         line += [_best_rule(mine)] if has_rules else []
         body.append(line)
@@ -530,6 +569,8 @@ def _makespan_table(rows: Sequence[dict[str, Any]], ref_label: str, show_variant
     body.append([f"at {ref_label}"] + pad + [f"{len(known)}/{n}"]
                 + [f"{stats[m]['n_at_reference']}/{stats[m]['n_with_reference']}" for m in methods] + tail)
     text = _md(headers, body)
+    if any(inst in unproven for inst, _ in insts):
+        text += f"\n\n† the literature's {ref_label}, not proven by this project's CP-SAT runs."
     if any(s["n_failed"] for s in stats.values()):
         text += "\n\n\\* mean over the instances without errors; ERROR/INVALID cells are listed below the table."
     return text
@@ -540,7 +581,9 @@ def bu_table(rows: Sequence[dict[str, Any]]) -> str:
     and the best rule pair, then the average makespan, the average gap % to the optimum and the number of
     instances solved to the optimum. Wall times are in :func:`time_table` (so that tables of repeated runs
     compare equal)."""
-    return _makespan_table(rows, "opt", show_variant=False)
+    from fms_sim.benchmarks import BU_LITERATURE_OPTIMA
+
+    return _makespan_table(rows, "opt", show_variant=False, unproven=BU_LITERATURE_OPTIMA)
 
 
 def sl_table(rows: Sequence[dict[str, Any]]) -> str:
@@ -622,12 +665,34 @@ def render_markdown(rows: Sequence[dict[str, Any]], title: str) -> str:
     table = bu_table(rows) if bench == "bu" else sl_table(rows)
     note = "\n\nRule pairs are shown as JOB+vehicle (solver `rule:JOB+vehicle`)." if any(
         _is_rule(r["method"]) for r in rows) else ""
-    text = f"## {title}\n\n{table}{note}\n\n### Computation time (s)\n\n{time_table(rows)}"
+    settings = _settings(rows)
+    text = (f"## {title}\n\n" + (f"{settings}\n\n" if settings else "") + f"{table}{note}\n\n"
+            f"### Computation time (s)\n\n{time_table(rows)}")
     bad = failures(rows)
     if bad:
         text += "\n\n### Failures\n\n" + "\n".join(
             f"- {r['instance']} ({r['variant']}) {r['method']}: {r['error']}" for r in bad)
     return text
+
+
+def _settings(rows: Sequence[dict[str, Any]]) -> str:
+    """What the rows were run with, in one line: each searching method's time limit, CP-SAT's threads and the seed
+    (the tables named the methods only; the limits were in the JSON)."""
+    limits: dict[str, set[float]] = defaultdict(set)
+    threads: set[int] = set()
+    seeds = {int(r.get("seed") or 0) for r in rows}
+    for r in rows:
+        if r.get("time_limit") is not None:
+            limits[r["method"]].add(float(r["time_limit"]))
+        if r["method"].lower() == "cpsat" and r.get("workers"):
+            threads.add(int(r["workers"]))
+    parts = [f"{_label(m)} {', '.join(f'{x:g}' for x in sorted(v))} s" for m, v in limits.items()]
+    out = ("Time limits: " + "; ".join(parts) + ". ") if parts else ""
+    if threads:
+        out += f"CP-SAT threads: {', '.join(map(str, sorted(threads)))}. "
+    if seeds != {0}:
+        out += f"Seed: {', '.join(map(str, sorted(seeds)))}."
+    return out.strip()
 
 
 _STRONG = ("#d62728", "#1f3fbf", "#2ca02c", "#8c2d9c", "#ff7f0e", "#17becf")
@@ -803,7 +868,8 @@ def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
     p.add_argument("--cpsat-time-limit", type=float, default=cpsat_default, metavar="S",
                    help=f"time limit of cpsat (default {cpsat_default:g})")
     p.add_argument("--cpsat-workers", type=int, metavar="N",
-                   help="CP-SAT threads per task (default: min(2, cpus // jobs))")
+                   help="CP-SAT threads per task (default: min(2, cpus // jobs)); given, a cached cpsat row of "
+                        "other threads is solved again (by default any cached row serves)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
                    help=f"parallel tasks (process pool; default {default_jobs()})")

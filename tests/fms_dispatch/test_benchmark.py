@@ -376,3 +376,56 @@ def test_a_task_runs_and_is_cached_under_the_budget_it_really_has() -> None:
     assert bm._time_limit_for("plan:cpsat:8", 10.0, 60.0) == 8.0  # the name's budget, not --time-limit's
     assert bm._time_limit_for("plan:cpsat", 10.0, 60.0) == 10.0 and bm._time_limit_for("cpsat", 10.0, 60.0) == 60.0
     assert bm._time_limit_for("rule:FIFO+first", 10.0, 60.0) is None
+    # ppo and plan:list take no time limit: they were cached under --time-limit (and solved again when it changed)
+    assert bm._time_limit_for("ppo:bu", 10.0, 60.0) is None and bm._time_limit_for("plan:list", 10.0, 60.0) is None
+
+
+def test_a_cut_or_foreign_cache_line_costs_no_result(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run killed mid-write leaves its last line cut: the next run's first row was glued onto it and lost (solved
+    again by every later run); a line that is JSON but no row (no makespan) crashed the tables with a KeyError."""
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(RULES, sets=[1])
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    cache = tmp_path / bm.CACHE_NAME
+    whole = cache.read_text()
+    cache.write_text(whole[:-40])  # the last row cut
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 3  # the cut row's task solved again, once
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 3 and json.loads(cache.read_text().splitlines()[-1])["valid"]  # its new row, whole
+    with cache.open("a") as fh:  # a line that is JSON, but not a row
+        fh.write(json.dumps({"benchmark": "bu", "instance": "EX12", "variant": "agvs", "method": RULES[0],
+                             "time_limit": None, "valid": True}) + "\n")
+    rows = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 3 and all(isinstance(r["makespan"], int) for r in rows)
+
+
+def test_cpsat_threads_given_are_not_answered_by_a_row_of_other_threads(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    # --cpsat-workers 1 reused a row solved with 2 threads (CP-SAT under a time limit depends on them)
+    calls = count_solves(monkeypatch)
+    two = bm.bu_tasks(["cpsat"], sets=[1], cpsat_time_limit=1.0, cpsat_workers=2)
+    bm.run_bench(two, jobs=1, results_dir=tmp_path)
+    bm.run_bench(two, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 1
+    rows = bm.run_bench(bm.bu_tasks(["cpsat"], sets=[1], cpsat_time_limit=1.0, cpsat_workers=1), jobs=1,
+                        results_dir=tmp_path)
+    assert len(calls) == 2 and calls[-1][2]["workers"] == 1 and rows[0]["workers"] == 1
+    bm.run_bench(bm.bu_tasks(["cpsat"], sets=[1], cpsat_time_limit=1.0), jobs=1, results_dir=tmp_path)
+    assert len(calls) == 2  # without --cpsat-workers the threads follow --jobs: any cached row serves
+
+
+def test_a_missing_plan_file_is_refused_before_any_work(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=f"'plan:file:{tmp_path}/none.json': no plan file {tmp_path}/none.json"):
+        bm.check_methods(["list", f"plan:file:{tmp_path}/none.json"])
+
+
+def test_the_table_says_what_it_ran_with_and_which_optima_are_the_literatures() -> None:
+    rows = [{"benchmark": "bu", "instance": name, "variant": "agvs", "method": m, "time_limit": tl, "seed": 0,
+             "workers": w, "makespan": 120, "wall_time": 1.0, "valid": True, "error": None, "lower_bound": None,
+             "status": None, "optimum": opt, "n_jobs": 5, "n_machines": 4}
+            for name, opt in (("EX61", 111), ("EX71", 111)) for m, tl, w in (("list", None, None),
+                                                                             ("tabu", 3.0, None), ("cpsat", 30.0, 2))]
+    text = bm.render_markdown(rows, "t")
+    assert "Time limits: tabu 3 s; cpsat 30 s. CP-SAT threads: 2." in text
+    assert "| EX71     | 111†" in text and "| EX61     | 111 " in text and "† the literature's opt" in text
