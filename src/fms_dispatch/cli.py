@@ -7,13 +7,14 @@ with a one-line ``fms: error: ...`` on stderr and exit code 2, never a traceback
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from fms_sim.files import folder_problem, instance_beside, output_problem
+from fms_sim.files import drop_instance_beside, folder_problem, instance_beside, output_problem
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
 
@@ -265,7 +266,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     hint = plan_hint(sched, scenario)
     if hint and not a.quiet:
         print(f"{inst.name}: {hint}", file=sys.stderr)
-    _write_outputs(sched, inst, a.out, a.gantt)
+    _write_outputs(sched, inst, a.out, a.gantt, a.instance)
     if interrupted:
         kept = [str(p) for p in (a.out, a.gantt) if p]
         print(f"fms: interrupted: the search stopped early; its best schedule so far is above"
@@ -357,10 +358,12 @@ def check_outputs(a: argparse.Namespace, *inputs: str | None) -> None:
                            f"{', '.join('.' + f for f in chart_formats())}")
 
 
-def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None) -> None:
+def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str | None,
+                   source: str | None = None) -> None:
     """Save the schedule JSON and the Gantt chart where asked, one line each. The schedule goes first: a chart
     that cannot be written (a failure :func:`check_output` could not foresee) does not cost the solve's result,
-    and the error says it was kept."""
+    and the error says it was kept. A final instance an earlier ``fms up`` run with orders left beside ``out`` is
+    removed (:func:`fms_sim.files.drop_instance_beside`; not ``source``, the instance file solved)."""
     if out:
         try:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -368,6 +371,11 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
         except OSError as exc:
             raise CliError(f"cannot write --out {out}: {exc.strerror or exc}") from None
         _result(f"schedule: {out}")
+        with contextlib.suppress(OSError):
+            stale = drop_instance_beside(out, source)  # an fms up run's with orders: fms validate read it
+            if stale is not None:
+                print(f"note: removed {stale}, an earlier run's instance beside the schedule this run replaced",
+                      file=sys.stderr)
     if gantt:
         from fms_sim.gantt import save_gantt
 
@@ -549,7 +557,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
             return EXIT_BAD_INPUT
         raise
     _result(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
-    _write_outputs(out, inst, a.out, a.gantt)
+    _write_outputs(out, inst, a.out, a.gantt, a.instance)
     return 0
 
 

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Callable, Sequence
 
-from fms_sim.files import instance_beside
+from fms_sim.files import drop_instance_beside, instance_beside
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.recorder_store import DEFAULT_DB, gantt_path, safe_run_name
 from fms_sim.schedule import Schedule, ScheduleError
@@ -577,6 +577,11 @@ def cmd_up(a: argparse.Namespace) -> int:
             sched.save(out)
             if final.n_jobs != inst.n_jobs:
                 final.save(ordered)
+            else:
+                stale = drop_instance_beside(out, a.instance)
+                if stale is not None:
+                    print(f"fms up: removed {stale}, an earlier run's instance beside the schedule this run replaced",
+                          file=sys.stderr)
         except OSError as exc:
             print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
             return EXIT_FAILED

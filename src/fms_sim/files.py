@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 __all__ = ["replacing", "write_atomically", "read_text", "loads", "file_above", "output_problem", "folder_problem",
-           "instance_beside"]
+           "drop_instance_beside", "instance_beside"]
 
 
 def read_text(path: str | Path) -> str:
@@ -205,6 +205,19 @@ def _open_problem(path: Path) -> str | None:
     except OSError as exc:
         return f"the file may not be written ({exc.strerror or exc})"
     return None
+
+
+def drop_instance_beside(schedule: str | Path, source: str | Path | None = None) -> Path | None:
+    """Remove the final instance beside ``schedule`` (:func:`instance_beside`) left by an earlier run to the same
+    file, when a run without live orders has just replaced that schedule; returns its path if one was removed.
+    ``fms validate SCHEDULE`` reads it first: the new run's valid schedule was called INVALID against the earlier
+    run's ordered jobs. Kept where it is the run's own instance file ``source`` (a run of that final instance)."""
+    beside = instance_beside(schedule)
+    if not beside.is_file() or (source is not None and Path(source).is_file()
+                                and Path(source).resolve() == beside.resolve()):
+        return None
+    beside.unlink()
+    return beside
 
 
 def instance_beside(schedule: str | Path) -> Path:

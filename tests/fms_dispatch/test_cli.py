@@ -730,6 +730,22 @@ def test_validate_alone_checks_the_fleet_the_schedule_records_and_takes_the_sche
     assert exc.value.code == 2 and "unrecognized arguments" in capsys.readouterr().err
 
 
+def test_a_run_to_an_earlier_runs_schedule_removes_the_instance_it_left_beside(tmp_path, capsys):
+    # fms up --out s.json with live orders writes s.instance.json; a later run to s.json without orders left it, and
+    # `fms validate s.json` checked the new, valid schedule against the earlier run's ordered jobs: INVALID, exit 1
+    out, beside = tmp_path / "s.json", tmp_path / "s.instance.json"
+    ordered = builtin("EX12")
+    ordered = replace(ordered, jobs=ordered.jobs + ordered.jobs[:1])
+    ordered.save(beside)
+    assert run(["solve", "EX12", "--out", str(out), "-q"], capsys)[0] == 0
+    assert not beside.exists()
+    code, stdout, _ = run(["validate", str(out)], capsys)
+    assert code == 0 and stdout.startswith("valid: EX12")
+    ordered.save(beside)  # solving that final instance itself keeps it (it is the run's input)
+    code, _, err = run(["solve", str(beside), "--out", str(out), "-q"], capsys)
+    assert code == 0 and beside.is_file() and "removed" not in err
+
+
 def test_validate_alone_refuses_what_it_cannot_resolve(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "s.json"
