@@ -1114,7 +1114,9 @@ class AgentLogic:
     """Answers each new state of a run with one command, decided by a solver.
 
     A state is answered once: a repeated ``(run_id, seq)`` (a latched state delivered again) or an older
-    ``seq`` of the same run is ignored, as is a final (``done``) state. A state that cannot be decided on
+    ``seq`` of the same run is ignored, as is a final (``done``) state; the same older state twice in a row begins
+    the run again from it (a shop restarted with the same ``run_id`` publishes its state anew for each re-sent
+    command it cannot answer). A state that cannot be decided on
     gives an ``fms/error/v1`` instead of a command. A state of a ``history_delta`` shop that the twin cannot follow
     (:class:`NeedHistory`) gives a replay request for that state with the whole history (``what: "state"``, once
     per state; :meth:`history_asked` says which is awaited) and is answered when it comes again so.
@@ -1135,6 +1137,7 @@ class AgentLogic:
         self.decisions = 0
         self.history_requests = 0    # states asked for again with the whole history
         self._asked: tuple[str, int] | None = None  # (run_id, seq) of the state asked for so, not yet answered
+        self._older: tuple[str, int] | None = None  # (run_id, seq) of the last older state ignored, if no newer since
 
     def on_state(self, text: str) -> list[Outgoing]:
         """The command answering ``text`` (an ``fms/state/v1``), nothing, or an error."""
@@ -1145,6 +1148,15 @@ class AgentLogic:
         run_id, seq = state["run_id"], state["seq"]
         if self.only_run is not None and run_id != self.only_run:  # another run's shop on the same domain: its
             return []  # own agent answers it (two fms up runs on one domain steered each other's shops)
+        if run_id == self.run_id and seq < self.last_seq:
+            if self._older != (run_id, seq):  # an old state delivered late: ignored
+                self._older = (run_id, seq)
+                return []
+            # the same older state again: the shop published it anew, answering a re-sent command for a state it
+            # never published: it began the run again (restarted with the same run_id, a respawn with fixed
+            # parameters). Taken for an old state each time, neither moved again.
+            self.run_id = None
+        self._older = None
         if run_id != self.run_id:
             self.run_id, self.last_seq, self.answered_seq, self._asked = run_id, -1, -1, None
         if seq < self.last_seq or (seq == self.last_seq and self._asked != (run_id, seq)):

@@ -305,9 +305,12 @@ class ShopService:
             assert self.state is not None  # (a state newer than seq was published)
             return [self._error("stale_state", f"command answers state {seq} but the current state is "
                                                f"{self.state_seq}", text), Outgoing(TOPIC_STATE, self.state)]
-        if seq > self.state_seq:
+        if seq > self.state_seq:  # with the current state again: an agent of this run's earlier incarnation (the
+            # shop restarted with the same run_id) re-sent its command for ever, ignoring state 0 as an old state
+            assert self.state is not None
             return [self._error("stale_state", f"command answers state {seq}, which was never published "
-                                               f"(the current state is {self.state_seq})", text)]
+                                               f"(the current state is {self.state_seq})", text),
+                    Outgoing(TOPIC_STATE, self.state)]
         assert self.state is not None
         if self._first_command_at is None:
             self._first_command_at = self._clock()

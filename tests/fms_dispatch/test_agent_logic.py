@@ -121,6 +121,7 @@ def test_each_state_is_answered_once() -> None:
     svc.handle_command(encode(cmd.msg))
     s1 = encode(svc.state)
     assert len(agent.on_state(s1)) == 1 and agent.on_state(s0) == []   # an older state is ignored
+    assert agent.waiting_for() == ("r", 1)
     other = ShopService(builtin("EX12"), run_id="r2")          # a new run starts from seq 0 again
     other.start()
     assert len(agent.on_state(encode(other.state))) == 1 and agent.decisions == 3
@@ -129,6 +130,37 @@ def test_each_state_is_answered_once() -> None:
     mine = AgentLogic("first", only_run="r2")
     assert mine.on_state(s0) == [] and mine.decisions == 0
     assert len(mine.on_state(encode(other.state))) == 1 and mine.decisions == 1
+
+
+def test_a_shop_restarted_with_the_same_run_id_is_answered_again() -> None:
+    """A shop respawned with fixed parameters (its run_id too) publishes state 0 again; the agent took it for an old
+    state, re-sent its command for the old run's later state, the shop refused that as a state it never published
+    and published state 0 again: neither moved for ever. The same older state twice begins the run again."""
+    from fms_sim.full_shop import make_shop
+
+    first = ShopService(builtin("EX12"), run_id="r")
+    out = first.start()
+    agent = AgentLogic("first")
+    for _ in range(5):  # the first run goes some way, then its shop dies
+        (state,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
+        (cmd,) = agent.on_state(encode(state))
+        out = first.handle_command(encode(cmd.msg))
+    stale = cmd
+    again = ShopService(builtin("EX12"), run_id="r")  # respawned: the same run id, from state 0
+    out = again.start()
+    (state0,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
+    assert agent.on_state(encode(state0)) == []  # taken for an old state once
+    out = again.handle_command(encode(stale.msg))  # the agent's re-sent command: refused, state 0 published anew
+    assert [o.msg["code"] for o in out if o.topic == m.TOPIC_ERRORS] == ["stale_state"]
+    (state,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
+    while not again.done:
+        (cmd,) = agent.on_state(encode(state))
+        out = again.handle_command(encode(cmd.msg))
+        assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
+        state = again.state
+    inst = builtin("EX12")
+    assert validate(inst, again.shop.schedule()) == []
+    assert again.shop.schedule().makespan == solve(inst, "first").makespan
 
 
 def test_undecidable_states_give_errors() -> None:
