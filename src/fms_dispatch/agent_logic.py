@@ -882,10 +882,26 @@ result back."""
 
 def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any) -> None:
     """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``. A
-    Ctrl-C meant for the node is left to the node (which ends this process); an agent gone meanwhile is no error."""
+    Ctrl-C meant for the node is left to the node (which ends this process); an agent gone meanwhile is no error.
+
+    SIGTERM ends it (the node's own handler, inherited through the fork, kept it alive: a node stopping during a
+    re-plan waited for it at exit and was reported as not stopping cleanly), and so does its parent's end (an agent
+    killed with SIGKILL left it searching on, at full CPU, to the end of its budget)."""
+    import os
     import signal
+    import threading
+    import time
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    parent = os.getppid()
+
+    def orphaned() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=orphaned, name="fms-replan-parent", daemon=True).start()
     try:
         out: tuple[str, Any] = ("ok", fn(*args))
     except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays

@@ -400,3 +400,54 @@ def test_a_plan_that_cannot_be_made_hands_over_to_the_fallback(monkeypatch):
     svc, errors = drive(inst, "plan:cpsat:1")
     assert svc.done and validate(inst, svc.final_schedule) == []
     assert len(errors) == 1 and "could not plan" in errors[0]["message"]
+
+
+def _sleep_long() -> None:
+    time.sleep(60)
+
+
+def test_a_replan_process_ends_at_sigterm_even_under_a_nodes_handler(monkeypatch):
+    """rclpy's SIGTERM handler, inherited through the fork, kept a re-plan process alive when the node stopping
+    terminated it: the node waited for it at exit and was reported as not stopping cleanly."""
+    import signal
+
+    from fms_dispatch import agent_logic
+
+    _forking()
+    monkeypatch.setattr(agent_logic, "REPLAN_IN_PROCESS", True)
+    old = signal.signal(signal.SIGTERM, lambda *a: None)  # a node's handler: SIGTERM asks, it does not end
+    try:
+        job = agent_logic._ReplanJob(_sleep_long, (), "order", "r", 0, 0)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    time.sleep(0.5)  # (the child has set its own handlers)
+    job.cancel()
+    assert job.done.wait(5) and job.process.exitcode == -signal.SIGTERM
+
+
+def test_a_replan_process_ends_with_its_agent(tmp_path):
+    """An agent killed (SIGKILL) during a re-plan left the forked search running to the end of its budget."""
+    import signal
+    import subprocess
+    import sys
+
+    _forking()
+    code = ("import os, time, sys\n"
+            "from fms_dispatch import agent_logic\n"
+            "agent_logic.REPLAN_IN_PROCESS = True\n"
+            "job = agent_logic._ReplanJob(time.sleep, (60,), 'order', 'r', 0, 0)\n"
+            "print(job.process.pid, flush=True)\n"
+            "time.sleep(60)\n")
+    agent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert agent.stdout is not None
+    child = int(agent.stdout.readline())
+    agent.send_signal(signal.SIGKILL)
+    agent.wait(10)
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and os.path.exists(f"/proc/{child}"):
+        with open(f"/proc/{child}/stat") as fh:
+            if fh.read().split(")")[-1].split()[0] == "Z":  # ended, not yet reaped by init
+                break
+        time.sleep(0.1)
+    else:
+        assert not os.path.exists(f"/proc/{child}"), "the re-plan outlived its agent"
