@@ -10,8 +10,9 @@ gives it. While the shop waits for an answer its clock stands (a simulated decis
 so an agent slower than the scale slows the run down rather than compressing what follows.
 
 :class:`Pacer` is the queue (no ROS: the shop node feeds it each step's messages and publishes what it releases,
-on a timer); messages keep their order, and those that come with no state (a replay, an error) wait behind held
-ones.
+on a timer); messages keep their order, and those that come with no state (a replay) wait behind held ones; a
+step of errors only (a refused order or disruption: nothing changed) goes out at once (held behind a paced step, an
+operator's refusal reached ``fms send`` after its timeout).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import time
 from collections import deque
 from typing import Callable, Sequence
 
-from fms_msgs_json import TOPIC_STATE
+from fms_msgs_json import TOPIC_ERRORS, TOPIC_STATE
 
 from .shop_service import Outgoing
 
@@ -57,7 +58,11 @@ class Pacer:
         return due
 
     def push(self, out: Sequence[Outgoing]) -> list[Outgoing]:
-        """Queue a step's messages; returns those due now (in order; an earlier held step keeps its place)."""
+        """Queue a step's messages; returns those due now (in order; an earlier held step keeps its place). Errors
+        alone are due at once: they change nothing that a held step shows."""
+        if out and all(o.topic == TOPIC_ERRORS for o in out):
+            self.last_delay = 0.0
+            return self.release() + list(out)
         due = self.due_at(out)
         self.last_delay = max(0.0, due - self._clock())
         self._held.append((due, list(out)))
