@@ -8,7 +8,8 @@ on the ROS domain that ``--domain-id`` or ``ROS_DOMAIN_ID`` names (``fms up`` pr
 waits for the shop's answer: the ``order_accepted`` or ``disruption_accepted`` event naming its id (exit code 0;
 an order's line lists the job numbers the shop gave the new jobs), or the error the shop published about it (exit
 code 1). No shop within ``--timeout`` seconds, or no answer: exit code 1. Bad input, or no domain given: exit
-code 2, before anything is sent. Like ``fms up``, it sets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless set.
+code 2, before anything is sent; so is a message without ``--run-id`` where several nodes listen on its topic (shops
+of several runs on one domain: each would take it), and one that a second run is found taking too is exit code 1. Like ``fms up``, it sets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless set.
 
 The message building and the reading of the shop's answer (:func:`build`, :func:`answer`) need no ROS; rclpy is
 imported only to send (:func:`exchange`).
@@ -160,6 +161,32 @@ def answer(kind: str, msg: dict[str, Any], text: str, topic: str, incoming: dict
     return None
 
 
+def _only_taker(node: Any, heard: list[tuple[str, str]], kind: str, msg: dict[str, Any], text: str, run: str,
+                line: str) -> tuple[int, str]:
+    """After a message for "the current run" was accepted by ``run``: listen 0.5 s more for another run taking it too
+    (a shop the check before sending had not yet seen); ``(exit code, line)``."""
+    import rclpy
+
+    takers = [run]
+    heard.clear()
+    until = time.monotonic() + 0.5
+    while time.monotonic() < until:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        for t, data in heard:
+            try:
+                incoming = decode(data, expect="event" if t == TOPIC_EVENTS else "error")
+            except MessageError:
+                continue
+            got = answer(kind, msg, text, t, incoming)
+            if got is not None and got[0] and incoming["run_id"] not in takers:
+                takers.append(incoming["run_id"])
+        heard.clear()
+    if len(takers) > 1:
+        return EXIT_FAILED, (f"{kind} {msg[f'{kind}_id']} was taken by {len(takers)} runs ({', '.join(takers)}): "
+                             "shops of several runs on this domain; name one with --run-id")
+    return EXIT_OK, line
+
+
 def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
     """Send ``msg`` on the topic of ``kind`` once a shop listens there and wait for its :func:`answer`: ``(exit
     code, line)``. Needs rclpy."""
@@ -191,7 +218,21 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
                 return EXIT_FAILED, (f"no shop listens on {topic} within {timeout:g} s (ROS_DOMAIN_ID="
                                      f"{os.environ.get('ROS_DOMAIN_ID')}; fms up prints the domain it uses)")
             rclpy.spin_once(node, timeout_sec=0.05)
+        if msg.get("run_id") is None:  # every shop on the domain takes a message for "the current run": two fms up
+            # runs on one domain both took an order. The others are matched within moments of the first: wait until
+            # the count has held for 1 s (at most 3 s)
+            shops, since, give_up = pub.get_subscription_count(), time.monotonic(), time.monotonic() + 3.0
+            while time.monotonic() < min(deadline, give_up, since + 1.0):
+                rclpy.spin_once(node, timeout_sec=0.05)
+                if pub.get_subscription_count() != shops:
+                    shops, since = pub.get_subscription_count(), time.monotonic()
+            if shops > 1:
+                return EXIT_BAD_INPUT, (f"{shops} nodes listen on {topic} (shops of several runs on this domain?) and "
+                                        f"each would take this {kind}: name its run with --run-id (fms up prints the "
+                                        "run id); nothing was sent")
         pub.publish(String(data=text))
+        sent = time.monotonic()
+        other_runs: list[str] = []  # refusals of shops of other runs (a message for one run, several on the domain)
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
             for t, data in heard:
@@ -200,9 +241,20 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
                 except MessageError:
                     continue
                 got = answer(kind, msg, text, t, incoming)
+                if got is not None and not got[0] and incoming.get("code") == "unknown_run":
+                    other_runs.append(got[1])  # the run's own shop answers for it (the first answer was taken)
+                    continue
+                if got is not None and got[0] and msg.get("run_id") is None:
+                    return _only_taker(node, heard, kind, msg, text, incoming["run_id"], got[1])
                 if got is not None:
                     return (EXIT_OK if got[0] else EXIT_FAILED), got[1]
             heard.clear()
+            # every shop runs another run (counted once the others have had 2 s to be matched: the run's own shop may
+            # be found after another's refusal came)
+            if other_runs and time.monotonic() - sent > 2.0 and len(other_runs) >= pub.get_subscription_count():
+                return EXIT_FAILED, other_runs[0]
+        if other_runs:
+            return EXIT_FAILED, other_runs[0]
         return EXIT_FAILED, f"sent {kind} {msg[f'{kind}_id']}, but the shop did not answer within {timeout:g} s"
     finally:
         stop.restore()

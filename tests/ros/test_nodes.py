@@ -613,3 +613,19 @@ def test_fms_send_delivers_orders_and_disruptions_and_prints_the_shops_answer(no
     events = observer.snapshot("event")
     assert [e["data"]["jobs"] for e in events if e["kind"] == "order_accepted"] == [[inst.n_jobs]]
     assert [e["data"]["disruption_id"] for e in events if e["kind"] == "disruption_accepted"] == ["b1"]
+    # a second shop on the domain: a message for "the current run" would be taken by both (two fms up runs did)
+    nodes.start("shop2", SHOP, instance="EX12", run_id="other")
+    shop_seen(observer, "other")
+    # without --run-id: refused before sending where both shops are matched by then, else said if both take it; an
+    # order taken by one run only (the other matched after fms send had gone) is no harm
+    res = send("order", "--jobs", "[[[1, null, 3]]]", "--id", "o2")
+    if res.returncode == 0:
+        time.sleep(2)
+        taken = [e["run_id"] for e in observer.snapshot("event") if e["kind"] == "order_accepted"
+                 and e["data"]["order_id"] == "o2"]
+        assert len(taken) == 1 and f"accepted by run {taken[0]}" in res.stdout, (taken, res.stdout)
+    else:
+        assert (res.returncode == 2 and "2 nodes listen on fms/orders" in res.stderr and "--run-id" in res.stderr) or (
+            res.returncode == 1 and "was taken by 2 runs" in res.stderr), (res.returncode, res.stdout, res.stderr)
+    res = send("order", "--jobs", "[[[1, null, 3]]]", "--id", "o3", "--run-id", "send")  # the other's refusal waits
+    assert res.returncode == 0 and "accepted by run send" in res.stdout, res.stderr
