@@ -10,7 +10,7 @@ Rules shared by all kinds:
   integer, ``1.0`` is not an integer), ranges, enumerations; it rejects unknown kinds and other versions.
 * Keys it does not know are allowed and kept (forward compatibility: a newer sender may add fields; an older
   receiver ignores them). A newer *version* of a kind is a different schema id and is rejected.
-* An optional field may be absent or ``null``.
+* An optional field may be absent; ``null`` only where its table (docs/ros.md) says "or null".
 
 Failures raise :class:`MessageError` whose ``code`` is one of :data:`ERROR_CODES` (``"malformed_json"`` for text
 that is not JSON, ``"bad_schema"`` for everything else found here) and whose message is one line naming the
