@@ -578,9 +578,9 @@ def cmd_up(a: argparse.Namespace) -> int:
             if final.n_jobs != inst.n_jobs:
                 final.save(ordered)
             else:
-                stale = drop_instance_beside(out, a.instance)
-                if stale is not None:
-                    print(f"fms up: removed {stale}, an earlier run's instance beside the schedule this run replaced",
+                earlier = drop_instance_beside(out, a.instance)
+                if earlier is not None:
+                    print(f"fms up: removed {earlier}, an earlier run's instance beside the schedule this run replaced",
                           file=sys.stderr)
         except OSError as exc:
             print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)

@@ -764,7 +764,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         """Save the best weights (the evaluation callback's new best) to ``best_model.zip``, atomically."""
 
         def _on_step(self) -> bool:
-            _save_model(self.model, out / "best_model.zip")
+            _save_model(self.model, Path(out) / "best_model.zip")
             return True
 
     class _Trained(BaseCallback):
