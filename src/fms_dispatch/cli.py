@@ -11,6 +11,7 @@ import contextlib
 import math
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -372,7 +373,7 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
             raise CliError(f"cannot write --out {out}: {exc.strerror or exc}") from None
         _result(f"schedule: {out}")
         with contextlib.suppress(OSError):
-            stale = drop_instance_beside(out, source)  # an fms up run's with orders: fms validate read it
+            stale = drop_instance_beside(out, sched.instance, source)  # an fms up run's with orders: fms validate
             if stale is not None:
                 print(f"note: removed {stale}, an earlier run's instance beside the schedule this run replaced",
                       file=sys.stderr)
@@ -442,8 +443,10 @@ def cmd_validate(a: argparse.Namespace) -> int:
         sched = _load_schedule(a.schedule)
     fleet: dict[str, Any] = {}
     if alone and not (a.agvs is not None or a.tool_transporters is not None or a.no_tools or a.no_agvs):
-        # the shop it was made for has the fleet it records (fms solve EX12 --agvs 3 was called infeasible)
-        fleet = fleet_of(inst, sched)
+        # the shop it was made for has the fleet it records (fms solve EX12 --agvs 3 was called infeasible); only
+        # what it records: a schedule without its fleet sizes reads as having none, and one that never moved a part
+        # passed against the shop without AGVs
+        fleet = fleet_of(inst, sched, recorded=_top_keys(a.schedule))
         if fleet:
             for k, v in fleet.items():
                 setattr(a, k, v)
@@ -478,14 +481,31 @@ def cmd_validate(a: argparse.Namespace) -> int:
     return code
 
 
-def fleet_of(inst: Instance, sched: Schedule) -> dict[str, Any]:
+def _top_keys(path: str) -> set[str]:
+    """The top-level keys of the JSON object in file ``path`` (empty where it cannot be read as one)."""
+    from fms_sim.files import loads, read_text
+
+    try:
+        data = loads(read_text(path))
+    except (OSError, ValueError):
+        return set()
+    return set(data) if isinstance(data, dict) else set()
+
+
+def fleet_of(inst: Instance, sched: Schedule, recorded: set[str] | None = None) -> dict[str, Any]:
     """The instance options (``argparse`` destinations and values: ``agvs``, ``no_agvs``, ``tool_transporters``,
     ``no_tools``) that give ``inst`` the fleet ``sched`` was made for, as ``fms solve --agvs 3`` (or ``--no-agvs``,
     ``--tool-transporters``, ``--no-tools``) makes one; empty if the fleets agree or the schedule is another shop's
-    (no option of this one makes it fit)."""
+    (no option of this one makes it fit). With ``recorded`` (the keys its file has), only the fleet sizes it
+    records."""
     if sched.instance != inst.name:
         return {}
     opts: dict[str, Any] = {}
+    if recorded is not None:
+        if "n_agvs" not in recorded:
+            sched = replace(sched, n_agvs=inst.n_agvs)
+        if "n_tool_transporters" not in recorded:
+            sched = replace(sched, n_tool_transporters=inst.n_tool_transporters)
     if sched.n_agvs != inst.n_agvs:
         if not sched.n_agvs:
             opts["no_agvs"] = True
@@ -737,12 +757,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             # place after an option (the same order is taken by fms replay, whose schedule is required)
         elif extra:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
-        code = a.fn(a)
-        try:  # a reader that left is found here, not by Python's flush at exit (exit 120 after a complete run)
-            sys.stdout.flush()
-        except BrokenPipeError:
-            _reader_left()
-        return code
+        from .progress import surviving_streams
+
+        with surviving_streams():  # a reader that left (| head) does not end the command half-way (its files not
+            return a.fn(a)  # written, exit 0), nor Python's flush at exit after a complete run (exit 120)
     except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
         # one line, but all of it: a message of several lines (a list of offending specs) is joined, not cut
         msg = " ".join(line.strip() for line in str(exc).splitlines()) or type(exc).__name__

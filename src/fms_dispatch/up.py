@@ -577,14 +577,19 @@ def cmd_up(a: argparse.Namespace) -> int:
             sched.save(out)
             if final.n_jobs != inst.n_jobs:
                 final.save(ordered)
-            else:
-                earlier = drop_instance_beside(out, a.instance)
-                if earlier is not None:
-                    print(f"fms up: removed {earlier}, an earlier run's instance beside the schedule this run replaced",
-                          file=sys.stderr)
         except OSError as exc:
             print(f"fms up: error: cannot write the schedule to {out}: {exc.strerror or exc}", file=sys.stderr)
             return EXIT_FAILED
+        if final.n_jobs == inst.n_jobs:
+            try:
+                earlier = drop_instance_beside(out, sched.instance, a.instance)
+            except OSError as exc:  # (the schedule is written: a warning, not a failed run)
+                print(f"fms up: warning: cannot remove {ordered}, an earlier run's instance beside the schedule "
+                      f"({exc.strerror or exc}); fms validate {out} would read it: give the instance", file=sys.stderr)
+            else:
+                if earlier is not None:
+                    print(f"fms up: removed {earlier}, an earlier run's instance beside the schedule this run "
+                          "replaced", file=sys.stderr)
     except KeyboardInterrupt:
         print(f"fms: interrupted while the run's output was checked and written; the shop's output is kept in "
               f"{log_dir}", file=sys.stderr)

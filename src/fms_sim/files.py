@@ -207,14 +207,21 @@ def _open_problem(path: Path) -> str | None:
     return None
 
 
-def drop_instance_beside(schedule: str | Path, source: str | Path | None = None) -> Path | None:
-    """Remove the final instance beside ``schedule`` (:func:`instance_beside`) left by an earlier run to the same
-    file, when a run without live orders has just replaced that schedule; returns its path if one was removed.
-    ``fms validate SCHEDULE`` reads it first: the new run's valid schedule was called INVALID against the earlier
-    run's ordered jobs. Kept where it is the run's own instance file ``source`` (a run of that final instance)."""
+def drop_instance_beside(schedule: str | Path, instance: str, source: str | Path | None = None) -> Path | None:
+    """Remove the final instance of shop ``instance`` beside ``schedule`` (:func:`instance_beside`), left by an
+    earlier run to the same file, once a run without live orders has written a schedule of that shop there; returns
+    its path if one was removed. ``fms validate SCHEDULE`` reads such a file first: the new run's valid schedule was
+    called INVALID against the earlier run's ordered jobs. A file of another shop (which ``fms validate`` passes
+    over), one that cannot be read, and the run's own instance file ``source`` are left alone."""
     beside = instance_beside(schedule)
     if not beside.is_file() or (source is not None and Path(source).is_file()
                                 and Path(source).resolve() == beside.resolve()):
+        return None
+    try:
+        named = loads(read_text(beside)).get("name")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if named != instance:
         return None
     beside.unlink()
     return beside

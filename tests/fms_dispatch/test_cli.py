@@ -436,7 +436,7 @@ def test_an_output_folder_without_write_permission_is_refused_before_solving(tmp
 def test_an_output_where_nothing_can_be_written_is_refused_before_solving_also_for_root(capsys):
     # root passes os.access everywhere, so the check let the solve run and failed only on writing its result
     code, stdout, err = run(["solve", "EX12", "--out", "/proc/fms-test/s.json", "-q"], capsys)
-    assert code == 2 and "nothing can be written in the folder /proc" in err and "makespan" not in stdout
+    assert code == 2 and "the folder /proc" in err and "makespan" not in stdout  # (as another user: permission bits)
 
 
 def test_generate_checks_every_flag_by_name_before_writing(tmp_path, capsys):
@@ -473,12 +473,14 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("closed, unbuffered", [("stdout", True), ("stderr", True), ("both", True), ("both", False)])
-def test_a_reader_that_leaves_costs_no_result(tmp_path, closed, unbuffered):
+@pytest.mark.parametrize("closed, unbuffered, read", [("stdout", True, 1), ("stderr", True, 1), ("both", True, 1),
+                                                     ("both", False, 1), ("stderr", True, 0), ("both", True, 0)])
+def test_a_reader_that_leaves_costs_no_result(tmp_path, closed, unbuffered, read):
     """`fms solve ... | head -1`: the search's progress lines went to stdout and the first one after the reader left
     ended the solve, exit 0, without its --out file; a result line on a closed stdout did the same (at once under
     PYTHONUNBUFFERED, else exit 120 at Python's flush). Progress goes to stderr now, and a reader that leaves either
-    stream (or both: 2>&1) costs nothing but the lines it would have read."""
+    stream (or both: 2>&1), at once or after a line, costs nothing but the lines it would have read (any note on
+    stderr after it left, such as a guided model's plan hint, ended the solve before its --out file, exit 0)."""
     import subprocess
 
     out = tmp_path / "s.json"
@@ -490,7 +492,9 @@ def test_a_reader_that_leaves_costs_no_result(tmp_path, closed, unbuffered):
                             stderr=subprocess.STDOUT if closed == "both" else subprocess.PIPE, text=True, env=env,
                             cwd=tmp_path)
     gone, kept = (proc.stdout, proc.stderr) if closed in ("stdout", "both") else (proc.stderr, proc.stdout)
-    assert gone is not None and gone.readline()  # the first line (the header or, on stdout, the result), then gone
+    assert gone is not None
+    for _ in range(read):
+        assert gone.readline()  # the first line (the header or, on stdout, the result), then gone
     gone.close()
     rest = kept.read() if kept is not None else ""
     assert proc.wait(timeout=60) == 0
@@ -725,6 +729,15 @@ def test_validate_alone_checks_the_fleet_the_schedule_records_and_takes_the_sche
     assert code == 1 and "if it was solved with --agvs 3, give the same here" in err
     code, _, err = run(["validate", str(out), "--agvs", "2"], capsys)
     assert code == 1 and "if it was solved with --agvs 3, give the same here" in err
+    # only the fleet it records: a schedule without its fleet sizes read as having none, and one that never moved a
+    # part passed against the shop without AGVs
+    assert run(["solve", "EX12", "--out", str(out), "-q"], capsys)[0] == 0
+    data = json.loads(out.read_text())
+    for key in ("n_agvs", "n_tool_transporters", "agv_trips", "tool_trips"):
+        data.pop(key, None)
+    out.write_text(json.dumps(data))
+    code, stdout, _ = run(["validate", str(out)], capsys)
+    assert code == 1 and stdout.startswith("INVALID")
     with pytest.raises(SystemExit) as exc:  # a second file is still refused
         main(["validate", "EX12", str(out), str(out)])
     assert exc.value.code == 2 and "unrecognized arguments" in capsys.readouterr().err
@@ -743,6 +756,9 @@ def test_a_run_to_an_earlier_runs_schedule_removes_the_instance_it_left_beside(t
     assert code == 0 and stdout.startswith("valid: EX12")
     ordered.save(beside)  # solving that final instance itself keeps it (it is the run's input)
     code, _, err = run(["solve", str(beside), "--out", str(out), "-q"], capsys)
+    assert code == 0 and beside.is_file() and "removed" not in err
+    builtin("EX21").save(beside)  # another shop's file (fms validate passes it over): kept (it was removed)
+    code, _, err = run(["solve", "EX12", "--out", str(out), "-q"], capsys)
     assert code == 0 and beside.is_file() and "removed" not in err
 
 

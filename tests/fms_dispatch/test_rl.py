@@ -216,6 +216,20 @@ def test_a_model_file_is_replaced_only_by_a_complete_one(tmp_path, monkeypatch):
     assert validate(inst, ppo_solver(f"ppo:{out}")(inst)) == []  # the model loads and solves
 
 
+def test_a_training_whose_reader_left_keeps_its_model(tmp_path):
+    """`fms train ... | head`: sb3's progress bar, drawn on stdout, met the closed pipe and rich ended the process
+    (exit 1, nothing said), leaving only config.json, which a new run and --resume both refused."""
+    out = tmp_path / "m"
+    proc = subprocess.Popen([sys.executable, "-m", "fms_dispatch.cli", "train", "EX12", "--allow-benchmarks",
+                             "--padding", "bu", "--n-envs", "1", "--steps", "256", "--out", str(out), "--tensorboard",
+                             str(tmp_path / "tb")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader left at once
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert (out / "model.zip").is_file() and json.loads((out / "metrics.json").read_text())["ppo_steps"] == 512
+
+
 def test_resume_names_a_damaged_model_zip(tmp_path):
     out = tmp_path / "m"
     train(dict(TINY, train=["EX12"], steps=128, padding="bu"), out, progress=False, tensorboard=tmp_path / "tb")

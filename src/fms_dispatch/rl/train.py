@@ -886,10 +886,13 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                                         category=UserWarning)
                 model.learn(total_timesteps=total,
                             callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"])), trained]),
-                            reset_num_timesteps=not resume, progress_bar=progress, tb_log_name="ppo")
+                            # sb3's bar is drawn on stdout: only where someone watches it (piped, a reader that
+                            # left ended the run through rich's SystemExit, without its files)
+                            reset_num_timesteps=not resume, progress_bar=progress and sys.stdout.isatty(),
+                            tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
             interrupted = True
-        except Exception as exc:
+        except BaseException as exc:
             if not resume and not (out / "model.zip").is_file():  # a config of no weights: the folder was refused
                 (out / CONFIG_FILE).unlink(missing_ok=True)  # by a new run and by --resume alike
             if isinstance(exc, ValueError) and "found invalid values" in str(exc):  # torch's check of the logits
@@ -904,7 +907,7 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         try:
             venv.close()
         except (EOFError, BrokenPipeError, ConnectionResetError):  # a worker already gone (killed): nothing to close
-            if not interrupted:
+            if not (interrupted or stop.seen):  # (a stop signal to the process group, held here, ends the workers)
                 raise
         eval_env.close()
         for saved in ("model.zip", "best_model.zip", "warm_start.zip"):  # numpy exports: inference without torch
