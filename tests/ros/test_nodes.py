@@ -412,7 +412,9 @@ def test_bad_commands_are_rejected_and_the_shop_keeps_running(nodes: NodeProcs, 
         err = observer.wait_for(lambda g: g["error"][i] if len(g["error"]) > i else None, 10, f"error {i}")
         assert (err["code"], err["source"], err["received"]) == (code, "fms_shop", text)
     time.sleep(0.2)
-    assert [s["seq"] for s in observer.snapshot("state")] == [0]   # nothing changed
+    # nothing changed: state 0, published again with the refusal of the command for a state never published
+    assert [s["seq"] for s in observer.snapshot("state")] == [0, 0]
+    assert observer.snapshot("state")[1] == s0
     observer.publish("command", json.dumps(cmd(0, "job:1")))
     observer.wait_for(lambda g: g["state"][-1]["seq"] == 1, 10, "state 1")
     observer.publish("command", json.dumps(cmd(0, "job:2")))       # stale now
