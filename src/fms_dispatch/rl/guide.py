@@ -679,9 +679,10 @@ class GuideMoves:
     (:meth:`PlanGuide.empty_trips`): the pre-positioning of a guided model (``+lookahead-guide``). A policy's
     plain run has no idle stops, so its vehicles wait where they are until dispatched; the plan's replay sends
     them ahead, and a run that follows the plan with these trips ends no later than the plan
-    (``bench/guide_follower.py``: the follower reaches the plan on sl00-sl70). The moves are not verified by
-    trial runs (the lookahead's verification costs a full run per idle stop, minutes on 100 jobs), so a run
-    that departs from its plan is not guaranteed to gain by them.
+    (``bench/guide_follower.py``: the guide follower reaches the plan on sl00-sl70; a model that departs from it may
+    end later: the default model on sl60 with tools, 4828 against its searched plan's 4822). The moves are not
+    verified by trial runs (the lookahead's verification costs a full run per idle stop, minutes on 100 jobs), so a
+    run that departs from its plan is not guaranteed to gain by them.
 
     ``guide_of(shop)`` gives the shop's guide (:meth:`fms_dispatch.rl.agent.Agent.guide_of`). The counters match
     :class:`~fms_dispatch.rl.lookahead.LookaheadPlanner`'s (nothing is verified: :attr:`verifies` is False, and
