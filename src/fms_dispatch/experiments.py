@@ -954,7 +954,7 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _cmd(a: argparse.Namespace) -> int:
-    from fms_sim.files import file_above
+    from fms_sim.files import file_above, folder_problem
 
     if not a.results_dir.strip():  # Path("") is the current folder
         raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")
@@ -962,6 +962,9 @@ def _cmd(a: argparse.Namespace) -> int:
     blocker = out if out.exists() and not out.is_dir() else file_above(out)
     if blocker is not None:  # found before the work, not after hours of it
         raise ValueError(f"--results-dir {a.results_dir}: {blocker} is a file; name a folder")
+    problem = folder_problem(out)  # (one that cannot be made, under /proc, was found after the work)
+    if problem is not None:
+        raise ValueError(f"--results-dir {a.results_dir}: {problem}")
     for flag in ("steps", "seeds", "cpsat_time", "replan_budget", "sos_time"):  # 0 would silently mean the default
         v = getattr(a, flag, None)
         if v is not None and not 0 < v < math.inf:  # (inf: a search that never ends)
