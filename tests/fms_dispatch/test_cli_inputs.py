@@ -103,8 +103,8 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["generate", "--jobs", "3", "--machines", "3", "--out-dir", ""], "--out-dir names no folder"),  # cwd
     (["bench", "bu", "--instances", "1", "--methods", "first", "--results-dir", ""], "--results-dir names no folder"),
     (["experiment", "dynamic", "--quick", "--results-dir", ""], "--results-dir names no folder"),
-    (["experiment", "dynamic", "--quick", "--results-dir", "/proc/fms-test"], "--results-dir /proc/fms-test: "
-     "the folder /proc"),  # where no folder can be made: found after the work (root passes the permission bits)
+    (["experiment", "dynamic", "--quick", "--results-dir", "/proc/fms-test"], "the folder /proc"),  # where no
+    # folder can be made: found after the work (as root: "nothing can be written in"; else: "... may not be written")
     (["experiment", "dynamic", "--quick", "--sos-time", "inf", "--results-dir", "{d}"],
      "--sos-time must be positive and finite"),  # it ran forever
     (["experiment", "disruptions", "--quick", "--cpsat-time", "inf", "--results-dir", "{d}"],
