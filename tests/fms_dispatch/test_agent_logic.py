@@ -134,10 +134,9 @@ def test_each_state_is_answered_once() -> None:
 
 def test_a_shop_restarted_with_the_same_run_id_is_answered_again() -> None:
     """A shop respawned with fixed parameters (its run_id too) publishes state 0 again; the agent took it for an old
-    state, re-sent its command for the old run's later state, the shop refused that as a state it never published
-    and published state 0 again: neither moved for ever. The same older state twice begins the run again."""
-    from fms_sim.full_shop import make_shop
-
+    state and re-sent its command for the old run's later state, which the shop refused as never published: neither
+    moved for ever. The shop now sends its current state with that refusal, and the same older state twice begins
+    the run again."""
     first = ShopService(builtin("EX12"), run_id="r")
     out = first.start()
     agent = AgentLogic("first")
