@@ -214,8 +214,9 @@ def _all_plain(item: Check, value: list[Any]) -> bool:
     passes ``item`` (exact ``int``/``bool``/``str`` items within the rule); False means "check one by one",
     which also produces the precise error. It never accepts what the item rule rejects."""
     kind = type(item)
-    if kind is Int:
-        return not value or (set(map(type, value)) == {int} and (item.minimum is None or min(value) >= item.minimum))
+    if kind is Int:  # (the 64-bit bound too: a feature column of 2**64 passed, where one such field was refused)
+        return not value or (set(map(type, value)) == {int} and max(value) <= INT64[1]
+                             and min(value) >= (INT64[0] if item.minimum is None else max(item.minimum, INT64[0])))
     if kind is Bool:
         return not value or set(map(type, value)) == {bool}
     if kind is Str and item.max_len is None:

@@ -43,6 +43,7 @@ from .shop_service import Outgoing
 __all__ = ["RecorderStore", "Recorder", "gantt_path", "safe_run_name", "DEFAULT_DB"]
 
 SOURCE = "fms_recorder"
+INT64_MAX = 2**63 - 1  # (SQLite's largest integer: "every seq" where a run's end is not known yet)
 DEFAULT_DB = "fms_recorder.sqlite"
 """The recorder's database file when no path is given (relative to the working directory)."""
 
@@ -280,12 +281,15 @@ class RecorderStore:
     def progress(self, run_id: str) -> tuple[int, int | None, int]:
         """How far the stored events of a run go: the operations ended (``op_end`` events), the latest event's time
         (None: no event stored yet) and the jobs live orders added (``order_accepted`` events) — for a progress line
-        while the run goes on."""
+        while the run goes on. Events after the run's end, once it is known, are not the run's (:meth:`after_end`):
+        one counted "17 of 16 operations done")."""
+        end = self.end_seq(run_id)
+        last = end if end is not None else INT64_MAX
         done, latest = self.db.execute("SELECT COUNT(CASE WHEN kind = 'op_end' THEN 1 END), MAX(time) FROM events "
-                                       "WHERE run_id = ?", (run_id,)).fetchone()
+                                       "WHERE run_id = ? AND seq <= ?", (run_id, last)).fetchone()
         ordered = 0
-        for (data,) in self.db.execute("SELECT data FROM events WHERE run_id = ? AND kind = 'order_accepted'",
-                                       (run_id,)):
+        for (data,) in self.db.execute("SELECT data FROM events WHERE run_id = ? AND kind = 'order_accepted' AND "
+                                       "seq <= ?", (run_id, last)):
             jobs = json.loads(data).get("jobs") if data else None
             ordered += len(jobs) if isinstance(jobs, list) else 0
         return int(done or 0), latest, ordered

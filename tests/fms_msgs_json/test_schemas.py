@@ -308,6 +308,8 @@ def test_missing_required_field(kind: str, key: str) -> None:
     ("state", "seq", -1, "field 'seq' must be an integer >= 0, got -1 (integer)"),
     ("state", "time", 2**63, "field 'time' must be an integer >= 0 of 64 bits (at most 9,223,372,036,854,775,807), "
                              "got 9223372036854775808 (integer)"),
+    ("event", "data", {"jobs": [3, 2**64]}, "field 'data.jobs[1]' must be an integer >= 0 of 64 bits"),  # (an array's
+    # fast path checked the type and the minimum only)
     ("state", "seq", 1.0, "field 'seq' must be an integer >= 0, got 1.0 (number)"),
     ("state", "seq", "1", "field 'seq' must be an integer >= 0, got '1' (string)"),
     ("state", "time", None, "field 'time' must be an integer >= 0, got null"),

@@ -111,6 +111,15 @@ def test_store_progress_counts_ended_operations_and_the_latest_time(tmp_path: Pa
         store.add_event(e)
     assert store.progress("run-1") == (svc.instance.n_operations, svc.final_schedule.makespan, 0)
     assert store.progress("other") == (0, None, 0)
+    # an event after the run's end, stored before the end came, is not the run's ("17 of 16 operations done", at
+    # its time)
+    late = RecorderStore(tmp_path / "late.sqlite")
+    *body, end = svc.events
+    for e in body:
+        late.add_event(e)
+    late.add_event(dict(end, seq=end["seq"] + 5, time=99_999, kind="op_end", data={"job": 0, "op": 0, "machine": 1}))
+    late.add_event(end)
+    assert late.progress("run-1") == (svc.instance.n_operations, svc.final_schedule.makespan, 0)
     # the jobs live orders added (fms up said "14 of 13 operations done" after an order)
     for seq, jobs in enumerate(([5, 6], [7])):
         store.add_event(dict(svc.events[0], run_id="run-2", seq=seq, time=3, kind="order_accepted",
