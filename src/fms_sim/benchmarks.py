@@ -25,7 +25,7 @@ from importlib import resources
 from typing import Any
 
 from .generate import generate_instances
-from .instance import Instance, InstanceError, Operation
+from .instance import Instance, InstanceError, Operation, _is_int, _plain
 
 __all__ = ["builtin", "builtin_names", "is_builtin_name", "SL_GROUPS", "BU_OPTIMAL_MAKESPAN", "NAME_PATTERNS"]
 
@@ -101,8 +101,9 @@ def builtin(name: str, *, layout: int | None = None) -> Instance:
     if not isinstance(name, str):
         raise InstanceError(f"instance name must be a string, got {name!r}")
     key = name.strip()
-    if layout is not None and (not isinstance(layout, int) or isinstance(layout, bool) or not 1 <= layout <= 4):
+    if layout is not None and (not _is_int(layout) or not 1 <= layout <= 4):  # (numpy integers too, as elsewhere)
         raise InstanceError(f"layout must be 1, 2, 3 or 4, got {layout!r}")
+    layout = None if layout is None else _plain(layout)
 
     if m := _EX_RE.fullmatch(key):
         digits = m.group(1)

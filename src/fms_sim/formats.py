@@ -31,7 +31,13 @@ def _int(tok: str) -> int | None:
     """``tok`` as an integer if it is one written in ASCII digits (an optional sign), else None: ``int()`` alone took
     ``1_000`` and other scripts' digits (``٣``), which no OR-Library or Taillard file holds."""
     digits = tok[1:] if tok[:1] in ("+", "-") else tok
-    return int(tok) if digits.isascii() and digits.isdigit() else None
+    if not (digits.isascii() and digits.isdigit()) or len(digits) > _MAX_DIGITS:
+        return None  # (beyond Python's conversion limit a raw ValueError named no file nor line)
+    return int(tok)
+
+
+#: digits of the longest number a text instance holds (every count and time is far below 10**18)
+_MAX_DIGITS = 18
 
 
 def _lines(text: str) -> list[tuple[int, list[str]]]:
@@ -59,6 +65,9 @@ def _ints(no: int, toks: list[str]) -> list[int]:
         v = _int(tok)
         if v is None:
             shown = tok if len(tok) <= 40 else f"{tok[:20]}...{tok[-8:]} ({len(tok)} characters)"
+            digits = tok[1:] if tok[:1] in ("+", "-") else tok
+            if digits.isascii() and digits.isdigit():  # (a number, only too long)
+                raise InstanceError(f"line {no}: the number {shown!r} is too large (more than {_MAX_DIGITS} digits)")
             raise InstanceError(f"line {no}: expected integers, got {shown!r}")
         vals.append(v)
     return vals

@@ -170,6 +170,8 @@ class Instance:
             if sizes:
                 name, rows_n = next(iter(sizes.items()))
                 m, derived = rows_n - 1, f" (from the {rows_n} rows of {name}: L/U + {rows_n - 1} machines)"
+                if m > MAX_COUNT:  # (taken, it wrote a file that n_machines' own check then refused)
+                    raise InstanceError(f"{name} has {rows_n} rows: L/U + {m} machines, more than {MAX_COUNT}")
         m = m or used_m
         if used_m > m:
             raise InstanceError(f"an operation uses machine {used_m} but the instance has only {m} machines{derived}")

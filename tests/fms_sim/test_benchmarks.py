@@ -185,3 +185,9 @@ def test_layout_refused_for_fixed_families() -> None:
     for name in ("sl00", "ta01"):
         with pytest.raises(InstanceError, match="layout applies only to ra"):
             builtin(name, layout=2)
+
+
+def test_a_numpy_layout_is_taken() -> None:
+    import numpy as np
+
+    assert builtin("ra01", layout=np.int64(3)) == builtin("ra01", layout=3)  # (refused, as nowhere else)

@@ -229,3 +229,11 @@ def test_an_instance_file_is_loaded_from_a_path(tmp_path: Path) -> None:
     assert load_instance(path) == builtin("ra01") and load_instance(path, agvs=3).n_agvs == 3
     with pytest.raises(InstanceError, match="is a directory"):
         load_instance(tmp_path)
+
+
+def test_a_number_too_long_for_any_field_names_its_line() -> None:
+    # beyond Python's conversion limit (4,300 digits) a raw ValueError named no file nor line
+    with pytest.raises(InstanceError, match=r"line 2: the number '9{20}\.\.\.9{8} \(5000 characters\)' is too large"):
+        parse_text_jobshop("1 1\n0 " + "9" * 5000 + "\n", "big")
+    with pytest.raises(InstanceError, match="line 2: the number '99999999999999999999' is too large"):
+        parse_text_jobshop("1 1\n0 " + "9" * 20 + "\n", "big")

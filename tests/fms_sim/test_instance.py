@@ -141,3 +141,13 @@ def test_describe_counts_in_words() -> None:
     one = Instance(name="one", jobs=((Operation(1, None, 5),),), n_machines=1)
     assert one.describe() == "one: 1 job x 1 machine, 1 operation, plain job shop"
     assert builtin("EX12").describe() == "EX12: 5 jobs x 4 machines, 13 operations, 2 AGVs"
+
+
+def test_a_machine_count_read_from_a_travel_matrix_keeps_the_limit() -> None:
+    # 1,201 machines taken from a matrix's rows were accepted, and the file written then refused as n_machines 1201
+    from fms_sim.instance import MAX_COUNT, InstanceError
+
+    n = MAX_COUNT + 2
+    matrix = [[0 if i == j else 1 for j in range(n)] for i in range(n)]
+    with pytest.raises(InstanceError, match=f"agv_travel has {n} rows: L/U \\+ {n - 1} machines, more than {MAX_COUNT}"):
+        Instance(name="wide", jobs=[[Operation(1, None, 5)]], agv_travel=matrix, n_agvs=1)
