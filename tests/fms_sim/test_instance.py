@@ -149,5 +149,6 @@ def test_a_machine_count_read_from_a_travel_matrix_keeps_the_limit() -> None:
 
     n = MAX_COUNT + 2
     matrix = [[0 if i == j else 1 for j in range(n)] for i in range(n)]
-    with pytest.raises(InstanceError, match=f"agv_travel has {n} rows: L/U \\+ {n - 1} machines, more than {MAX_COUNT}"):
+    with pytest.raises(InstanceError, match=f"agv_travel has {n} rows: L/U \\+ {n - 1} machines, more than "
+                                            f"{MAX_COUNT}"):
         Instance(name="wide", jobs=[[Operation(1, None, 5)]], agv_travel=matrix, n_agvs=1)
