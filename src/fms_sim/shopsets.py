@@ -200,6 +200,10 @@ def expand_specs(specs: Sequence[str], fleet: dict[str, Any] | None = None) -> l
             fleet[key] = int(v)  # numpy's integers as Python's
     if not isinstance(fleet.get("no_tools", False), (bool, type(None))):  # "false" dropped the tools
         raise ValueError(f"fleet no_tools must be true, false or None, got {fleet.get('no_tools')!r}")
+    if fleet.get("no_tools") and fleet.get("tool_transporters") is not None:  # (gen: specs dropped the count
+        # without a word; a built-in's load refused it)
+        raise ValueError("fleet: set the number of tool transporters or drop the tools, not both (tool_transporters "
+                         "/ no_tools)")
     fl = dict(_DEFAULT_FLEET, **fleet)
     out: list[Instance] = []
     for spec in specs:

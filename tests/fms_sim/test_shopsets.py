@@ -319,3 +319,10 @@ def test_a_refusal_of_many_reserved_shops_names_the_first_and_counts_the_rest() 
     msg = str(err.value)
     assert "'ho*' gives ho00, which has the jobs of held-out ho00" in msg and "'ho*' gives ho09, " in msg
     assert msg.endswith("; and 40 more of it") and "ho10" not in msg and len(msg) < 1000
+
+
+def test_a_fleet_that_drops_the_tools_takes_no_transporters() -> None:
+    # a gen: spec dropped the transporters without a word, where a built-in refused them
+    for spec in ("gen:5x3x3*1@7", "sl00"):
+        with pytest.raises(ValueError, match="set the number of tool transporters or drop the tools, not both"):
+            expand_specs([spec], {"no_tools": True, "tool_transporters": 2})
