@@ -297,7 +297,10 @@ def _end_line(path: Path) -> None:
     """End the cache's last line if a run killed mid-write left it cut (the next row was glued onto it and lost)."""
     try:
         with path.open("rb+") as fh:
-            if fh.seek(0, os.SEEK_END) and (fh.seek(-1, os.SEEK_END), fh.read(1))[1] != b"\n":
+            if fh.seek(0, os.SEEK_END) == 0:
+                return
+            fh.seek(-1, os.SEEK_END)
+            if fh.read(1) != b"\n":
                 fh.write(b"\n")
     except FileNotFoundError:
         pass

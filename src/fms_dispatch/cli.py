@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -18,6 +17,8 @@ from typing import TYPE_CHECKING, Any, Sequence
 from fms_sim.files import drop_instance_beside, folder_problem, instance_beside, output_problem
 from fms_sim.instance import Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
+
+from .progress import send_nowhere, surviving_streams
 
 if TYPE_CHECKING:
     from fms_sim.disruptions import Scenario
@@ -263,7 +264,7 @@ def cmd_solve(a: argparse.Namespace) -> int:
     # a PPO run names the model and lookahead it ran ("ppo --lookahead" ran ppo:guided-dagger+lookahead)
     ran = str(sched.meta.get("solver", ""))
     shown = ran if a.solver.lower().startswith("ppo") and ran.lower().startswith("ppo") else a.solver
-    _result(f"{inst.name}: makespan {sched.makespan} ({shown}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
+    print(f"{inst.name}: makespan {sched.makespan} ({shown}, {sched.meta.get('wall_time', 0):.3f} s{extra}, valid)")
     hint = plan_hint(sched, scenario)
     if hint and not a.quiet:
         print(f"{inst.name}: {hint}", file=sys.stderr)
@@ -371,7 +372,7 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
             sched.save(out)
         except OSError as exc:
             raise CliError(f"cannot write --out {out}: {exc.strerror or exc}") from None
-        _result(f"schedule: {out}")
+        print(f"schedule: {out}")
         with contextlib.suppress(OSError):
             stale = drop_instance_beside(out, sched.instance, source)  # an fms up run's with orders: fms validate
             if stale is not None:
@@ -385,7 +386,7 @@ def _write_outputs(sched: Schedule, inst: Instance, out: str | None, gantt: str 
         except OSError as exc:
             kept = f" (the schedule was saved to {out})" if out else ""
             raise CliError(f"cannot write --gantt {gantt}: {exc.strerror or exc}{kept}") from None
-        _result(f"gantt:    {written}")
+        print(f"gantt:    {written}")
 
 
 def _load_schedule(path: str) -> Schedule:
@@ -477,7 +478,7 @@ def cmd_validate(a: argparse.Namespace) -> int:
             print(f"valid: {inst.name}, makespan {sched.makespan}")
         sys.stdout.flush()
     except BrokenPipeError:  # `fms validate ... | head`: the reader left, the verdict stands (it exited 0)
-        _reader_left()
+        send_nowhere(sys.stdout)
     return code
 
 
@@ -535,22 +536,6 @@ def fleet_hint(inst: Instance, sched: Schedule) -> str | None:
             f"{_options_text(opts)}, give the same here")
 
 
-def _result(line: str) -> None:
-    """A line of a command's result on standard output. If its reader has left (``fms solve ... | head -1``), the
-    command goes on without it: the files it writes after the line are still written."""
-    try:
-        print(line)
-    except BrokenPipeError:
-        _reader_left()
-
-
-def _reader_left() -> None:
-    """The reader of our standard output left (a closed pipe): send what is still buffered nowhere, so that
-    Python's flush at exit does not fail again."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-
-
 def cmd_replay(a: argparse.Namespace) -> int:
     from fms_sim.replay import ReplayError, replay
 
@@ -576,7 +561,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
                 print(hint, file=sys.stderr)
             return EXIT_BAD_INPUT
         raise
-    _result(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
+    print(f"{inst.name}: replayed makespan {out.makespan} (given {given.makespan}), valid")
     _write_outputs(out, inst, a.out, a.gantt, a.instance)
     return 0
 
@@ -626,7 +611,7 @@ def cmd_generate(a: argparse.Namespace) -> int:
     for inst in insts:
         path = out / f"{inst.name}.json"
         inst.save(path)
-        _result(f"{path}: {inst.describe()}")
+        print(f"{path}: {inst.describe()}")
     return 0
 
 
@@ -757,8 +742,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             # place after an option (the same order is taken by fms replay, whose schedule is required)
         elif extra:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
-        from .progress import surviving_streams
-
         with surviving_streams():  # a reader that left (| head) does not end the command half-way (its files not
             return a.fn(a)  # written, exit 0), nor Python's flush at exit after a complete run (exit 120)
     except (CliError, InstanceError, ScheduleError, ValueError) as exc:  # ScenarioError is a ValueError
@@ -770,7 +753,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("fms: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # e.g. `fms bench bu | head`: the reader left; not an error of ours
-        _reader_left()
+        send_nowhere(sys.stdout)
         return 0
     except OSError as exc:  # a file that cannot be written or read (a folder where a file was named, no rights)
         where = f": {exc.filename}" if exc.filename else ""

@@ -14,10 +14,10 @@ import os
 import sys
 from typing import Any, Iterator, TextIO
 
-__all__ = ["say", "surviving_streams"]
+__all__ = ["say", "surviving_streams", "send_nowhere"]
 
 
-def _to_nowhere(stream: Any) -> None:
+def send_nowhere(stream: Any) -> None:
     """Send ``stream``'s file descriptor to the null device (each later write, and Python's flush at exit, would
     fail the same way)."""
     with contextlib.suppress(OSError, ValueError, AttributeError):  # (a stream without a file descriptor)
@@ -31,7 +31,7 @@ def say(line: str) -> None:
     try:
         print(line, file=sys.stderr, flush=True)
     except BrokenPipeError:
-        _to_nowhere(sys.stderr)
+        send_nowhere(sys.stderr)
 
 
 class _Surviving:
@@ -44,14 +44,14 @@ class _Surviving:
         try:
             return self._stream.write(text)
         except BrokenPipeError:
-            _to_nowhere(self._stream)
+            send_nowhere(self._stream)
             return len(text)
 
     def flush(self) -> None:
         try:
             self._stream.flush()
         except BrokenPipeError:
-            _to_nowhere(self._stream)
+            send_nowhere(self._stream)
             with contextlib.suppress(BrokenPipeError, OSError, ValueError):
                 self._stream.flush()  # (what was buffered now goes to the null device)
 

@@ -161,26 +161,37 @@ def answer(kind: str, msg: dict[str, Any], text: str, topic: str, incoming: dict
     return None
 
 
+def _heard_answers(node: Any, heard: list[tuple[str, str]], kind: str, msg: dict[str, Any],
+                   text: str) -> list[tuple[dict[str, Any], tuple[bool, str]]]:
+    """Spin ``node`` once and return the messages heard since (``heard``, then emptied) that answer ``msg``: each
+    decoded, with its :func:`answer`."""
+    import rclpy
+
+    rclpy.spin_once(node, timeout_sec=0.05)
+    out = []
+    for t, data in heard:
+        try:
+            incoming = decode(data, expect="event" if t == TOPIC_EVENTS else "error")
+        except MessageError:
+            continue
+        got = answer(kind, msg, text, t, incoming)
+        if got is not None:
+            out.append((incoming, got))
+    heard.clear()
+    return out
+
+
 def _only_taker(node: Any, heard: list[tuple[str, str]], kind: str, msg: dict[str, Any], text: str, run: str,
                 line: str) -> tuple[int, str]:
     """After a message for "the current run" was accepted by ``run``: listen 0.5 s more for another run taking it too
     (a shop the check before sending had not yet seen); ``(exit code, line)``."""
-    import rclpy
-
     takers = [run]
     heard.clear()
     until = time.monotonic() + 0.5
     while time.monotonic() < until:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        for t, data in heard:
-            try:
-                incoming = decode(data, expect="event" if t == TOPIC_EVENTS else "error")
-            except MessageError:
-                continue
-            got = answer(kind, msg, text, t, incoming)
-            if got is not None and got[0] and incoming["run_id"] not in takers:
+        for incoming, (accepted, _) in _heard_answers(node, heard, kind, msg, text):
+            if accepted and incoming["run_id"] not in takers:
                 takers.append(incoming["run_id"])
-        heard.clear()
     if len(takers) > 1:
         return EXIT_FAILED, (f"{kind} {msg[f'{kind}_id']} was taken by {len(takers)} runs ({', '.join(takers)}): "
                              "shops of several runs on this domain; name one with --run-id")
@@ -234,21 +245,13 @@ def exchange(kind: str, msg: dict[str, Any], timeout: float) -> tuple[int, str]:
         sent = time.monotonic()
         other_runs: list[str] = []  # refusals of shops of other runs (a message for one run, several on the domain)
         while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
-            for t, data in heard:
-                try:
-                    incoming = decode(data, expect="event" if t == TOPIC_EVENTS else "error")
-                except MessageError:
+            for incoming, (accepted, line) in _heard_answers(node, heard, kind, msg, text):
+                if not accepted and incoming.get("code") == "unknown_run":
+                    other_runs.append(line)  # the run's own shop answers for it (the first answer was taken)
                     continue
-                got = answer(kind, msg, text, t, incoming)
-                if got is not None and not got[0] and incoming.get("code") == "unknown_run":
-                    other_runs.append(got[1])  # the run's own shop answers for it (the first answer was taken)
-                    continue
-                if got is not None and got[0] and msg.get("run_id") is None:
-                    return _only_taker(node, heard, kind, msg, text, incoming["run_id"], got[1])
-                if got is not None:
-                    return (EXIT_OK if got[0] else EXIT_FAILED), got[1]
-            heard.clear()
+                if accepted and msg.get("run_id") is None:
+                    return _only_taker(node, heard, kind, msg, text, incoming["run_id"], line)
+                return (EXIT_OK if accepted else EXIT_FAILED), line
             # every shop runs another run (counted once the others have had 2 s to be matched: the run's own shop may
             # be found after another's refusal came)
             if other_runs and time.monotonic() - sent > 2.0 and len(other_runs) >= pub.get_subscription_count():

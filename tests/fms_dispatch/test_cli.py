@@ -416,17 +416,15 @@ def test_a_chart_that_cannot_be_written_names_itself_and_keeps_the_schedule(tmp_
 def test_an_output_folder_without_write_permission_is_refused_before_solving(tmp_path, capsys, monkeypatch):
     # a folder this user may not write was found only after the solve; access is denied through os.access so the
     # test holds for root too (who may write anywhere)
-    import fms_dispatch.cli as cli
-
     locked = tmp_path / "locked"
     locked.mkdir()
     real = os.access
-    monkeypatch.setattr(cli.os, "access", lambda p, mode: False if os.fspath(p) == str(locked) else real(p, mode))
+    monkeypatch.setattr(os, "access", lambda p, mode: False if os.fspath(p) == str(locked) else real(p, mode))
     code, stdout, err = run(["solve", "EX12", "--out", str(locked / "sub" / "s.json"), "-q"], capsys)
     assert code == 2 and f"the folder {locked} may not be written (permission denied)" in err
     assert "makespan" not in stdout and not (locked / "sub").exists()
     (locked / "s.json").write_text("{}")
-    monkeypatch.setattr(cli.os, "access", lambda p, mode: False if os.fspath(p) == str(locked / "s.json")
+    monkeypatch.setattr(os, "access", lambda p, mode: False if os.fspath(p) == str(locked / "s.json")
                         else real(p, mode))
     code, _, err = run(["solve", "EX12", "--out", str(locked / "s.json"), "-q"], capsys)
     assert code == 2 and "the file may not be written (permission denied)" in err

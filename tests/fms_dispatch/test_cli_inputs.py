@@ -133,12 +133,10 @@ def test_empty_names_and_ignored_values_are_refused(tmp_path, capsys, monkeypatc
 
 
 def test_generate_checks_its_folder_before_writing(tmp_path, capsys, monkeypatch):
-    import fms_dispatch.cli as cli
-
     locked = tmp_path / "ro"
     locked.mkdir()
     real = os.access
-    monkeypatch.setattr(cli.os, "access", lambda p, mode: False if os.fspath(p) == str(locked) else real(p, mode))
+    monkeypatch.setattr(os, "access", lambda p, mode: False if os.fspath(p) == str(locked) else real(p, mode))
     code, _, err = run(["generate", "--jobs", "3", "--machines", "3", "--out-dir", str(locked)], capsys)
     assert code == 2 and f"the folder {locked} may not be written" in err and ".tmp" not in err  # (a temp's name)
 

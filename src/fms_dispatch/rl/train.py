@@ -505,9 +505,10 @@ class _HeldInterrupts:
     def __enter__(self) -> "_HeldInterrupts":
         import signal
 
+        from ..up import STOP_SIGNALS
+
         try:
-            for sig in (signal.SIGINT, signal.SIGTERM, *(getattr(signal, n) for n in ("SIGHUP", "SIGQUIT")
-                                                         if hasattr(signal, n))):
+            for sig in (signal.SIGINT, *STOP_SIGNALS):
                 self._old[sig] = signal.signal(sig, self._hold)
         except ValueError:  # not the main thread
             self.__exit__()
