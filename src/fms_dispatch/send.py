@@ -91,22 +91,10 @@ def _order(spec: str) -> tuple[Any, Any, Any]:
             raise SendError(f"{spec[1:]} is not a text (UTF-8 JSON) file") from None
     else:
         text = spec
-    duplicates: list[str] = []  # keys that appear twice in one object (JSON keeps the last value)
-
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        seen: set[str] = set()
-        for k, _ in items:
-            if k in seen:
-                duplicates.append(k)
-            seen.add(k)
-        return dict(items)
-
-    try:
-        jobs = loads(text, object_pairs_hook=pairs)
+    try:  # (a key twice in one object is refused too: docs/ros.md calls it malformed JSON)
+        jobs = loads(text)
     except json.JSONDecodeError as exc:
         raise SendError(f"--jobs is not JSON: {exc}") from None
-    if duplicates:  # silently the last value; docs/ros.md calls duplicate keys malformed JSON
-        raise SendError(f"--jobs is not JSON as fms reads it: duplicate key {duplicates[0]!r} in an object")
     if isinstance(jobs, dict):  # a whole order message: its id and run too (re-sending the file is the same order)
         if jobs.get("schema", SCHEMA_ORDER) != SCHEMA_ORDER:  # an fms/order/v2 or a disruption was sent as v1
             raise SendError(f"--jobs holds a {jobs['schema']!r} message, not an order ({SCHEMA_ORDER})")

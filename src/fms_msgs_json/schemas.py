@@ -26,6 +26,7 @@ import sys
 from collections.abc import Iterable
 from typing import Any, Callable, NamedTuple
 
+from fms_sim.files import DuplicateKeyError, unique_pairs
 from fms_sim.schedule import Schedule, ScheduleError
 
 from .fields import Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, OneOf, Str, check_object, show
@@ -561,15 +562,6 @@ def _normalise_expect(expect: str | Iterable[str]) -> set[str]:
     return kinds
 
 
-def _pairs_without_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise MessageError("malformed_json", f"malformed JSON: duplicate key {key[:60]!r} in an object")
-        out[key] = value
-    return out
-
-
 def _reject_constant(name: str) -> Any:
     raise MessageError("malformed_json", f"malformed JSON: {name} is not a JSON number")
 
@@ -595,13 +587,15 @@ def decode(text: str, expect: str | Iterable[str] | None = None) -> dict[str, An
     if not isinstance(text, str):
         raise MessageError("malformed_json", f"expected the message text as a str, got {type(text).__name__}")
     try:
-        msg = json.loads(text, object_pairs_hook=_pairs_without_duplicates, parse_constant=_reject_constant,
+        msg = json.loads(text, object_pairs_hook=unique_pairs, parse_constant=_reject_constant,
                          parse_float=_finite_float)
     except json.JSONDecodeError as exc:
         raise MessageError("malformed_json", f"malformed JSON at line {exc.lineno} column {exc.colno}: "
                                              f"{exc.msg}") from None
     except RecursionError:
         raise MessageError("malformed_json", "malformed JSON: nested too deeply") from None
+    except DuplicateKeyError as exc:  # (the files' check: a message and a file refuse the same objects)
+        raise MessageError("malformed_json", f"malformed JSON: {exc}") from None
     except MessageError:
         raise
     except ValueError:  # a number with more digits than Python converts (its limit, sys.get_int_max_str_digits)

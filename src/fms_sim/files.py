@@ -8,7 +8,9 @@ temporary, and a watcher of the folder never sees half a file. A symbolic link s
 replaced), and a device or a pipe (``/dev/null``, a FIFO) is written straight into, never replaced by a file.
 
 Reading: :func:`read_text` and :func:`loads` take a UTF-8 file with or without a byte-order mark (editors on Windows
-write one) and turn JSON nested too deeply for the parser into a JSON error, not a crash.
+write one) and turn JSON nested too deeply for the parser into a JSON error, not a crash. :func:`loads` refuses an
+object that holds one key twice (Python's parser keeps the last value without a word, so a file's reader saw
+another value than its writer meant); :func:`unique_pairs` is that check as a hook, for the message decoder.
 """
 
 from __future__ import annotations
@@ -21,11 +23,13 @@ import re
 import stat
 import sys
 import tempfile
+from json.decoder import scanstring  # type: ignore[attr-defined]  # (the stubs leave them out)
+from json.scanner import py_make_scanner  # type: ignore[attr-defined]
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-__all__ = ["replacing", "write_atomically", "read_text", "loads", "file_above", "output_problem", "folder_problem",
-           "drop_instance_beside", "instance_beside"]
+__all__ = ["replacing", "write_atomically", "read_text", "loads", "DuplicateKeyError", "unique_pairs", "file_above",
+           "output_problem", "folder_problem", "drop_instance_beside", "instance_beside"]
 
 
 def read_text(path: str | Path) -> str:
@@ -61,13 +65,81 @@ def _where(text: str) -> int:
     return 0
 
 
+class DuplicateKeyError(ValueError):
+    """A JSON object holds ``key`` twice. JSON leaves the meaning open and Python keeps the last value without a
+    word: ``{"noise": 0.1, "noise": 0.5}`` ran with 0.5, whatever its writer meant."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(f"duplicate key {key[:60]!r} in an object")
+        self.key = key
+
+
+def unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An ``object_pairs_hook`` for :func:`json.loads`: the object's dict, or :class:`DuplicateKeyError` naming the
+    first key it holds twice. :func:`loads` uses it; the message decoder (``fms_msgs_json``) too, so that a file and
+    a message refuse the same objects."""
+    out = dict(pairs)
+    if len(out) != len(pairs):  # (one dict and a length: the check costs next to nothing on a large file)
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise DuplicateKeyError(key)
+            seen.add(key)
+    return out
+
+
+def _skip_space(s: str, i: int) -> int:
+    """The index of the first character from ``i`` on that is not JSON white space."""
+    while i < len(s) and s[i] in " \t\n\r":
+        i += 1
+    return i
+
+
+def _duplicate_at(text: str, key: str) -> int:
+    """Where in ``text`` an object's second ``key`` stands (0 if it is not found). Python's fast parser calls the
+    hook once an object is read, without its position: found here by reading ``text`` again with the slow parser,
+    only once a duplicate was found, so that the error names the line."""
+
+    class Found(Exception):
+        pass
+
+    def parse_object(s_and_end: tuple[str, int], strict: bool, scan_once: Any, *_: Any) -> tuple[dict, int]:
+        s, end = s_and_end  # (just after the "{"; the text is JSON up to the duplicate: the fast parser read it)
+        seen: set[str] = set()
+        end = _skip_space(s, end)
+        if s[end] == "}":
+            return {}, end + 1
+        while True:
+            name, after = scanstring(s, end + 1, strict)
+            if name in seen and name == key:
+                raise Found(end)
+            seen.add(name)
+            _, end = scan_once(s, _skip_space(s, _skip_space(s, after) + 1))  # (past the ":")
+            end = _skip_space(s, end)
+            if s[end] == "}":
+                return {}, end + 1
+            end = _skip_space(s, end + 1)  # (past the ",")
+
+    decoder = json.JSONDecoder()
+    decoder.parse_object = parse_object  # type: ignore[attr-defined]
+    try:
+        py_make_scanner(decoder)(text, _skip_space(text, 0))
+    except Found as found:
+        return int(found.args[0])
+    except (ValueError, IndexError, StopIteration, RecursionError):  # not found: the start of the text
+        pass
+    return 0
+
+
 def loads(text: str | bytes, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None) -> Any:
     """``json.loads(text)`` (with ``object_pairs_hook``), a leading byte-order mark dropped; JSON nested too deeply for
     the parser (a crash with a RecursionError), a number with more digits than Python converts (a plain
-    ValueError) and what JSON has not but Python's parser takes (``NaN``, ``Infinity``, ``1e400``, which became
-    infinity: a file read so was written back with them, which other JSON readers refuse) raise
-    :class:`json.JSONDecodeError` like any other malformed JSON. Bytes are read as UTF-8 (they failed with "a
-    bytes-like object is required, not 'str'", the reverse of the truth); another type is a TypeError."""
+    ValueError), what JSON has not but Python's parser takes (``NaN``, ``Infinity``, ``1e400``, which became
+    infinity: a file read so was written back with them, which other JSON readers refuse) and, unless another
+    ``object_pairs_hook`` is given, an object holding one key twice (:func:`unique_pairs`; the last value was taken
+    without a word) raise :class:`json.JSONDecodeError` like any other malformed JSON, naming where they stand.
+    Bytes are read as UTF-8 (they failed with "a bytes-like object is required, not 'str'", the reverse of the
+    truth); another type is a TypeError."""
     if isinstance(text, (bytes, bytearray)):
         try:
             text = bytes(text).decode("utf-8")
@@ -77,12 +149,14 @@ def loads(text: str | bytes, object_pairs_hook: Callable[[list[tuple[str, Any]]]
         raise TypeError(f"JSON text must be a str or bytes, got {type(text).__name__}")
     text = text.removeprefix("\ufeff")
     try:
-        return json.loads(text, object_pairs_hook=object_pairs_hook, parse_constant=_constant,
-                          parse_float=_finite)
+        return json.loads(text, object_pairs_hook=unique_pairs if object_pairs_hook is None else object_pairs_hook,
+                          parse_constant=_constant, parse_float=_finite)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply", text, 0) from None
     except json.JSONDecodeError:
         raise
+    except DuplicateKeyError as exc:  # (before ValueError: a key may hold the word "digits")
+        raise json.JSONDecodeError(str(exc), text, _duplicate_at(text, exc.key)) from None
     except _NotJson as exc:
         raise json.JSONDecodeError(str(exc), text, _where(text)) from None
     except ValueError as exc:

@@ -135,6 +135,47 @@ def test_json_with_a_byte_order_mark_or_nested_too_deeply_is_read_or_refused_as_
         loads("{}", object_pairs_hook=lambda pairs: (_ for _ in ()).throw(ValueError("the hook's")))
 
 
+def test_a_key_twice_in_one_object_is_refused_naming_the_key_the_line_and_the_file(tmp_path):
+    """Python's parser keeps the last of two values of one key without a word: a scenario with its noise twice ran
+    with the second, an instance file named twice took the second name, a schedule file's second instance was
+    validated. Every file read through loads() refuses it now, naming the key, where it stands and the file."""
+    import json
+
+    from fms_sim.disruptions import Scenario, ScenarioError
+    from fms_sim.files import DuplicateKeyError, loads, unique_pairs
+    from fms_sim.formats import load_instance
+    from fms_sim.instance import InstanceError
+    from fms_sim.schedule import Schedule, ScheduleError
+
+    with pytest.raises(json.JSONDecodeError, match=r"duplicate key 'name' in an object: line 4 column 2 \(char 30\)"):
+        loads('{\n "name": "x",\n "jobs": [],\n "name": "y"\n}')
+    # the inner object's key, where the second one stands (not the outer object's first key of that name)
+    with pytest.raises(json.JSONDecodeError, match=r"duplicate key 'b' in an object: line 1 column 27 "):
+        loads('{"x": [1, {"b": {"c": 1}, "b" :2}], "b": 3}')
+    with pytest.raises(json.JSONDecodeError, match="duplicate key 'digits'"):  # (not taken for a number's error)
+        loads('{"digits": 1, "digits": 2}')
+    assert loads('{"a": {"k": 1}, "b": {"k": 2}}') == {"a": {"k": 1}, "b": {"k": 2}}  # one key per object
+    assert unique_pairs([("a", 1), ("b", 2)]) == {"a": 1, "b": 2}
+    with pytest.raises(DuplicateKeyError, match="duplicate key 'a' in an object") as info:
+        unique_pairs([("a", 1), ("b", 2), ("a", 3)])
+    assert info.value.key == "a"
+
+    inst = builtin("EX12")
+    path = tmp_path / "shop.json"
+    path.write_text(inst.to_json(indent=1).replace('"name": "EX12"', '"name": "EX12",\n "name": "mine"', 1))
+    with pytest.raises(InstanceError, match=r"shop.json: malformed JSON: duplicate key 'name' in an object: line 3 "):
+        load_instance(str(path))
+    path = tmp_path / "plan.json"
+    path.write_text('{"instance": "EX12", "makespan": 0, "operations": [], "instance": "EX11"}')
+    with pytest.raises(ScheduleError, match=r"plan.json: malformed JSON: duplicate key 'instance' in an object"):
+        Schedule.load(path)
+    path = tmp_path / "scenario.json"
+    path.write_text('{"breakdowns": [],\n "noise": 0.1,\n "noise": 0.5}')
+    with pytest.raises(ScenarioError, match=r"scenario .*scenario.json is not valid JSON: duplicate key 'noise' in "
+                                            r"an object \(line 3\)"):
+        Scenario.load(path)
+
+
 def test_what_json_has_not_is_refused_on_reading_and_on_writing(tmp_path):
     """Python's parser takes NaN, Infinity and 1e400 (infinity after decoding) and its writer writes them back as
     NaN/Infinity, which other JSON readers refuse: a schedule whose meta held one was read, then written, as
