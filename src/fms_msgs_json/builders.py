@@ -32,20 +32,31 @@ _SCALARS = frozenset((int, bool, str, float, type(None)))
 
 
 def _plain(x: Any) -> Any:
-    """``x`` as plain JSON values: numpy via ``tolist()``, mappings → dicts, other iterables → lists."""
+    """``x`` as plain JSON values: numpy via ``tolist()``, mappings → dicts, other iterables → lists. A value nested
+    too deeply for that (thousands of levels: it was a bare RecursionError) is a :class:`MessageError`
+    (``bad_schema``), as :func:`~fms_msgs_json.schemas.encode` says of one."""
+    try:
+        return _plain_values(x)
+    except RecursionError:
+        raise MessageError("bad_schema", "a value of the message is nested too deeply to be sent as JSON (an "
+                                         "object or array holds thousands of levels)") from None
+
+
+def _plain_values(x: Any) -> Any:
+    """:func:`_plain`, recursively."""
     t = type(x)
     if t in _SCALARS:  # fast paths for what the nodes build: plain scalars, dicts and flat lists
         return x
     if t is dict:
-        return {k: _plain(v) for k, v in x.items()}
+        return {k: _plain_values(v) for k, v in x.items()}
     if t is list and set(map(type, x)) <= _SCALARS:
         return list(x)
     if not isinstance(x, (str, bytes, int, float, type(None))) and hasattr(x, "tolist"):
         x = x.tolist()
     if isinstance(x, Mapping):
-        return {k: _plain(v) for k, v in x.items()}
+        return {k: _plain_values(v) for k, v in x.items()}
     if isinstance(x, Iterable) and not isinstance(x, (str, bytes)):
-        return [_plain(v) for v in x]
+        return [_plain_values(v) for v in x]
     return x
 
 

@@ -532,8 +532,75 @@ def encode(msg: dict[str, Any], *, check: bool = True) -> str:
         text = json.dumps(msg, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     except (TypeError, ValueError) as exc:  # only possible in extra (unknown) fields
         raise MessageError("bad_schema", f"{msg['schema']}: message is not JSON-serialisable: {exc}") from None
+    except RecursionError:  # an extra field nested thousands deep (decode refuses such text as nested too deeply)
+        raise MessageError("bad_schema", f"{msg['schema']}: message is nested too deeply to be written as JSON "
+                                         "(an object or array holds thousands of levels)") from None
+    clash = _key_clash(msg)
+    if clash is not None:
+        path, reason = clash
+        raise MessageError("bad_schema", f"{msg['schema']}: {reason}", path or None)
     _check_unicode(text, "bad_schema", f"{msg['schema']}: a string of the message")
     return text
+
+
+_SCALAR_TYPES = frozenset((str, int, float, bool, type(None)))
+
+
+def _json_key(key: Any) -> str:
+    """The key ``key`` of a dict as :func:`json.dumps` writes it (one that it writes at all: str, int, float, bool
+    or None)."""
+    if isinstance(key, str):
+        return key
+    if key is None or isinstance(key, bool):
+        return {None: "null", True: "true", False: "false"}[key]
+    return int.__repr__(key) if isinstance(key, int) else float.__repr__(key)
+
+
+def _key_clash(msg: dict[str, Any]) -> tuple[str, str] | None:
+    """Where and why ``msg`` (already written by :func:`json.dumps`: no cycle, only keys it writes) cannot be
+    sent: a dict with two keys that JSON writes alike (``1`` and ``"1"``, ``True`` and ``"true"``) gave an object
+    with one key twice, a message that :func:`decode` refuses. None when there is none. Walked without recursion; a
+    list of plain values is passed over at C speed, so a state's long columns cost next to nothing."""
+    stack: list[Any] = [msg]
+    while stack:
+        value = stack.pop()
+        items: Iterable[Any]
+        if isinstance(value, dict):
+            if value and set(map(type, value)) != {str}:
+                written: dict[str, Any] = {}
+                for key in value:
+                    other = written.setdefault(_json_key(key), key)
+                    if other is not key:
+                        first, second = sorted((other, key), key=lambda k: isinstance(k, str))  # the str one last
+                        path = _path_to(msg, value)
+                        where = f"field {path!r}" if path else "the message"
+                        return path, (f"{where} has the keys {first!r} and {second!r}, which JSON writes alike "
+                                      f"({_json_key(key)!r}): a JSON object holds each key once, and decode refuses "
+                                      "the message; give one of them")
+            items = value.values()
+        elif isinstance(value, (list, tuple)):
+            items = value
+        else:
+            continue
+        if not set(map(type, items)) <= _SCALAR_TYPES:
+            stack.extend(x for x in items if isinstance(x, (dict, list, tuple)))
+    return None
+
+
+def _path_to(msg: dict[str, Any], target: Any) -> str:
+    """The dotted/indexed path of the container ``target`` inside ``msg`` (``data.extra``, ``jobs[0]``), as field
+    errors name one; ``""`` for ``msg`` itself."""
+    stack: list[tuple[Any, str]] = [(msg, "")]
+    while stack:
+        value, path = stack.pop()
+        if value is target:
+            return path
+        if isinstance(value, dict):
+            stack.extend((x, f"{path}.{_json_key(k)}" if path else _json_key(k)) for k, x in value.items()
+                         if isinstance(x, (dict, list, tuple)))
+        elif isinstance(value, (list, tuple)):
+            stack.extend((x, f"{path}[{i}]") for i, x in enumerate(value) if isinstance(x, (dict, list, tuple)))
+    return "?"
 
 
 def _check_unicode(text: str, code: str, what: str) -> None:

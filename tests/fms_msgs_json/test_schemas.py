@@ -436,6 +436,48 @@ def test_encode_rejects_invalid_and_unserialisable() -> None:
         encode(changed("command", extra=float("nan")))
 
 
+
+def test_encode_refuses_two_keys_that_json_writes_alike() -> None:
+    """json.dumps writes the int key 1 as "1": {1: 'a', '1': 'b'} in an extra field became {"1":"a","1":"b"}, a
+    message that decode itself refuses (with or without the check, a shop's publisher skips it)."""
+    msg = changed("event", data={"agv": 0, "extra": {1: "a", "1": "b"}})
+    for check in (True, False):
+        with pytest.raises(MessageError, match=r"fms/event/v1: field 'data.extra' has the keys 1 and '1', which JSON "
+                                               r"writes alike \('1'\)") as info:
+            encode(msg, check=check)
+        assert info.value.code == "bad_schema" and info.value.field == "data.extra"
+    for a, b in ((True, "true"), (None, "null"), (1.5, "1.5")):  # (inside an array too)
+        with pytest.raises(MessageError, match=f"field 'data.extra\\[1\\]' has the keys {a!r} and {b!r}"):
+            encode(changed("event", data={"extra": [{}, {a: 1, b: 2}]}))
+    msg = changed("command", **{"2": 0})  # the message itself
+    msg[2] = 1
+    with pytest.raises(MessageError, match="fms/command/v1: the message has the keys 2 and '2'") as info:
+        encode(msg)
+    assert info.value.field is None
+    # keys that differ once written are kept, each once
+    fine = changed("event", data={"extra": {7: "a", "2": "b", True: 0, None: 1, 1.5: 2}})
+    assert json.loads(encode(fine))["data"]["extra"] == {"7": "a", "2": "b", "true": 0, "null": 1, "1.5": 2}
+
+
+def test_a_value_nested_too_deeply_is_a_message_error_not_a_recursion_error() -> None:
+    """An extra field nested 5,000 deep: encode (and a builder given it) raised a bare RecursionError."""
+    deep: dict[str, Any] = {}
+    inner = deep
+    for _ in range(5000):
+        inner["a"] = {}
+        inner = inner["a"]
+    for check in (True, False):
+        with pytest.raises(MessageError, match="fms/command/v1: message is nested too deeply to be written as "
+                                               "JSON") as info:
+            encode(changed("command", extra=deep), check=check)
+        assert info.value.code == "bad_schema"
+    with pytest.raises(MessageError, match="nested too deeply to be sent as JSON") as info:
+        m.make_event("run-1", 7, 2, "op_start", job=0, op=0, extra=deep)
+    assert info.value.code == "bad_schema"
+    with pytest.raises(MessageError, match="nested too deeply to be sent as JSON"):
+        m.make_event("run-1", 7, 2, "op_start", {"extra": [deep]})
+
+
 # ------------------------------------------------------------------------------------------------ schedule
 def test_schedule_message_carries_a_real_schedule() -> None:
     inst, sched = tiny_instance(), tiny_schedule()
