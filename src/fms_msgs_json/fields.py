@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterable, Protocol
 
 __all__ = [
     "FieldError", "Check", "Field", "Int", "Bool", "Str", "OneOf", "Nullable", "ListOf", "MapOf", "Obj",
-    "json_type", "show", "check_object",
+    "json_type", "show", "check_object", "join_path",
 ]
 
 
@@ -68,7 +68,8 @@ def _fail(path: str, expected: str, value: Any) -> FieldError:
     return FieldError(path, f"field {path!r} must be {expected}, got {show(value)}")
 
 
-def _join(path: str, key: str) -> str:
+def join_path(path: str, key: str) -> str:
+    """The path of field ``key`` of the object at ``path`` (``""``: the message itself): ``history.at``, ``at``."""
     return f"{path}.{key}" if path else key
 
 
@@ -258,13 +259,16 @@ class Field:
 
 @dataclass(frozen=True)
 class Obj:
-    """A JSON object checked against a table of :class:`Field` rows; keys not in the table are allowed."""
+    """A JSON object checked against a table of :class:`Field` rows (then the cross-field rule ``extra``, called
+    with the object and its path, if any: an object nested in a message keeps the rules it has as a message of its
+    own); keys not in the table are allowed."""
 
     fields: tuple[Field, ...]
     expected: str = "an object"
+    extra: Callable[[dict[str, Any], str], None] | None = None
 
     def __call__(self, value: Any, path: str) -> None:
-        check_object(value, self.fields, path, expected=self.expected)
+        check_object(value, self.fields, path, self.extra, expected=self.expected)
 
 
 def check_object(value: Any, fields: Iterable[Field], path: str = "",
@@ -280,7 +284,7 @@ def check_object(value: Any, fields: Iterable[Field], path: str = "",
             raise _fail(path, expected, value)
         raise FieldError(path, f"a message must be a JSON object, got {show(value)}")
     for f in fields:
-        where = _join(path, f.name)
+        where = join_path(path, f.name)
         if f.name not in value:
             if f.required:
                 raise FieldError(where, f"missing required field {where!r} ({f.check.expected})")

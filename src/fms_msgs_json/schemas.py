@@ -29,7 +29,9 @@ from typing import Any, Callable, NamedTuple
 from fms_sim.files import DuplicateKeyError, unique_pairs
 from fms_sim.schedule import Schedule, ScheduleError
 
-from .fields import Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, OneOf, Str, check_object, show
+from .fields import (
+    Bool, Field, FieldError, Int, ListOf, MapOf, Nullable, Obj, OneOf, Str, check_object, join_path, show,
+)
 
 __all__ = [
     "SCHEMA_VERSION", "KINDS", "SCHEMAS", "schema_id",
@@ -212,10 +214,33 @@ _DISRUPTION_BODY = (
     Field("start", Nullable(Int(0)), required=False),
     Field("duration", Int(1)),
 )
+
+
+def _disruption_complete(msg: dict[str, Any], path: str) -> None:
+    """A breakdown names its machine; an outage its vehicle's kind and number. The rule of a disruption message
+    (``path`` ``""``) and of each disruption in a state's history (a breakdown without its machine there was
+    accepted, and a twin that replays the history could not apply it)."""
+    def at(key: str) -> str:
+        return join_path(path, key)
+
+    if msg["kind"] == "breakdown":
+        if msg.get("machine") is None:
+            raise FieldError(at("machine"), f"a breakdown needs field {at('machine')!r} (1..)")
+        for key in ("vehicle_kind", "vehicle"):
+            if msg.get(key) is not None:  # a message that names both: which one is down is not clear
+                raise FieldError(at(key), f"a breakdown names a machine, not field {at(key)!r}")
+    if msg["kind"] == "outage":
+        if msg.get("vehicle_kind") is None or msg.get("vehicle") is None:
+            raise FieldError(at("vehicle"), f"an outage needs fields {at('vehicle_kind')!r} (agv or tt) and "
+                                            f"{at('vehicle')!r} (0..)")
+        if msg.get("machine") is not None:
+            raise FieldError(at("machine"), f"an outage names a vehicle, not field {at('machine')!r}")
+
+
 _HISTORY_DISRUPTION = Obj((
     Field("at", Int(0)),
     Field("orders_before", Int(0)),
-    Field("disruption", Obj(_DISRUPTION_BODY)),
+    Field("disruption", Obj(_DISRUPTION_BODY, extra=_disruption_complete)),  # (the message's rules: one table)
 ), expected="a disruption object {at, orders_before, disruption}")
 _HISTORY = Obj((
     Field("actions", Str(nonempty=False, what="action labels separated by single spaces")),
@@ -354,20 +379,6 @@ _ERROR = (
 # shop's current time if absent, null or past) for ``duration``; accepted once per ``disruption_id``.
 _DISRUPTION = _DISRUPTION_BODY + (Field("run_id", _OPTIONAL_STR, required=False),)
 
-
-def _disruption_complete(msg: dict[str, Any], path: str) -> None:
-    """A breakdown names its machine; an outage its vehicle's kind and number."""
-    if msg["kind"] == "breakdown":
-        if msg.get("machine") is None:
-            raise FieldError("machine", "a breakdown needs field 'machine' (1..)")
-        for key in ("vehicle_kind", "vehicle"):
-            if msg.get(key) is not None:  # a message that names both: which one is down is not clear
-                raise FieldError(key, f"a breakdown names a machine, not field {key!r}")
-    if msg["kind"] == "outage":
-        if msg.get("vehicle_kind") is None or msg.get("vehicle") is None:
-            raise FieldError("vehicle", "an outage needs fields 'vehicle_kind' (agv or tt) and 'vehicle' (0..)")
-        if msg.get("machine") is not None:
-            raise FieldError("machine", "an outage names a vehicle, not field 'machine'")
 
 
 REPLAN_REASONS: tuple[str, ...] = ("order", "breakdown", "outage", "late", "stuck")

@@ -461,6 +461,35 @@ def test_history_schema_is_strict() -> None:
     decode(json.dumps(dict(state, history=None)))           # optional: null is fine
 
 
+def test_a_historys_disruptions_keep_the_rules_of_a_disruption_message() -> None:
+    """A state's history took a breakdown without its machine (or an outage without its vehicle), which the
+    fms/disruption/v1 message refuses: a twin replaying the history could not apply it. The entries are checked
+    by the message's own rules now, naming where they stand; the disruptions a shop publishes still decode."""
+    svc = ShopService(builtin("ra01"), run_id="r", history=True, decisions="full")
+    svc.start()
+    for msg in (m.make_disruption("b", "breakdown", 9, machine=2), m.make_disruption("o", "outage", 5,
+                                                                                        vehicle_kind="agv", vehicle=0)):
+        assert not by_topic(svc.handle_disruption(encode(msg)), m.TOPIC_ERRORS)
+    state = decode(encode(svc.state))
+    entries = state["history"]["disruptions"]
+    assert [e["disruption"]["kind"] for e in entries] == ["breakdown", "outage"]
+    where = "history.disruptions[1].disruption"
+    for i, change, needle in (
+            (0, {"machine": None}, "a breakdown needs field 'history.disruptions[0].disruption.machine' (1..)"),
+            (0, {"vehicle_kind": "agv", "vehicle": 0}, "a breakdown names a machine, not field "
+                                                        "'history.disruptions[0].disruption.vehicle_kind'"),
+            (1, {"vehicle": None}, f"an outage needs fields '{where}.vehicle_kind' (agv or tt) and '{where}.vehicle'"),
+            (1, {"machine": 3}, f"an outage names a vehicle, not field '{where}.machine'"),
+            (1, {"kind": "fire"}, f"field '{where}.kind' must be one of 'breakdown', 'outage'"),
+            (1, {"duration": 0}, f"field '{where}.duration' must be an integer >= 1")):
+        bad = json.loads(json.dumps(state))
+        bad["history"]["disruptions"][i]["disruption"].update(change)
+        with pytest.raises(MessageError) as info:
+            decode(json.dumps(bad))
+        assert info.value.code == "bad_schema" and needle in str(info.value), (change, str(info.value))
+        assert info.value.field is not None and info.value.field.startswith(f"history.disruptions[{i}].disruption.")
+
+
 def test_history_deltas_add_up_to_the_whole_history_and_stay_small() -> None:
     """A ``history_delta`` shop sends, in each state, what was applied since the state that the last command
     answered; the deltas, read in order, are the whole history a shop without deltas sends, and the state's size
