@@ -120,7 +120,8 @@ class Instance:
     travel times from location ``a`` to ``b`` ((m+1)x(m+1), index 0 = L/U / tool magazine); loaded and empty
     trips use the same matrix. ``n_machines`` is derived from the matrices (or from the operations of a plain
     job shop) unless given; ``n_tools`` likewise from the operations. A given count smaller than what an operation
-    uses is refused.
+    uses is refused. Tools (``n_tools`` or an operation's tool) and tool transporters come with ``tool_travel``, AGVs
+    with ``agv_travel``: a count without its matrix is refused, as is a matrix without its fleet.
     """
 
     name: str
@@ -205,6 +206,10 @@ class Instance:
             if used_t:
                 raise InstanceError("operations need tools but tool_travel is null: give a tool travel matrix, or "
                                     "operations without tools")  # (it said --no-tools, which reads the file first)
+            if self.n_tools:  # (kept: a "plain job shop" of 3 tools, which padded an env's observations by 3 tools)
+                raise InstanceError(f"n_tools is {self.n_tools} but tool_travel is missing: tools need a tool travel "
+                                    "matrix and transporters (give tool_travel and n_tool_transporters, or leave "
+                                    "n_tools out for a shop without tools)")
 
     # ------------------------------------------------------------------ derived facts
     @property

@@ -47,6 +47,11 @@ def _inst(**kw: Any) -> Instance:
     (dict(jobs=[[(1, None, 2)]], n_agvs=3), "n_agvs is 3 but agv_travel is missing"),
     (dict(jobs=[[(1, None, 2)]], agv_travel=Z3, n_agvs=1, n_tool_transporters=2),
      "n_tool_transporters is 2 but tool_travel is missing"),
+    # tools without their matrix were kept: a "plain job shop" of 3 tools (an env padded its observations by them)
+    (dict(jobs=[[(1, None, 2)]], n_tools=3), r"n_tools is 3 but tool_travel is missing: tools need a tool travel "
+                                             r"matrix and transporters \(give tool_travel and n_tool_transporters, "
+                                             r"or leave n_tools out for a shop without tools\)"),
+    (dict(jobs=[[(1, None, 2)]], agv_travel=Z3, n_agvs=1, n_tools=1), "n_tools is 1 but tool_travel is missing"),
 ])
 def test_refused(kw: dict, match: str) -> None:
     with pytest.raises(InstanceError, match=match):
@@ -81,6 +86,8 @@ def test_json_round_trip() -> None:
 @pytest.mark.parametrize("extra, needle", [
     ({"n_agvs": 3}, "n_agvs is 3 but agv_travel is missing"),
     ({"n_tool_transporters": 2}, "n_tool_transporters is 2 but tool_travel is missing"),
+    ({"n_tools": 2}, "n_tools is 2 but tool_travel is missing"),
+    ({"n_tools": 2, "tool_travel": None}, "n_tools is 2 but tool_travel is missing"),
     ({"n_machines": False}, "n_machines must be an integer from 0 to 1000 (0: derived), got False"),
     ({"n_machines": []}, "n_machines must be an integer from 0 to 1000 (0: derived), got []"),
     ({"n_machines": 0.0}, "n_machines must be an integer from 0 to 1000 (0: derived), got 0.0"),
