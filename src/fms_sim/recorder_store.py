@@ -28,6 +28,7 @@ import re
 import sqlite3
 import time
 from collections import Counter
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
@@ -107,12 +108,47 @@ def gantt_path(gantt_dir: str | Path, run_id: str) -> Path:
 #: the first bytes of every SQLite 3 database file
 _SQLITE_HEADER = b"SQLite format 3\x00"
 
-#: the columns of each table (a database holding a table of the same name laid out otherwise is someone else's)
-_COLUMNS = {"runs": {"run_id", "instance", "first_seen", "end_seq", "makespan", "gantt"},
-            "events": {"run_id", "seq", "time", "kind", "data", "received"},
-            "schedules": {"run_id", "makespan", "schedule", "received"},
-            "replans": {"run_id", "source", "state_seq", "time", "reason", "status", "data", "received"},
-            "errors": {"id", "source", "code", "message", "run_id", "received_text", "at"}}
+def _layout(db: sqlite3.Connection, table: str) -> dict[str, tuple[str, bool, int]]:
+    """How ``table`` is laid out in ``db``: column -> (declared type, NOT NULL, place in the primary key, 0 if not
+    in it), from ``PRAGMA table_info`` ({} if there is no such table)."""
+    return {r[1]: (str(r[2]).upper(), bool(r[3]), int(r[5])) for r in db.execute(f"PRAGMA table_info({table})")}
+
+
+@lru_cache(maxsize=1)
+def _our_layouts() -> dict[str, dict[str, tuple[str, bool, int]]]:
+    """The layout (:func:`_layout`) of each table as :data:`_SCHEMA` makes it: what an existing file must match."""
+    db = sqlite3.connect(":memory:")
+    try:
+        db.executescript(_SCHEMA)
+        tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE "
+                                           "'sqlite_%' ORDER BY name")]
+        return {t: _layout(db, t) for t in tables}
+    finally:
+        db.close()
+
+
+def _layout_problem(have: dict[str, tuple[str, bool, int]], want: dict[str, tuple[str, bool, int]]) -> str | None:
+    """How a table laid out as ``have`` differs from the recorder's ``want`` in what the recorder relies on (column
+    names and types, NOT NULL, the primary key: without the key on ``events(run_id, seq)``, ``INSERT OR IGNORE``
+    stored every replayed event again); None if it does not."""
+    if set(have) != set(want):
+        return f"columns {', '.join(sorted(have))}; the recorder's: {', '.join(sorted(want))}"
+    problems = []
+    for col in sorted(want):
+        (t_have, nn_have, _), (t_want, nn_want, _) = have[col], want[col]
+        if t_have != t_want:
+            problems.append(f"column {col} is {t_have or 'untyped'}, the recorder's is {t_want}")
+        if nn_have != nn_want:
+            problems.append(f"column {col} is {'NOT NULL' if nn_have else 'nullable'}, the recorder's is "
+                            f"{'NOT NULL' if nn_want else 'nullable'}")
+
+    def key(layout: dict[str, tuple[str, bool, int]]) -> str:
+        cols = sorted((pk, col) for col, (_, _, pk) in layout.items() if pk)
+        return f"({', '.join(col for _, col in cols)})" if cols else "none"
+
+    if key(have) != key(want):
+        problems.append(f"primary key {key(have)}, the recorder's is {key(want)}")
+    return "; ".join(problems) or None
 
 
 class RunConflict(ValueError):
@@ -140,16 +176,20 @@ class RecorderStore:
                                  "database (left as it is)")
         try:
             self.db = sqlite3.connect(str(self.path), timeout=10.0)
+            # checked before anything is written: another program's file is refused as it was (no WAL mode set, none
+            # of the recorder's tables added); a table of one of the recorder's names is compared in its columns,
+            # their types, NOT NULL and the primary key (the names alone took a file whose events had no key)
+            for table, want in _our_layouts().items():
+                have = _layout(self.db, table)
+                problem = _layout_problem(have, want) if have else None
+                if problem is not None:
+                    self.db.close()
+                    raise ValueError(f"{where}: its table {table!r} is laid out otherwise ({problem}): not a recorder "
+                                     "database (left as it is; give another file)")
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
             self.db.executescript(_SCHEMA)
             self.db.commit()
-            for table, columns in _COLUMNS.items():  # another program's table of the same name was taken as ours
-                have = {row[1] for row in self.db.execute(f"PRAGMA table_info({table})")}
-                if not columns <= have:
-                    self.db.close()
-                    raise ValueError(f"{where}: its table {table!r} is laid out otherwise (columns "
-                                     f"{', '.join(sorted(have))}): not a recorder database (left as it is)")
             # a database this user may read but not write was taken, and every message then failed to be stored
             self.db.execute("INSERT INTO errors (source, code, message, at) VALUES ('', '', '', 0)")
             self.db.rollback()

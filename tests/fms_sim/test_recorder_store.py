@@ -282,8 +282,8 @@ def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(t
     with sqlite3.connect(theirs) as con:
         con.execute("CREATE TABLE events (a, b)")
     con.close()
-    with pytest.raises(ValueError, match=r"its table 'events' is laid out otherwise \(columns a, b\): not a "
-                                         r"recorder database"):
+    with pytest.raises(ValueError, match=r"its table 'events' is laid out otherwise \(columns a, b; the recorder's: "
+                                         r"data, kind, received, run_id, seq, time\): not a recorder database"):
         RecorderStore(theirs)
     ours = tmp_path / "ours.sqlite"
     RecorderStore(ours).close()
@@ -295,6 +295,47 @@ def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(t
     monkeypatch.setattr(sqlite3, "connect", read_only)
     with pytest.raises(ValueError, match="cannot open the recorder database .*readonly"):
         RecorderStore(ours)
+
+
+@pytest.mark.parametrize("events_sql, differs", [
+    # the recorder's names without its key: INSERT OR IGNORE stored every replayed event again
+    ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
+     "received REAL NOT NULL", "primary key none, the recorder's is (run_id, seq)"),
+    ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
+     "received REAL NOT NULL, PRIMARY KEY (seq, run_id)", "primary key (seq, run_id), the recorder's is (run_id, seq)"),
+    ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT, data TEXT NOT NULL, "
+     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column kind is nullable, the recorder's is NOT NULL"),
+    ("run_id TEXT NOT NULL, seq TEXT NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
+     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column seq is TEXT, the recorder's is INTEGER"),
+])
+def test_a_table_with_the_recorders_names_but_other_constraints_is_refused_untouched(
+        tmp_path: Path, events_sql: str, differs: str) -> None:
+    """The layout check read the column names only: a file whose events table had no primary key was taken, and a
+    replayed event was stored twice. The constraints are compared too, before anything is written to the file."""
+    theirs = tmp_path / "theirs.sqlite"
+    con = sqlite3.connect(theirs)
+    con.execute(f"CREATE TABLE events ({events_sql})")
+    con.commit()
+    con.close()
+    before = theirs.read_bytes()
+    with pytest.raises(ValueError) as caught:
+        RecorderStore(theirs)
+    assert str(caught.value) == (f"cannot open the recorder database {str(theirs)!r}: its table 'events' is laid out "
+                                 f"otherwise ({differs}): not a recorder database (left as it is; give another file)")
+    assert theirs.read_bytes() == before  # no WAL mode set, none of the recorder's tables added
+
+
+def test_a_database_the_recorder_wrote_opens_again_with_a_table_added_if_missing(tmp_path: Path) -> None:
+    path = tmp_path / "ours.sqlite"
+    store = RecorderStore(path)
+    store.add_event(finished_run().events[0])
+    store.close()
+    con = sqlite3.connect(path)  # as a database of a recorder from before the re-plans were stored
+    con.execute("DROP TABLE replans")
+    con.commit()
+    con.close()
+    again = RecorderStore(path)
+    assert again.event_seqs("run-1") == [0] and again.replans("run-1") == []
 
 
 # ------------------------------------------------------------------------------------------------ conflicts
