@@ -9,11 +9,13 @@ the log can be checked against the published schedule.
 :class:`Recorder` is what the node runs: it decodes messages, stores them, and notices what is missing: a gap
 in a run's event numbers, or a final schedule whose run has not all its events. It then asks the shop to
 replay the run from the first missing event (``fms/replay_request/v1``), again every ``retry_s`` seconds while
-something is missing. When a run is complete (schedule stored, events ``0..run_end`` all present) it renders
-the Gantt chart once (:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id>.gantt.png``. A message that
-contradicts what the log holds for its run (:class:`RunConflict`: another run under the same run id, a stray event
-after the end) is not stored and is answered with a ``run_conflict`` error; a run whose stored schedule is not the
-one its events give is not called complete.
+something is missing. When a run is complete (:meth:`RecorderStore.is_complete`: schedule stored, events
+``0..run_end`` all present, and the schedule the one its events give) it renders the Gantt chart once
+(:func:`fms_sim.gantt.save_gantt`) to ``<gantt_dir>/<run_id>.gantt.png``. A message that contradicts what the log
+holds for its run (:class:`RunConflict`: another run under the same run id, a stray event after the end) is not
+stored and is answered with a ``run_conflict`` error; a run whose stored schedule is not the one its events give
+(:meth:`RecorderStore.disagreement`) is not called complete, by :meth:`RecorderStore.is_complete` nor by the
+recorder (a ``run_conflict`` error, no chart).
 
 Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
 data, received)``, ``schedules(run_id, makespan, schedule, received)``, ``errors(id, source, code, message,
@@ -371,13 +373,37 @@ class RecorderStore:
         return [r[0] for r in self.db.execute("SELECT seq FROM events WHERE run_id = ? AND seq > ? ORDER BY seq",
                                               (run_id, end))]
 
-    def is_complete(self, run_id: str) -> bool:
-        """The run's schedule is stored and every event ``0..run_end`` is present."""
+    def has_all_events(self, run_id: str) -> bool:
+        """The run's schedule is stored and every event ``0..run_end`` is present (whether the two agree or not:
+        :meth:`disagreement`)."""
         end = self.end_seq(run_id)
         if end is None or self.schedule(run_id) is None:
             return False
         (count,) = self.db.execute("SELECT COUNT(*) FROM events WHERE run_id = ? AND seq <= ?", (run_id, end)).fetchone()
         return count == end + 1
+
+    def is_complete(self, run_id: str) -> bool:
+        """The run is complete: its schedule is stored, every event ``0..run_end`` is present, and the schedule is the
+        one its events give (:meth:`disagreement`; a run whose stored schedule and events are of two runs under one
+        id was called complete, while the recorder reported the conflict and rendered no chart)."""
+        return self.has_all_events(run_id) and self.disagreement(run_id) is None
+
+    def disagreement(self, run_id: str) -> str | None:
+        """Why the run's stored schedule is not the one its events give (None: it is, or the run has no schedule or
+        no ``run_end`` stored yet): a schedule of another run under the same id arrived first and was kept."""
+        stored = self.schedule(run_id)
+        if stored is None or self.end_seq(run_id) is None:
+            return None
+        rebuilt = self.schedule_from_events(run_id)
+        for what, a, b in (("makespan", [stored.makespan], [rebuilt.makespan]),
+                           ("operations", stored.operations, rebuilt.operations),
+                           ("AGV trips", stored.agv_trips, rebuilt.agv_trips),
+                           ("tool trips", stored.tool_trips, rebuilt.tool_trips)):
+            if Counter(a) != Counter(b):  # (the records are values: the orders may differ)
+                return (f"run {run_id!r}: the schedule stored (makespan {stored.makespan}) is not the one its events "
+                        f"give (makespan {rebuilt.makespan}; the {what} differ): another run with the same run id? "
+                        "(no chart; the run is not called complete)")
+        return None
 
     def schedule_from_events(self, run_id: str) -> Schedule:
         """Rebuild the run's schedule from its stored ``*_end`` events (which carry ``start``).
@@ -609,34 +635,19 @@ class Recorder:
         for run_id in list(self._next):
             if run_id in self._finished or self.missing_from(run_id) is not None:
                 continue
-            if self._end[run_id] is None or not self._has_schedule[run_id] or not self.store.is_complete(run_id):
+            if self._end[run_id] is None or not self._has_schedule[run_id] or not self.store.has_all_events(run_id):
                 continue
             if self._dirty:  # a finished run is durable before anyone is told
                 self.store.commit()
                 self._dirty = False
             self._finished.add(run_id)
-            problem = self._disagreement(run_id)
+            problem = self.store.disagreement(run_id)
             if problem is not None:  # the schedule and the events are of two runs: no chart, no "complete"
                 self._outbox += self._conflict(run_id, "disagreement", RunConflict(problem), None)
                 continue
             path = self._render(run_id) if self.render else None
             done.append((run_id, path))
         return done
-
-    def _disagreement(self, run_id: str) -> str | None:
-        """Why the run's stored schedule is not the one its events give (None: it is): a schedule of another run
-        under the same id arrived first (it was kept, and the run called complete)."""
-        stored, rebuilt = self.store.schedule(run_id), self.store.schedule_from_events(run_id)
-        assert stored is not None
-        for what, a, b in (("makespan", [stored.makespan], [rebuilt.makespan]),
-                           ("operations", stored.operations, rebuilt.operations),
-                           ("AGV trips", stored.agv_trips, rebuilt.agv_trips),
-                           ("tool trips", stored.tool_trips, rebuilt.tool_trips)):
-            if Counter(a) != Counter(b):  # (the records are values: the orders may differ)
-                return (f"run {run_id!r}: the schedule stored (makespan {stored.makespan}) is not the one its events "
-                        f"give (makespan {rebuilt.makespan}; the {what} differ): another run with the same run id? "
-                        "(no chart; the run is not called complete)")
-        return None
 
     def _render(self, run_id: str) -> Path:
         existing = self.store.gantt(run_id)

@@ -362,12 +362,39 @@ def test_a_second_run_under_the_same_id_is_reported_not_mixed_in(tmp_path: Path)
     assert [o.msg for o in rec.handle_event(ev2[differ[0]], now=1.0) if o.topic == m.TOPIC_ERRORS] == []  # once
     rec.handle_schedule(sched2, now=0.0)
     assert rec.finish_ready() == []  # the events and the schedule are of two runs: not complete, no chart
+    assert not rec.store.is_complete("run-1") and "is not the one its events give" in rec.store.disagreement("run-1")
     (err,) = [o.msg for o in rec.poll(now=5.0) if o.topic == m.TOPIC_ERRORS]
     assert err["code"] == "run_conflict" and "the schedule stored" in err["message"] and "is not the one its " \
         "events give" in err["message"]
     # a second schedule for a run that has one is reported, not dropped in silence
     (err,) = rec.handle_schedule(sched1, now=6.0)
     assert err.msg["code"] == "run_conflict" and "a schedule (makespan" in err.msg["message"]
+
+
+def test_a_run_whose_schedule_and_events_disagree_is_not_complete(tmp_path: Path) -> None:
+    """The store called such a run complete (every event there, a schedule stored) while the recorder reported the
+    conflict and rendered no chart; a reader of the database (a test, a monitor) took it as a finished run."""
+    one, two = finished_run("EX12"), finished_run("EX12", run_id="run-2")
+    two_schedule = ShopService(builtin("EX12"), run_id="run-1")
+    two_schedule.start()
+    while not two_schedule.done:
+        label = [a for a, ok in zip(two_schedule.state["actions"], two_schedule.state["mask"]) if ok][-1]
+        two_schedule.handle_command(encode(m.make_command("run-1", two_schedule.state_seq, label)))
+    store = RecorderStore(tmp_path / "db.sqlite")
+    for e in one.events:
+        store.add_event(e)
+    assert not store.is_complete("run-1")  # no schedule yet
+    store.add_schedule("run-1", two_schedule.final_schedule.to_dict())
+    assert not store.is_complete("run-1")
+    assert store.has_all_events("run-1")
+    assert store.disagreement("run-1") == (
+        f"run 'run-1': the schedule stored (makespan {two_schedule.final_schedule.makespan}) is not the one its events "
+        f"give (makespan {one.final_schedule.makespan}; the makespan differ): another run with the same run id? (no "
+        "chart; the run is not called complete)")
+    for e in two.events:  # the same events and schedule agree: complete
+        store.add_event(e)
+    store.add_schedule("run-2", two.final_schedule.to_dict())
+    assert store.disagreement("run-2") is None and store.is_complete("run-2")
 
 
 def test_a_disrupted_runs_schedule_rebuilt_from_its_log_keeps_its_disruptions_and_orders(tmp_path: Path) -> None:
