@@ -222,7 +222,8 @@ class RecorderStore:
         """Store a decoded ``fms/event/v1``; False if ``(run_id, seq)`` was already stored as it is. Raises
         :class:`RunConflict` (and stores nothing) for an event that differs from the one stored under its
         ``(run_id, seq)`` — another run under the same id; it was dropped without a word, and the run's log mixed
-        two runs — or that comes after the run's ``run_end``."""
+        two runs — that comes after the run's ``run_end``, or for a second ``run_end`` under another seq (a run
+        ends once: an earlier second one moved the run's end back, and its events after it were left out)."""
         now = time.time() if now is None else now
         run_id, data, seq = event["run_id"], event["data"], event["seq"]
         if run_id not in self._ends:
@@ -231,6 +232,9 @@ class RecorderStore:
         if end is not None and seq > end:
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']}) comes after the run's end (event {end}, "
                               "run_end): not stored")
+        if end is not None and seq != end and event["kind"] == "run_end":  # an earlier one moved the end back
+            raise RunConflict(f"run {run_id!r}: a second run_end (event {seq}) before the run's end (event {end}, "
+                              "run_end): a run ends once; another run with the same run id? (not stored)")
         fresh = not self.db.in_transaction
         cur = self.db.execute(
             "INSERT OR IGNORE INTO events (run_id, seq, time, kind, data, received) VALUES (?, ?, ?, ?, ?, ?)",

@@ -13,7 +13,7 @@ import fms_msgs_json as m
 from fms_msgs_json import decode, encode
 from fms_sim import validate
 from fms_sim.benchmarks import builtin
-from fms_sim.recorder_store import Recorder, RecorderStore, gantt_path
+from fms_sim.recorder_store import Recorder, RecorderStore, RunConflict, gantt_path
 from fms_sim.schedule import Schedule
 from fms_sim.shop_service import ShopService
 
@@ -444,6 +444,31 @@ def test_a_stray_event_after_the_end_is_kept_out_of_the_run(tmp_path: Path) -> N
     (err,) = rec.handle_event(encode(late), now=10.0)
     assert err.msg["code"] == "run_conflict" and "comes after the run's end" in err.msg["message"]
     assert 501 not in rec.store.event_seqs("run-1")
+
+
+def test_a_second_earlier_run_end_is_a_conflict_and_keeps_the_runs_end(tmp_path: Path) -> None:
+    """A second run_end with a smaller seq, arriving after the first, was stored where that seq was free and moved
+    the run's end back: the events after it were left out of the run as strays, and the run called complete."""
+    svc = finished_run("EX12")
+    events, schedule = texts(svc)
+    end = decode(events[-1])
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    for t in events[:5] + events[10:]:  # 5..9 not here yet
+        rec.handle_event(t, now=0.0)
+    rec.handle_schedule(schedule, now=0.0)
+    early = dict(end, seq=7, time=3)
+    (err,) = [o.msg for o in rec.handle_event(encode(early), now=1.0) if o.topic == m.TOPIC_ERRORS]
+    assert err["code"] == "run_conflict" and err["message"] == (
+        f"run 'run-1': a second run_end (event 7) before the run's end (event {end['seq']}, run_end): a run ends once; "
+        "another run with the same run id? (not stored)")
+    store = rec.store
+    assert store.end_seq("run-1") == end["seq"] and store.after_end("run-1") == [] and 7 not in store.event_seqs("run-1")
+    with pytest.raises(RunConflict, match="a second run_end"):  # the store alone refuses it too
+        store.add_event(early)
+    for t in events[5:10]:  # the real events 5..9 then complete the run
+        rec.handle_event(t, now=2.0)
+    assert rec.finish_ready() == [("run-1", None)] and store.is_complete("run-1")
+    assert store.event_seqs("run-1") == list(range(len(events)))
 
 
 def test_a_run_the_shop_does_not_know_is_asked_for_no_more(tmp_path: Path) -> None:
