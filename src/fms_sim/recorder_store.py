@@ -135,21 +135,19 @@ def _layout_problem(have: dict[str, tuple[str, bool, int]], want: dict[str, tupl
     stored every replayed event again); None if it does not."""
     if set(have) != set(want):
         return f"columns {', '.join(sorted(have))}; the recorder's: {', '.join(sorted(want))}"
-    problems = []
-    for col in sorted(want):
-        (t_have, nn_have, _), (t_want, nn_want, _) = have[col], want[col]
-        if t_have != t_want:
-            problems.append(f"column {col} is {t_have or 'untyped'}, the recorder's is {t_want}")
-        if nn_have != nn_want:
-            problems.append(f"column {col} is {'NOT NULL' if nn_have else 'nullable'}, the recorder's is "
-                            f"{'NOT NULL' if nn_want else 'nullable'}")
+    def column(layout: dict[str, tuple[str, bool, int]], col: str) -> str:
+        kind, not_null, _ = layout[col]
+        return (kind or "untyped") + (" NOT NULL" if not_null else "")
+
+    problems = [f"column {col}: {column(have, col)}, the recorder's: {column(want, col)}" for col in sorted(want)
+                if column(have, col) != column(want, col)]
 
     def key(layout: dict[str, tuple[str, bool, int]]) -> str:
         cols = sorted((pk, col) for col, (_, _, pk) in layout.items() if pk)
         return f"({', '.join(col for _, col in cols)})" if cols else "none"
 
     if key(have) != key(want):
-        problems.append(f"primary key {key(have)}, the recorder's is {key(want)}")
+        problems.append(f"primary key {key(have)}, the recorder's: {key(want)}")
     return "; ".join(problems) or None
 
 

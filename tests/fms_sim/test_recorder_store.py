@@ -300,13 +300,13 @@ def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(t
 @pytest.mark.parametrize("events_sql, differs", [
     # the recorder's names without its key: INSERT OR IGNORE stored every replayed event again
     ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
-     "received REAL NOT NULL", "primary key none, the recorder's is (run_id, seq)"),
+     "received REAL NOT NULL", "primary key none, the recorder's: (run_id, seq)"),
     ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
-     "received REAL NOT NULL, PRIMARY KEY (seq, run_id)", "primary key (seq, run_id), the recorder's is (run_id, seq)"),
+     "received REAL NOT NULL, PRIMARY KEY (seq, run_id)", "primary key (seq, run_id), the recorder's: (run_id, seq)"),
     ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT, data TEXT NOT NULL, "
-     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column kind is nullable, the recorder's is NOT NULL"),
+     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column kind: TEXT, the recorder's: TEXT NOT NULL"),
     ("run_id TEXT NOT NULL, seq TEXT NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
-     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column seq is TEXT, the recorder's is INTEGER"),
+     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column seq: TEXT NOT NULL, the recorder's: INTEGER NOT NULL"),
 ])
 def test_a_table_with_the_recorders_names_but_other_constraints_is_refused_untouched(
         tmp_path: Path, events_sql: str, differs: str) -> None:
