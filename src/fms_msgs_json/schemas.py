@@ -296,6 +296,7 @@ _EVENT_DATA = (  # all optional: which ones are present depends on the event kin
     Field("order_id", Str(), required=False),
     Field("jobs", ListOf(Int(0)), required=False),
     Field("instance", Str(nonempty=False), required=False),
+    Field("incarnation", Str(), required=False),
     Field("makespan", Nullable(Int(0)), required=False),
     Field("start", Int(0), required=False),
     Field("disruption_id", Str(), required=False),

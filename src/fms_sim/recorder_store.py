@@ -15,7 +15,9 @@ something is missing. When a run is complete (:meth:`RecorderStore.is_complete`:
 holds for its run (:class:`RunConflict`: another run under the same run id, a stray event after the end) is not
 stored and is answered with a ``run_conflict`` error; a run whose stored schedule is not the one its events give
 (:meth:`RecorderStore.disagreement`) is not called complete, by :meth:`RecorderStore.is_complete` nor by the
-recorder (a ``run_conflict`` error, no chart).
+recorder (a ``run_conflict`` error, no chart). A run begun again under its run id (a shop restarted with the same
+``run_id``: a ``run_start`` of another ``incarnation``, :meth:`RecorderStore.begins_again`) is recorded anew, and
+the earlier incarnation's rows are kept as ``<run_id>~1`` (``~2``, ...: :meth:`RecorderStore.archive_run`).
 
 Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
 data, received)``, ``schedules(run_id, makespan, schedule, received)``, ``errors(id, source, code, message,
@@ -216,14 +218,69 @@ class RecorderStore:
         """Make the writes so far durable (the ``add_*`` methods commit unless told not to)."""
         self.db.commit()
 
+    def _stored_event(self, run_id: str, seq: int) -> tuple[int, str, Any] | None:
+        """``(time, kind, data)`` of the event stored under ``(run_id, seq)``, None if there is none."""
+        row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
+                              (run_id, seq)).fetchone()
+        return None if row is None else (row[0], row[1], json.loads(row[2]))
+
+    def incarnations(self, run_id: str) -> list[str]:
+        """The names the earlier incarnations of ``run_id`` are kept under (:meth:`archive_run`:
+        ``<run_id>~1``, ``<run_id>~2``, ... in the order they were replaced)."""
+        pattern = re.compile(re.escape(run_id) + r"~([1-9][0-9]*)")
+        found = [(int(match.group(1)), r) for r in self.run_ids() if (match := pattern.fullmatch(r))]
+        return [r for _, r in sorted(found)]
+
+    def _earlier_incarnation(self, event: dict[str, Any]) -> str | None:
+        """The earlier incarnation (:meth:`incarnations`) whose event of ``event``'s seq is ``event``, if any."""
+        mine = (event["time"], event["kind"], event["data"])
+        return next((name for name in self.incarnations(event["run_id"])
+                     if self._stored_event(name, event["seq"]) == mine), None)
+
+    def begins_again(self, event: dict[str, Any]) -> bool:
+        """Whether ``event`` (decoded) starts its run again: a ``run_start`` numbered 0 whose ``incarnation`` is not
+        the one of the run's stored event 0 (a shop restarted with the same run id) nor an earlier incarnation's
+        (:meth:`archive_run` keeps those apart; one of theirs replayed is a conflict). Another difference (a
+        run_start of the same incarnation at another time) is a conflict, as for any event."""
+        incarnation = event["data"].get("incarnation")
+        if event["seq"] != 0 or event["kind"] != "run_start" or incarnation is None:
+            return False
+        stored = self._stored_event(event["run_id"], 0)
+        if stored is None or (stored[1] == "run_start" and stored[2].get("incarnation") == incarnation):
+            return False
+        return self._earlier_incarnation(event) is None
+
+    def archive_run(self, run_id: str, *, commit: bool = True) -> str:
+        """Keep the run's rows (``runs``, ``events``, ``schedules``, ``replans``) under the next free name
+        ``<run_id>~<n>`` (n = 1, 2, ...) and return it, so that the run id is recorded anew: a run begun again
+        (:meth:`begins_again`) had its events mixed with the earlier incarnation's. Errors stay under the run id
+        they named (each is a report about a message, kept as it came)."""
+        tables = ("runs", "events", "schedules", "replans")
+        n = 1
+        while any(self.db.execute(f"SELECT 1 FROM {t} WHERE run_id = ? LIMIT 1", (f"{run_id}~{n}",)).fetchone()
+                  for t in tables):
+            n += 1
+        name = f"{run_id}~{n}"
+        for table in tables:
+            self.db.execute(f"UPDATE {table} SET run_id = ? WHERE run_id = ?", (name, run_id))
+        self._ends.pop(run_id, None)
+        self._ends.pop(name, None)
+        if commit:
+            self.db.commit()
+        return name
+
     def add_event(self, event: dict[str, Any], now: float | None = None, *, commit: bool = True) -> bool:
         """Store a decoded ``fms/event/v1``; False if ``(run_id, seq)`` was already stored as it is. Raises
         :class:`RunConflict` (and stores nothing) for an event that differs from the one stored under its
         ``(run_id, seq)`` — another run under the same id; it was dropped without a word, and the run's log mixed
         two runs — that comes after the run's ``run_end``, or for a second ``run_end`` under another seq (a run
-        ends once: an earlier second one moved the run's end back, and its events after it were left out)."""
+        ends once: an earlier second one moved the run's end back, and its events after it were left out). A
+        ``run_start`` that begins the run again (:meth:`begins_again`) first moves the earlier incarnation's rows to
+        their own name (:meth:`archive_run`)."""
         now = time.time() if now is None else now
         run_id, data, seq = event["run_id"], event["data"], event["seq"]
+        if self.begins_again(event):
+            self.archive_run(run_id, commit=False)
         if run_id not in self._ends:
             self._ends[run_id] = self.end_seq(run_id)
         end = self._ends[run_id]
@@ -240,10 +297,14 @@ class RecorderStore:
         if cur.rowcount != 1:  # stored already: a replay or a duplicate, unless it differs
             if fresh:  # the ignored insert opened a write transaction with nothing in it: it held the database's
                 self.db.rollback()  # write lock until a later write was committed (other writers: "locked")
-            row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
-                                  (run_id, seq)).fetchone()
-            if (row[0], row[1], json.loads(row[2])) == (event["time"], event["kind"], data):
+            row = self._stored_event(run_id, seq)
+            assert row is not None
+            if row == (event["time"], event["kind"], data):
                 return False
+            earlier = self._earlier_incarnation(event)
+            if earlier is not None:
+                raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) is an earlier "
+                                  f"incarnation's of the run, kept as {earlier!r} (not stored)")
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
                               f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
         self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
@@ -306,8 +367,9 @@ class RecorderStore:
         rows = self.db.execute("SELECT data FROM replans WHERE run_id = ? ORDER BY state_seq, time", (run_id,))
         return [json.loads(d) for (d,) in rows]
 
-    def set_gantt(self, run_id: str, path: str | Path) -> None:
-        self.db.execute("UPDATE runs SET gantt = ? WHERE run_id = ?", (str(path), run_id))
+    def set_gantt(self, run_id: str, path: str | Path | None) -> None:
+        """Record where the run's chart is (None: it has none)."""
+        self.db.execute("UPDATE runs SET gantt = ? WHERE run_id = ?", (None if path is None else str(path), run_id))
         self.db.commit()
 
     # ------------------------------------------------------------------ reading
@@ -552,13 +614,15 @@ class Recorder:
         except MessageError as exc:
             return [self._error(exc, text)]
         run_id = ev["run_id"]
+        out: list[Outgoing] = []
+        if self.store.begins_again(ev):  # a shop restarted with the same run id: the run is recorded anew
+            out += self._begun_again(run_id, text)
         self._seen(run_id)
         try:
             new = self.store.add_event(ev, commit=False)
         except RunConflict as exc:
-            return self._conflict(run_id, ev["seq"], exc, text)
+            return out + self._conflict(run_id, ev["seq"], exc, text)
         self._wrote(now)
-        out: list[Outgoing] = []
         if new and ev["kind"] == "run_end":
             self._end[run_id] = ev["seq"]
             strays = self.store.after_end(run_id)
@@ -568,6 +632,33 @@ class Recorder:
                     f"after it (from event {strays[0]}): kept in the log, left out of the run"), None)
         self._advance(run_id, ev["seq"])
         return out + self._ask(run_id, now)
+
+    def _begun_again(self, run_id: str, text: str) -> list[Outgoing]:
+        """Keep the run's earlier incarnation under its own name (:meth:`RecorderStore.archive_run`; its chart, if
+        rendered, is renamed with it), forget what this session knew of the run, and say so in a ``run_conflict``
+        error (the two incarnations' events were mixed under one run id, or the new one's refused as conflicts)."""
+        earlier = self.store.archive_run(run_id, commit=False)
+        chart, note = self.store.gantt(earlier), ""
+        if chart and Path(chart).exists():  # the new incarnation's chart would replace it
+            moved = gantt_path(Path(chart).parent, earlier)
+            try:
+                Path(chart).replace(moved)
+            except OSError as exc:
+                note = f"; its chart {chart} could not be renamed ({exc.strerror or exc}) and is the new run's now"
+                self.store.set_gantt(earlier, None)
+            else:
+                self.store.set_gantt(earlier, moved)
+                note = f"; its chart is {moved}"
+        for table in (self._next, self._above, self._end, self._has_schedule, self._asked):
+            table.pop(run_id, None)
+        self._finished.discard(run_id)
+        self._given_up.discard(run_id)
+        self._conflicts = {key for key in self._conflicts if key[0] != run_id}
+        self._dirty = True  # (committed with the event that began the run again)
+        return [Outgoing(TOPIC_ERRORS, make_error(
+            self.source, "run_conflict", f"run {run_id!r} began again (a run_start of another incarnation: a shop "
+            f"restarted with the same run id): the earlier incarnation's events, schedule and re-plans are kept as "
+            f"{earlier!r}{note}; the run is recorded anew", run_id=run_id, received=text))]
 
     def _conflict(self, run_id: str, about: int | str, exc: RunConflict, text: str | None) -> list[Outgoing]:
         """The ``run_conflict`` error answering ``exc``, once per run and what it is about: an event's seq, or

@@ -35,7 +35,9 @@ rclpy:
 * **Events.** The shop's records (operations, AGV trips, tool trips) become ``*_start``/``*_end`` events in
   time order; an event is published once the simulation clock has reached its time (all remaining ones when
   the run ends). ``*_end`` events carry ``start`` too, so the recorder can rebuild the schedule from events
-  alone. Events are numbered per run and kept, so a replay request can re-publish them.
+  alone. Events are numbered per run and kept, so a replay request can re-publish them. ``run_start`` names the
+  instance and this start of the run (``incarnation``, random): a shop restarted with the same ``run_id`` is told
+  apart by it.
 * **Orders.** A valid order joins the running net as new jobs (:meth:`Shop.add_jobs`) at the current time,
   is announced by an ``order_accepted`` event and a new state; an order id is accepted once. Invalid orders
   (unknown machine or tool, bad duration, finished run) are rejected with a ``bad_order`` (or schema) error.
@@ -237,6 +239,9 @@ class ShopService:
         self.stepper = Stepper(self.shop, idle_stops=idle_stops)
         self.stepper.advance()
         self.run_id = run_id or new_run_id(instance.name)
+        # this start of the run, in its run_start event: a shop restarted with the same run_id (a respawn with fixed
+        # parameters) published the very same events again, and the recorder could not tell the two runs apart
+        self.incarnation = uuid.uuid4().hex[:12]
         self.source = source
         self.with_features = features
         self.with_history = history
@@ -284,7 +289,7 @@ class ShopService:
         if self.state is not None:
             raise RuntimeError("the run has already started")
         self._started_at = self._clock()
-        out = [self._event(0, "run_start", {"instance": self.instance.name})]
+        out = [self._event(0, "run_start", {"instance": self.instance.name, "incarnation": self.incarnation})]
         return out + self._after_step()
 
     def handle_command(self, text: str) -> list[Outgoing]:

@@ -384,6 +384,14 @@ def test_every_event_kind_is_accepted() -> None:
     assert len(m.EVENT_KINDS) == 10
 
 
+@pytest.mark.parametrize("incarnation", ["", 7, None])
+def test_a_run_starts_incarnation_is_a_non_empty_string(incarnation: Any) -> None:
+    ok = m.make_event("r", 0, 0, "run_start", {"instance": "tiny", "incarnation": "3f2a9c01b4de"})
+    assert decode(encode(ok), expect="event")["data"]["incarnation"] == "3f2a9c01b4de"
+    err = rejected(dict(ok, data={"instance": "tiny", "incarnation": incarnation}))
+    assert err.field == "data.incarnation" and "must be a non-empty string" in str(err)
+
+
 @pytest.mark.parametrize("jobs, field, needle", [
     ([], "jobs", "must be a non-empty array, got an empty one"),
     ({"0": []}, "jobs", "must be a non-empty array, got an object"),

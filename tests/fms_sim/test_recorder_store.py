@@ -306,7 +306,8 @@ def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(t
     ("run_id TEXT NOT NULL, seq INTEGER NOT NULL, time INTEGER NOT NULL, kind TEXT, data TEXT NOT NULL, "
      "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column kind: TEXT, the recorder's: TEXT NOT NULL"),
     ("run_id TEXT NOT NULL, seq TEXT NOT NULL, time INTEGER NOT NULL, kind TEXT NOT NULL, data TEXT NOT NULL, "
-     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)", "column seq: TEXT NOT NULL, the recorder's: INTEGER NOT NULL"),
+     "received REAL NOT NULL, PRIMARY KEY (run_id, seq)",
+     "column seq: TEXT NOT NULL, the recorder's: INTEGER NOT NULL"),
 ])
 def test_a_table_with_the_recorders_names_but_other_constraints_is_refused_untouched(
         tmp_path: Path, events_sql: str, differs: str) -> None:
@@ -343,6 +344,7 @@ def test_a_second_run_under_the_same_id_is_reported_not_mixed_in(tmp_path: Path)
     """Run 2 under run 1's id: its events that differ from run 1's were dropped without a word (the log mixed the
     two runs) and its schedule too (the first one kept); the run was then called complete."""
     one, two = finished_run("EX12"), ShopService(builtin("EX12"), run_id="run-1")
+    two.incarnation = one.incarnation  # a shop that names no other incarnation: its run_start is run 1's
     two.start()
     while not two.done:  # another policy: the last enabled action
         label = [a for a, ok in zip(two.state["actions"], two.state["mask"]) if ok][-1]
@@ -462,7 +464,8 @@ def test_a_second_earlier_run_end_is_a_conflict_and_keeps_the_runs_end(tmp_path:
         f"run 'run-1': a second run_end (event 7) before the run's end (event {end['seq']}, run_end): a run ends once; "
         "another run with the same run id? (not stored)")
     store = rec.store
-    assert store.end_seq("run-1") == end["seq"] and store.after_end("run-1") == [] and 7 not in store.event_seqs("run-1")
+    assert store.end_seq("run-1") == end["seq"] and store.after_end("run-1") == []
+    assert 7 not in store.event_seqs("run-1")
     with pytest.raises(RunConflict, match="a second run_end"):  # the store alone refuses it too
         store.add_event(early)
     for t in events[5:10]:  # the real events 5..9 then complete the run
@@ -504,3 +507,98 @@ def test_strays_a_differing_end_and_a_disagreement_of_one_run_are_each_reported(
     assert rec.finish_ready() == []
     (err,) = [o.msg for o in rec.poll(now=5.0) if o.topic == m.TOPIC_ERRORS]
     assert err["code"] == "run_conflict" and "is not the one its events give" in err["message"]
+
+
+# ------------------------------------------------------------------------------------------------ a run begun again
+def last_action_run(run_id: str = "run-1") -> ShopService:
+    """A complete EX12 run choosing the last enabled action (another run than :func:`finished_run`'s)."""
+    svc = ShopService(builtin("EX12"), run_id=run_id)
+    svc.start()
+    while not svc.done:
+        label = [a for a, ok in zip(svc.state["actions"], svc.state["mask"]) if ok][-1]
+        svc.handle_command(encode(m.make_command(run_id, svc.state_seq, label)))
+    return svc
+
+
+def replan_text(run_id: str, status: str) -> str:
+    return encode(m.make_replan(run_id, "fms_agent", 3, 10, "breakdown", status, budget_s=1.0, wall_s=0.5,
+                                before=90, after=80))
+
+
+def test_a_shop_restarted_with_the_same_run_id_is_recorded_anew_and_the_earlier_run_kept(tmp_path: Path) -> None:
+    """A shop respawned with fixed parameters starts the run again at event 0 under the same run id. Its events
+    that differed from the first incarnation's were refused as conflicts and the rest stored beside the first
+    incarnation's: the log mixed two runs (and lost the second's first events). Its run_start names another
+    incarnation: the earlier one is kept under its own name and the run recorded anew."""
+    one, two = finished_run("EX12"), last_action_run()
+    assert one.events[0]["data"]["incarnation"] != two.events[0]["data"]["incarnation"]
+    ev1, _ = texts(one)
+    ev2, sched2 = texts(two)
+    calls: list = []
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), renderer=fake_renderer(calls))
+    for t in ev1[:10]:  # the first shop died after 10 events
+        assert rec.handle_event(t, now=0.0) == []
+    rec.handle_replan(replan_text("run-1", "adopted"), now=0.0)
+    (err,) = rec.handle_event(ev2[0], now=1.0)
+    assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "run_conflict" and err.msg["message"] == (
+        "run 'run-1' began again (a run_start of another incarnation: a shop restarted with the same run id): the "
+        "earlier incarnation's events, schedule and re-plans are kept as 'run-1~1'; the run is recorded anew")
+    out = [o for t in ev2[1:] for o in rec.handle_event(t, now=1.0)]
+    assert out == []  # no conflict, no replay request: the new incarnation is a run of its own
+    rec.handle_replan(replan_text("run-1", "kept"), now=1.0)  # same key as the first incarnation's: stored too
+    assert rec.handle_schedule(sched2, now=1.0) == []
+    assert rec.finish_ready() == [("run-1", tmp_path / "run-1.gantt.png")]
+    store = rec.store
+    assert store.run_ids() == ["run-1~1", "run-1"] and store.incarnations("run-1") == ["run-1~1"]
+    assert [(e["seq"], e["time"], e["kind"], e["data"]) for e in store.events("run-1")] == \
+        [(e["seq"], e["time"], e["kind"], e["data"]) for e in two.events]
+    assert [(e["seq"], e["time"], e["kind"], e["data"]) for e in store.events("run-1~1")] == \
+        [(e["seq"], e["time"], e["kind"], e["data"]) for e in one.events[:10]]
+    assert store.is_complete("run-1") and validate(two.instance, store.schedule_from_events("run-1")) == []
+    assert [r["status"] for r in store.replans("run-1~1")] == ["adopted"]
+    assert [r["status"] for r in store.replans("run-1")] == ["kept"]
+    assert not store.is_complete("run-1~1") and store.schedule("run-1~1") is None
+    (made, _), = calls
+    assert made == two.final_schedule.makespan
+
+
+def test_a_run_begun_again_after_its_chart_keeps_the_chart_and_an_old_replay_is_refused(tmp_path: Path) -> None:
+    one, two, three = finished_run("EX12"), last_action_run(), finished_run("EX12")
+    calls: list = []
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), renderer=fake_renderer(calls))
+    for svc in (one, two):
+        events, schedule = texts(svc)
+        for t in events + [schedule]:
+            (rec.handle_schedule if '"fms/schedule/v1"' in t else rec.handle_event)(t, now=0.0)
+        assert rec.finish_ready() == [("run-1", tmp_path / "run-1.gantt.png")]
+    store = rec.store
+    moved = gantt_path(tmp_path, "run-1~1")  # (run-1_1.gantt.png)
+    assert store.gantt("run-1~1") == str(moved) and moved.exists() and store.gantt("run-1") == str(
+        tmp_path / "run-1.gantt.png")
+    assert [c[0] for c in calls] == [one.final_schedule.makespan, two.final_schedule.makespan]
+    assert store.is_complete("run-1~1") and store.is_complete("run-1")
+    # the first shop's run_start replayed (a second shop under the same run id): refused, no ping-pong of runs
+    (err,) = rec.handle_event(texts(one)[0][0], now=2.0)
+    assert err.msg["code"] == "run_conflict" and err.msg["message"] == (
+        "run 'run-1': event 0 (run_start at 0) is an earlier incarnation's of the run, kept as 'run-1~1' (not stored)")
+    assert rec.handle_event(texts(two)[0][0], now=2.0) == []  # the current one's: a replay, stored once
+    assert store.run_ids() == ["run-1~1", "run-1"]
+    # a third start: the next name
+    (err,) = rec.handle_event(texts(three)[0][0], now=3.0)
+    assert "kept as 'run-1~2'; its chart is " + str(gantt_path(tmp_path, "run-1~2")) in err.msg["message"]
+    assert store.incarnations("run-1") == ["run-1~1", "run-1~2"] and store.event_seqs("run-1") == [0]
+
+
+def test_the_store_alone_keeps_a_run_begun_again_apart(tmp_path: Path) -> None:
+    one, two = finished_run("EX12"), last_action_run()
+    store = RecorderStore(tmp_path / "db.sqlite")
+    for e in one.events[:10]:
+        store.add_event(e)
+    assert not store.begins_again(one.events[0]) and store.begins_again(two.events[0])
+    assert not store.begins_again(two.events[1])  # only a run_start numbered 0 begins a run
+    for e in two.events:
+        store.add_event(e)
+    assert store.event_seqs("run-1") == list(range(len(two.events))) and store.event_seqs("run-1~1") == list(range(10))
+    store.close()
+    again = RecorderStore(tmp_path / "db.sqlite")  # durable
+    assert again.incarnations("run-1") == ["run-1~1"] and again.end_seq("run-1") == len(two.events) - 1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from typing import Any
@@ -72,7 +73,12 @@ def test_full_run_states_events_and_schedule(name: str) -> None:
     out = svc.start()
     events = by_topic(out, m.TOPIC_EVENTS)
     assert events[0] == {"schema": "fms/event/v1", "run_id": "run-1", "seq": 0, "time": 0, "kind": "run_start",
-                         "data": {"instance": name}}
+                         "data": {"instance": name, "incarnation": svc.incarnation}}
+    # a shop started again with the same run id (a respawn with fixed parameters) starts another incarnation: its
+    # run_start differs, so the recorder tells the two runs apart
+    again = ShopService(inst, run_id="run-1")
+    assert re.fullmatch("[0-9a-f]{12}", svc.incarnation) and again.incarnation != svc.incarnation
+    assert decode(encode(events[0]))["data"]["incarnation"] == svc.incarnation
     s0 = state_of(out)
     assert (s0["seq"], s0["done"], s0["instance"], s0["makespan"]) == (0, False, name, None)
     assert s0["actions"] == Shop(inst).action_labels() and s0["mask"] == Shop(inst).action_mask()
