@@ -137,6 +137,7 @@ def _layout_problem(have: dict[str, tuple[str, bool, int]], want: dict[str, tupl
     stored every replayed event again); None if it does not."""
     if set(have) != set(want):
         return f"columns {', '.join(sorted(have))}; the recorder's: {', '.join(sorted(want))}"
+
     def column(layout: dict[str, tuple[str, bool, int]], col: str) -> str:
         kind, not_null, _ = layout[col]
         return (kind or "untyped") + (" NOT NULL" if not_null else "")
