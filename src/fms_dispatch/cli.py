@@ -542,6 +542,8 @@ def cmd_replay(a: argparse.Namespace) -> int:
     check_outputs(a, a.instance, a.schedule)
     inst = load_from_args(a)
     given = _load_schedule(a.schedule)
+    if given.instance != inst.name:  # (as fms validate says it: ten "lasts 2, travel time is 4" lines hid it)
+        print(f"note: the schedule names instance {given.instance!r}, replaying it in {inst.name!r}", file=sys.stderr)
     if given.meta.get("scenario"):  # the orders are replayed; the disruptions they answered are not
         print("note: the schedule was made in a disrupted shop (meta.scenario); the replay runs the nominal shop, "
               "so its times differ and it may end later", file=sys.stderr)

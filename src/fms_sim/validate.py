@@ -329,21 +329,27 @@ def _check_routes(what: str, key: str, travel, n_fleet: int,
                   scenario: Scenario | None = None) -> None:
     size = len(travel)
     routes: dict[int, list] = defaultdict(list)
+    absent: dict[int, list[int]] = {}  # a vehicle beyond the fleet -> its trips' starts (said once per vehicle)
     for v, a, b, s, e in trips:
         if not (0 <= v < n_fleet):
-            errs.append(f"{what} {v} does not exist (fleet of {n_fleet})")
+            absent.setdefault(v, []).append(s)
             continue
         if not (0 <= a < size and 0 <= b < size):
             errs.append(f"{what} {v}: trip {a}->{b} at {s} names an unknown location")
             continue
         routes[v].append((s, e, a, b))
+    for v, starts in absent.items():
+        n = len(starts)
+        errs.append(f"{what} {v} does not exist (fleet of {n_fleet}): {n} trip{'s' if n > 1 else ''} from {min(starts)}")
     for v, legs in routes.items():
         legs.sort(key=lambda leg: (leg[0], leg[1]))  # stable: zero-length legs keep the schedule's order
         here, free, n = 0, 0, 0
         kind = "agv" if key == "agv" else "tt"
         outs = [o for o in scenario.outages if o.kind == kind and o.vehicle == v] if scenario else []
         for s, e, a, b in legs:
-            if s < free:
+            if s < 0:  # (the vehicle's first trip: "before its previous trip ends at 0" named a trip it has not)
+                errs.append(f"{what} {v}: trip {a}->{b} at {s} starts before time 0")
+            elif s < free:
                 errs.append(f"{what} {v}: trip {a}->{b} at {s} starts before its previous trip ends at {free}")
             if a != here:
                 errs.append(f"{what} {v}: trip {a}->{b} at {s} starts at {a} but the vehicle is at {here}")

@@ -215,6 +215,8 @@ def test_replay_refuses_an_invalid_schedule_and_writes_nothing(tmp_path, capsys)
     assert run(["solve", "EX12", "--solver", "rule:FIFO+first", "--out", str(given), "-q"], capsys)[0] == 0
     code, stdout, err = run(["replay", "EX13", str(given), "--out", str(out)], capsys)  # other travel times
     assert code == 2 and "not a valid schedule for EX13" in err and "travel time is" in err
+    # the schedule was made for another shop: said first, as fms validate says it (the violations alone hid it)
+    assert err.startswith("note: the schedule names instance 'EX12', replaying it in 'EX13'\n")
     assert not out.exists()
     code, _, err = run(["replay", "EX12", str(tmp_path / "missing.json")], capsys)
     assert code == 2 and "cannot read schedule" in err

@@ -107,6 +107,11 @@ def test_missing_and_duplicate_ops_and_unknown_vehicle(good):
     s2 = Schedule.from_dict(good.to_dict())
     s2.agv_trips[0] = replace(s2.agv_trips[0], agv=3)
     assert any("AGV 3 does not exist" in x for x in validate(INST, s2))
+    # a vehicle beyond the fleet is named once, with its trips counted (one line per trip filled replay's ten)
+    s3 = Schedule.from_dict(good.to_dict())
+    s3.agv_trips = [replace(t, agv=4) for t in s3.agv_trips]
+    absent = [x for x in validate(INST, s3) if "does not exist" in x]
+    assert absent == [f"AGV 4 does not exist (fleet of {INST.n_agvs}): {len(s3.agv_trips)} trips from 0"]
 
 
 def _edit(rows: str, i: int, **kw):
@@ -143,6 +148,9 @@ RULES = [
     ("part travels wrong", _edit("agv_trips", 2, to=1), "op (1,0): the part travels 0->1, must go 0->2", False),
     ("vehicle trips overlap", _edit("agv_trips", 3, start=6, end=10),
      "AGV 0: trip 2->1 at 6 starts before its previous trip ends at 7", True),
+    # a vehicle's first trip before time 0 was said to start "before its previous trip ends at 0": it has none
+    ("vehicle's first trip before time 0", _edit("agv_trips", 0, start=-3, end=-1),
+     "AGV 0: trip 0->1 at -3 starts before time 0", False),
     ("unknown location", _edit("agv_trips", 1, to=7), "AGV 0: trip 1->7 at 2 names an unknown location", False),
     ("tool moved, no use", _edit("tool_trips", 0, tool=3), "tool 3 is moved but no operation uses it", False),
     ("tool carried for another op", _edit("tool_trips", 2, tool=1),
