@@ -243,7 +243,10 @@ class TwinDecider:
     elsewhere), while the plan in force goes on answering, so the shop never waits for it. Once done it is put in
     force if it ends the replanner's margin earlier than the plan in force continued from the trigger's state (as
     the offline run decides); one not done after its budget plus :data:`REPLAN_GRACE_S` is reported ``timeout``
-    (its process ended) and one whose jobs changed meanwhile (an order) is dropped as ``failed``. Each is
+    (its process ended). A live order is answered at once by a bridge plan (the plan in force with the new jobs
+    after it); a re-plan running then runs on, and once in it is put in force re-timed from the state with the new
+    jobs after its own where it beats the plan it was started against; the order's own re-plan starts then (ending
+    the running one for each order starved re-planning where orders came faster than a search ends). Each is
     published as an ``fms/replan/v1`` (:meth:`drain`). With ``replan_wait`` the state that triggers a re-plan is
     answered once the re-plan is done, so a simulated shop waits for it and the run is the offline one.
     """
@@ -277,6 +280,7 @@ class TwinDecider:
         self.model_path: Any = None              # the weights file the policy was loaded from (logged)
         self.model: Any = None                   # the policy's model (its padding limits the shops it can decide)
         self._guide_jobs: int | None = None      # the jobs of the run when its guide was last planned for them
+        self._order_due = False  # an order came while a guide re-plan ran: its own re-plan starts once that one is in
         self._handover: Callable[["Shop"], int] | None = None  # decides once the shop outgrew the model
 
     @property
@@ -298,6 +302,7 @@ class TwinDecider:
         self._text = ""
         self._handover = None
         self._guide_jobs = None
+        self._order_due = False
         self._disruptions = []
         self.rebuilds += 1
 
@@ -476,12 +481,15 @@ class TwinDecider:
         reason = None
         if self._guide_jobs is not None and shop.n_jobs > self._guide_jobs:  # an order: go on with a bridge plan
             if rp.agent.bridge_guide(shop) is not None:
-                reason = "order"
-                # a re-plan without the new jobs: what it was started for triggers again once the order's is in
-                self._end_guide_job(shop, _JOBS_JOINED, superseded=True)
+                # a re-plan running meanwhile runs on (ending it for each order starved re-planning where orders came
+                # faster than a search ends): once in, it is put in force with the new jobs after it where it beats
+                # the plan it was started against (_collect_guide), and the order's own re-plan starts then
+                self._order_due = True
         self._guide_jobs = shop.n_jobs
         if self._job is not None:
             return
+        if self._order_due:
+            self._order_due, reason = False, "order"
         reason = reason or trigger(shop)
         if reason is None:
             return
@@ -511,18 +519,16 @@ class TwinDecider:
         job.cancel()
         return elapsed
 
-    def _end_guide_job(self, shop: "Shop", why: str, superseded: bool = False) -> None:
+    def _end_guide_job(self, shop: "Shop", why: str) -> None:
         """End the guide re-plan that runs, if one does (a process is ended), and report it ``failed`` for ``why``."""
         job, self._job = self._job, None
         if job is not None:
             job.cancel()
-            self._drop_guide(job, shop, "failed", job.elapsed(), why, superseded)
+            self._drop_guide(job, shop, "failed", job.elapsed(), why)
 
-    def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str,
-                    superseded: bool = False) -> None:
-        """A guide re-plan that brings no plan (``failed`` or ``timeout``; ``superseded`` by an order's): recorded by
-        the replanner, reported."""
-        self.choose.failed(shop, job.reason, job.time, status, wall, job.budget, why, superseded=superseded)
+    def _drop_guide(self, job: "_ReplanJob", shop: "Shop", status: str, wall: float, why: str) -> None:
+        """A guide re-plan that brings no plan (``failed`` or ``timeout``): recorded by the replanner, reported."""
+        self.choose.failed(shop, job.reason, job.time, status, wall, job.budget, why)
         self._report(job.run_id, job.seq, job.time, job.reason, status, wall, None, None, "guide", why,
                      budget=job.budget)
 
@@ -538,8 +544,8 @@ class TwinDecider:
                                  f"{job.budget:g} s); the plan in force stays")
             return
         self._job = None
-        if job.error is not None or shop.n_jobs != job.n_jobs:  # (jobs joined: an order's re-plan supersedes it)
-            self._drop_guide(job, shop, "failed", job.wall, job.error or _JOBS_JOINED, superseded=job.error is None)
+        if job.error is not None:
+            self._drop_guide(job, shop, "failed", job.wall, job.error)
             return
         from fms_sim.snapshot import can_snapshot
 
@@ -547,7 +553,9 @@ class TwinDecider:
             self._job = job
             return
         plan, before = job.result
-        moved = (shop.now, shop.net.acted) != job.taken_at  # type: ignore[attr-defined]
+        # the run moved on meanwhile: the plan is re-timed from the state now (jobs that joined meanwhile after its
+        # own, as the bridge plan has them), where it beats the plan in force as both stood at the trigger
+        moved = (shop.now, shop.net.acted) != job.taken_at or shop.n_jobs != job.n_jobs  # type: ignore[attr-defined]
         ev = self.choose.adopt(shop, job.reason, job.time, plan, before, job.wall, job.budget, moved)
         self._report(job.run_id, job.seq, job.time, job.reason, ev["status"], job.wall, ev["before"], ev["after"],
                      "guide", None, budget=job.budget)
@@ -868,8 +876,6 @@ class PlanDecider(TwinDecider):
 
 REPLAN_GRACE_S = 5.0
 """How long past its budget a re-plan may run before the agent reports it ``timeout``."""
-
-_JOBS_JOINED = "jobs joined while it ran (the guide is planned again for them)"
 
 
 REPLAN_IN_PROCESS = sys.platform.startswith("linux")

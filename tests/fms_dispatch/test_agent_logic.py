@@ -627,7 +627,7 @@ def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, or
     """ra01 with machine 2 down from time 20 (noise 0.1), run by the default guided model over messages, its guide
     re-planned beside the decisions; ``compute(shop, old, effort)`` replaces the re-plan's search (in the forked
     process or the thread), ``grace`` the grace past its budget, ``budget`` the re-plan's budget (s), ``order_at``
-    the state at which an order joins, and the shop takes at least ``pace`` s per state. Returns (service, agent,
+    the state (or states) at which an order joins, and the shop takes at least ``pace`` s per state. Returns (service, agent,
     re-plan messages, the offline reference run, states answered while a re-plan ran, the slowest such answer).
     ``breakdown=False``: a nominal shop (no offline reference: None); ``wait``: the agent's replan_wait."""
     import time
@@ -647,12 +647,13 @@ def _guided_breakdown_run(monkeypatch, compute=None, grace=None, budget=None, or
     ref = ppo_solver("ppo")(inst, scenario=sc, guide_effort=effort) if breakdown else None
     svc = ShopService(inst, run_id="g", history=True, decisions="full", scenario=sc)
     agent = AgentLogic("ppo", instance=inst, guide_effort=effort, replan_wait=wait)
-    order = m.make_order("o1", [[{"machine": 1, "tool": 1 if inst.has_tools else None, "duration": 5}]])
+    orders_at = {order_at} if isinstance(order_at, int) else set(order_at or ())
     replans, during, slowest, steps = [], 0, 0.0, 0
     svc.start()
     while not svc.done:
-        if steps == order_at:
-            svc.handle_order(encode(order))
+        if steps in orders_at:
+            svc.handle_order(encode(m.make_order(f"o{steps}", [[{"machine": 1, "tool": 1 if inst.has_tools else None,
+                                                                  "duration": 5}]])))
         t0 = time.monotonic()
         out = agent.on_state(encode(svc.state))
         job = agent.decide._job
@@ -776,10 +777,35 @@ def test_a_guide_re_plan_running_when_the_shop_outgrows_the_model_is_ended_and_r
     assert validate(svc.instance, svc.final_schedule) == [] and svc.instance.n_jobs == 101
 
 
+def test_orders_faster_than_a_guide_re_plan_do_not_starve_re_planning(monkeypatch) -> None:
+    """Orders that come faster than a guide re-plan ends: each is bridged at once, and the re-plan running meanwhile
+    runs on and comes in (each order ended it, 'failed', and started a re-plan of its own that the next order ended
+    too, so no search ever came in while the orders came); the orders' re-plan follows it. The run is valid and
+    serves every order."""
+    import time
+
+    from fms_dispatch import agent_logic
+
+    real = agent_logic._guide_replan
+
+    def slow(shop, old, effort):
+        time.sleep(0.3)
+        return real(shop, old, effort)
+
+    orders = range(45, 200, 15)  # one every 15 states from state 45 on: a re-plan spans about 60 states here
+    svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, slow, order_at=orders)
+    assert svc.instance.n_jobs > 5 + 3  # several orders came
+    assert replans and [m["status"] for m in replans if m["status"] == "failed"] == []
+    assert replans[0]["reason"] == "breakdown" and replans[0]["status"] in ("adopted", "kept")
+    assert any(m["reason"] == "order" for m in replans) or agent.decide._job.reason == "order"
+    assert {r.job for r in svc.final_schedule.operations} == set(range(svc.instance.n_jobs))  # the orders served
+
+
 def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkeypatch) -> None:
     """A re-plan that raises is ``failed`` with its error; one past its budget plus the grace is ``timeout`` (its
-    process ended); one whose jobs changed meanwhile (an order) is ``failed`` and dropped; one still running when
-    the run ends is reported at the final state. The guide in force stays each time and the runs are valid."""
+    process ended); one whose jobs changed meanwhile (an order) runs on and comes in, the order's own re-plan after
+    it; one still running when the run ends is reported at the final state. The guide in force stays each time (but
+    where a re-plan comes in) and the runs are valid."""
     import time
 
     from fms_dispatch import agent_logic
@@ -808,8 +834,10 @@ def test_a_guided_agents_re_plan_failing_timing_out_or_outrun_is_reported(monkey
         return real(shop, old, effort)
 
     svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, slow, order_at=45)  # the trigger: state 39
-    assert [(m["reason"], m["status"]) for m in replans][:1] == [("breakdown", "failed")]
-    assert "jobs joined while it ran" in replans[0]["message"]
+    # the order came while the breakdown's re-plan ran: it ran on and came in (it was ended, 'failed'), and the
+    # order's own re-plan started then (here the run ends before it is in: reported at the final state)
+    assert [m["reason"] for m in replans][:1] == ["breakdown"] and replans[0]["status"] in ("adopted", "kept")
+    assert agent.decide._job is not None and agent.decide._job.reason == "order"
     assert {r.job for r in svc.final_schedule.operations} == set(range(svc.instance.n_jobs))  # the order served
 
     svc, agent, replans, *_ = _guided_breakdown_run(monkeypatch, stuck, grace=60, pace=0)

@@ -312,7 +312,6 @@ class GuideReplanner:
         self.events: list[dict[str, Any]] = []
         self._shop: Shop | None = None
         self._answered: set[tuple] = set()  # the breakdowns and outages re-planned for (kind, which, start)
-        self._asked: set[tuple] = set()  # those the last trigger fired for (answered unless its re-plan brings none)
         self._guide: Any = None  # the guide whose plan the lateness check reads
         self._planned: dict[tuple[int, int], int] = {}
         self._tol = 0.0
@@ -347,7 +346,6 @@ class GuideReplanner:
             return None
         reason = None
         begun = self._begun(shop) - self._answered
-        self._asked = begun
         if begun:  # an outage too: the plan's carries for the vehicle waited out its window (EX12: 100,088 for 98)
             self._answered |= begun
             # an outage's rule (put in force whatever it promises) wins where one began with a breakdown: both began
@@ -372,10 +370,8 @@ class GuideReplanner:
         """A re-plan made beside the run comes in: the breakdowns and outages that began and ended while it ran are
         over, so none triggers a re-plan now (an outage over for a thousand time units was re-planned for, and its
         plan put in force whatever it promised); those still in force trigger their own. (Offline the shop waits for
-        each re-plan: nothing begins meanwhile.) What the last trigger fired for is answered by it from now on (an order's
-        re-plan ended later must not undo that)."""
+        each re-plan: nothing begins meanwhile.)"""
         self._answered |= self._begun(shop, over=True)
-        self._asked = set()
 
     def check(self, shop: Shop) -> dict[str, Any] | None:
         """Re-plan if a trigger fired in ``shop`` since the last check; returns the event or None."""
@@ -412,15 +408,10 @@ class GuideReplanner:
         return event
 
     def failed(self, shop: Shop, reason: str, time: int, status: str, wall_time: float, budget: float | None,
-               error: str, *, superseded: bool = False) -> dict[str, Any]:
+               error: str) -> dict[str, Any]:
         """Record a re-plan made beside the run that brought no plan (``status`` ``failed`` or ``timeout``, ``error``
-        says why): the plan in force stays, and as after a kept plan lateness does not trigger again at once. One
-        ``superseded`` (ended by an order's re-plan) leaves the breakdowns and outages it was started for unanswered:
-        those still in force trigger a re-plan of their own (the order took an outage's re-plan, which then ran under
-        an order's margin instead of being put in force)."""
+        says why): the plan in force stays, and as after a kept plan lateness does not trigger again at once."""
         self._quiet_until = shop.now + self._tol
-        if superseded:
-            self._answered -= self._asked
         self._collected(shop)
         event = {"reason": reason, "time": time, "wall_time": round(wall_time, 4), "budget": budget, "before": None,
                  "after": None, "status": status, "method": "guide", "error": error}
