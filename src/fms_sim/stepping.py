@@ -209,8 +209,16 @@ class Stepper:
             seen.add((kind, v))
         for kind, v, loc in moves:
             shop.reposition(kind, v, loc, advance=False)
-        self._trips = (len(shop.rec.agv), len(shop.rec.tt))  # these moves are answered: not news
+        self._forget_workers()  # (trips before the moves stay news)
+        rec = shop.rec
+        a0, t0 = len(rec.agv), len(rec.tt)
+        # the moves' trips are recorded when their transitions fire: fired here, so that they are this stop's answer,
+        # not news (counted before they fired, a moved vehicle was offered again before the next decision on the
+        # paper's net, and moving it to and fro over travel times of 0 kept the clock from moving)
+        shop.net.run_autonomous()
         self.looked.update(offered - seen if self.idle_first else offered)
+        self.looked -= ({("agv", t.agv) for t in rec.agv[a0:]} | {("tt", t.transporter) for t in rec.tt[t0:]}) - seen
+        self._trips = (len(rec.agv), len(rec.tt))
         return self.advance()
 
     def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:

@@ -6,6 +6,7 @@ import pytest
 
 from fms_dispatch.rules import RulePolicy
 from fms_sim.benchmarks import builtin
+from fms_sim.instance import Instance, Operation
 from fms_sim.petri import InvalidAction
 from fms_sim.shop import Shop
 from fms_sim.stepping import Move, Stepper, moves_label, parse_moves
@@ -66,6 +67,45 @@ def test_idle_stops_offer_idle_vehicles_once_between_decisions():
             offered_since_decision.clear()
             stop = st.decide(pol(st.shop))
     assert kinds == {"agv", "tt"}
+
+
+@pytest.mark.parametrize("name", ["ra01", "EX21"])
+def test_a_moved_vehicle_is_not_offered_again_before_the_next_decision(name):
+    # the moves' own trips were taken as news: a vehicle moved at an idle stop was offered again when it arrived,
+    # before any decision (the existing check above only waits)
+    inst = builtin(name)
+    pol = RulePolicy("FIFO", "first")
+    st = Stepper(Shop(inst))
+    stop = st.advance()
+    offered: set[tuple[str, int]] = set()
+    moved = 0
+    while stop != "done":
+        if stop == "idle":
+            for m in st.idle:
+                assert (m.kind, m.vehicle) not in offered, (m, st.shop.now)
+                offered.add((m.kind, m.vehicle))
+            m = st.idle[0]  # the first offered vehicle goes somewhere else (a machine it is not at)
+            stop = st.move([Move(m.kind, m.vehicle, 1 if m.location != 1 else 2)])
+            moved += 1
+        else:
+            offered.clear()
+            stop = st.decide(pol(st.shop))
+    assert moved > 5 and validate(inst, st.shop.schedule()) == []
+
+
+def test_moves_over_travel_times_of_0_cannot_keep_the_clock_from_moving():
+    # moving an AGV to and fro between places 0 apart gave an endless string of idle stops at one instant
+    inst = Instance(name="zero", jobs=((Operation(1, None, 5),),), agv_travel=[[0, 0], [0, 0]], n_agvs=2)
+    st = Stepper(Shop(inst))
+    st.advance()
+    st.decide(0)
+    st.decide(st.shop.action_index("agv:1"))
+    stops = 0
+    while st.kind == "idle" and stops < 100:
+        m = next(m for m in st.idle if m.kind == "agv")
+        st.move([Move("agv", m.vehicle, 1 - m.location)])
+        stops += 1
+    assert st.kind == "done" and stops <= 2 and st.shop.schedule().makespan == 5
 
 
 def test_moves_send_vehicles_empty_and_stay_feasible():
