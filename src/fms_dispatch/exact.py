@@ -13,8 +13,8 @@ plus tool uses, and every plain job shop):
   ``agv_travel[pickup][machine]``) that starts after the part is ready and ends before the operation starts;
 * AGV routing is one multiple-circuit (vehicle-routing) constraint over all AGV tasks with a depot node
   (location 0 at time 0): arc ``i -> j`` means that one AGV does ``j`` right after ``i`` and implies
-  ``end_i + gap(i, j) <= start_j`` (``gap`` = the empty trip ``agv_travel[drop_i][pickup_j]``, or for a
-  later task of the same job the job's own lag if longer); at most ``n_agvs`` routes leave the depot. The
+  ``end_i + gap(i, j) <= start_j`` (``gap`` = the shortest empty move from ``drop_i`` to ``pickup_j``, or for
+  a later task of the same job the job's own lag if longer); at most ``n_agvs`` routes leave the depot. The
   AGVs are identical, so routes carry no vehicle index, which removes the vehicle symmetry altogether.
   Two redundant constraints make the proofs fast: a *fleet workload* cut ``n_agvs * makespan >= loaded
   time + gaps of the chosen arcs + the rest of each route's last job`` and a cumulative (capacity
@@ -25,7 +25,12 @@ plus tool uses, and every plain job shop):
   takes a self-loop in the transporter routing); a delivery starts after the previous use ended and ends
   before its use starts; transporters route deliveries with a second multiple-circuit constraint whose
   empty legs depend on the (variable) origin of the next delivery; tool uses also get a ``NoOverlap`` and
-  deliveries a cumulative over the transporters.
+  deliveries a cumulative over the transporters;
+* travel matrices need not satisfy the triangle inequality, and a vehicle may make an empty move as several
+  empty trips through other places where that is quicker: every empty move (approach from the depot, between
+  carries, and in every bound) is charged its shortest-path time (:class:`_EmptyMoves`), and a solution's
+  schedule records it as those direct empty trips, one after the other; loaded trips are always the direct
+  matrix entry (one loaded trip per carry).
 
 On 2 workers this proves the Bilge–Ulusoy layout-2 optima EX12..EX102 in about 0.1–10 s each (see
 ``bench/cpsat_bu.py``), and the ra01..ra10 tools instances in seconds.
@@ -247,6 +252,49 @@ def _shortest_paths(mat: Sequence[Sequence[int]]) -> list[list[int]]:
     return d.tolist()
 
 
+class _EmptyMoves:
+    """A vehicle's empty moves over ``travel``: the shortest time from one place to another and the direct trips
+    (matrix entries) that make it up.
+
+    Travel matrices need not satisfy the triangle inequality, and an empty vehicle may go through other places
+    where that is quicker (the contract requires one *loaded* trip per carry, but an empty move is any sequence of
+    empty trips): ``dist`` is the shortest-path closure, and :meth:`legs` a shortest path with the fewest trips,
+    the direct trip wherever it is itself shortest."""
+
+    def __init__(self, travel: Sequence[Sequence[int]]):
+        self.travel = travel
+        self.dist = _shortest_paths(travel)
+        self._legs: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
+
+    def legs(self, a: int, b: int) -> list[tuple[int, int, int]]:
+        """The direct trips ``(from, to, travel time)`` of a shortest move from ``a`` to ``b`` with the fewest
+        trips (none when ``a == b``): a breadth-first search over the trips that stay on some shortest path."""
+        key = (a, b)
+        found = self._legs.get(key)
+        if found is not None:
+            return found
+        travel, dist = self.travel, self.dist
+        to_b = [row[b] for row in dist]
+        prev: dict[int, int] = {a: a}
+        frontier = [a]
+        while b not in prev:  # (a shortest path exists: every place reaches every other one)
+            assert frontier, f"no shortest move from {a} to {b}"
+            nxt = []
+            for u in frontier:
+                row = travel[u]
+                for v in range(len(row)):
+                    if v not in prev and row[v] + to_b[v] == to_b[u]:
+                        prev[v] = u
+                        nxt.append(v)
+            frontier = nxt
+        path = [b]
+        while path[-1] != a:
+            path.append(prev[path[-1]])
+        path.reverse()
+        found = self._legs[key] = [(u, v, travel[u][v]) for u, v in zip(path, path[1:])]
+        return found
+
+
 def _loaded_time(inst: Instance, j: int, k: int) -> int:
     """The loaded AGV travel that must precede operation (j, k) (0 without AGVs or without a move)."""
     if not inst.has_agvs:
@@ -330,12 +378,12 @@ def _same_job_lag(sums: JobSums, a: _Task, b: _Task) -> int:
     return d[b.op] - d[a.op] + lt[b.op] - lt[a.op + 1]
 
 
-def _agv_gap(inst: Instance, a: _Task, b: _Task, sums: JobSums) -> int:
+def _agv_gap(a: _Task, b: _Task, sums: JobSums, empty: Sequence[Sequence[int]]) -> int:
     """Minimum time between the end of ``a`` and the start of ``b`` when one AGV does ``b`` right after
-    ``a``: the empty trip, or (for a later task of the same job) the job's own lag if longer (``sums``: the
-    instance's :func:`_job_sums`)."""
-    assert inst.agv_travel is not None
-    gap = inst.agv_travel[a.drop][b.pickup]
+    ``a``: the empty move, or (for a later task of the same job) the job's own lag if longer (``sums``: the
+    instance's :func:`_job_sums`; ``empty``: the shortest empty moves, :func:`_shortest_paths` of the AGV matrix,
+    since the AGV may go through other places where that is quicker)."""
+    gap = empty[a.drop][b.pickup]
     if a.job == b.job and a.op < b.op:
         gap = max(gap, _same_job_lag(sums, a, b))
     return gap
@@ -346,11 +394,12 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
     ``[start - before, end + after)`` never overlap, start at >= 0 and end at <= makespan.
 
     They form a feasible dual of the assignment of each task to a predecessor (depot or task) and a
-    successor (task or the end): ``after_i + before_j <= gap(i, j)``, ``before_j <= travel(0, pickup_j)``
-    and ``after_i <= processing + tail after i``. Computed in O(tasks x locations), fine for 2000 tasks.
+    successor (task or the end): ``after_i + before_j <= gap(i, j)``, ``before_j <= empty(0, pickup_j)``
+    and ``after_i <= processing + tail after i``, with ``empty`` the shortest empty move (an AGV may go through
+    other places). Computed in O(tasks x locations), fine for 2000 tasks.
     """
-    tr = inst.agv_travel
-    assert tr is not None
+    assert inst.agv_travel is not None
+    tr = _shortest_paths(inst.agv_travel)
     locs = range(len(tr))
     by_job: dict[int, list[int]] = {}
     drop_jobs: dict[int, set[int]] = {}
@@ -368,7 +417,7 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
                 best = min(best, tr[loc][t.pickup])
         for i2 in by_job[t.job]:
             if tasks[i2].op < t.op:
-                best = min(best, _agv_gap(inst, tasks[i2], t, sums))
+                best = min(best, _agv_gap(tasks[i2], t, sums, tr))
         before.append(best)
     # per pickup location: the two smallest `before` values from different jobs
     INF = 1 << 60
@@ -398,7 +447,7 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
                 best = min(best, here[loc] - bj)
         for i2 in by_job[t.job]:
             if tasks[i2].op > t.op:
-                best = min(best, _agv_gap(inst, t, tasks[i2], sums) - before[i2])
+                best = min(best, _agv_gap(t, tasks[i2], sums, tr) - before[i2])
         after.append(max(0, best))
     return before, after
 
@@ -728,16 +777,17 @@ class _FullModel:
                 m.add(self.s[j, k] >= ts + t.dur)
         if not self.tasks:
             return
-        tr = inst.agv_travel
-        assert tr is not None
+        assert inst.agv_travel is not None
+        self.agv_moves = _EmptyMoves(inst.agv_travel)
+        sp = self.agv_moves.dist  # empty moves may go through other places
         tasks, ts = self.tasks, self.ts
         out_of_depot = []
         gap: dict[tuple[int, int], int] = {}
         sums = _job_sums(inst)
         for i, t in enumerate(tasks):
-            gap[0, i + 1] = tr[0][t.pickup]
+            gap[0, i + 1] = sp[0][t.pickup]
             lit = m.new_bool_var(f"a0_{i}")
-            m.add(ts[i] >= tr[0][t.pickup]).only_enforce_if(lit)
+            m.add(ts[i] >= sp[0][t.pickup]).only_enforce_if(lit)
             self.agv_arcs.append((0, i + 1, lit))
             out_of_depot.append(lit)
             self.agv_arcs.append((i + 1, 0, m.new_bool_var(f"a{i}_0")))
@@ -746,7 +796,7 @@ class _FullModel:
                 if i == jj or (a.job == b.job and b.op < a.op):
                     continue  # a later task of the same job never comes first
                 lit = m.new_bool_var(f"a{i}_{jj}")
-                gap[i + 1, jj + 1] = g = _agv_gap(inst, a, b, sums)
+                gap[i + 1, jj + 1] = g = _agv_gap(a, b, sums, sp)
                 m.add(ts[jj] >= ts[i] + a.dur + g).only_enforce_if(lit)
                 self.agv_arcs.append((i + 1, jj + 1, lit))
         m.add_multiple_circuit(self.agv_arcs)
@@ -786,6 +836,8 @@ class _FullModel:
             return
         tt = inst.tool_travel
         assert tt is not None
+        self.tool_moves = _EmptyMoves(tt)
+        sp = self.tool_moves.dist  # loaded trips are direct (tt), empty moves may go through other places (sp)
         jobs = inst.jobs
         # delivery variables per use: start, duration (a linear expression of the predecessor arcs), absent
         self.dts: dict[tuple[int, int], cp_model.IntVar] = {}
@@ -836,7 +888,7 @@ class _FullModel:
             lit = m.new_bool_var(f"r0_{i}")
             self.tr_arcs.append((0, i + 1, lit))
             starts.append(lit)
-            m.add(self.dts[w] >= sum(tt[0][o] * p for o, p in self.pred_arcs[w])).only_enforce_if(lit)
+            m.add(self.dts[w] >= sum(sp[0][o] * p for o, p in self.pred_arcs[w])).only_enforce_if(lit)
             self.tr_arcs.append((i + 1, 0, m.new_bool_var(f"r{i}_0")))
         for vi, (_, jv, kv) in enumerate(self.deliveries):
             mv = jobs[jv][kv].machine
@@ -847,7 +899,7 @@ class _FullModel:
                 w = (jw, kw)
                 lit = m.new_bool_var(f"r{vi}_{wi}")
                 self.tr_arcs.append((vi + 1, wi + 1, lit))
-                empty = sum(tt[mv][o] * p for o, p in self.pred_arcs[w])
+                empty = sum(sp[mv][o] * p for o, p in self.pred_arcs[w])
                 m.add(self.dts[w] >= self.dts[v] + dur_expr[v] + empty).only_enforce_if(lit)
         m.add_multiple_circuit(self.tr_arcs)
         m.add(sum(starts) <= inst.n_tool_transporters)
@@ -871,11 +923,10 @@ class _FullModel:
     def _tool_workload_cuts(self, dur_expr: dict[tuple[int, int], cp_model.LinearExprT]) -> None:
         """Redundant linear cuts. Per tool: its deliveries and uses run one after the other, and the job of
         its last use still has its tail to do. Over the transporters: each one's last delivery ends after
-        all its loaded legs and empty legs (at least the shortest approach to any possible origin), and the
-        delivered operation and its job's tail follow."""
+        all its loaded legs and empty moves (at least the shortest approach to any possible origin, through other
+        places where that is quicker), and the delivered operation and its job's tail follow."""
         inst, m, jobs = self.inst, self.model, self.inst.jobs
-        tt = inst.tool_travel
-        assert tt is not None
+        sp = self.tool_moves.dist
         for tool, us in self.uses.items():
             rest = [self.tails[us[a - 1]] * lit for (a, b, lit) in self.tool_arcs[tool] if b == 0 and a != 0]
             m.add(self.mk >= sum(jobs[j][k].duration for j, k in us) + sum(dur_expr[w] for w in us) + sum(rest))
@@ -891,7 +942,7 @@ class _FullModel:
             w = self.deliveries[b - 1][1:]
             here = 0 if a == 0 else jobs[self.deliveries[a - 1][1]][self.deliveries[a - 1][2]].machine
             if origins[w]:
-                empty = min(tt[here][o] for o in origins[w])
+                empty = min(sp[here][o] for o in origins[w])
                 if empty:
                     work.append(empty * lit)
         m.add(inst.n_tool_transporters * self.mk >= sum(work))
@@ -963,9 +1014,10 @@ class _FullModel:
 
     # ------------------------------------------------------------------ solution -> schedule
     def extract(self, value: Callable[[cp_model.IntVar], int], bool_value: Callable[[cp_model.IntVar], bool]) -> Schedule:
-        """The schedule of a solution: operations, each route's loaded trips, and an empty trip from the
-        vehicle's previous drop to the next pickup, leaving as soon as the previous trip ended (the arc
-        constraints guarantee it arrives before the loaded trip starts)."""
+        """The schedule of a solution: operations, each route's loaded trips, and the empty move from the
+        vehicle's previous drop to the next pickup as the consecutive direct empty trips of a shortest path
+        (:class:`_EmptyMoves`), leaving as soon as the previous trip ended (the arc constraints, which charge the
+        shortest move, guarantee it arrives before the loaded trip starts)."""
         inst = self.inst
         jobs = inst.jobs
         ops = [OperationRecord(j, k, op.machine, op.tool if inst.has_tools else None,
@@ -973,13 +1025,11 @@ class _FullModel:
                for j, job in enumerate(jobs) for k, op in enumerate(job)]
         agv_trips: list[AgvTrip] = []
         if self.tasks:
-            tr = inst.agv_travel
-            assert tr is not None
             routes = _routes(self.agv_arcs, bool_value)
             for a, route in enumerate(routes):
                 for n, src, dst, st, end in _route_legs(
                         route, lambda n: value(self.ts[n - 1]), lambda n: self.tasks[n - 1].dur,
-                        lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), tr,
+                        lambda n: (self.tasks[n - 1].pickup, self.tasks[n - 1].drop), self.agv_moves,
                         lambda n: ((self.tasks[n - 1].job, self.tasks[n - 1].op),)):
                     t = self.tasks[n - 1] if n is not None else None
                     agv_trips.append(AgvTrip(a, t.job if t else None, t.op if t else None, src, dst, st, end,
@@ -1004,7 +1054,7 @@ class _FullModel:
             for r, route in enumerate(routes):
                 for n, src, dst, st, end in _route_legs(
                         route, lambda n: value(self.dts[self.deliveries[n - 1][1:]]),
-                        lambda n: tt[ends(n)[0]][ends(n)[1]], ends, tt,
+                        lambda n: tt[ends(n)[0]][ends(n)[1]], ends, self.tool_moves,
                         lambda n: ((("tool", self.deliveries[n - 1][0]), rank[self.deliveries[n - 1][1:]]),
                                    (self.deliveries[n - 1][1], self.deliveries[n - 1][2]))):
                     d = self.deliveries[n - 1] if n is not None else (None, None, None)
@@ -1019,38 +1069,40 @@ _TIE_TRIES = 10_000
 
 
 def _route_legs(route: list[int], start: Callable[[int], int], length: Callable[[int], int],
-                ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+                ends: Callable[[int], tuple[int, int]], moves: _EmptyMoves,
                 keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[tuple[int | None, int, int, int, int]]:
     """A vehicle's legs along ``route`` (its nodes' loaded trips: ``start``, ``length``, ``ends`` pickup and drop),
-    each ``(node, from, to, start, end)``, ``node`` None for an empty leg, which leaves as soon as the previous trip
-    ended. Nodes that start at one instant are re-sequenced for their owners (:func:`_tie_order`, ``keys``) where the
-    vehicle can keep to the new order; else the route's own order (which the model's arcs make reachable)."""
+    each ``(node, from, to, start, end)``, ``node`` None for an empty leg. The empty move to each pickup is the
+    direct trips of a shortest path (``moves``), one after the other from the end of the previous trip. Nodes that
+    start at one instant are re-sequenced for their owners (:func:`_tie_order`, ``keys``) where the vehicle can keep
+    to the new order; else the route's own order (which the model's arcs make reachable)."""
     def legs(order: list[int], check: bool) -> list[tuple[int | None, int, int, int, int]] | None:
         out: list[tuple[int | None, int, int, int, int]] = []
         here, free = 0, 0
         for n in order:
             (src, dst), st = ends(n), start(n)
-            if check and free + (travel[here][src] if here != src else 0) > st:
+            if check and free + moves.dist[here][src] > st:
                 return None
-            if here != src:
-                out.append((None, here, src, free, free + travel[here][src]))
+            for a, b, d in moves.legs(here, src):
+                out.append((None, a, b, free, free + d))
+                free += d
             out.append((n, src, dst, st, st + length(n)))
             here, free = dst, st + length(n)
         return out
 
-    tied = _tie_order(route, start, length, ends, travel, keys)
+    tied = _tie_order(route, start, length, ends, moves, keys)
     found = legs(tied, True) if tied != route else None
     return found if found is not None else legs(route, False) or []
 
 
 def _tie_order(route: list[int], start: Callable[[int], int], length: Callable[[int], int],
-               ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+               ends: Callable[[int], tuple[int, int]], moves: _EmptyMoves,
                keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[int]:
     """``route`` with the nodes that start at one instant re-sequenced so that the nodes of one owner follow the
     owner's order: each node's ``keys`` are ``(owner, rank)`` pairs (a part and its operation; a tool and the
     use's place in its sequence), and a node comes after every node at the instant with the same owner and a lower
     rank. The vehicle must still reach each node's pickup in time (``ends``: pickup and drop, ``length``: the
-    loaded trip's duration, ``travel``: the empty legs' times), before and after the instant.
+    loaded trip's duration, ``moves``: the empty moves' shortest times), before and after the instant.
 
     The model's precedences are inequalities, so where zero-length trips tie at one instant a solution may route a
     vehicle through them in an order their part or tool cannot follow (a tool carried away from a machine before it
@@ -1065,7 +1117,7 @@ def _tie_order(route: list[int], start: Callable[[int], int], length: Callable[[
         if e > i:
             before = out[i - 1] if i else None
             after = out[e + 1] if e + 1 < len(out) else None
-            found = _tie_group(out[i:e + 1], before, after, start, length, ends, travel, keys)
+            found = _tie_group(out[i:e + 1], before, after, start, length, ends, moves, keys)
             if found is not None:
                 out[i:e + 1] = found
         i = e + 1
@@ -1073,13 +1125,13 @@ def _tie_order(route: list[int], start: Callable[[int], int], length: Callable[[
 
 
 def _tie_group(group: list[int], before: int | None, after: int | None, start: Callable[[int], int],
-               length: Callable[[int], int], ends: Callable[[int], tuple[int, int]], travel: Sequence[Sequence[int]],
+               length: Callable[[int], int], ends: Callable[[int], tuple[int, int]], moves: _EmptyMoves,
                keys: Callable[[int], tuple[tuple[Any, int], ...]]) -> list[int] | None:
     """An order of ``group`` (nodes at one instant, between ``before`` and ``after`` on the route) for
     :func:`_tie_order`, or None."""
     def reaches(p: int | None, n: int) -> bool:  # from p's drop, free when p's trip ends, to n's pickup in time
         here, free = (ends(p)[1], start(p) + length(p)) if p is not None else (0, 0)
-        return free + (travel[here][ends(n)[0]] if here != ends(n)[0] else 0) <= start(n)
+        return free + moves.dist[here][ends(n)[0]] <= start(n)
 
     dead: set[tuple] = set()
     tries = 0
