@@ -275,6 +275,18 @@ def test_ra01_with_tools_is_valid():
     assert simple_lower_bound(inst) <= res.lower_bound <= res.schedule.makespan
 
 
+def test_ra01_optimum_uses_empty_detours():
+    # ra01's tool matrix breaks the triangle inequality: with every empty move at its shortest-path time the optimum
+    # is 99 (the model that charged direct empty trips proved 100), and the schedule's detours replay to it
+    inst = builtin("ra01")
+    sch = _check_optimum(inst, 99)
+    routes = [[t for t in sch.agv_trips if t.agv == v] for v in range(inst.n_agvs)]
+    routes += [[t for t in sch.tool_trips if t.transporter == v] for v in range(inst.n_tool_transporters)]
+    # (a schedule of 99 makes some empty move quicker than its direct trip: two empty trips in a row)
+    assert any(not a.loaded and not b.loaded and a.end == b.start and a.to == b.from_
+               for route in routes for a, b in zip(route, route[1:]))
+
+
 def _random_instance(rng: random.Random, n_jobs: int, n_machines: int, ops: int, n_tools: int, *, agvs: int,
                      transporters: int, name: str = "rand", tmax: int = 30, pmin: int = 1) -> Instance:
     def mat() -> list[list[int]]:
