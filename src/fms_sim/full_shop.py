@@ -594,8 +594,9 @@ class FullShop(Shop):
     def _on_tool(self, t: int, b: dict, now: int) -> None:
         self.tool_choice = t
         self._use_cands = list(self.treq[t])
-        for j in self._use_cands:
-            self.net.touch(self.t_use[j])
+        # every job with a request on t may be a candidate; a decider often reads only the first (first, replay):
+        # evaluated when asked (Net.defer), not all of them at every tool choice (quadratic on large shops)
+        self.net.defer([self.t_use[j] for j in self._use_cands])
         self._touch_tools()
 
     def _on_use(self, j: int, b: dict, now: int) -> None:
@@ -620,8 +621,7 @@ class FullShop(Shop):
         if self.tool_loc[t] != m:
             self.net.put(self.p_awaiting_tt, (t, self.tool_loc[t], j, k, m))
         self.tool_choice = None
-        for i in self._use_cands:
-            self.net.touch(self.t_use[i])
+        self.net.disable([self.t_use[i] for i in self._use_cands])  # no choice open: every use: guard is false
         self._use_cands = []
         self._touch_tools()
 
@@ -708,8 +708,8 @@ class FullShop(Shop):
     def hold_allowed(self) -> bool:
         """Hold is offered at a decision among the base choices while some event is still to come."""
         net = self.net
-        offered = net.enabled_actions()
-        return bool(offered) and net.controllable[offered[0]].priority == _P_JOB and net.next_event_time() is not None
+        first = net.first_offered()
+        return first is not None and net.controllable[first].priority == _P_JOB and net.next_event_time() is not None
 
     def legal_actions(self) -> list[int]:
         out = self.net.enabled_actions()

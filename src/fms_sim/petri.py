@@ -201,6 +201,7 @@ class NetState:
     offered: list[int] | None
     fired: int
     acted: int
+    deferred: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -226,6 +227,7 @@ class Net:
         self._levels: dict[int, set[int]] = {}  # priority -> enabled controllable indices (kept with the cache)
         self._dirty_ctrl: set[int] = set()
         self._offered: list[int] | None = None
+        self._deferred: list[int] = []  # controllable indices, ascending, to re-evaluate only when asked (defer)
         self.fired = 0
         self.acted = 0
         """Controllable transitions fired so far (the number of decisions taken)."""
@@ -277,6 +279,7 @@ class Net:
         self._enabled = {}
         self._levels = {}
         self._dirty_ctrl = set(range(len(self.controllable)))
+        self._deferred = []
         self._offered = None
 
     # ------------------------------------------------------------------ marking changes
@@ -467,7 +470,25 @@ class Net:
     def is_enabled(self, t: Transition) -> bool:
         return self.binding(t) is not None
 
-    def _refresh_ctrl(self) -> None:
+    def _evaluate(self, i: int) -> Binding | None:
+        """Re-evaluate controllable transition ``i`` and keep its binding and level up to date."""
+        t = self.controllable[i]
+        b = self.binding(t)
+        enabled = self._enabled
+        was = enabled.get(i)
+        enabled[i] = b
+        if (b is None) != (was is None):
+            level = self._levels.get(t.priority)
+            if level is None:
+                level = self._levels[t.priority] = set()
+            if b is None:
+                level.discard(i)
+            else:
+                level.add(i)
+        return b
+
+    def _refresh_ctrl(self, lazy: bool = False) -> None:
+        """Re-evaluate the dirty controllable transitions, and (unless ``lazy``) the deferred ones too."""
         if self._dirty_ctrl:
             ctrl = self.controllable
             enabled = self._enabled
@@ -486,6 +507,106 @@ class Net:
                     else:
                         level.add(i)
             self._dirty_ctrl.clear()
+        if not lazy and self._deferred:
+            for i in self._deferred:
+                self._evaluate(i)
+            self._deferred = []
+
+    # ------------------------------------------------------------------ deferred evaluation
+    def defer(self, transitions: Sequence[Transition]) -> None:
+        """Mark controllable ``transitions`` (all of one priority) for re-evaluation, like :meth:`touch`, but
+        evaluate them only when a question about the offered actions needs them: :meth:`enabled_actions` and
+        :meth:`mask` evaluate them all; :meth:`first_offered`, :meth:`offers` and :meth:`act` only as many as
+        the answer depends on, lowest action first. For a module that wakes many choices at once of which a
+        decider usually reads few (the requests a tool could serve): the answers are the same as with
+        :meth:`touch`, since a binding depends only on the state at the time it is evaluated."""
+        if not transitions:
+            return
+        priority = transitions[0].priority
+        if any(t.action < 0 or t.priority != priority for t in transitions):
+            raise ValueError("defer takes controllable transitions of one priority")
+        if self._deferred and self.controllable[self._deferred[0]].priority != priority:
+            self._refresh_ctrl()  # one deferred level at a time: settle the other one first
+        ids = {t.action for t in transitions}
+        for i in ids:  # unknown until evaluated: no cached binding may answer for them
+            if self._enabled.get(i) is not None:
+                self._enabled[i] = None
+                self._levels[priority].discard(i)
+        self._dirty_ctrl.difference_update(ids)
+        self._deferred = sorted(ids.union(self._deferred))
+        self._offered = None
+
+    def disable(self, transitions: Sequence[Transition]) -> None:
+        """Record that controllable ``transitions`` are not enabled now, without evaluating them: for a module
+        whose state change just closed all of them at once (a choice made: every candidate's guard is now false;
+        the caller guarantees it). Cheaper than :meth:`touch` and a re-evaluation of each."""
+        ids = {t.action for t in transitions}
+        enabled, levels = self._enabled, self._levels
+        for t in transitions:
+            i = t.action
+            if enabled.get(i) is not None:
+                enabled[i] = None
+                levels[t.priority].discard(i)
+        self._dirty_ctrl.difference_update(ids)
+        if self._deferred:
+            self._deferred = [i for i in self._deferred if i not in ids]
+        self._offered = None
+
+    def _deferred_enabled(self, below: int | None = None) -> int | None:
+        """The lowest deferred action that is enabled (evaluating deferred actions in order, up to ``below``,
+        exclusive, when given), or None; the ones evaluated leave the deferred list."""
+        dq = self._deferred
+        n = 0
+        found = None
+        while n < len(dq) and (below is None or dq[n] < below):
+            i = dq[n]
+            n += 1
+            if self._evaluate(i) is not None:
+                found = i
+                break
+        if n:
+            del dq[:n]
+        return found
+
+    def first_offered(self) -> int | None:
+        """The lowest action offered now (``enabled_actions()[0]``, None if none), evaluating deferred
+        transitions only as far as the answer needs, and without sorting the offered ones."""
+        if not self.incremental:
+            offered = self.enabled_actions()
+            return offered[0] if offered else None
+        if self._offered is not None:
+            return self._offered[0] if self._offered else None
+        self._refresh_ctrl(lazy=True)
+        dp = self.controllable[self._deferred[0]].priority if self._deferred else None
+        for p in sorted({p for p, level in self._levels.items() if level} | ({dp} if self._deferred else set())):
+            level = self._levels.get(p)
+            low = min(level) if level else None
+            if p == dp:
+                hit = self._deferred_enabled(low)
+                if hit is not None:
+                    return hit
+            if low is not None:
+                return low
+        return None
+
+    def offers(self, action: int) -> bool:
+        """Whether ``action`` is offered now (``action in enabled_actions()``), evaluating deferred transitions
+        only as far as the answer needs, and without listing the offered ones."""
+        if not self.incremental:
+            return action in self.enabled_actions()
+        self._refresh_ctrl(lazy=True)
+        if self._deferred and action in self._deferred:
+            self._deferred.remove(action)
+            self._evaluate(action)
+        if self._enabled.get(action) is None:
+            return False
+        p = self.controllable[action].priority
+        for q, level in self._levels.items():
+            if level and q < p:
+                return False
+        if self._deferred and self.controllable[self._deferred[0]].priority < p:
+            return self._deferred_enabled() is None
+        return True
 
     def enabled_actions(self) -> list[int]:
         """Indices of the controllable transitions offered now (only the most urgent priority level)."""
@@ -545,13 +666,12 @@ class Net:
         action = index_arg(action)
         if not (0 <= action < len(self.controllable)):
             raise InvalidAction(f"action {action} is out of range (0..{len(self.controllable) - 1})")
-        self._refresh_ctrl()
         t = self.controllable[action]
+        offered = self.offers(action)  # (evaluates the action if it was dirty or deferred)
         b = self._enabled.get(action)
         if b is None:
             raise InvalidAction(f"action {action} ({t.label or t.name}) is not enabled at time {self.now}")
-        offered = self.enabled_actions()
-        if action not in offered:
+        if not offered:
             raise InvalidAction(f"action {action} ({t.label or t.name}) is enabled but a more urgent decision "
                                 f"is due at time {self.now}")
         self._dirty_ctrl.add(action)
@@ -599,7 +719,7 @@ class Net:
         """Run until a controllable decision is due (True) or nothing more can happen (False)."""
         while True:
             self.run_autonomous()
-            if self.enabled_actions():
+            if self.first_offered() is not None:
                 return True
             t = self.next_event_time()
             if t is None:
@@ -619,7 +739,7 @@ class Net:
             [({k: list(b) for k, b in p.buckets.items()}, p.count, p.in_flight) for p in self.places],
             self.now, list(self._pending), self._seq, list(self._dirty_auto), set(self._auto_marked),
             dict(self._enabled), {p: set(v) for p, v in self._levels.items()}, set(self._dirty_ctrl), self._offered,
-            self.fired, self.acted)
+            self.fired, self.acted, list(self._deferred))
 
     def restore_state(self, state: "NetState") -> None:
         """Put back a state of :meth:`save_state` (raises ValueError if the net's structure changed since)."""
@@ -635,6 +755,7 @@ class Net:
         self._enabled = dict(state.enabled)
         self._levels = {p: set(v) for p, v in state.levels.items()}
         self._dirty_ctrl = set(state.dirty_ctrl)
+        self._deferred = list(state.deferred)
         self._offered = state.offered
 
     def state_key(self) -> int:

@@ -16,7 +16,7 @@ instance with the validator's first errors, and checks the schedule it returns.
 from __future__ import annotations
 
 from collections import defaultdict, deque
-from typing import Deque
+from typing import Callable, Deque
 
 from .disruptions import Scenario
 from .full_shop import HOLD, FullShop
@@ -179,11 +179,14 @@ class PlanPolicy:
     # ------------------------------------------------------------------ decisions
     def step(self, shop: FullShop) -> int | None:
         """The planned action to fire now (without consuming it), or None when nothing planned can be done."""
-        offered = shop.net.enabled_actions()
-        if not offered:
+        net = shop.net
+        first = net.first_offered()
+        if first is None:
             return None
-        kind, _ = shop.action_kind(offered[0])
-        legal = set(offered)
+        kind, _ = shop.action_kind(first)
+        # whether an action is offered is asked of the net action by action (Net.offers): the full list of a tool's
+        # candidates costs as much as the jobs waiting for the tool, at every tool choice
+        legal = net.offers
         # a choice the plan did not set up (a plan resumed after another decider chose) gets None: not planned
         if kind == "agv":  # the AGV for the job just dispatched
             j, k = shop.awaiting_agv()[:2]
@@ -202,25 +205,25 @@ class PlanPolicy:
                 return a
         return None
 
-    def _dispatch(self, shop: FullShop, legal: set[int]) -> int | None:
+    def _dispatch(self, shop: FullShop, legal: Callable[[int], bool]) -> int | None:
         for v, here in shop.idle_agvs():
             leg = self._next_leg("agv", v, None)
             if leg is None or leg[0] != "carry":
                 continue
             _, j, k = leg
             a = shop.action_index(f"job:{j}")
-            if a in legal and shop.next_op(j) == k:
+            if legal(a) and shop.next_op(j) == k:
                 return a
         return None
 
-    def _tool(self, shop: FullShop, legal: set[int]) -> int | None:
+    def _tool(self, shop: FullShop, legal: Callable[[int], bool]) -> int | None:
         idle_tts = dict(shop.idle_transporters())
         for t, uses in self.tool.items():
             if not uses:
                 continue
             j, k = uses[0]
             a = shop.action_index(f"tool:{t}")
-            if a not in legal or shop.request_of(t, j) != k or not shop._servable(t):
+            if not legal(a) or shop.request_of(t, j) != k or not shop._servable(t):
                 continue
             r = self.tool_carrier.get((j, k))
             if r is not None:
@@ -232,20 +235,20 @@ class PlanPolicy:
                 return a
         return None
 
-    def _start(self, shop: FullShop, legal: set[int]) -> int | None:
+    def _start(self, shop: FullShop, legal: Callable[[int], bool]) -> int | None:
         for m, queue in self.machine.items():
             if not queue:
                 continue
             j, k = queue[0]
             a = shop.action_index(f"start:{j}")
-            if a in legal and shop.buffered_op(j) == (k, m):
+            if legal(a) and shop.buffered_op(j) == (k, m):
                 return a
         return None
 
 
-def _if_legal(shop: FullShop, label: str, legal: set[int]) -> int | None:
+def _if_legal(shop: FullShop, label: str, legal: Callable[[int], bool]) -> int | None:
     a = shop.action_index(label)
-    return a if a in legal else None
+    return a if legal(a) else None
 
 
 def _consume(queue: Deque[tuple], item: tuple) -> None:

@@ -476,6 +476,14 @@ class Shop:
     def legal_actions(self) -> list[int]:
         return self.net.enabled_actions()
 
+    def first_legal_action(self) -> int:
+        """``legal_actions()[0]`` (the ``first`` solver's choice), without listing every legal action where the
+        net can avoid it (:meth:`fms_sim.petri.Net.first_offered`); raises InvalidAction when none is legal."""
+        a = self.net.first_offered()
+        if a is None:
+            raise InvalidAction(f"no action is legal at time {self.now}")
+        return a
+
     def action_mask(self) -> list[bool]:
         return self.net.mask()
 
@@ -492,7 +500,7 @@ class Shop:
         self._check_progress()
 
     def _check_progress(self) -> None:
-        if not self.done and not self.net.enabled_actions() and self.net.next_event_time() is None:
+        if not self.done and self.net.first_offered() is None and self.net.next_event_time() is None:
             raise Deadlock(f"the shop net is stuck at time {self.now} with {self.p_done.count}/{self.n_jobs} jobs done")
 
     def reposition_agv(self, agv: int, location: int) -> None:

@@ -161,7 +161,7 @@ class Stepper:
                 if idle:
                     self.idle, self.kind = idle, "idle"
                     return self.kind
-            if net.enabled_actions():
+            if net.first_offered() is not None:
                 self.kind = "decision"
                 return self.kind
             if shop.done:
