@@ -151,7 +151,7 @@ class FullShop(Shop):
                 self._tool_ops[j].append((k, op.tool))
         if inst.has_agvs:
             t = net.add_transition(Transition(
-                name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB,
+                name=f"select_job[{j}]", label=f"job:{j}", controllable=True, priority=_P_JOB, lazy=True,
                 arcs=[Arc(self.p_agv_idle, kind="test", count_only=True)],
                 guard=partial(self._job_ok, j), outputs=[Output(self.p_awaiting_agv, partial(self._request_of, j))],
                 on_fire=partial(self._on_job, j)))
@@ -452,9 +452,11 @@ class FullShop(Shop):
                 self._touch_tools()
 
     def _touch_starts(self, m: int) -> None:
-        t_start, touch = self.t_start, self.net.touch
-        for j in self.buf_at[m]:
-            touch(t_start[j])
+        """The machine's state changed: the starts of the parts in its buffer are re-evaluated when asked (a
+        congested machine holds many; Net.defer)."""
+        if self.buf_at[m]:
+            t_start = self.t_start
+            self.net.defer([t_start[j] for j in self.buf_at[m]])
 
     # tools --------------------------------------------------------------
     def _tools_block_full(self) -> None:

@@ -99,7 +99,8 @@ class Place:
     """A place; ``key`` (colour -> hashable) buckets its tokens for O(1) coloured lookups."""
 
     __slots__ = ("name", "key_fn", "buckets", "count", "in_flight", "index",
-                 "_all_listeners", "_key_listeners", "_count_listeners", "_count_key_listeners")
+                 "_all_listeners", "_key_listeners", "_count_listeners", "_count_key_listeners", "_count_lazy",
+                 "_count_lazy_ids", "_gate")
 
     def __init__(self, name: str, key: Callable[[Any], Hashable] | None = None):
         self.name = name
@@ -111,6 +112,11 @@ class Place:
         self._all_listeners: list[Transition] = []
         self._key_listeners: dict[Hashable, list[Transition]] = {}
         self._count_listeners: list[Transition] = []
+        self._count_lazy: list[Transition] = []  # lazy controllable count listeners: deferred on a flip, as a group
+        self._count_lazy_ids: tuple[int, int, set[int]] | None = None  # (action order version, priority, indices)
+        # while the place is empty (its lazy listeners all disabled): the bindings they had before it emptied, and
+        # those of them whose binding is unknown (woken since, or never evaluated with the place non-empty)
+        self._gate: tuple[dict[int, Any], set[int]] | None = None
         self._count_key_listeners: dict[Hashable, list[Transition]] = {}
 
     def tokens(self, key: Hashable = ANY) -> Sequence[Token]:
@@ -174,6 +180,12 @@ class Transition:
     _compiled: tuple = ()
     action: int = -1
     """Position among the controllable transitions (the action index), -1 for autonomous ones."""
+    lazy: bool = False
+    """A controllable transition whose count-only arcs (key ANY) defer it (:meth:`Net.defer`) instead of marking it
+    dirty: many transitions woken together by one place turning empty or non-empty (every job's dispatch when the
+    last idle AGV leaves) are then evaluated only as far as a question about the offered actions needs."""
+    _gate: Any = None
+    """The place of a lazy transition's count-only test arc (set by :meth:`Net.add_transition`)."""
 
     def __hash__(self) -> int:
         return id(self)
@@ -201,7 +213,8 @@ class NetState:
     offered: list[int] | None
     fired: int
     acted: int
-    deferred: list[int] = field(default_factory=list)
+    deferred: dict[int, set[int]] = field(default_factory=dict)
+    gates: list[tuple[dict[int, Any], set[int]] | None] = field(default_factory=list)
 
 
 @dataclass
@@ -227,7 +240,10 @@ class Net:
         self._levels: dict[int, set[int]] = {}  # priority -> enabled controllable indices (kept with the cache)
         self._dirty_ctrl: set[int] = set()
         self._offered: list[int] | None = None
-        self._deferred: list[int] = []  # controllable indices, ascending, to re-evaluate only when asked (defer)
+        self._deferred: dict[int, set[int]] = {}  # priority -> controllable indices to evaluate only when asked
+        self._dheap: dict[int, list[int]] = {}  # priority -> a heap over (at least) its deferred indices, for order
+        self._gated: list[Place] = []  # places with lazy count-only listeners (Transition.lazy)
+        self._order_version = 0  # set_action_order renumbers the actions: cached index sets are rebuilt
         self.fired = 0
         self.acted = 0
         """Controllable transitions fired so far (the number of decisions taken)."""
@@ -257,7 +273,20 @@ class Net:
         for a in t.arcs:
             p = a.place
             if a.count_only and a.kind != "in":
-                if a.key is ANY:
+                if a.key is ANY and t.lazy and t.controllable and a.kind == "test":
+                    if t._gate is not None and t._gate is not p:
+                        raise ValueError(f"lazy transition {t.name!r} has count-only test arcs on two places")
+                    t._gate = p
+                    if not p._count_lazy:
+                        self._gated.append(p)
+                    p._count_lazy.append(t)
+                    p._count_lazy_ids = None
+                    if p.count == 0:  # disabled now; its binding is unknown until the place fills
+                        self._dirty_ctrl.discard(t.action)
+                        if p._gate is None:
+                            p._gate = ({}, set())
+                        p._gate[1].add(t.action)
+                elif a.key is ANY:
                     p._count_listeners.append(t)
                 elif callable(a.key):
                     p._all_listeners.append(t)
@@ -279,7 +308,14 @@ class Net:
         self._enabled = {}
         self._levels = {}
         self._dirty_ctrl = set(range(len(self.controllable)))
-        self._deferred = []
+        self._deferred = {}
+        self._dheap = {}
+        self._order_version += 1
+        for p in self._gated:  # renumbered: what a closed gate remembers is unknown again
+            p._count_lazy_ids = None
+            if p.count == 0:
+                p._gate = ({}, {t.action for t in p._count_lazy})
+                self._dirty_ctrl -= p._gate[1]
         self._offered = None
 
     # ------------------------------------------------------------------ marking changes
@@ -323,6 +359,11 @@ class Net:
         if place_flip:
             for t in place._count_listeners:
                 self._mark(t)
+            if place._count_lazy:
+                if place.count:
+                    self._open_gate(place)
+                else:
+                    self._close_gate(place)
         if bucket_flip:
             ls = place._count_key_listeners.get(key)
             if ls:
@@ -385,6 +426,13 @@ class Net:
 
     def _mark(self, t: Transition) -> None:
         if t.action >= 0:
+            gate = t._gate
+            if gate is not None and gate.count == 0 and gate._gate is not None:
+                # disabled while its place is empty: re-evaluated when the place fills (its remembered binding is
+                # no longer known)
+                gate._gate[0].pop(t.action, None)
+                gate._gate[1].add(t.action)
+                return
             self._dirty_ctrl.add(t.action)
             self._offered = None
         else:
@@ -508,65 +556,166 @@ class Net:
                         level.add(i)
             self._dirty_ctrl.clear()
         if not lazy and self._deferred:
-            for i in self._deferred:
-                self._evaluate(i)
-            self._deferred = []
+            for ids in self._deferred.values():
+                for i in sorted(ids):
+                    self._evaluate(i)
+            self._deferred = {}
+            self._dheap = {}
 
     # ------------------------------------------------------------------ deferred evaluation
     def defer(self, transitions: Sequence[Transition]) -> None:
-        """Mark controllable ``transitions`` (all of one priority) for re-evaluation, like :meth:`touch`, but
-        evaluate them only when a question about the offered actions needs them: :meth:`enabled_actions` and
-        :meth:`mask` evaluate them all; :meth:`first_offered`, :meth:`offers` and :meth:`act` only as many as
-        the answer depends on, lowest action first. For a module that wakes many choices at once of which a
-        decider usually reads few (the requests a tool could serve): the answers are the same as with
-        :meth:`touch`, since a binding depends only on the state at the time it is evaluated."""
+        """Mark controllable ``transitions`` for re-evaluation, like :meth:`touch`, but evaluate them only when a
+        question about the offered actions needs them: :meth:`enabled_actions` and :meth:`mask` evaluate them
+        all; :meth:`first_offered`, :meth:`offers` and :meth:`act` only as many as the answer depends on, lowest
+        action first. For a module that wakes many choices at once of which a decider usually reads few (the
+        requests a tool could serve): the answers are those of :meth:`touch`, since a binding depends only on the
+        state when it is evaluated, and every change of that state marks or defers the transition again."""
         if not transitions:
             return
-        priority = transitions[0].priority
-        if any(t.action < 0 or t.priority != priority for t in transitions):
-            raise ValueError("defer takes controllable transitions of one priority")
-        if self._deferred and self.controllable[self._deferred[0]].priority != priority:
-            self._refresh_ctrl()  # one deferred level at a time: settle the other one first
-        ids = {t.action for t in transitions}
-        for i in ids:  # unknown until evaluated: no cached binding may answer for them
-            if self._enabled.get(i) is not None:
-                self._enabled[i] = None
-                self._levels[priority].discard(i)
-        self._dirty_ctrl.difference_update(ids)
-        self._deferred = sorted(ids.union(self._deferred))
+        priorities = {t.priority for t in transitions}
+        if len(priorities) == 1:
+            ids = {t.action for t in transitions}
+            if -1 in ids:
+                raise ValueError("defer takes controllable transitions, not autonomous ones")
+            self._defer_ids(priorities.pop(), ids)
+            return
+        for p in priorities:
+            self.defer([t for t in transitions if t.priority == p])
+
+    def _group(self, place: Place) -> tuple[int, set[int]]:
+        """``(priority, action indices)`` of the lazy count-only listeners of ``place`` (cached per action order)."""
+        cached = place._count_lazy_ids
+        if cached is None or cached[0] != self._order_version:
+            group = place._count_lazy
+            if len({t.priority for t in group}) != 1:
+                raise ValueError(f"the lazy transitions reading place {place.name!r} must share one priority")
+            cached = place._count_lazy_ids = (self._order_version, group[0].priority, {t.action for t in group})
+        return cached[1], cached[2]
+
+    def _close_gate(self, place: Place) -> None:
+        """``place`` turned empty: its lazy listeners are disabled (their test arc fails) without evaluating them;
+        the bindings of those enabled are remembered for when it fills again, unless they are woken meanwhile."""
+        priority, ids = self._group(place)
+        enabled = self._enabled
+        level = self._levels.get(priority)
+        on = level & ids if level else set()
+        unknown: set[int] = set()
+        d = self._deferred.get(priority)
+        if d:
+            unknown |= d & ids
+            d -= unknown
+            if not d:
+                self._dheap.pop(priority, None)
+        if self._dirty_ctrl:
+            dirty = self._dirty_ctrl & ids
+            if dirty:
+                unknown |= dirty
+                self._dirty_ctrl -= dirty
+        saved = {i: enabled[i] for i in on if i not in unknown}
+        for i in on:
+            enabled[i] = None
+        if on:
+            level -= on
+        place._gate = (saved, unknown)
+        self._offered = None
+
+    def _open_gate(self, place: Place) -> None:
+        """``place`` filled again: its lazy listeners get back the bindings they had (nothing they read but the
+        place changed, or they would have been woken), and the ones woken meanwhile are deferred."""
+        priority, ids = self._group(place)
+        gate, place._gate = place._gate, None
+        if gate is None:  # (nothing remembered: all unknown)
+            self._defer_ids(priority, ids)
+            return
+        saved, unknown = gate
+        if saved:
+            level = self._levels.get(priority)
+            if level is None:
+                level = self._levels[priority] = set()
+            self._enabled.update(saved)
+            level.update(saved)
+        if unknown:
+            self._defer_ids(priority, unknown)
+        self._offered = None
+
+    def _defer_ids(self, priority: int, ids: set[int]) -> None:
+        level = self._levels.get(priority)
+        if level:
+            stale = level & ids  # unknown until evaluated: no cached binding may answer for them
+            if stale:
+                enabled = self._enabled
+                for i in stale:
+                    enabled[i] = None
+                level -= stale
+        if self._dirty_ctrl:
+            self._dirty_ctrl -= ids
+        d = self._deferred.get(priority)
+        heap = self._dheap.get(priority)
+        if not d or heap is None:
+            self._deferred[priority] = d = set(ids) if not d else d | ids
+            self._dheap[priority] = sorted(d)  # (a sorted list is a heap)
+        else:
+            new = ids - d
+            if new:
+                d |= new
+                if len(new) < 8:
+                    for i in new:
+                        heapq.heappush(heap, i)
+                else:
+                    heap.extend(new)
+                    heapq.heapify(heap)
         self._offered = None
 
     def disable(self, transitions: Sequence[Transition]) -> None:
         """Record that controllable ``transitions`` are not enabled now, without evaluating them: for a module
         whose state change just closed all of them at once (a choice made: every candidate's guard is now false;
         the caller guarantees it). Cheaper than :meth:`touch` and a re-evaluation of each."""
+        if not transitions:
+            return
+        priorities = {t.priority for t in transitions}
+        if len(priorities) > 1:
+            for p in priorities:
+                self.disable([t for t in transitions if t.priority == p])
+            return
+        p = priorities.pop()
         ids = {t.action for t in transitions}
-        enabled, levels = self._enabled, self._levels
-        for t in transitions:
-            i = t.action
-            if enabled.get(i) is not None:
-                enabled[i] = None
-                levels[t.priority].discard(i)
-        self._dirty_ctrl.difference_update(ids)
-        if self._deferred:
-            self._deferred = [i for i in self._deferred if i not in ids]
+        level = self._levels.get(p)
+        if level:
+            on = level & ids
+            if on:
+                enabled = self._enabled
+                for i in on:
+                    enabled[i] = None
+                level -= on
+        d = self._deferred.get(p)
+        if d:
+            d -= ids
+            if not d:
+                self._dheap.pop(p, None)
+        if self._dirty_ctrl:
+            self._dirty_ctrl -= ids
         self._offered = None
 
-    def _deferred_enabled(self, below: int | None = None) -> int | None:
-        """The lowest deferred action that is enabled (evaluating deferred actions in order, up to ``below``,
-        exclusive, when given), or None; the ones evaluated leave the deferred list."""
-        dq = self._deferred
-        n = 0
-        found = None
-        while n < len(dq) and (below is None or dq[n] < below):
-            i = dq[n]
-            n += 1
+    def _deferred_enabled(self, priority: int, below: int | None = None) -> int | None:
+        """The lowest deferred action of level ``priority`` that is enabled, evaluating the level's deferred
+        actions in order (only those below ``below``, when given), or None; the ones evaluated leave the list."""
+        d = self._deferred.get(priority)
+        if not d:
+            return None
+        heap = self._dheap[priority]
+        pop = heapq.heappop
+        while heap:
+            i = heap[0]
+            if i not in d:  # (evaluated or disabled since it was deferred)
+                pop(heap)
+                continue
+            if below is not None and i >= below:
+                return None
+            pop(heap)
+            d.discard(i)
             if self._evaluate(i) is not None:
-                found = i
-                break
-        if n:
-            del dq[:n]
-        return found
+                return i
+        return None
 
     def first_offered(self) -> int | None:
         """The lowest action offered now (``enabled_actions()[0]``, None if none), evaluating deferred
@@ -577,14 +726,13 @@ class Net:
         if self._offered is not None:
             return self._offered[0] if self._offered else None
         self._refresh_ctrl(lazy=True)
-        dp = self.controllable[self._deferred[0]].priority if self._deferred else None
-        for p in sorted({p for p, level in self._levels.items() if level} | ({dp} if self._deferred else set())):
-            level = self._levels.get(p)
+        levels, deferred = self._levels, self._deferred
+        for p in sorted({p for p, level in levels.items() if level} | {p for p, d in deferred.items() if d}):
+            level = levels.get(p)
             low = min(level) if level else None
-            if p == dp:
-                hit = self._deferred_enabled(low)
-                if hit is not None:
-                    return hit
+            hit = self._deferred_enabled(p, low)
+            if hit is not None:
+                return hit
             if low is not None:
                 return low
         return None
@@ -595,17 +743,19 @@ class Net:
         if not self.incremental:
             return action in self.enabled_actions()
         self._refresh_ctrl(lazy=True)
-        if self._deferred and action in self._deferred:
-            self._deferred.remove(action)
+        p = self.controllable[action].priority
+        d = self._deferred.get(p)
+        if d and action in d:
+            d.discard(action)
             self._evaluate(action)
         if self._enabled.get(action) is None:
             return False
-        p = self.controllable[action].priority
         for q, level in self._levels.items():
             if level and q < p:
                 return False
-        if self._deferred and self.controllable[self._deferred[0]].priority < p:
-            return self._deferred_enabled() is None
+        for q in sorted(q for q, d in self._deferred.items() if d and q < p):
+            if self._deferred_enabled(q) is not None:
+                return False
         return True
 
     def enabled_actions(self) -> list[int]:
@@ -739,7 +889,8 @@ class Net:
             [({k: list(b) for k, b in p.buckets.items()}, p.count, p.in_flight) for p in self.places],
             self.now, list(self._pending), self._seq, list(self._dirty_auto), set(self._auto_marked),
             dict(self._enabled), {p: set(v) for p, v in self._levels.items()}, set(self._dirty_ctrl), self._offered,
-            self.fired, self.acted, list(self._deferred))
+            self.fired, self.acted, {p: set(d) for p, d in self._deferred.items()},
+            [None if p._gate is None else (dict(p._gate[0]), set(p._gate[1])) for p in self._gated])
 
     def restore_state(self, state: "NetState") -> None:
         """Put back a state of :meth:`save_state` (raises ValueError if the net's structure changed since)."""
@@ -755,7 +906,10 @@ class Net:
         self._enabled = dict(state.enabled)
         self._levels = {p: set(v) for p, v in state.levels.items()}
         self._dirty_ctrl = set(state.dirty_ctrl)
-        self._deferred = list(state.deferred)
+        self._deferred = {p: set(d) for p, d in state.deferred.items() if d}
+        self._dheap = {p: sorted(d) for p, d in self._deferred.items()}
+        for p, gate in zip(self._gated, state.gates):
+            p._gate = None if gate is None else (dict(gate[0]), set(gate[1]))
         self._offered = state.offered
 
     def state_key(self) -> int:
