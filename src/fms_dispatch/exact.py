@@ -476,6 +476,19 @@ def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence
     return best_v, start
 
 
+def _lowest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]],
+                    src: int) -> tuple[int, int, int]:
+    """``(earliest arrival at src, its empty trip, vehicle)``, the least of the fleet (ties: the shorter empty trip,
+    then the lowest number): :func:`_earliest_vehicle`'s answer for every ``ready`` up to that arrival."""
+    best = None
+    for v, loc in enumerate(locs):
+        e = travel[loc][src]
+        f = free[v] + e
+        if best is None or f < best[0] or (f == best[0] and e < best[1]):
+            best = (f, e, v)
+    return best if best is not None else (0, 0, -1)
+
+
 def greedy_schedule(
     inst: Instance,
     *,
@@ -536,17 +549,38 @@ def greedy_schedule(
     agv_best: list[tuple[int, int, int, int, int] | None] = [None] * nj
     tt_best: list[tuple[int, int, int, int, int] | None] = [None] * nj
 
-    def earliest(cache: list, j: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]], src: int,
-                 rdy: int) -> tuple[int, int]:
+    # per fleet (the AGVs' cache list or the transporters'), answers of _earliest_vehicle while no vehicle of the
+    # fleet moves: by (from, not before), and the least arrival at each place (every "not before" up to it has
+    # that answer): many jobs ask the same (a tool's requests; parts waiting for the AGVs on a congested shop)
+    agv_memo: tuple[dict, dict] = ({}, {})
+    tt_memo: tuple[dict, dict] = ({}, {})
+
+    def earliest(cache: list, memo: tuple[dict, dict], j: int, locs: list[int], free: list[int],
+                 travel: Sequence[Sequence[int]], src: int, rdy: int) -> tuple[int, int]:
         c = cache[j]
         if c is None:
-            v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
-            e = travel[locs[v]][src] if v >= 0 else 0
+            answers, lowest = memo
+            low = None
+            if not near:
+                low = lowest.get(src)
+                if low is None:
+                    low = lowest[src] = _lowest_vehicle(locs, free, travel, src)
+            if low is not None and rdy <= low[0] and low[2] >= 0:
+                st, e, v = low
+            else:
+                got = answers.get((src, rdy))
+                if got is None:
+                    v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
+                    got = answers[src, rdy] = (v, st, travel[locs[v]][src] if v >= 0 else 0)
+                v, st, e = got
             c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
         return c[2], c[5]
 
-    def moved(cache: list, v: int, locs: list[int], free: list[int], travel: Sequence[Sequence[int]]) -> None:
+    def moved(cache: list, memo: tuple[dict, dict], v: int, locs: list[int], free: list[int],
+              travel: Sequence[Sequence[int]]) -> None:
         """Vehicle ``v`` got a new place and time: update every job's earliest vehicle (and its plan)."""
+        memo[0].clear()
+        memo[1].clear()
         here, fv = travel[locs[v]], free[v]
         for i, c in enumerate(cache):
             if c is None:
@@ -581,7 +615,7 @@ def greedy_schedule(
         elif atr is not None:
             pick = jobs[j][k - 1].machine if k else 0
             if pick != m:
-                best_a, ls = earliest(agv_best, j, agv_loc, agv_free, atr, pick, ready[j])
+                best_a, ls = earliest(agv_best, agv_memo, j, agv_loc, agv_free, atr, pick, ready[j])
                 arrive = ls + atr[pick][m]
         tool_at, best_r, tls = 0, -1, 0
         if ttr is not None and op.tool is not None:
@@ -595,7 +629,7 @@ def greedy_schedule(
                 tool_at = tool_free[t]
             else:
                 src = tool_loc[t]
-                best_r, tls = earliest(tt_best, j, tr_loc, tr_free, ttr, src, tool_free[t])
+                best_r, tls = earliest(tt_best, tt_memo, j, tr_loc, tr_free, ttr, src, tool_free[t])
                 tool_at = tls + ttr[src][m]
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration
@@ -654,7 +688,7 @@ def greedy_schedule(
                 agv_trips.append(AgvTrip(a, None, None, agv_loc[a], pick, e0, e0 + atr[agv_loc[a]][pick], False))
             agv_trips.append(AgvTrip(a, j, k, pick, m, ls, ls + atr[pick][m], True))
             agv_loc[a], agv_free[a] = m, ls + atr[pick][m]
-            moved(agv_best, a, agv_loc, agv_free, atr)
+            moved(agv_best, agv_memo, a, agv_loc, agv_free, atr)
         if r >= 0:
             assert ttr is not None and op.tool is not None
             src = tool_loc[op.tool]
@@ -663,7 +697,7 @@ def greedy_schedule(
                 tool_trips.append(ToolTrip(r, None, None, None, tr_loc[r], src, e0, e0 + ttr[tr_loc[r]][src], False))
             tool_trips.append(ToolTrip(r, op.tool, j, k, src, m, tls, tls + ttr[src][m], True))
             tr_loc[r], tr_free[r] = m, tls + ttr[src][m]
-            moved(tt_best, r, tr_loc, tr_free, ttr)
+            moved(tt_best, tt_memo, r, tr_loc, tr_free, ttr)
         if ttr is not None and op.tool is not None:
             tool_loc[op.tool], tool_free[op.tool] = m, end
             if reserved:
