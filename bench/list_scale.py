@@ -38,6 +38,11 @@ from decide_speed import _sources  # noqa: E402  (the baseline's temporary workt
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def _t(seconds: float) -> str:
+    """A time for the table: seconds, or milliseconds below one second."""
+    return f"{seconds:8.3f} s " if seconds >= 1 else f"{1000 * seconds:8.3f} ms"
+
+
 def fingerprint(sched: Any) -> str:
     """A digest of everything a schedule fixes: each operation, AGV trip and tool trip with its times, in order."""
     text = repr((sched.makespan, sched.operations, sched.agv_trips, sched.tool_trips))  # (dataclass reprs: every field)
@@ -123,7 +128,7 @@ def main() -> None:
             got = {who: _worker(src, task, a.repeat) for who, src in sources}
             n = got["new"]
             row = dict(n)
-            line = f"{n['shop']:28s} {n['solver']:12s} {n['operations']:6d} ops  {n['seconds']:8.3f} s"
+            line = f"{n['shop']:28s} {n['solver']:12s} {n['operations']:6d} ops  {_t(n['seconds'])}"
             if a.baseline:
                 b = got["base"]
                 if (b["makespan"], b["fingerprint"]) != (n["makespan"], n["fingerprint"]):
@@ -131,7 +136,7 @@ def main() -> None:
                                      f"{b['makespan']} against {n['makespan']}, fingerprint {b['fingerprint']} against "
                                      f"{n['fingerprint']})")
                 row["baseline_seconds"] = b["seconds"]
-                line += f"  against {b['seconds']:8.3f} s, {b['seconds'] / n['seconds']:6.2f}x"
+                line += f"  against {_t(b['seconds'])}, {b['seconds'] / n['seconds']:6.2f}x"
             line += f"  makespan {n['makespan']}" + (" (same schedule)" if a.baseline else "")
             print(line, flush=True)
             lines.append(line)

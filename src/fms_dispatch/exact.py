@@ -476,17 +476,23 @@ def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence
     return best_v, start
 
 
-def _lowest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]],
-                    src: int) -> tuple[int, int, int]:
-    """``(earliest arrival at src, its empty trip, vehicle)``, the least of the fleet (ties: the shorter empty trip,
-    then the lowest number): :func:`_earliest_vehicle`'s answer for every ``ready`` up to that arrival."""
-    best = None
+def _earliest_and_lowest(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]], src: int,
+                         ready: int) -> tuple[int, int, int, tuple[int, int, int] | None]:
+    """``(vehicle, start, empty trip, lowest)``: :func:`_earliest_vehicle`'s answer (earliest start; ``(-1, 0, 0,
+    None)`` without vehicles) and, in the same pass, ``lowest = (earliest arrival at src, its empty trip,
+    vehicle)``, the least over the fleet (ties: the shorter empty trip, then the lowest number), which is the answer
+    for every ``ready`` up to that arrival."""
+    best_v, start, empty = -1, 0, 0
+    low_f = low_e = low_v = -1
     for v, loc in enumerate(locs):
         e = travel[loc][src]
         f = free[v] + e
-        if best is None or f < best[0] or (f == best[0] and e < best[1]):
-            best = (f, e, v)
-    return best if best is not None else (0, 0, -1)
+        if low_v < 0 or f < low_f or (f == low_f and e < low_e):
+            low_f, low_e, low_v = f, e, v
+        s = f if f > ready else ready
+        if best_v < 0 or s < start or (s == start and e < empty):
+            best_v, start, empty = v, s, e
+    return best_v, start, empty, ((low_f, low_e, low_v) if low_v >= 0 else None)
 
 
 def greedy_schedule(
@@ -560,18 +566,21 @@ def greedy_schedule(
         c = cache[j]
         if c is None:
             answers, lowest = memo
-            low = None
-            if not near:
-                low = lowest.get(src)
-                if low is None:
-                    low = lowest[src] = _lowest_vehicle(locs, free, travel, src)
-            if low is not None and rdy <= low[0] and low[2] >= 0:
+            low = lowest.get(src) if not near else None
+            if low is not None and rdy <= low[0]:
                 st, e, v = low
             else:
                 got = answers.get((src, rdy))
                 if got is None:
-                    v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
-                    got = answers[src, rdy] = (v, st, travel[locs[v]][src] if v >= 0 else 0)
+                    if near:
+                        v, st = _earliest_vehicle(locs, free, travel, src, rdy, True)
+                        got = (v, st, travel[locs[v]][src] if v >= 0 else 0)
+                    else:
+                        v, st, e, low = _earliest_and_lowest(locs, free, travel, src, rdy)
+                        got = (v, st, e)
+                        if low is not None:
+                            lowest[src] = low
+                    answers[src, rdy] = got
                 v, st, e = got
             c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
         return c[2], c[5]
