@@ -698,3 +698,28 @@ def test_an_interrupted_search_carries_its_best_schedule():
     assert isinstance(exc.start_makespan, int) and exc.start_makespan >= best.makespan
     assert best.meta == {"solver": "cpsat", "status": "INTERRUPTED", "lower_bound": exc.lower_bound,
                          "wall_time": round(exc.wall_time, 3), "start_makespan": exc.start_makespan}
+
+
+def test_a_fleets_least_arrival_answers_every_earlier_ready_time():
+    """The list schedule asks a fleet once per place between two moves (fms_dispatch.exact._earliest_and_lowest):
+    its answer must be _earliest_vehicle's, and the least arrival it reports must be the answer for every ready
+    time up to it, ties included (equal arrivals, equal empty trips)."""
+    from fms_dispatch.exact import _earliest_and_lowest, _earliest_vehicle
+
+    rng = random.Random(11)
+    for _ in range(3000):
+        n_loc = rng.randint(1, 5)
+        travel = [[0 if a == b else rng.randint(0, 4) for b in range(n_loc)] for a in range(n_loc)]
+        size = rng.randint(0, 5)
+        locs = [rng.randrange(n_loc) for _ in range(size)]
+        free = [rng.randint(0, 8) for _ in range(size)]
+        src, ready = rng.randrange(n_loc), rng.randint(0, 14)
+        v, start, empty, low = _earliest_and_lowest(locs, free, travel, src, ready)
+        assert (v, start) == _earliest_vehicle(locs, free, travel, src, ready)
+        assert empty == (travel[locs[v]][src] if v >= 0 else 0)
+        if not size:
+            assert low is None
+            continue
+        for earlier in range(low[0] + 1):
+            assert _earliest_vehicle(locs, free, travel, src, earlier) == (low[2], low[0])
+        assert low[1] == travel[locs[low[2]]][src]

@@ -222,3 +222,31 @@ def test_cpsat_takes_no_seed_as_seed_0_and_its_interrupt_crosses_processes():
     back = pickle.loads(pickle.dumps(SearchInterrupted(s, 80, 1.5, 90)))
     assert isinstance(back, KeyboardInterrupt)
     assert (back.best, back.lower_bound, back.wall_time, back.start_makespan) == (s, 80, 1.5, 90)
+
+
+@pytest.mark.parametrize("spec", ["gen:150x8x4*1@7", "gen:150x8x4*1@7/notools", "EX104", "ra01", "sl31"])
+def test_first_and_list_on_a_mid_size_shop_match_the_slow_reference(spec):
+    """``first`` asks the net for its lowest offered action only (deferred and lazy transitions stay unevaluated);
+    its run must be the one made by reading the whole list of legal actions at every decision (the reference:
+    every transition evaluated), and ``list`` must replay its plan into a valid schedule no later than the plan."""
+    from fms_dispatch.exact import greedy_schedule
+    from fms_dispatch.full_rules import run_full
+    from fms_sim.formats import load_instance
+    from fms_sim.shopsets import expand_specs
+
+    inst = expand_specs([spec])[0] if spec.startswith("gen:") else load_instance(spec)
+    for decisions in ("full", "paper"):
+        fast = solve(inst, "first", decisions=decisions)
+        assert validate(inst, fast) == []
+        if decisions == "full":
+            slow = run_full(inst, lambda shop: shop.legal_actions()[0])
+        else:
+            from fms_sim.shop import run_policy
+
+            slow = run_policy(inst, lambda shop: shop.legal_actions()[0])
+        assert (fast.operations, fast.agv_trips, fast.tool_trips) == (slow.operations, slow.agv_trips,
+                                                                    slow.tool_trips)
+    listed = solve(inst, "list")
+    plan = greedy_schedule(inst, rule="est")
+    assert validate(inst, listed) == [] and validate(inst, plan) == []
+    assert listed.makespan <= plan.makespan

@@ -88,3 +88,85 @@ def test_marking_counts_sojourning_tokens():
     net.put(b, 2, delay=5)
     assert net.marking() == {"a": 1, "b": 0, "b~": 1}
     assert net.next_event_time() == 5
+
+
+def _lazy_net(lazy: bool):
+    """A net with many controllable choices behind one count-only read arc (like the full net's dispatches behind
+    the idle AGVs), a guard that reads state kept outside the marking, and a more urgent level of pure guards."""
+    net = Net()
+    gate, work = net.add_place("gate"), net.add_place("work", key=lambda c: c)
+    state = {"on": set(range(0, 12, 3)), "pick": None}
+    picks = [net.add_transition(Transition(
+        f"pick[{i}]", [], controllable=True, priority=1, label=f"pick:{i}",
+        guard=lambda b, i=i: state["pick"] is not None and (i + state["pick"]) % 4 != 0)) for i in range(8)]
+    jobs = [net.add_transition(Transition(
+        f"job[{i}]", [Arc(gate, kind="test", count_only=True)], controllable=True, priority=5, label=f"job:{i}",
+        lazy=lazy, guard=lambda b, i=i: i in state["on"])) for i in range(12)]
+    starts = [net.add_transition(Transition(
+        f"start[{i}]", [Arc(work, "w", key=i)], controllable=True, priority=5, label=f"start:{i}",
+        guard=lambda b, i=i: i % 2 == 0 or state["pick"] is None)) for i in range(6)]
+    return net, gate, work, state, picks, jobs, starts
+
+
+def test_deferred_and_lazy_transitions_answer_as_eager_evaluation_does():
+    """first_offered and offers (which evaluate deferred and lazy transitions only as far as they must) give what
+    enabled_actions gives on a twin that touches everything, through a random run of changes."""
+    import random as _random
+
+    rng = _random.Random(7)
+    lazy = _lazy_net(True)
+    eager = _lazy_net(False)
+    for step in range(400):
+        what = rng.randrange(6)
+        for net, gate, work, state, picks, jobs, starts in (lazy, eager):
+            r = _random.Random(step)
+            if what == 0:
+                net.put(gate, "g")
+            elif what == 1 and len(gate):
+                net.take(gate, None)
+            elif what == 2:
+                i = r.randrange(12)
+                state["on"] ^= {i}
+                net.touch(jobs[i])
+            elif what == 3:
+                net.put(work, r.randrange(6))
+            elif what == 4:
+                state["pick"] = r.randrange(4) if state["pick"] is None else None
+                touched = picks + starts
+                if net is lazy[0]:
+                    net.defer(touched)
+                else:
+                    for t in touched:
+                        net.touch(t)
+            elif what == 5 and state["pick"] is not None and net is lazy[0]:
+                state["pick"] = None
+                net.disable(picks)
+                net.defer(starts)
+            elif what == 5 and state["pick"] is not None:
+                state["pick"] = None
+                for t in picks + starts:
+                    net.touch(t)
+        probe = rng.randrange(len(lazy[0].controllable))
+        want = eager[0].enabled_actions()
+        assert lazy[0].offers(probe) == (probe in want), step
+        assert lazy[0].first_offered() == (want[0] if want else None), step
+        if rng.random() < 0.3:  # sometimes the full list too (it evaluates everything deferred)
+            assert lazy[0].enabled_actions() == want, step
+        if rng.random() < 0.1:  # and a saved state comes back with what was deferred
+            saved = lazy[0].save_state()
+            lazy[0].enabled_actions()
+            lazy[0].restore_state(saved)
+
+
+def test_act_evaluates_a_deferred_action_and_refuses_a_less_urgent_one():
+    net, gate, work, state, picks, jobs, starts = _lazy_net(True)
+    net.put(gate, "g")
+    state["pick"] = 1
+    net.defer(picks)
+    assert net.first_offered() == picks[0].action  # (0 + 1) % 4 != 0
+    with pytest.raises(InvalidAction, match="more urgent"):
+        net.act(jobs[0].action)
+    with pytest.raises(InvalidAction, match="not enabled"):
+        net.act(picks[3].action)  # (3 + 1) % 4 == 0
+    with pytest.raises(ValueError, match="controllable"):
+        net.defer([net.add_transition(Transition("auto", [Arc(work, "w")]))])
