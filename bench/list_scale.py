@@ -133,7 +133,8 @@ def main() -> None:
                     r = _worker(src, task, a.repeat)
                     old = got.get(who)
                     if old is not None and (old["makespan"], old["fingerprint"]) != (r["makespan"], r["fingerprint"]):
-                        raise SystemExit(f"{r['shop']} ({r['solver']}): two runs of one source made different schedules")
+                        raise SystemExit(f"{r['shop']} ({r['solver']}): two runs of the {who} source made different "
+                                         "schedules")
                     if old is None or r["seconds"] < old["seconds"]:
                         got[who] = r
             n = got["new"]
