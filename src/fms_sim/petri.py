@@ -25,6 +25,12 @@ available. It never ticks unit by unit.
 Speed: every place knows which transitions read it, per key bucket where the arc key is a constant. A change
 marks only those transitions dirty; test/inhibitor arcs that only count tokens (``count_only=True``) are woken
 only when their bucket turns empty or non-empty. Masks are cached and only dirty transitions are re-evaluated.
+Where one change wakes many choices of which a decider reads few (every job's dispatch when the last idle AGV
+leaves, every candidate of a tool's request choice), the net need not evaluate them all: a module *defers* them
+(:meth:`Net.defer`) or marks them *lazy* (:attr:`Transition.lazy`: behind a count-only read arc they are disabled
+while the place is empty and get their bindings back when it fills), and :meth:`Net.first_offered` and
+:meth:`Net.offers` evaluate them lowest action first only as far as the answer needs; :meth:`Net.enabled_actions`
+(the full list, the mask) evaluates them all. The answers are the same either way.
 """
 
 from __future__ import annotations
