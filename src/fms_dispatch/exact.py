@@ -476,6 +476,10 @@ def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence
     return best_v, start
 
 
+#: the list schedule memoises its fleets' answers on shops of at least this many jobs (see greedy_schedule)
+_MEMO_JOBS = 40
+
+
 def _earliest_and_lowest(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]], src: int,
                          ready: int) -> tuple[int, int, int, tuple[int, int, int] | None]:
     """``(vehicle, start, empty trip, lowest)``: :func:`_earliest_vehicle`'s answer (earliest start; ``(-1, 0, 0,
@@ -557,14 +561,20 @@ def greedy_schedule(
 
     # per fleet (the AGVs' cache list or the transporters'), answers of _earliest_vehicle while no vehicle of the
     # fleet moves: by (from, not before), and the least arrival at each place (every "not before" up to it has
-    # that answer): many jobs ask the same (a tool's requests; parts waiting for the AGVs on a congested shop)
-    agv_memo: tuple[dict, dict] = ({}, {})
-    tt_memo: tuple[dict, dict] = ({}, {})
+    # that answer): many jobs ask the same (a tool's requests; parts waiting for the AGVs on a congested shop). Only
+    # on shops of many jobs: on a few it costs more than it saves (the guide's plan search runs thousands of these)
+    memoise = nj >= _MEMO_JOBS
+    agv_memo: tuple[dict, dict] | None = ({}, {}) if memoise else None
+    tt_memo: tuple[dict, dict] | None = ({}, {}) if memoise else None
 
-    def earliest(cache: list, memo: tuple[dict, dict], j: int, locs: list[int], free: list[int],
+    def earliest(cache: list, memo: tuple[dict, dict] | None, j: int, locs: list[int], free: list[int],
                  travel: Sequence[Sequence[int]], src: int, rdy: int) -> tuple[int, int]:
         c = cache[j]
-        if c is None:
+        if c is None and memo is None:
+            v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
+            e = travel[locs[v]][src] if v >= 0 else 0
+            c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
+        elif c is None:
             answers, lowest = memo
             low = lowest.get(src) if not near else None
             if low is not None and rdy <= low[0]:
@@ -585,11 +595,12 @@ def greedy_schedule(
             c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
         return c[2], c[5]
 
-    def moved(cache: list, memo: tuple[dict, dict], v: int, locs: list[int], free: list[int],
+    def moved(cache: list, memo: tuple[dict, dict] | None, v: int, locs: list[int], free: list[int],
               travel: Sequence[Sequence[int]]) -> None:
         """Vehicle ``v`` got a new place and time: update every job's earliest vehicle (and its plan)."""
-        memo[0].clear()
-        memo[1].clear()
+        if memo is not None:
+            memo[0].clear()
+            memo[1].clear()
         here, fv = travel[locs[v]], free[v]
         for i, c in enumerate(cache):
             if c is None:

@@ -347,7 +347,9 @@ class FullShop(Shop):
         self.machine_busy_until[m] = now + d
         self.m_idle[m] = False
         self.buf_at[m].discard(j)
-        self._touch_starts(m)
+        if self.buf_at[m]:  # the machine is busy: every start on it is off, known without evaluating each
+            t_start = self.t_start
+            self.net.disable([t_start[i] for i in self.buf_at[m]])
         self.started[j] = k + 1
         if self.t_job:
             self.net.touch(self.t_job[j])
@@ -454,9 +456,14 @@ class FullShop(Shop):
     def _touch_starts(self, m: int) -> None:
         """The machine's state changed: the starts of the parts in its buffer are re-evaluated when asked (a
         congested machine holds many; Net.defer)."""
-        if self.buf_at[m]:
+        buf = self.buf_at[m]
+        if len(buf) > 4:
             t_start = self.t_start
-            self.net.defer([t_start[j] for j in self.buf_at[m]])
+            self.net.defer([t_start[j] for j in buf])
+        else:  # (a few: evaluated at once, cheaper than deferring)
+            t_start, touch = self.t_start, self.net.touch
+            for j in buf:
+                touch(t_start[j])
 
     # tools --------------------------------------------------------------
     def _tools_block_full(self) -> None:

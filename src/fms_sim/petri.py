@@ -731,7 +731,8 @@ class Net:
             return offered[0] if offered else None
         if self._offered is not None:
             return self._offered[0] if self._offered else None
-        self._refresh_ctrl(lazy=True)
+        if self._dirty_ctrl:
+            self._refresh_ctrl(lazy=True)
         levels, deferred = self._levels, self._deferred
         for p in sorted({p for p, level in levels.items() if level} | {p for p, d in deferred.items() if d}):
             level = levels.get(p)
@@ -748,20 +749,24 @@ class Net:
         only as far as the answer needs, and without listing the offered ones."""
         if not self.incremental:
             return action in self.enabled_actions()
-        self._refresh_ctrl(lazy=True)
+        if self._dirty_ctrl:
+            self._refresh_ctrl(lazy=True)
         p = self.controllable[action].priority
-        d = self._deferred.get(p)
-        if d and action in d:
-            d.discard(action)
-            self._evaluate(action)
+        deferred = self._deferred
+        if deferred:
+            d = deferred.get(p)
+            if d and action in d:
+                d.discard(action)
+                self._evaluate(action)
         if self._enabled.get(action) is None:
             return False
         for q, level in self._levels.items():
             if level and q < p:
                 return False
-        for q in sorted(q for q, d in self._deferred.items() if d and q < p):
-            if self._deferred_enabled(q) is not None:
-                return False
+        if deferred:
+            for q in sorted(q for q, d in deferred.items() if d and q < p):
+                if self._deferred_enabled(q) is not None:
+                    return False
         return True
 
     def enabled_actions(self) -> list[int]:
