@@ -98,18 +98,22 @@ def make_command(run_id: str, state_seq: int, action: str, *, agent: str | None 
     return _checked(msg)
 
 
-def make_event(run_id: str, seq: int, time: int, kind: str, data: Mapping[str, Any] | None = None,
-               **details: Any) -> dict[str, Any]:
+def make_event(run_id: str, seq: int, time: int, kind: str, data: Mapping[str, Any] | None = None, *,
+               incarnation: str | None = None, **details: Any) -> dict[str, Any]:
     """An ``fms/event/v1`` number ``seq`` of run ``run_id``: something of ``kind`` happened at ``time``.
 
     The details go into ``data``, from the mapping and/or keyword arguments; a trailing underscore is dropped
-    from a keyword so that ``from_=0`` gives ``"from": 0`` (keywords win over the mapping).
+    from a keyword so that ``from_=0`` gives ``"from": 0`` (keywords win over the mapping). ``incarnation`` names
+    the start of the shop that sent it (a shop restarted under the same run id sends another; the recorder tells
+    the two runs apart by it even where the new one's ``run_start`` was lost).
     """
     body = _plain(data) if data is not None else {}
     for key, value in details.items():
         body[key[:-1] if key.endswith("_") else key] = _plain(value)
     msg = {"schema": SCHEMA_EVENT, "run_id": run_id, "seq": _plain(seq), "time": _plain(time), "kind": kind,
            "data": body}
+    if incarnation is not None:
+        msg["incarnation"] = incarnation
     return _checked(msg)
 
 

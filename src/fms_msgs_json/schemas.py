@@ -312,6 +312,7 @@ _EVENT = (
     Field("time", Int(0)),
     Field("kind", OneOf(EVENT_KINDS)),
     Field("data", Obj(_EVENT_DATA)),
+    Field("incarnation", Str(), required=False),
 )
 
 # The Schedule JSON of fms_sim.schedule.Schedule.to_dict(), field by field (precise messages); the parse with

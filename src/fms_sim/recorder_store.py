@@ -16,7 +16,7 @@ holds for its run (:class:`RunConflict`: another run under the same run id, a st
 stored and is answered with a ``run_conflict`` error; a run whose stored schedule is not the one its events give
 (:meth:`RecorderStore.disagreement`) is not called complete, by :meth:`RecorderStore.is_complete` nor by the
 recorder (a ``run_conflict`` error, no chart). A run begun again under its run id (a shop restarted with the same
-``run_id``: a ``run_start`` of another ``incarnation``, :meth:`RecorderStore.begins_again`) is recorded anew, and
+``run_id``: an event of another ``incarnation``, :meth:`RecorderStore.begins_again`) is recorded anew, and
 the earlier incarnation's rows are kept as ``<run_id>~1`` (``~2``, ...: :meth:`RecorderStore.archive_run`).
 
 Tables: ``runs(run_id, instance, first_seen, end_seq, makespan, gantt)``, ``events(run_id, seq, time, kind,
@@ -165,6 +165,7 @@ class RecorderStore:
     def __init__(self, path: str | Path = DEFAULT_DB) -> None:
         self.path = Path(path)
         self._ends: dict[str, int | None] = {}  # run -> the seq of its run_end (None: not stored), as read or stored
+        self._incarnations: dict[str, str | None] = {}  # run -> its stored run_start's incarnation, as read
         where = f"cannot open the recorder database {str(self.path)!r}"
         if self.path.parent and not self.path.parent.exists():
             try:
@@ -238,18 +239,30 @@ class RecorderStore:
         return next((name for name in self.incarnations(event["run_id"])
                      if self._stored_event(name, event["seq"]) == mine), None)
 
+    def _incarnation(self, run_id: str) -> str | None:
+        """The incarnation of ``run_id``'s stored ``run_start`` (event 0), None if there is none or it names none."""
+        if run_id not in self._incarnations:
+            stored = self._stored_event(run_id, 0)
+            self._incarnations[run_id] = (stored[2].get("incarnation") if stored is not None and
+                                          stored[1] == "run_start" else None)
+        return self._incarnations[run_id]
+
     def begins_again(self, event: dict[str, Any]) -> bool:
-        """Whether ``event`` (decoded) starts its run again: a ``run_start`` numbered 0 whose ``incarnation`` is not
-        the one of the run's stored event 0 (a shop restarted with the same run id) nor an earlier incarnation's
-        (:meth:`archive_run` keeps those apart; one of theirs replayed is a conflict). Another difference (a
-        run_start of the same incarnation at another time) is a conflict, as for any event."""
-        incarnation = event["data"].get("incarnation")
-        if event["seq"] != 0 or event["kind"] != "run_start" or incarnation is None:
+        """Whether ``event`` (decoded) starts its run again: it names an incarnation (the event's own
+        ``incarnation``, or a ``run_start``'s in its data) that is not the one of the run's stored event 0 (a shop
+        restarted with the same run id) nor an earlier incarnation's (:meth:`archive_run` keeps those apart; one of
+        theirs replayed is a conflict). Any event of the new incarnation tells it, not only its ``run_start``: a
+        restarted shop's first events can be lost to discovery, and the recorder never asked for an event 0 it had.
+        Another difference (a run_start of the same incarnation at another time) is a conflict, as for any event."""
+        incarnation = event.get("incarnation")
+        if incarnation is None and event["seq"] == 0 and event["kind"] == "run_start":
+            incarnation = event["data"].get("incarnation")
+        if incarnation is None:
             return False
-        stored = self._stored_event(event["run_id"], 0)
-        if stored is None or (stored[1] == "run_start" and stored[2].get("incarnation") == incarnation):
+        stored = self._incarnation(event["run_id"])
+        if stored is None or stored == incarnation:
             return False
-        return self._earlier_incarnation(event) is None
+        return not any(self._incarnation(name) == incarnation for name in self.incarnations(event["run_id"]))
 
     def archive_run(self, run_id: str, *, commit: bool = True) -> str:
         """Keep the run's rows (``runs``, ``events``, ``schedules``, ``replans``) under the next free name
@@ -265,6 +278,8 @@ class RecorderStore:
         for table in tables:
             self.db.execute(f"UPDATE {table} SET run_id = ? WHERE run_id = ?", (name, run_id))
         self._ends.pop(run_id, None)
+        self._incarnations.pop(run_id, None)
+        self._incarnations.pop(name, None)
         self._ends.pop(name, None)
         if commit:
             self.db.commit()
@@ -275,13 +290,19 @@ class RecorderStore:
         :class:`RunConflict` (and stores nothing) for an event that differs from the one stored under its
         ``(run_id, seq)`` — another run under the same id; it was dropped without a word, and the run's log mixed
         two runs — that comes after the run's ``run_end``, or for a second ``run_end`` under another seq (a run
-        ends once: an earlier second one moved the run's end back, and its events after it were left out). A
-        ``run_start`` that begins the run again (:meth:`begins_again`) first moves the earlier incarnation's rows to
-        their own name (:meth:`archive_run`)."""
+        ends once: an earlier second one moved the run's end back, and its events after it were left out), or for an
+        event of an earlier incarnation kept apart (its shop still running). An event that begins the run again
+        (:meth:`begins_again`) first moves the earlier incarnation's rows to their own name (:meth:`archive_run`)."""
         now = time.time() if now is None else now
         run_id, data, seq = event["run_id"], event["data"], event["seq"]
         if self.begins_again(event):
             self.archive_run(run_id, commit=False)
+        incarnation = event.get("incarnation")
+        if incarnation is not None and incarnation != self._incarnation(run_id):
+            earlier = next((name for name in self.incarnations(run_id) if self._incarnation(name) == incarnation), None)
+            if earlier is not None:  # a shop of an earlier incarnation still running: its events stay out of the run
+                raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) is an earlier "
+                                  f"incarnation's of the run, kept as {earlier!r} (not stored)")
         if run_id not in self._ends:
             self._ends[run_id] = self.end_seq(run_id)
         end = self._ends[run_id]
@@ -309,6 +330,8 @@ class RecorderStore:
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
                               f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
         self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
+        if seq == 0:
+            self._incarnations.pop(run_id, None)  # (read again when next asked)
         if event["kind"] == "run_end":
             self.db.execute("UPDATE runs SET end_seq = ?, makespan = ? WHERE run_id = ?",
                             (seq, data.get("makespan"), run_id))
@@ -657,7 +680,7 @@ class Recorder:
         self._conflicts = {key for key in self._conflicts if key[0] != run_id}
         self._dirty = True  # (committed with the event that began the run again)
         return [Outgoing(TOPIC_ERRORS, make_error(
-            self.source, "run_conflict", f"run {run_id!r} began again (a run_start of another incarnation: a shop "
+            self.source, "run_conflict", f"run {run_id!r} began again (an event of another incarnation: a shop "
             f"restarted with the same run id): the earlier incarnation's events, schedule and re-plans are kept as "
             f"{earlier!r}{note}; the run is recorded anew", run_id=run_id, received=text))]
 

@@ -466,7 +466,7 @@ class ShopService:
 
     # ------------------------------------------------------------------ internals
     def _event(self, t: int, kind: str, data: dict[str, Any]) -> Outgoing:
-        msg = make_event(self.run_id, len(self.events), t, kind, data)
+        msg = make_event(self.run_id, len(self.events), t, kind, data, incarnation=self.incarnation)
         self.events.append(msg)
         return Outgoing(TOPIC_EVENTS, msg)
 

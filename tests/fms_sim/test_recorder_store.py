@@ -541,7 +541,7 @@ def test_a_shop_restarted_with_the_same_run_id_is_recorded_anew_and_the_earlier_
     rec.handle_replan(replan_text("run-1", "adopted"), now=0.0)
     (err,) = rec.handle_event(ev2[0], now=1.0)
     assert err.topic == m.TOPIC_ERRORS and err.msg["code"] == "run_conflict" and err.msg["message"] == (
-        "run 'run-1' began again (a run_start of another incarnation: a shop restarted with the same run id): the "
+        "run 'run-1' began again (an event of another incarnation: a shop restarted with the same run id): the "
         "earlier incarnation's events, schedule and re-plans are kept as 'run-1~1'; the run is recorded anew")
     out = [o for t in ev2[1:] for o in rec.handle_event(t, now=1.0)]
     assert out == []  # no conflict, no replay request: the new incarnation is a run of its own
@@ -589,13 +589,43 @@ def test_a_run_begun_again_after_its_chart_keeps_the_chart_and_an_old_replay_is_
     assert store.incarnations("run-1") == ["run-1~1", "run-1~2"] and store.event_seqs("run-1") == [0]
 
 
+def test_a_restarted_shop_whose_run_start_was_lost_is_still_recorded_apart(tmp_path: Path) -> None:
+    """Seen live: a shop killed and restarted under its run id published its run_start before DDS matched it with
+    the recorder; its later events, equal to the earlier incarnation's, were stored beside them (and the recorder,
+    holding an event 0, never asked for the new one). Every event names its incarnation: the first one that comes
+    keeps the earlier incarnation apart, the recorder asks for the run from event 0, and the earlier shop's events
+    (one still running) are refused."""
+    one, two = finished_run("EX12"), finished_run("EX12")  # the same decisions: equal events but for the incarnation
+    assert [e["data"] for e in one.events[1:]] == [e["data"] for e in two.events[1:]]
+    ev1, _ = texts(one)
+    ev2, sched2 = texts(two)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), render=False)
+    for t in ev1[:10]:
+        assert rec.handle_event(t, now=0.0) == []
+    out = rec.handle_event(ev2[3], now=1.0)  # the restarted shop's events 0..2 were lost
+    errors = [o.msg for o in out if o.topic == m.TOPIC_ERRORS]
+    asks = [o.msg for o in out if o.topic == m.TOPIC_REPLAY]
+    assert [e["code"] for e in errors] == ["run_conflict"] and "kept as 'run-1~1'" in errors[0]["message"]
+    assert [(a["run_id"], a["from_seq"]) for a in asks] == [("run-1", 0)]
+    (err,) = rec.handle_event(ev1[10], now=1.0)  # the earlier shop, still running
+    assert err.msg["code"] == "run_conflict" and "an earlier incarnation's of the run, kept as 'run-1~1'" in \
+        err.msg["message"]
+    for t in ev2:
+        rec.handle_event(t, now=2.0)
+    rec.handle_schedule(sched2, now=2.0)
+    store = rec.store
+    assert store.is_complete("run-1") and store.event_seqs("run-1~1") == list(range(10))
+    assert store.events("run-1")[0]["data"]["incarnation"] == two.incarnation
+
+
 def test_the_store_alone_keeps_a_run_begun_again_apart(tmp_path: Path) -> None:
     one, two = finished_run("EX12"), last_action_run()
     store = RecorderStore(tmp_path / "db.sqlite")
     for e in one.events[:10]:
         store.add_event(e)
     assert not store.begins_again(one.events[0]) and store.begins_again(two.events[0])
-    assert not store.begins_again(two.events[1])  # only a run_start numbered 0 begins a run
+    assert store.begins_again(two.events[1])  # any event of the new incarnation tells it (its run_start can be lost)
+    assert not store.begins_again(dict(two.events[1], incarnation=None))  # (one that names none: not told)
     for e in two.events:
         store.add_event(e)
     assert store.event_seqs("run-1") == list(range(len(two.events))) and store.event_seqs("run-1~1") == list(range(10))

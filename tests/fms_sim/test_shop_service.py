@@ -73,9 +73,9 @@ def test_full_run_states_events_and_schedule(name: str) -> None:
     out = svc.start()
     events = by_topic(out, m.TOPIC_EVENTS)
     assert events[0] == {"schema": "fms/event/v1", "run_id": "run-1", "seq": 0, "time": 0, "kind": "run_start",
-                         "data": {"instance": name, "incarnation": svc.incarnation}}
+                         "data": {"instance": name, "incarnation": svc.incarnation}, "incarnation": svc.incarnation}
     # a shop started again with the same run id (a respawn with fixed parameters) starts another incarnation: its
-    # run_start differs, so the recorder tells the two runs apart
+    # events name it, so the recorder tells the two runs apart
     again = ShopService(inst, run_id="run-1")
     assert re.fullmatch("[0-9a-f]{12}", svc.incarnation) and again.incarnation != svc.incarnation
     assert decode(encode(events[0]))["data"]["incarnation"] == svc.incarnation
