@@ -452,6 +452,8 @@ class FullShop(Shop):
                     touch(t)
             else:
                 self._touch_tools()
+                if self.tool_choice is not None:  # an open request choice: a use that needs a transporter may change
+                    self.net.defer([self.t_use[j] for j in self._use_cands])
 
     def _touch_starts(self, m: int) -> None:
         """The machine's state changed: the starts of the parts in its buffer are re-evaluated when asked (a

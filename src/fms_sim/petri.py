@@ -576,6 +576,7 @@ class Net:
         action first. For a module that wakes many choices at once of which a decider usually reads few (the
         requests a tool could serve): the answers are those of :meth:`touch`, since a binding depends only on the
         state when it is evaluated, and every change of that state marks or defers the transition again."""
+        transitions = self._past_closed_gates(transitions)
         if not transitions:
             return
         priorities = {t.priority for t in transitions}
@@ -587,6 +588,21 @@ class Net:
             return
         for p in priorities:
             self.defer([t for t in transitions if t.priority == p])
+
+    def _past_closed_gates(self, transitions: Sequence[Transition]) -> Sequence[Transition]:
+        """``transitions`` but the lazy ones whose gate place is empty (disabled now, re-evaluated when it fills):
+        those are marked as :meth:`touch` marks them, so that the binding their gate remembers is forgotten. (Deferred
+        or disabled as others, the remembered binding came back when the place filled, whatever had changed.)"""
+        if not self._gated:
+            return transitions
+        out = []
+        for t in transitions:
+            gate = t._gate
+            if gate is not None and gate.count == 0 and gate._gate is not None:
+                self._mark(t)
+            else:
+                out.append(t)
+        return out
 
     def _group(self, place: Place) -> tuple[int, set[int]]:
         """``(priority, action indices)`` of the lazy count-only listeners of ``place`` (cached per action order)."""
@@ -676,6 +692,7 @@ class Net:
         """Record that controllable ``transitions`` are not enabled now, without evaluating them: for a module
         whose state change just closed all of them at once (a choice made: every candidate's guard is now false;
         the caller guarantees it). Cheaper than :meth:`touch` and a re-evaluation of each."""
+        transitions = self._past_closed_gates(transitions)
         if not transitions:
             return
         priorities = {t.priority for t in transitions}

@@ -255,3 +255,27 @@ def test_stepper_drives_the_full_net_with_labels_including_hold():
         holds += label == "hold"
         st.apply(label)
     assert holds > 0 and validate(inst, st.shop.schedule()) == []
+
+
+@pytest.mark.parametrize("asked", [True, False])
+def test_a_transporter_outage_during_an_open_tool_choice_takes_back_the_uses_that_need_it(asked):
+    # a tool's request choice is open (use:0 needs the only transporter: the tool must travel) and the transporter
+    # goes out of service now: the choice's candidates were not re-evaluated, and use:0 stayed offered
+    from fms_sim.disruptions import Outage
+
+    T = [[0, 3], [3, 0]]
+    inst = Instance(name="r", jobs=[[Operation(1, 1, 5)]], agv_travel=T, n_agvs=1, tool_travel=T,
+                    n_tool_transporters=1, n_tools=1)
+    shops = [FullShop(inst), FullShop(inst, incremental=False)]
+    for s in shops:
+        s.net.advance()
+        s.act(s.action_index("tool:1"))
+        if asked:  # (a decider looked at the choice: use:0 evaluated, enabled)
+            assert [s.action_label(a) for a in s.legal_actions()] == ["use:0"]
+        s.add_disruption(Outage(kind="tt", vehicle=0, start=s.now, duration=4))
+        s.net.advance()
+    lazy, eager = ([s.action_label(a) for a in s.legal_actions()] for s in shops)
+    assert lazy == eager == ["job:0", "hold"]
+    while not shops[0].done:  # the run goes on: the tool is carried once the transporter is back
+        shops[0].act(shops[0].legal_actions()[0])
+    assert validate(inst, shops[0].schedule(), shops[0].scenario) == []

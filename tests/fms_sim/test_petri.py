@@ -170,3 +170,27 @@ def test_act_evaluates_a_deferred_action_and_refuses_a_less_urgent_one():
         net.act(picks[3].action)  # (3 + 1) % 4 == 0
     with pytest.raises(ValueError, match="controllable"):
         net.defer([net.add_transition(Transition("auto", [Arc(work, "w")]))])
+
+
+@pytest.mark.parametrize("how", ["defer", "disable"])
+@pytest.mark.parametrize("lazy", [True, False])
+def test_defer_or_disable_while_a_lazy_gate_is_closed_forgets_the_remembered_binding(how, lazy):
+    # the gate's place empties (the lazy transition's binding is remembered), its guard turns false and the module
+    # says so with defer (or disable): the remembered binding came back when the place filled, and the net offered
+    # (and would have fired) a transition whose guard was false
+    net = Net()
+    gate = net.add_place("gate")
+    state = {"ok": True}
+    t = net.add_transition(Transition("job", [Arc(gate, kind="test", count_only=True)], controllable=True,
+                                      priority=5, label="job:0", lazy=lazy, guard=lambda b: state["ok"]))
+    net.put(gate, "g")
+    assert net.enabled_actions() == [0]
+    net.take(gate, None)
+    state["ok"] = False
+    getattr(net, how)([t])
+    assert net.first_offered() is None
+    net.put(gate, "g")
+    assert net.first_offered() is None and not net.offers(0) and net.enabled_actions() == []
+    state["ok"] = True  # and a change the module reports after the gate opened is seen as before
+    net.touch(t)
+    assert net.first_offered() == 0 and net.enabled_actions() == [0]
