@@ -282,6 +282,11 @@ class Net:
                 if a.key is ANY and t.lazy and t.controllable and a.kind == "test":
                     if t._gate is not None and t._gate is not p:
                         raise ValueError(f"lazy transition {t.name!r} has count-only test arcs on two places")
+                    if p._count_lazy and p._count_lazy[0].priority != t.priority:  # (found mid-run, as a ValueError
+                        # when the place first emptied or filled)
+                        raise ValueError(f"lazy transition {t.name!r} has priority {t.priority}, but the lazy "
+                                         f"transitions reading place {p.name!r} must share one "
+                                         f"({p._count_lazy[0].priority})")
                     t._gate = p
                     if not p._count_lazy:
                         self._gated.append(p)

@@ -194,3 +194,14 @@ def test_defer_or_disable_while_a_lazy_gate_is_closed_forgets_the_remembered_bin
     state["ok"] = True  # and a change the module reports after the gate opened is seen as before
     net.touch(t)
     assert net.first_offered() == 0 and net.enabled_actions() == [0]
+
+
+def test_lazy_transitions_of_one_gate_must_share_their_priority_when_added():
+    # (a mismatch was found only when the place first emptied or filled, in the middle of a firing)
+    net = Net()
+    gate = net.add_place("gate")
+    net.add_transition(Transition("a", [Arc(gate, kind="test", count_only=True)], controllable=True, priority=5,
+                                  lazy=True))
+    with pytest.raises(ValueError, match="must share one"):
+        net.add_transition(Transition("b", [Arc(gate, kind="test", count_only=True)], controllable=True, priority=6,
+                                      lazy=True))
