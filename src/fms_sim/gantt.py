@@ -64,15 +64,21 @@ class _Row:
 
 
 def _palette(n_jobs: int) -> list[tuple[float, float, float, float]]:
-    """Qualitative job colours: ``tab10`` for few jobs, else tab20/tab20b/tab20c (60 colours, then cycling)."""
+    """Qualitative job colours: ``tab10`` for few jobs, else tab20/tab20b/tab20c without their greys and near-greys
+    (53 colours, then cycling). The greys are left out: the lightest was all but the empty trips' grey, and a grey
+    job reads as no job. Within tab20 the darker member of each pair comes first, so the first jobs differ in hue;
+    tab20b and tab20c come in shades of a few hues."""
+    def grey(c: tuple[float, float, float, float]) -> bool:
+        return max(c[:3]) - min(c[:3]) < 0.1
+
     if n_jobs <= 10:
-        return [to_rgba(c) for c in colormaps["tab10"].colors]  # type: ignore[attr-defined]
+        tab10 = colormaps["tab10"].colors  # type: ignore[attr-defined]
+        return [c for c in map(to_rgba, tab10) if not grey(c)]
     cols: list[tuple[float, float, float, float]] = []
     for name in ("tab20", "tab20b", "tab20c"):
         cmap_cols = colormaps[name].colors  # type: ignore[attr-defined]
-        # even indices first: the darker member of each pair, so neighbouring jobs differ in hue
         cols += [to_rgba(c) for c in cmap_cols[0::2]] + [to_rgba(c) for c in cmap_cols[1::2]]
-    return cols
+    return [c for c in cols if not grey(c)]
 
 
 def _text_colour(rgba: Sequence[float]) -> str:
@@ -129,7 +135,8 @@ def _recorded(scenario: Any, key: str) -> list[dict[str, Any]]:
 
 
 def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[tuple[float, float, float, float]]:
-    """Spans of the breakdowns and outages that ``schedule.meta["scenario"]`` records, on their rows."""
+    """Spans of the breakdowns and outages that ``schedule.meta["scenario"]`` records, on their rows (those that begin
+    before the makespan: one after it disrupted nothing and lies off the time axis)."""
     sc = schedule.meta.get("scenario")
     out: list[tuple[float, float, float, float]] = []
     windows: list[tuple[Any, Any, Any, Any]] = [("machine", b.get("machine"), b.get("start"), b.get("duration"))
@@ -137,17 +144,31 @@ def _downtime(schedule: Schedule, row_y: dict[tuple[str, int], float]) -> list[t
     windows += [(o.get("kind"), o.get("vehicle"), o.get("start"), o.get("duration")) for o in _recorded(sc, "outages")]
     for kind, i, start, dur in windows:
         y = row_y.get((kind, i))
-        if y is not None and isinstance(start, int) and isinstance(dur, int):
+        if y is not None and isinstance(start, int) and isinstance(dur, int) and start < schedule.makespan:
             out.append((start, start + dur, y - 0.48, y + 0.48))
     return out
 
 
 def chart_title(schedule: Schedule, run: str | None = None) -> str:
-    """The chart's default title: the instance, the run (when given), the makespan and what the run was disrupted
+    """The chart's default title: the instance, the run (when given), the makespan, what the run was disrupted
     by, as its ``meta["scenario"]`` records it (``"ra01 — makespan 120 (under disruptions: 1 breakdown, 1 outage,
-    noise 0.1)"``), so that a disrupted run's chart is not read as a nominal one."""
+    noise 0.1)"``), so that a disrupted run's chart is not read as a nominal one, and the jobs that live orders
+    brought (``meta["arrivals"]``: ``"; 2 jobs ordered during the run, from time 32"``), whose idle start is
+    otherwise unexplained."""
     middle = f" — run {run}" if run is not None else ""
-    return f"{schedule.instance}{middle} — makespan {schedule.makespan}{_disruption_note(schedule)}"
+    notes = _disruption_note(schedule) + _orders_note(schedule)
+    return f"{schedule.instance}{middle} — makespan {schedule.makespan}{notes}"
+
+
+def _orders_note(schedule: Schedule) -> str:
+    """The jobs live orders brought, as ``meta["arrivals"]`` records them (``[job, time]`` pairs); empty for none."""
+    arrivals = schedule.meta.get("arrivals")
+    times = [a[1] for a in arrivals if isinstance(a, (list, tuple)) and len(a) == 2 and isinstance(a[1], int)
+             and not isinstance(a[1], bool)] if isinstance(arrivals, list) else []
+    if not times:
+        return ""
+    n = len(times)
+    return f"; {n} job{'' if n == 1 else 's'} ordered during the run, from time {min(times)}"
 
 
 def _disruption_note(schedule: Schedule) -> str:
@@ -158,7 +179,9 @@ def _disruption_note(schedule: Schedule) -> str:
         return ""
     parts = []
     for key, one in (("breakdowns", "breakdown"), ("outages", "outage")):
-        n = len(_recorded(sc, key))
+        # (one that begins at or after the makespan disrupted nothing: it was counted, and drawn off the axis)
+        n = sum(1 for d in _recorded(sc, key) if not isinstance(d.get("start"), int)
+                or d["start"] < schedule.makespan)
         if n:
             parts.append(f"{n} {one}{'' if n == 1 else 's'}")
     noise = sc.get("noise")
@@ -205,7 +228,8 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
     t_start = min([0] + [o.start for o in schedule.operations] + [t.start for t in schedule.agv_trips]
                   + [t.start for t in schedule.tool_trips])
     span = max(t_end - t_start, 1)
-    x_lo, x_hi = t_start - 0.01 * span, t_end + 0.02 * span
+    # (at least one time unit: a chart of zero-duration operations at time 0 had an axis of -0.01..0.02)
+    x_lo, x_hi = t_start - 0.01 * span, max(t_end, t_start + 1) + 0.02 * span
     lane_counts = [sum(1 for o in schedule.operations if o.machine == r.index) for r in rows if r.kind == "machine"]
     lane_counts += [sum(1 for t in schedule.agv_trips if t.loaded) // max(1, schedule.n_agvs)]
     lane_counts += [sum(1 for t in schedule.tool_trips if t.loaded) // max(1, schedule.n_tool_transporters)]
@@ -236,11 +260,14 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
         if (x1 - x0) * pt_per_t >= 0.62 * fs * len(text) + 3.0:
             labels.append(((x0 + x1) / 2, y, text, _text_colour(face), fs))
 
-    # Machines.
+    # Machines. An operation of zero duration is drawn 2 points wide about its instant: a zero-width bar was at most
+    # a hairline without its job's colour, or hidden under a neighbour's outline.
+    half = 1.0 / pt_per_t
     spans, faces = [], []
     for o in schedule.operations:
         y = row_y[("machine", o.machine)]
-        spans.append((o.start, o.end, y - _OP_HALF, y + _OP_HALF))
+        x0, x1 = (o.start, o.end) if o.end > o.start else (o.start - half, o.start + half)
+        spans.append((x0, x1, y - _OP_HALF, y + _OP_HALF))
         faces.append(colour(o.job))
         maybe_label(o.start, o.end, y, 2 * _OP_HALF, f"{o.job}.{o.op}", faces[-1])
     ax.add_collection(PolyCollection(_rects(spans), facecolors=faces, edgecolors="#303030", linewidths=edge_lw))
@@ -264,16 +291,16 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
         ax.add_collection(PolyCollection(_rects(empty_spans), facecolors=_EMPTY_FACE, edgecolors=_EMPTY_EDGE,
                                          linewidths=0.4, hatch="/////"))
 
-    # Disruptions recorded with the schedule: machines down and vehicles out of service, as red hatched bands
-    # behind the bars of their row.
+    # Disruptions recorded with the schedule: machines down and vehicles out of service, as translucent red hatched
+    # bands over the bars of their row (below the labels), so that an operation a breakdown suspends shows its pause
+    # (drawn behind, the band was hidden by the bar, which read as running straight through).
     down = _downtime(schedule, row_y)
     if down:
         ax.add_collection(PolyCollection(_rects(down), facecolors=_DOWN_FACE, edgecolors=_DOWN_EDGE, linewidths=0.6,
-                                         hatch="xxx", zorder=0.5))
+                                         hatch="xxx", zorder=1.5))
 
-    if len(labels) <= _MAX_LABELS:
-        for x, y, text, col, fs in labels:
-            ax.text(x, y, text, ha="center", va="center", fontsize=fs, color=col, clip_on=True)
+    for x, y, text, col, fs in labels[:_MAX_LABELS]:  # (past the cap the operations' come first; all were dropped)
+        ax.text(x, y, text, ha="center", va="center", fontsize=fs, color=col, clip_on=True)
 
     # Sections: separators and header bands with their names.
     left_edge = blended_transform_factory(ax.transAxes, ax.transData)
@@ -309,13 +336,25 @@ def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str |
                                  label="down / out of service"))
     ax.legend(handles=handles, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(handles), frameon=False,
               fontsize=8, handlelength=2.2, borderaxespad=0.2)
-    fig.text(_LEFT_IN / width_in, 1 - 0.12 / height_in, title if title is not None else
-             chart_title(schedule), ha="left", va="top", fontsize=11,
+    text, size = _fitted_title(title if title is not None else chart_title(schedule), width_in - _LEFT_IN - 0.1)
+    fig.text(_LEFT_IN / width_in, 1 - 0.12 / height_in, text, ha="left", va="top", fontsize=size,
              fontweight="bold", parse_math=False)  # a name with "$...$" is text (unbalanced: a parse error)
 
     if path is not None:
         _save(fig, Path(path))
     return fig
+
+
+def _fitted_title(title: str, width_in: float) -> tuple[str, float]:
+    """The title and its font size for a line ``width_in`` inches wide: 11 points, smaller down to 8 where it is long,
+    then wrapped onto a second line (a long run id and a disruption note ran off the chart, the note cut off). The
+    width of a bold character is taken as 0.72 of the size (DejaVu Sans Bold: most letters narrower)."""
+    import textwrap
+
+    chars = len(title)
+    size = min(11.0, max(8.0, width_in * 72.0 / (0.72 * max(chars, 1))))
+    fit = int(width_in * 72.0 / (0.72 * size))
+    return (title if chars <= fit else textwrap.fill(title, width=fit, max_lines=2, placeholder=" ...")), size
 
 
 def _save(fig: Figure, out: Path) -> None:
@@ -325,12 +364,18 @@ def _save(fig: Figure, out: Path) -> None:
     if out.is_dir():  # (an IsADirectoryError naming the temporary file)
         raise ValueError(f"cannot write the chart: {out} is a folder; name a file")
     with replacing(out) as tmp:
-        fig.savefig(tmp, dpi=_DPI, format=fmt if fmt in fig.canvas.get_supported_filetypes() else "png")
+        fig.savefig(tmp, dpi=_DPI, format=fmt if fmt in chart_formats() else "png")
+
+
+#: matplotlib formats a chart is not written as: pgf needs a LaTeX installation (it was accepted, and the run then
+#: ended in a traceback after its solve)
+_NOT_CHARTS = frozenset({"pgf"})
 
 
 def chart_formats() -> list[str]:
-    """The file suffixes (without the dot) a chart can be written as: matplotlib's formats (png, pdf, svg, ...)."""
-    return sorted(FigureCanvasAgg.get_supported_filetypes())
+    """The file suffixes (without the dot) a chart can be written as: matplotlib's formats (png, pdf, svg, ...) but
+    those that need more than matplotlib (pgf: LaTeX)."""
+    return sorted(set(FigureCanvasAgg.get_supported_filetypes()) - _NOT_CHARTS)
 
 
 def save_gantt(schedule: Schedule, path: str | Path, instance: Instance | None = None,

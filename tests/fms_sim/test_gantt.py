@@ -298,3 +298,69 @@ def test_odd_titles_scenarios_and_paths(tmp_path: Path) -> None:
         assert chart_title(replace(sched, meta={"scenario": bad})) == chart_title(sched)
     with pytest.raises(ValueError, match=f"cannot write the chart: {tmp_path} is a folder; name a file"):
         save_gantt(sched, tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------ an audit's findings
+def _ops_collection(fig) -> PolyCollection:
+    return [c for c in fig.axes[0].collections if isinstance(c, PolyCollection)][0]
+
+
+def test_a_chart_that_needs_latex_is_not_offered_and_greys_are_no_job_colours() -> None:
+    from fms_sim.gantt import _EMPTY_FACE, _palette, chart_formats
+    from matplotlib.colors import to_rgba
+
+    # .pgf was accepted by the CLI's check, and the run ended in a traceback ("xelatex not found") after its solve
+    assert "pgf" not in chart_formats() and {"png", "svg", "pdf"} <= set(chart_formats())
+    empty = to_rgba(_EMPTY_FACE)
+    for n in (5, 100):  # a grey job read as no job; the lightest was all but the empty trips' grey
+        cols = _palette(n)
+        assert len(cols) >= (9 if n <= 10 else 50)
+        assert all(max(c[:3]) - min(c[:3]) >= 0.1 for c in cols)
+        assert min(sum(abs(a - b) for a, b in zip(c[:3], empty[:3])) for c in cols) > 0.1
+
+
+def test_zero_duration_operations_are_visible_and_the_axis_spans_a_time_unit() -> None:
+    ops = [OperationRecord(0, 0, 1, None, 0, 0)]
+    fig = plot_gantt(Schedule("z", 0, 0, 0, ops, [], []))
+    (x0, x1) = fig.axes[0].get_xlim()
+    assert x0 < 0 and x1 >= 1  # (it was -0.01..0.02)
+    verts = _ops_collection(fig).get_paths()[0].vertices
+    assert verts[:, 0].max() - verts[:, 0].min() > 0  # drawn with a width, in its job's colour
+    fig = plot_gantt(hand_schedule())  # a bar of its own length stays as it is
+    o = hand_schedule().operations[0]
+    v = _ops_collection(fig).get_paths()[0].vertices
+    assert (v[:, 0].min(), v[:, 0].max()) == (o.start, o.end)
+
+
+def test_downtime_is_drawn_over_the_bars_and_only_where_it_disrupted_the_run() -> None:
+    from dataclasses import replace
+
+    sched = hand_schedule()
+    sc = {"breakdowns": [{"machine": 1, "start": 1, "duration": 2},
+                         {"machine": 1, "start": sched.makespan + 5, "duration": 3}], "outages": []}
+    fig = plot_gantt(replace(sched, meta={"scenario": sc}))
+    bars, down = _ops_collection(fig), [c for c in fig.axes[0].collections if c.get_hatch() == "xxx"][0]
+    assert down.get_zorder() > bars.get_zorder()  # (behind, a suspended operation read as running straight through)
+    assert len(down.get_paths()) == 1  # the breakdown after the makespan disrupted nothing
+    assert chart_title(replace(sched, meta={"scenario": sc})).endswith("(under disruptions: 1 breakdown)")
+
+
+def test_long_titles_fit_the_chart_and_live_orders_are_said() -> None:
+    from dataclasses import replace
+
+    sched = replace(hand_schedule(), meta={"arrivals": [[1, 32], [2, 40]]})
+    assert chart_title(sched).endswith("; 2 jobs ordered during the run, from time 32")
+    fig = plot_gantt(sched, title="x" * 400)
+    fig.canvas.draw()
+    (title,) = fig.texts
+    box = title.get_window_extent()
+    assert box.x1 <= fig.bbox.x1 and title.get_text().count("\n") == 1  # shrunk, then wrapped (it ran off)
+
+
+def test_past_the_label_cap_the_first_labels_are_drawn(monkeypatch) -> None:
+    from fms_sim import gantt
+
+    monkeypatch.setattr(gantt, "_MAX_LABELS", 3)  # (past the cap every label was dropped)
+    fig = plot_gantt(hand_schedule())
+    texts = [t for t in fig.axes[0].texts if "." in t.get_text()]
+    assert len(texts) == 3
