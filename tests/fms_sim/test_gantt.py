@@ -251,7 +251,7 @@ def test_does_not_touch_pyplot() -> None:
     assert res.returncode == 0, res.stderr
 
 
-def test_disruptions_are_drawn_behind_their_rows():
+def test_disruptions_are_drawn_on_their_rows():
     from fms_sim.benchmarks import builtin
     from fms_sim.disruptions import Breakdown, Outage, Scenario
     from fms_sim.full_shop import FullShop
