@@ -575,6 +575,7 @@ def greedy_schedule(
             e = travel[locs[v]][src] if v >= 0 else 0
             c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
         elif c is None:
+            assert memo is not None
             answers, lowest = memo
             low = lowest.get(src) if not near else None
             if low is not None and rdy <= low[0]:

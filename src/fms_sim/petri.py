@@ -641,7 +641,7 @@ class Net:
         saved = {i: enabled[i] for i in on if i not in unknown}
         for i in on:
             enabled[i] = None
-        if on:
+        if on and level is not None:
             level -= on
         place._gate = (saved, unknown)
         self._offered = None
