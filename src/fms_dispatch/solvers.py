@@ -194,6 +194,9 @@ def get_solver(name: str) -> Solver:
     if colon and head == "rules":  # (a misspelt variant was told to be a time limit: --time-limit ful)
         raise UnknownSolver(f"unknown solver {name!r}: the rules solver's variants are rules:full (the default) and "
                             "rules:paper")
+    if low == "best":  # (shown in the README with fms up, which picks it: fms solve listed every name instead)
+        raise UnknownSolver("best is fms up's choice of the best agent for a shop; fms solve takes the solver itself "
+                            f"(e.g. rules, plan:rules, ppo); choose from {', '.join(solver_names())}")
     raise UnknownSolver(f"unknown solver {name!r}; choose from {', '.join(solver_names())}")
 
 
@@ -264,8 +267,9 @@ def make_plan(instance: Instance, base: str, seconds: float | None = None, **opt
                                 + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
         return plan
     opts = {k: v for k, v in options.items() if k not in ("decisions", "scenario")}
-    if base.lower().startswith("rule:") and base.count("+") >= 2:  # a tool rule: only the full net has one
-        opts["decisions"] = "full"                                  # (on the paper's net it always failed)
+    if base.lower().startswith("rule:"):  # planned through the full net, as fms solve --solver rule:... runs it: one
+        opts["decisions"] = "full"        # rule, one plan (the library's default, the paper's net, planned another
+        # run where the rule named no tool rule, and a tool rule only the full net has)
     if seconds is not None and takes_time_limit(base):  # rules too: plan:rules:2 searched for 18 s
         opts["time_limit"] = seconds
     return solve(instance, base, **opts)

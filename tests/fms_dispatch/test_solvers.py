@@ -250,3 +250,18 @@ def test_first_and_list_on_a_mid_size_shop_match_the_slow_reference(spec):
     plan = greedy_schedule(inst, rule="est")
     assert validate(inst, listed) == [] and validate(inst, plan) == []
     assert listed.makespan <= plan.makespan
+
+
+def test_a_plan_of_a_rule_is_the_run_of_that_rule_and_best_is_fms_ups():
+    # plan:rule:MTWR+nearest planned through the paper's net (the library's default) while fms solve --solver
+    # rule:MTWR+nearest runs the full net and plan:rule:MTWR+nearest+fifo (the same rule: fifo is the default tool
+    # rule) planned there too: two plans of one rule (ra01: 128 against 140)
+    from fms_dispatch.solvers import make_plan
+
+    inst = builtin("ra01")
+    full = solve(inst, "rule:MTWR+nearest", decisions="full")
+    plan = make_plan(inst, "rule:MTWR+nearest")
+    assert plan.makespan == full.makespan == make_plan(inst, "rule:MTWR+nearest+fifo").makespan
+    assert [(o.job, o.op, o.start) for o in plan.operations] == [(o.job, o.op, o.start) for o in full.operations]
+    with pytest.raises(ValueError, match="best is fms up's choice"):
+        solve(inst, "best")
