@@ -205,10 +205,14 @@ def cmd_solve(a: argparse.Namespace) -> int:
     scenario = scenario_from_args(a, inst)
     if scenario is not None:
         opts["scenario"] = scenario
-    if a.seed is not None and not (scenario is not None and scenario.noise) and not takes_seed(a.solver):  # ignored
+    seeded = takes_seed(a.solver)
+    if a.solver.lower().startswith("plan:"):  # a plan of a search, or re-planned (plan:list --seed 5 was ignored)
+        base, _ = parse_plan_name(a.solver)
+        seeded = a.replan is not None or (not base.lower().startswith("file:") and takes_seed(base))
+    if a.seed is not None and not (scenario is not None and scenario.noise) and not seeded:  # ignored
         raise CliError(f"--seed does not apply to {named}: it draws nothing at random (the seed is the random, "
-                       "cpsat, sos, tabu and plan: solvers', and the noise's; a guided ppo model's plan search takes "
-                       "--guide-seed)")
+                       "cpsat, sos and tabu solvers' and their plans', a re-planning plan's (--replan), and the "
+                       "noise's; a guided ppo model's plan search takes --guide-seed)")
     if a.solver.lower().startswith(DECISION_SOLVERS):
         if a.decisions == "paper" and scenario is not None and not scenario.empty:  # (solve() said decisions='full')
             raise CliError("--scenario and --noise run on the full-decision net only: drop --decisions paper")
@@ -650,8 +654,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "solver its solver's); refused for the solvers that run once. It bounds the search: on shops of "
                         "thousands of operations the start schedules built before it, and a plan: solver's run "
                         "through the net after it, take seconds more")
-    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos, tabu and plan: solvers "
-                   "(default 0) and of the noise (--noise, or the --scenario file's: this seed replaces the file's)")
+    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos and tabu solvers, "
+                   "of their plans (plan:cpsat, ...) and of a plan's re-plans (--replan) (default 0), and of the "
+                   "noise (--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "
                    "vehicles out of service, noise); first, random, rule: (full net), plan: and full-net ppo models")
     s.add_argument("--noise", type=float, metavar="SPREAD", help="lognormal noise on every processing and travel "

@@ -777,3 +777,11 @@ def test_validate_alone_refuses_what_it_cannot_resolve(tmp_path, capsys, monkeyp
     code, _, err = run(["validate", str(out), "--layout", "2"], capsys)
     assert code == 1 and "the schedule names instance 'ra01L3', checking against 'ra01'" in err  # layout 2
     assert "made for" not in err
+
+
+def test_a_plans_seed_is_taken_where_its_search_or_its_re_plans_draw(tmp_path, capsys):
+    # (plan:list --seed was taken and ignored: refused now, tests/fms_dispatch/test_cli_inputs.py; these draw)
+    for argv in (["--solver", "plan:sos:0.5", "--seed", "3"], ["--solver", "plan:list", "--replan", "1", "--seed", "3"],
+                 ["--solver", "plan:list", "--noise", "0.1", "--seed", "3"]):
+        code, out, err = run(["solve", "EX12", *argv, "--out", str(tmp_path / "s.json")], capsys)
+        assert code == 0 and "valid" in out, err

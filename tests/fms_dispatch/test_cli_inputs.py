@@ -119,6 +119,9 @@ def test_seed_replaces_the_seed_of_the_scenario_files_noise(tmp_path, capsys):
     (["solve", "EX12", "--solver", "cpsat:fast"], "unknown solver 'cpsat:fast'; choose from first"),  # the same
     (["solve", "EX12", "--solver", "list:"], "'list:' names no list order"),  # ran as list
     (["solve", "EX12", "--seed", "5"], "--seed does not apply to list (the default solver): it draws nothing"),
+    # a plan of a solver that draws nothing, and not re-planned: the seed was taken and ignored
+    (["solve", "EX12", "--solver", "plan:list", "--seed", "5"], "--seed does not apply to plan:list: it draws nothing"),
+    (["solve", "EX12", "--solver", "plan:rule:MTWR+nearest", "--seed", "5"], "--seed does not apply to plan:rule"),
     (["solve", "EX12", "--tool-transporters", "0"], "EX12 has no tool travel matrix"),  # "use --no-tools"
     (["bench", "bu", "--instances", "3..1", "--results-dir", "{d}/r"], "the range 3..1 runs backwards"),
     (["generate", "--jobs", "3", "--machines", "3", "--prefix", "sl", "--out-dir", "{d}/g"],
