@@ -47,6 +47,7 @@ Offline solvers named alone (``sos``, ``cpsat``) raise :class:`UnavailableSolver
 
 from __future__ import annotations
 
+import os
 import random
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -886,21 +887,21 @@ forked process needs nothing pickled (it starts as a copy of the agent, in a few
 result back."""
 
 
-def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any) -> None:
+def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any, parent: int) -> None:
     """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``. A
     Ctrl-C meant for the node is left to the node (which ends this process); an agent gone meanwhile is no error.
 
     SIGTERM ends it (the node's own handler, inherited through the fork, kept it alive: a node stopping during a
     re-plan waited for it at exit and was reported as not stopping cleanly), and so does its parent's end (an agent
-    killed with SIGKILL left it searching on, at full CPU, to the end of its budget)."""
-    import os
+    killed with SIGKILL left it searching on, at full CPU, to the end of its budget). ``parent`` is the agent's pid,
+    taken before the fork: read in the child, an agent killed right after the fork was already gone, the child took
+    init for its parent and searched on."""
     import signal
     import threading
     import time
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    parent = os.getppid()
 
     def orphaned() -> None:
         while os.getppid() == parent:
@@ -952,7 +953,8 @@ class _ReplanJob:
 
             ctx = multiprocessing.get_context("fork")
             receive, send = ctx.Pipe(duplex=False)
-            self.process = ctx.Process(target=_replan_child, args=(fn, args, send), name="fms-replan", daemon=True)
+            self.process = ctx.Process(target=_replan_child, args=(fn, args, send, os.getpid()), name="fms-replan",
+                                       daemon=True)
             try:
                 self.process.start()
             except OSError:  # no fork now (out of memory or processes): the re-plan runs in a thread instead
