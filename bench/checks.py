@@ -11,8 +11,10 @@ import argparse
 import json
 import math
 import os
+import subprocess
 import sys
-from typing import Any, Callable
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
 from fms_sim.files import output_problem, write_atomically
 from fms_sim.validate import validate
@@ -105,6 +107,22 @@ def finite(text: str) -> float:
     if not math.isfinite(x):
         raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
     return x
+
+
+def run_worker(src: str | os.PathLike, script: str, args: Sequence[str]) -> Any:
+    """Run ``script --worker ARGS`` in a fresh interpreter on the package source at ``src`` (a ``--baseline``
+    revision's or this checkout's) and return the JSON of its last line of output. A refusal of the input there
+    (:func:`run_main`'s one error line) is a ValueError here; any other failure ends the bench with the worker's
+    output."""
+    env = dict(os.environ, PYTHONPATH=str(src))
+    out = subprocess.run([sys.executable, script, "--worker", *args], env=env, capture_output=True, text=True,
+                         cwd=Path(src).parent)
+    if out.returncode:
+        last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
+        if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
+            raise ValueError(last.split(": error: ", 1)[1])
+        raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def run_main(main: Callable[[], Any]) -> None:

@@ -28,17 +28,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import platform
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterator
 
-from checks import checked, output_file, positive, report
+from checks import checked, output_file, positive, report, run_worker
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -183,18 +181,10 @@ def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = 
             split: bool = False) -> list[dict]:
     """:func:`measure` (or, ``whole``, :func:`solve_once` per shop, each in its own interpreter; or, ``split``,
     :func:`parts`) in a fresh interpreter on the package source at ``src``."""
-    env = dict(os.environ, PYTHONPATH=str(src))
     rows = []
     for group in ([[n] for n in names] if whole else [names]):
-        out = subprocess.run([sys.executable, __file__, "--worker", "--model", model, "--repeat", str(repeat),
-                              "--instances", *group] + (["--solve"] if whole else []) + (["--parts"] if split else []),
-                             env=env, capture_output=True, text=True, cwd=src.parent)
-        if out.returncode:
-            last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
-            if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
-                raise ValueError(last.split(": error: ", 1)[1])
-            raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
-        rows += json.loads(out.stdout.strip().splitlines()[-1])
+        rows += run_worker(src, __file__, ["--model", model, "--repeat", str(repeat), "--instances", *group]
+                           + (["--solve"] if whole else []) + (["--parts"] if split else []))
     return rows
 
 

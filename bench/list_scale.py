@@ -22,15 +22,13 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from checks import checked, output_file, positive, report
+from checks import checked, output_file, positive, report, run_worker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from decide_speed import _sources  # noqa: E402  (the baseline's temporary worktree)
@@ -83,15 +81,7 @@ def list_only(name: str, repeat: int) -> dict:
 
 def _worker(src: Path, task: list[str], repeat: int) -> dict:
     """One task (``solve SPEC SOLVER`` or ``greedy NAME``) in a fresh interpreter on the package source at ``src``."""
-    env = dict(os.environ, PYTHONPATH=str(src))
-    out = subprocess.run([sys.executable, __file__, "--worker", *task, "--repeat", str(repeat)], env=env,
-                         capture_output=True, text=True, cwd=src.parent)
-    if out.returncode:
-        last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
-        if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
-            raise ValueError(last.split(": error: ", 1)[1])
-        raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_worker(src, __file__, [*task, "--repeat", str(repeat)])
 
 
 def main() -> None:

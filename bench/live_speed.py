@@ -24,14 +24,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-from checks import checked, output_file, positive, report
+from checks import checked, output_file, positive, report, run_worker
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -80,15 +77,7 @@ def run_once(name: str, solver: str, delta: bool = True) -> dict:
 
 def _worker(src: Path, names: list[str], solver: str, history: str) -> list[dict]:
     """:func:`run_once` per shop in a fresh interpreter on the package source at ``src``."""
-    env = dict(os.environ, PYTHONPATH=str(src))
-    out = subprocess.run([sys.executable, __file__, "--worker", "--solver", solver, "--history", history,
-                          "--instances", *names], env=env, capture_output=True, text=True, cwd=src.parent)
-    if out.returncode:
-        last = (out.stderr.strip().splitlines() or ["(no output)"])[-1]
-        if ": error: " in last:  # a refusal of the input (run_main in the worker): that one line, exit 2
-            raise ValueError(last.split(": error: ", 1)[1])
-        raise SystemExit(f"the run on {src} failed:\n{out.stderr}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_worker(src, __file__, ["--solver", solver, "--history", history, "--instances", *names])
 
 
 def main() -> None:
