@@ -549,22 +549,9 @@ class Net:
     def _refresh_ctrl(self, lazy: bool = False) -> None:
         """Re-evaluate the dirty controllable transitions, and (unless ``lazy``) the deferred ones too."""
         if self._dirty_ctrl:
-            ctrl = self.controllable
-            enabled = self._enabled
-            levels = self._levels
+            evaluate = self._evaluate
             for i in self._dirty_ctrl:
-                t = ctrl[i]
-                b = self.binding(t)
-                was = enabled.get(i)
-                enabled[i] = b
-                if (b is None) != (was is None):
-                    level = levels.get(t.priority)
-                    if level is None:
-                        level = levels[t.priority] = set()
-                    if b is None:
-                        level.discard(i)
-                    else:
-                        level.add(i)
+                evaluate(i)
             self._dirty_ctrl.clear()
         if not lazy and self._deferred:
             for ids in self._deferred.values():
