@@ -254,15 +254,31 @@ class RecorderStore:
         theirs replayed is a conflict). Any event of the new incarnation tells it, not only its ``run_start``: a
         restarted shop's first events can be lost to discovery, and the recorder never asked for an event 0 it had.
         Another difference (a run_start of the same incarnation at another time) is a conflict, as for any event."""
-        incarnation = event.get("incarnation")
-        if incarnation is None and event["seq"] == 0 and event["kind"] == "run_start":
-            incarnation = event["data"].get("incarnation")
+        incarnation = self._incarnation_of(event)
         if incarnation is None:
             return False
         stored = self._incarnation(event["run_id"])
         if stored is None or stored == incarnation:
             return False
-        return not any(self._incarnation(name) == incarnation for name in self.incarnations(event["run_id"]))
+        return self._archived_as(event["run_id"], incarnation) is None
+
+    @staticmethod
+    def _incarnation_of(event: dict[str, Any]) -> str | None:
+        """The incarnation ``event`` names: its own, or a ``run_start``'s in its data (None: it names none)."""
+        incarnation = event.get("incarnation")
+        if incarnation is None and event["seq"] == 0 and event["kind"] == "run_start":
+            incarnation = event["data"].get("incarnation")
+        return incarnation
+
+    def _archived_as(self, run_id: str, incarnation: str) -> str | None:
+        """The name an earlier incarnation ``incarnation`` of ``run_id`` is kept under (:meth:`archive_run`), if any."""
+        return next((name for name in self.incarnations(run_id) if self._incarnation(name) == incarnation), None)
+
+    @staticmethod
+    def _of_earlier(event: dict[str, Any], earlier: str) -> RunConflict:
+        """The conflict of an event of the earlier incarnation kept as ``earlier`` (its shop still running)."""
+        return RunConflict(f"run {event['run_id']!r}: event {event['seq']} ({event['kind']} at {event['time']}) is an "
+                           f"earlier incarnation's of the run, kept as {earlier!r} (not stored)")
 
     def archive_run(self, run_id: str, *, commit: bool = True) -> str:
         """Keep the run's rows (``runs``, ``events``, ``schedules``, ``replans``) under the next free name
@@ -297,12 +313,11 @@ class RecorderStore:
         run_id, data, seq = event["run_id"], event["data"], event["seq"]
         if self.begins_again(event):
             self.archive_run(run_id, commit=False)
-        incarnation = event.get("incarnation")
+        incarnation = self._incarnation_of(event)
         if incarnation is not None and incarnation != self._incarnation(run_id):
-            earlier = next((name for name in self.incarnations(run_id) if self._incarnation(name) == incarnation), None)
+            earlier = self._archived_as(run_id, incarnation)
             if earlier is not None:  # a shop of an earlier incarnation still running: its events stay out of the run
-                raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) is an earlier "
-                                  f"incarnation's of the run, kept as {earlier!r} (not stored)")
+                raise self._of_earlier(event, earlier)
         if run_id not in self._ends:
             self._ends[run_id] = self.end_seq(run_id)
         end = self._ends[run_id]
@@ -323,10 +338,9 @@ class RecorderStore:
             assert row is not None
             if row == (event["time"], event["kind"], data):
                 return False
-            earlier = self._earlier_incarnation(event)
+            earlier = self._earlier_incarnation(event)  # (an event that names no incarnation: by its content)
             if earlier is not None:
-                raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) is an earlier "
-                                  f"incarnation's of the run, kept as {earlier!r} (not stored)")
+                raise self._of_earlier(event, earlier)
             raise RunConflict(f"run {run_id!r}: event {seq} ({event['kind']} at {event['time']}) differs from the one "
                               f"stored ({row[1]} at {row[0]}): another run with the same run id? (not stored)")
         self._touch_run(run_id, now, data.get("instance") if event["kind"] == "run_start" else None)
