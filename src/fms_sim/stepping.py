@@ -98,14 +98,16 @@ class Stepper:
         self.idle: list[Move] = []
         self._trips = (len(shop.rec.agv), len(shop.rec.tt))  # trips recorded when the vehicles were last checked
 
-    def _forget_workers(self) -> None:
+    def _forget_workers(self, answered: set[tuple[str, int]] | frozenset = frozenset()) -> None:
         """A vehicle that made a trip since the last check is new again at the next idle stop, even if it never
         looked busy to a stop: a trip of travel time 0 starts and ends at one instant (a valid schedule's empty
-        move after it was then never offered, and replay got stuck)."""
+        move after it was then never offered, and replay got stuck). The vehicles ``answered`` (moved at this idle
+        stop: their trips are its answer) are not."""
         rec = self.shop.rec
         a0, t0 = self._trips
         if len(rec.agv) > a0 or len(rec.tt) > t0:
-            self.looked -= {("agv", t.agv) for t in rec.agv[a0:]} | {("tt", t.transporter) for t in rec.tt[t0:]}
+            self.looked -= ({("agv", t.agv) for t in rec.agv[a0:]}
+                            | {("tt", t.transporter) for t in rec.tt[t0:]}) - answered
         self._trips = (len(rec.agv), len(rec.tt))
 
     def copy(self) -> "Stepper":
@@ -210,15 +212,12 @@ class Stepper:
         for kind, v, loc in moves:
             shop.reposition(kind, v, loc, advance=False)
         self._forget_workers()  # (trips before the moves stay news)
-        rec = shop.rec
-        a0, t0 = len(rec.agv), len(rec.tt)
         # the moves' trips are recorded when their transitions fire: fired here, so that they are this stop's answer,
         # not news (counted before they fired, a moved vehicle was offered again before the next decision on the
         # paper's net, and moving it to and fro over travel times of 0 kept the clock from moving)
         shop.net.run_autonomous()
         self.looked.update(offered - seen if self.idle_first else offered)
-        self.looked -= ({("agv", t.agv) for t in rec.agv[a0:]} | {("tt", t.transporter) for t in rec.tt[t0:]}) - seen
-        self._trips = (len(rec.agv), len(rec.tt))
+        self._forget_workers(answered=seen)
         return self.advance()
 
     def add_jobs(self, jobs: Sequence[Sequence[Operation]]) -> list[int]:
