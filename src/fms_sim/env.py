@@ -445,12 +445,12 @@ class ShopEnv(gym.Env):
         mm = self.max_machines
         legal = s.legal_actions()
         if self.decisions == "full":  # the decision's kinds from the action table (no kind lookup per action)
-            codes = self._kind_code[legal]
+            codes, nums = self._kind_code[legal], self._kind_num[legal]
             open_ = np.zeros(len(FULL_KINDS), dtype=bool)
             open_[codes] = True
             job, agv, tt = open_[0], open_[1], open_[2]
             # the jobs whose dispatch is legal (a shop without AGVs has no job actions: its first actions are others)
-            legal_jobs = self._kind_num[legal][codes == 0].tolist() if job else []
+            legal_jobs = nums[codes == 0].tolist() if job else []
         else:
             kinds = s.decision_kind() or ""
             job, agv, tt = "job" in kinds, "agv" in kinds, "tt" in kinds
@@ -523,18 +523,17 @@ class ShopEnv(gym.Env):
         parts = [g, J.astype(np.float32).ravel(), M.astype(np.float32).ravel(), T.astype(np.float32).ravel(),
                  A.ravel(), R.ravel()]
         if isinstance(s, FullShop):
-            parts += self._full_features(s, legal, loc, open_)  # a FullShop is observed with decisions='full'
+            parts += self._full_features(s, codes, nums, loc, open_)  # (observed with decisions='full')
         obs = np.concatenate(parts)
         return np.clip(obs, -1.0, OBS_HIGH, out=obs)
 
-    def _full_features(self, s: FullShop, legal: list[int], loc: np.ndarray, open_: np.ndarray) -> list[np.ndarray]:
+    def _full_features(self, s: FullShop, codes: np.ndarray, nums: np.ndarray, loc: np.ndarray,
+                       open_: np.ndarray) -> list[np.ndarray]:
         """The full net's decision points: which starts, tool take-ups and request choices are offered, where
-        the parts and tools stand in their reservations. ``loc``: each job's part location (-1: none or on a
-        vehicle), as :meth:`_obs` read it; ``open_``: which kinds of action are legal (indexed as
-        :data:`FULL_KINDS`), as :meth:`_obs` read them."""
+        the parts and tools stand in their reservations. ``codes`` and ``nums``: the kind (indexed as
+        :data:`FULL_KINDS`) and number of each legal action; ``loc``: each job's part location (-1: none or on a
+        vehicle), as :meth:`_obs` read it; ``open_``: which kinds of action are legal, as :meth:`_obs` read them."""
         inst = self.instance
-        la = np.asarray(legal, dtype=np.int64)
-        codes, nums = self._kind_code[la], self._kind_num[la]
         empty = nums[:0]
         starts, tools, uses = (nums[codes == i] if open_[i] else empty for i in _START_TOOL_USE)
         g = open_[_FULL_G].astype(np.float32)
@@ -551,8 +550,8 @@ class ShopEnv(gym.Env):
         buffered[list(s.p_buffer.buckets)] = True  # the full net's buffer is keyed by job
         J[:n, 1] = buffered
         if chosen is not None:
-            for j, ks in s.treq[chosen].items():
-                J[j, 3] = ks[0] == s.started[j]
+            started = s.started
+            J[[j for j, ks in s.treq[chosen].items() if ks[0] == started[j]], 3] = 1.0
         dispatched = np.asarray(s.job_started_ops, dtype=np.int64)
         done = np.asarray(s.job_done_ops, dtype=np.int64)
         J[:n, 4] = dispatched > done + 1
@@ -567,10 +566,14 @@ class ShopEnv(gym.Env):
         due_count = [0] * (inst.n_tools + 1 if inst.has_tools else 1)
         if inst.has_tools:  # due tool requests (FullShop.due_tool_request), read from the pending requests
             # a request is due only for a job's next operation, so only that operation's tool is looked up (not
-            # every pending request of every tool: hundreds on a 100-job shop)
+            # every pending request of every tool: hundreds on a 100-job shop). FullShop._candidate inlined: for
+            # the job's next operation to start the reservation closes no circular wait (_safe is True at once),
+            # so the request may be served where the tool is at its machine or a transporter is idle in service
             treq, nxt, tk = s.treq, k.tolist(), tb.tool[rows, kk]
             servable: dict[int, bool] = {}
-            tkl = tk.tolist()
+            tkl, ml, tool_loc = tk.tolist(), m.tolist(), s.tool_loc
+            carried = s._in_service("tt", s.p_tt_idle)
+            due = []
             for j in np.flatnonzero(on_way & (tk > 0)).tolist():
                 t = tkl[j]
                 ks = treq[t].get(j)
@@ -579,9 +582,10 @@ class ShopEnv(gym.Env):
                 ok = servable.get(t)
                 if ok is None:
                     ok = servable[t] = s._servable(t)
-                if ok and s._candidate(t, j):
-                    J[j, 5] = 1.0
+                if ok and (carried or tool_loc[t] == ml[j]):
+                    due.append(j)
                     due_count[t] += 1
+            J[due, 5] = 1.0
         J[:n, 6] = self._start_estimates(s, tb, k, m, prev_m, buffered, done, loc) / self._scale
         T = np.zeros((self.max_tools, len(FULL_TOOL_FEATURES)), dtype=np.float32)
         if inst.has_tools:
@@ -612,10 +616,9 @@ class ShopEnv(gym.Env):
                 tb.travel = np.asarray(inst.agv_travel, dtype=np.int64)
             travel = tb.travel
         free = done >= k
-        if inst.has_agvs:
-            go = travel[np.maximum(here, 0), m]
-            free_part = now + np.where((here >= 0) & (here != m), go, 0)
-            run_part = np.maximum(now, busy[prev_m]) + np.where(prev_m != m, travel[prev_m, m], 0)
+        if inst.has_agvs:  # (no travel within a location: the travel matrices' diagonals are 0)
+            free_part = now + np.where(here >= 0, travel[np.maximum(here, 0), m], 0)
+            run_part = np.maximum(now, busy[prev_m]) + travel[prev_m, m]
         else:
             free_part = np.full(tb.n, now, dtype=np.int64)
             run_part = np.maximum(now, busy[prev_m])

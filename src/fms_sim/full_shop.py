@@ -516,12 +516,31 @@ class FullShop(Shop):
         return self._safe(t, (j, k))
 
     def _tool_ok(self, t: int, b: dict) -> bool:
-        if self.tool_choice is not None or not self.treq[t] or not self._servable(t):
+        """Tool t may take up a request now: some candidate (:meth:`_candidate`) among its pending requests."""
+        treq = self.treq[t]
+        if self.tool_choice is not None or not treq or not self._servable(t):
             return False
         # without an idle transporter only requests on the machine where the tool is can be served
-        cands = (self.treq[t] if self._in_service("tt", self.p_tt_idle)
-                 else self.treq_at[t].get(self.tool_loc[t], ()))
-        return any(self._candidate(t, j) for j in cands)
+        carried = self._in_service("tt", self.p_tt_idle)
+        loc = self.tool_loc[t]
+        cands = treq if carried else self.treq_at[t].get(loc, ())
+        # any(self._candidate(t, j) for j in cands), the cheap case first: a request for its job's next operation to
+        # start closes no circular wait (_safe is True at once), so the wait-for graph (_danger, rebuilt after every
+        # change of the tools) is walked only where no such request is a candidate (this guard is re-evaluated for
+        # every tool at each of those changes)
+        started, jobs = self.started, self._jobs
+        later = []
+        for j in cands:
+            ks = treq.get(j)
+            if not ks:
+                continue
+            k = ks[0]
+            if not carried and loc != jobs[j][k].machine:
+                continue
+            if k == started[j]:
+                return True
+            later.append((j, k))
+        return any(self._safe(t, op) for op in later)
 
     def _use_ok(self, j: int, b: dict) -> bool:
         t = self.tool_choice

@@ -451,16 +451,18 @@ class PlanGuide:
         return self._cached("agvs", tuple(sent), lambda: self.agvs.heads(
             np.asarray(sent, dtype=np.int64)[self.agvs.J] > self.agvs.K))
 
-    def tt_heads(self, shop: FullShop, started: np.ndarray) -> dict[int, tuple[int, int]]:
+    def tt_heads(self, shop: FullShop, started: np.ndarray, state: tuple | None = None) -> dict[int, tuple[int, int]]:
         """Each transporter's next planned carry whose tool use is not yet served (``started``: the shop's
-        next operation to start per job, as an array; a dict shared with later calls: read it only)."""
-        return self._cached("tts", self._tool_state(shop),
+        next operation to start per job, as an array; ``state``: :meth:`_tool_state` of the shop if the caller has
+        it; a dict shared with later calls: read it only)."""
+        return self._cached("tts", self._tool_state(shop) if state is None else state,
                             lambda: self.tts.heads(self._served(shop, self.tts, started)))
 
     @staticmethod
-    def _tool_state(shop: FullShop) -> tuple:
-        """What the tool and transporter heads read: the operations started and the tools' reservations."""
-        return tuple(shop.started), tuple(shop.tool_user), tuple(shop.tool_next)
+    def _tool_state(shop: FullShop, started: tuple | None = None) -> tuple:
+        """What the tool and transporter heads read: the operations started (``started``: ``tuple(shop.started)``
+        if the caller has it) and the tools' reservations."""
+        return (tuple(shop.started) if started is None else started), tuple(shop.tool_user), tuple(shop.tool_next)
 
     def view(self, shop: FullShop, tools: bool = True) -> dict[str, Any]:
         """The heads of every order in ``shop``'s state and what follows for each job (see the module
@@ -469,12 +471,16 @@ class PlanGuide:
         inst = self.instance
         n = inst.n_jobs
         started = np.asarray(shop.started, dtype=np.int64)
-        m_heads = self._cached("machines", tuple(shop.started),
-                               lambda: self.machines.heads(started[self.machines.J] > self.machines.K))
+        key = tuple(shop.started)  # (the memo key of what reads the operations started)
+        m_heads = self._cached("machines", key, lambda: self.machines.heads(started[self.machines.J] > self.machines.K))
         start_head = np.zeros(n, dtype=bool)
-        for m, (j, k) in m_heads.items():
-            if shop.buffered_op(j) == (k, m):
-                start_head[j] = True
+        # a job's buffered part heads its machine's order (read from the buffered parts, a few dozen, rather than
+        # asking the buffer for each machine's head: FullShop.buffered_op; the buffer is keyed by job)
+        for bucket in shop.p_buffer.buckets.values():
+            if bucket:
+                j, k, m = bucket[0].colour[:3]
+                if m_heads.get(m) == (j, k):
+                    start_head[j] = True
         dispatch_head = np.zeros(n, dtype=bool)
         carrier_idle = np.zeros(n, dtype=bool)
         if inst.has_agvs:
@@ -487,11 +493,11 @@ class PlanGuide:
         r_heads: dict[int, tuple[int, int]] = {}
         idle_tts: set[int] = set()
         if inst.has_tools and tools:
-            t_heads = self._cached("tools", self._tool_state(shop),
-                                   lambda: self.tools.heads(self._served(shop, self.tools, started)))
-            r_heads = self.tt_heads(shop, started)
+            state = self._tool_state(shop, key)
+            t_heads = self._cached("tools", state, lambda: self.tools.heads(self._served(shop, self.tools, started)))
+            r_heads = self.tt_heads(shop, started, state)
             idle_tts = {u for u, _ in shop.idle_transporters()}
-        return dict(shop=shop, started=started, start_head=start_head, dispatch_head=dispatch_head,
+        return dict(shop=shop, started=started, started_key=key, start_head=start_head, dispatch_head=dispatch_head,
                     carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_tts=idle_tts)
 
     def use_head(self, v: dict[str, Any]) -> int | None:
@@ -581,7 +587,7 @@ class PlanGuide:
         u = self.use_head(v)
         if u is not None:
             J[u, 3] = 1.0
-        J[:n, 4:6] = self._cached("ranks", (tuple(shop.started), shop.now), lambda: self._ranks(started, shop.now))
+        J[:n, 4:6] = self._cached("ranks", (v["started_key"], shop.now), lambda: self._ranks(started, shop.now))
         T = np.zeros((max_tools, len(GUIDE_TOOL_FEATURES)), dtype=np.float32)
         for t in legal_tools:
             T[t - 1, 0] = self.take_up(v, t)
