@@ -627,7 +627,9 @@ class FullShop(Shop):
         # every job with a request on t may be a candidate; a decider often reads only the first (first, replay):
         # evaluated when asked (Net.defer), not all of them at every tool choice (quadratic on large shops)
         self.net.defer([self.t_use[j] for j in self._use_cands])
-        self._touch_tools()
+        # a choice is open: every take_tool guard is false until it closes (_tool_ok), known without evaluating each
+        self._danger_cache.clear()
+        self.net.disable(self.t_tool)
 
     def _on_use(self, j: int, b: dict, now: int) -> None:
         t = self.tool_choice
