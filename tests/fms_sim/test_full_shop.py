@@ -279,3 +279,37 @@ def test_a_transporter_outage_during_an_open_tool_choice_takes_back_the_uses_tha
     while not shops[0].done:  # the run goes on: the tool is carried once the transporter is back
         shops[0].act(shops[0].legal_actions()[0])
     assert validate(inst, shops[0].schedule(), shops[0].scenario) == []
+
+
+def _tool_offered_by_definition(shop: FullShop, t: int) -> bool:
+    """take_tool[t]'s guard as docs/semantics.md states it: no tool choice is open, the tool may take up a new
+    request (free, or running with nothing queued) and some pending request on it is a candidate (reachable now
+    and closing no circular wait)."""
+    if shop.tool_choice is not None or not shop._servable(t):
+        return False
+    return any(shop._candidate(t, j) for j in shop.treq[t])
+
+
+@pytest.mark.parametrize("name,seed,outage", [("ra01", 1, False), ("ra05", 2, False), ("sl00", 3, False),
+                                              ("ra01", 4, True)])
+def test_the_tool_take_up_guard_is_its_definition_at_every_state(name, seed, outage):
+    """The take_tool guard tries the requests for their job's next operation first and walks the wait-for graph
+    only without one (FullShop._tool_ok): it must still offer exactly the tools whose definition holds, at every
+    state of random runs (with a transporter out of service for a while: no idle transporter in service)."""
+    from fms_sim.disruptions import Outage, Scenario
+
+    inst = builtin(name)
+    scenario = Scenario(outages=(Outage(kind="tt", vehicle=0, start=30, duration=200),)) if outage else None
+    shop = FullShop(inst, scenario=scenario)
+    rng = random.Random(seed)
+    offered_seen = states = 0
+    while not shop.done:
+        legal = shop.legal_actions()
+        offered = {shop.action_kind(a)[1] for a in legal if shop.action_kind(a)[0] == "tool"}
+        expected = {t for t in range(1, inst.n_tools + 1) if _tool_offered_by_definition(shop, t)}
+        if shop.decision_kind() != "agv" and shop.decision_kind() != "tt":  # (a vehicle choice offers nothing else)
+            assert offered == expected, f"time {shop.now}: offered {sorted(offered)}, by definition {sorted(expected)}"
+        offered_seen += bool(offered)
+        states += 1
+        shop.act(rng.choice(legal))
+    assert offered_seen > 10 and validate(inst, shop.schedule(), shop.scenario) == []
