@@ -44,6 +44,17 @@ def _run_layers(layers: Layers, x: np.ndarray) -> np.ndarray:
     return x
 
 
+def _forward(layers: Layers, x: np.ndarray) -> np.ndarray:
+    """:func:`_run_layers` for the entity actor, each layer's bias and tanh applied in place to its product (a new
+    array): the same arithmetic, without an array per step."""
+    for w, b, tanh in layers:
+        x = x @ w
+        x += b
+        if tanh:
+            np.tanh(x, out=x)
+    return x
+
+
 class NumpyEntityActor:
     """The actor of a trained entity network (see the module docstring).
 
@@ -52,6 +63,13 @@ class NumpyEntityActor:
     ``nets[block]`` each block's embedding layers and ``heads[block]`` the scoring layers of each action block
     (on the full net also ``start``, ``use`` and ``tool``, which score job and tool rows, and ``hold``, which
     scores the context).
+
+    A decision costs a fraction of a millisecond, and about half of the actor's share is numpy's cost per call
+    rather than arithmetic, so :meth:`logits` is built to make few calls: what does not depend on the state is
+    precomputed (:meth:`_prepare`), the small blocks are embedded in one batched pass (:meth:`_embed_small`),
+    the job rows are gathered with one index (:meth:`_embed_jobs`), and the heads to score are found in one pass
+    over the mask, their context parts computed in one product (:meth:`_plan`). Nothing is kept between calls:
+    every array :meth:`logits` returns or works on is its own.
     """
 
     kind = "entity"
@@ -69,7 +87,8 @@ class NumpyEntityActor:
         """Precompute what every call needs (a decision costs a fraction of a millisecond, so the per-call
         bookkeeping matters): where each block's rows lie in the flat observation (its base, full-net and guide
         parts), and the embedding nets' first layers split into the rows' part and the global part, the
-        global parts of all blocks stacked so that one product serves them all."""
+        global parts of all blocks (and of the ``hold`` head, :meth:`_prepare_heads`) stacked so that one product
+        serves them all."""
         L = self.lay
         parts: dict[str, list[tuple[int, int]]] = {}  # block -> [(offset, features)] of its parts, in order
         i = L["n_global"]
@@ -90,6 +109,9 @@ class NumpyEntityActor:
                 parts[name].append((i, L[f]))
                 i += L[name] * L[f]
         self._parts = parts
+        # the global features: one slice, or (on the full net, two parts) one gather
+        self._g_idx = (slice(0, L["n_global"]) if len(self._g) == 1
+                       else np.concatenate([np.arange(i, i + f) for i, f in self._g]))
         first = []
         self._row_w: dict[str, np.ndarray] = {}
         for b in self.blocks:
@@ -106,7 +128,62 @@ class NumpyEntityActor:
                        "tool": (paper + L["jobs"], L["tools"], "tools"),
                        "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
         self._hold = paper + 2 * L["jobs"] + L["tools"]
+        self._prepare_jobs()
+        self._prepare_heads()
         self._prepare_small()
+
+    def _prepare_jobs(self) -> None:
+        """One index gathers the job rows from the flat observation, their base, full-net and guide features side
+        by side (one call where slicing each part and joining them took five); the machine of each job's next
+        operation joins its row as in ``EntityNet._encode``."""
+        L = self.lay
+        cols = [i + np.arange(L["jobs"])[:, None] * f + np.arange(f)[None, :] for i, f in self._parts["jobs"]]
+        self._jobs_idx = np.concatenate(cols, axis=1) if cols else np.zeros((L["jobs"], 0), np.intp)
+
+    def _prepare_heads(self) -> None:
+        """Split every head's first layer into the rows' part and the context's (the ``hold`` head's: the context's
+        and the global features'), so that the context parts of all the heads a decision needs are one product
+        (:meth:`_plan`) and the ``hold`` head's global part joins the embedding nets' (:attr:`_g_w`). The heads are
+        kept in the order of their action slots, which ``np.logical_or.reduceat`` over the mask at
+        :attr:`_starts` reads in one call: a head is needed where its slots hold a legal action. A head with no
+        slots (a shop layout without tools) is never needed."""
+        h = self.hidden
+        heads = []  # (first slot, name, rows' weights or None for hold, context weights, bias, tanh, rest)
+        for b, layers in self.heads.items():
+            w, bias, tanh = layers[0]
+            if b == "hold":
+                k = h * len(self.blocks)  # [context, global features]
+                heads.append((self._hold, b, None, w[:k], bias, tanh, layers[1:]))
+                self._g_hold = slice(self._g_w.shape[1], self._g_w.shape[1] + w.shape[1])
+                self._g_w = np.concatenate([self._g_w, w[k:]], axis=1)
+                self._g_b = np.concatenate([self._g_b, np.zeros(w.shape[1], self._g_b.dtype)])
+                continue
+            lo, slots, src = self._where[b]
+            if slots:
+                k = self.nets[src][-1][0].shape[1]  # [row embedding, context]
+                heads.append((lo, b, w[:k], w[k:], bias, tanh, layers[1:]))
+        heads.sort(key=lambda x: x[0])
+        self._heads = heads
+        self._starts = np.array([x[0] for x in heads], np.intp)
+        self._plans: dict[bytes, tuple] = {}
+
+    def _plan(self, need: np.ndarray) -> tuple:
+        """What a decision whose needed heads are ``need`` (one flag per head of :attr:`_heads`) computes: the
+        context weights and biases of those heads side by side (one product) and per head where its columns lie.
+        Built once per set of needed heads (at most two to the number of heads, a handful in a run)."""
+        key = need.tobytes()
+        plan = self._plans.get(key)
+        if plan is None:
+            used = [x for x, n in zip(self._heads, need) if n]
+            c_w = np.concatenate([x[3] for x in used], axis=1) if used else None
+            c_b = np.concatenate([x[4] for x in used]) if used else None
+            steps, col = [], 0
+            for lo, b, wr, wc, _, tanh, rest in used:
+                cols = slice(col, col + wc.shape[1])
+                col += wc.shape[1]
+                steps.append((lo, wr is None, self._where[b][2] if wr is not None else None, wr, cols, tanh, rest))
+            plan = self._plans[key] = (c_w, c_b, steps)
+        return plan
 
     def _prepare_small(self) -> None:
         """Stack the blocks other than the jobs' (machines, tools, AGVs, transporters: a few dozen rows in all) so
@@ -137,30 +214,60 @@ class NumpyEntityActor:
             w1[s, :col] = self._row_w[b]
             real[s, :L[b]] = 1.0
         k = [self.blocks.index(b) for b in small]
+        # the blocks' parts of the global product and of the context: a slice where the blocks follow each other
+        # (always: jobs first, then the small blocks), else an index
+        sel = (slice(k[0] * h, (k[-1] + 1) * h) if k == list(range(k[0], k[0] + len(k)))
+               else np.concatenate([np.arange(j * h, (j + 1) * h) for j in k]))
         self._small = {
-            "blocks": small, "k": np.array(k), "idx": idx, "real": real, "w1": w1,
-            "gsel": np.concatenate([np.arange(j * h, (j + 1) * h) for j in k]).reshape(len(small), 1, h),
-            "w2": np.stack([self.nets[b][1][0] for b in small]).astype(np.float32),
+            "blocks": small, "pos": {b: s for s, b in enumerate(small)}, "sel": sel, "idx": idx, "real": real,
+            "w1": w1, "w2": np.stack([self.nets[b][1][0] for b in small]).astype(np.float32),
             "b2": np.stack([self.nets[b][1][1] for b in small]).astype(np.float32)[:, None, :],
         }
 
-    def _embed_small(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray, emb: dict[str, np.ndarray]) -> None:
-        """Embed the stacked small blocks (:meth:`_prepare_small`) in one pass: each block's rows into ``emb``,
-        their mean into its part of ``ctx``. A row exists exactly where its 'present' feature (its block's first) is
-        1, and the rows that exist come first."""
+    def _embed_small(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Embed the stacked small blocks (:meth:`_prepare_small`) in one pass, their means into their parts of
+        ``ctx``; returns the embeddings (blocks, rows, hidden) and each block's number of rows. A row exists exactly
+        where its 'present' feature (its block's first) is 1, and the rows that exist come first."""
         S = self._small
         x = obs[S["idx"]]  # (blocks, rows, features)
         present = x[:, :, 0] * S["real"]
         n = present.sum(axis=1)
         top = int(n.max())  # the rows past every block's last are left out (only a few machines: a BU shop)
         x, present = x[:, :top], present[:, :top]
-        e = np.tanh(x @ S["w1"] + gw[S["gsel"]])
-        e = np.tanh(e @ S["w2"] + S["b2"])
+        e = x @ S["w1"]
+        e += gw[S["sel"]].reshape(len(n), 1, -1)
+        np.tanh(e, out=e)
+        e = e @ S["w2"]
+        e += S["b2"]
+        np.tanh(e, out=e)
         mean = (present / np.maximum(n, 1)[:, None])[:, None, :] @ e  # (blocks, 1, hidden)
-        h = self.hidden
-        ctx.reshape(-1, h)[S["k"]] = mean[:, 0, :]
-        for s, b in enumerate(S["blocks"]):
-            emb[b] = e[s, :int(n[s])]
+        ctx[S["sel"]] = mean.reshape(-1)
+        return e, n
+
+    def _embed_jobs(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+        """The embeddings of the job rows that exist (:meth:`_prepare_jobs`), their mean into the jobs' part of
+        ``ctx``. A job's row is joined by the row of the machine of its next operation (a job's 4th feature: that
+        machine's number over the machines' count, 0 for none), zeros for none."""
+        L, h = self.lay, self.hidden
+        i, f = self._parts["jobs"][0]
+        nj = int(np.count_nonzero(obs[i:i + L["jobs"] * f:f]))
+        mi, mf = self._parts["machines"][0]
+        m = L["machines"]
+        machines = np.zeros((m + 1, mf), np.float32)  # row 0: no next machine
+        machines[1:] = obs[mi:mi + m * mf].reshape(m, mf)
+        nxt = np.rint(obs[i + 3:i + nj * f:f] * m).astype(np.intp)
+        # (take is faster than indexing; taking into the parts of one array is slower than joining them)
+        x = np.concatenate((obs.take(self._jobs_idx[:nj]), machines.take(nxt, axis=0)), axis=1)
+        k = self.blocks.index("jobs")
+        layers = self.nets["jobs"]
+        e = x @ self._row_w["jobs"]
+        e += gw[k * h:(k + 1) * h]
+        if layers[0][2]:
+            np.tanh(e, out=e)
+        e = _forward(layers[1:], e)
+        if nj:
+            ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / nj)
+        return e
 
     def _rows(self, obs: np.ndarray, b: str, n: int) -> np.ndarray:
         """The first ``n`` rows of block ``b``: its base, full-net and guide features side by side."""
@@ -170,71 +277,57 @@ class NumpyEntityActor:
             return obs[i:i + n * f].reshape(n, f)
         return np.concatenate([obs[i:i + n * f].reshape(n, f) for i, f in ps], axis=1)
 
-    @staticmethod
-    def _run(layers: Layers, x: np.ndarray, shared: np.ndarray) -> np.ndarray:
-        """The layers on rows ``[x, shared]`` (``shared`` the same for every row), without building them:
-        the first layer is split into the rows' part and the shared part."""
-        w, b, tanh = layers[0]
-        k = x.shape[1]
-        x = x @ w[:k] + (shared @ w[k:] + b)
-        if tanh:
-            x = np.tanh(x)
-        return _run_layers(layers[1:], x)
-
     def logits(self, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Logits over the padded actions; -inf where ``mask`` is False."""
-        L = self.lay
-        g = obs[:L["n_global"]] if len(self._g) == 1 else np.concatenate([obs[i:i + f] for i, f in self._g])
-        h = self.hidden
-        gw = g @ self._g_w + self._g_b  # every block's first layer, global part
-        # rows that exist: the 'present' feature (each block's first) is 1 exactly for them, and they come first
-        n = {}
-        batched = self._small["blocks"] if self._small is not None else ()
-        for b in self.blocks:
-            if b in batched:
-                continue  # counted in the batched pass
-            i, f = self._parts[b][0]
-            n[b] = int(np.count_nonzero(obs[i:i + L[b] * f:f])) if L[b] else 0
-        nj = n["jobs"]
-        i, f = self._parts["jobs"][0]
-        idx = np.rint(obs[i + 3:i + nj * f:f] * L["machines"]).astype(np.int64) - 1  # next machine (0: none)
-        i, f = self._parts["machines"][0]
-        nxt = np.take(obs[i:i + L["machines"] * f].reshape(L["machines"], f), np.maximum(idx, 0), axis=0)
-        nxt[idx < 0] = 0.0
-        emb: dict[str, np.ndarray] = {}
+        L, h = self.lay, self.hidden
+        g = obs[self._g_idx]
+        gw = g @ self._g_w  # every block's first layer, global part (and the hold head's)
+        gw += self._g_b
         ctx = np.zeros(h * len(self.blocks), np.float32)
-        if self._small is not None:
-            self._embed_small(obs, gw, ctx, emb)
+        emb = {"jobs": self._embed_jobs(obs, gw, ctx)}
+        S = self._small
+        if S is not None:
+            small, n_small = self._embed_small(obs, gw, ctx)
         for k, b in enumerate(self.blocks):
-            if b in emb:
+            if b in emb or (S is not None and b in S["pos"]):
                 continue
-            if b != "jobs" and not n[b]:  # no rows (a shop without tools): no embedding, its context stays 0
+            i, f = self._parts[b][0]
+            n = int(np.count_nonzero(obs[i:i + L[b] * f:f])) if L[b] else 0
+            if not n:  # no rows (a shop without tools): no embedding, its context stays 0
                 emb[b] = np.zeros((0, self.nets[b][-1][0].shape[1]), np.float32)
                 continue
-            if b == "jobs":  # a job's row is joined by the row of the machine of its next operation
-                x = np.concatenate([obs[i:i + nj * f].reshape(nj, f) for i, f in self._parts[b]] + [nxt], axis=1)
-            else:
-                x = self._rows(obs, b, n[b])
             layers = self.nets[b]
-            e = x @ self._row_w[b] + gw[k * h:(k + 1) * h]
+            e = self._rows(obs, b, n) @ self._row_w[b]
+            e += gw[k * h:(k + 1) * h]
             if layers[0][2]:
-                e = np.tanh(e)
-            e = _run_layers(layers[1:], e)
-            emb[b] = e
-            if e.shape[0]:
-                ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
+                np.tanh(e, out=e)
+            emb[b] = e = _forward(layers[1:], e)
+            ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
         out = np.full(mask.shape[0], -np.inf)
-        for b, head in self.heads.items():
-            if b == "hold":
-                lo = self._hold
-                if mask[lo]:
-                    out[lo] = _run_layers(head, np.concatenate([ctx, g]))[0]
-                continue
-            lo, slots, src = self._where[b]
-            if not mask[lo:lo + slots].any():
-                continue
-            e = emb[src]
-            out[lo:lo + e.shape[0]] = self._run(head, e, ctx)[:, 0]
+        if not len(self._starts):
+            return out
+        c_w, c_b, steps = self._plan(np.logical_or.reduceat(mask, self._starts))
+        if c_w is None:
+            return out
+        c = ctx @ c_w  # every needed head's first layer, context part
+        c += c_b
+        for lo, hold, src, wr, cols, tanh, rest in steps:
+            if hold:
+                z = c[cols] + gw[self._g_hold]
+            else:
+                e = emb.get(src)
+                if e is None:  # a batched small block: its rows that exist
+                    s = S["pos"][src]
+                    e = small[s, :int(n_small[s])]
+                z = e @ wr
+                z += c[cols]
+            if tanh:
+                np.tanh(z, out=z)
+            z = _forward(rest, z)
+            if hold:
+                out[lo] = z[0]
+            else:
+                out[lo:lo + z.shape[0]] = z[:, 0]
         out[~mask] = -np.inf
         return out
 
