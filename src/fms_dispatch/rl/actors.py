@@ -139,6 +139,7 @@ class NumpyEntityActor:
         L = self.lay
         cols = [i + np.arange(L["jobs"])[:, None] * f + np.arange(f)[None, :] for i, f in self._parts["jobs"]]
         self._jobs_idx = np.concatenate(cols, axis=1) if cols else np.zeros((L["jobs"], 0), np.intp)
+        self._jobs_ones = np.ones(L["jobs"], np.float32)
 
     def _prepare_heads(self) -> None:
         """Split every head's first layer into the rows' part and the context's (the ``hold`` head's: the context's
@@ -165,6 +166,7 @@ class NumpyEntityActor:
         heads.sort(key=lambda x: x[0])
         self._heads = heads
         self._starts = np.array([x[0] for x in heads], np.intp)
+        self._none = np.full(self._hold + 1 if "hold" in self.heads else self._where["start"][0], -np.inf)
         self._plans: dict[bytes, tuple] = {}
 
     def _plan(self, need: np.ndarray) -> tuple:
@@ -224,7 +226,7 @@ class NumpyEntityActor:
             "b2": np.stack([self.nets[b][1][1] for b in small]).astype(np.float32)[:, None, :],
         }
 
-    def _embed_small(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _embed_small(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """Embed the stacked small blocks (:meth:`_prepare_small`) in one pass, their means into their parts of
         ``ctx``; returns the embeddings (blocks, rows, hidden) and each block's number of rows. A row exists exactly
         where its 'present' feature (its block's first) is 1, and the rows that exist come first."""
@@ -232,7 +234,8 @@ class NumpyEntityActor:
         x = obs[S["idx"]]  # (blocks, rows, features)
         present = x[:, :, 0] * S["real"]
         n = present.sum(axis=1)
-        top = int(n.max())  # the rows past every block's last are left out (only a few machines: a BU shop)
+        counts = [int(x) for x in n.tolist()]
+        top = max(counts)  # the rows past every block's last are left out (only a few machines: a BU shop)
         x, present = x[:, :top], present[:, :top]
         e = x @ S["w1"]
         e += gw[S["sel"]].reshape(len(n), 1, -1)
@@ -242,7 +245,7 @@ class NumpyEntityActor:
         np.tanh(e, out=e)
         mean = (present / np.maximum(n, 1)[:, None])[:, None, :] @ e  # (blocks, 1, hidden)
         ctx[S["sel"]] = mean.reshape(-1)
-        return e, n
+        return e, counts
 
     def _embed_jobs(self, obs: np.ndarray, gw: np.ndarray, ctx: np.ndarray) -> np.ndarray:
         """The embeddings of the job rows that exist (:meth:`_prepare_jobs`), their mean into the jobs' part of
@@ -266,7 +269,7 @@ class NumpyEntityActor:
             np.tanh(e, out=e)
         e = _forward(layers[1:], e)
         if nj:
-            ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / nj)
+            ctx[k * h:(k + 1) * h] = (self._jobs_ones[:nj] @ e) * np.float32(1.0 / nj)  # (a product: faster than sum)
         return e
 
     def _rows(self, obs: np.ndarray, b: str, n: int) -> np.ndarray:
@@ -303,7 +306,7 @@ class NumpyEntityActor:
                 np.tanh(e, out=e)
             emb[b] = e = _forward(layers[1:], e)
             ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
-        out = np.full(mask.shape[0], -np.inf)
+        out = self._none.copy() if mask.shape == self._none.shape else np.full(mask.shape[0], -np.inf)
         if not len(self._starts):
             return out
         c_w, c_b, steps = self._plan(np.logical_or.reduceat(mask, self._starts))
@@ -318,7 +321,12 @@ class NumpyEntityActor:
                 e = emb.get(src)
                 if e is None:  # a batched small block: its rows that exist
                     s = S["pos"][src]
-                    e = small[s, :int(n_small[s])]
+                    e = small[s, :n_small[s]]
+                legal = mask[lo:lo + e.shape[0]]
+                rows = None
+                if 4 * np.count_nonzero(legal) <= e.shape[0]:  # few legal rows (a start: one job of many): those
+                    rows = np.flatnonzero(legal)
+                    e = e.take(rows, axis=0)
                 z = e @ wr
                 z += c[cols]
             if tanh:
@@ -326,9 +334,11 @@ class NumpyEntityActor:
             z = _forward(rest, z)
             if hold:
                 out[lo] = z[0]
-            else:
+            elif rows is None:
                 out[lo:lo + z.shape[0]] = z[:, 0]
-        out[~mask] = -np.inf
+            else:
+                out[lo + rows] = z[:, 0]
+        np.putmask(out, ~mask, -np.inf)
         return out
 
 
