@@ -840,6 +840,44 @@ def test_the_batched_small_blocks_give_the_block_by_block_logits(name):
     assert compared >= 20
 
 
+def test_the_numpy_actor_scores_a_few_legal_rows_as_it_scores_them_all():
+    """Each head of the numpy actor is scored only where its action block has a legal action, and where a block has
+    few legal rows (a machine start: one job of many) only those rows: their logits are the ones it gives with every
+    action legal, every other action is -inf, and a mask without a legal action gives all -inf."""
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.rl.models import load_agent
+    from fms_sim.full_shop import make_shop
+
+    inst = builtin("sl00")
+    agent = load_agent(default_model_name(inst))
+    if agent.guide is not None:
+        agent.use_guide_effort(effort_from(restarts=0, tabu=0))
+    actor = agent.actor
+    shop = make_shop(inst, agent.decisions)
+    for _ in range(30):
+        shop.act(agent.act(shop))
+    obs, mask = agent._env(shop).observe()
+    everything = actor.logits(obs, np.ones_like(mask))
+    assert np.all(np.isneginf(actor.logits(obs, np.zeros_like(mask))))
+    blocks = {"jobs": "jobs", "agvs": "agvs", "tts": "tts", "start": "jobs", "use": "jobs", "tool": "tools"}
+    checked = set()
+    for head in actor.heads:
+        if head == "hold":
+            slots = [actor._hold]
+        else:
+            lo, _, block = actor._where[head]
+            i, f = actor._parts[block][0]
+            slots = lo + np.flatnonzero(obs[i:i + actor.lay[block] * f:f])  # the rows that exist
+        for slot in slots[:2]:
+            one = np.zeros_like(mask)
+            one[slot] = True
+            got = actor.logits(obs, one)
+            assert np.isfinite(got[slot]) and np.sum(np.isfinite(got)) == 1
+            assert np.isclose(got[slot], everything[slot], rtol=1e-5, atol=1e-6)
+            checked.add(head)
+    assert checked == set(actor.heads)  # every head, on sl00 (15 jobs, tools, AGVs and transporters)
+
+
 def test_solving_with_a_shipped_model_does_not_import_torch():
     code = ("import sys; from fms_dispatch.rl import ppo_solver; from fms_sim.benchmarks import builtin; "
             "s = ppo_solver('ppo')(builtin('EX12'), lookahead=True); "

@@ -5,9 +5,9 @@ small matrix products, so at inference torch is pure overhead: importing it and 
 seconds (it dominates the start of the agent node and of ``fms solve --solver ppo``), and per call it costs
 dozens of small-op dispatches. The actors here hold the weights as numpy arrays:
 
-* :class:`NumpyEntityActor` — the entity network of :class:`~fms_dispatch.rl.policy.EntityNet` (same float32
-  arithmetic as ``EntityNet.forward_actor``, but only over the rows that exist and the action blocks that
-  have a legal action);
+* :class:`NumpyEntityActor` — the entity network of :class:`~fms_dispatch.rl.policy.EntityNet` (the float32
+  arithmetic of ``EntityNet.forward_actor`` in another order, equal up to rounding, but only over the rows that
+  exist and the action blocks that have a legal action, and where a block has few legal actions over their rows);
 * :class:`NumpyMlpActor` — sb3's plain MLP policy (``arch="mlp"``).
 
 :func:`save_actor` / :func:`load_actor` store an actor in an ``.npz`` file next to the model's weights
@@ -68,8 +68,9 @@ class NumpyEntityActor:
     rather than arithmetic, so :meth:`logits` is built to make few calls: what does not depend on the state is
     precomputed (:meth:`_prepare`), the small blocks are embedded in one batched pass (:meth:`_embed_small`),
     the job rows are gathered with one index (:meth:`_embed_jobs`), and the heads to score are found in one pass
-    over the mask, their context parts computed in one product (:meth:`_plan`). Nothing is kept between calls:
-    every array :meth:`logits` returns or works on is its own.
+    over the mask, their context parts computed in one product (:meth:`_plan`), and a head with few legal rows
+    scores only those. Only weights are kept between calls (the plans): every array :meth:`logits` returns or
+    works on is its own.
     """
 
     kind = "entity"
@@ -128,6 +129,8 @@ class NumpyEntityActor:
                        "tool": (paper + L["jobs"], L["tools"], "tools"),
                        "use": (paper + L["jobs"] + L["tools"], L["jobs"], "jobs")}
         self._hold = paper + 2 * L["jobs"] + L["tools"]
+        # every action illegal: each call's logits start as a copy (faster than filling an array)
+        self._illegal = np.full(self._hold + 1 if L.get("full") else paper, -np.inf)
         self._prepare_jobs()
         self._prepare_heads()
         self._prepare_small()
@@ -166,7 +169,6 @@ class NumpyEntityActor:
         heads.sort(key=lambda x: x[0])
         self._heads = heads
         self._starts = np.array([x[0] for x in heads], np.intp)
-        self._none = np.full(self._hold + 1 if "hold" in self.heads else self._where["start"][0], -np.inf)
         self._plans: dict[bytes, tuple] = {}
 
     def _plan(self, need: np.ndarray) -> tuple:
@@ -306,7 +308,7 @@ class NumpyEntityActor:
                 np.tanh(e, out=e)
             emb[b] = e = _forward(layers[1:], e)
             ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
-        out = self._none.copy() if mask.shape == self._none.shape else np.full(mask.shape[0], -np.inf)
+        out = self._illegal.copy() if mask.shape == self._illegal.shape else np.full(mask.shape[0], -np.inf)
         if not len(self._starts):
             return out
         c_w, c_b, steps = self._plan(np.logical_or.reduceat(mask, self._starts))
