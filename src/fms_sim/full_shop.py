@@ -115,6 +115,7 @@ class FullShop(Shop):
         self.t_select: dict[tuple[str, int], Transition] = {}
         self._tool_ops: list[list[tuple[int, int]]] = []  # per job: (op, tool) of its operations with a tool
         self._danger_cache: dict[int, set[tuple[int, int]]] = {}  # see _danger
+        self._wait_graph: tuple[dict, dict] | None = None  # see _wait_for
         self.t_job: list[Transition] = []
         self.t_start: list[Transition] = []
         self.t_use: list[Transition] = []
@@ -586,26 +587,8 @@ class FullShop(Shop):
         cached = self._danger_cache.get(tool)
         if cached is not None:
             return cached
-        waiter, started = self._waiter, self.started
-        nodes = {w for w in map(waiter, range(1, len(self.tool_user))) if w is not None}
-        into: dict[tuple[int, int], list[tuple[int, int]]] = {}
-        frontier = []
-        for node in nodes:
-            i, z = node
-            hit = False
-            for y, need in self._tool_ops[i]:
-                if y >= z:
-                    break
-                if y < started[i]:
-                    continue
-                if need == tool:
-                    hit = True
-                    continue
-                w = waiter(need)
-                if w is not None and w != (i, y):
-                    into.setdefault(w, []).append(node)
-            if hit:
-                frontier.append(node)
+        into, needs = self._wait_for()
+        frontier = [node for node, tools in needs.items() if tool in tools]
         danger = set(frontier)
         while frontier:
             for prev in into.get(frontier.pop(), ()):
@@ -615,8 +598,41 @@ class FullShop(Shop):
         self._danger_cache[tool] = danger
         return danger
 
-    def _touch_tools(self) -> None:
+    def _wait_for(self) -> tuple[dict[tuple[int, int], list[tuple[int, int]]], dict[tuple[int, int], set[int]]]:
+        """The wait-for graph of the reserved operations, for every tool's :meth:`_danger` (cached with them):
+        ``into[w]``, the reserved operations that wait for ``w`` (``w`` holds the next reservation of a tool that an
+        earlier, unstarted operation of their job needs), and ``needs[node]``, the tools those earlier operations of
+        each reserved operation's job need. (An edge through the tool whose danger is asked only leads back into an
+        operation that needs it, one that is in its danger set anyway, so one graph serves every tool.)"""
+        graph = self._wait_graph
+        if graph is not None:
+            return graph
+        waiter, started = self._waiter, self.started
+        into: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        needs: dict[tuple[int, int], set[int]] = {}
+        for node in {w for w in map(waiter, range(1, len(self.tool_user))) if w is not None}:
+            i, z = node
+            before = needs[node] = set()
+            for y, need in self._tool_ops[i]:
+                if y >= z:
+                    break
+                if y < started[i]:
+                    continue
+                before.add(need)
+                w = waiter(need)
+                if w is not None and w != (i, y):
+                    into.setdefault(w, []).append(node)
+        self._wait_graph = graph = (into, needs)
+        return graph
+
+    def _forget_waits(self) -> None:
+        """Reservations or starts changed: the wait-for graph and every tool's danger set are recomputed when next
+        asked."""
         self._danger_cache.clear()
+        self._wait_graph = None
+
+    def _touch_tools(self) -> None:
+        self._forget_waits()
         touch = self.net.touch
         for tr in self.t_tool:
             touch(tr)
@@ -628,7 +644,7 @@ class FullShop(Shop):
         # evaluated when asked (Net.defer), not all of them at every tool choice (quadratic on large shops)
         self.net.defer([self.t_use[j] for j in self._use_cands])
         # a choice is open: every take_tool guard is false until it closes (_tool_ok), known without evaluating each
-        self._danger_cache.clear()
+        self._forget_waits()
         self.net.disable(self.t_tool)
 
     def _on_use(self, j: int, b: dict, now: int) -> None:
@@ -869,6 +885,7 @@ class FullShop(Shop):
         for name, value in copy.deepcopy(extra).items():
             setattr(self, name, value)
         self._danger_cache = {}
+        self._wait_graph = None
 
     def state_key(self, quick: bool = False) -> int:
         base = super().state_key(quick)
