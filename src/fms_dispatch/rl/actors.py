@@ -6,8 +6,8 @@ seconds (it dominates the start of the agent node and of ``fms solve --solver pp
 dozens of small-op dispatches. The actors here hold the weights as numpy arrays:
 
 * :class:`NumpyEntityActor` — the entity network of :class:`~fms_dispatch.rl.policy.EntityNet` (the float32
-  arithmetic of ``EntityNet.forward_actor`` in another order, equal up to rounding, but only over the rows that
-  exist and the action blocks that have a legal action, and where a block has few legal actions over their rows);
+  arithmetic of ``EntityNet.forward_actor``, but only over the rows that exist and the action blocks that have a
+  legal action);
 * :class:`NumpyMlpActor` — sb3's plain MLP policy (``arch="mlp"``).
 
 :func:`save_actor` / :func:`load_actor` store an actor in an ``.npz`` file next to the model's weights
@@ -68,9 +68,12 @@ class NumpyEntityActor:
     rather than arithmetic, so :meth:`logits` is built to make few calls: what does not depend on the state is
     precomputed (:meth:`_prepare`), the small blocks are embedded in one batched pass (:meth:`_embed_small`),
     the job rows are gathered with one index (:meth:`_embed_jobs`), and the heads to score are found in one pass
-    over the mask, their context parts computed in one product (:meth:`_plan`), and a head with few legal rows
-    scores only those. Only weights are kept between calls (the plans): every array :meth:`logits` returns or
-    works on is its own.
+    over the mask, their context parts computed in one product (:meth:`_plan`). Each number is computed as before
+    these savings (each product's dot products and each sum in the same order), so the logits are the same to the
+    last bit, and so are a model's decisions and the figures measured with it: scoring only a head's legal rows
+    or taking a mean as a product with ones would round differently (a few 1e-6), which flipped near ties of the
+    paper-net and ``full`` models (sl70 without tools: ``large`` 7263 instead of 7045). Only weights are kept
+    between calls (the plans): every array :meth:`logits` returns or works on is its own.
     """
 
     kind = "entity"
@@ -142,25 +145,19 @@ class NumpyEntityActor:
         L = self.lay
         cols = [i + np.arange(L["jobs"])[:, None] * f + np.arange(f)[None, :] for i, f in self._parts["jobs"]]
         self._jobs_idx = np.concatenate(cols, axis=1) if cols else np.zeros((L["jobs"], 0), np.intp)
-        self._jobs_ones = np.ones(L["jobs"], np.float32)
 
     def _prepare_heads(self) -> None:
-        """Split every head's first layer into the rows' part and the context's (the ``hold`` head's: the context's
-        and the global features'), so that the context parts of all the heads a decision needs are one product
-        (:meth:`_plan`) and the ``hold`` head's global part joins the embedding nets' (:attr:`_g_w`). The heads are
-        kept in the order of their action slots, which ``np.logical_or.reduceat`` over the mask at
-        :attr:`_starts` reads in one call: a head is needed where its slots hold a legal action. A head with no
-        slots (a shop layout without tools) is never needed."""
-        h = self.hidden
-        heads = []  # (first slot, name, rows' weights or None for hold, context weights, bias, tanh, rest)
+        """Split the first layer of every head that scores rows into the rows' part and the context's, so that the
+        context parts of all the heads a decision needs are one product (:meth:`_plan`; each column the same dot
+        product as on its own). The ``hold`` head scores the context and the global features joined, as the network
+        does (split, its sum would round otherwise). The heads are kept in the order of their action slots, which
+        ``np.logical_or.reduceat`` over the mask at :attr:`_starts` reads in one call: a head is needed where its slots
+        hold a legal action. A head with no slots (a shop layout without tools) is never needed."""
+        heads = []  # (first slot, name, rows' weights (None: hold), context weights, bias, tanh, rest (hold: all))
         for b, layers in self.heads.items():
             w, bias, tanh = layers[0]
             if b == "hold":
-                k = h * len(self.blocks)  # [context, global features]
-                heads.append((self._hold, b, None, w[:k], bias, tanh, layers[1:]))
-                self._g_hold = slice(self._g_w.shape[1], self._g_w.shape[1] + w.shape[1])
-                self._g_w = np.concatenate([self._g_w, w[k:]], axis=1)
-                self._g_b = np.concatenate([self._g_b, np.zeros(w.shape[1], self._g_b.dtype)])
+                heads.append((self._hold, b, None, None, None, None, layers))
                 continue
             lo, slots, src = self._where[b]
             if slots:
@@ -174,18 +171,23 @@ class NumpyEntityActor:
     def _plan(self, need: np.ndarray) -> tuple:
         """What a decision whose needed heads are ``need`` (one flag per head of :attr:`_heads`) computes: the
         context weights and biases of those heads side by side (one product) and per head where its columns lie.
-        Built once per set of needed heads (at most two to the number of heads, a handful in a run)."""
+        Built once per set of needed heads (at most two to the number of heads, a handful in a run); the ``hold``
+        head, if needed, is a step of its own."""
         key = need.tobytes()
         plan = self._plans.get(key)
         if plan is None:
             used = [x for x, n in zip(self._heads, need) if n]
-            c_w = np.concatenate([x[3] for x in used], axis=1) if used else None
-            c_b = np.concatenate([x[4] for x in used]) if used else None
+            rows = [x for x in used if x[2] is not None]
+            c_w = np.concatenate([x[3] for x in rows], axis=1) if rows else None
+            c_b = np.concatenate([x[4] for x in rows]) if rows else None
             steps, col = [], 0
             for lo, b, wr, wc, _, tanh, rest in used:
+                if wr is None:
+                    steps.append((lo, True, None, None, None, None, rest))
+                    continue
                 cols = slice(col, col + wc.shape[1])
                 col += wc.shape[1]
-                steps.append((lo, wr is None, self._where[b][2] if wr is not None else None, wr, cols, tanh, rest))
+                steps.append((lo, False, self._where[b][2], wr, cols, tanh, rest))
             plan = self._plans[key] = (c_w, c_b, steps)
         return plan
 
@@ -271,7 +273,7 @@ class NumpyEntityActor:
             np.tanh(e, out=e)
         e = _forward(layers[1:], e)
         if nj:
-            ctx[k * h:(k + 1) * h] = (self._jobs_ones[:nj] @ e) * np.float32(1.0 / nj)  # (a product: faster than sum)
+            ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / nj)
         return e
 
     def _rows(self, obs: np.ndarray, b: str, n: int) -> np.ndarray:
@@ -286,7 +288,7 @@ class NumpyEntityActor:
         """Logits over the padded actions; -inf where ``mask`` is False."""
         L, h = self.lay, self.hidden
         g = obs[self._g_idx]
-        gw = g @ self._g_w  # every block's first layer, global part (and the hold head's)
+        gw = g @ self._g_w  # every block's first layer, global part
         gw += self._g_b
         ctx = np.zeros(h * len(self.blocks), np.float32)
         emb = {"jobs": self._embed_jobs(obs, gw, ctx)}
@@ -312,34 +314,22 @@ class NumpyEntityActor:
         if not len(self._starts):
             return out
         c_w, c_b, steps = self._plan(np.logical_or.reduceat(mask, self._starts))
-        if c_w is None:
-            return out
-        c = ctx @ c_w  # every needed head's first layer, context part
-        c += c_b
+        if c_w is not None:
+            c = ctx @ c_w  # every needed head's first layer, context part
+            c += c_b
         for lo, hold, src, wr, cols, tanh, rest in steps:
             if hold:
-                z = c[cols] + gw[self._g_hold]
-            else:
-                e = emb.get(src)
-                if e is None:  # a batched small block: its rows that exist
-                    s = S["pos"][src]
-                    e = small[s, :n_small[s]]
-                legal = mask[lo:lo + e.shape[0]]
-                rows = None
-                if 4 * np.count_nonzero(legal) <= e.shape[0]:  # few legal rows (a start: one job of many): those
-                    rows = np.flatnonzero(legal)
-                    e = e.take(rows, axis=0)
-                z = e @ wr
-                z += c[cols]
+                out[lo] = _forward(rest, np.concatenate([ctx, g]))[0]
+                continue
+            e = emb.get(src)
+            if e is None:  # a batched small block: its rows that exist
+                s = S["pos"][src]
+                e = small[s, :n_small[s]]
+            z = e @ wr
+            z += c[cols]
             if tanh:
                 np.tanh(z, out=z)
-            z = _forward(rest, z)
-            if hold:
-                out[lo] = z[0]
-            elif rows is None:
-                out[lo:lo + z.shape[0]] = z[:, 0]
-            else:
-                out[lo + rows] = z[:, 0]
+            out[lo:lo + z.shape[0]] = _forward(rest, z)[:, 0]
         np.putmask(out, ~mask, -np.inf)
         return out
 
