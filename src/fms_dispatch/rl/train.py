@@ -461,6 +461,23 @@ def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float, int]
     return figures
 
 
+def _lone_sample(ppo: dict[str, Any], n_envs: int) -> str | None:
+    """Why PPO's updates would fail on these hyper-parameters (None: they do not). PPO normalises the advantages of
+    each mini-batch by their standard deviation, which one sample does not have: a mini-batch of one step (batch_size
+    1, or a rollout of n_steps x n_envs one more than a multiple of batch_size) made every loss NaN, and the run
+    ended in the "PPO diverged" message, which sent the user to the learning rate."""
+    rollout, batch = int(ppo["n_steps"]) * n_envs, int(ppo["batch_size"])
+    if batch == 1:
+        return ("ppo.batch_size must be >= 2: PPO normalises each mini-batch's advantages by their standard "
+                "deviation, which a single step does not have")
+    if rollout % batch == 1:
+        return (f"a rollout of ppo.n_steps x n_envs = {int(ppo['n_steps'])} x {n_envs} = {rollout} steps in "
+                f"mini-batches of ppo.batch_size {batch} leaves a last mini-batch of one step, whose advantages "
+                "cannot be normalised (PPO's losses would be NaN): choose n_steps, n_envs or batch_size so that "
+                "batch_size divides the rollout, or leaves at least 2 steps over")
+    return None
+
+
 def _misfit(instances: Sequence[Instance], padding: dict[str, int]) -> str | None:
     """Why the first of ``instances`` that exceeds ``padding`` does not fit (None: all fit), as the env checks it
     (:func:`fms_sim.env.padding_excess`)."""
@@ -699,6 +716,9 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         cfg["padding"] = padding
     if int(cfg["n_envs"]) < 1:
         raise ValueError(f"n_envs must be >= 1, got {cfg['n_envs']}")
+    lone = _lone_sample(dict(DEFAULT_CONFIG["ppo"], **(cfg.get("ppo") or {})), int(cfg["n_envs"]))
+    if lone:  # checked before the warm start: PPO met it in its first update, after the cloning
+        raise ValueError(lone)
     tb = Path(tensorboard) if tensorboard else Path("runs") / cfg["name"]
 
     n_envs = int(cfg["n_envs"])

@@ -1,0 +1,31 @@
+"""``fms train`` (fms_dispatch.rl.train): what a user meets on the way to a model — refusals before any work."""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("sb3_contrib")
+
+from fms_dispatch.rl.train import train  # noqa: E402
+
+#: a tiny run on generated BU-size shops (no benchmark instance, so no allow_benchmarks)
+TINY = {"train": ["genbu:1*2@11"], "padding": "bu", "n_envs": 1, "vec_env": "dummy", "eval_freq": 64,
+        "save_freq": 64, "hidden": 16, "ppo": {"n_steps": 64, "batch_size": 32, "n_epochs": 1}}
+
+
+@pytest.mark.parametrize("ppo, n_envs, needle", [
+    ({"n_steps": 64, "batch_size": 1}, 1, "ppo.batch_size must be >= 2"),
+    ({"n_steps": 65, "batch_size": 64}, 1, "n_steps x n_envs = 65 x 1 = 65 steps in mini-batches of ppo.batch_size "
+                                          "64 leaves a last mini-batch of one step"),
+    ({"n_steps": 32, "batch_size": 21}, 2, "= 32 x 2 = 64 steps in mini-batches of ppo.batch_size 21"),
+])
+def test_a_mini_batch_of_one_step_is_refused_before_any_work(tmp_path, ppo, n_envs, needle):
+    """PPO normalises each mini-batch's advantages by their standard deviation: one step made the losses NaN and
+    the run ended in "PPO diverged ... lower ppo.learning_rate", after its warm start, which sent the user to the
+    wrong knob."""
+    out = tmp_path / "m"
+    cfg = dict(TINY, steps=128, n_envs=n_envs, ppo=dict(TINY["ppo"], **ppo),
+               warm_start={"expert": "rules", "epochs": 1})
+    with pytest.raises(ValueError, match=needle.replace("(", r"\(").replace(")", r"\)")):
+        train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
+    assert not out.exists()  # refused before the warm start, and before the folder was made
