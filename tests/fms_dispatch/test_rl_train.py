@@ -1,4 +1,5 @@
-"""``fms train`` (fms_dispatch.rl.train): what a user meets on the way to a model — refusals before any work."""
+"""``fms train`` (fms_dispatch.rl.train): what a user meets on the way to a model — refusals before any work,
+progress on long phases."""
 
 from __future__ import annotations
 
@@ -29,3 +30,18 @@ def test_a_mini_batch_of_one_step_is_refused_before_any_work(tmp_path, ppo, n_en
     with pytest.raises(ValueError, match=needle.replace("(", r"\(").replace(")", r"\)")):
         train(cfg, out, progress=False, tensorboard=tmp_path / "tb")
     assert not out.exists()  # refused before the warm start, and before the folder was made
+
+
+def test_ppo_says_how_far_it_is_where_no_progress_bar_is_drawn(tmp_path, capsys):
+    """sb3's bar is drawn only on a terminal; in a log file the PPO phase said nothing between the warm start and
+    the final line (hours on a real run). Now progress lines go to stderr, about 20 a run, after whole rollouts."""
+    train(dict(TINY, steps=256, warm_start={"expert": "rules", "epochs": 1}), tmp_path / "m", progress=True,
+          tensorboard=tmp_path / "tb")
+    lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("PPO: ")]
+    assert [x.split(",")[0] for x in lines] == [f"PPO: {n}/256 steps ({100 * n // 256} %)" for n in (64, 128, 192, 256)]
+    assert all("best eval mean reward" in x for x in lines)  # the warm start was evaluated: PPO must beat it
+
+
+def test_no_progress_means_no_ppo_lines(tmp_path, capsys):
+    train(dict(TINY, steps=128), tmp_path / "m", progress=False, tensorboard=tmp_path / "tb")
+    assert "PPO: " not in capsys.readouterr().err

@@ -4,7 +4,8 @@
 of instances (one drawn at random per episode), evaluates the deterministic policy on held-out instances
 every ``eval_freq`` steps (``MaskableEvalCallback``, best weights to ``best_model.zip``), saves the latest
 weights to ``model.zip`` periodically and at the end (``--resume`` continues from there; the step count goes
-on), logs to TensorBoard (``runs/NAME`` by default) and shows a progress bar. Several environments run in
+on), logs to TensorBoard (``runs/NAME`` by default) and shows PPO's progress (a bar on a terminal,
+else about 20 lines on standard error). Several environments run in
 parallel (``SubprocVecEnv``) when ``n_envs > 1`` and ``vec_env`` is ``subproc``; every process uses one torch
 thread. Hyper-parameters come from ``--config FILE`` (JSON) and the command line, and the merged config is
 written to ``config.json`` next to the model. At the end each saved ``X.zip`` gets its numpy actor export
@@ -461,6 +462,42 @@ def _refine(model: Any, stages: list[tuple[str, list[Instance], int, float, int]
     return figures
 
 
+def _ppo_progress(total: int, rollout: int, best: Callable[[], float], say: Callable[[str], None]) -> Any:
+    """A callback that says how far PPO is, about 20 times in a run of ``total`` steps (after whole rollouts of
+    ``rollout`` steps), with the best evaluation's mean reward so far (``best()``) and an estimate of the time
+    left. For runs without sb3's progress bar (standard output is no terminal: a log file, ``nohup``): the PPO
+    phase of such a run said nothing for hours between the warm start and the final line."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _Progress(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.every = max(rollout, -(-total // 20))
+            self.start = self.last = 0
+            self.t0 = 0.0
+
+        def _on_training_start(self) -> None:
+            self.start = self.last = self.num_timesteps  # (a resumed model's count goes on from its own)
+            self.t0 = time.perf_counter()
+
+        def _on_rollout_end(self) -> None:
+            done = self.num_timesteps - self.start
+            if done - (self.last - self.start) < self.every and done < total:
+                return
+            self.last = self.num_timesteps
+            wall = time.perf_counter() - self.t0
+            left = wall * (total - done) / done if done else 0.0
+            b = best()
+            evaluated = f"; best eval mean reward {b:.4f}" if math.isfinite(b) else ""
+            say(f"PPO: {done}/{total} steps ({100 * done / total:.0f} %), {wall:.0f} s, about {left:.0f} s "
+                f"left{evaluated}")
+
+        def _on_step(self) -> bool:
+            return True
+
+    return _Progress()
+
+
 def _lone_sample(ppo: dict[str, Any], n_envs: int) -> str | None:
     """Why PPO's updates would fail on these hyper-parameters (None: they do not). PPO normalises the advantages of
     each mini-batch by their standard deviation, which one sample does not have: a mini-batch of one step (batch_size
@@ -905,12 +942,15 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
                 # is meant so
                 warnings.filterwarnings("ignore", message="Training and eval env are not of the same type",
                                         category=UserWarning)
-                model.learn(total_timesteps=total,
-                            callback=CallbackList([eval_cb, _Saver(int(cfg["save_freq"])), trained]),
-                            # sb3's bar is drawn on stdout: only where someone watches it (piped, a reader that
-                            # left ended the run through rich's SystemExit, without its files)
-                            reset_num_timesteps=not resume, progress_bar=progress and sys.stdout.isatty(),
-                            tb_log_name="ppo")
+                # sb3's bar is drawn on stdout: only where someone watches it (piped, a reader that left ended
+                # the run through rich's SystemExit, without its files); elsewhere progress lines on stderr
+                bar = progress and sys.stdout.isatty()
+                callbacks = [eval_cb, _Saver(int(cfg["save_freq"])), trained]
+                if (progress or verbose) and not bar:
+                    callbacks.append(_ppo_progress(total, rollout, lambda: float(eval_cb.best_mean_reward),
+                                                   progress_line))
+                model.learn(total_timesteps=total, callback=CallbackList(callbacks),
+                            reset_num_timesteps=not resume, progress_bar=bar, tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C: keep what was learnt; --resume continues from here
             interrupted = True
         except BaseException as exc:
