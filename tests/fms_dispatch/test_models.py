@@ -156,3 +156,16 @@ def test_a_program_can_keep_the_first_model_load_from_freezing_its_heap(freeze, 
     res = subprocess.run([sys.executable, "-c", _FREEZE_SCRIPT, freeze], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == outcome
+
+
+def test_a_model_folder_that_lost_its_solving_weights_is_refused(tmp_path):
+    """A copy of a model folder without its best_model.zip solved with model.zip without a word (for guided, the
+    PPO weights its card says it does not solve with). Its metrics.json records the weights that training chose."""
+    folder = tmp_path / "guided"
+    shutil.copytree(resolve_model("guided").folder, folder)
+    assert resolve_model(str(folder)).weights == folder / "best_model.zip"
+    (folder / "best_model.zip").unlink()
+    with pytest.raises(ValueError, match=f"model folder {folder} has no best_model.zip, the weights its metrics.json "
+                                         "says it solves with"):
+        resolve_model(str(folder))
+    assert resolve_model(str(folder / "model.zip")).weights == folder / "model.zip"  # named: taken as asked

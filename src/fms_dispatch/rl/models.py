@@ -157,7 +157,9 @@ class ModelRef:
 def resolve_model(spec: str) -> ModelRef:
     """A model by shipped name (``bu``), folder (``models/bu``) or weights file (``models/bu/model.zip``). A bare
     name is looked up in :func:`model_dirs` first, then as a folder here: a folder named ``guided-dagger`` in the
-    working directory took the place of the default model (``ppo``) without a word."""
+    working directory took the place of the default model (``ppo``) without a word. A folder solves with its
+    ``best_model.zip``, else its ``model.zip``; one that lacks the file its ``metrics.json`` names as its weights
+    is refused (:func:`_recorded_weights`)."""
     p = Path(spec)
     if p.is_file() and p.suffix == ".zip":
         return ModelRef(p.parent, p)
@@ -173,10 +175,28 @@ def resolve_model(spec: str) -> ModelRef:
             names = ", ".join(SHIPPED)
             raise ModelNotFoundError(f"no model named {spec!r} (shipped models: {names}; or give a model folder or "
                                      f".zip); {_searched()}")
+    recorded = _recorded_weights(folder)
+    if recorded is not None and not (folder / recorded).is_file():
+        raise ValueError(f"model folder {folder} has no {recorded}, the weights its {METRICS_FILE} says it solves "
+                         f"with (a copy that lost it?): restore it, or name another weights file (ppo:{folder}/"
+                         "model.zip)")
     for fname in ("best_model.zip", "model.zip"):
         if (folder / fname).is_file():
             return ModelRef(folder, folder / fname)
     raise ValueError(f"model folder {folder} has no best_model.zip or model.zip")
+
+
+def _recorded_weights(folder: Path) -> str | None:
+    """The weights file that ``folder``'s metrics say the model solves with (``training.weights``: what training
+    selected and evaluated), or None where they do not say. A folder that lost its ``best_model.zip`` solved with
+    ``model.zip`` without a word: for ``guided``, the PPO weights its card says it does not solve with."""
+    try:
+        metrics = json.loads((folder / METRICS_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    training = metrics.get("training") if isinstance(metrics, dict) else None
+    weights = training.get("weights") if isinstance(training, dict) else None
+    return weights if weights in ("best_model.zip", "model.zip") else None
 
 
 def default_model_name(inst: Instance) -> str:
