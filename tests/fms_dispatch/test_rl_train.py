@@ -45,3 +45,19 @@ def test_ppo_says_how_far_it_is_where_no_progress_bar_is_drawn(tmp_path, capsys)
 def test_no_progress_means_no_ppo_lines(tmp_path, capsys):
     train(dict(TINY, steps=128), tmp_path / "m", progress=False, tensorboard=tmp_path / "tb")
     assert "PPO: " not in capsys.readouterr().err
+
+
+def test_resume_refuses_a_config_edited_to_train_on_a_benchmark(tmp_path):
+    """The training/test separation was checked on fresh runs only: a config.json edited to train on EX12 was
+    resumed on it, and the model's record (allow_benchmarks false) still said it had trained apart."""
+    import json
+
+    out = tmp_path / "m"
+    train(dict(TINY, steps=64), out, progress=False, tensorboard=tmp_path / "tb")
+    saved = json.loads((out / "config.json").read_text())
+    (out / "config.json").write_text(json.dumps(dict(saved, train=["EX12"])))
+    with pytest.raises(ValueError, match=f"cannot resume: {out / 'config.json'}: training must use generated shops "
+                                         "only .*'EX12' gives EX12"):
+        train({"steps": 64}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
+    (out / "config.json").write_text(json.dumps(dict(saved, train=["EX12"], allow_benchmarks=True)))
+    assert train({"steps": 64}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")["ppo_steps"] == 128

@@ -644,12 +644,14 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
     cfg["name"] = (cfg.get("name") or out.name) if resume else out.name
     if not cfg["train"]:
         raise ValueError("no training instances given")
-    if not cfg.get("allow_benchmarks") and not resume:
+    if not cfg.get("allow_benchmarks"):  # a resume too: its config.json may have been edited since
         from fms_sim.shopsets import check_training_specs
 
         try:
             check_training_specs(cfg)
         except ValueError as exc:
+            if resume:  # (its edited train list trained on EX12 and the model was still recorded as apart)
+                raise ValueError(f"cannot resume: {out / CONFIG_FILE}: {exc}") from None
             if not str(exc).startswith("training must use generated shops"):
                 raise  # a spec that does not expand is a typo, not a benchmark: no hint about benchmarks
             raise ValueError(f"{exc}\n(a model for reproducing the paper's own setting may train on benchmark "
