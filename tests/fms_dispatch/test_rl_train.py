@@ -61,3 +61,24 @@ def test_resume_refuses_a_config_edited_to_train_on_a_benchmark(tmp_path):
         train({"steps": 64}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
     (out / "config.json").write_text(json.dumps(dict(saved, train=["EX12"], allow_benchmarks=True)))
     assert train({"steps": 64}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")["ppo_steps"] == 128
+
+
+def test_an_interrupt_in_the_warm_start_says_nothing_was_kept(tmp_path, capsys, monkeypatch):
+    """Ctrl-C or SIGTERM in the cloning said only "fms: interrupted", after what may have been hours of
+    demonstrations: now it says that no weights were saved and that a new run into the folder starts over."""
+    from fms_dispatch.cli import main
+    from fms_dispatch.rl import imitation
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(imitation, "clone", interrupted)
+    out = tmp_path / "m"
+    args = ["train", "genbu:1*2@11", "--padding", "bu", "--n-envs", "1", "--steps", "64", "--out", str(out),
+            "--no-progress", "--tensorboard", str(tmp_path / "tb")]
+    config = tmp_path / "c.json"
+    config.write_text('{"warm_start": {"expert": "rules", "epochs": 1}}')
+    assert main(args + ["--config", str(config)]) == 130
+    assert (f"fms: interrupted before the first weights were saved (in the warm start): nothing was kept; a new run "
+            f"into {out} starts over") in capsys.readouterr().err
+    assert list(out.iterdir()) == []

@@ -1104,8 +1104,16 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg = _merge(cfg, over)
     if not a.resume and not cfg.get("train"):
         raise ValueError("give training instances (or --resume)")
-    m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard,
-              dagger=a.dagger, force=a.force)
+    try:
+        m = train(cfg, a.out, resume=a.resume, progress=not a.no_progress, tensorboard=a.tensorboard,
+                  dagger=a.dagger, force=a.force)
+    except KeyboardInterrupt:  # PPO's interrupts are caught in train: this one came before, in a warm start
+        if a.resume or _model_files(Path(a.out)):
+            raise
+        # (it said only "fms: interrupted", after minutes or hours of demonstrations and cloning)
+        print(f"fms: interrupted before the first weights were saved (in the warm start): nothing was kept; a new "
+              f"run into {a.out} starts over", file=sys.stderr)
+        return 130
     t = m["training"]
     evaluated = (f"eval mean makespan {t['eval_mean_makespan']}" if t["eval_mean_makespan"] is not None
                  else "not evaluated")
