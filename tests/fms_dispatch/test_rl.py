@@ -859,7 +859,6 @@ def test_the_numpy_actor_scores_a_head_alone_as_with_every_action_legal():
     obs, mask = agent._env(shop).observe()
     everything = actor.logits(obs, np.ones_like(mask))
     assert np.all(np.isneginf(actor.logits(obs, np.zeros_like(mask))))
-    blocks = {"jobs": "jobs", "agvs": "agvs", "tts": "tts", "start": "jobs", "use": "jobs", "tool": "tools"}
     checked = set()
     for head in actor.heads:
         if head == "hold":
