@@ -1,8 +1,10 @@
-"""fms_dispatch: dispatching rules, the SOS metaheuristic, tabu search, the exact CP-SAT model, RL agent and lookahead.
+"""fms_dispatch: dispatching rules, list schedules, the SOS metaheuristic, tabu search, the exact CP-SAT model,
+plans and re-planning, the RL agent and its lookahead.
 
 Every method shares one signature, ``solver(instance, **options) -> Schedule``, selected by name through
-:func:`solve` / :func:`get_solver` (``"first"``, ``"random"``, ``"rule:<JOB>+<vehicle>"``, ``"sos"``,
-``"tabu"``, ``"cpsat"``, ``"list"``, ``"rules"``, ``"plan:cpsat:10"``, ...). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
+:func:`solve` / :func:`get_solver` (``"first"``, ``"random"``, ``"rule:<JOB>+<vehicle>[+<tool>]"``, ``"list"``,
+``"rules"``, ``"sos"``, ``"tabu"``, ``"cpsat"``, ``"plan:cpsat:10"``, ``"ppo"``, ...; all of them:
+:mod:`fms_dispatch.solvers`). Heavy dependencies (OR-Tools, torch) load only when their solver is used.
 """
 
 from typing import TYPE_CHECKING

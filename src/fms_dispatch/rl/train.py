@@ -36,8 +36,9 @@ evaluation.
 
 ``decisions`` chooses the net: ``paper`` (the paper's net; experts ``search``, ``search+lookahead``, ``rules``,
 ``rules+nearest``) or ``full`` (the full-decision net; plan experts ``plan:SOLVER[:SECONDS]``,
-:mod:`fms_dispatch.rl.plan_expert`). ``guide`` (full net only; ``--guide list``) adds the earliest-start list
-schedule's order to the observation (:mod:`fms_dispatch.rl.envs`).
+:mod:`fms_dispatch.rl.plan_expert`). ``guide`` (full net only; ``--guide list``) adds a list-schedule plan's
+orders to the observation (the better of the earliest-start and earliest-completion list schedules,
+:mod:`fms_dispatch.rl.guide`; :mod:`fms_dispatch.rl.envs`).
 """
 
 from __future__ import annotations
@@ -1045,14 +1046,16 @@ def add_train_parser(subparsers: Any) -> argparse.ArgumentParser:
                                                          "replacing its model files (refused otherwise)")
     s.add_argument("--decisions", choices=("paper", "full"), help="the net the model decides through (default "
                                                                     "paper)")
-    s.add_argument("--guide", choices=("list", "none"), help="full net: add the earliest-start list schedule's "
-                                                           "order to the observation (default none)")
+    s.add_argument("--guide", choices=("list", "none"),
+                   help="full net: add a list-schedule plan's orders to the observation (the better of the "
+                        "earliest-start and earliest-completion list schedules; default none)")
     s.add_argument("--allow-benchmarks", action="store_true",
                    help="allow benchmark instances or held-out shops in training and evaluation (paper "
                         "reproductions only; refused otherwise)")
     s.add_argument("--dagger", type=int, default=0, metavar="N",
-                   help="with --resume: N more DAgger rounds (label the policy's own states with the rule-pair "
-                        "expert and clone again) before the PPO steps; --steps 0 runs DAgger only")
+                   help="with --resume: N more DAgger rounds (label the policy's own states with the model's "
+                        "warm-start expert, a rule pair or a plan, and clone again) before the PPO steps; "
+                        "--steps 0 runs DAgger only")
     s.add_argument("--init", metavar="MODEL", help="start PPO from the weights of a trained model (a folder or "
                                                   ".zip with the same padding, net and guide) instead of a "
                                                   "warm start; they are kept as warm_start.zip")
