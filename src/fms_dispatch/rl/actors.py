@@ -23,7 +23,7 @@ import json
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Union
+from typing import Any, Union
 
 import numpy as np
 
@@ -153,7 +153,8 @@ class NumpyEntityActor:
         does (split, its sum would round otherwise). The heads are kept in the order of their action slots, which
         ``np.logical_or.reduceat`` over the mask at :attr:`_starts` reads in one call: a head is needed where its slots
         hold a legal action. A head with no slots (a shop layout without tools) is never needed."""
-        heads = []  # (first slot, name, rows' weights (None: hold), context weights, bias, tanh, rest (hold: all))
+        # (first slot, name, rows' weights (None: hold), context weights, bias, tanh, rest (hold: all))
+        heads: list[tuple[Any, ...]] = []
         for b, layers in self.heads.items():
             w, bias, tanh = layers[0]
             if b == "hold":
@@ -180,7 +181,8 @@ class NumpyEntityActor:
             rows = [x for x in used if x[2] is not None]
             c_w = np.concatenate([x[3] for x in rows], axis=1) if rows else None
             c_b = np.concatenate([x[4] for x in rows]) if rows else None
-            steps, col = [], 0
+            steps: list[tuple[Any, ...]] = []
+            col = 0
             for lo, b, wr, wc, _, tanh, rest in used:
                 if wr is None:
                     steps.append((lo, True, None, None, None, None, rest))
@@ -202,7 +204,7 @@ class NumpyEntityActor:
         builds); otherwise :attr:`_small` is None and :meth:`logits` embeds block by block."""
         L = self.lay
         small = [b for b in self.blocks if b != "jobs" and L[b]]
-        self._small = None
+        self._small: dict[str, Any] | None = None
         h = self.hidden
         if not small or any(len(self.nets[b]) != 2 or not all(t for _, _, t in self.nets[b])
                             or self.nets[b][0][0].shape[1] != h or self.nets[b][1][0].shape != (h, h) for b in small):
@@ -235,6 +237,7 @@ class NumpyEntityActor:
         ``ctx``; returns the embeddings (blocks, rows, hidden) and each block's number of rows. A row exists exactly
         where its 'present' feature (its block's first) is 1, and the rows that exist come first."""
         S = self._small
+        assert S is not None  # (only called where the blocks are stacked)
         x = obs[S["idx"]]  # (blocks, rows, features)
         present = x[:, :, 0] * S["real"]
         n = present.sum(axis=1)
@@ -323,6 +326,7 @@ class NumpyEntityActor:
                 continue
             e = emb.get(src)
             if e is None:  # a batched small block: its rows that exist
+                assert S is not None
                 s = S["pos"][src]
                 e = small[s, :n_small[s]]
             z = e @ wr
