@@ -28,6 +28,7 @@ Answers are written as labels, so they can travel in messages and histories: a d
 
 from __future__ import annotations
 
+import re
 from contextlib import contextmanager
 from typing import Any, Iterator, Literal, NamedTuple, Sequence
 
@@ -42,6 +43,7 @@ StopKind = Literal["decision", "idle", "done"]
 WAIT = "wait"
 REPOSITION = "reposition"
 _KINDS = ("agv", "tt")
+_NUMBER = re.compile(r"0|[1-9][0-9]*")  # a vehicle or location in a label, as moves_label writes it
 
 
 class Move(NamedTuple):
@@ -60,7 +62,9 @@ def moves_label(moves: list[Move] | list[tuple[str, int, int]]) -> str:
 
 
 def parse_moves(label: str) -> list[Move]:
-    """Inverse of :func:`moves_label`; raises :class:`~fms_sim.petri.InvalidAction` on a malformed label."""
+    """Inverse of :func:`moves_label`; raises :class:`~fms_sim.petri.InvalidAction` on a malformed label. Only the
+    labels :func:`moves_label` writes are read (``moves_label(parse_moves(x)) == x``), so an answer applied by the
+    shop goes into the history exactly as a twin replays it."""
     if label == WAIT:
         return []
     head, sep, body = label.partition(":")
@@ -70,14 +74,13 @@ def parse_moves(label: str) -> list[Move]:
     out = []
     for part in body.split(","):
         bits = part.split(":")
-        try:
-            if len(bits) != 3 or bits[0] not in _KINDS:
-                raise ValueError
-            v, loc = int(bits[1]), int(bits[2])
-        except ValueError:
+        # numbers in plain ASCII digits only, as moves_label writes them: int() also reads " 1", "+1", "0_1" and
+        # "\u0661", and the shop put such a label as it came into the run's history, where a space broke the
+        # history's separators (every later state failed its schema) and a twin could not replay it
+        if len(bits) != 3 or bits[0] not in _KINDS or not all(_NUMBER.fullmatch(b) for b in bits[1:]):
             raise InvalidAction(f"malformed move {part!r} in {label!r} (expected KIND:V:LOC with KIND agv or "
-                                "tt)") from None
-        out.append(Move(bits[0], v, loc))
+                                "tt and V, LOC numbers in plain digits, as in reposition:agv:0:3)")
+        out.append(Move(bits[0], int(bits[1]), int(bits[2])))
     return out
 
 

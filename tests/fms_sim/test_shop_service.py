@@ -637,9 +637,11 @@ def test_reposition_command_moves_the_vehicle_and_is_in_the_history() -> None:
     ("reposition:agv:7:1", "AGV 7 is not an idle vehicle offered"),
     ("reposition:agv:0:99", "location 99 does not exist"),
     ("reposition:tt:0", "malformed"),
+    ("reposition:agv:0:1 ", "plain digits"),  # applied, it broke every later state's history (not encodable)
+    ("reposition:agv:0: 1", "plain digits"),
 ])
 def test_bad_answers_to_an_idle_stop_change_nothing(label: str, needle: str) -> None:
-    svc = ShopService(builtin("ra01"), run_id="r", idle_stops=True)
+    svc = ShopService(builtin("ra01"), run_id="r", idle_stops=True, history=True)
     svc.start()
     _to_idle_stop(svc)
     if "agv:0:99" in label:
@@ -650,6 +652,7 @@ def test_bad_answers_to_an_idle_stop_change_nothing(label: str, needle: str) -> 
     assert err["code"] == "forbidden_action" and needle.format(seq=svc.state_seq) in err["message"]
     assert snapshot(svc) == before and svc.idle_answers == 0
     assert not by_topic(svc.handle_command(command(svc, "wait")), m.TOPIC_ERRORS)
+    m.decode(m.encode(svc.state), expect="state")  # the history stays well-formed
 
 
 def test_idle_answers_at_a_decision_are_refused() -> None:

@@ -162,6 +162,18 @@ def test_label_round_trip_and_malformed_labels():
             parse_moves(bad)
 
 
+@pytest.mark.parametrize("bad", ["reposition:agv:0:1 ", "reposition:agv:0: 1", "reposition:agv:0:+1",
+                                 "reposition:agv:0_0:1", "reposition:agv:0:1\n", "reposition:agv:0:\u0661",
+                                 "reposition:agv:00:1", "reposition:agv:-0:1"])
+def test_only_the_labels_moves_label_writes_are_read(bad: str) -> None:
+    """int() reads these numbers too, but the label is not the one its moves give: applied by the shop as they came,
+    they went into the history (a space broke its separators, and a twin could not replay the label)."""
+    with pytest.raises(InvalidAction, match="plain digits"):
+        parse_moves(bad)
+    for good in ("reposition:agv:0:10", "reposition:tt:10:0,agv:1:2"):
+        assert moves_label(parse_moves(good)) == good
+
+
 def test_wrong_answers_are_refused_and_change_nothing():
     inst = builtin("ra01")
     st = Stepper(Shop(inst))
