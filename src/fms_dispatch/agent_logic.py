@@ -1138,9 +1138,12 @@ class AgentLogic:
     """Answers each new state of a run with one command, decided by a solver.
 
     A state is answered once: a repeated ``(run_id, seq)`` (a latched state delivered again) or an older
-    ``seq`` of the same run is ignored, as is a final (``done``) state; the same older state twice in a row begins
-    the run again from it (a shop restarted with the same ``run_id`` publishes its state anew for each re-sent
-    command it cannot answer). A state that cannot be decided on
+    ``seq`` of the same run is ignored, as is a final (``done``) state. A state that names another ``incarnation``
+    (the start of the shop, an extra field of the fms shop's states) than the run's earlier states begins the run
+    again from it (a shop restarted with the same ``run_id``); an older state of the same incarnation is never
+    answered, however often it comes (reordered and duplicated). From a shop whose states name no incarnation the
+    same older state twice in a row begins the run again (a restarted shop publishes its state anew for each
+    re-sent command it cannot answer). A state that cannot be decided on
     gives an ``fms/error/v1`` instead of a command. A state of a ``history_delta`` shop that the twin cannot follow
     (:class:`NeedHistory`) gives a replay request for that state with the whole history (``what: "state"``, once
     per state; :meth:`history_asked` says which is awaited) and is answered when it comes again so.
@@ -1162,6 +1165,7 @@ class AgentLogic:
         self.history_requests = 0    # states asked for again with the whole history
         self._asked: tuple[str, int] | None = None  # (run_id, seq) of the state asked for so, not yet answered
         self._older: tuple[str, int] | None = None  # (run_id, seq) of the last older state ignored, if no newer since
+        self._incarnation: Any = None  # the state's incarnation (the start of the shop) of run_id, if it names one
 
     def on_state(self, text: str) -> list[Outgoing]:
         """The command answering ``text`` (an ``fms/state/v1``), nothing, or an error."""
@@ -1172,7 +1176,14 @@ class AgentLogic:
         run_id, seq = state["run_id"], state["seq"]
         if self.only_run is not None and run_id != self.only_run:  # another run's shop on the same domain: its
             return []  # own agent answers it (two fms up runs on one domain steered each other's shops)
-        if run_id == self.run_id and seq < self.last_seq:
+        # the start of the run that sent it (an extra field of the fms shop; None from a shop that sends none)
+        incarnation = state.get("incarnation")
+        known = incarnation is not None and self._incarnation is not None
+        if run_id == self.run_id and known and incarnation != self._incarnation:
+            self.run_id = None  # the shop began the run again (restarted with the same run_id): a new run at once
+        elif run_id == self.run_id and seq < self.last_seq:
+            if known:  # an old state of this start of the run, delivered late (twice: reordered and duplicated) is
+                return []  # never answered (taken for a restart, it was answered and the twin rebuilt from it)
             if self._older != (run_id, seq):  # an old state delivered late: ignored
                 self._older = (run_id, seq)
                 return []
@@ -1183,6 +1194,7 @@ class AgentLogic:
         self._older = None
         if run_id != self.run_id:
             self.run_id, self.last_seq, self.answered_seq, self._asked = run_id, -1, -1, None
+            self._incarnation = incarnation
         if seq < self.last_seq or (seq == self.last_seq and self._asked != (run_id, seq)):
             return []
         self.last_seq = seq

@@ -511,6 +511,9 @@ class ShopService:
             self.state["history"] = self._history(whole=not self.history_delta)
             self._history_at_state = (len(self._applied), len(self._order_history), len(self._disruption_history))
         self.state["decisions"] = shop.decisions  # an extra field (allowed): the net the labels belong to
+        # an extra field too: this start of the run, so that an agent tells an old state of this start delivered late
+        # (reordered, duplicated) from a shop restarted with the same run_id, which numbers its states from 0 again
+        self.state["incarnation"] = self.incarnation
         return self.state
 
     def _history(self, whole: bool) -> dict[str, Any]:

@@ -132,34 +132,70 @@ def test_each_state_is_answered_once() -> None:
     assert len(mine.on_state(encode(other.state))) == 1 and mine.decisions == 1
 
 
-def test_a_shop_restarted_with_the_same_run_id_is_answered_again() -> None:
+def _bare(state: dict) -> dict:
+    """A state as a shop that names no incarnation in its states sends it."""
+    return {k: v for k, v in state.items() if k != "incarnation"}
+
+
+@pytest.mark.parametrize("named", [True, False], ids=["incarnation", "no-incarnation"])
+def test_a_shop_restarted_with_the_same_run_id_is_answered_again(named: bool) -> None:
     """A shop respawned with fixed parameters (its run_id too) publishes state 0 again; the agent took it for an old
     state and re-sent its command for the old run's later state, which the shop refused as never published: neither
-    moved for ever. The shop now sends its current state with that refusal, and the same older state twice begins
-    the run again."""
+    moved for ever. Its states name the shop's incarnation, so the agent begins the run again at once; from a shop
+    whose states name none, the shop sends its current state with that refusal, and the same older state twice
+    begins the run again."""
+    plain = (lambda s: s) if named else _bare
     first = ShopService(builtin("EX12"), run_id="r")
     out = first.start()
     agent = AgentLogic("first")
     for _ in range(5):  # the first run goes some way, then its shop dies
         (state,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
-        (cmd,) = agent.on_state(encode(state))
+        (cmd,) = agent.on_state(encode(plain(state)))
         out = first.handle_command(encode(cmd.msg))
     stale = cmd
     again = ShopService(builtin("EX12"), run_id="r")  # respawned: the same run id, from state 0
     out = again.start()
     (state0,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
-    assert agent.on_state(encode(state0)) == []  # taken for an old state once
-    out = again.handle_command(encode(stale.msg))  # the agent's re-sent command: refused, state 0 published anew
-    assert [o.msg["code"] for o in out if o.topic == m.TOPIC_ERRORS] == ["stale_state"]
+    if named:
+        (cmd,) = agent.on_state(encode(state0))  # another start of the run: a new run
+        assert cmd.msg["state_seq"] == 0
+        out = again.handle_command(encode(cmd.msg))
+    else:
+        assert agent.on_state(encode(_bare(state0))) == []  # taken for an old state once
+        out = again.handle_command(encode(stale.msg))  # the agent's re-sent command: refused, state 0 published anew
+        assert [o.msg["code"] for o in out if o.topic == m.TOPIC_ERRORS] == ["stale_state"]
     (state,) = [o.msg for o in out if o.topic == m.TOPIC_STATE]
     while not again.done:
-        (cmd,) = agent.on_state(encode(state))
+        (cmd,) = agent.on_state(encode(plain(state)))
         out = again.handle_command(encode(cmd.msg))
         assert not [o for o in out if o.topic == m.TOPIC_ERRORS]
         state = again.state
     inst = builtin("EX12")
     assert validate(inst, again.shop.schedule()) == []
     assert again.shop.schedule().makespan == solve(inst, "first").makespan
+
+
+@pytest.mark.parametrize("solver", ["first", "plan:list"])
+def test_an_old_state_delivered_twice_is_not_taken_for_a_restart(solver: str) -> None:
+    """An old state that comes twice (reordered and duplicated on its way) was taken for a shop restarted with the
+    same run_id: the agent answered it as a new run (a plan agent rebuilt its twin and started a re-plan from it) and
+    its command was refused stale. The states name the shop's incarnation: an older state of the same one is never
+    answered."""
+    inst = builtin("EX12")
+    net = dict(decisions="full", history=True, idle_stops=True, features=False) if solver.startswith("plan:") else {}
+    svc = ShopService(inst, run_id="r", **net)
+    svc.start()
+    agent = AgentLogic(solver, instance=inst)
+    states = []
+    for _ in range(6):
+        states.append(encode(svc.state))
+        (cmd,) = [o for o in agent.on_state(states[-1]) if o.topic == m.TOPIC_COMMAND]
+        assert not m.decode(encode(cmd.msg), expect="command")["state_seq"] < svc.state_seq
+        svc.handle_command(encode(cmd.msg))
+    rebuilds = getattr(agent.decide, "rebuilds", None)
+    assert agent.on_state(states[2]) == [] and agent.on_state(states[2]) == [] and agent.on_state(states[2]) == []
+    assert agent.decisions == 6 and getattr(agent.decide, "rebuilds", None) == rebuilds
+    assert len([o for o in agent.on_state(encode(svc.state)) if o.topic == m.TOPIC_COMMAND]) == 1
 
 
 def test_undecidable_states_give_errors() -> None:
