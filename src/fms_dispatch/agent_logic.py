@@ -1141,7 +1141,8 @@ class AgentLogic:
     ``seq`` of the same run is ignored, as is a final (``done``) state. A state that names another ``incarnation``
     (the start of the shop, an extra field of the fms shop's states) than the run's earlier states begins the run
     again from it (a shop restarted with the same ``run_id``); an older state of the same incarnation is never
-    answered, however often it comes (reordered and duplicated). From a shop whose states name no incarnation the
+    answered, however often it comes (reordered and duplicated), nor is a late state of an incarnation the run has
+    since begun again from. From a shop whose states name no incarnation the
     same older state twice in a row begins the run again (a restarted shop publishes its state anew for each
     re-sent command it cannot answer). A state that cannot be decided on
     gives an ``fms/error/v1`` instead of a command. A state of a ``history_delta`` shop that the twin cannot follow
@@ -1166,6 +1167,7 @@ class AgentLogic:
         self._asked: tuple[str, int] | None = None  # (run_id, seq) of the state asked for so, not yet answered
         self._older: tuple[str, int] | None = None  # (run_id, seq) of the last older state ignored, if no newer since
         self._incarnation: Any = None  # the state's incarnation (the start of the shop) of run_id, if it names one
+        self._retired: set[tuple[str, Any]] = set()  # (run_id, incarnation) of starts of runs restarted since
 
     def on_state(self, text: str) -> list[Outgoing]:
         """The command answering ``text`` (an ``fms/state/v1``), nothing, or an error."""
@@ -1179,7 +1181,11 @@ class AgentLogic:
         # the start of the run that sent it (an extra field of the fms shop; None from a shop that sends none)
         incarnation = state.get("incarnation")
         known = incarnation is not None and self._incarnation is not None
+        if incarnation is not None and (run_id, incarnation) in self._retired:
+            return []  # a late state of a start the shop has since begun again from: never answered (it would
+            # take the agent back to the dead start, and the next state of the live one forth again)
         if run_id == self.run_id and known and incarnation != self._incarnation:
+            self._retired.add((run_id, self._incarnation))
             self.run_id = None  # the shop began the run again (restarted with the same run_id): a new run at once
         elif run_id == self.run_id and seq < self.last_seq:
             if known:  # an old state of this start of the run, delivered late (twice: reordered and duplicated) is

@@ -175,6 +175,33 @@ def test_a_shop_restarted_with_the_same_run_id_is_answered_again(named: bool) ->
     assert again.shop.schedule().makespan == solve(inst, "first").makespan
 
 
+def test_a_late_state_of_a_restarted_shops_earlier_start_is_not_answered() -> None:
+    """After a shop restarted with the same run_id (another incarnation), a state of its earlier start still on its
+    way was taken for yet another restart: the agent answered the dead shop's state as a new run, then the live
+    shop's next state as a restart again, rebuilding its twin each time. A start the run has begun again from is
+    never answered."""
+    inst = builtin("EX12")
+    first = ShopService(inst, run_id="r")
+    first.start()
+    agent = AgentLogic("first")
+    for _ in range(4):
+        (cmd,) = agent.on_state(encode(first.state))
+        first.handle_command(encode(cmd.msg))
+    late = encode(first.state)  # published by the first start just before it died, delivered after the restart
+    again = ShopService(inst, run_id="r")
+    again.start()
+    (cmd,) = agent.on_state(encode(again.state))
+    assert cmd.msg["state_seq"] == 0
+    again.handle_command(encode(cmd.msg))
+    assert agent.on_state(late) == []
+    while not again.done:
+        (cmd,) = agent.on_state(encode(again.state))
+        assert cmd.msg["state_seq"] == again.state_seq
+        assert not [o for o in again.handle_command(encode(cmd.msg)) if o.topic == m.TOPIC_ERRORS]
+        assert agent.on_state(late) == []
+    assert validate(inst, again.shop.schedule()) == []
+
+
 @pytest.mark.parametrize("solver", ["first", "plan:list"])
 def test_an_old_state_delivered_twice_is_not_taken_for_a_restart(solver: str) -> None:
     """An old state that comes twice (reordered and duplicated on its way) was taken for a shop restarted with the
