@@ -97,6 +97,7 @@ class PlanPolicy:
             q.clear()
             q.extend(keep)
         jobs = shop.instance.jobs
+        pol._reserved_first(shop, plan)
 
         def served(j: int, k: int) -> bool:
             tool = jobs[j][k].tool
@@ -117,6 +118,35 @@ class PlanPolicy:
                 while legs and legs[0][0] == "move":
                     legs.popleft()
         return pol
+
+    def _reserved_first(self, shop: FullShop, plan: Schedule) -> None:
+        """A tool the shop holds for an operation that has not started (a reservation) serves that use first: it
+        goes first in the tool's order, and on its machine ahead of the uses tied with it (zero durations planned at
+        its start). The orders of uses at one instant come from :func:`fms_sim.ties.plan_orders`, which knows
+        nothing of the state: a residual plan that starts with the reserved use (as every plan from the state
+        does) got another use of the tool first there, the machine waited for a use the tool would not serve, and
+        the run was stuck."""
+        planned = {(r.job, r.op): (r.start, r.end) for r in plan.operations}
+        for t in range(1, len(shop.tool_user)):
+            op = shop.tool_next[t] if shop.tool_running[t] else shop.tool_user[t]
+            if op is None:
+                continue
+            uses = self.tool.get(t)
+            if uses and op in uses:  # (a use reserved is dropped from the orders by resume: it has its tool)
+                uses.remove(op)
+                uses.appendleft(op)
+            queue = self.machine.get(shop.instance.jobs[op[0]][op[1]].machine)
+            if not queue or op not in queue or op not in planned:
+                continue
+            at = queue.index(op)
+            s = planned[op][0]
+            p = at
+            # past the uses tied with it (the same instant, no duration), not past its own job's earlier operations
+            while p > 0 and planned.get(queue[p - 1]) == (s, s) and queue[p - 1][0] != op[0]:
+                p -= 1
+            if p < at:
+                del queue[at]
+                queue.insert(p, op)
 
     # ------------------------------------------------------------------ answers at a stepper's stops
     def answer(self, stepper: Stepper) -> str:

@@ -125,3 +125,22 @@ def test_a_residual_plan_from_a_snapshot_ends_when_it_predicts_in_a_nominal_shop
                     st.decide(rule(shop) if rng.random() < 0.8 else rng.choice(shop.legal_actions()))
                 n += 1
     assert checked >= 20
+
+
+def test_a_residual_plan_runs_when_a_reserved_tool_ties_with_another_use_at_its_start():
+    # found by fuzzing: at t=1 tool 2 is reserved for job 1's first operation, which the residual plan runs at 1 with
+    # job 0's use of the same tool beside it (both of zero duration); the orders of tied uses (ties.plan_orders, by
+    # job number) put job 0's first on the machine, which then waited for a use the tool would never serve: every
+    # residual plan from that state got stuck (and a re-plan there raised "every new plan got stuck")
+    from fms_sim.instance import Instance, Operation
+
+    inst = Instance(name="reserved-tie", jobs=((Operation(1, 2, 0),), (Operation(1, 2, 0), Operation(1, 1, 3))),
+                    tool_travel=((0, 1), (7, 0)), n_tool_transporters=1)
+    shop, st = run_plan_until(inst, greedy_schedule(inst), 2)
+    snap = snapshot(shop)
+    assert st.kind != "done" and snap.tool_reserved == {2: (1, 0, snap.now)}  # the state the test is about
+    for rule in ("est", "ect"):
+        residual = greedy_schedule(inst, rule=rule, origin=snap)
+        assert {(r.start, r.end) for r in residual.operations if r.op == 0} == {(snap.now, snap.now)}  # tied
+        out = finish_by(nominal_copy(shop), residual)
+        assert validate(inst, out) == [] and out.makespan <= residual.makespan
