@@ -536,7 +536,8 @@ def retime_from(snap: Snapshot, plan: Schedule) -> Schedule:
     est = greedy_schedule(snap.instance, rule="est", origin=snap)
     out, how = (est, "est") if est.makespan < guided.makespan else (guided, "guided")  # a tie keeps the order
     out.meta.update(plan.meta)
-    out.meta["retimed"] = snap.now
+    out.meta["residual"] = snap.now  # (a residual plan's own, of an earlier state, replaced it: tabu_plan then refused
+    out.meta["retimed"] = snap.now   # the re-timed plan with this state's snapshot)
     out.meta["retime"] = how
     return out
 

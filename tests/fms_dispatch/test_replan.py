@@ -416,3 +416,22 @@ def test_a_window_that_starts_where_the_one_before_ends_is_re_planned_for(kind):
     assert (kind, second.start) in [(e["reason"], e["time"]) for e in runs["both"].meta["replans"]]
     if kind == "outage":  # the other AGV takes the parts (a machine has no stand-in: a breakdown is waited out)
         assert runs["both"].makespan < 1000 and runs["alone"].makespan < 1000  # (re-plans search on the clock)
+
+
+def test_a_residual_plan_retimed_from_a_later_state_starts_from_that_state():
+    # retime_from copied the plan's meta over its own: a residual plan of an earlier state kept that state's time as
+    # meta["residual"], and the re-timed plan was refused by the search from the state it was re-timed to
+    from fms_dispatch.replan import retime_from
+    from fms_dispatch.tabu import tabu_plan
+
+    inst = builtin("EX74")
+    plan = greedy_schedule(inst)
+    earlier = snapshot(run_plan_until(inst, plan, 10)[0])
+    shop, _ = run_plan_until(inst, plan, 30)
+    later = snapshot(shop)
+    assert earlier.now < later.now
+    retimed = retime_from(later, greedy_schedule(inst, origin=earlier))
+    assert retimed.meta["residual"] == retimed.meta["retimed"] == later.now
+    searched = tabu_plan(inst, retimed, budget=None, max_iters=20, origin=later)
+    assert searched.meta["residual"] == later.now and searched.makespan <= retimed.makespan
+    assert validate(inst, finish_by(nominal_copy(shop), searched)) == []
