@@ -70,7 +70,7 @@ if TYPE_CHECKING:
     from ortools.sat.python import cp_model
 
 from fms_sim.instance import Instance, require_instance
-from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip, require_schedule
 from fms_sim.snapshot import Snapshot
 from fms_sim.ties import has_ties
 from fms_sim.validate import validate
@@ -539,6 +539,13 @@ def greedy_schedule(
     if origin is not None:
         origin.check_of(inst)
     o = origin if origin is not None else Snapshot.initial(inst)
+    for name, given in (("priority", priority if rule == "guided" else None), ("noise", noise)):
+        if given is not None:  # (a KeyError naming only an operation came from deep inside the loop)
+            missing = next(((j, k) for j, job in enumerate(inst.jobs) for k in range(o.next_op[j], len(job))
+                            if (j, k) not in given), None)
+            if missing is not None:
+                raise ValueError(f"the {name} of the list schedule has no entry for operation {missing} of "
+                                 f"{inst.name}; give one for every (job, op) to plan")
     jobs = inst.jobs
     nj = len(jobs)
     atr, ttr = inst.agv_travel, inst.tool_travel
@@ -1527,16 +1534,38 @@ def _improve_by_priorities(inst: Instance, best: Schedule, starts: dict[tuple[in
     return best
 
 
+def check_plan_of(inst: Instance, plan: Schedule, origin: Snapshot | None, who: str) -> None:
+    """Refuse (TypeError, ValueError) what ``who`` cannot improve: ``plan`` must be a whole schedule of ``inst``
+    that the validator accepts (``origin`` None), or a residual plan from the snapshot ``origin`` of ``inst``
+    (``meta["residual"]`` its time). Another shop's plan came back as this one's best, or failed deep inside."""
+    require_instance(inst, who)
+    require_schedule(plan, who)
+    if origin is None and "residual" in plan.meta:
+        raise ValueError(f"{who} improves a residual plan (meta['residual']) only with the snapshot it starts from "
+                         "(origin)")
+    if origin is not None and plan.meta.get("residual") != origin.now:
+        raise ValueError(f"the plan does not start from the snapshot at time {origin.now} (its meta['residual']: "
+                         f"{plan.meta.get('residual')!r})")
+    if origin is not None:
+        origin.check_of(inst)
+        return
+    problems = validate(inst, plan)
+    if problems:
+        raise ValueError(f"the plan is not a valid schedule of {inst.name}: {problems[0]}"
+                         + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+
+
 def restart_list_plan(inst: Instance, plan: Schedule, *, tries: int, budget: float | None = None, seed: int = 0,
                       origin: Snapshot | None = None) -> Schedule:
     """``plan`` or a better list schedule found by at most ``tries`` randomised restarts of it within ``budget``
     seconds (None: no time limit): perturbed earliest-start schedules and schedules guided by the best one's
     start times (:func:`_improve_by_priorities`). Deterministic for a given ``seed`` while the time limit does
     not cut the restarts short. With ``origin`` every schedule is a residual plan from that snapshot."""
-    if tries < 0:
-        raise ValueError(f"tries must be >= 0, got {tries}")
-    if budget is not None and budget < 0:
-        raise ValueError(f"budget must be >= 0 seconds, got {budget}")
+    check_plan_of(inst, plan, origin, "restart_list_plan")
+    if not isinstance(tries, numbers.Integral) or isinstance(tries, bool) or tries < 0:  # (NaN made no restart)
+        raise ValueError(f"tries must be an integer >= 0, got {tries!r}")
+    if budget is not None and not (isinstance(budget, numbers.Real) and not isinstance(budget, bool) and budget >= 0):
+        raise ValueError(f"budget must be >= 0 seconds (None: no time limit), got {budget!r}")  # (NaN: no limit)
     if tries == 0 or budget == 0:
         return plan
     t0 = time.monotonic()

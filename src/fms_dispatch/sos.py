@@ -44,7 +44,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fms_sim.instance import Instance
+from fms_sim.instance import Instance, require_instance
 from fms_sim.schedule import Schedule
 from fms_sim.shop import Shop
 
@@ -82,8 +82,10 @@ class SOSConfig:
     def __post_init__(self) -> None:
         if isinstance(self.population, bool) or not isinstance(self.population, int) or self.population < 2:
             raise ValueError(f"SOS population must be an integer >= 2, got {self.population!r}")
-        if not self.benefit_factors or any(not isinstance(b, (int, float)) or b <= 0 for b in self.benefit_factors):
-            raise ValueError(f"SOS benefit factors must be positive numbers, got {self.benefit_factors!r}")
+        if not self.benefit_factors or any(not isinstance(b, (int, float)) or isinstance(b, bool)
+                                           or not 0 < b < math.inf  # (NaN made NaN keys: a decode crashed)
+                                           for b in self.benefit_factors):
+            raise ValueError(f"SOS benefit factors must be positive, finite numbers, got {self.benefit_factors!r}")
         if not 0.0 < self.parasite_rate <= 1.0:
             raise ValueError(f"SOS parasite_rate must be in (0, 1], got {self.parasite_rate!r}")
         if not 0.0 <= self.seed_fraction <= 1.0:
@@ -215,8 +217,8 @@ def _check_args(time_limit: float | None, iterations: int | None, population: in
     if time_limit is not None:
         if isinstance(time_limit, bool) or not isinstance(time_limit, (int, float)) or math.isnan(time_limit):
             raise ValueError(f"time_limit must be a number of seconds or None, got {time_limit!r}")
-        if time_limit <= 0:
-            raise ValueError(f"time_limit must be positive, got {time_limit}")
+        if not 0 < time_limit < math.inf:  # (inf without iterations searched for ever)
+            raise ValueError(f"time_limit must be positive and finite (seconds), got {time_limit}")
     if iterations is not None and (isinstance(iterations, bool) or not isinstance(iterations, int)
                                    or iterations < 0):
         raise ValueError(f"iterations must be a non-negative integer or None, got {iterations!r}")
@@ -296,6 +298,7 @@ def solve_sos(instance: Instance, *, time_limit: float | None = 10.0, population
     makespan] at improvements, at most 20 entries), best_seed ([name, makespan]), stopped ("iterations",
     "time_limit", or "lower_bound": the best makespan is :func:`fms_dispatch.exact.simple_lower_bound`, optimal).
     """
+    require_instance(instance, "solve_sos")  # (a name was an AttributeError deep inside)
     if time_limit is None and iterations is None:
         time_limit = 10.0
     if config is not None and not isinstance(config, SOSConfig):  # an AttributeError (no __dict__) further down

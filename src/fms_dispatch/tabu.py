@@ -44,7 +44,7 @@ import time
 from typing import Callable, Iterator, Sequence
 
 from fms_sim.instance import Instance, require_instance
-from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip, require_schedule
+from fms_sim.schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from fms_sim.snapshot import Snapshot
 
 from .progress import say
@@ -687,8 +687,9 @@ def solve_tabu(instance: Instance, *, time_limit: float | None = 10.0, seed: int
     require_instance(instance, "solve_tabu")
     t0 = time.monotonic()
     limit = 10.0 if time_limit is None else time_limit
-    if not 0 < limit < float("inf"):  # inf: "tabu_plan needs a time budget", a function it was not given
-        raise ValueError(f"time_limit must be a positive, finite number of seconds, got {time_limit}")
+    if not (isinstance(limit, numbers.Real) and not isinstance(limit, bool) and 0 < limit < float("inf")):
+        # inf: "tabu_plan needs a time budget", a function it was not given; "1": a TypeError from the comparison
+        raise ValueError(f"time_limit must be a positive, finite number of seconds, got {time_limit!r}")
     plans = [greedy_schedule(instance, rule=rule, vehicle=vehicle) for rule in ("est", "ect")
              for vehicle in ("earliest", "nearest")]
     start = min(plans, key=lambda p: p.makespan)
@@ -733,31 +734,20 @@ def tabu_plan(inst: Instance, plan: Schedule, *, budget: float | None = 0.05, ma
     then only the operations not started are searched over, each part, machine, tool and vehicle starts where and
     when the snapshot says (a tool reserved for an operation serves it first, without a delivery), and the result
     is a residual plan from the same state."""
-    require_instance(inst, "tabu_plan")  # (the validator's own check named validate; None was an AttributeError)
-    require_schedule(plan, "tabu_plan")
+    from .exact import check_plan_of
+
+    # the instance and the plan first (None was an AttributeError; another shop's plan came back as this one's
+    # best, or failed deep inside with a KeyError)
+    check_plan_of(inst, plan, origin, "tabu_plan")
     if budget == float("inf"):
         budget = None  # no time limit, as None says: an iteration limit must then be set (it ran without an end)
     if budget is None and max_iters is None:
         raise ValueError("tabu_plan needs a time budget or an iteration limit")
     if budget is not None and not (isinstance(budget, numbers.Real) and not isinstance(budget, bool) and budget >= 0):
         raise ValueError(f"budget must be >= 0 seconds (None: no time limit), got {budget!r}")  # NaN passed
-    if max_iters is not None and max_iters < 0:
-        raise ValueError(f"max_iters must be >= 0, got {max_iters}")
-    if origin is None and "residual" in plan.meta:
-        raise ValueError("tabu_plan improves a residual plan (meta['residual']) only with the snapshot it starts "
-                         "from (origin)")
-    if origin is not None and plan.meta.get("residual") != origin.now:
-        raise ValueError(f"the plan does not start from the snapshot at time {origin.now} (its meta['residual']: "
-                         f"{plan.meta.get('residual')!r})")
-    if origin is not None:
-        origin.check_of(inst)
-    else:  # another shop's plan came back as this one's best (EX12's for EX13), or failed deep inside (KeyError)
-        from fms_sim.validate import validate
-
-        problems = validate(inst, plan)
-        if problems:
-            raise ValueError(f"the plan is not a valid schedule of {inst.name}: {problems[0]}"
-                             + (f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""))
+    for name, v in (("max_iters", max_iters), ("max_stall", max_stall)):  # (NaN or -1: no limit; 1.5 ran 2)
+        if v is not None and (not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 0):
+            raise ValueError(f"{name} must be an integer >= 0 (None: no limit), got {v!r}")
     if budget == 0 or max_iters == 0 or plan.makespan <= bound or (origin is not None and not origin.remaining):
         return plan
     t0 = time.monotonic()

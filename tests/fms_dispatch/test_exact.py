@@ -723,3 +723,29 @@ def test_a_fleets_least_arrival_answers_every_earlier_ready_time():
         for earlier in range(low[0] + 1):
             assert _earliest_vehicle(locs, free, travel, src, earlier) == (low[2], low[0])
         assert low[1] == travel[locs[low[2]]][src]
+
+
+def test_restart_list_plan_and_guided_schedules_refuse_what_they_cannot_use():
+    # another shop's plan came back unchanged as this shop's best; tries=NaN made no restart and budget=NaN no
+    # limit, silently; a priority or noise missing an operation was a bare KeyError from the middle of the loop
+    from fms_dispatch.exact import restart_list_plan
+
+    inst = builtin("EX11")
+    plan = greedy_schedule(inst)
+    with pytest.raises(ValueError, match="not a valid schedule of EX12"):
+        restart_list_plan(builtin("EX12"), plan, tries=3)
+    with pytest.raises(TypeError, match="restart_list_plan takes an Instance"):
+        restart_list_plan("EX11", plan, tries=3)
+    for tries in (float("nan"), 2.5, -1, True):
+        with pytest.raises(ValueError, match="tries must be an integer >= 0"):
+            restart_list_plan(inst, plan, tries=tries)
+    for budget in (float("nan"), "1", -0.5):
+        with pytest.raises(ValueError, match="budget must be >= 0 seconds"):
+            restart_list_plan(inst, plan, tries=3, budget=budget)
+    assert restart_list_plan(inst, plan, tries=3, seed=1).makespan <= plan.makespan
+    prio = {(r.job, r.op): r.start for r in plan.operations}
+    del prio[1, 0]
+    with pytest.raises(ValueError, match=r"priority .* no entry for operation \(1, 0\)"):
+        greedy_schedule(inst, rule="guided", priority=prio)
+    with pytest.raises(ValueError, match=r"noise .* no entry for operation \(1, 0\)"):
+        greedy_schedule(inst, noise={key: 0.0 for key in prio})

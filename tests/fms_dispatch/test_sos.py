@@ -261,3 +261,17 @@ def test_a_negative_seed_is_taken_by_its_absolute_value():
     neg = _valid(inst, solve_sos(inst, time_limit=None, seed=-3, iterations=2, population=6))
     pos = _valid(inst, solve_sos(inst, time_limit=None, seed=3, iterations=2, population=6))
     assert neg.makespan == pos.makespan and neg.meta["evaluations"] == pos.meta["evaluations"]
+
+
+def test_sos_refuses_an_endless_budget_and_factors_that_make_no_keys():
+    # time_limit=inf without iterations searched for ever; a NaN benefit factor made NaN keys and crashed a decode
+    # ("cannot convert float NaN to integer"); a shop's name was an AttributeError deep inside
+    inst = builtin("EX11")
+    with pytest.raises(ValueError, match="time_limit must be positive and finite"):
+        solve_sos(inst, time_limit=float("inf"), iterations=1)  # (refused with or without iterations; without, the
+        # old code never returned)
+    for bf in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="benefit factors must be positive, finite"):
+            SOSConfig(benefit_factors=(1, bf))
+    with pytest.raises(TypeError, match="solve_sos takes an Instance"):
+        solve_sos("EX11", iterations=1)

@@ -10,7 +10,7 @@ import pytest
 import random
 
 from fms_dispatch.exact import greedy_schedule, simple_lower_bound
-from fms_dispatch.tabu import _Graph, _orders, residual_lower_bound, tabu_plan
+from fms_dispatch.tabu import _Graph, _orders, residual_lower_bound, solve_tabu, tabu_plan
 from fms_sim.benchmarks import BU_OPTIMAL_MAKESPAN, builtin
 from fms_sim.disruptions import Breakdown, Scenario
 from fms_sim.full_shop import FullShop
@@ -106,6 +106,12 @@ def test_tabu_search_refuses_what_it_cannot_do():
         tabu_plan(inst, plan, budget=-1.0)
     with pytest.raises(ValueError, match="max_iters"):
         tabu_plan(inst, plan, budget=None, max_iters=-1)
+    # NaN or 1.5 iterations, and max_stall=-1, ran as no limit or a rounded one, silently
+    for name, bad in (("max_iters", float("nan")), ("max_iters", 1.5), ("max_stall", -1), ("max_stall", 2.5)):
+        with pytest.raises(ValueError, match=f"{name} must be an integer >= 0"):
+            tabu_plan(inst, plan, **{"budget": 0.1, name: bad})
+    with pytest.raises(ValueError, match="positive, finite number of seconds, got '1'"):  # was a TypeError
+        solve_tabu(inst, time_limit="1")
     shop = FullShop(inst)
     for _ in range(6):
         shop.act(shop.legal_actions()[0])
