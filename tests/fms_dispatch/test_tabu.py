@@ -213,3 +213,23 @@ def test_another_shops_plan_is_refused():
         tabu_plan(ex13, greedy_schedule(ex12), budget=0.2)
     with pytest.raises(ValueError, match="^the plan is not a valid schedule of EX12: "):
         tabu_plan(ex12, greedy_schedule(ex22), budget=0.2)
+
+
+def test_the_tabu_solver_makes_only_the_list_schedules_its_time_limit_allows(monkeypatch):
+    # it made all four list schedules before its search whatever the limit: on sl70 a limit of 1 s took 1.9 s
+    import fms_dispatch.exact as exact
+
+    made = []
+    real = exact.greedy_schedule
+
+    def counted(*args, **kw):
+        made.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(exact, "greedy_schedule", counted)
+    inst = builtin("sl00")
+    s = solve_tabu(inst, time_limit=1e-4)  # less than one list schedule of a 15 x 15 shop
+    assert len(made) == 1 and validate(inst, s) == []
+    made.clear()
+    solve_tabu(builtin("EX11"), time_limit=0.5)  # plenty: all four
+    assert len(made) == 4
