@@ -105,6 +105,37 @@ def guide_effort_from_args(a: argparse.Namespace) -> PlanEffort | None:
     return effort_from(a.guide_restarts, a.guide_budget, a.guide_rules, a.guide_exact, a.guide_tabu, a.guide_seed)
 
 
+def moot_choice(solver: str, inst: Instance, effort: PlanEffort | None) -> str | None:
+    """Why a part of ``solver``'s name or of the plan search ``effort`` (the ``--guide-*`` options) decides nothing on
+    ``inst`` (None: every part given can): a tool rule (``rule:JOB+VEHICLE+TOOL``, also in ``plan:rule:``) on a shop
+    without tools, a vehicle rule on one without AGVs and without tool transporters, ``--guide-rules`` on a shop with
+    tools (the search takes the rule pairs' schedules on shops without tools only) and ``--guide-exact`` on one too
+    large for CP-SAT's full model (the polish runs only within it). Each was taken without a word, the run the same
+    as without it."""
+    low = solver.lower()
+    body = low[len("plan:"):] if low.startswith("plan:rule:") else low
+    if body.startswith("rule:"):
+        parts = solver[len(solver) - len(body) + len("rule:"):].split("+")
+        job, vehicle, tool = (parts + ["", "", ""])[:3]
+        base = solver[:len(solver) - len(body)]  # ("plan:" or "")
+        if tool and not inst.has_tools:
+            return (f"{inst.name} has no tools, so the tool rule {tool!r} of {solver} decides nothing: give "
+                    f"{base}rule:{job}+{vehicle}")
+        if vehicle and not inst.has_agvs and not inst.has_tools:
+            return (f"{inst.name} has no AGVs and no tool transporters, so the vehicle rule {vehicle!r} of {solver} "
+                    f"decides nothing: give {base}rule:{job}")
+    if effort is not None and effort.rules and inst.has_tools:
+        return (f"--guide-rules: {inst.name} has tools, and the plan search takes the rule pairs' schedules on shops "
+                "without tools only (with tools they are far behind the list schedules)")
+    if effort is not None and effort.exact:
+        from .exact import FULL_MODEL_MAX_TASKS, fits_full_model
+
+        if not fits_full_model(inst):
+            return (f"--guide-exact: {inst.name} is too large for CP-SAT's full model (more than "
+                    f"{FULL_MODEL_MAX_TASKS} transport tasks), where the plan search's polish runs only")
+    return None
+
+
 def load_from_args(a: argparse.Namespace) -> Instance:
     from fms_sim.formats import load_instance
 
@@ -186,6 +217,12 @@ def cmd_solve(a: argparse.Namespace) -> int:
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
     check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
     inst = load_from_args(a)
+    try:
+        moot = moot_choice(a.solver, inst, guide_effort_from_args(a))
+    except ValueError:
+        moot = None  # a bad plan search value: reported below with the options it concerns
+    if moot:
+        raise CliError(moot)
     opts: dict = {"seed": a.seed if a.seed is not None else 0}
     if a.time_limit is not None:
         if not 0 < a.time_limit < math.inf:

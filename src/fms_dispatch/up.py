@@ -351,6 +351,12 @@ def cmd_up(a: argparse.Namespace) -> int:
     if solver.lower() == "best":
         solver, _, reason = best_solver(inst, effort, disrupted)
         say(reason + (" (nominal simulations: the disruptions are not known in advance)" if disrupted else ""))
+    else:
+        from .cli import moot_choice
+
+        moot = moot_choice(solver, inst, effort)
+        if moot:
+            raise UpError(moot)
     from .cli import DEFAULT_DISRUPTED_SOLVER, GUIDE_OPTIONS
 
     named = f"{solver!r}" + (" (the default solver)" if solver == DEFAULT_DISRUPTED_SOLVER else "")

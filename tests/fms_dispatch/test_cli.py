@@ -77,6 +77,18 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "sl30", "--solver", "plan:cpsat:8", "--time-limit", "1"],
      "plan:cpsat:8 gives its plan's budget in its name; give it without the seconds and --time-limit"),
     (["solve", "EX12", "--solver", "sos", "--decisions", "paper"], "rules:paper runs the paper net's rule pairs"),
+    # a part of the name or of the plan search that decides nothing on the shop (they were taken without a word)
+    (["solve", "EX12", "--solver", "rule:MTWR+nearest+same-machine-first"],
+     "EX12 has no tools, so the tool rule 'same-machine-first' of rule:MTWR+nearest+same-machine-first decides "
+     "nothing: give rule:MTWR+nearest"),
+    (["solve", "EX12", "--solver", "plan:rule:MTWR+nearest+fifo"], "give plan:rule:MTWR+nearest"),
+    (["solve", "ra01", "--no-agvs", "--no-tools", "--solver", "rule:MTWR+nearest"],
+     "ra01 has no AGVs and no tool transporters, so the vehicle rule 'nearest' of rule:MTWR+nearest decides nothing: "
+     "give rule:MTWR"),
+    (["solve", "ra01", "--solver", "ppo", "--guide-rules"],
+     "--guide-rules: ra01 has tools, and the plan search takes the rule pairs' schedules on shops without tools only"),
+    (["solve", "sl70", "--solver", "ppo", "--guide-exact", "1"],
+     "--guide-exact: sl70 is too large for CP-SAT's full model"),
     (["generate", "--jobs", "3", "--machines", "3", "--no-tools", "--tools", "4"], "contradict each other"),
     (["generate", "--jobs", "3", "--machines", "3", "--no-agvs", "--agvs", "4"], "contradict each other"),
     (["generate", "--jobs", "3", "--machines", "3", "--count", "0"], "--count must be >= 1"),
@@ -87,6 +99,17 @@ def test_bad_input_one_line_exit_2(args, msg, capsys):
     assert code == 2
     assert err.startswith("fms: error:") and msg in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args", [
+    ["solve", "ra01", "--solver", "rule:MTWR+nearest+same-machine-first"],  # tools: the tool rule decides
+    ["solve", "ra01", "--no-agvs", "--solver", "rule:MTWR+nearest"],  # the vehicle rule picks the transporter
+    ["solve", "EX12", "--solver", "ppo", "--guide-rules"],  # no tools: the rule pairs' schedules are searched
+    ["solve", "EX12", "--solver", "ppo", "--guide-exact", "0.1"],  # small enough for the polish
+])
+def test_every_part_of_a_name_or_search_that_can_decide_is_taken(args, capsys):
+    code, out, err = run(args + ["-q"], capsys)
+    assert code == 0 and "valid" in out and not err
 
 
 @pytest.mark.parametrize("content, msg", [
