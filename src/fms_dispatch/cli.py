@@ -216,6 +216,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
             raise CliError(f"model {ref.name} reads no plan guide, so it takes no {' and no '.join(flags)}")
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
     check_outputs(a, a.instance, getattr(a, "scenario", None), plan_file)
+    if a.seed is not None and a.seed < 0:  # (Python's and numpy's generators took -3 as 3: two seeds, one run)
+        raise CliError(f"--seed must be an integer >= 0, got {a.seed}")
     inst = load_from_args(a)
     try:
         moot = moot_choice(a.solver, inst, guide_effort_from_args(a))
@@ -691,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "solver its solver's); refused for the solvers that run once. It bounds the search: on shops of "
                         "thousands of operations the start schedules built before it, and a plan: solver's run "
                         "through the net after it, take seconds more")
-    s.add_argument("--seed", type=int, default=None, help="seed of the random, cpsat, sos and tabu solvers, "
+    s.add_argument("--seed", type=int, default=None, help="seed (>= 0) of the random, cpsat, sos and tabu solvers, "
                    "of their plans (plan:cpsat, ...) and of a plan's re-plans (--replan) (default 0), and of the "
                    "noise (--noise, or the --scenario file's: this seed replaces the file's)")
     s.add_argument("--scenario", metavar="FILE", help="disruptions (fms/scenario/v1 JSON: machine breakdowns, "

@@ -99,7 +99,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                         "with --scenario/--noise plan:rules instead of them) "
                         f"(default: {DEFAULT_DISRUPTED_SOLVER}: the earliest-start list schedule, planned at the first "
                         "state and executed live, re-planned when late)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the random and plan: solvers (default 0) and of "
+    p.add_argument("--seed", type=int, default=None, help="seed (>= 0) of the random and plan: solvers (default 0) and of "
                    "the noise (--noise, or the --scenario file's: this seed replaces the file's); refused for a "
                    "solver that draws nothing in a run without noise")
     p.add_argument("--scenario", metavar="FILE", help="disruptions of the run (fms/scenario/v1: breakdowns, "
@@ -339,6 +339,8 @@ def cmd_up(a: argparse.Namespace) -> int:
         raise UpError(missing)
     inst = _load(a)
     solver = a.solver
+    if a.seed is not None and a.seed < 0:  # (as fms solve: -3 ran as 3)
+        raise UpError(f"--seed must be an integer >= 0, got {a.seed}")
     from .cli import guide_effort_from_args
 
     try:

@@ -77,6 +77,7 @@ def test_fleet_and_mode_overrides(tmp_path, capsys):
     (["solve", "sl30", "--solver", "plan:cpsat:8", "--time-limit", "1"],
      "plan:cpsat:8 gives its plan's budget in its name; give it without the seconds and --time-limit"),
     (["solve", "EX12", "--solver", "sos", "--decisions", "paper"], "rules:paper runs the paper net's rule pairs"),
+    (["solve", "EX12", "--solver", "random", "--seed", "-3"], "--seed must be an integer >= 0, got -3"),  # ran as 3
     # a part of the name or of the plan search that decides nothing on the shop (they were taken without a word)
     (["solve", "EX12", "--solver", "rule:MTWR+nearest+same-machine-first"],
      "EX12 has no tools, so the tool rule 'same-machine-first' of rule:MTWR+nearest+same-machine-first decides "
