@@ -87,8 +87,10 @@ def _text_colour(rgba: Sequence[float]) -> str:
     return "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.55 else "white"
 
 
-def _layout(schedule: Schedule, instance: Instance | None) -> tuple[list[_Row], list[tuple[str, float, float]], float]:
-    """Rows and sections (name, header centre, section start) top-down, and the total height in row units."""
+def _layout(schedule: Schedule, instance: Instance | None, machines: int | None = None
+            ) -> tuple[list[_Row], list[tuple[str, float, float]], float]:
+    """Rows and sections (name, header centre, section start) top-down, and the total height in row units; at least
+    ``machines`` machine rows when given."""
     # (one row per number up to the largest: machine 5000 took 14 s and 720 MB, 10**6 was killed at 24 GB; no
     # instance has more than MAX_COUNT of each)
     bad = ([f"machine {r.machine}" for r in schedule.operations if not 1 <= r.machine <= MAX_COUNT]
@@ -103,6 +105,8 @@ def _layout(schedule: Schedule, instance: Instance | None) -> tuple[list[_Row], 
     n_m = max(r.machine for r in schedule.operations)
     n_agv = max([schedule.n_agvs] + [t.agv + 1 for t in schedule.agv_trips])
     n_tt = max([schedule.n_tool_transporters] + [t.transporter + 1 for t in schedule.tool_trips])
+    if machines is not None:
+        n_m = max(n_m, machines)
     if instance is not None:
         n_m = max(n_m, instance.n_machines)
         n_agv = max(n_agv, instance.n_agvs)
@@ -199,20 +203,24 @@ def _rects(spans: Iterable[tuple[float, float, float, float]]) -> np.ndarray:
 
 
 def plot_gantt(schedule: Schedule, instance: Instance | None = None, path: str | Path | None = None, *,
-               title: str | None = None) -> Figure:
+               title: str | None = None, machines: int | None = None) -> Figure:
     """Draw ``schedule`` as a Gantt chart and return the figure; also save it to ``path`` when given.
 
     ``instance`` (optional) only widens the chart to rows the schedule leaves idle (all of its machines,
-    AGVs and transporters). The file format follows the suffix of ``path`` (PNG for none, or for one that
-    matplotlib does not write).
+    AGVs and transporters); ``machines`` (optional, the shop's machine count where the instance is not at hand: the
+    recorder's charts) widens it to that many machine rows. The file format follows the suffix of ``path`` (PNG for
+    none, or for one that matplotlib does not write).
     Raises ``ValueError("empty schedule")`` when the schedule has no operations.
     """
     require_schedule(schedule, "plot_gantt")  # (an instance in its place, the arguments swapped: AttributeError)
     if instance is not None:
         require_instance(instance, "plot_gantt's instance")
+    if machines is not None and not (isinstance(machines, int) and not isinstance(machines, bool)
+                                     and 1 <= machines <= MAX_COUNT):
+        raise ValueError(f"machines must be an integer from 1 to {MAX_COUNT}, got {machines!r}")
     if not schedule.operations:
         raise ValueError("empty schedule")
-    rows, heads, total = _layout(schedule, instance)
+    rows, heads, total = _layout(schedule, instance, machines)
     row_y = {(r.kind, r.index): r.y for r in rows}
     n_jobs = max(max(o.job for o in schedule.operations) + 1, instance.n_jobs if instance is not None else 0)
     palette = _palette(n_jobs)
@@ -379,9 +387,9 @@ def chart_formats() -> list[str]:
 
 
 def save_gantt(schedule: Schedule, path: str | Path, instance: Instance | None = None,
-               title: str | None = None) -> Path:
+               title: str | None = None, machines: int | None = None) -> Path:
     """Render ``schedule`` (see :func:`plot_gantt`) to ``path`` and return it: in the format its suffix names
     (a PDF for ``.pdf``, an SVG for ``.svg``, ...), a PNG for any suffix matplotlib does not write."""
     out = Path(path)
-    _save(plot_gantt(schedule, instance, title=title), out)
+    _save(plot_gantt(schedule, instance, title=title, machines=machines), out)
     return out

@@ -42,6 +42,7 @@ from fms_msgs_json import (
 )
 
 from .files import replacing
+from .instance import MAX_COUNT
 from .schedule import AgvTrip, OperationRecord, Schedule, ToolTrip
 from .shop_service import Outgoing
 
@@ -225,6 +226,14 @@ class RecorderStore:
         row = self.db.execute("SELECT time, kind, data FROM events WHERE run_id = ? AND seq = ?",
                               (run_id, seq)).fetchone()
         return None if row is None else (row[0], row[1], json.loads(row[2]))
+
+    def machines(self, run_id: str) -> int | None:
+        """The shop's machine count its stored ``run_start`` names (``data.machines``), for the chart's rows: the
+        schedule names only the machines its operations used. None where the event is not stored or names none (an
+        older shop's)."""
+        stored = self._stored_event(run_id, 0)
+        count = stored[2].get("machines") if stored is not None and stored[1] == "run_start" else None
+        return count if isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_COUNT else None
 
     def incarnations(self, run_id: str) -> list[str]:
         """The names the earlier incarnations of ``run_id`` are kept under (:meth:`archive_run`:
@@ -795,7 +804,7 @@ class Recorder:
             else:
                 from .gantt import chart_title, save_gantt
 
-                save_gantt(schedule, tmp, title=chart_title(schedule, run_id))
+                save_gantt(schedule, tmp, title=chart_title(schedule, run_id), machines=self.store.machines(run_id))
         self.store.set_gantt(run_id, target)
         self.rendered.append((run_id, target))
         return target

@@ -289,7 +289,9 @@ class ShopService:
         if self.state is not None:
             raise RuntimeError("the run has already started")
         self._started_at = self._clock()
-        out = [self._event(0, "run_start", {"instance": self.instance.name, "incarnation": self.incarnation})]
+        # (machines: the recorder's chart has a row for each, an idle one too; the schedule names only those used)
+        out = [self._event(0, "run_start", {"instance": self.instance.name, "incarnation": self.incarnation,
+                                            "machines": self.instance.n_machines})]
         return out + self._after_step()
 
     def handle_command(self, text: str) -> list[Outgoing]:

@@ -193,6 +193,12 @@ def test_job_shop_only_rows_and_instance_widens(tmp_path: Path) -> None:
     legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert legend == ["operation (colour = job)", "makespan"]
     assert (tmp_path / "js.png").read_bytes()[:8] == PNG_MAGIC
+    # without the instance at hand (the recorder's charts), the shop's machine count widens the chart too
+    assert tick_labels(plot_gantt(sched, machines=3)) == ["M1", "M2", "M3"]
+    assert tick_labels(plot_gantt(sched, machines=1)) == ["M1", "M2"]  # (never narrower than the schedule)
+    for bad in (0, True, 2.0, 10**9):
+        with pytest.raises(ValueError, match="machines must be an integer from 1 to"):
+            plot_gantt(sched, machines=bad)
 
 
 def test_empty_schedule_raises() -> None:

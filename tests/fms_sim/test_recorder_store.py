@@ -271,6 +271,38 @@ def test_recorder_renders_a_real_gantt_chart(tmp_path: Path) -> None:
     assert not list((tmp_path / "charts").glob("*.tmp.png"))
 
 
+def test_a_recorded_runs_chart_has_a_row_for_every_machine_of_the_shop(tmp_path: Path, monkeypatch) -> None:
+    """The schedule names only the machines its operations used, and the recorder has no instance: a machine no
+    operation used had no row in the recorder's chart (fms solve's chart, drawn with the instance, has one). The
+    run_start names the shop's machine count, and the chart gets that many machine rows."""
+    import fms_sim.gantt as gantt
+    from fms_sim import Instance, Operation
+
+    inst = Instance(name="idle-m3", jobs=[[Operation(1, None, 3), Operation(2, None, 2)], [Operation(2, None, 4)]],
+                    agv_travel=[[0, 2, 2, 2], [2, 0, 2, 2], [2, 2, 0, 2], [2, 2, 2, 0]], n_agvs=1)
+    svc = ShopService(inst, run_id="r")
+    svc.start()
+    while not svc.done:
+        label = next(a for a, ok in zip(svc.state["actions"], svc.state["mask"]) if ok)
+        svc.handle_command(encode(m.make_command("r", svc.state_seq, label)))
+    events, schedule = texts(svc)
+    assert m.decode(events[0], expect="event")["data"]["machines"] == 3
+    drawn = []
+    real = gantt.save_gantt
+
+    def spy(sched: Schedule, path: Path, *args: Any, **kw: Any) -> Path:
+        drawn.append([r.label for r in gantt._layout(sched, None, kw.get("machines"))[0] if r.kind == "machine"])
+        return real(sched, path, *args, **kw)
+
+    monkeypatch.setattr(gantt, "save_gantt", spy)
+    rec = Recorder(RecorderStore(tmp_path / "db.sqlite"), gantt_dir=tmp_path)
+    for t in events + [schedule]:
+        (rec.handle_schedule if '"fms/schedule/v1"' in t else rec.handle_event)(t, now=0.0)
+    ((_, png),) = rec.finish_ready()
+    assert {r.machine for r in svc.final_schedule.operations} == {1, 2}
+    assert drawn == [["M1", "M2", "M3"]] and png.exists()
+
+
 # ------------------------------------------------------------------------------------------------ bad databases
 def test_a_database_that_cannot_be_made_written_or_is_someone_elses_is_refused(tmp_path: Path, monkeypatch) -> None:
     # a folder that cannot be made was a traceback (FileNotFoundError, NotADirectoryError); another program's

@@ -73,7 +73,8 @@ def test_full_run_states_events_and_schedule(name: str) -> None:
     out = svc.start()
     events = by_topic(out, m.TOPIC_EVENTS)
     assert events[0] == {"schema": "fms/event/v1", "run_id": "run-1", "seq": 0, "time": 0, "kind": "run_start",
-                         "data": {"instance": name, "incarnation": svc.incarnation}, "incarnation": svc.incarnation}
+                         "data": {"instance": name, "incarnation": svc.incarnation, "machines": inst.n_machines},
+                         "incarnation": svc.incarnation}
     # a shop started again with the same run id (a respawn with fixed parameters) starts another incarnation: its
     # events name it, so the recorder tells the two runs apart
     again = ShopService(inst, run_id="run-1")
