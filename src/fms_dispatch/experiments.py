@@ -62,6 +62,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fms_sim.benchmarks import SL_GROUPS
+from fms_sim.files import replacing
 from fms_sim.shopsets import expand_specs
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
@@ -133,20 +134,34 @@ def _checked(inst: Instance, sched: Schedule) -> bool:
     return True
 
 
+def _valid_makespan(inst: Instance, sched: Schedule) -> int:
+    """``sched``'s makespan once :func:`_checked` found it valid: the reference makespans the tables divide by or
+    compare with (disruptions' nominal runs, dynamic's static run) were taken unchecked."""
+    _checked(inst, sched)
+    return sched.makespan
+
+
 def _write(name: str, results_dir: str | Path, columns: Sequence[str], rows: list[dict[str, Any]],
            meta: dict[str, Any], draw: Callable[[Path], None]) -> dict[str, Path]:
-    """Write ``experiment_<name>.csv/.json/.png`` under ``results_dir``; returns their paths."""
+    """Write ``experiment_<name>.csv/.json/.png`` under ``results_dir``; returns their paths.
+
+    All three are written to temporaries first and replace the last run's files only once all three are complete:
+    they were written in place one after the other, so an interrupt or an error while drawing (or while writing the
+    CSV) left a half-written file, or this run's CSV and JSON beside the last run's chart."""
     out = Path(results_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"experiment_{name}.{ext}" for ext in ("csv", "json", "png")}
-    with paths["csv"].open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow({c: ("" if r.get(c) is None else r.get(c)) for c in columns})
     doc = _no_nan(dict(meta, rows=rows))  # strict JSON: a missing value (NaN) becomes null
-    paths["json"].write_text(json.dumps(doc, indent=2, default=_jsonable, allow_nan=False) + "\n")
-    draw(paths["png"])
+    text = json.dumps(doc, indent=2, default=_jsonable, allow_nan=False) + "\n"
+    with replacing(paths["csv"]) as tmp_csv, replacing(paths["json"]) as tmp_json, \
+            replacing(paths["png"], suffix=".tmp.png") as tmp_png:  # (matplotlib reads the format from the name)
+        with tmp_csv.open("w", newline="", encoding="utf-8") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({c: ("" if r.get(c) is None else r.get(c)) for c in columns})
+        tmp_json.write_text(text, encoding="utf-8")
+        draw(tmp_png)
     return paths
 
 
@@ -597,7 +612,7 @@ def run_dynamic(quick: bool = False, results_dir: str | Path = "results", seed: 
     shop, decide = run_arrivals(agent, inst, groups, arrival, arrive)
     final = shop.schedule()
     _checked(shop.instance, final)
-    static_ms = run_agent(make_shop(inst, agent.decisions), agent.act).makespan  # reference: all jobs at 0
+    static_ms = _valid_makespan(inst, run_agent(make_shop(inst, agent.decisions), agent.act))  # all jobs at 0
     last = rows[-1]
     summary = {"rl_final_makespan": final.makespan, "rl_decision_time": round(decide, 4),
                "rl_static_makespan": static_ms, "sos_final_makespan": last["sos_makespan"],
@@ -764,16 +779,18 @@ def run_disruptions(quick: bool = False, results_dir: str | Path = "results", se
         rule_time = time.perf_counter() - t0
         winner = best.meta["rule"]
         rule_plan = solve(inst, winner) if winner.startswith("list") else None
-        nominal = {"plan:cpsat": plan.makespan, "plan:cpsat+replan": plan.makespan, "best-rule": best.makespan}
+        # the nominal makespans divide every disrupted one (ratio): validated as the disrupted runs are
+        nominal = {"plan:cpsat": _valid_makespan(inst, plan), "best-rule": _valid_makespan(inst, best)}
+        nominal["plan:cpsat+replan"] = nominal["plan:cpsat"]
         look = agent is not None and sum(len(ops) for ops in inst.jobs) <= lookahead_max_ops
         if agent is not None:
-            nominal["ppo"] = _timed_run(inst, None, None, agent.act)[0].makespan
+            nominal["ppo"] = _valid_makespan(inst, _timed_run(inst, None, None, agent.act)[0])
             if look:
-                nominal["ppo+lookahead"] = lookahead_run(inst, None)[0].makespan
+                nominal["ppo+lookahead"] = _valid_makespan(inst, lookahead_run(inst, None)[0])
             else:
                 skipped_la.append(f"{inst.name} ({mode})")
         if "default" in methods:
-            nominal["default"] = default_run(inst, None)[0].makespan
+            nominal["default"] = _valid_makespan(inst, default_run(inst, None)[0])
         for noise in noises:
             for k in range(n_seeds):
                 sc = Scenario.draw(inst, noise=noise, breakdowns=2, horizon=max(1, plan.makespan // 2),

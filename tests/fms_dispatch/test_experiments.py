@@ -362,3 +362,60 @@ def test_disruptions_report_ppo_as_not_measured_without_its_model(tmp_path: Path
     assert "the default model is not available" in doc["not_measured"]["default"]
     assert {r["method"].split(" ")[0] for r in doc["rows"]} == {"plan:cpsat", "plan:cpsat+replan", "best-rule"}
 
+
+
+def test_an_interrupt_while_writing_leaves_the_last_runs_files_whole(tmp_path: Path) -> None:
+    """The CSV and JSON were written in place before the chart: an interrupt while drawing left this run's tables
+    beside the last run's chart (and one while writing the CSV, half a CSV). Now all three stay the last run's."""
+    from fms_dispatch.experiments import _write
+
+    def old_chart(path: Path) -> None:
+        path.write_bytes(PNG_MAGIC + b"old")
+
+    def interrupted(path: Path) -> None:
+        path.write_bytes(PNG_MAGIC + b"half")
+        raise KeyboardInterrupt
+
+    _write("x", tmp_path, ("a",), [{"a": 1}], {"experiment": "x"}, old_chart)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(KeyboardInterrupt):
+        _write("x", tmp_path, ("a",), [{"a": 2}, {"a": 3}], {"experiment": "x"}, interrupted)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no temporaries left either
+
+
+def test_dynamic_validates_its_static_reference_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The summary's rl_static_makespan (all jobs at 0) came from a run that was never validated."""
+    from fms_dispatch.rl import lookahead
+
+    real = lookahead.run_agent
+
+    def broken(*args, **kwargs):
+        s = real(*args, **kwargs)
+        s.makespan += 1  # a simulator bug the validator must catch
+        return s
+
+    monkeypatch.setattr(lookahead, "run_agent", broken)
+    with pytest.raises(RuntimeError, match="infeasible schedule for EX12"):
+        run_dynamic(quick=True, results_dir=tmp_path, instance="EX12", echo=False)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("reference", ["cpsat", "rules"])
+def test_disruptions_validate_the_nominal_runs_they_divide_by(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                              reference: str) -> None:
+    """Every ratio divides by a nominal makespan: the CP-SAT plan's and the best rule's were taken unchecked."""
+    from fms_dispatch import solvers
+    from fms_dispatch.experiments import run_disruptions
+
+    real = solvers.solve
+
+    def broken(instance, name, **options):
+        s = real(instance, name, **options)
+        if name == reference:
+            s.makespan += 1  # a solver bug the validator must catch
+        return s
+
+    monkeypatch.setattr(solvers, "solve", broken)
+    with pytest.raises(RuntimeError, match="infeasible schedule for EX12"):
+        run_disruptions(quick=True, results_dir=tmp_path, instances=["EX12"], echo=False)
+    assert not any(tmp_path.iterdir())
