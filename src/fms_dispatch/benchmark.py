@@ -343,11 +343,14 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     if not str(results_dir).strip():  # Path("") is the current folder: the tables and cache went there
         raise ValueError("--results-dir names no folder (an empty name); give one, e.g. --results-dir .")
     out_dir = Path(results_dir)
-    from fms_sim.files import file_above
+    from fms_sim.files import file_above, folder_problem
 
     blocker = out_dir if out_dir.exists() and not out_dir.is_dir() else file_above(out_dir)
     if blocker is not None:  # "File exists: afile" said nothing of the option
         raise ValueError(f"--results-dir {results_dir}: {blocker} is a file; name a folder")
+    problem = folder_problem(out_dir)  # (a folder that cannot be made or written: "No such file or directory: /proc/x",
+    if problem is not None:  # naming neither the option nor the cause, as fms experiment does)
+        raise ValueError(f"--results-dir {results_dir}: {problem}")
     out_dir.mkdir(parents=True, exist_ok=True)
     cache_path = out_dir / CACHE_NAME
     _end_line(cache_path)

@@ -429,3 +429,16 @@ def test_the_table_says_what_it_ran_with_and_which_optima_are_the_literatures() 
     text = bm.render_markdown(rows, "t")
     assert "Time limits: tabu 3 s; cpsat 30 s. CP-SAT threads: 2." in text
     assert "| EX71     | 111†" in text and "| EX61     | 111 " in text and "† the literature's opt" in text
+
+
+def test_a_results_dir_where_nothing_can_be_written_is_refused_with_the_option(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Under /proc no folder can be made: fms bench said "No such file or directory: /proc/..." (naming neither the
+    option nor the cause); fms experiment named both. Now bench does too, before any task runs."""
+    where = "/proc/fms-no-such-results"
+    with pytest.raises(ValueError, match=f"--results-dir {where}: nothing can be written"):
+        bm.run_bench(bm.bu_tasks(["first"], sets=[1]), results_dir=where)
+    from fms_dispatch.cli import main
+
+    assert main(["bench", "bu", "--methods", "first", "--instances", "1", "-q", "--results-dir", where]) == 2
+    assert "fms: error: --results-dir /proc/fms-no-such-results: nothing can be written" in capsys.readouterr().err
