@@ -369,9 +369,17 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     todo = [Task(t.benchmark, t.instance, t.variant, t.method, t.time_limit, t.seed, cpsat_threads(parallel))
             if t.method.lower() == "cpsat" and t.workers is None else t for t in todo]
 
-    for row in _execute(todo, jobs, progress):
-        _append(cache_path, row)
-        cache[_row_key(row)] = row
+    done = 0
+    try:
+        for row in _execute(todo, jobs, progress):
+            _append(cache_path, row)
+            cache[_row_key(row)] = row
+            done += 1
+    except KeyboardInterrupt:  # (only "fms: interrupted" was said: what was kept, and how to go on, was not)
+        print(f"bench: interrupted after {done} of {len(todo)} task(s) to run; the finished ones are cached in "
+              f"{cache_path} and the tables were not written: run the same command again to continue",
+              file=sys.stderr)
+        raise
     return [cache[k] for k in _ordered_keys(tasks)]
 
 

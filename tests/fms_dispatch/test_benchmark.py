@@ -442,3 +442,23 @@ def test_a_results_dir_where_nothing_can_be_written_is_refused_with_the_option(
 
     assert main(["bench", "bu", "--methods", "first", "--instances", "1", "-q", "--results-dir", where]) == 2
     assert "fms: error: --results-dir /proc/fms-no-such-results: nothing can be written" in capsys.readouterr().err
+
+
+def test_an_interrupt_says_what_was_kept_and_how_to_go_on(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """An interrupted bench said only "fms: interrupted": not that the finished tasks are cached, nor that the
+    tables were not written and a rerun continues."""
+    real = bm.run_task
+
+    def second_interrupted(task: bm.Task) -> dict:
+        if task.method == RULES[1]:
+            raise KeyboardInterrupt
+        return real(task)
+
+    monkeypatch.setattr(bm, "run_task", second_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        bm.run_bench(bm.bu_tasks(RULES, sets=[1]), results_dir=tmp_path)
+    err = capsys.readouterr().err
+    assert f"interrupted after 1 of 2 task(s) to run; the finished ones are cached in {tmp_path / bm.CACHE_NAME}" in err
+    assert "run the same command again to continue" in err
+    assert [r["method"] for r in bm.read_cache(tmp_path / bm.CACHE_NAME).values()] == RULES[:1]
