@@ -882,8 +882,9 @@ def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
     p.add_argument("--cpsat-time-limit", type=float, default=cpsat_default, metavar="S",
                    help=f"time limit of cpsat (default {cpsat_default:g})")
     p.add_argument("--cpsat-workers", type=int, metavar="N",
-                   help="CP-SAT threads per task (default: min(2, cpus // jobs)); given, a cached cpsat row of "
-                        "other threads is solved again (by default any cached row serves)")
+                   help="CP-SAT threads per task (default: min(2, cpus // tasks running at once), the tasks at "
+                        "once being min(--jobs, tasks to run)); given, a cached cpsat row of other threads is "
+                        "solved again (by default any cached row serves)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
                    help=f"parallel tasks (process pool; default {default_jobs()})")
