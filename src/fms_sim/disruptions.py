@@ -262,7 +262,9 @@ class Scenario:
              duration: tuple[int, int] = (0, 0), seed: int = 0) -> "Scenario":
         """A random scenario: ``breakdowns`` machine breakdowns starting uniformly in ``[0, horizon)`` with
         durations uniform in ``duration`` (default: 5-15 % of the horizon), at most one per machine; noise
-        ``noise``. Reproducible from ``seed``. Raises :class:`ScenarioError` for arguments that draw nothing
+        ``noise``. Reproducible from ``seed``. A horizon above :data:`MAX_TIME` (a shop of times near the largest,
+        whose work per machine is more) counts as :data:`MAX_TIME`: a breakdown may start no later (a draw past it
+        was refused by the scenario's own check, so an env with disruptions failed at its reset). Raises :class:`ScenarioError` for arguments that draw nothing
         sensible (a negative count or horizon, a duration range that is empty or allows 0)."""
         if not _is_int(seed):
             raise ScenarioError(f"seed must be an integer, got {seed!r}")
@@ -277,6 +279,7 @@ class Scenario:
             raise ScenarioError(f"duration must be a range (low, high) of integers with 1 <= low <= high (a breakdown "
                                 f"lasts at least 1; (0, 0): 5-15 % of the horizon), got {duration!r}")
         rng = random.Random(f"scenario:{seed}")
+        horizon = min(horizon, MAX_TIME)
         lo, hi = duration if duration != (0, 0) else (max(1, horizon // 20), max(1, horizon // 7))
         machines = rng.sample(range(1, instance.n_machines + 1), min(breakdowns, instance.n_machines))
         bds = tuple(Breakdown(m, rng.randrange(max(1, horizon)), rng.randint(lo, hi)) for m in machines)

@@ -329,3 +329,16 @@ def test_draw_takes_numpy_integers_and_a_list_range():
     # [0, 0] is the default range, as (0, 0) (it was refused by a message that offered (0, 0))
     assert Scenario.draw(inst, breakdowns=2, horizon=100, duration=[0, 0], seed=1) == \
         Scenario.draw(inst, breakdowns=2, horizon=100, seed=1)
+
+
+def test_draw_keeps_breakdowns_within_the_largest_time_on_a_long_horizon():
+    # a shop of times near the largest has more work per machine than MAX_TIME: breakdowns drawn past it were
+    # refused by the scenario's own check ("start must be from 0 ... got start 1072270025"), and an env with
+    # disruptions on such a shop failed at its reset
+    from fms_sim.instance import MAX_TIME
+
+    inst = builtin("sl00")
+    for seed in range(20):
+        sc = Scenario.draw(inst, breakdowns=3, horizon=50 * MAX_TIME, seed=seed)
+        assert len(sc.breakdowns) == 3
+        assert all(0 <= b.start < MAX_TIME and 1 <= b.duration <= MAX_TIME for b in sc.breakdowns)

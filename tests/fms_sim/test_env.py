@@ -562,3 +562,18 @@ def test_a_refused_reset_leaves_the_env_as_it_was():
     assert env.instance.name == env.shop.instance.name == "ra01"
     obs, *_ = env.step(int(np.flatnonzero(env.action_masks())[0]))
     assert env.observation_space.contains(obs)
+
+
+def test_disruptions_on_a_shop_of_times_near_the_largest():
+    # its work per machine (the breakdowns' horizon) is above MAX_TIME: every reset with breakdowns drawn past it
+    # raised ScenarioError
+    from fms_sim.instance import MAX_TIME, Instance, Operation
+
+    big = MAX_TIME - 1
+    inst = Instance(name="huge", jobs=tuple((Operation(1, None, big), Operation(2, None, big)) for _ in range(3)),
+                    n_machines=2)
+    env = ShopEnv(inst, decisions="full", disruptions={"noise": 0.1, "breakdowns": 2})
+    for seed in range(10):
+        obs, info = env.reset(seed=seed)
+        assert env.observation_space.contains(obs)
+        assert len(env.shop.scenario.breakdowns) == 2
