@@ -830,3 +830,27 @@ def test_an_outage_re_plans_the_guide_around_the_vehicle_out_of_service():
     assert [(e["reason"], e["status"]) for e in s.meta["replans"]][0] == ("outage", "adopted")
     kept = solve(inst, "ppo", scenario=sc, guide_replan=False)  # (the start's plan acted out: the window waited out)
     assert kept.makespan > 100_000
+
+
+def test_a_reset_first_seen_after_its_start_plans_its_own_guide():
+    """An episode whose first decision comes after time 0 (its only machine broken down from time 0) is observed
+    after its start: its guide is a plan from its state, whatever the env ran before. The env kept the previous
+    episode's plan from scratch, so the same reset gave other observations than a fresh env's."""
+    from fms_dispatch.rl.envs import FastShopEnv
+    from fms_dispatch.rl.guide import at_start
+    from fms_sim.disruptions import Breakdown, Scenario
+    from fms_sim.instance import Instance, Operation
+
+    inst = Instance(name="g", jobs=((Operation(2, None, 14),), (Operation(2, None, 17), Operation(1, None, 1))),
+                    n_machines=2)
+    late = Scenario((Breakdown(machine=2, start=0, duration=5),), (), 0.0, 0)
+    used = FastShopEnv(inst, guide="list", decisions="full")
+    used.reset(seed=0)  # a run from its start: a plan from scratch
+    assert used.plan_guide().origin is None
+    obs, _ = used.reset(seed=0, options={"scenario": late})
+    assert not at_start(used.shop)
+    fresh = FastShopEnv(inst, guide="list", decisions="full")
+    want, _ = fresh.reset(seed=0, options={"scenario": late})
+    assert fresh.plan_guide().origin is not None  # a plan from the state
+    assert used.plan_guide().origin == fresh.plan_guide().origin
+    assert np.array_equal(obs, want)

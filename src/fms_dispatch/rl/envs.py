@@ -140,11 +140,23 @@ class FastShopEnv(ShopEnv):
         self.guide_effort = guide_effort
         self._plan_guide: PlanGuide | None = None
         self._guide_for: Instance | None = None  # the instance the guide was last checked against
+        self._new_run = False  # within reset: the observation is a new episode's first (see reset)
         if guide is not None:
             padding = dict(max_jobs=self.max_jobs, max_machines=self.max_machines, max_tools=self.max_tools,
                            max_agvs=self.max_agvs, max_tts=self.max_tts)
             size = obs_size(obs_layout(padding, self.decisions, guide))
             self.observation_space = spaces.Box(low=-1.0, high=OBS_HIGH, shape=(size,), dtype=np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """:meth:`ShopEnv.reset`; a new episode whose first observation comes after its start (nothing could be
+        decided at time 0: a machine broken down from time 0) gets a guide planned from its state, as a fresh env
+        gives it. It kept the last episode's guide (a plan from scratch, or from another run's state), so one seed
+        gave other observations after other episodes."""
+        self._new_run = True
+        try:
+            return super().reset(seed=seed, options=options)
+        finally:
+            self._new_run = False
 
     def _obs(self) -> np.ndarray:
         obs = super()._obs()
@@ -174,6 +186,8 @@ class FastShopEnv(ShopEnv):
             self._guide_for = inst if same else None
             if not same:
                 guide = None
+        if guide is not None and self._new_run and not at_start(shop):
+            guide = None  # another episode's plan: this run is first seen after its start (see reset)
         if guide is not None and guide.effort not in (None, self.guide_effort):
             guide = None  # planned with another search effort than this env's
         if guide is not None:
