@@ -334,6 +334,12 @@ class ShopEnv(gym.Env):
             info["makespan"] = shop.makespan
         return self._obs(), float(reward), terminated, False, info
 
+    def render(self) -> None:
+        """Nothing: the env has no render modes (``render_mode`` is None), and Gymnasium's ``render`` then computes
+        no render and returns None. It raised NotImplementedError (gymnasium's base method), also through
+        ``gym.make`` and its wrappers."""
+        return None
+
     def action_masks(self) -> np.ndarray:
         m = np.zeros(self.n_actions, dtype=bool)
         if self.shop is None or self.shop.done or self._ended:  # ended by an invalid action too: step refuses all

@@ -577,3 +577,11 @@ def test_disruptions_on_a_shop_of_times_near_the_largest():
         obs, info = env.reset(seed=seed)
         assert env.observation_space.contains(obs)
         assert len(env.shop.scenario.breakdowns) == 2
+
+
+def test_render_without_render_mode_returns_none():
+    # render_mode None: gymnasium's render computes nothing; it raised NotImplementedError, through gym.make too
+    env = gym.make("fms/Shop-v0", instances=builtin("EX12"))
+    env.reset(seed=0)
+    assert env.render() is None and env.unwrapped.render() is None
+    env.close()
