@@ -160,9 +160,10 @@ SPEC_FORMS = (
     f"SEED < {HELDOUT_SEED_MIN} (larger seeds are reserved for the held-out set)"
 )
 
-_GEN_RE = re.compile(r"gen:(\d+)x(\d+)x(\d+)\*(\d+)@(\d+)((?:/[^/]*)*)", re.IGNORECASE)
-_GENBU_RE = re.compile(r"genbu:([1-4*])\*(\d+)@(\d+)((?:/[^/]*)*)", re.IGNORECASE)
-_OPT_RE = re.compile(r"(?:a(\d+))?(?:t(\d+))?|(notools)", re.IGNORECASE)
+# ASCII digits only: \d took other scripts' digits ('gen:5x3x3*2@\u0663' was seed 3, another spec's shops and names)
+_GEN_RE = re.compile(r"gen:(\d+)x(\d+)x(\d+)\*(\d+)@(\d+)((?:/[^/]*)*)", re.IGNORECASE | re.ASCII)
+_GENBU_RE = re.compile(r"genbu:([1-4*])\*(\d+)@(\d+)((?:/[^/]*)*)", re.IGNORECASE | re.ASCII)
+_OPT_RE = re.compile(r"(?:a(\d+))?(?:t(\d+))?|(notools)", re.IGNORECASE | re.ASCII)
 
 _DEFAULT_FLEET: dict[str, Any] = {"agvs": None, "tool_transporters": None, "no_tools": False}
 
@@ -274,6 +275,8 @@ def _options(spec: str, text: str, allowed: str) -> dict[str, Any]:
         if notools:
             if "n" not in allowed:
                 raise _spec_error(spec, "'/notools' does not apply to this generator (it has no tools)")
+            if opts["notools"]:  # (as aN and tN: each option at most once)
+                raise _spec_error(spec, "'/notools' is given twice")
             opts["notools"] = True
     if opts["notools"] and opts["tool_transporters"] is not None:
         raise _spec_error(spec, "'/notools' and a tool-transporter count conflict")
@@ -331,8 +334,11 @@ def _expand_genbu(spec: str, fleet: dict[str, Any]) -> list[Instance]:
     layouts = [1, 2, 3, 4] if lay == "*" else [int(lay)]
     agvs = opts["agvs"] or fleet["agvs"] or BU_AGVS
     tag = _option_tag(opts)
-    return [bu_shop(L, seed * _BU_SEED_STRIDE + k, f"bu{L}s{seed}{tag}_{k:02d}", n_agvs=agvs)
-            for k in range(count) for L in layouts]
+    try:
+        return [bu_shop(L, seed * _BU_SEED_STRIDE + k, f"bu{L}s{seed}{tag}_{k:02d}", n_agvs=agvs)
+                for k in range(count) for L in layouts]
+    except InstanceError as exc:  # a fleet above the largest: the message named no spec (as gen: specs do)
+        raise _spec_error(spec, str(exc)) from None
 
 
 # ---------------------------------------------------------------------------------------------- held-out set

@@ -140,6 +140,10 @@ def test_patterns_and_names() -> None:
     "gen:5x3*2@1", "gen:5x3x3*2", "gen:5x3x3*0@1", "gen:5x3x3*2@1/x4", "gen:5x3x3*2@1/a0",
     "gen:5x3x3*2@1/notools/t2", "gen:5x3x3*2@1/a2/a3", "gen:5x3x3*2@1/", "genbu:5*2@1", "genbu:1*2@1/t2",
     "genbu:1*2@1/notools", "genbu:1*1001@1", "genbu:1x2@1", "nosuchname", "",
+    # taken before: digits of other scripts (read as 2 and 3: another spec's shops and names), '/notools' twice
+    # (aN twice was refused), and a genbu fleet above the largest (an InstanceError that named no spec)
+    "gen:\uff12x3x3*2@1", "gen:5x3x3*2@\u0663", "genbu:1*2@\u0663", "gen:5x3x3*2@1/notools/notools",
+    "genbu:1*2@1/a1001",
 ])
 def test_malformed_specs_are_refused_clearly(spec: str) -> None:
     with pytest.raises(ValueError, match="Accepted: a built-in name") as err:
