@@ -144,6 +144,10 @@ class Instance:
             set_(self, name, _plain(getattr(self, name)))  # numpy arrays and integers as Python's
         if not isinstance(self.name, str) or not self.name:
             raise InstanceError("instance name must be a non-empty string")
+        if not self.name.isprintable():  # a lone surrogate ("\ud800" in JSON) crashed the output after the solve (not
+            # UTF-8), and a line break or a control character made a name that printed as two or a garbled line
+            raise InstanceError(f"instance name {self.name[:60]!r} holds a character that cannot be printed (a line "
+                                "break, a control or format character, or half a surrogate pair); rename it")
         jobs = tuple(tuple(_op(j, k, op) for k, op in enumerate(ops)) for j, ops in enumerate(_seq(self.jobs, "jobs")))
         if not jobs:
             raise InstanceError("instance has no jobs")

@@ -159,3 +159,13 @@ def test_a_machine_count_read_from_a_travel_matrix_keeps_the_limit() -> None:
     with pytest.raises(InstanceError, match=f"agv_travel has {n} rows: L/U \\+ {n - 1} machines, more than "
                                             f"{MAX_COUNT}"):
         Instance(name="wide", jobs=[[Operation(1, None, 5)]], agv_travel=matrix, n_agvs=1)
+
+
+@pytest.mark.parametrize("name", ["\ud800", "a\nb", "x\x00", "t\u202e", "tab\there"])
+def test_a_name_that_cannot_be_printed_is_refused(name: str) -> None:
+    # a lone surrogate read from JSON ("\ud800") passed, and `fms solve FILE` failed after the solve when it printed
+    # the result (not UTF-8); a line break printed one name as two lines
+    text = json.dumps({"name": name, "jobs": [[{"machine": 1, "tool": None, "duration": 3}]]})
+    with pytest.raises(InstanceError, match="cannot be printed"):
+        Instance.from_json(text)
+    assert Instance(name="EX12 copy", jobs=((Operation(1, None, 3),),)).name == "EX12 copy"
