@@ -206,8 +206,12 @@ def format_taillard(instance: Instance) -> str:
 def _load_file(path: Path) -> Instance:
     try:
         text = read_text(path)
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise InstanceError(f"cannot read {str(path)!r}: {exc}") from None
+    except UnicodeDecodeError as exc:  # it showed the codec's message alone ("'utf-8' codec can't decode byte 0xff")
+        raise InstanceError(f"cannot read {str(path)!r}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                            f"{exc.start}): an instance file is JSON or a text job shop in UTF-8; save it so "
+                            "(a spreadsheet's or an editor's UTF-16 or Latin-1 export is not)") from None
     if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):
         try:
             return Instance.from_json(text)

@@ -237,3 +237,12 @@ def test_a_number_too_long_for_any_field_names_its_line() -> None:
         parse_text_jobshop("1 1\n0 " + "9" * 5000 + "\n", "big")
     with pytest.raises(InstanceError, match="line 2: the number '99999999999999999999' is too large"):
         parse_text_jobshop("1 1\n0 " + "9" * 20 + "\n", "big")
+
+
+@pytest.mark.parametrize("data", ['{"name": "t\xe9", "jobs": []}'.encode("latin-1"),
+                                  '{"name": "t", "jobs": []}'.encode("utf-16")])
+def test_a_file_not_in_utf8_says_so_and_what_to_do(tmp_path: Path, data: bytes) -> None:
+    # it showed the codec's message alone: "'utf-8' codec can't decode byte 0xff in position 0: invalid start byte"
+    (tmp_path / "x.json").write_bytes(data)
+    with pytest.raises(InstanceError, match=r"x.json': not UTF-8 text \(byte 0x.. at offset \d+\).*save it"):
+        load_instance(str(tmp_path / "x.json"))
