@@ -264,7 +264,8 @@ class Scenario:
         durations uniform in ``duration`` (default: 5-15 % of the horizon), at most one per machine; noise
         ``noise``. Reproducible from ``seed``. A horizon above :data:`MAX_TIME` (a shop of times near the largest,
         whose work per machine is more) counts as :data:`MAX_TIME`: a breakdown may start no later (a draw past it
-        was refused by the scenario's own check, so an env with disruptions failed at its reset). Raises :class:`ScenarioError` for arguments that draw nothing
+        was refused by the scenario's own check, so an env with disruptions failed at its reset). Raises
+        :class:`ScenarioError` for arguments that draw nothing
         sensible (a negative count or horizon, a duration range that is empty or allows 0)."""
         if not _is_int(seed):
             raise ScenarioError(f"seed must be an integer, got {seed!r}")
