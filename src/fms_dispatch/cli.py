@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 from fms_sim.files import drop_instance_beside, folder_problem, instance_beside, output_problem
-from fms_sim.instance import Instance, InstanceError
+from fms_sim.instance import MAX_COUNT, Instance, InstanceError
 from fms_sim.schedule import Schedule, ScheduleError
 
 from .progress import send_nowhere, surviving_streams
@@ -550,15 +550,16 @@ def fleet_of(inst: Instance, sched: Schedule, recorded: set[str] | None = None) 
             sched = replace(sched, n_agvs=inst.n_agvs)
         if "n_tool_transporters" not in recorded:
             sched = replace(sched, n_tool_transporters=inst.n_tool_transporters)
+    # (only fleets an option can give: a schedule declaring -1 or 10**12 AGVs got "solved with --agvs -1?")
     if sched.n_agvs != inst.n_agvs:
         if not sched.n_agvs:
             opts["no_agvs"] = True
-        elif inst.has_agvs:
+        elif inst.has_agvs and 1 <= sched.n_agvs <= MAX_COUNT:
             opts["agvs"] = sched.n_agvs
     if sched.n_tool_transporters != inst.n_tool_transporters:
         if not sched.n_tool_transporters:
             opts["no_tools"] = True
-        elif inst.has_tools:
+        elif inst.has_tools and 1 <= sched.n_tool_transporters <= MAX_COUNT:
             opts["tool_transporters"] = sched.n_tool_transporters
     return opts
 

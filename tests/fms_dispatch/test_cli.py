@@ -734,6 +734,22 @@ def test_validate_a_schedule_alone_checks_it_against_the_instance_it_names(tmp_p
     assert code == 2 and "made for instance 'myshop', which is no built-in shop" in err
 
 
+@pytest.mark.parametrize("n_agvs", [-1, 10**12])
+def test_a_schedule_declaring_a_fleet_no_option_gives_is_infeasible_without_a_hint(n_agvs, tmp_path, capsys):
+    """A schedule declaring -1 or 10**12 AGVs got 'solved with --agvs -1? give the same here' (an option that cannot
+    be given), and checked alone ('fms validate s.json') an error about that --agvs, which the user never gave: it
+    is infeasible, and says why."""
+    out = tmp_path / "s.json"
+    run(["solve", "EX12", "--out", str(out), "-q"], capsys)
+    d = json.loads(out.read_text())
+    d["n_agvs"] = n_agvs
+    out.write_text(json.dumps(d))
+    for args in (["validate", "EX12", str(out)], ["validate", str(out)]):
+        code, text, err = run(args, capsys)
+        assert code == 1 and f"schedule declares {n_agvs} AGVs, the instance has 2" in text + err, args
+        assert "--agvs" not in text + err
+
+
 def test_validate_alone_checks_the_fleet_the_schedule_records_and_takes_the_schedule_after_options(tmp_path, capsys):
     # `fms solve EX12 --agvs 3 --out s.json; fms validate s.json` called the tool's own valid schedule INVALID (the
     # shop it names, with its own fleet); and `fms validate EX12 --agvs 3 s.json` was refused by argparse
