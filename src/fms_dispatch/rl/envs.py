@@ -186,7 +186,7 @@ class FastShopEnv(ShopEnv):
             self._guide_for = inst if same else None
             if not same:
                 guide = None
-        if guide is not None and self._new_run and not at_start(shop):
+        if guide is not None and self._new_run and isinstance(shop, FullShop) and not at_start(shop):
             guide = None  # another episode's plan: this run is first seen after its start (see reset)
         if guide is not None and guide.effort not in (None, self.guide_effort):
             guide = None  # planned with another search effort than this env's
