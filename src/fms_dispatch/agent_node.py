@@ -61,6 +61,8 @@ class AgentNode(FmsNode):
         n = self.node
         solver = param(n, "solver", "first")
         seed = param(n, "seed", 0)
+        if seed < 0:  # Python's generator seeds with abs(seed): -3 ran as 3 (two seeds, one run); as fms up --seed
+            raise StartupError(f"parameter 'seed' must be an integer >= 0, got {seed}")
         self.delay_s = float(param(n, "delay_s", 0.0))
         self.resend_s = float(param(n, "resend_s", 1.0))
         replan = float(param(n, "replan", 2.0))
@@ -96,8 +98,11 @@ class AgentNode(FmsNode):
                                     guide_replan=guide_replan, replan_wait=replan_wait, only_run=only_run)
         except UnavailableSolver as exc:
             raise StartupError(str(exc)) from None
-        if self.delay_s < 0 or self.resend_s <= 0:
-            raise StartupError("parameters 'delay_s' must be >= 0 and 'resend_s' > 0")
+        if self.delay_s < 0:
+            raise StartupError(f"parameter 'delay_s' must be >= 0 (seconds of think time), got {self.delay_s:g}")
+        if self.resend_s <= 0:
+            raise StartupError(f"parameter 'resend_s' must be > 0 (seconds before a command is sent again), "
+                               f"got {self.resend_s:g}")
         self.io = TopicIO(n, ["command", "error", "replan", "replay_request"])
         self._pending: Outgoing | None = None     # a command waiting for the shop to listen
         self._ask: Outgoing | None = None         # a request for a state with its whole history (history_delta)

@@ -455,6 +455,14 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (AGENT, ["-p", "replan:=-5.0"], "fms-agent: error: parameter 'replan' must be >= 0 (seconds per re-plan; 0: "
                                         "never), got -5"),
         (AGENT, ["-p", "drift:=-1.0"], "parameter 'drift' must be > 0 (a fraction of the plan's makespan), got -1"),
+        # Python's generator seeds with abs(seed): seed:=-3 ran as seed:=3 (fms up --seed refuses it too)
+        (AGENT, ["-p", "solver:=random", "-p", "seed:=-3"], "fms-agent: error: parameter 'seed' must be an integer "
+                                                            ">= 0, got -3"),
+        # the message named both parameters, not the one refused nor its value
+        (AGENT, ["-p", "resend_s:=0.0"], "fms-agent: error: parameter 'resend_s' must be > 0 (seconds before a "
+                                         "command is sent again), got 0"),
+        (AGENT, ["-p", "delay_s:=-1.0"], "fms-agent: error: parameter 'delay_s' must be >= 0 (seconds of think "
+                                         "time), got -1"),
         (RECORDER, ["-p", "commit_s:=.nan"], "parameter 'commit_s' must be a finite number: got nan"),
         # found at the end, or a traceback: a database folder that cannot be made, outputs inside a file
         (RECORDER, ["-p", "db:=/proc/fms-no-such/db.sqlite"], "its folder cannot be made"),
