@@ -123,8 +123,8 @@ class AgentNode(FmsNode):
         out = self.logic.on_state(text)
         for o in out:
             if o.topic == TOPIC_COMMAND:
-                if self.delay_s:
-                    time.sleep(self.delay_s)
+                if self.delay_s and not self._think():
+                    return  # stopped while thinking: the command is not sent
                 self._pending = o
             elif o.topic == TOPIC_REPLAY:
                 asked = self.logic.history_asked()
@@ -135,6 +135,20 @@ class AgentNode(FmsNode):
             else:
                 self.io.publish([o])
         self._flush()
+
+    def _think(self) -> bool:
+        """Wait ``delay_s`` (the think time) unless the node is stopped meanwhile; returns whether it was not.
+
+        The wait is in the state callback, so a stop signal is seen only when it returns: one plain sleep made a
+        stop during a long think time (``delay_s:=30``) look like a stalled callback, ended by the stop watchdog
+        with its stacks in the log and exit code 1 instead of a clean stop (exit code 0)."""
+        deadline = time.monotonic() + self.delay_s
+        while self.node.context.ok():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return True
+            time.sleep(min(left, 0.05))
+        return False
 
     def _flush(self) -> None:
         if self._ask is not None and self._asked_at is None and self.io.matched(TOPIC_REPLAY) > 0:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from fms_sim.benchmarks import builtin  # noqa: E402
 from fms_sim.recorder_store import RecorderStore, gantt_path  # noqa: E402
 from fms_sim.schedule import Schedule  # noqa: E402
 
-from .conftest import RUN_S, STARTUP_S, NodeProcs, Observer, wait_file  # noqa: E402
+from .conftest import RUN_S, STARTUP_S, NodeProcs, Observer, signal_group, wait_file  # noqa: E402
 
 SHOP, AGENT, RECORDER = "fms_sim.shop_node", "fms_dispatch.agent_node", "fms_sim.recorder_node"
 
@@ -334,6 +335,25 @@ def test_agent_killed_and_restarted(nodes: NodeProcs, observer: Observer, tmp_pa
     assert sched.meta["decisions"] == observer.latest_state()["seq"]
     wait_file(gantt_path(tmp_path, "agent-crash"), RUN_S, nodes)
     check_log(db, "agent-crash", sched, inst)
+
+
+def test_agent_stopped_during_its_think_time_stops_cleanly(nodes: NodeProcs, observer: Observer) -> None:
+    """The think time (delay_s) was one sleep in the state callback: a SIGTERM during it (rclpy handles it in C,
+    no exception interrupts the sleep, as SIGINT's KeyboardInterrupt does) was taken for a stalled callback and
+    ended by the stop watchdog 5 s later with the stacks in the log and exit code 1, not exit 0."""
+    nodes.start("shop", SHOP, instance="EX12", run_id="think")
+    shop_seen(observer, "think")
+    agent = nodes.start("agent", AGENT, delay_s=60.0)
+    deadline = time.monotonic() + STARTUP_S
+    while "deciding with" not in nodes.log("agent") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(4.0)                    # discovery, then the latched state 0 arrives: the agent thinks for 60 s
+    assert observer.latest_state()["seq"] == 0       # (no command yet)
+    t0 = time.monotonic()
+    signal_group(agent.pid, signal.SIGTERM)
+    code = nodes.stop(agent, grace=15.0, interrupt=False)
+    assert code == 0 and time.monotonic() - t0 < 4.0, nodes.report({"agent": code})
+    assert "Timeout" not in nodes.log("agent")
 
 
 @pytest.mark.parametrize("delta", [False, True], ids=["whole", "delta"])
