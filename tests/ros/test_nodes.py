@@ -605,6 +605,31 @@ def test_topic_io_logs_a_message_it_cannot_send_and_sends_the_rest() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ fms send
+def test_fms_send_to_a_run_that_does_not_answer_in_time_says_so(nodes: NodeProcs, observer: Observer,
+                                                                 ros_env: dict[str, str]) -> None:
+    """With --run-id and a shop of another run on the domain, a named run whose shop did not answer in time (paced:
+    its acceptance waits for its next step) was reported as the other shop's refusal ("[unknown_run] ... this shop
+    runs 'other'"), as if the named run were not there; now it says that the shop did not answer in time."""
+    nodes.start("other", SHOP, instance="EX12", run_id="other")
+    shop_seen(observer, "other")
+    nodes.start("paced", SHOP, instance="EX12", run_id="paced", time_scale=50.0)
+    shop_seen(observer, "paced")
+    nodes.start("agent", AGENT, run_id="paced")
+    quiet_since, last = time.monotonic(), -1
+    deadline = time.monotonic() + STARTUP_S
+    while time.monotonic() - quiet_since < 1.5 and time.monotonic() < deadline:  # the paced shop waits (50 s/unit)
+        seq = max((x["seq"] for x in observer.snapshot("state") if x["run_id"] == "paced"), default=-1)
+        if seq != last:
+            quiet_since, last = time.monotonic(), seq
+        time.sleep(0.1)
+    assert last >= 1, "the agent did not answer the paced shop"
+    res = subprocess.run([sys.executable, "-m", "fms_dispatch.send", "order", "--jobs", "[[[1, null, 3]]]",
+                          "--run-id", "paced", "--timeout", "6"], env=ros_env, capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 1 and "but the shop did not answer within 6 s" in res.stderr, res.stderr
+    assert "shops of other runs refused it" in res.stderr, res.stderr
+
+
 def test_fms_send_stops_cleanly_on_sigterm(ros_env: dict[str, str]) -> None:
     # rclpy's signal handlers made a SIGTERM a 25-line ExternalShutdownException traceback, exit 1
     import signal
