@@ -49,7 +49,7 @@ from typing import IO, Any, Callable, Sequence
 
 from fms_sim.files import drop_instance_beside, instance_beside
 from fms_sim.instance import Instance, InstanceError
-from fms_sim.recorder_store import DEFAULT_DB, gantt_path, safe_run_name
+from fms_sim.recorder_store import DEFAULT_DB, MAX_RUN_NAME, gantt_path, safe_run_name
 from fms_sim.schedule import Schedule, ScheduleError
 from fms_sim.shop_service import new_run_id
 
@@ -712,9 +712,6 @@ def _stop_with(parent: int) -> Callable[[], None]:
 
     return arm
 
-
-#: the longest run id (as a file name) fms up takes: its chart and work folder are named by it, 255 bytes at most
-MAX_RUN_NAME = 200
 
 #: the signals that stop ``fms up`` (and so its nodes) as Ctrl-C does: ``kill``, a supervisor, a closed terminal
 #: or a dropped SSH session (SIGHUP), SIGQUIT

@@ -100,6 +100,12 @@ CREATE TABLE IF NOT EXISTS errors (
 """
 
 
+#: the longest run id (as a file name) a run may have: its chart (and fms up's work folder) are named by it, and a
+#: file name has 255 bytes at most (``<run_id>_1.gantt.png`` for a run begun again); the shop node and fms up refuse
+#: a longer one at start
+MAX_RUN_NAME = 200
+
+
 def safe_run_name(run_id: str) -> str:
     """``run_id`` as a file name: unsafe characters (a path separator among them) → ``_``, no leading dot."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", run_id).strip(".") or "run"

@@ -257,6 +257,11 @@ class ShopNode(FmsNode):
 
         if decisions not in DECISIONS:
             raise StartupError(f"parameter 'decisions' must be one of {', '.join(DECISIONS)}, got {decisions!r}")
+        from .recorder_store import MAX_RUN_NAME, safe_run_name
+
+        if len(safe_run_name(run_id)) > MAX_RUN_NAME:  # the recorder's chart failed: "File name too long"
+            raise StartupError(f"parameter 'run_id' is too long to name the run's files (at most {MAX_RUN_NAME} "
+                               f"characters; got {len(run_id)}): choose a shorter one, or '' for a generated one")
         inst = instance_param(n)
         for name in ("schedule_out", "instance_out"):  # found at the end: the file was lost, named confusingly
             path = getattr(self, name)

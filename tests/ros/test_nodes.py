@@ -492,6 +492,9 @@ def test_node_startup_errors_exit_2(ros_env: dict[str, str]) -> None:
         (SHOP, ["-p", "instance:=EX12", "-p", "instance_out:=/proc/self/status/i.json"],
          "parameter 'instance_out' (/proc/self/status/i.json): /proc/self/status is a file, not a folder"),
         (SHOP, ["-p", "instance:=EX12", "-p", "noise_seed:=5"], "parameter 'noise_seed' seeds the noise"),  # ignored
+        # the recorder's chart of the run failed (File name too long), as fms up --run-id refuses it
+        (SHOP, ["-p", "instance:=EX12", "-p", "run_id:=" + "r" * 201], "fms-shop: error: parameter 'run_id' is too "
+                                                                      "long to name the run's files (at most 200"),
         (SHOP, ["-p", "instance:=EX12", "-p", "agvs:=-2"], "got -2 (use no_agvs:=true to drop them)"),  # not a flag
         (SHOP, ["-p", "instance"], "fms-shop: error: bad ROS arguments"),  # malformed: rclpy's RCLError
         # a misspelt parameter is named where the one it was meant to be is missing
