@@ -399,7 +399,8 @@ def cmd_up(a: argparse.Namespace) -> int:
     if not 0 < a.timeout < float("inf"):  # NaN would never time out
         raise UpError("--timeout must be a positive number of seconds")
     if not 0 <= a.time_scale < float("inf"):
-        raise UpError("--time-scale must be >= 0 seconds per time unit (0: as fast as the agent answers)")
+        raise UpError(f"--time-scale must be a finite number >= 0 of seconds per time unit (0: as fast as the agent "
+                      f"answers), got {a.time_scale:g}")  # (nan and inf were told "must be >= 0")
     replan = 2.0 if a.replan is None else a.replan
     if not 0 <= replan < float("inf"):
         raise UpError("--replan must be >= 0 seconds (0: never re-plan)")

@@ -384,7 +384,9 @@ def test_outputs_and_options_are_checked_before_any_node_starts(tmp_path: Path, 
              (["--solver", "plan:list", "--guide-tabu", "0"],
               "applies to ppo solvers only, not to 'plan:list' (the default solver)"),
              (["--solver", "rule:MTWR+nearest+fifo"], "EX12 has no tools, so the tool rule 'fifo'"),  # as fms solve
-             (["--solver", "random", "--seed", "-1"], "--seed must be an integer >= 0, got -1")]
+             (["--solver", "random", "--seed", "-1"], "--seed must be an integer >= 0, got -1"),
+             (["--time-scale", "inf"], "--time-scale must be a finite number >= 0 of seconds per time unit"),
+             (["--time-scale", "nan"], "got nan")]
     for extra, msg in cases:
         code = up.main(["EX12", "--solver", "first", "--run-id", "t1", "--db", str(tmp_path / "new.sqlite"),
                         "--out", str(tmp_path / "s.json"), *extra])
