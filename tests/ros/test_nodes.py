@@ -249,7 +249,7 @@ def test_fms_up_bad_input_exits_2(ros_env: dict[str, str], tmp_path: Path) -> No
     for args, needle in ((["EX12", "--solver", "cpsat"], "plans a whole schedule offline"),
                          (["EX12", "--solver", "ppo:nope"], "no model named 'nope'"),
                          (["NOPE"], "no built-in instance or file named 'NOPE'"),
-                         (["EX12", "--time-scale", "-1"], "--time-scale must be >= 0")):
+                         (["EX12", "--time-scale", "-1"], "--time-scale must be a finite number >= 0")):
         res = subprocess.run([sys.executable, "-m", "fms_dispatch.up", *args, "--db", str(tmp_path / "x.sqlite")],
                              env=ros_env, capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and res.stderr.startswith("fms up: error: ") and needle in res.stderr
@@ -620,7 +620,9 @@ def test_fms_send_to_a_run_that_does_not_answer_in_time_says_so(nodes: NodeProcs
     nodes.start("agent", AGENT, run_id="paced")
     quiet_since, last = time.monotonic(), -1
     deadline = time.monotonic() + STARTUP_S
-    while time.monotonic() - quiet_since < 1.5 and time.monotonic() < deadline:  # the paced shop waits (50 s/unit)
+    # until the agent has answered (its start and discovery take seconds under load) and the paced shop has stood
+    # still for a while (50 s per time unit)
+    while (last < 1 or time.monotonic() - quiet_since < 1.5) and time.monotonic() < deadline:
         seq = max((x["seq"] for x in observer.snapshot("state") if x["run_id"] == "paced"), default=-1)
         if seq != last:
             quiet_since, last = time.monotonic(), seq
