@@ -37,16 +37,8 @@ _FORMAT = "fms-actor/v1"
 
 
 def _run_layers(layers: Layers, x: np.ndarray) -> np.ndarray:
-    for w, b, tanh in layers:
-        x = x @ w + b
-        if tanh:
-            x = np.tanh(x)
-    return x
-
-
-def _forward(layers: Layers, x: np.ndarray) -> np.ndarray:
-    """:func:`_run_layers` for the entity actor, each layer's bias and tanh applied in place to its product (a new
-    array): the same arithmetic, without an array per step."""
+    """``layers`` on ``x``: each layer's product (a new array, so ``x`` is left as it is), its bias and tanh applied
+    in place (the arithmetic of ``x @ w + b`` without an array per step)."""
     for w, b, tanh in layers:
         x = x @ w
         x += b
@@ -91,8 +83,7 @@ class NumpyEntityActor:
         """Precompute what every call needs (a decision costs a fraction of a millisecond, so the per-call
         bookkeeping matters): where each block's rows lie in the flat observation (its base, full-net and guide
         parts), and the embedding nets' first layers split into the rows' part and the global part, the
-        global parts of all blocks (and of the ``hold`` head, :meth:`_prepare_heads`) stacked so that one product
-        serves them all."""
+        global parts of all blocks stacked so that one product serves them all."""
         L = self.lay
         parts: dict[str, list[tuple[int, int]]] = {}  # block -> [(offset, features)] of its parts, in order
         i = L["n_global"]
@@ -274,7 +265,7 @@ class NumpyEntityActor:
         e += gw[k * h:(k + 1) * h]
         if layers[0][2]:
             np.tanh(e, out=e)
-        e = _forward(layers[1:], e)
+        e = _run_layers(layers[1:], e)
         if nj:
             ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / nj)
         return e
@@ -311,7 +302,7 @@ class NumpyEntityActor:
             e += gw[k * h:(k + 1) * h]
             if layers[0][2]:
                 np.tanh(e, out=e)
-            emb[b] = e = _forward(layers[1:], e)
+            emb[b] = e = _run_layers(layers[1:], e)
             ctx[k * h:(k + 1) * h] = e.sum(axis=0) * np.float32(1.0 / e.shape[0])
         out = self._illegal.copy() if mask.shape == self._illegal.shape else np.full(mask.shape[0], -np.inf)
         if not len(self._starts):
@@ -322,7 +313,7 @@ class NumpyEntityActor:
             c += c_b
         for lo, hold, src, wr, cols, tanh, rest in steps:
             if hold:
-                out[lo] = _forward(rest, np.concatenate([ctx, g]))[0]
+                out[lo] = _run_layers(rest, np.concatenate([ctx, g]))[0]
                 continue
             e = emb.get(src)
             if e is None:  # a batched small block: its rows that exist
@@ -333,7 +324,7 @@ class NumpyEntityActor:
             z += c[cols]
             if tanh:
                 np.tanh(z, out=z)
-            out[lo:lo + z.shape[0]] = _forward(rest, z)[:, 0]
+            out[lo:lo + z.shape[0]] = _run_layers(rest, z)[:, 0]
         np.putmask(out, ~mask, -np.inf)
         return out
 
