@@ -644,7 +644,7 @@ class FullShop(Shop):
         # evaluated when asked (Net.defer), not all of them at every tool choice (quadratic on large shops)
         self.net.defer([self.t_use[j] for j in self._use_cands])
         # a choice is open: every take_tool guard is false until it closes (_tool_ok), known without evaluating each
-        self._forget_waits()
+        # (the reservations are as they were: the wait-for graph the use: guards walk stands)
         self.net.disable(self.t_tool)
 
     def _on_use(self, j: int, b: dict, now: int) -> None:
@@ -884,8 +884,7 @@ class FullShop(Shop):
             self.rec.ops[i] = record
         for name, value in copy.deepcopy(extra).items():
             setattr(self, name, value)
-        self._danger_cache = {}
-        self._wait_graph = None
+        self._forget_waits()
 
     def state_key(self, quick: bool = False) -> int:
         base = super().state_key(quick)
