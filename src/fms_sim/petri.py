@@ -597,12 +597,11 @@ class Net:
         return out
 
     def _group(self, place: Place) -> tuple[int, set[int]]:
-        """``(priority, action indices)`` of the lazy count-only listeners of ``place`` (cached per action order)."""
+        """``(priority, action indices)`` of the lazy count-only listeners of ``place`` (cached per action order; they
+        share one priority, :meth:`add_transition` refuses another)."""
         cached = place._count_lazy_ids
         if cached is None or cached[0] != self._order_version:
             group = place._count_lazy
-            if len({t.priority for t in group}) != 1:
-                raise ValueError(f"the lazy transitions reading place {place.name!r} must share one priority")
             cached = place._count_lazy_ids = (self._order_version, group[0].priority, {t.action for t in group})
         return cached[1], cached[2]
 
