@@ -113,11 +113,9 @@ def moot_choice(solver: str, inst: Instance, effort: PlanEffort | None) -> str |
     large for CP-SAT's full model (the polish runs only within it). Each was taken without a word, the run the same
     as without it."""
     low = solver.lower()
-    body = low[len("plan:"):] if low.startswith("plan:rule:") else low
-    if body.startswith("rule:"):
-        parts = solver[len(solver) - len(body) + len("rule:"):].split("+")
-        job, vehicle, tool = (parts + ["", "", ""])[:3]
-        base = solver[:len(solver) - len(body)]  # ("plan:" or "")
+    base = solver[:len("plan:")] if low.startswith("plan:rule:") else ""
+    if low[len(base):].startswith("rule:"):
+        job, vehicle, tool = (solver[len(base) + len("rule:"):].split("+") + ["", "", ""])[:3]
         if tool and not inst.has_tools:
             return (f"{inst.name} has no tools, so the tool rule {tool!r} of {solver} decides nothing: give "
                     f"{base}rule:{job}+{vehicle}")
@@ -219,12 +217,6 @@ def cmd_solve(a: argparse.Namespace) -> int:
     if a.seed is not None and a.seed < 0:  # (Python's and numpy's generators took -3 as 3: two seeds, one run)
         raise CliError(f"--seed must be an integer >= 0, got {a.seed}")
     inst = load_from_args(a)
-    try:
-        moot = moot_choice(a.solver, inst, guide_effort_from_args(a))
-    except ValueError:
-        moot = None  # a bad plan search value: reported below with the options it concerns
-    if moot:
-        raise CliError(moot)
     opts: dict = {"seed": a.seed if a.seed is not None else 0}
     if a.time_limit is not None:
         if not 0 < a.time_limit < math.inf:
@@ -283,6 +275,9 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if not a.solver.lower().startswith("ppo"):
             raise CliError(f"the plan search options ({GUIDE_OPTIONS}) apply to the ppo solver only")
         opts["guide_effort"] = effort
+    moot = moot_choice(a.solver, inst, effort)
+    if moot:
+        raise CliError(moot)
     if a.guide_replan is not None:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--[no-]guide-replan applies to the ppo solver only")
