@@ -237,9 +237,13 @@ class RecorderStore:
         """The shop's machine count its stored ``run_start`` names (``data.machines``), for the chart's rows: the
         schedule names only the machines its operations used. None where the event is not stored or names none (an
         older shop's)."""
-        stored = self._stored_event(run_id, 0)
-        count = stored[2].get("machines") if stored is not None and stored[1] == "run_start" else None
+        count = self._run_start_data(run_id).get("machines")
         return count if isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_COUNT else None
+
+    def _run_start_data(self, run_id: str) -> dict[str, Any]:
+        """The data of ``run_id``'s stored ``run_start`` (event 0); empty where none is stored."""
+        stored = self._stored_event(run_id, 0)
+        return stored[2] if stored is not None and stored[1] == "run_start" else {}
 
     def incarnations(self, run_id: str) -> list[str]:
         """The names the earlier incarnations of ``run_id`` are kept under (:meth:`archive_run`:
@@ -257,9 +261,7 @@ class RecorderStore:
     def _incarnation(self, run_id: str) -> str | None:
         """The incarnation of ``run_id``'s stored ``run_start`` (event 0), None if there is none or it names none."""
         if run_id not in self._incarnations:
-            stored = self._stored_event(run_id, 0)
-            self._incarnations[run_id] = (stored[2].get("incarnation") if stored is not None and
-                                          stored[1] == "run_start" else None)
+            self._incarnations[run_id] = self._run_start_data(run_id).get("incarnation")
         return self._incarnations[run_id]
 
     def begins_again(self, event: dict[str, Any]) -> bool:
