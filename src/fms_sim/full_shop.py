@@ -547,10 +547,13 @@ class FullShop(Shop):
         t = self.tool_choice
         return t is not None and self._candidate(t, j)
 
-    def _waiter(self, t: int) -> tuple[int, int] | None:
-        """The operation that an unserved request on tool t would have to wait for (None: the tool is free, or
-        only busy with a running operation that will end by itself)."""
+    def reserved_op(self, t: int) -> tuple[int, int] | None:
+        """The operation tool t is reserved for that has not started (None: the tool is free, or only busy with a
+        running operation that will end by itself): the one an unserved request on it would have to wait for, and
+        the one a plan from this state must let it serve first."""
         return self.tool_next[t] if self.tool_running[t] else self.tool_user[t]
+
+    _waiter = reserved_op  # (its name in the wait-for graph's checks)
 
     def _safe(self, tool: int, op: tuple[int, int]) -> bool:
         """Would reserving ``tool`` for ``op`` keep the wait-for graph of reserved operations acyclic?

@@ -128,7 +128,7 @@ class PlanPolicy:
         the run was stuck."""
         planned = {(r.job, r.op): (r.start, r.end) for r in plan.operations}
         for t in range(1, len(shop.tool_user)):
-            op = shop.tool_next[t] if shop.tool_running[t] else shop.tool_user[t]
+            op = shop.reserved_op(t)
             if op is None:
                 continue
             uses = self.tool.get(t)

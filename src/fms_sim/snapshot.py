@@ -183,7 +183,7 @@ def snapshot(shop: FullShop) -> Snapshot:
         for r, t, src, j, k, m in _all(shop, shop.p_tt_drop):
             carried[j, k] = tt_free[r]
         for t in range(1, inst.n_tools + 1):
-            op = shop.tool_next[t] if shop.tool_running[t] else shop.tool_user[t]
+            op = shop.reserved_op(t)
             if op is None:
                 continue
             j, k = op
