@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import os
 import random
-import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from fms_msgs_json import (
@@ -61,6 +60,7 @@ from fms_sim.petri import InvalidAction
 from fms_sim.shop_service import Outgoing
 from fms_sim.stepping import WAIT, Stepper, moves_label
 
+from .forked import FORK_AVAILABLE, child_main
 from .rules import JOB_RULES, VEHICLE_RULES, parse_rule_name
 from .solvers import LOOKAHEAD_SUFFIXES
 
@@ -879,45 +879,12 @@ REPLAN_GRACE_S = 5.0
 """How long past its budget a re-plan may run before the agent reports it ``timeout``."""
 
 
-REPLAN_IN_PROCESS = sys.platform.startswith("linux")
+REPLAN_IN_PROCESS = FORK_AVAILABLE
 """Whether a live re-plan runs in a forked process (on Linux) rather than in a thread of the agent. In a thread it
 shares the interpreter lock with the decisions: each is about half as fast while the other runs (on sl70 the agent
 answered 667-869 states during a 2 s re-plan in a thread against 1,680-1,887 in a process; docs/benchmarks.md §8). A
 forked process needs nothing pickled (it starts as a copy of the agent, in a few milliseconds) and sends only the
 result back."""
-
-
-def _replan_child(fn: Callable[..., Any], args: tuple, conn: Any, parent: int) -> None:
-    """The body of a forked re-plan: ``fn(*args)``, its result (or its error's first line) sent on ``conn``. A
-    Ctrl-C meant for the node is left to the node (which ends this process); an agent gone meanwhile is no error.
-
-    SIGTERM ends it (the node's own handler, inherited through the fork, kept it alive: a node stopping during a
-    re-plan waited for it at exit and was reported as not stopping cleanly), and so does its parent's end (an agent
-    killed with SIGKILL left it searching on, at full CPU, to the end of its budget). ``parent`` is the agent's pid,
-    taken before the fork: read in the child, an agent killed right after the fork was already gone, the child took
-    init for its parent and searched on."""
-    import signal
-    import threading
-    import time
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-    def orphaned() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.2)
-        os._exit(1)
-
-    threading.Thread(target=orphaned, name="fms-replan-parent", daemon=True).start()
-    try:
-        out: tuple[str, Any] = ("ok", fn(*args))
-    except Exception as exc:  # noqa: BLE001 - reported as a failed re-plan, the plan stays
-        out = ("error", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-    try:
-        conn.send(out)
-    except OSError:  # the agent stopped (or dropped this re-plan) while it ran
-        pass
-    conn.close()
 
 
 def _guide_replan(shop: "Shop", old: Any, effort: Any) -> Any:
@@ -953,7 +920,7 @@ class _ReplanJob:
 
             ctx = multiprocessing.get_context("fork")
             receive, send = ctx.Pipe(duplex=False)
-            self.process = ctx.Process(target=_replan_child, args=(fn, args, send, os.getpid()), name="fms-replan",
+            self.process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name="fms-replan",
                                        daemon=True)
             try:
                 self.process.start()
