@@ -11,8 +11,9 @@ make the same schedules (the same decisions), or the bench stops.
 
 ``--solve`` times the whole solve instead, as ``fms solve NAME --solver ppo`` reports it (``meta["wall_time"]``: the
 model's load, the default plan search within its 1 s budget and the run; the plan search's share is reported beside
-it), each run in a fresh process. This is how the large benchmark's sl70 time goal (<= 5 s) is measured: ``python
-bench/decide_speed.py --solve --instances sl70 sl70/notools``. In every mode a name ending in ``/notools`` drops the
+it, or, where it ran on the other core beside the run (``fms_dispatch.rl.beside``), its length and how often the run
+went on with the first plan or started over), each run in a fresh process. This is how the large benchmark's sl70
+time goal (<= 5 s) is measured: ``python bench/decide_speed.py --solve --instances sl70 sl70/notools``. In every mode a name ending in ``/notools`` drops the
 shop's tools (``fms solve --no-tools``).
 
 ``--parts`` says where a run's time goes, per decision with a choice: the net's own steps, the observation's base
@@ -174,7 +175,8 @@ def solve_once(name: str, model: str) -> dict:
     solver = model if model.lower().startswith("ppo") else f"ppo:{model}"
     sched = solve(inst, solver)
     return {"instance": name, "decisions": 0, "seconds": sched.meta["wall_time"],
-            "search": sched.meta.get("guide_search_time"), "makespan": checked(inst, sched, solver)}
+            "search": sched.meta.get("guide_search_time"), "beside": sched.meta.get("guide_search_beside"),
+            "makespan": checked(inst, sched, solver)}
 
 
 def _worker(src: Path, names: list[str], model: str, repeat: int, whole: bool = False,
@@ -327,12 +329,15 @@ def _solve_report(a: argparse.Namespace, here: Path) -> None:
     times: dict[str, dict[str, list[float]]] = {"new": {}, "base": {}}
     spans: dict[str, dict[str, list[int]]] = {"new": {}, "base": {}}
     search: dict[str, list[float]] = {}  # this source's plan search at the start (a baseline may not time it)
+    beside: dict[str, list[str]] = {}  # where it ran beside the run: whether the run went on ("kept") or started over
     for who, runs in _alternating(a, here, whole=True).items():
         for r in runs:
             times[who].setdefault(r["instance"], []).append(r["seconds"])
             spans[who].setdefault(r["instance"], []).append(r["makespan"])
             if who == "new" and r.get("search") is not None:
                 search.setdefault(r["instance"], []).append(r["search"])
+                if r.get("beside") is not None:
+                    beside.setdefault(r["instance"], []).append(r["beside"])
     lines = [f"{platform.node()} {time.strftime('%Y-%m-%d')}, {a.model}, whole solves, {a.repeat} each, fresh processes"
              + (f", baseline {a.baseline} alternating" if a.baseline else "")]
     rows = []
@@ -340,7 +345,12 @@ def _solve_report(a: argparse.Namespace, here: Path) -> None:
         t = times["new"][name]
         row = {"instance": name, "seconds": t, "makespans": spans["new"][name]}
         line = f"{name}: {min(t):.2f}-{max(t):.2f} s"
-        if name in search:  # a guided model: how much of it the plan search took
+        if name in search and name in beside:  # a guided model whose search ran on the other core
+            st, outcome = search[name], beside[name]
+            row.update(search_seconds=st, search_beside=outcome)
+            line += (f" (the plan search {min(st):.2f}-{max(st):.2f} s beside the run; the run went on in "
+                     f"{outcome.count('kept')} of {len(outcome)}, started over in {outcome.count('restarted')})")
+        elif name in search:  # a guided model: how much of it the plan search took
             st = search[name]
             row["search_seconds"] = st
             line += f" ({min(st):.2f}-{max(st):.2f} s of it the plan search)"

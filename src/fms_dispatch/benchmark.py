@@ -226,6 +226,14 @@ def _first_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
+def _pool_worker() -> None:
+    """A pool worker's start: the other workers keep the machine's other cores busy, so a guided model's plan
+    search runs before its run here, not beside it (:func:`fms_dispatch.rl.beside.in_pool_worker`)."""
+    from .rl.beside import in_pool_worker
+
+    in_pool_worker()
+
+
 def _blank_row(task: Task, error: str | None = None) -> dict[str, Any]:
     return {**asdict(task), "time_limit": _tl(task.time_limit), "makespan": None, "wall_time": None,
             "valid": False, "error": error, "lower_bound": None, "status": None, "optimum": None, "n_jobs": None,
@@ -408,7 +416,7 @@ def _execute(todo: list[Task], jobs: int, progress: bool) -> Iterator[dict[str, 
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=_pool_worker) as pool:
             futures = {pool.submit(run_task, t): t for t in todo}
             try:
                 for fut in as_completed(futures):

@@ -165,13 +165,19 @@ def replans_summary(events: list[dict[str, Any]] | None) -> str:
 
 def search_summary(sched: Schedule) -> str:
     """What the summary line adds about the search: a guided model's plan search at the start (``", 1.02 s of it the
-    plan search"``), CP-SAT's proof (``", optimal"`` or ``", bound B"``) and its start schedule's makespan, the
-    winning rule combination (``", best list"``) and those a time limit (or an interrupt) left untried, and
-    ``", interrupted"`` for a search stopped by Ctrl-C."""
+    plan search"``, or ``", plan search 1.02 s beside the run, its first plan kept"`` where it ran on the other
+    core, :mod:`fms_dispatch.rl.beside`), CP-SAT's proof (``", optimal"`` or ``", bound B"``) and its start
+    schedule's makespan, the winning rule combination (``", best list"``) and those a time limit (or an interrupt)
+    left untried, and ``", interrupted"`` for a search stopped by Ctrl-C."""
     m = sched.meta
     out = ""
     if m.get("guide_search_time") is not None:
-        out += f", {m['guide_search_time']:.3f} s of it the plan search"
+        beside = m.get("guide_search_beside")  # the search ran on the other core while the run went on
+        if beside is None:
+            out += f", {m['guide_search_time']:.3f} s of it the plan search"
+        else:
+            out += f", plan search {m['guide_search_time']:.3f} s beside the run"
+            out += ", which started over with its plan" if beside == "restarted" else ", its first plan kept"
     if m.get("status") == "OPTIMAL":
         out += ", optimal"
     elif m.get("lower_bound") is not None and m.get("solver") == "cpsat":

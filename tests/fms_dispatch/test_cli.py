@@ -186,15 +186,28 @@ def test_ppo_solver_names(capsys):
         solve(inst, "ppo", lookahead="quick")
 
 
-def test_a_guided_runs_plan_search_is_timed_apart(tmp_path, capsys):
+def test_a_guided_runs_plan_search_is_timed_apart(tmp_path, capsys, monkeypatch):
     """The summary line and the schedule say how much of a guided model's run was its plan search at the start
-    (within its budget; most of it on sl00, where the search takes the whole budget), and nothing for a model
-    without a plan."""
+    (within its budget; most of it on sl00, where the search takes the whole budget), or how long it took beside
+    the run and what came of it, and nothing for a model without a plan."""
+    from fms_dispatch.rl import beside
+
     out = tmp_path / "s.json"
-    code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"], capsys)
+    with monkeypatch.context() as m:
+        m.setattr(beside, "FORK_AVAILABLE", False)  # the search before the run
+        code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"],
+                            capsys)
     meta = json.loads(out.read_text())["meta"]
     assert code == 0 and 0.2 <= meta["guide_search_time"] <= 0.8 and meta["guide_search_time"] < meta["wall_time"]
     assert f"{meta['wall_time']:.3f} s, {meta['guide_search_time']:.3f} s of it the plan search, valid)" in line
+    if beside.FORK_AVAILABLE:  # beside the run (sl00: the search ends after the run and finds a better plan)
+        monkeypatch.setattr(beside, "_cpus", lambda: 2)
+        code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"],
+                            capsys)
+        meta = json.loads(out.read_text())["meta"]
+        assert code == 0 and meta["guide_search_beside"] == "restarted" and 0.2 <= meta["guide_search_time"] <= 0.8
+        assert (f"{meta['wall_time']:.3f} s, plan search {meta['guide_search_time']:.3f} s beside the run, which "
+                "started over with its plan, valid)") in line
     code, line, _ = run(["solve", "EX22", "--solver", "ppo:full", "--out", str(out), "-q"], capsys)
     assert code == 0 and "plan search" not in line and "guide_search_time" not in json.loads(out.read_text())["meta"]
 

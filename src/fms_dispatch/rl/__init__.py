@@ -7,6 +7,7 @@
 * :mod:`.actors` — its actor in numpy, and the ``.actor.npz`` export;
 * :mod:`.agent` — the deterministic :class:`~.agent.Agent` (numpy at inference; torch only without an export);
 * :mod:`.lookahead` — running an agent, with pre-positioning of idle vehicles;
+* :mod:`.beside` — a guided model's plan search on the other core while its run goes on;
 * :mod:`.models` — model folders, shipped models and the default choice per instance;
 * :mod:`.train` — ``fms train``.
 
@@ -51,7 +52,12 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     records the makespan of the plan in force at its end in ``meta["guide_plan_makespan"]`` (the plan searched at the
     start; in a disrupted run the last re-plan adopted, a forecast): a plain run that ends later left out some of the
     plan's empty trips, which ``lookahead="guide"`` makes; ``meta["guide_search_time"]`` is the seconds of the plan
-    search at the start (of the run's ``wall_time``).
+    search at the start. Where a second core is there for it and the run has no lookahead
+    (:func:`~fms_dispatch.rl.beside.beside_possible`), the search runs on that core while the run goes on with its
+    first plan, and the run starts over only if the search found a plan that ends earlier
+    (:mod:`~fms_dispatch.rl.beside`; the same schedule, sooner where the first plan stands):
+    ``meta["guide_search_beside"]`` is then ``"kept"`` or ``"restarted"`` (None: the search ran before the run, its
+    time part of the run's ``wall_time``).
     """
     if not isinstance(spec, str):  # None was an AttributeError
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
@@ -68,6 +74,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
+        from .agent import GuideReplanner
+        from .beside import SearchBeside, beside_possible, run_beside
         from .lookahead import nominal_twin, run_agent
         from .models import default_model_name, load_agent
 
@@ -92,24 +100,44 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             from .guide import GuideMoves
 
             planner = GuideMoves.for_agent(agent)
-        shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
+        replanner: Any = None  # a disrupted run's GuideReplanner (start makes it)
+
+        def start(plan: Schedule | None = None) -> tuple[Any, Any]:
+            """A fresh shop of the run and what chooses in it (the model, or its re-planner in a disrupted run);
+            ``plan``: the guide's plan, put in force as if searched for it (else the model plans when it reads)."""
+            nonlocal replanner
+            shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
+            if plan is not None:
+                agent.adopt_replan(shop, plan, None, None)
+            replanner = GuideReplanner(agent) if disrupted and guide_replan and agent.guide is not None else None
+            return shop, replanner or agent.act
+
+        shop, choose = start()
         search_s = None
-        if agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
+        beside = None
+        if agent.guide is not None and not lookahead and beside_possible(agent.guide_effort):
+            try:  # the plan search on the other core, the run going on with its first plan meanwhile
+                beside = SearchBeside(shop, agent.guide_effort)
+            except OSError:  # no process could be forked now: the search runs first, as below
+                beside = None
+            else:
+                agent.adopt_replan(shop, beside.first.plan, None, None)
+        elif agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
             t0 = time.perf_counter()
             agent.guide_of(shop)
             search_s = time.perf_counter() - t0
-        replanner = None
-        if disrupted and guide_replan and agent.guide is not None:
-            from .agent import GuideReplanner
-
-            replanner = GuideReplanner(agent)
-            if lookahead and planner is None:  # the lookahead's twins roll the plain policy out: they re-plan nothing
+        if beside is not None:
+            sched, shop, restarted = run_beside(beside, shop, choose, start, progress=report)
+            search_s = beside.seconds
+        else:
+            if lookahead and planner is None and replanner is not None:
+                # the lookahead's twins roll the plain policy out: they re-plan nothing
                 from .lookahead import LookaheadPlanner
 
                 planner = LookaheadPlanner(agent.act, retry=not fast, twin=nominal_twin)
-        # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
-        sched = run_agent(shop, replanner or agent.act, lookahead=bool(lookahead), progress=report, retry=not fast,
-                          twin=nominal_twin, planner=planner)
+            # in a disrupted shop the lookahead's twins are nominal copies: they know only the past
+            sched = run_agent(shop, choose, lookahead=bool(lookahead), progress=report, retry=not fast,
+                              twin=nominal_twin, planner=planner)
         if replanner is not None:
             sched.meta["replans"] = replanner.events
         sched.meta["solver"] = f"ppo:{agent.name}{suffix}"
@@ -122,6 +150,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             # adopted (its makespan then a forecast); a plain run can end later than its plan (no empty trips)
             sched.meta["guide_plan_makespan"] = agent.guide_of(shop).plan.makespan
             sched.meta["guide_search_time"] = round(search_s, 4)
+            # beside the run: the first plan stood ("kept") or the run started over with the searched plan
+            sched.meta["guide_search_beside"] = None if beside is None else ("restarted" if restarted else "kept")
         if lookahead:
             sched.meta["lookahead_fast"] = fast
         return sched

@@ -1,0 +1,158 @@
+"""A guided model's plan search beside its run, on the machine's other core.
+
+A guided model's solve searches the plan it acts out (:func:`~fms_dispatch.rl.guide.guide_plan`, within 1 s by
+default) before its first decision. Where a second core is there for it (:func:`beside_possible`) the search runs
+on that core instead, in a forked copy of the process (:class:`fms_dispatch.forked.Forked`), from the search's first
+plan (the earliest-start list schedule, :func:`~fms_dispatch.rl.guide.first_plan`), while the run goes on with the
+first plan in force (:func:`run_beside`). When the search ends:
+
+* nothing it found ends earlier than the first plan: the run that went on is the run the solve makes with the
+  search before it, and it goes on: the search's time is saved (on the large benchmark's 100-job shops with tools
+  the search improves the first plan on 5 of 10 within its budget, docs/benchmarks.md §9);
+* it found a plan that ends earlier: the run starts over with that plan, as it would have started after the
+  search (the time of the run so far, made on this core while the search ran on the other, is lost).
+
+Either way the schedule is the one the search before the run gives: the search is the same (the same steps, the
+same budget counted from the same start); only, as before, a budget that cuts the search short makes its plan
+depend on the machine's speed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Callable
+
+from fms_sim.full_shop import FullShop
+from fms_sim.instance import Instance
+from fms_sim.schedule import Schedule
+from fms_sim.shop import Shop
+
+from ..forked import FORK_AVAILABLE, Forked
+from .guide import FirstPlan, PlanEffort, first_plan, search_from
+
+__all__ = ["beside_possible", "in_pool_worker", "SearchBeside", "run_beside", "ALLOWED"]
+
+Choose = Callable[[Shop], int]
+
+#: whether a plan search may run beside its run in this process (:func:`beside_possible`): a worker of a process
+#: pool sets it False (:func:`in_pool_worker`), since the pool's other workers keep the machine's other cores busy
+#: and a search sharing a core does less within its budget
+ALLOWED = True
+
+
+def in_pool_worker() -> None:
+    """For a process pool's initializer: this process is one of several solving at once, so its plan searches run
+    before their runs (:data:`ALLOWED`)."""
+    global ALLOWED
+    ALLOWED = False
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on (all of the machine's where the system cannot say)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # (not on Linux; fork is not used there anyway)
+        return os.cpu_count() or 1
+
+
+def beside_possible(effort: PlanEffort) -> bool:
+    """Whether a plan search with ``effort`` runs beside the run here: this process is not one of a pool's workers
+    (:data:`ALLOWED`), a process can be forked (Linux), this process may use two CPUs or more (on one the search and
+    the run would share it, and a budget cut short would end the search with a worse plan), and ``effort`` searches past the two list schedules (restarts, rule pairs or a tabu
+    search) without CP-SAT's polish (OR-Tools' threads are not used in a forked child)."""
+    searches = effort.restarts > 0 or effort.rules or effort.tabu > 0
+    return ALLOWED and FORK_AVAILABLE and _cpus() >= 2 and searches and not effort.exact
+
+
+def _search(inst: Instance, first: FirstPlan, effort: PlanEffort) -> tuple[Schedule | None, float]:
+    """The forked child's work: the search from ``first`` (:func:`~fms_dispatch.rl.guide.search_from`); its plan,
+    None where that is the first plan itself, and when it ended (``time.monotonic()``, one clock for both
+    processes)."""
+    best = search_from(inst, first, effort)
+    return (None if best is first.plan else best), time.monotonic()
+
+
+class SearchBeside:
+    """The guide's plan search for ``shop`` (at its run's start) with ``effort``, running in a forked process from
+    the moment this is made; :attr:`first` is its first plan, computed here, for the run to go on with. Raises
+    OSError where no process can be forked now (the caller then searches in line)."""
+
+    def __init__(self, shop: FullShop, effort: PlanEffort) -> None:
+        self.effort = effort
+        self.instance = shop.instance
+        self.first: FirstPlan = first_plan(shop)
+        #: the search's length in seconds from its start (the first plan included), once it has ended
+        self.seconds: float | None = None
+        #: why the forked search failed (it was then made again in line), or None
+        self.failed: str | None = None
+        self._job: Forked | None = Forked(_search, (self.instance, self.first, effort), name="fms-plan-search")
+
+    def ready(self) -> bool:
+        """Whether the search has ended (:meth:`searched` would not wait)."""
+        return self._job is None or self._job.ready()
+
+    def searched(self) -> Schedule | None:
+        """The searched plan if it ends earlier than the first plan, None where the first plan stands; waits for
+        the search. A search that failed in its process (killed, out of memory) is made again here, with its whole
+        budget."""
+        job, self._job = self._job, None
+        if job is None:
+            raise RuntimeError("the plan search's result was read already")
+        try:
+            plan, end = job.result()
+        except RuntimeError as exc:
+            self.failed = str(exc)
+            first = dataclasses.replace(self.first, t0=time.monotonic())
+            plan, end = _search(self.instance, first, self.effort)
+        self.seconds = end - self.first.t0
+        return plan
+
+    def cancel(self) -> None:
+        """End the search if it still runs (a run interrupted or failed)."""
+        if self._job is not None:
+            self._job.cancel()
+            self._job = None
+
+
+def run_beside(search: SearchBeside, shop: Shop, choose: Choose, again: Callable[[Schedule], tuple[Shop, Choose]],
+               progress: Callable[[str], None] | None = None, every_s: float = 2.0) -> tuple[Schedule, Shop, bool]:
+    """Run ``shop`` (its guide: ``search.first``'s plan) to completion with ``choose`` while ``search`` runs; where
+    the search ends with a plan that ends earlier, the run starts over with that plan: ``again(plan)`` gives the
+    fresh shop (its guide: ``plan``) and its ``choose``. Returns the schedule, the shop that made it and whether the
+    run started over.
+    ``progress`` gets a line at most every ``every_s`` seconds, and one where the run starts over. The search is
+    ended if the run fails or is interrupted."""
+    from .lookahead import run_agent
+
+    t0 = last = time.perf_counter()
+    better = None
+    pending, n = True, 0
+    try:
+        while not shop.done:
+            shop.act(choose(shop))
+            n += 1
+            if pending and not n & 15 and search.ready():  # (a poll of the pipe every 16 decisions)
+                pending = False
+                better = search.searched()
+                if better is not None:
+                    break
+            if progress is not None and time.perf_counter() - last >= every_s:
+                last = time.perf_counter()
+                beside = ", the plan search beside it" if pending else ""
+                progress(f"  policy: {sum(shop.job_done_ops)}/{shop.instance.n_operations} operations done, "
+                         f"time {shop.now}, {last - t0:.1f} s{beside}")
+        if pending:  # the run ended first
+            pending = False
+            better = search.searched()
+    finally:
+        if pending:
+            search.cancel()
+    if better is None:
+        return shop.schedule(), shop, False
+    if progress is not None:
+        progress(f"  the plan search found a plan ending at {better.makespan} (its first plan: "
+                 f"{search.first.plan.makespan}): the run starts over with it")
+    shop, choose = again(better)
+    return run_agent(shop, choose, progress=progress, every_s=every_s), shop, True

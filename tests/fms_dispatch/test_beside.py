@@ -1,0 +1,150 @@
+"""A guided model's plan search beside its run: the same schedule as the search before the run, the run going on
+where the first plan stands and starting over where the search found a better one; failures and interrupts."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from fms_sim.benchmarks import builtin
+from fms_sim.disruptions import Breakdown, Scenario
+from fms_sim.full_shop import FullShop, make_shop
+from fms_sim.validate import validate
+from fms_dispatch.rl import beside
+from fms_dispatch.rl.guide import PlanEffort, effort_from, first_plan, guide_plan, search_from
+from fms_dispatch.rl.models import load_agent
+from fms_dispatch.solvers import solve
+
+#: a search that does not depend on the clock (no budget, no tabu search): its plan is the same on any machine
+SEARCH = effort_from(restarts=8, budget=0, tabu=0)
+
+needs_fork = pytest.mark.skipif(not beside.FORK_AVAILABLE, reason="the search runs beside the run on Linux only")
+
+
+@pytest.fixture
+def two_cpus(monkeypatch):
+    """The search may run beside the run whatever this machine's CPUs (CI has 2; the check itself is tested
+    below)."""
+    monkeypatch.setattr(beside, "_cpus", lambda: 2)
+
+
+def _in_line(monkeypatch, inst, **kwargs):
+    with monkeypatch.context() as m:
+        m.setattr(beside, "FORK_AVAILABLE", False)
+        sched = solve(inst, "ppo", guide_effort=SEARCH, **kwargs)
+    assert sched.meta["guide_search_beside"] is None
+    return sched
+
+
+def test_the_search_from_its_first_plan_is_the_guides_plan():
+    # guide_plan is first_plan and then search_from: the same plan; the search returns the first plan itself where
+    # nothing ends earlier (EX12 with 8 restarts: 84 stands), a new plan where something does (EX22: 97 -> 82)
+    for name, kept in (("EX12", True), ("EX22", False)):
+        inst = builtin(name)
+        first = first_plan(FullShop(inst))
+        searched = search_from(inst, first, SEARCH)
+        assert (searched is first.plan) == kept
+        whole = guide_plan(FullShop(inst), SEARCH)
+        assert whole.makespan == searched.makespan and whole.operations == searched.operations
+
+
+@needs_fork
+@pytest.mark.parametrize("name,outcome", [("EX12", "kept"), ("EX22", "restarted"), ("sl00", "restarted")])
+def test_the_search_beside_the_run_gives_the_schedule_of_the_search_before_it(monkeypatch, two_cpus, name, outcome):
+    inst = builtin(name)
+    before = _in_line(monkeypatch, inst)
+    sched = solve(inst, "ppo", guide_effort=SEARCH)
+    assert validate(inst, sched) == []
+    assert sched.meta["guide_search_beside"] == outcome
+    assert sched.operations == before.operations and sched.makespan == before.makespan
+    assert sched.meta["guide_plan_makespan"] == before.meta["guide_plan_makespan"]
+    assert 0 < sched.meta["guide_search_time"]
+
+
+@needs_fork
+def test_a_disrupted_run_with_its_re_plans_is_the_same_beside(monkeypatch, two_cpus):
+    # the run that starts over gets a fresh shop and a fresh re-planner: its re-plans are those of the run alone
+    inst = builtin("EX22")
+    sc = Scenario((Breakdown(machine=2, start=20, duration=40),), (), 0.1, 5)
+    before = _in_line(monkeypatch, inst, scenario=sc, guide_replan=True)
+    sched = solve(inst, "ppo", guide_effort=SEARCH, scenario=sc, guide_replan=True)
+    assert validate(inst, sched) == [] and sched.meta["guide_search_beside"] == "restarted"
+    assert sched.operations == before.operations
+    strip = [{k: v for k, v in e.items() if k != "wall_time"} for e in before.meta["replans"]]
+    assert [{k: v for k, v in e.items() if k != "wall_time"} for e in sched.meta["replans"]] == strip
+
+
+@needs_fork
+def test_a_search_that_fails_in_its_process_is_made_in_line(monkeypatch, two_cpus):
+    parent = os.getpid()
+    real = beside.search_from
+
+    def fails_in_the_child(inst, first, effort):
+        if os.getpid() != parent:
+            raise MemoryError("no memory in the child")
+        return real(inst, first, effort)
+
+    monkeypatch.setattr(beside, "search_from", fails_in_the_child)
+    inst = builtin("EX22")
+    search = beside.SearchBeside(FullShop(inst), SEARCH)
+    plan = search.searched()
+    assert search.failed == "no memory in the child"
+    assert plan is not None and plan.operations == guide_plan(FullShop(inst), SEARCH).operations
+    with pytest.raises(RuntimeError, match="read already"):
+        search.searched()
+
+
+@needs_fork
+def test_an_interrupted_run_ends_the_search(two_cpus):
+    inst = builtin("sl00")
+    agent = load_agent("guided-dagger")
+    agent.use_guide_effort(effort_from(restarts=64, budget=30, tabu=0))  # a search that would run for 30 s
+    shop = make_shop(inst, agent.decisions)
+    search = beside.SearchBeside(shop, agent.guide_effort)
+    agent.adopt_replan(shop, search.first.plan, None, None)
+    job = search._job
+    n = 0
+
+    def interrupted(s):
+        nonlocal n
+        n += 1
+        if n == 40:
+            raise KeyboardInterrupt
+        return agent.act(s)
+
+    with pytest.raises(KeyboardInterrupt):
+        beside.run_beside(search, shop, interrupted, lambda plan: pytest.fail("no second run"))
+    assert not job._process.is_alive() and job._process.exitcode is not None
+
+
+def test_the_search_runs_beside_only_where_it_can_and_searches(monkeypatch):
+    monkeypatch.setattr(beside, "FORK_AVAILABLE", True)
+    monkeypatch.setattr(beside, "_cpus", lambda: 2)
+    assert beside.beside_possible(SEARCH)
+    assert beside.beside_possible(effort_from(restarts=0, tabu=0.001))
+    assert not beside.beside_possible(PlanEffort())  # the list schedules only: nothing to search beside
+    assert not beside.beside_possible(effort_from(exact=1.0))  # CP-SAT's polish stays in line
+    monkeypatch.setattr(beside, "_cpus", lambda: 1)  # one CPU: the search would share it with the run
+    assert not beside.beside_possible(SEARCH)
+    monkeypatch.setattr(beside, "_cpus", lambda: 2)
+    monkeypatch.setattr(beside, "FORK_AVAILABLE", False)
+    assert not beside.beside_possible(SEARCH)
+
+
+def test_lookahead_runs_search_before_the_run(monkeypatch, two_cpus):
+    # the lookahead's twins read the guide too: a run with the lookahead plans first, as before
+    sched = solve(builtin("EX12"), "ppo+lookahead-fast", guide_effort=SEARCH)
+    assert validate(builtin("EX12"), sched) == [] and sched.meta["guide_search_beside"] is None
+
+
+def test_a_pool_worker_searches_before_its_run(monkeypatch):
+    # fms bench / fms experiment --jobs N: N workers solve at once, so a search beside a run would share a core
+    from fms_dispatch.benchmark import _pool_worker
+
+    monkeypatch.setattr(beside, "FORK_AVAILABLE", True)
+    monkeypatch.setattr(beside, "_cpus", lambda: 2)
+    monkeypatch.setattr(beside, "ALLOWED", True)
+    assert beside.beside_possible(SEARCH)
+    _pool_worker()
+    assert not beside.ALLOWED and not beside.beside_possible(SEARCH)
