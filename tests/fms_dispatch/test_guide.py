@@ -854,3 +854,97 @@ def test_a_reset_first_seen_after_its_start_plans_its_own_guide():
     assert fresh.plan_guide().origin is not None  # a plan from the state
     assert used.plan_guide().origin == fresh.plan_guide().origin
     assert np.array_equal(obs, want)
+
+
+def _assignment_run(agent, inst, assign):
+    """A run of ``agent`` (its plan: the list schedule) with or without the plan's assignments: (schedule, the
+    assignments taken, the states where the network was asked about an assignment and chose otherwise)."""
+    from fms_sim.full_shop import make_shop
+    from fms_dispatch.rl.guide import PlanEffort
+
+    agent.forget()
+    agent.use_guide_effort(PlanEffort())
+    agent.plan_assigns = assign
+    shop = make_shop(inst, agent.decisions)
+    n0, other = agent.assigned, 0
+    while not shop.done:
+        legal = shop.legal_actions()
+        planned = agent.plan_assignment(shop, legal) if len(legal) > 1 else None
+        if planned is not None:
+            logits, _ = agent.logits(shop)
+            other += agent._env(shop).to_net_action(int(np.argmax(logits))) != planned
+        shop.act(agent.act(shop))
+    return shop.schedule(), agent.assigned - n0, other
+
+
+@pytest.mark.parametrize("name,least", [("EX22", 2), ("sl00", 400)])
+def test_a_guided_model_takes_its_plans_assignments_as_its_network_would(name, least):
+    # the vehicle and tool-use choices the plan answers are those the network makes: the same schedule, the
+    # network's arg-max equal to the plan's answer at every one, and only the run with them counts them
+    from fms_dispatch.rl.models import load_agent
+
+    inst = builtin(name)
+    agent = load_agent("guided-dagger")
+    try:
+        plain, n_plain, _ = _assignment_run(agent, inst, False)
+        fast, n_fast, other = _assignment_run(agent, inst, True)
+    finally:
+        agent.plan_assigns = True
+        agent.use_guide_effort(None)
+    assert validate(inst, fast) == [] and fast.operations == plain.operations
+    assert n_plain == 0 and n_fast >= least and other == 0
+
+
+def test_the_plans_assignment_is_only_a_legal_planned_carrier_or_use():
+    from fms_sim.full_shop import make_shop
+    from fms_dispatch.rl.guide import PlanEffort
+    from fms_dispatch.rl.models import load_agent
+
+    inst = builtin("sl00")
+    agent = load_agent("guided-dagger")
+    agent.forget()
+    agent.use_guide_effort(PlanEffort())
+    try:
+        shop = make_shop(inst, "full")
+        kinds_seen, moved = set(), False
+        while not shop.done:
+            legal = shop.legal_actions()
+            kind = shop.action_kind(legal[0])[0]
+            a = agent.plan_assignment(shop, legal)
+            if kind not in ("agv", "tt", "use"):
+                assert a is None  # a dispatch, a start, a take-up, a hold: the network decides
+            elif a is not None:
+                kinds_seen.add(kind)
+                assert a in legal
+                guide = agent.guide_of(shop)
+                if kind == "use":
+                    assert shop.action_kind(a)[1] == guide.use_head(guide.view(shop))
+                else:
+                    assert shop.action_kind(a)[1] == guide.planned_vehicle(shop, kind)
+                    busy = [v for v in range(shop.n_agvs if kind == "agv" else shop.n_tts)
+                            if shop.action_index(f"{kind}:{v}") not in legal]
+                    if kind == "agv" and busy and not moved:  # the plan names a vehicle that is not offered now
+                        req = shop.awaiting_agv()
+                        saved = guide.part_carrier[req[0], req[1]]
+                        guide.part_carrier[req[0], req[1]] = busy[0]
+                        assert agent.plan_assignment(shop, legal) is None
+                        guide.part_carrier[req[0], req[1]] = saved
+                        moved = True
+            shop.act(agent.act(shop))
+        assert kinds_seen == {"agv", "tt", "use"} and moved
+    finally:
+        agent.use_guide_effort(None)
+    full = load_agent("full")  # a model without a guide: no plan to assign from
+    shop = make_shop(inst, "full")
+    while shop.action_kind(shop.legal_actions()[0])[0] != "agv":
+        shop.act(shop.legal_actions()[0])
+    assert full.plan_assignment(shop) is None and not full.plan_assigns
+
+
+def test_a_solve_counts_the_plans_assignments(tmp_path):
+    from fms_dispatch.rl.guide import effort_from
+    from fms_dispatch.solvers import solve
+
+    sched = solve(builtin("sl00"), "ppo", guide_effort=effort_from(restarts=4, budget=0, tabu=0))
+    assert validate(builtin("sl00"), sched) == [] and sched.meta["plan_assignments"] > 100
+    assert "plan_assignments" not in solve(builtin("EX22"), "ppo:full").meta

@@ -169,3 +169,36 @@ def test_a_model_folder_that_lost_its_solving_weights_is_refused(tmp_path):
                                          "says it solves with"):
         resolve_model(str(folder))
     assert resolve_model(str(folder / "model.zip")).weights == folder / "model.zip"  # named: taken as asked
+
+
+def test_a_model_takes_its_plans_assignments_only_where_its_card_records_the_check(tmp_path):
+    """A guided model's runs take its plan's assignments without its network only where its metrics.json records
+    assignments checked and none chosen otherwise (bench/plan_assignments.py --record); a card without that record,
+    one that records the network choosing otherwise, a malformed record, or a model without a guide: the network
+    decides."""
+    import json
+
+    from fms_dispatch.rl.models import ASSIGNMENTS_KEY, checked_assignments, load_agent
+
+    for name in ("guided-dagger", "guided", "guided-ppo"):  # the shipped guided models were checked
+        assert resolve_model(name).plan_assigns and load_agent(name).plan_assigns
+    assert not resolve_model("full").plan_assigns and not load_agent("full").plan_assigns
+    folder = tmp_path / "mine"
+    src = resolve_model("guided-dagger").folder
+    folder.mkdir()
+    for f in ("config.json", "best_model.zip", "best_model.actor.npz"):
+        shutil.copy(src / f, folder / f)
+    card = json.loads((src / "metrics.json").read_text())
+    card.pop(ASSIGNMENTS_KEY, None)
+    for record, taken in ((None, False), ({"assignments": 5, "network_otherwise": 0}, True),
+                          ({"assignments": 5, "network_otherwise": 1}, False),
+                          ({"assignments": 0, "network_otherwise": 0}, False),
+                          ({"assignments": True, "network_otherwise": 0}, False),
+                          ({"assignments": "5", "network_otherwise": 0}, False), ([], False)):
+        (folder / "metrics.json").write_text(json.dumps({**card, **({} if record is None
+                                                                   else {ASSIGNMENTS_KEY: record})}))
+        assert checked_assignments(folder) is taken and resolve_model(str(folder)).plan_assigns is taken
+    (folder / "metrics.json").write_text("{not json")
+    assert not checked_assignments(folder)
+    (folder / "metrics.json").unlink()
+    assert not checked_assignments(folder) and not resolve_model(str(folder)).plan_assigns

@@ -95,13 +95,17 @@ def test_tiny_training_saves_reloads_solves_and_resumes(tmp_path):
     def resume_against(best: float) -> dict:
         m = json.loads((out / "metrics.json").read_text())
         m["heldout"] = {"shops": {"ho00": {"ppo": 1}}}
+        m["plan_assignments"] = {"assignments": 5, "network_otherwise": 0}  # (the network was checked)
         m["training"]["best_mean_reward"] = best
         (out / "metrics.json").write_text(json.dumps(m))
         return train({"steps": 128}, out, resume=True, progress=False, tensorboard=tmp_path / "tb")
 
     before = (out / "best_model.zip").read_bytes()
-    assert "heldout" in resume_against(1e9) and (out / "best_model.zip").read_bytes() == before  # none beats it
-    assert "heldout" not in resume_against(-1e9) and (out / "best_model.zip").read_bytes() != before
+    kept = resume_against(1e9)
+    assert "heldout" in kept and "plan_assignments" in kept and (out / "best_model.zip").read_bytes() == before
+    replaced = resume_against(-1e9)  # none beats it above; here the resume's weights do
+    assert "heldout" not in replaced and "plan_assignments" not in replaced
+    assert (out / "best_model.zip").read_bytes() != before
 
     # a new model is not trained over this one (it kept the old best_model.zip and reported it as its own) ...
     again = dict(TINY, train=["EX12"], steps=128, seed=6, padding="bu", eval_freq=10_000)  # no evaluation: no best

@@ -57,7 +57,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     first plan, and the run starts over only if the search found a plan that ends earlier
     (:mod:`~fms_dispatch.rl.beside`; the same schedule, sooner where the first plan stands):
     ``meta["guide_search_beside"]`` is then ``"kept"`` or ``"restarted"`` (None: the search ran before the run, its
-    time part of the run's ``wall_time``).
+    time part of the run's ``wall_time``). Where a guided model's only choice is an assignment (a vehicle for a
+    carry, a request for a tool) and its plan names a legal answer, the run takes it without running the network
+    (:attr:`~fms_dispatch.rl.agent.Agent.plan_assigns`); ``meta["plan_assignments"]`` counts them.
     """
     if not isinstance(spec, str):  # None was an AttributeError
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
@@ -101,11 +103,13 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
 
             planner = GuideMoves.for_agent(agent)
         replanner: Any = None  # a disrupted run's GuideReplanner (start makes it)
+        assigned = 0
 
         def start(plan: Schedule | None = None) -> tuple[Any, Any]:
             """A fresh shop of the run and what chooses in it (the model, or its re-planner in a disrupted run);
             ``plan``: the guide's plan, put in force as if searched for it (else the model plans when it reads)."""
-            nonlocal replanner
+            nonlocal replanner, assigned
+            assigned = agent.assigned  # the plan's assignments of this run: counted from here
             shop = make_shop(instance, agent.decisions, scenario if disrupted else None)
             if plan is not None:
                 agent.adopt_replan(shop, plan, None, None)
@@ -149,6 +153,9 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
             # the plan in force at the end: the plan searched at the start, or in a disrupted run the last re-plan
             # adopted (its makespan then a forecast); a plain run can end later than its plan (no empty trips)
             sched.meta["guide_plan_makespan"] = agent.guide_of(shop).plan.makespan
+            # the choices the plan's assignments answered without the network (Agent.plan_assigns; with the
+            # lookahead, its trial runs' too)
+            sched.meta["plan_assignments"] = agent.assigned - assigned
             sched.meta["guide_search_time"] = round(search_s, 4)
             # beside the run: the first plan stood ("kept") or the run started over with the searched plan
             sched.meta["guide_search_beside"] = None if beside is None else ("restarted" if restarted else "kept")

@@ -64,7 +64,7 @@ class Agent:
     """
 
     def __init__(self, model_path: str | Path, padding: dict[str, int], name: str = "", torch: bool = False,
-                 decisions: str = "paper", guide: str | None = None):
+                 decisions: str = "paper", guide: str | None = None, plan_assigns: bool = False):
         path = Path(model_path)
         if not path.is_file():
             raise ValueError(f"model file {path} does not exist")
@@ -83,6 +83,13 @@ class Agent:
         self.guide_effort = DEFAULT_EFFORT
         """How hard the guide's plan of a new run is searched (:class:`~fms_dispatch.rl.guide.PlanEffort`);
         read when the run's first observation is made."""
+        self.plan_assigns = bool(plan_assigns) and guide is not None
+        """Whether :meth:`act` takes the plan's assignment, where a guided model's only choice is one and the plan
+        names a legal answer, without running the network (:meth:`plan_assignment`): for a model whose card records
+        that its network chose those answers at every one checked (:func:`fms_dispatch.rl.models.checked_assignments`,
+        the shipped guided models); never for a model in training, whose network is what is measured."""
+        self.assigned = 0
+        """How many of :meth:`act`'s answers were the plan's assignments (a running count)."""
         self.path = path
         missing = [k for k in ("max_jobs", "max_machines", "max_tools", "max_agvs", "max_tts") if k not in padding]
         if missing:  # a KeyError deep inside
@@ -267,11 +274,46 @@ class Agent:
             raise ValueError(f"model {self.name} has no plan guide")
         return self._env(shop).bridge_guide()
 
+    def plan_assignment(self, shop: Shop, legal: list[int] | None = None) -> int | None:
+        """Where the only choice now is an assignment — which vehicle carries the part (``agv``) or tool (``tt``)
+        awaiting one, or which pending request the chosen tool serves next (``use``) — the plan's answer (its
+        planned carrier, its next use of the tool) if that is legal; else None (another kind of choice, no guide,
+        or the plan's answer not offered: a vehicle out of service, a run that left the plan).
+
+        A guided model reads those answers in its observation (the guide's ``planned`` and request-head flags) and
+        was cloned from the follower that takes them (:class:`~fms_dispatch.rl.guide.GuideFollower`); the shipped
+        guided models chose them at every such decision checked on validation shops, nominal and with noise
+        (``bench/plan_assignments.py``, docs/benchmarks.md §9). They are a quarter of a 100-job tool shop's
+        decisions, each of which costs the observation and the network about 0.3 ms."""
+        if self.guide is None:
+            return None
+        if legal is None:
+            legal = shop.legal_actions()
+        if not legal:
+            return None
+        kind = shop.action_kind(legal[0])[0]
+        if kind not in ("agv", "tt", "use"):  # (the net offers such a choice alone)
+            return None
+        guide = self.guide_of(shop)
+        if kind == "use":
+            job = guide.use_head(guide.view(shop))
+            a = shop.action_index(f"use:{job}") if job is not None else None
+        else:
+            v = guide.planned_vehicle(shop, kind)
+            a = shop.action_index(f"{kind}:{v}") if v is not None else None
+        return a if a in legal else None
+
     def act(self, shop: Shop) -> int:
-        """The net action the policy picks now (arg-max of the masked logits, lowest index on ties)."""
+        """The net action the policy picks now (arg-max of the masked logits, lowest index on ties); for a guided
+        model whose only choice is an assignment the plan makes, that assignment (:attr:`plan_assigns`)."""
         legal = shop.legal_actions()
         if len(legal) == 1:
             return legal[0]
+        if self.plan_assigns and self.guide is not None:
+            planned = self.plan_assignment(shop, legal)
+            if planned is not None:
+                self.assigned += 1
+                return planned
         env = self._env(shop)
         logits, _ = self.logits(shop)
         a = env.to_net_action(int(np.argmax(logits)))

@@ -149,6 +149,8 @@ class ModelRef:
             check_guide(self.guide, self.decisions)
         except ValueError as exc:
             raise ValueError(f"model {self.name}: {exc}") from None
+        #: whether the model takes its plan's assignments without running its network (:func:`checked_assignments`)
+        self.plan_assigns = self.guide is not None and checked_assignments(folder)
 
     def __repr__(self) -> str:
         return f"ModelRef({self.name!r}, {self.weights})"
@@ -199,6 +201,28 @@ def _recorded_weights(folder: Path) -> str | None:
     return weights if weights in ("best_model.zip", "model.zip") else None
 
 
+#: the key of a model card (``metrics.json``) that records the check of its plan's assignments
+ASSIGNMENTS_KEY = "plan_assignments"
+
+
+def checked_assignments(folder: Path) -> bool:
+    """Whether ``folder``'s model card records that its network chose the plan's assignment at every one checked
+    (``metrics.json``'s ``plan_assignments``: ``assignments`` > 0 and ``network_otherwise`` 0, as
+    ``bench/plan_assignments.py --record`` writes it): then its runs take those assignments without running the
+    network (:attr:`fms_dispatch.rl.agent.Agent.plan_assigns`). A model without that record decides every choice
+    with its network: a model just trained, or one whose network was seen to choose otherwise."""
+    try:
+        metrics = json.loads((folder / METRICS_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    record = metrics.get(ASSIGNMENTS_KEY) if isinstance(metrics, dict) else None
+    if not isinstance(record, dict):
+        return False
+    n, other = record.get("assignments"), record.get("network_otherwise")
+    whole = all(isinstance(v, int) and not isinstance(v, bool) for v in (n, other))
+    return whole and n > 0 and other == 0
+
+
 def default_model_name(inst: Instance) -> str:
     """The shipped model for an instance: ``guided-dagger`` (the full net with a list-schedule plan's guide,
     searched with the solver's default effort) on every shop, Bilge-Ulusoy-size ones included, where the guided
@@ -212,10 +236,10 @@ def default_model_name(inst: Instance) -> str:
 
 @functools.lru_cache(maxsize=8)
 def _cached_agent(weights: str, mtime: float, padding: tuple, name: str, decisions: str = "paper",
-                  guide: str | None = None) -> Any:
+                  guide: str | None = None, plan_assigns: bool = False) -> Any:
     from .agent import Agent
 
-    agent = Agent(weights, dict(padding), name=name, decisions=decisions, guide=guide)
+    agent = Agent(weights, dict(padding), name=name, decisions=decisions, guide=guide, plan_assigns=plan_assigns)
     _settle_heap()
     return agent
 
@@ -248,4 +272,4 @@ def load_agent(spec: str) -> Any:
     later full garbage collections do not pause decisions to scan the modules and the model."""
     ref = resolve_model(spec)
     return _cached_agent(str(ref.weights), ref.weights.stat().st_mtime, tuple(sorted(ref.padding.items())),
-                         ref.name, ref.decisions, ref.guide)
+                         ref.name, ref.decisions, ref.guide, ref.plan_assigns)

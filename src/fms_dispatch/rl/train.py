@@ -349,8 +349,9 @@ def _check_init_apart(init: Path) -> None:
                          "from one trained on generated shops")
 
 
-#: the entries of a model's metrics.json measured on its solving weights (bench/heldout.py, bench/rl_eval.py)
-_WEIGHT_FIGURES = ("heldout", "benchmark")
+#: the entries of a model's metrics.json measured on its solving weights (bench/heldout.py, bench/rl_eval.py,
+#: bench/plan_assignments.py: with new weights the network may choose otherwise than the plan's assignments)
+_WEIGHT_FIGURES = ("heldout", "benchmark", "plan_assignments")
 
 
 def _solving_weights_sha(out: Path) -> str | None:
@@ -990,7 +991,8 @@ def train(config: dict[str, Any], out: str | Path, resume: bool = False, progres
         dropped = [k for k in _WEIGHT_FIGURES if metrics.pop(k, None) is not None]
         if dropped and (verbose or progress):
             progress_line(f"note: {weights.name} changed, so its {' and '.join(dropped)} figures in {METRICS_FILE} were "
-                          "of the old weights and are dropped (measure them again: bench/heldout.py --write-metrics)")
+                          "of the old weights and are dropped (measure them again: bench/heldout.py --write-metrics, "
+                          "bench/plan_assignments.py --record)")
     if warm_metrics is not None:
         metrics["warm_start"] = warm_metrics
     metrics["training"] = {
