@@ -148,3 +148,14 @@ def test_a_pool_worker_searches_before_its_run(monkeypatch):
     assert beside.beside_possible(SEARCH)
     _pool_worker()
     assert not beside.ALLOWED and not beside.beside_possible(SEARCH)
+
+
+def test_where_no_process_can_be_forked_the_search_runs_before_the_run(monkeypatch, two_cpus):
+    def no_fork(*args, **kwargs):
+        raise OSError("Resource temporarily unavailable")
+
+    monkeypatch.setattr(beside, "Forked", no_fork)
+    inst = builtin("EX22")
+    sched = solve(inst, "ppo", guide_effort=SEARCH)
+    assert validate(inst, sched) == [] and sched.meta["guide_search_beside"] is None
+    assert sched.operations == _in_line(monkeypatch, inst).operations and sched.meta["guide_search_time"] > 0

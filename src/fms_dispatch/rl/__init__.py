@@ -126,7 +126,7 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
                 beside = None
             else:
                 agent.adopt_replan(shop, beside.first.plan, None, None)
-        elif agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
+        if agent.guide is not None and beside is None:  # the plan search, timed apart from the run (which reads it)
             t0 = time.perf_counter()
             agent.guide_of(shop)
             search_s = time.perf_counter() - t0
