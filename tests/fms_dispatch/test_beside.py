@@ -16,17 +16,19 @@ from fms_dispatch.rl.guide import PlanEffort, effort_from, first_plan, guide_pla
 from fms_dispatch.rl.models import load_agent
 from fms_dispatch.solvers import solve
 
-#: a search that does not depend on the clock (no budget, no tabu search): its plan is the same on any machine
-SEARCH = effort_from(restarts=8, budget=0, tabu=0)
+#: a search that does not depend on the clock (8 restarts end far within the budget, no tabu search): its plan is
+#: the same on any machine
+SEARCH = effort_from(restarts=8, budget=30, tabu=0)
 
 needs_fork = pytest.mark.skipif(not beside.FORK_AVAILABLE, reason="the search runs beside the run on Linux only")
 
 
 @pytest.fixture
 def two_cpus(monkeypatch):
-    """The search may run beside the run whatever this machine's CPUs (CI has 2; the check itself is tested
-    below)."""
+    """The search may run beside the run whatever this machine's CPUs (CI has 2) and the shop's size (these are
+    small shops, whose search runs in line by default); both checks are tested below."""
     monkeypatch.setattr(beside, "_cpus", lambda: 2)
+    monkeypatch.setattr(beside, "BESIDE_LISTS", 10**9)
 
 
 def _in_line(monkeypatch, inst, **kwargs):
@@ -40,6 +42,7 @@ def _in_line(monkeypatch, inst, **kwargs):
 def test_the_search_from_its_first_plan_is_the_guides_plan():
     # guide_plan is first_plan and then search_from: the same plan; the search returns the first plan itself where
     # nothing ends earlier (EX12 with 8 restarts: 84 stands), a new plan where something does (EX22: 97 -> 82)
+    assert SEARCH.budget == 30
     for name, kept in (("EX12", True), ("EX22", False)):
         inst = builtin(name)
         first = first_plan(FullShop(inst))
@@ -130,6 +133,21 @@ def test_the_search_runs_beside_only_where_it_can_and_searches(monkeypatch):
     monkeypatch.setattr(beside, "_cpus", lambda: 2)
     monkeypatch.setattr(beside, "FORK_AVAILABLE", False)
     assert not beside.beside_possible(SEARCH)
+
+
+def test_only_a_search_that_its_budget_cuts_short_runs_beside(monkeypatch):
+    # beside only where the budget fits fewer than BESIDE_LISTS list schedules (the 100-job shops): elsewhere the
+    # search nearly always improves the first plan, and the run would start over after a fork for nothing
+    import dataclasses
+
+    monkeypatch.setattr(beside, "_cpus", lambda: 2)
+    first = first_plan(FullShop(builtin("EX12")))
+    one_s = effort_from(budget=1.0)
+    assert not beside.worth_beside(dataclasses.replace(first, seconds=0.01), one_s)  # 16 x 0.01 s fit in 1 s
+    assert beside.worth_beside(dataclasses.replace(first, seconds=0.1), one_s)  # (sl70: 0.15 s each)
+    assert not beside.worth_beside(dataclasses.replace(first, seconds=0.1), effort_from(budget=0))  # no budget
+    sched = solve(builtin("EX12"), "ppo")  # the default search on a small shop: before the run
+    assert sched.meta["guide_search_beside"] is None and validate(builtin("EX12"), sched) == []
 
 
 def test_lookahead_runs_search_before_the_run(monkeypatch, two_cpus):

@@ -202,6 +202,7 @@ def test_a_guided_runs_plan_search_is_timed_apart(tmp_path, capsys, monkeypatch)
     assert f"{meta['wall_time']:.3f} s, {meta['guide_search_time']:.3f} s of it the plan search, valid)" in line
     if beside.FORK_AVAILABLE:  # beside the run (sl00: the search ends after the run and finds a better plan)
         monkeypatch.setattr(beside, "_cpus", lambda: 2)
+        monkeypatch.setattr(beside, "BESIDE_LISTS", 10**9)  # (by default only a 100-job shop's search runs beside)
         code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"],
                             capsys)
         meta = json.loads(out.read_text())["meta"]

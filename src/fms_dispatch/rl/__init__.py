@@ -77,7 +77,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
 
         from ..solvers import lookahead_suffix
         from .agent import GuideReplanner
-        from .beside import SearchBeside, beside_possible, run_beside
+        from .beside import SearchBeside, beside_possible, run_beside, worth_beside
+        from .guide import first_plan, search_from
         from .lookahead import nominal_twin, run_agent
         from .models import default_model_name, load_agent
 
@@ -120,13 +121,18 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         search_s = None
         beside = None
         if agent.guide is not None and not lookahead and beside_possible(agent.guide_effort):
-            try:  # the plan search on the other core, the run going on with its first plan meanwhile
-                beside = SearchBeside(shop, agent.guide_effort)
-            except OSError:  # no process could be forked now: the search runs first, as below
-                beside = None
-            else:
-                agent.adopt_replan(shop, beside.first.plan, None, None)
-        if agent.guide is not None and beside is None:  # the plan search, timed apart from the run (which reads it)
+            t0 = time.perf_counter()
+            first = first_plan(shop)
+            if worth_beside(first, agent.guide_effort):
+                try:  # the plan search on the other core, the run going on with its first plan meanwhile
+                    beside = SearchBeside(shop, agent.guide_effort, first)
+                except OSError:  # no process could be forked now: the search runs first, as below
+                    beside = None
+            # the first plan, the run going on with it; or the plan searched from it before the run
+            plan = first.plan if beside is not None else search_from(instance, first, agent.guide_effort)
+            agent.adopt_replan(shop, plan, None, None)
+            search_s = time.perf_counter() - t0
+        elif agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
             t0 = time.perf_counter()
             agent.guide_of(shop)
             search_s = time.perf_counter() - t0

@@ -1,8 +1,8 @@
 """A guided model's plan search beside its run, on the machine's other core.
 
 A guided model's solve searches the plan it acts out (:func:`~fms_dispatch.rl.guide.guide_plan`, within 1 s by
-default) before its first decision. Where a second core is there for it (:func:`beside_possible`) the search runs
-on that core instead, in a forked copy of the process (:class:`fms_dispatch.forked.Forked`), from the search's first
+default) before its first decision. Where a second core is there for it (:func:`beside_possible`) and the search
+can do little within its budget (:func:`worth_beside`: the large shops) the search runs on that core instead, in a forked copy of the process (:class:`fms_dispatch.forked.Forked`), from the search's first
 plan (the earliest-start list schedule, :func:`~fms_dispatch.rl.guide.first_plan`), while the run goes on with the
 first plan in force (:func:`run_beside`). When the search ends:
 
@@ -32,7 +32,8 @@ from fms_sim.shop import Shop
 from ..forked import FORK_AVAILABLE, Forked
 from .guide import FirstPlan, PlanEffort, first_plan, search_from
 
-__all__ = ["beside_possible", "in_pool_worker", "SearchBeside", "run_beside", "ALLOWED"]
+__all__ = ["beside_possible", "worth_beside", "in_pool_worker", "SearchBeside", "run_beside", "ALLOWED",
+           "BESIDE_LISTS"]
 
 Choose = Callable[[Shop], int]
 
@@ -66,6 +67,22 @@ def beside_possible(effort: PlanEffort) -> bool:
     return ALLOWED and FORK_AVAILABLE and _cpus() >= 2 and searches and not effort.exact
 
 
+#: the search runs beside the run only where its budget fits fewer list schedules of the shop than this
+#: (:func:`worth_beside`)
+BESIDE_LISTS = 16
+
+
+def worth_beside(first: FirstPlan, effort: PlanEffort) -> bool:
+    """Whether the search from ``first`` is worth running beside the run: its budget fits fewer than
+    :data:`BESIDE_LISTS` list schedules of the shop (``first.seconds`` each), so that its restarts and tabu search get
+    little done and the first plan may well stand (on the large benchmark it stood on 5 of the 10 100-job shops with
+    tools, where 3-4 list schedules fit in the 1 s budget, and on no shop of up to 40 jobs). On smaller shops the
+    search improves the first plan nearly always, so a run beside it would start over and pay for the fork and the
+    plan's transfer for nothing (about 10 ms a solve on Bilge-Ulusoy's shops, a seventh of it). A search without a
+    budget is not run beside."""
+    return effort.budget is not None and first.seconds * BESIDE_LISTS > effort.budget
+
+
 def _search(inst: Instance, first: FirstPlan, effort: PlanEffort) -> tuple[Schedule | None, float]:
     """The forked child's work: the search from ``first`` (:func:`~fms_dispatch.rl.guide.search_from`); its plan,
     None where that is the first plan itself, and when it ended (``time.monotonic()``, one clock for both
@@ -76,13 +93,14 @@ def _search(inst: Instance, first: FirstPlan, effort: PlanEffort) -> tuple[Sched
 
 class SearchBeside:
     """The guide's plan search for ``shop`` (at its run's start) with ``effort``, running in a forked process from
-    the moment this is made; :attr:`first` is its first plan, computed here, for the run to go on with. Raises
-    OSError where no process can be forked now (the caller then searches in line)."""
+    the moment this is made; :attr:`first` is its first plan (``first``, :func:`~fms_dispatch.rl.guide.first_plan`
+    of ``shop``, or computed here), for the run to go on with. Raises OSError where no process can be forked now (the
+    caller then searches in line)."""
 
-    def __init__(self, shop: FullShop, effort: PlanEffort) -> None:
+    def __init__(self, shop: FullShop, effort: PlanEffort, first: FirstPlan | None = None) -> None:
         self.effort = effort
         self.instance = shop.instance
-        self.first: FirstPlan = first_plan(shop)
+        self.first: FirstPlan = first_plan(shop) if first is None else first
         #: the search's length in seconds from its start (the first plan included), once it has ended
         self.seconds: float | None = None
         #: why the forked search failed (it was then made again in line), or None
