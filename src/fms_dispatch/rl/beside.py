@@ -2,13 +2,14 @@
 
 A guided model's solve searches the plan it acts out (:func:`~fms_dispatch.rl.guide.guide_plan`, within 1 s by
 default) before its first decision. Where a second core is there for it (:func:`beside_possible`) and the search
-can do little within its budget (:func:`worth_beside`: the large shops) the search runs on that core instead, in a forked copy of the process (:class:`fms_dispatch.forked.Forked`), from the search's first
-plan (the earliest-start list schedule, :func:`~fms_dispatch.rl.guide.first_plan`), while the run goes on with the
-first plan in force (:func:`run_beside`). When the search ends:
+can do little within its budget (:func:`worth_beside`: the large shops) the search runs on that core instead, in a
+forked copy of the process (:class:`fms_dispatch.forked.Forked`), from the search's first plan (the earliest-start
+list schedule, :func:`~fms_dispatch.rl.guide.first_plan`), while the run goes on with the first plan in force
+(:func:`run_beside`). When the search ends:
 
 * nothing it found ends earlier than the first plan: the run that went on is the run the solve makes with the
   search before it, and it goes on: the search's time is saved (on the large benchmark's 100-job shops with tools
-  the search improves the first plan on 5 of 10 within its budget, docs/benchmarks.md §9);
+  the search leaves the first plan as it is on 5 of 10 within its budget, docs/benchmarks.md §9);
 * it found a plan that ends earlier: the run starts over with that plan, as it would have started after the
   search (the time of the run so far, made on this core while the search ran on the other, is lost).
 
