@@ -7,14 +7,24 @@ appends each finished task at once as one JSON line to ``<results>/bench_cache.j
 threads too (the default follows ``--jobs``; a cached row of another thread count is reused then); a rerun skips
 tasks already cached with a valid result (unless ``force``), so an interrupted run loses nothing. Tasks that failed
 (solver error or invalid schedule) are cached too, so that the tables show them, but are tried again on the next
-run. A ``plan:file:PATH`` task is cached by its path: after changing the file, rerun with ``--force``. The outputs
-(Markdown, CSV, JSON, PNG) show this run's tasks, each from the cache (those run before included), and are
-replaced by the next run's of the same benchmark and layout.
+run. The outputs (Markdown, CSV, JSON, PNG) show this run's tasks, each from the cache (those run before included),
+and are replaced by the next run's of the same benchmark and layout.
+
+Each row records in ``digests`` what produced it (:func:`task_digests`): the cache format (:data:`CACHE_FORMAT`),
+the SHA-256 of the solved instance's canonical JSON (``Instance.to_dict`` with sorted keys: its jobs, matrices and
+fleet, not the data file's bytes, so a file reformatted only changes nothing), for ``ppo`` methods the SHA-256 of
+the weights file the model resolves to (the default ``ppo`` per instance, by ``default_model_name``) and for
+``plan:file:PATH`` the file's SHA-256. A cached row is reused only where its digests equal the task's: a row of an
+instance whose data changed, of a retrained model or of an edited plan file is solved again, and the run says on
+stderr how many were and what changed (the key alone reused such rows without a word, mixing results of different
+inputs in one table). Rows cached before digests were recorded carry none: they are reused as they are (hours of
+CP-SAT runs), and the run says on stderr how many it reused that way and that ``--force`` solves them again. The
+digests are those of the inputs when the run starts, each computed once per run (no solver or torch is loaded).
 
 Rows (plain dicts, as in the cache): ``benchmark, instance, variant, method, time_limit, seed, workers,
-makespan, wall_time, valid, error, lower_bound, status, optimum, n_jobs, n_machines``. ``error`` is ``None``
-for a valid schedule; an invalid schedule or a solver failure gives ``valid = False`` and the reason, and is
-never averaged into a table.
+makespan, wall_time, valid, error, lower_bound, status, optimum, n_jobs, n_machines, digests``. ``error`` is
+``None`` for a valid schedule; an invalid schedule or a solver failure gives ``valid = False`` and the reason, and
+is never averaged into a table.
 
 Gaps are relative to a reference makespan ``ref``: ``100 * (makespan - ref) / ref``. For ``bu`` the reference
 is the known optimum (``instance.meta["optimal_makespan"]``), for ``sl`` the best lower bound any method
@@ -36,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import math
 import os
@@ -54,9 +65,13 @@ __all__ = [
     "Task", "run_bench", "run_task", "bu_tasks", "sl_tasks", "bu_table", "sl_table", "time_table", "summary",
     "best_rule_of", "failures", "parse_index_spec", "check_methods", "cpsat_threads", "default_jobs",
     "read_cache", "write_outputs", "render_markdown", "plot_bench", "add_bench_parser", "CACHE_NAME", "VARIANTS",
+    "CACHE_FORMAT", "instance_digest", "task_digests",
 ]
 
 CACHE_NAME = "bench_cache.jsonl"
+#: The format of a cached row's ``digests`` (rows without them are of the format before: 1). A row of another
+#: format is solved again, as one whose digests differ.
+CACHE_FORMAT = 2
 #: Instance variants: ``agvs`` = AGVs only (tools dropped), ``agvs+tools`` = the instance as built.
 VARIANTS = ("agvs", "agvs+tools")
 BU_SETS = range(1, 11)
@@ -221,6 +236,102 @@ def load_task_instance(task: Task) -> Instance:
     raise ValueError(f"unknown variant {task.variant!r}; choose from {', '.join(VARIANTS)}")
 
 
+# ============================================================================================ digests
+def instance_digest(inst: Instance) -> str:
+    """The SHA-256 of ``inst``'s canonical JSON (:meth:`~fms_sim.instance.Instance.to_dict`, keys sorted, no
+    spaces): what a solver reads of the instance (name, jobs, travel matrices, fleet and counts; not ``meta``), the
+    same however the data file it came from is formatted."""
+    text = json.dumps(inst.to_dict(), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+class DigestMemo:
+    """The digests of one run, each computed once: per (instance, variant), per model name and per file (a
+    benchmark runs many methods on each instance, and each ``ppo`` method on many instances)."""
+
+    def __init__(self) -> None:
+        self.instances: dict[tuple[str, str], tuple[Instance | None, str | None]] = {}
+        self.weights: dict[str, Path | None] = {}
+        self.files: dict[str, str | None] = {}
+
+    def instance(self, task: Task) -> tuple[Instance | None, str | None]:
+        """The task's instance and its digest; ``(None, None)`` where it does not load (the task fails then)."""
+        key = (task.instance, task.variant)
+        if key not in self.instances:
+            try:
+                inst = load_task_instance(task)
+                self.instances[key] = (inst, instance_digest(inst))
+            except Exception:  # (the task's run records the error; its row is not reused)
+                self.instances[key] = (None, None)
+        return self.instances[key]
+
+    def file(self, path: Path) -> str | None:
+        """A file's SHA-256; None where it cannot be read."""
+        key = str(path)
+        if key not in self.files:
+            try:
+                self.files[key] = _file_sha256(path)
+            except OSError:
+                self.files[key] = None
+        return self.files[key]
+
+    def model_weights(self, spec: str) -> str | None:
+        """The SHA-256 of the weights file that model ``spec`` solves with; None where it does not resolve."""
+        if spec not in self.weights:
+            from .rl.models import resolve_model  # (no torch: the folder, its config and the weights' path)
+
+            try:
+                self.weights[spec] = resolve_model(spec).weights
+            except Exception:  # (the task's run records the error; its row is not reused)
+                self.weights[spec] = None
+        path = self.weights[spec]
+        return None if path is None else self.file(path)
+
+
+def task_digests(task: Task, memo: DigestMemo | None = None) -> dict[str, Any]:
+    """What a task's row records of its inputs, and what a cached row must equal to be reused: ``format``
+    (:data:`CACHE_FORMAT`), ``instance`` (:func:`instance_digest` of the instance it solves), for a ``ppo`` method
+    ``weights`` (the SHA-256 of its model's solving weights; the default ``ppo`` takes the model
+    :func:`~fms_dispatch.rl.models.default_model_name` gives for the instance) and for ``plan:file:PATH`` ``plan``
+    (the file's SHA-256). A digest that cannot be computed (an instance or a model that does not load) is None: the
+    task then fails, and a failed row is solved again anyway."""
+    memo = memo or DigestMemo()
+    inst, inst_digest = memo.instance(task)
+    out: dict[str, Any] = {"format": CACHE_FORMAT, "instance": inst_digest}
+    low = task.method.strip().lower()
+    if low == "ppo" or low.startswith(("ppo:", "ppo+")):
+        base = task.method.strip().partition("+")[0].strip()
+        spec: str | None = base[4:].strip() if base.lower().startswith("ppo:") else None
+        if spec is None and inst is not None:
+            from .rl.models import default_model_name
+
+            spec = default_model_name(inst)
+        out["weights"] = None if spec is None else memo.model_weights(spec)
+    elif low.startswith("plan:file:"):
+        from .solvers import parse_plan_name
+
+        try:
+            path = Path(parse_plan_name(task.method)[0][len("file:"):])
+        except ValueError:
+            out["plan"] = None
+        else:
+            out["plan"] = memo.file(path)
+    return out
+
+
+#: the names of a row's digests in the message on the rows solved again
+_DIGEST_NAMES = {"format": "cache format", "instance": "instance data", "weights": "model weights",
+                 "plan": "plan file"}
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
@@ -342,9 +453,12 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
               progress: bool = False) -> list[dict[str, Any]]:
     """Run the tasks not yet cached (all with ``force``) and return one row per task, in task order.
 
-    Every finished task is appended to ``<results_dir>/bench_cache.jsonl`` immediately. ``jobs > 1`` runs
-    tasks in a process pool (spawned workers: CP-SAT threads and fork do not mix); ``jobs == 1`` runs them in
-    this process.
+    A cached valid row is reused where its ``digests`` equal the task's (:func:`task_digests`) or where it has
+    none (a row cached before digests were recorded; the run says how many on stderr); a row whose digests differ
+    is solved again (said on stderr, with what changed). Every finished task is appended to
+    ``<results_dir>/bench_cache.jsonl`` immediately, with the digests its inputs had when the run started.
+    ``jobs > 1`` runs tasks in a process pool (spawned workers: CP-SAT threads and fork do not mix); ``jobs == 1``
+    runs them in this process.
     """
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {jobs}")
@@ -365,14 +479,38 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     cache = read_cache(cache_path)
     todo: list[Task] = []
     seen: set[tuple[Any, ...]] = set()
+    memo = DigestMemo()
+    digests: dict[tuple[Any, ...], dict[str, Any]] = {}
+    changed: dict[str, int] = defaultdict(int)  # rows solved again, per input that changed
+    n_changed = n_undigested = 0
     for t in tasks:
         if t.key in seen:
             continue
         seen.add(t.key)
+        digests[t.key] = task_digests(t, memo)
         hit = cache.get(t.key)
         other_threads = t.workers is not None and hit is not None and hit.get("workers") != t.workers
         if force or hit is None or not hit.get("valid") or other_threads:
             todo.append(t)
+            continue
+        have = hit.get("digests")
+        if have is None:  # cached before digests were recorded: reused (said below)
+            n_undigested += 1
+        elif have != digests[t.key]:
+            todo.append(t)
+            n_changed += 1
+            have = have if isinstance(have, dict) else {}
+            for name in _DIGEST_NAMES:
+                if have.get(name) != digests[t.key].get(name):
+                    changed[name] += 1
+    if n_changed:
+        what = ", ".join(f"{_DIGEST_NAMES[k]}: {n}" for k, n in changed.items())
+        print(f"bench: {n_changed} cached row(s) solved again: their inputs changed since they were cached ({what})",
+              file=sys.stderr)
+    if n_undigested:
+        print(f"bench: reused {n_undigested} cached row(s) that carry no digest of their instance data, model weights "
+              "or plan file (cached before digests were recorded), so a change of those since goes unseen; --force "
+              "solves them again and records their digests", file=sys.stderr)
     parallel = min(jobs, len(todo))  # tasks that really run at the same time
     todo = [Task(t.benchmark, t.instance, t.variant, t.method, t.time_limit, t.seed, cpsat_threads(parallel))
             if t.method.lower() == "cpsat" and t.workers is None else t for t in todo]
@@ -380,6 +518,7 @@ def run_bench(tasks: Sequence[Task], *, jobs: int = 1, force: bool = False, resu
     done = 0
     try:
         for row in _execute(todo, jobs, progress):
+            row["digests"] = digests[_row_key(row)]  # (of the inputs at the start: those the task was run from)
             _append(cache_path, row)
             cache[_row_key(row)] = row
             done += 1
@@ -896,7 +1035,11 @@ def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
                    help=f"parallel tasks (process pool; default {default_jobs()})")
-    p.add_argument("--force", action="store_true", help="re-solve tasks that are already in the cache")
+    p.add_argument("--force", action="store_true",
+                   help="re-solve tasks that are already in the cache (without it, a cached row is solved again "
+                        "only where it failed, ran other --cpsat-workers than given, or where its instance data, ppo "
+                        "model weights or plan:file file changed since; rows cached before those digests were "
+                        "recorded are reused)")
     p.add_argument("--results-dir", default="results", help="where the cache, CSV, JSON, Markdown and PNG go")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
@@ -904,7 +1047,9 @@ def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
 def add_bench_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``fms bench bu|sl`` to the CLI's subparsers; each sets ``fn`` to a command returning an exit code."""
     p = subparsers.add_parser("bench", help="baseline tables and plots (bu: Bilge-Ulusoy, sl: large benchmark)",
-                              description="Run methods on a benchmark; resumable (results/bench_cache.jsonl).")
+                              description="Run methods on a benchmark; resumable (results/bench_cache.jsonl: a "
+                                          "cached row is reused while its instance data, ppo model weights and "
+                                          "plan:file file are unchanged, as their SHA-256 digests say).")
     sub = p.add_subparsers(dest="bench_cmd", required=True)
     s = sub.add_parser("bu", help="the heuristic table on EX1L..EX10L (2 AGVs, no tools) with gaps to the optimum")
     s.add_argument("--layout", type=int, default=2, choices=(1, 2, 3, 4), help="BU layout (default 2)")

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -462,3 +465,169 @@ def test_an_interrupt_says_what_was_kept_and_how_to_go_on(tmp_path: Path, monkey
     assert f"interrupted after 1 of 2 task(s) to run; the finished ones are cached in {tmp_path / bm.CACHE_NAME}" in err
     assert "run the same command again to continue" in err
     assert [r["method"] for r in bm.read_cache(tmp_path / bm.CACHE_NAME).values()] == RULES[:1]
+
+
+# ------------------------------------------------------------------------------------------------ cache digests
+MODELS = Path(__file__).resolve().parents[2] / "models"
+
+
+def _rebuild_bu() -> None:
+    """Forget the built EX instances, as a new process would, so that they are read from the job sets again."""
+    import fms_sim.benchmarks as fb
+
+    fb._ex.cache_clear()
+
+
+@pytest.fixture
+def bu_jobsets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A copy of the package's BU job sets that the EX built-ins are read from while the test runs."""
+    import fms_sim.benchmarks as fb
+
+    path = tmp_path / "bu_jobsets.json"
+    path.write_text(json.dumps(fb._data("bu_jobsets.json")))
+    real = fb._data
+
+    def data(filename: str) -> dict:
+        return json.loads(path.read_text()) if filename == "bu_jobsets.json" else real(filename)
+
+    monkeypatch.setattr(fb, "_data", data)
+    _rebuild_bu()
+    yield path
+    _rebuild_bu()  # (the package's data again for the tests after this one)
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_a_row_is_solved_again_after_its_instance_data_change(bu_jobsets: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """The key names the instance only: after its data changed under the same name (a job set's time corrected),
+    the row solved from the old data was reused without a word. A data file only reformatted is the same instance."""
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(["list"], sets=[1])
+    out = tmp_path / "out"
+    first = bm.run_bench(tasks, jobs=1, results_dir=out)
+    data = json.loads(bu_jobsets.read_text())
+    bu_jobsets.write_text(json.dumps(data, indent=4, sort_keys=True))  # other bytes, the same instance
+    _rebuild_bu()
+    assert bm.run_bench(tasks, jobs=1, results_dir=out) == first and len(calls) == 1
+    data["jobsets"]["set1"]["jobs"][0][0][1] += 30  # job 1's first operation takes 30 more
+    bu_jobsets.write_text(json.dumps(data))
+    _rebuild_bu()
+    capsys.readouterr()
+    rows = bm.run_bench(tasks, jobs=1, results_dir=out)
+    err = capsys.readouterr().err
+    assert len(calls) == 2
+    assert rows[0]["makespan"] == solved("EX12", "list") != first[0]["makespan"]  # (a third call, the test's)
+    assert err.count("solved again") == 1 and "1 cached row(s) solved again" in err and "instance data: 1" in err
+    assert rows[0]["digests"]["instance"] == bm.instance_digest(builtin("EX12")) != first[0]["digests"]["instance"]
+    assert bm.run_bench(tasks, jobs=1, results_dir=out) == rows and len(calls) == 3  # the new row serves now
+
+
+def test_a_ppo_row_is_solved_again_after_its_models_weights_change(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A model retrained into the same folder kept its cached rows: the tables showed the old weights' makespans."""
+    model = tmp_path / "mine"
+    shutil.copytree(MODELS / "bu", model)
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks([f"ppo:{model}"], sets=[1])
+    out = tmp_path / "out"
+    first = bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert bm.run_bench(tasks, jobs=1, results_dir=out) == first and len(calls) == 1
+    for old, new in (("best_model.zip", "model.zip"), ("best_model.actor.npz", "model.actor.npz")):
+        shutil.copyfile(MODELS / "bu" / new, model / old)  # other weights (and their export) under the same name
+    capsys.readouterr()
+    rows = bm.run_bench(tasks, jobs=1, results_dir=out)
+    err = capsys.readouterr().err
+    assert len(calls) == 2 and rows[0]["valid"] and "1 cached row(s) solved again" in err and "model weights: 1" in err
+    assert rows[0]["digests"]["weights"] == _sha256(model / "best_model.zip") != first[0]["digests"]["weights"]
+    assert rows[0]["digests"]["instance"] == first[0]["digests"]["instance"]  # the instance did not change
+    bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert len(calls) == 2
+
+
+def test_the_default_ppo_row_is_solved_again_when_the_default_model_is_another(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``ppo`` resolves to the default model per instance: rows of the former default served for another."""
+    from fms_dispatch.rl import models
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    shutil.copytree(MODELS / "bu", one)
+    shutil.copytree(MODELS / "bu", two)
+    for old, new in (("best_model.zip", "model.zip"), ("best_model.actor.npz", "model.actor.npz")):
+        shutil.copyfile(MODELS / "bu" / new, two / old)
+    default = one
+    monkeypatch.setattr(models, "default_model_name", lambda inst: str(default))
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(["ppo"], sets=[1])
+    out = tmp_path / "out"
+    first = bm.run_bench(tasks, jobs=1, results_dir=out)
+    bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert len(calls) == 1 and first[0]["digests"]["weights"] == _sha256(one / "best_model.zip")
+    default = two
+    capsys.readouterr()
+    rows = bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert len(calls) == 2 and rows[0]["digests"]["weights"] == _sha256(two / "best_model.zip")
+    assert "model weights: 1" in capsys.readouterr().err
+
+
+def test_a_plan_file_row_is_solved_again_after_the_file_changes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A ``plan:file:PATH`` row was cached by its path: a plan written over it left the old plan's makespan."""
+    plan, other = tmp_path / "plan.json", tmp_path / "other.json"
+    solvers.solve(builtin("EX12"), "list").save(plan)
+    solvers.solve(builtin("EX12"), "rule:FIFO+first").save(other)
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks([f"plan:file:{plan}"], sets=[1])
+    out = tmp_path / "out"
+    first = bm.run_bench(tasks, jobs=1, results_dir=out)
+    bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert len(calls) == 1
+    shutil.copyfile(other, plan)
+    capsys.readouterr()
+    rows = bm.run_bench(tasks, jobs=1, results_dir=out)
+    assert len(calls) == 2 and "plan file: 1" in capsys.readouterr().err
+    assert rows[0]["makespan"] == solved("EX12", f"plan:file:{other}") != first[0]["makespan"]
+    assert rows[0]["digests"]["plan"] == _sha256(other)
+
+
+def test_rows_cached_before_digests_are_reused_with_one_notice(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """Rows cached before the digests were recorded (hours of CP-SAT runs) are reused, and the run says how many
+    carry no digest and that --force solves them again; --force records their digests."""
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(RULES, sets=[1])
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    cache = tmp_path / bm.CACHE_NAME
+    old = [{k: v for k, v in row.items() if k != "digests"} for row in cache_lines(tmp_path)]
+    cache.write_text("".join(json.dumps(row) + "\n" for row in old))
+    capsys.readouterr()
+    rows = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    err = capsys.readouterr().err
+    assert len(calls) == 2 and rows == old
+    assert err.count("carry no digest") == 1 and "--force solves them again" in err
+    assert "reused 2 cached row(s) that carry no digest" in err
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path, force=True)
+    assert len(calls) == 4 and all("digests" in row for row in cache_lines(tmp_path)[2:])
+    bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    assert len(calls) == 4 and "carry no digest" not in capsys.readouterr().err
+
+
+def test_rows_of_unchanged_inputs_are_reused_and_record_their_digests(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    plan = tmp_path / "plan.json"
+    solvers.solve(builtin("EX12"), "list").save(plan)
+    calls = count_solves(monkeypatch)
+    tasks = bm.bu_tasks(["list", "ppo:full", f"plan:file:{plan}"], sets=[1])
+    first = bm.run_bench(tasks, jobs=1, results_dir=tmp_path)
+    capsys.readouterr()
+    assert bm.run_bench(tasks, jobs=1, results_dir=tmp_path) == first and len(calls) == 3
+    assert capsys.readouterr().err == ""
+    inst = bm.instance_digest(builtin("EX12"))
+    base = {"format": bm.CACHE_FORMAT, "instance": inst}
+    assert [r["digests"] for r in first] == [base, {**base, "weights": _sha256(MODELS / "full" / "best_model.zip")},
+                                             {**base, "plan": _sha256(plan)}]
+    assert [r["digests"] for r in cache_lines(tmp_path)] == [r["digests"] for r in first]
