@@ -983,6 +983,8 @@ def _check_numbers(a: argparse.Namespace) -> None:
     _positive("--cpsat-time-limit", a.cpsat_time_limit)
     _positive("--cpsat-workers", a.cpsat_workers)
     _positive("--jobs", a.jobs)
+    if a.seed < 0:  # the searches took its absolute value (sos, tabu) and cached the rows under the negative seed
+        raise ValueError(f"--seed must be an integer >= 0, got {a.seed}")
 
 
 def cmd_bench_bu(a: argparse.Namespace) -> int:
@@ -1032,7 +1034,7 @@ def _common(p: argparse.ArgumentParser, cpsat_default: float) -> None:
                    help="CP-SAT threads per task (default: min(2, cpus // tasks running at once), the tasks at "
                         "once being min(--jobs, tasks to run)); given, a cached cpsat row of other threads is "
                         "solved again (by default any cached row serves)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed (>= 0) of the methods that search or draw at random (default 0)")
     p.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
                    help=f"parallel tasks (process pool; default {default_jobs()})")
     p.add_argument("--force", action="store_true",

@@ -631,3 +631,13 @@ def test_rows_of_unchanged_inputs_are_reused_and_record_their_digests(tmp_path: 
     assert [r["digests"] for r in first] == [base, {**base, "weights": _sha256(MODELS / "full" / "best_model.zip")},
                                              {**base, "plan": _sha256(plan)}]
     assert [r["digests"] for r in cache_lines(tmp_path)] == [r["digests"] for r in first]
+
+
+def test_fms_bench_refuses_a_negative_seed(tmp_path, capsys):
+    # sos and tabu ran -1 as seed 1 and cached the rows under -1: the same runs under two seeds
+    from fms_dispatch import cli
+
+    for bench in ("bu", "sl"):
+        code = cli.main(["bench", bench, "--methods", "list", "--seed", "-1", "-q", "--results-dir", str(tmp_path)])
+        assert code == 2 and "--seed must be an integer >= 0, got -1" in capsys.readouterr().err
+    assert not (tmp_path / "bench_cache.jsonl").exists()
