@@ -296,7 +296,7 @@ class Agent:
             return None
         guide = self.guide_of(shop)
         if kind == "use":
-            job = guide.use_head(guide.view(shop))
+            job = guide.planned_use(shop)
             a = shop.action_index(f"use:{job}") if job is not None else None
         else:
             v = guide.planned_vehicle(shop, kind)

@@ -534,6 +534,20 @@ class PlanGuide:
         return dict(shop=shop, started=started, started_key=key, start_head=start_head, dispatch_head=dispatch_head,
                     carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_tts=idle_tts)
 
+    def planned_use(self, shop: FullShop) -> int | None:
+        """:meth:`use_head` of ``shop`` without the rest of its :meth:`view`: the job whose request the chosen tool
+        serves next in the plan, from the tools' order heads alone (the same heads, memo and key as the view's)."""
+        t = shop.tool_choice
+        if t is None:
+            return None
+        state = self._tool_state(shop)
+        heads = self._cached("tools", state, lambda: self.tools.heads(
+            self._served(shop, self.tools, np.asarray(shop.started, dtype=np.int64))))
+        head = heads.get(t)
+        if head is None or shop.request_of(t, head[0]) != head[1]:
+            return None
+        return head[0]
+
     def use_head(self, v: dict[str, Any]) -> int | None:
         """The job whose request the chosen tool serves next in the plan (None: no choice open, or the plan's
         next use of the tool is not a pending request now)."""
