@@ -21,7 +21,14 @@ figures show that the pipeline works, not what the methods are worth.
   ``large``, or ``large-agv`` with ``--no-tools``; ``--model``: another) against a specialised agent trained only on
   generated instances of that group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group
   0, 256 steps) and selected on another (``@(120+g)``), measured on sl{g}5..sl{g}9 (quick: sl{g}9). No model trains
-  or is selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``).
+  or is selected on a benchmark instance (``fms_sim.shopsets.check_training_specs``). Each group's specialist
+  trains in ``<results>/experiment_generalization_groups/g<G>-<digest>/model`` (the digest: of the options it
+  follows from, :func:`_group_key`), and its measured rows are kept beside it (``group.json``) once the group is
+  done. An interrupt (Ctrl-C, or a stop signal) says what was kept; the same command run again reuses each
+  finished group, continues an interrupted training for the steps it lacks (as ``fms train --resume`` does: not
+  bit-identical to an uninterrupted run) and measures the general model again; other ``--steps``, ``--seed``,
+  ``--quick``, ``--no-tools`` or ``--decisions`` reuse nothing. On stderr each group's stages (general model,
+  training, measuring) are said as they start, with PPO's progress, unless ``echo`` is off.
 
 * **dynamic** — an instance's jobs split into 10 partitions (job j in partition ``j*10//n``); partition p
   arrives at ``p*Δ`` with ``Δ`` = the instance's simple lower bound (max of the largest machine load and the
@@ -62,7 +69,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fms_sim.benchmarks import SL_GROUPS
-from fms_sim.files import replacing
+from fms_sim.files import replacing, write_atomically
 from fms_sim.shopsets import expand_specs
 from fms_sim.instance import Instance
 from fms_sim.schedule import Schedule
@@ -218,24 +225,51 @@ def lower_bound(inst: Instance) -> int:
 def _train_agent(train_specs: list[str], eval_specs: list[str], steps: int, seed: int, reward: str,
                  folder: Path, padding: str | dict[str, int] = "auto",
                  fleet: dict[str, Any] | None = None, measure: list[str] | None = None,
-                 decisions: str = "paper") -> dict[str, Any]:
+                 decisions: str = "paper", progress: bool = False) -> dict[str, Any]:
     """Train one small agent with :func:`fms_dispatch.rl.train.train` on generated shops (``train_specs``,
     selected on ``eval_specs``); returns its metrics, with ``"measured"``: the validated deterministic
-    makespans on the instances ``measure`` (benchmark instances, which training never sees)."""
-    from .rl.envs import padding_for
-    from .rl.train import evaluate_model, expand_instances, train
+    makespans on the instances ``measure`` (benchmark instances, which training never sees). An interrupted
+    training raises KeyboardInterrupt once its folder holds what was learnt (:func:`_stop_if_interrupted`);
+    ``progress``: PPO's progress as ``fms train`` shows it."""
+    from .rl.train import train
 
-    cfg = {"train": train_specs, "eval": eval_specs, "steps": steps, "seed": seed, "reward": reward,
-           "padding": padding, "n_envs": 1, "vec_env": "dummy", "eval_freq": 10 * steps + 10_000,
-           "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {},
-           "decisions": decisions}
-    metrics = train(cfg, folder, progress=False, tensorboard=folder / "tb")
+    metrics = train(_agent_config(train_specs, eval_specs, steps, seed, reward, padding, fleet, decisions), folder,
+                    progress=progress, tensorboard=folder / "tb")
+    _stop_if_interrupted(metrics)
     if measure:
-        used = json.loads((folder / "config.json").read_text())
-        weights = folder / metrics["training"]["weights"]
-        metrics["measured"] = evaluate_model(weights, padding_for(used["padding"], []),
-                                             expand_instances(measure, fleet), decisions=used["decisions"])
+        metrics["measured"] = _measure(folder, metrics, measure, fleet)
     return metrics
+
+
+def _agent_config(train_specs: list[str], eval_specs: list[str], steps: int, seed: int, reward: str,
+                  padding: str | dict[str, int], fleet: dict[str, Any] | None, decisions: str) -> dict[str, Any]:
+    """The :func:`fms_dispatch.rl.train.train` config of one small agent of :func:`_train_agent`."""
+    return {"train": train_specs, "eval": eval_specs, "steps": steps, "seed": seed, "reward": reward,
+            "padding": padding, "n_envs": 1, "vec_env": "dummy", "eval_freq": 10 * steps + 10_000,
+            "save_freq": 10 * steps + 10_000, "ppo": _ppo_budget(steps), "fleet": fleet or {},
+            "decisions": decisions}
+
+
+def _stop_if_interrupted(metrics: dict[str, Any]) -> None:
+    """Raise KeyboardInterrupt if the training that returned ``metrics`` was interrupted. ``train`` keeps what was
+    learnt on Ctrl-C (or a stop signal) and returns, as ``fms train`` should; an experiment went on with the agent cut
+    short as if it had trained its budget (a specialist of 0 steps in the tables) and ran the next group's training,
+    so one Ctrl-C did not stop it."""
+    if metrics.get("training", {}).get("interrupted"):
+        raise KeyboardInterrupt
+
+
+def _measure(folder: Path, metrics: dict[str, Any], measure: list[str],
+             fleet: dict[str, Any] | None) -> dict[str, int]:
+    """The validated deterministic makespans of the agent trained in ``folder`` (its solving weights, named in
+    ``metrics``) on the instances ``measure``."""
+    from .rl.envs import padding_for
+    from .rl.train import evaluate_model, expand_instances
+
+    used = json.loads((folder / "config.json").read_text())
+    weights = folder / metrics["training"]["weights"]
+    return evaluate_model(weights, padding_for(used["padding"], []), expand_instances(measure, fleet),
+                          decisions=used["decisions"])
 
 
 # ---------------------------------------------------------------------- ablation
@@ -333,8 +367,10 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     with tempfile.TemporaryDirectory(prefix="fms-ablation-") as tmp:
         for variant, reward in shaping:
             t0 = time.perf_counter()
+            if echo:
+                say(f"reward shaping {variant}: training {steps} steps")
             trained = _train_agent(train_sl, select_sl, steps, seed, reward, Path(tmp) / variant, measure=eval_sl,
-                                   decisions=decisions)
+                                   decisions=decisions, progress=echo)
             m = trained["training"]
             for name, ms in trained["measured"].items():
                 rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
@@ -432,12 +468,98 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
 
 
 # ---------------------------------------------------------------------- generalization
+#: the folder under ``--results-dir`` that keeps each finished group's specialised agent and rows (one sub-folder
+#: per group and options, :func:`_group_key`), so that an interrupted run loses no finished group
+GROUPS_DIR = "experiment_generalization_groups"
+#: the format of a kept group (a kept group of another format is trained again)
+GROUP_FORMAT = 1
+
+
+def _group_key(g: int, train_spec: list[str], select: list[str], held: list[str], steps: int, seed: int,
+               fleet: dict[str, Any], decisions: str) -> dict[str, Any]:
+    """Everything a group's specialised agent and its rows follow from: a kept group is reused only by a run whose
+    key is equal (a run with other ``--steps``, ``--seed``, ``--quick``, ``--no-tools`` or ``--decisions`` trains
+    its own). The general model is not in it: its rows are measured again on every run."""
+    return {"format": GROUP_FORMAT, "group": g, "size": "x".join(map(str, SL_GROUPS[g])), "train": train_spec,
+            "select": select, "measure": held, "steps": steps, "seed": seed, "fleet": fleet, "decisions": decisions,
+            "reward": "shaped", "padding": "auto", "ppo": _ppo_budget(steps)}
+
+
+def _group_folder(root: Path, key: dict[str, Any]) -> Path:
+    """The folder of a group's kept work under ``root``: ``g<group>-<digest of its key>``."""
+    import hashlib
+
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    return root / f"g{key['group']}-{digest}"
+
+
+def _kept_rows(folder: Path, key: dict[str, Any]) -> list[dict[str, Any]] | None:
+    """The specialised rows a finished group kept in ``folder`` (``group.json``, written last and whole), or None
+    where there are none of this ``key``."""
+    try:
+        doc = json.loads((folder / "group.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict) or doc.get("key") != key or not isinstance(doc.get("rows"), list):
+        return None
+    return doc["rows"]
+
+
+def _kept_training(model: Path) -> dict[str, Any] | None:
+    """The metrics of the training an earlier run left in the folder ``model`` (finished or interrupted with its
+    weights saved), or None where there is none to go on from."""
+    try:
+        metrics = json.loads((model / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    ok = (isinstance(metrics, dict) and isinstance(metrics.get("training"), dict)
+          and (model / "config.json").is_file() and (model / str(metrics["training"].get("weights"))).is_file())
+    return metrics if ok else None
+
+
+def _specialist(folder: Path, key: dict[str, Any], fleet: dict[str, Any], note: Callable[[str], None],
+                progress: bool) -> dict[str, Any]:
+    """Train group ``key``'s specialised agent in ``folder/model`` and return its metrics with ``"measured"``, going
+    on from what an earlier run of the same key left there: a finished training is only measured, an interrupted
+    one continues for the steps it lacks (``fms train --resume``), anything else trains afresh."""
+    from .rl.train import train
+
+    model = folder / "model"
+    steps = int(key["steps"])
+    metrics = _kept_training(model)
+    done = int(metrics.get("ppo_steps", 0)) if metrics else 0
+    if metrics is not None and not metrics["training"].get("interrupted"):
+        note(f"its agent trained before ({done} steps) is reused")
+    elif metrics is not None and done < steps and (model / "model.zip").is_file():
+        note(f"training: continues the agent interrupted after {done} of {steps} steps")
+        metrics = train({"steps": steps - done}, model, resume=True, progress=progress, tensorboard=model / "tb")
+        _stop_if_interrupted(metrics)
+    elif metrics is not None:
+        note(f"its agent trained before ({done} steps; interrupted while evaluating) is reused")
+    else:
+        note(f"training: {steps} steps")
+        metrics = train(_agent_config(key["train"], key["select"], steps, int(key["seed"]), key["reward"],
+                                      key["padding"], fleet, key["decisions"]),
+                        model, progress=progress, tensorboard=model / "tb", force=True)
+        _stop_if_interrupted(metrics)
+    note(f"measuring the specialised agent on {len(key['measure'])} instance(s)")
+    metrics["measured"] = _measure(model, metrics, key["measure"], fleet)
+    return metrics
+
+
 def run_generalization(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                        steps: int | None = None, groups: Sequence[int] | None = None, no_tools: bool = False,
                        echo: bool = True, decisions: str = "paper", model: str | None = None) -> dict[str, Any]:
     """General shipped model vs an agent specialised per size group (see the module docstring), on the paper's
     net or the full one (``decisions``); the general model is ``model`` (default: ``large`` / ``large-agv`` on the
-    paper's net, the shipped default model on the full one)."""
+    paper's net, the shipped default model on the full one).
+
+    Each group's specialised agent trains in ``<results_dir>/experiment_generalization_groups/g<G>-<digest>/model``
+    and its rows are kept beside it (``group.json``) once measured: a later run with the same options reuses a
+    finished group, continues a training that was interrupted, and measures the general model again; a run with
+    other options (:func:`_group_key`) trains its own. On an interrupt (Ctrl-C, or a stop signal ``fms`` turns into
+    one) it says what was kept and re-raises. With ``echo`` each group's stages are said on stderr as they start
+    (and PPO's progress) and the summary is printed."""
     from .rl.train import expand_instances
 
     steps = int(steps) if steps else (256 if quick else 20_000)
@@ -452,12 +574,33 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
     first = expand_instances([f"sl{groups[0] if groups else 0}9"], fleet)[0]
     general_spec, agent = _study_model(model, GENERAL_MODEL.get((decisions, bool(no_tools))), decisions, first)
     general = agent.name
+    root = Path(results_dir) / GROUPS_DIR
     rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory(prefix="fms-general-") as tmp:
+    finished: list[int] = []
+    reused: list[int] = []
+    t_start = time.perf_counter()
+    stage = "starting"
+    g = groups[0] if groups else 0
+    folder = root
+
+    def note(what: str) -> None:
+        nonlocal stage
+        stage = what
+        if echo:
+            say(f"generalization: group {g} ({'x'.join(map(str, SL_GROUPS[g]))}) [{len(finished) + 1}/{len(groups)}]"
+                f": {what} ({time.perf_counter() - t_start:.0f} s in all)")
+
+    if echo:
+        say(f"generalization: {len(groups)} group(s), {steps} training steps per specialised agent; each finished "
+            f"group is kept in {root}")
+    try:
         for g in groups:
             j, m, t = SL_GROUPS[g]
             size = f"{j}x{m}x{t}"
             held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
+            t_group = time.perf_counter()
+            folder = root  # (this group's folder is known once its key is)
+            note(f"general model {general} on {len(held)} instance(s)")
             for inst in expand_instances(held, fleet):
                 agent.forget()  # planned from scratch and timed with its plan search, whatever ran before
                 t0 = time.perf_counter()
@@ -467,18 +610,41 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
                              "wall_time": round(time.perf_counter() - t0, 3), "train_steps": None})
             train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
             select = [f"gen:{j}x{m}x{t}*1@{120 + g}"]  # model selection on generated shops, never on sl
-            trained = _train_agent(train_spec, select, steps, seed, "shaped", Path(tmp) / f"g{g}", padding="auto",
-                                fleet=fleet, measure=held, decisions=decisions)
-            met = trained["training"]
-            for name, ms in trained["measured"].items():  # validated by evaluate_model
-                rows.append({"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
-                             "valid": True, "wall_time": met["wall_seconds"], "train_steps": met["timesteps"]})
-            if echo:
-                say(f"group {g} ({size}) done")
+            key = _group_key(g, train_spec, select, held, steps, seed, fleet, decisions)
+            folder = _group_folder(root, key)
+            kept = _kept_rows(folder, key)
+            if kept is not None:
+                note(f"specialised agent and its {len(kept)} row(s) reused from {folder}")
+                reused.append(g)
+            else:
+                write_atomically(folder / "key.json", json.dumps(key, indent=2) + "\n")
+                trained = _specialist(folder, key, fleet, note, echo)
+                met = trained["training"]
+                kept = [{"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
+                         "valid": True, "wall_time": met["wall_seconds"],  # validated by evaluate_model
+                         "train_steps": int(trained.get("ppo_steps", met["timesteps"]))}
+                        for name, ms in trained["measured"].items()]
+                write_atomically(folder / "group.json", json.dumps({"key": key, "rows": kept}, indent=2) + "\n")
+            rows.extend(kept)
+            note(f"done in {time.perf_counter() - t_group:.0f} s")
+            finished.append(g)
+    except KeyboardInterrupt:  # (only "fms: interrupted" was said, and every group's work was lost)
+        partly = _kept_training(folder / "model") if folder != root and g not in finished else None
+        left = ""
+        if partly is not None:
+            done = int(partly.get("ppo_steps", 0))
+            left = (f"; group {g}'s agent, trained {done} of {steps} steps, in {folder / 'model'}: its training "
+                    "continues from there" if done < steps else f"; group {g}'s trained agent, not yet measured, in "
+                    f"{folder / 'model'}")
+        say(f"generalization: interrupted in group {g} ({stage}) after {len(finished)} of {len(groups)} group(s); "
+            f"kept: {len(finished)} finished group(s) ({', '.join(map(str, finished)) or 'none'}) in {root}{left}; "
+            "the tables were not written: run the same command again to continue")
+        raise
     summary = {str(g): {a: _mean([r["makespan"] for r in rows if r["group"] == g and r["agent"] == a])
                         for a in (f"general ({general})", "specialized")} for g in groups}
     meta = {"experiment": "generalization", "quick": quick, "seed": seed, "steps": steps, "groups": groups,
-            "general_model": general, "no_tools": no_tools, "decisions": decisions, "summary": summary}
+            "general_model": general, "no_tools": no_tools, "decisions": decisions, "kept_in": str(root),
+            "reused_groups": reused, "summary": summary}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(max(5.0, 1.3 * len(groups) + 2), 4.5)
@@ -938,9 +1104,15 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--model", help="the lookahead study's model, of the --decisions net (default: bu on the paper's "
                                    "net, the shipped default model on the full net)")
     p.set_defaults(fn=_cmd)
-    p = sub.add_parser("generalization", help="general vs specialized agents per size group")
+    p = sub.add_parser("generalization", help="general vs specialized agents per size group",
+                       description="The general shipped model against an agent trained per size group of the large "
+                                   f"benchmark. Resumable: each finished group is kept in RESULTS_DIR/{GROUPS_DIR}/ "
+                                   "(its agent and rows, per options); after an interrupt the same command reuses "
+                                   "them and continues the interrupted group's training (other --steps, --seed, "
+                                   "--quick, --no-tools or --decisions reuse nothing). Progress on stderr.")
     common(p)
-    p.add_argument("--steps", type=int, help="training steps per specialized agent (default 20000; quick 256)")
+    p.add_argument("--steps", type=int, help="training steps per specialized agent (default 20000; quick 256); "
+                                             "kept groups of other steps are not reused")
     p.add_argument("--groups", type=int, nargs="+", help="size groups 0-7 (default all; quick 0)")
     p.add_argument("--no-tools", action="store_true",
                    help="instances without tools (paper net: general model large-agv)")

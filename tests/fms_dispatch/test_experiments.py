@@ -419,3 +419,85 @@ def test_disruptions_validate_the_nominal_runs_they_divide_by(tmp_path: Path, mo
     with pytest.raises(RuntimeError, match="infeasible schedule for EX12"):
         run_disruptions(quick=True, results_dir=tmp_path, instances=["EX12"], echo=False)
     assert not any(tmp_path.iterdir())
+
+
+def _interrupt_training(monkeypatch: pytest.MonkeyPatch, at: int | None) -> list[int]:
+    """Make PPO's ``at``-th training (1-based; None: none) end in Ctrl-C, as a user's would; returns the list that
+    counts the trainings started."""
+    from sb3_contrib import MaskablePPO
+
+    real = MaskablePPO.learn
+    calls: list[int] = []
+
+    def learn(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == at:
+            raise KeyboardInterrupt  # (train keeps what was learnt and returns, marked interrupted)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(MaskablePPO, "learn", learn)
+    return calls
+
+
+def test_generalization_keeps_finished_groups_on_an_interrupt_and_reuses_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A Ctrl-C in group 1's training was swallowed (train keeps its model and returns): the run went on with a
+    specialist of 0 steps in the tables. Now it stops, says what was kept, and a rerun of the same command reuses the
+    finished group 0, continues group 1's training, and trains only what it lacks; other options reuse nothing."""
+    with monkeypatch.context() as m:
+        _interrupt_training(m, at=2)
+        with pytest.raises(KeyboardInterrupt):
+            run_generalization(quick=True, results_dir=tmp_path, steps=32, groups=[0, 1], echo=False)
+    err = capsys.readouterr().err
+    assert "generalization: interrupted in group 1 (training: 32 steps) after 1 of 2 group(s)" in err
+    assert "kept: 1 finished group(s) (0)" in err and "trained 0 of 32 steps" in err
+    assert "run the same command again to continue" in err
+    assert not list(tmp_path.glob("experiment_generalization.*"))  # the tables were not written
+    kept = list((tmp_path / "experiment_generalization_groups").glob("g0-*/group.json"))
+    assert len(kept) == 1
+    group0 = json.loads(kept[0].read_text())["rows"]
+    assert [(r["group"], r["agent"], r["instance"], r["train_steps"]) for r in group0] == [
+        (0, "specialized", "sl09", 32)]
+
+    calls = _interrupt_training(monkeypatch, at=None)
+    doc = run_generalization(quick=True, results_dir=tmp_path, steps=32, groups=[0, 1])
+    err = capsys.readouterr().err
+    assert len(calls) == 1 and doc["reused_groups"] == [0]  # only group 1 trained, and only what it lacked
+    assert "group 0 (15x15x15) [1/2]: specialised agent and its 1 row(s) reused from" in err
+    assert "group 1 (20x15x15) [2/2]: training: continues the agent interrupted after 0 of 32 steps" in err
+    assert [r for r in doc["rows"] if r["agent"] == "specialized"][0] == group0[0]
+    assert [(r["group"], r["agent"]) for r in doc["rows"]] == [(g, a) for g in (0, 1)
+                                                               for a in ("general (large)", "specialized")]
+    _outputs(tmp_path, "generalization", GENERALIZATION_COLUMNS)
+
+    doc = run_generalization(quick=True, results_dir=tmp_path, steps=32, groups=[0, 1], echo=False)
+    assert len(calls) == 1 and doc["reused_groups"] == [0, 1]  # both finished now: nothing trains
+    doc = run_generalization(quick=True, results_dir=tmp_path, steps=32, groups=[0], seed=1, echo=False)
+    assert len(calls) == 2 and doc["reused_groups"] == []  # another seed: its own agent
+    doc = run_generalization(quick=True, results_dir=tmp_path, steps=48, groups=[0], echo=False)
+    assert len(calls) == 3 and doc["reused_groups"] == []  # other steps: its own agent
+    assert doc["rows"][1]["train_steps"] == 48
+
+
+def test_generalization_says_each_groups_stages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """It said one line per group, once the group was done: hours of training without a word."""
+    run_generalization(quick=True, results_dir=tmp_path, steps=32)
+    err = capsys.readouterr().err
+    head = "generalization: group 0 (15x15x15) [1/1]: "
+    stages = [line.split(head, 1)[1].split(" (")[0] for line in err.splitlines() if line.startswith(head)]
+    assert stages[:3] == ["general model large on 1 instance(s)", "training: 32 steps",
+                          "measuring the specialised agent on 1 instance(s)"]
+    assert len(stages) == 4 and stages[3].startswith("done in ")
+    assert all(line.endswith(" s in all)") for line in err.splitlines() if line.startswith(head))
+    assert "PPO: 32/32 steps" in err  # PPO's own progress, as fms train says it off a terminal
+    run_generalization(quick=True, results_dir=tmp_path / "q", steps=32, echo=False)
+    assert capsys.readouterr().err == ""
+
+
+def test_ablation_stops_on_an_interrupted_training(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Ctrl-C while the reward-shaping agent trained was swallowed by train: the study went on and measured an
+    agent cut short as if it had trained its budget."""
+    calls = _interrupt_training(monkeypatch, at=1)
+    with pytest.raises(KeyboardInterrupt):
+        run_ablation(quick=True, results_dir=tmp_path, steps=32, studies=["reward_shaping"], echo=False)
+    assert len(calls) == 1 and not any(tmp_path.iterdir())
