@@ -501,3 +501,20 @@ def test_ablation_stops_on_an_interrupted_training(tmp_path: Path, monkeypatch: 
     with pytest.raises(KeyboardInterrupt):
         run_ablation(quick=True, results_dir=tmp_path, steps=32, studies=["reward_shaping"], echo=False)
     assert len(calls) == 1 and not any(tmp_path.iterdir())
+
+
+def test_generalization_interrupted_on_the_command_line_says_what_was_kept(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """fms ends an interrupted command with exit code 130; the experiment says before that what it kept, and the
+    interrupted group's model folder holds the training to continue (it trained in a temporary folder, removed)."""
+    from fms_dispatch.cli import main
+
+    _interrupt_training(monkeypatch, at=1)
+    args = ["experiment", "generalization", "--quick", "--steps", "32", "--results-dir", str(tmp_path)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert "interrupted in group 0 (training: 32 steps) after 0 of 1 group(s); kept: 0 finished group(s) (none)" in err
+    assert "group 0's agent, trained 0 of 32 steps, in " in err and err.rstrip().endswith("fms: interrupted")
+    model = next((tmp_path / "experiment_generalization_groups").glob("g0-*/model"))
+    assert json.loads((model / "metrics.json").read_text())["training"]["interrupted"] is True
+    assert (model / "model.zip").is_file()
