@@ -1092,7 +1092,7 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
     def common(p: argparse.ArgumentParser) -> None:
         p.add_argument("--quick", action="store_true", help="tiny budgets (seconds; for tests)")
         p.add_argument("--results-dir", default="results", help="output folder (default results)")
-        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--seed", type=int, default=0, help="seed (>= 0) of the runs that train or draw (default 0)")
 
     p = sub.add_parser("ablation", help="reward shaping, lookahead and action masking on/off")
     common(p)
@@ -1158,6 +1158,8 @@ def _cmd(a: argparse.Namespace) -> int:
         v = getattr(a, flag, None)
         if v is not None and not 0 < v < math.inf:  # (inf: a search that never ends)
             raise ValueError(f"--{flag.replace('_', '-')} must be positive and finite, got {v}")
+    if a.seed < 0:  # (training refused it only after the studies before it had run; sos took its absolute value)
+        raise ValueError(f"--seed must be an integer >= 0, got {a.seed}")
     if a.experiment == "ablation" and a.model is not None and a.studies and "lookahead" not in a.studies:
         raise ValueError("--model is the lookahead study's model; these studies train their own agents (add "
                          "--studies lookahead, or leave --model out)")

@@ -518,3 +518,13 @@ def test_generalization_interrupted_on_the_command_line_says_what_was_kept(
     model = next((tmp_path / "experiment_generalization_groups").glob("g0-*/model"))
     assert json.loads((model / "metrics.json").read_text())["training"]["interrupted"] is True
     assert (model / "model.zip").is_file()
+
+
+@pytest.mark.parametrize("name", ["ablation", "generalization", "dynamic", "disruptions"])
+def test_fms_experiment_refuses_a_negative_seed(name, tmp_path, capsys):
+    # (training refused it only after the studies before it had run, minutes in; sos ran -1 as seed 1)
+    from fms_dispatch import cli
+
+    code = cli.main(["experiment", name, "--quick", "--seed", "-1", "--results-dir", str(tmp_path)])
+    assert code == 2 and "--seed must be an integer >= 0, got -1" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
