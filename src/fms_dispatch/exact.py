@@ -454,16 +454,21 @@ def _agv_slacks(inst: Instance, tasks: Sequence[_Task], tails: dict[tuple[int, i
 
 # ====================================================================================== greedy
 def _earliest_vehicle(locs: Sequence[int], free: Sequence[int], travel: Sequence[Sequence[int]], src: int,
-                      ready: int, nearest: bool = False) -> tuple[int, int]:
+                      ready: int, nearest: bool = False, held: Sequence[bool] | None = None,
+                      dispatch: int = 0) -> tuple[int, int]:
     """``(vehicle, start)``: the vehicle (AGV or transporter) that can start the loaded trip from ``src``
     earliest, not before ``ready`` (ties: the shorter empty trip, then the lowest number); ``(-1, 0)`` if
-    there is none."""
+    there is none. A vehicle marked in ``held`` (idle at a snapshot, :attr:`fms_sim.snapshot.Snapshot.held`)
+    leaves for the carry no earlier than its ``dispatch``."""
     # compared field by field rather than as (start, empty trip) tuples: this runs for every job a vehicle's move
     # touches, and is most of a list schedule's time on 100-job shops
     best_v, start, empty = -1, 0, 0
     for v, loc in enumerate(locs):
         e = travel[loc][src]
-        s = free[v] + e
+        s = free[v]
+        if held is not None and held[v] and s < dispatch:
+            s = dispatch
+        s += e
         if s < ready:
             s = ready
         if best_v < 0:
@@ -516,7 +521,8 @@ def greedy_schedule(
     earliest start (``rule="est"``) or completion (``"ect"``), ties broken by the most remaining work (or
     randomly when ``rng`` is given), or the smallest ``priority`` value (``rule="guided"``); ``noise`` adds a
     per-operation offset to the start times compared by ``"est"`` (randomised restarts). Empty trips
-    start as soon as the vehicle is free; vehicles then wait for the part or tool. Each carry goes to the
+    start as soon as the vehicle is free (one idle at ``origin``: once its carry is dispatched, ``Snapshot.held``);
+    vehicles then wait for the part or tool. Each carry goes to the
     vehicle that can start it earliest (``vehicle="earliest"``; ties: the shorter empty trip) or to the one with
     the shortest empty trip (``"nearest"``, as the nearest-vehicle rules do; ties: the earliest start). Always
     valid, never optimal in general; it gives the solver its first upper bound and the fallback its schedule.
@@ -553,6 +559,14 @@ def greedy_schedule(
     ready = list(o.ready)
     remaining = [sum(op.duration for op in job[nxt[j]:]) for j, job in enumerate(jobs)]
     mach_free = list(o.machine_free)
+    # vehicles idle at the snapshot leave for their first carry only when it is dispatched (Snapshot.held): a
+    # part's once its previous operation has started, a tool's once its previous use has; None: no vehicle held
+    agv_held: list[bool] | None = [("agv", v) in o.held for v in range(inst.n_agvs)]
+    tr_held: list[bool] | None = [("tt", r) in o.held for r in range(inst.n_tool_transporters)]
+    agv_held = agv_held if any(agv_held) else None
+    tr_held = tr_held if any(tr_held) else None
+    last_start = [o.now] * nj  # when each job's last planned operation starts (now: started before the state)
+    tool_last = [o.now] * (inst.n_tools + 1)  # when each tool's last planned use starts
     agv_loc, agv_free = list(o.agv_loc), list(o.agv_free)
     tr_loc, tr_free = list(o.tt_loc), list(o.tt_free)
     tool_loc, tool_free = list(o.tool_loc), list(o.tool_free)
@@ -575,10 +589,11 @@ def greedy_schedule(
     tt_memo: tuple[dict, dict] | None = ({}, {}) if memoise else None
 
     def earliest(cache: list, memo: tuple[dict, dict] | None, j: int, locs: list[int], free: list[int],
-                 travel: Sequence[Sequence[int]], src: int, rdy: int) -> tuple[int, int]:
+                 travel: Sequence[Sequence[int]], src: int, rdy: int, held: list[bool] | None = None,
+                 dispatch: int = 0) -> tuple[int, int]:
         c = cache[j]
-        if c is None and memo is None:
-            v, st = _earliest_vehicle(locs, free, travel, src, rdy, near)
+        if c is None and (memo is None or held is not None):  # (held vehicles: answers differ by job, no memo)
+            v, st = _earliest_vehicle(locs, free, travel, src, rdy, near, held, dispatch)
             e = travel[locs[v]][src] if v >= 0 else 0
             c = cache[j] = ((e, st) if near else (st, e)) + (v, src, rdy, st)
         elif c is None:
@@ -643,7 +658,8 @@ def greedy_schedule(
         elif atr is not None:
             pick = jobs[j][k - 1].machine if k else 0
             if pick != m:
-                best_a, ls = earliest(agv_best, agv_memo, j, agv_loc, agv_free, atr, pick, ready[j])
+                best_a, ls = earliest(agv_best, agv_memo, j, agv_loc, agv_free, atr, pick, ready[j], agv_held,
+                                      last_start[j])
                 arrive = ls + atr[pick][m]
         tool_at, best_r, tls = 0, -1, 0
         if ttr is not None and op.tool is not None:
@@ -657,7 +673,8 @@ def greedy_schedule(
                 tool_at = tool_free[t]
             else:
                 src = tool_loc[t]
-                best_r, tls = earliest(tt_best, tt_memo, j, tr_loc, tr_free, ttr, src, tool_free[t])
+                best_r, tls = earliest(tt_best, tt_memo, j, tr_loc, tr_free, ttr, src, tool_free[t], tr_held,
+                                       tool_last[t])
                 tool_at = tls + ttr[src][m]
         start = max(mach_free[m], arrive, tool_at)
         return start, best_a, ls, best_r, tls, start + op.duration
@@ -713,21 +730,34 @@ def greedy_schedule(
             pick = jobs[j][k - 1].machine if k else 0
             if agv_loc[a] != pick:
                 e0 = agv_free[a]
+                if agv_held is not None and agv_held[a]:  # it leaves when the carry is dispatched
+                    e0 = max(e0, last_start[j])
                 agv_trips.append(AgvTrip(a, None, None, agv_loc[a], pick, e0, e0 + atr[agv_loc[a]][pick], False))
             agv_trips.append(AgvTrip(a, j, k, pick, m, ls, ls + atr[pick][m], True))
             agv_loc[a], agv_free[a] = m, ls + atr[pick][m]
+            if agv_held is not None and agv_held[a]:  # (before moved(): its answers are a free vehicle's now)
+                agv_held[a] = False
+                if not any(agv_held):
+                    agv_held = None
             moved(agv_best, agv_memo, a, agv_loc, agv_free, atr)
         if r >= 0:
             assert ttr is not None and op.tool is not None
             src = tool_loc[op.tool]
             if tr_loc[r] != src:
                 e0 = tr_free[r]
+                if tr_held is not None and tr_held[r]:
+                    e0 = max(e0, tool_last[op.tool])
                 tool_trips.append(ToolTrip(r, None, None, None, tr_loc[r], src, e0, e0 + ttr[tr_loc[r]][src], False))
             tool_trips.append(ToolTrip(r, op.tool, j, k, src, m, tls, tls + ttr[src][m], True))
             tr_loc[r], tr_free[r] = m, tls + ttr[src][m]
+            if tr_held is not None and tr_held[r]:
+                tr_held[r] = False
+                if not any(tr_held):
+                    tr_held = None
             moved(tt_best, tt_memo, r, tr_loc, tr_free, ttr)
         if ttr is not None and op.tool is not None:
             tool_loc[op.tool], tool_free[op.tool] = m, end
+            tool_last[op.tool] = start
             if reserved:
                 reserved.pop(op.tool, None)
         tool = op.tool if ttr is not None else None
@@ -743,6 +773,7 @@ def greedy_schedule(
             arrival.pop(j, None)
         mach_free[m] = end
         ready[j] = end
+        last_start[j] = start
         remaining[j] -= op.duration
         nxt[j] += 1
         enter(j)

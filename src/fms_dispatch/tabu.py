@@ -32,8 +32,9 @@ it is never worse than the start.
 It improves residual plans too (re-planning from a running shop's state, :class:`~fms_sim.snapshot.Snapshot`):
 the operations that have started are fixed, and the graph's sources are the state's instead of the depot at time
 0: when each part is free to move (or at its machine, when its move is done or committed), each machine and tool
-is free, where and when each vehicle is free, and a tool reserved for an operation serves it first without a
-delivery (a move that puts another use before it is refused, as a cycle is).
+is free, where and when each vehicle is free (one standing idle leaves for its first load only once that load is
+dispatched, ``Snapshot.held``), and a tool reserved for an operation serves it first without a delivery (a move that
+puts another use before it is refused, as a cycle is).
 """
 
 from __future__ import annotations
@@ -130,6 +131,12 @@ class _Graph:
                    (list(o.tt_loc), list(o.tt_free)) if o is not None and tools
                    else ([0] * self.n_vehicles[1], [0] * self.n_vehicles[1]))
         self.base = o.makespan if o is not None else 0  # when the operations already started end
+        # vehicles idle at the snapshot (Snapshot.held) leave for their first load only when it is dispatched: a part
+        # once its previous operation has started, a tool once its previous use has (now: that has happened)
+        held = o.held if o is not None else frozenset()
+        self.held = ([("agv", v) in held for v in range(inst.n_agvs)],
+                     [("tt", r) in held for r in range(self.n_vehicles[1])])
+        self.now = o.now if o is not None else 0
         # the earliest start of every node from the start state alone (0 throughout for a whole schedule)
         self.rel = ([max(self.mrel[i], self.trel[i], 0 if self.carried[i] else self.prel[i]) for i in range(n)]
                     + [self.prel[i] if self.carried[i] else 0 for i in range(n)] + self.trel)
@@ -183,13 +190,18 @@ class _Graph:
         P = self.P2 + ([ttr[src[i]][mach[i]] if src[i] >= 0 else 0 for i in range(n)] if ttr is not None
                        else [0] * n)
         org = self.pick0 + src  # where each trip (node n + i) and delivery (node 2n + i) picks its load up
-        # when each vehicle's first load can start: its empty trip from where it stands, once free
+        # when each vehicle's first load can start: its empty trip from where it stands, once free; a held vehicle's
+        # (vheld: that empty trip) also no earlier than the load's dispatch
         vstart: dict[int, int] = {}
-        for seqs, base, mat, (loc0, free0) in ((aseq, n, tr, self.v0[0]), (rseq, n2, ttr, self.v0[1])):
+        vheld: dict[int, int] = {}
+        for seqs, base, mat, (loc0, free0), held in ((aseq, n, tr, self.v0[0], self.held[0]),
+                                                     (rseq, n2, ttr, self.v0[1], self.held[1])):
             for v, seq in enumerate(seqs):
                 if seq:
                     node = base + seq[0]
                     vstart[node] = free0[v] + mat[loc0[v]][org[node]]
+                    if held[v]:
+                        vheld[node] = mat[loc0[v]][org[node]]
         indeg = [0] * (3 * n)
         nodes = 0
         stack = []
@@ -255,6 +267,11 @@ class _Graph:
                 i, mat = v - n2, ttr
             if vpred[v] < 0:  # the vehicle's first load: the empty trip from where it stands
                 e = vstart[v]
+                if vheld and v in vheld:  # from the dispatch (its job's or tool's previous start: popped already)
+                    y = jpred[i] if v < n2 else tpred[i]
+                    d = (start[y] if y >= 0 else self.now) + vheld[v]
+                    if d > e:
+                        e = d
                 if e > start[v]:
                     start[v], crit[v] = e, -1
             end = start[v] + P[v]
@@ -624,12 +641,15 @@ def _orders(g: _Graph, plan: Schedule) -> Orders:
 
 
 def _legs(g: _Graph, ev: _Eval, routes: list[list[int]], base: int, mat: Sequence[Sequence[int]],
-          start: tuple[list[int], list[int]]) -> Iterator[tuple[int, int | None, int, int, int, int]]:
+          start: tuple[list[int], list[int]], held: list[bool]) -> Iterator[tuple[int, int | None, int, int, int, int]]:
     """Each vehicle's legs as ``(vehicle, operation or None for an empty leg, from, to, start, end)``: routes of the
     nodes ``base + i`` (AGV trips or deliveries) of vehicles that start where and when ``start`` says; empty legs
-    leave as soon as the vehicle is free."""
+    leave as soon as the vehicle is free (a ``held`` vehicle's first one: once its load is dispatched)."""
     for v, seq in enumerate(routes):
         here, free = start[0][v], start[1][v]
+        if held[v] and seq:
+            y = g.jpred[seq[0]] if base == g.n else ev.tpred[seq[0]]
+            free = max(free, ev.start[y] if y >= 0 else g.now)
         for i in seq:
             node = base + i
             origin = ev.org[node]
@@ -645,10 +665,10 @@ def _schedule(g: _Graph, plan: Schedule, o: Orders, ev: _Eval) -> Schedule:
     ops = [OperationRecord(*key[i], g.mach[i], g.tool[i] if g.tool[i] >= 0 else None, start[i], start[i] + g.dur[i])
            for i in g.live]
     trips = [AgvTrip(v, None, None, a, b, s, e, False) if i is None else AgvTrip(v, *key[i], a, b, s, e, True)
-             for v, i, a, b, s, e in _legs(g, ev, o[1], n, g.travel, g.v0[0])]
+             for v, i, a, b, s, e in _legs(g, ev, o[1], n, g.travel, g.v0[0], g.held[0])]
     deliveries = [ToolTrip(r, None, None, None, a, b, s, e, False) if i is None
                   else ToolTrip(r, g.tool[i], *key[i], a, b, s, e, True)
-                  for r, i, a, b, s, e in _legs(g, ev, o[3], 2 * n, g.ttravel, g.v0[1])]
+                  for r, i, a, b, s, e in _legs(g, ev, o[3], 2 * n, g.ttravel, g.v0[1], g.held[1])]
     meta: dict[str, object] = {"solver": "tabu", "improved": plan.meta.get("solver")}
     if g.origin is not None:
         meta["residual"] = g.origin.now

@@ -40,7 +40,17 @@ class Snapshot:
       each resource is and when it is free, after its committed work;
     * ``tool_reserved[t] = (job, op, at)``: tool t is reserved for that not-yet-started operation and is at its
       machine at ``at``; no other use of t comes before it;
-    * ``makespan``: when the last operation that has started ends (estimated as above).
+    * ``makespan``: when the last operation that has started ends (estimated as above);
+    * ``held``: the vehicles, as ``("agv", v)`` and ``("tt", r)``, that stand idle now (in service). Their idle
+      stop is had (:class:`~fms_sim.stepping.Stepper`: once per idle period, before the decisions of a moment), so
+      no empty move can be ordered for them any more: the executor of a residual plan
+      (:meth:`fms_sim.replay.PlanPolicy.resume`) drops their leading empty legs, and such a vehicle leaves only when
+      its next carry is dispatched, deadheading straight from where it stands. That dispatch is ``job:J`` for a
+      part, enabled once the part's previous operation has *started* (or now, when it has), and ``tool:T`` +
+      ``use:J`` + ``tt:R`` for a tool, enabled once the tool's previous use has *started* (or now, when the tool is
+      free or its use runs). Planners start such a vehicle's first empty trip no earlier than that (a plan that
+      sent it off at ``now`` ended later when executed than it predicted). Empty at the start of a run
+      (:meth:`initial`), where a whole plan's empty moves are made at the vehicles' first idle stop.
     """
 
     instance: Instance
@@ -57,6 +67,7 @@ class Snapshot:
     tool_free: tuple[int, ...]
     tool_reserved: dict[int, tuple[int, int, int]]
     makespan: int
+    held: frozenset[tuple[str, int]] = frozenset()
 
     @property
     def remaining(self) -> int:
@@ -197,9 +208,11 @@ def snapshot(shop: FullShop) -> Snapshot:
             agv_free[v] = max(agv_free[v], end)
         else:
             tt_free[v] = max(tt_free[v], end)
+    # idle vehicles have had their idle stop: they wait for their next carry's dispatch (see Snapshot.held)
+    held = frozenset([("agv", v) for v, _ in shop.idle_agvs()] + [("tt", r) for r, _ in shop.idle_transporters()])
     return Snapshot(inst, now, tuple(next_op), tuple(ready), arrival, tuple(machine_free), tuple(agv_loc),
                     tuple(agv_free), tuple(tt_loc), tuple(tt_free), tuple(tool_loc), tuple(tool_free), reserved,
-                    makespan)
+                    makespan, held)
 
 
 def nominal_copy(shop: FullShop) -> FullShop:

@@ -233,3 +233,36 @@ def test_the_tabu_solver_makes_only_the_list_schedules_its_time_limit_allows(mon
     made.clear()
     solve_tabu(builtin("EX11"), time_limit=0.5)  # plenty: all four
     assert len(made) == 4
+
+
+def test_a_residual_plan_waits_for_a_held_vehicle_to_be_dispatched():
+    # found by fuzzing: at the snapshot the transporter stands idle at the magazine after its idle stop, so the
+    # executor cannot send it off before its next carry (tool 1 from machine 1 to machine 2, for the job's second
+    # operation) is dispatched, once the tool's use on machine 1 has started; the planners sent it off at once, and
+    # the executed plan ended a time unit later than every residual plan (list schedules and tabu) predicted
+    from fms_dispatch.exact import restart_list_plan
+    from fms_dispatch.replan import simulate
+    from fms_sim.full_shop import FullShop
+    from fms_sim.instance import Instance, Operation
+    from fms_sim.snapshot import nominal_copy, snapshot
+    from fms_sim.stepping import Stepper
+
+    inst = Instance(name="held", jobs=((Operation(1, 1, 1), Operation(2, 1, 1)),),
+                    agv_travel=((0, 2, 3), (1, 0, 3), (4, 4, 0)), tool_travel=((0, 2, 0), (0, 0, 4), (4, 2, 0)),
+                    n_agvs=1, n_tool_transporters=1)
+    shop = FullShop(inst)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    for label in ("wait", "tool:1", "use:0", "tt:0", "hold", "reposition:tt:0:0", "reposition:tt:0:0", "wait"):
+        st.apply(label)
+    snap = snapshot(shop)
+    assert st.kind == "decision" and shop.idle_transporters() == [(0, 0)]  # the state the test is about
+    listed = [greedy_schedule(inst, rule=r, origin=snap) for r in ("est", "ect")]
+    plans = listed + [restart_list_plan(inst, listed[0], tries=4, origin=snap),
+                      tabu_plan(inst, listed[0], budget=None, max_iters=30, origin=snap)]
+    for plan in plans:
+        assert simulate(nominal_copy(shop), plan) == plan.makespan, plan.meta
+        # the carry's empty leg leaves when the tool's use on machine 1 starts, not at the snapshot
+        first = next(t for t in plan.tool_trips if t.transporter == 0)
+        assert not first.loaded and first.start == next(r.start for r in plan.operations if r.op == 0) > snap.now
+    assert snap.held == {("tt", 0), ("agv", 0)}  # both vehicles stand idle and have had their idle stop
