@@ -121,11 +121,11 @@ class PlanPolicy:
 
     def _reserved_first(self, shop: FullShop, plan: Schedule) -> None:
         """A tool the shop holds for an operation that has not started (a reservation) serves that use first: it
-        goes first in the tool's order, and on its machine ahead of the uses tied with it (zero durations planned at
-        its start). The orders of uses at one instant come from :func:`fms_sim.ties.plan_orders`, which knows
-        nothing of the state: a residual plan that starts with the reserved use (as every plan from the state
-        does) got another use of the tool first there, the machine waited for a use the tool would not serve, and
-        the run was stuck."""
+        goes first in the tool's order, and, if it has no duration itself, on its machine ahead of the uses tied with
+        it (zero durations planned at its start; one that runs a while comes after those, as planned). The orders
+        of uses at one instant come from :func:`fms_sim.ties.plan_orders`, which knows nothing of the state: a
+        residual plan that starts with the reserved use (as every plan from the state does) got another use of the
+        tool first there, the machine waited for a use the tool would not serve, and the run was stuck."""
         planned = {(r.job, r.op): (r.start, r.end) for r in plan.operations}
         for t in range(1, len(shop.tool_user)):
             op = shop.reserved_op(t)
@@ -138,8 +138,10 @@ class PlanPolicy:
             queue = self.machine.get(shop.instance.jobs[op[0]][op[1]].machine)
             if not queue or op not in queue or op not in planned:
                 continue
+            s, e = planned[op]
+            if e > s:  # it runs for a while: the operations tied at its start come first on the machine (as planned;
+                continue  # put behind it, they waited for its end and the residual plan ended later than it said)
             at = queue.index(op)
-            s = planned[op][0]
             p = at
             # past the uses tied with it (the same instant, no duration), not past its own job's earlier operations
             while p > 0 and planned.get(queue[p - 1]) == (s, s) and queue[p - 1][0] != op[0]:

@@ -150,3 +150,26 @@ def test_a_residual_plan_runs_when_a_reserved_tool_ties_with_another_use_at_its_
         assert {(r.start, r.end) for r in residual.operations if r.op == 0} == {(snap.now, snap.now)}  # tied
         out = finish_by(nominal_copy(shop), residual)
         assert validate(inst, out) == [] and out.makespan <= residual.makespan
+
+
+def test_a_reserved_operation_that_runs_a_while_lets_the_operations_tied_at_its_start_go_first():
+    # found by fuzzing: tool 1 is reserved for job 0's operation (3 long) and arrives at its machine at 2, where job 1's
+    # operation of no duration is planned at 2 too, before it; resume put the reserved one first on the machine (a rule
+    # for uses tied at one instant, all of no duration), job 1 waited for its end, and its last operation ended at 9
+    # instead of the 6 that every residual plan predicted
+    from fms_dispatch.replan import simulate
+    from fms_sim.instance import Instance, Operation
+
+    inst = Instance(name="reserved-runs", jobs=((Operation(1, 1, 3),), (Operation(2, None, 2), Operation(1, None, 0),
+                    Operation(2, None, 4))), tool_travel=((0, 2, 2), (2, 0, 2), (2, 2, 0)), n_tool_transporters=1)
+    shop = FullShop(inst)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    for label in ("wait", "start:1", "tool:1", "use:0", "tt:0", "wait"):
+        st.apply(label)
+    snap = snapshot(shop)
+    assert st.kind == "decision" and snap.now == 2 and snap.tool_reserved == {1: (0, 0, 2)}  # the state of the test
+    for rule in ("est", "ect"):
+        residual = greedy_schedule(inst, rule=rule, origin=snap)
+        assert (1, 1, 2, 2) in {(r.job, r.op, r.start, r.end) for r in residual.operations}  # tied at the start
+        assert simulate(nominal_copy(shop), residual) == residual.makespan == 6, rule
