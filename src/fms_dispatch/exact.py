@@ -561,10 +561,10 @@ def greedy_schedule(
     mach_free = list(o.machine_free)
     # vehicles idle at the snapshot leave for their first carry only when it is dispatched (Snapshot.held): a
     # part's once its previous operation has started, a tool's once its previous use has; None: no vehicle held
-    agv_held: list[bool] | None = [("agv", v) in o.held for v in range(inst.n_agvs)]
-    tr_held: list[bool] | None = [("tt", r) in o.held for r in range(inst.n_tool_transporters)]
-    agv_held = agv_held if any(agv_held) else None
-    tr_held = tr_held if any(tr_held) else None
+    agv_flags = [("agv", v) in o.held for v in range(inst.n_agvs)]
+    tr_flags = [("tt", r) in o.held for r in range(inst.n_tool_transporters)]
+    agv_held: list[bool] | None = agv_flags if any(agv_flags) else None
+    tr_held: list[bool] | None = tr_flags if any(tr_flags) else None
     last_start = [o.now] * nj  # when each job's last planned operation starts (now: started before the state)
     tool_last = [o.now] * (inst.n_tools + 1)  # when each tool's last planned use starts
     agv_loc, agv_free = list(o.agv_loc), list(o.agv_free)

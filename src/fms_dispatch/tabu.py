@@ -199,9 +199,10 @@ class _Graph:
             for v, seq in enumerate(seqs):
                 if seq:
                     node = base + seq[0]
-                    vstart[node] = free0[v] + mat[loc0[v]][org[node]]
+                    empty = mat[loc0[v]][org[node]]  # type: ignore[index]  # (a vehicle with carries: a matrix)
+                    vstart[node] = free0[v] + empty
                     if held[v]:
-                        vheld[node] = mat[loc0[v]][org[node]]
+                        vheld[node] = empty
         indeg = [0] * (3 * n)
         nodes = 0
         stack = []

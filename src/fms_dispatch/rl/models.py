@@ -219,8 +219,9 @@ def checked_assignments(folder: Path) -> bool:
     if not isinstance(record, dict):
         return False
     n, other = record.get("assignments"), record.get("network_otherwise")
-    whole = all(isinstance(v, int) and not isinstance(v, bool) for v in (n, other))
-    return whole and n > 0 and other == 0
+    if not isinstance(n, int) or not isinstance(other, int) or isinstance(n, bool) or isinstance(other, bool):
+        return False
+    return n > 0 and other == 0
 
 
 def default_model_name(inst: Instance) -> str:
