@@ -17,6 +17,16 @@ figures show that the pipeline works, not what the methods are worth.
     action masks vs the same algorithm with masking disabled, where an invalid action ends the episode with
     the env's penalty (-10); the curve is the mean reward of the episodes that ended in each rollout.
 
+  Each trained variant (the shaped and the sparse agent, the masked and the unmasked curve) is kept once done in
+  ``<results>/experiment_ablation_studies/<study>-<variant>-<digest>/`` (the digest: of the options it follows
+  from, :func:`_ablation_key`): its rows (``variant.json``) and, for a reward-shaping agent, the agent in ``model/``,
+  where it trains. An interrupt (Ctrl-C, or a stop signal) says what was kept; the same command run again reuses
+  each finished variant, continues an interrupted agent's training for the steps it lacks (as ``fms train
+  --resume`` does: not bit-identical to an uninterrupted run), trains an interrupted curve again from its start and
+  measures the lookahead study again (it trains nothing; its rows follow the model given now); other ``--steps``,
+  ``--seed``, ``--quick`` or ``--decisions`` reuse nothing. On stderr each variant's stages are said as they start,
+  with PPO's progress, unless ``echo`` is off.
+
 * **generalization** — per size group g of the large benchmark, the general shipped model (on the paper's net
   ``large``, or ``large-agv`` with ``--no-tools``; ``--model``: another) against a specialised agent trained only on
   generated instances of that group's size (``gen:JxMxT*4@(100+g)``, ``--steps`` each, default 20 000; quick: group
@@ -58,10 +68,10 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import json
 import math
 import numbers
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -272,6 +282,140 @@ def _measure(folder: Path, metrics: dict[str, Any], measure: list[str],
                           decisions=used["decisions"])
 
 
+# ---------------------------------------------------------------------- kept work
+# The ablation and the generalization study keep each finished unit (an ablation variant, a generalization group)
+# under ``<results>/experiment_<name>_<units>/<label>-<digest>/``: its rows (written last and whole) and, for a
+# trained agent, the agent in ``model/``; the digest is of the unit's key, everything the unit follows from.
+
+
+def _kept_folder(root: Path, label: str, key: dict[str, Any]) -> Path:
+    """The folder of a unit's kept work under ``root``: ``<label>-<digest of its key>``."""
+    import hashlib
+
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    return root / f"{label}-{digest}"
+
+
+def _kept_rows(folder: Path, key: dict[str, Any], name: str) -> list[dict[str, Any]] | None:
+    """The rows a finished unit kept in ``folder/name`` (written last and whole), or None where there are none of
+    this ``key``."""
+    try:
+        doc = json.loads((folder / name).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict) or doc.get("key") != key or not isinstance(doc.get("rows"), list):
+        return None
+    return doc["rows"]
+
+
+def _kept_or_made(folder: Path, key: dict[str, Any], name: str,
+                  make: Callable[[], list[dict[str, Any]]]) -> tuple[list[dict[str, Any]], bool]:
+    """The rows a finished unit of ``key`` kept in ``folder/name`` and True; where there are none, the rows
+    ``make()`` returns, kept there once it has returned (``key.json`` beside them says, from the start of the work,
+    what the folder holds), and False."""
+    kept = _kept_rows(folder, key, name)
+    if kept is not None:
+        return kept, True
+    write_atomically(folder / "key.json", json.dumps(key, indent=2) + "\n")
+    rows = make()
+    write_atomically(folder / name, json.dumps({"key": key, "rows": rows}, indent=2, default=_jsonable) + "\n")
+    return rows, False
+
+
+def _kept_training(model: Path) -> dict[str, Any] | None:
+    """The metrics of the training an earlier run left in the folder ``model`` (finished or interrupted with its
+    weights saved), or None where there is none to go on from."""
+    try:
+        metrics = json.loads((model / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    ok = (isinstance(metrics, dict) and isinstance(metrics.get("training"), dict)
+          and (model / "config.json").is_file() and (model / str(metrics["training"].get("weights"))).is_file())
+    return metrics if ok else None
+
+
+def _trained_agent(folder: Path, key: dict[str, Any], fleet: dict[str, Any], note: Callable[[str], None],
+                   progress: bool, agent: str = "agent") -> dict[str, Any]:
+    """Train the agent of ``key`` (its ``train``, ``select``, ``steps``, ``seed``, ``reward``, ``padding`` and
+    ``decisions``) in ``folder/model`` and return its metrics with ``"measured"`` (on ``key["measure"]``), going on
+    from what an earlier run of the same key left there: a finished training is only measured, an interrupted one
+    continues for the steps it lacks (``fms train --resume``), anything else trains afresh. ``note`` is told each
+    stage as it starts (``agent``: what the measuring stage calls the agent)."""
+    from .rl.train import train
+
+    model = folder / "model"
+    steps = int(key["steps"])
+    metrics = _kept_training(model)
+    done = int(metrics.get("ppo_steps", 0)) if metrics else 0
+    if metrics is not None and not metrics["training"].get("interrupted"):
+        note(f"its agent trained before ({done} steps) is reused")
+    elif metrics is not None and done < steps and (model / "model.zip").is_file():
+        note(f"training: continues the agent interrupted after {done} of {steps} steps")
+        metrics = train({"steps": steps - done}, model, resume=True, progress=progress, tensorboard=model / "tb")
+        _stop_if_interrupted(metrics)
+    elif metrics is not None:
+        note(f"its agent trained before ({done} steps; interrupted while evaluating) is reused")
+    else:
+        note(f"training: {steps} steps")
+        metrics = train(_agent_config(key["train"], key["select"], steps, int(key["seed"]), key["reward"],
+                                      key["padding"], fleet, key["decisions"]),
+                        model, progress=progress, tensorboard=model / "tb", force=True)
+        _stop_if_interrupted(metrics)
+    note(f"measuring the {agent} on {len(key['measure'])} instance(s)")
+    metrics["measured"] = _measure(model, metrics, key["measure"], fleet)
+    return metrics
+
+
+class _Stages:
+    """What a resumable experiment says of its units (ablation variants, generalization groups) on stderr: with
+    ``echo``, each unit's stages as they start, with the time elapsed; on an interrupt (always) in which unit and
+    stage it stopped, which units were kept in ``root``, how far the unit's agent trained (``model``: where it
+    trains, once known) and that the same command goes on."""
+
+    def __init__(self, experiment: str, unit: str, total: int, root: Path, steps: int, echo: bool) -> None:
+        self.experiment, self.unit, self.total, self.root, self.steps, self.echo = \
+            experiment, unit, total, root, steps, echo
+        self.t_start = self.t_unit = time.perf_counter()
+        self.name = self.heading = "the start"  # the running unit, as the interrupt and the stage lines name it
+        self.stage = "starting"
+        self.model: Path | None = None
+        self.finished = 0
+        self.kept: list[str] = []
+
+    def start(self, name: str, heading: str | None = None) -> None:
+        """A unit starts: ``name`` in the interrupt's words, ``heading`` (default ``name``) in the stage lines'."""
+        self.name, self.heading, self.model, self.t_unit = name, heading or name, None, time.perf_counter()
+
+    def note(self, what: str) -> None:
+        """The running unit's next stage."""
+        self.stage = what
+        if self.echo:
+            say(f"{self.experiment}: {self.heading} [{self.finished + 1}/{self.total}]: {what} "
+                f"({time.perf_counter() - self.t_start:.0f} s in all)")
+
+    def finish(self, kept_as: str | None) -> None:
+        """The running unit is done; ``kept_as``: its label in the list of the units kept in ``root`` (None: its
+        work is not kept)."""
+        self.note(f"done in {time.perf_counter() - self.t_unit:.0f} s")
+        self.finished += 1
+        self.model = None
+        if kept_as is not None:
+            self.kept.append(kept_as)
+
+    def interrupted(self) -> None:
+        """Say, on stderr, where the run was interrupted, what it kept, and how to go on."""
+        partly = _kept_training(self.model) if self.model is not None else None
+        left = ""
+        if partly is not None:
+            done = int(partly.get("ppo_steps", 0))
+            left = (f"; {self.name}'s agent, trained {done} of {self.steps} steps, in {self.model}: its training "
+                    "continues from there" if done < self.steps else f"; {self.name}'s trained agent, not yet "
+                    f"measured, in {self.model}")
+        say(f"{self.experiment}: interrupted in {self.name} ({self.stage}) after {self.finished} of {self.total} "
+            f"{self.unit}(s); kept: {len(self.kept)} finished {self.unit}(s) ({', '.join(self.kept) or 'none'}) in "
+            f"{self.root}{left}; the tables were not written: run the same command again to continue")
+
+
 # ---------------------------------------------------------------------- ablation
 def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, seed: int,
                    decisions: str = "paper") -> list[dict[str, Any]]:
@@ -332,12 +476,56 @@ def _episode_curve(use_masking: bool, instances: list[Instance], steps: int, see
     return points
 
 
+#: the folder under ``--results-dir`` that keeps each finished trained variant of the ablation (the reward-shaping
+#: agents with their rows, the masking curves; one sub-folder per variant and options, :func:`_ablation_key`)
+ABLATION_DIR = "experiment_ablation_studies"
+#: the format of a kept variant (a kept variant of another format is done again)
+ABLATION_FORMAT = 1
+
+
+def _ablation_key(study: str, variant: str, steps: int, seed: int, decisions: str, **more: Any) -> dict[str, Any]:
+    """Everything a trained variant of the ablation follows from (``more``: its study's inputs, such as the
+    instances it trains on): a kept variant is reused only by a run whose key is equal (a run with other
+    ``--steps``, ``--seed``, ``--quick`` or ``--decisions`` does its own). The lookahead study is not kept: it trains
+    nothing, and its rows follow the model given now."""
+    return {"format": ABLATION_FORMAT, "study": study, "variant": variant, "steps": steps, "seed": seed,
+            "decisions": decisions, **more}
+
+
+def _shaping_rows(folder: Path, key: dict[str, Any], note: Callable[[str], None],
+                  progress: bool) -> list[dict[str, Any]]:
+    """A reward-shaping agent of ``key`` trained (or its training continued) in ``folder/model`` and measured: its
+    rows of the ablation table."""
+    trained = _trained_agent(folder, key, key["fleet"], note, progress)
+    m = trained["training"]
+    return [{"study": key["study"], "variant": key["variant"], "instance": name, "makespan": ms, "valid": True,
+             "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]} for name, ms in trained["measured"].items()]
+
+
+def _masking_rows(folder: Path, key: dict[str, Any], instances: list[Instance], masks: bool,
+                  note: Callable[[str], None]) -> list[dict[str, Any]]:
+    """The training curve of the masking variant ``key`` (with action masks or without) on ``instances``: its rows
+    of the ablation table. Nothing of an interrupted curve is kept (``folder`` holds only the finished rows): it is
+    trained again from its start."""
+    t0 = time.perf_counter()
+    note(f"training: {key['steps']} steps")
+    return [dict(p, study=key["study"], variant=key["variant"], wall_time=round(time.perf_counter() - t0, 2))
+            for p in _episode_curve(masks, instances, int(key["steps"]), int(key["seed"]), key["decisions"])]
+
+
 def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
                  steps: int | None = None, studies: Sequence[str] | None = None,
                  echo: bool = True, decisions: str = "paper", model: str | None = None) -> dict[str, Any]:
     """The ablations in ``studies`` (default all of :data:`ABLATION_STUDIES`; see the module docstring) on the
     paper's net or the full one (``decisions``), the lookahead study with ``model`` (default: ``bu`` on the
-    paper's net, the shipped default model on the full one); returns the JSON document written."""
+    paper's net, the shipped default model on the full one); returns the JSON document written.
+
+    Each trained variant is kept in ``<results_dir>/experiment_ablation_studies/<study>-<variant>-<digest>/`` once
+    done (a reward-shaping agent trains there, in ``model/``): a later run with the same options reuses a finished
+    variant, continues an agent's training that was interrupted, and measures the lookahead study again; a run
+    with other options (:func:`_ablation_key`) does its own. On an interrupt (Ctrl-C, or a stop signal ``fms``
+    turns into one) it says what was kept and re-raises. With ``echo`` each variant's stages are said on stderr as
+    they start (and PPO's progress) and the summary is printed."""
     from fms_sim.formats import load_instance
 
     rows: list[dict[str, Any]] = []
@@ -364,44 +552,61 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
     select_sl = [f"gen:{j4}x{m4}x{t4}*{1 if quick else 2}@141"]
     eval_sl = ["sl40", "sl41"] if quick else [f"sl4{k}" for k in range(10)]
     shaping = (("shaped", "shaped"), ("sparse", "makespan")) if "reward_shaping" in chosen else ()
-    with tempfile.TemporaryDirectory(prefix="fms-ablation-") as tmp:
-        for variant, reward in shaping:
-            t0 = time.perf_counter()
-            if echo:
-                say(f"reward shaping {variant}: training {steps} steps")
-            trained = _train_agent(train_sl, select_sl, steps, seed, reward, Path(tmp) / variant, measure=eval_sl,
-                                   decisions=decisions, progress=echo)
-            m = trained["training"]
-            for name, ms in trained["measured"].items():
-                rows.append({"study": "reward_shaping", "variant": variant, "instance": name, "makespan": ms,
-                             "valid": True, "wall_time": m["wall_seconds"], "timesteps": m["timesteps"]})
-            if echo:
-                say(f"reward shaping {variant}: {time.perf_counter() - t0:.1f} s")
-    # (2) lookahead with the study's model (shipped, of BU scale or general)
-    for i, s in enumerate(look_sets):
-        inst = load_instance(f"EX{s}2")
-        if echo:
-            say(f"lookahead [{i + 1}/{len(look_sets)}] {inst.name}")
-        for variant, la in (("off", False), ("on", True)):
-            if not la:  # a guided model searches its plan once per instance, in the off run; the on run acts out
-                agent.forget()  # the same plan, so the study sees the lookahead alone, not two clock-cut searches
-            t0 = time.perf_counter()
-            sched = _model_run(spec, agent, inst, la)
-            wall = time.perf_counter() - t0
-            rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
-                         "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
-    # (3) masking
-    # generated job sets on BU layout 2 (the studies train on them; no benchmark instance is trained on)
-    mask_insts = expand_specs([f"genbu:2*{1 if quick else 5}@150"])
+    # (3) masking: generated job sets on BU layout 2 (the studies train on them; no benchmark instance is)
+    mask_specs = [f"genbu:2*{1 if quick else 5}@150"]
+    mask_insts = expand_specs(mask_specs)
     masking = (("masked", True), ("unmasked", False)) if "masking" in chosen else ()
-    for variant, flag in masking:
-        t0 = time.perf_counter()
-        if echo:
-            say(f"masking {variant}: training {steps} steps")
-        for p in _episode_curve(flag, mask_insts, steps, seed, decisions):
-            rows.append(dict(p, study="masking", variant=variant, wall_time=round(time.perf_counter() - t0, 2)))
-        if echo:
-            say(f"masking {variant}: {time.perf_counter() - t0:.1f} s")
+    root = Path(results_dir) / ABLATION_DIR
+    reused: list[str] = []
+    stages = _Stages("ablation", "variant", len(shaping) + bool(look_sets) + len(masking), root, steps, echo)
+    if echo:
+        say(f"ablation: {', '.join(chosen)}: {stages.total} variant(s), {steps} training steps per agent; each "
+            f"finished trained variant is kept in {root}")
+
+    def run_variant(study: str, variant: str, key: dict[str, Any],
+                    make: Callable[..., list[dict[str, Any]]]) -> None:
+        """Rows of one trained variant: kept ones, or those ``make(folder)`` returns, kept once it has returned."""
+        name = f"{study.replace('_', ' ')} {variant}"
+        stages.start(name)
+        folder = _kept_folder(root, f"{study}-{variant}", key)
+        stages.model = folder / "model" if study == "reward_shaping" else None
+        got, was_kept = _kept_or_made(folder, key, "variant.json", functools.partial(make, folder))
+        if was_kept:
+            stages.note(f"its {len(got)} row(s) reused from {folder}")
+            reused.append(f"{study}/{variant}")
+        rows.extend(got)
+        stages.finish(name)
+
+    try:
+        for variant, reward in shaping:
+            key = _ablation_key("reward_shaping", variant, steps, seed, decisions, train=train_sl, select=select_sl,
+                                measure=eval_sl, fleet={}, reward=reward, padding="auto", ppo=_ppo_budget(steps))
+            run_variant("reward_shaping", variant, key,
+                        functools.partial(_shaping_rows, key=key, note=stages.note, progress=echo))
+        # (2) lookahead with the study's model (shipped, of BU scale or general), measured again on every run
+        if look_sets:
+            stages.start("lookahead")
+        for i, s in enumerate(look_sets):
+            inst = load_instance(f"EX{s}2")
+            stages.note(f"{look_model} off and on, {inst.name} [{i + 1}/{len(look_sets)}]")
+            for variant, la in (("off", False), ("on", True)):
+                if not la:  # a guided model searches its plan once per instance, in the off run; the on run acts
+                    agent.forget()  # out the same plan, so the study sees the lookahead alone, not two searches
+                t0 = time.perf_counter()
+                sched = _model_run(spec, agent, inst, la)
+                wall = time.perf_counter() - t0
+                rows.append({"study": "lookahead", "variant": variant, "instance": inst.name,
+                             "makespan": sched.makespan, "valid": _checked(inst, sched), "wall_time": round(wall, 4)})
+        if look_sets:
+            stages.finish(None)
+        for variant, flag in masking:
+            key = _ablation_key("masking", variant, steps, seed, decisions, instances=mask_specs, reward="shaped",
+                                invalid_action="penalty", ppo=_ppo_budget(max(16, steps // 8)))
+            run_variant("masking", variant, key,
+                        functools.partial(_masking_rows, key=key, instances=mask_insts, masks=flag, note=stages.note))
+    except KeyboardInterrupt:  # (every finished study was lost: agents in a temporary folder, rows in memory)
+        stages.interrupted()
+        raise
 
     summary: dict[str, Any] = {}
     for study, variants in (("reward_shaping", ("shaped", "sparse")), ("lookahead", ("off", "on"))):
@@ -418,7 +623,8 @@ def run_ablation(quick: bool = False, results_dir: str | Path = "results", seed:
             "reward_shaping": {"train": train_sl, "eval": eval_sl, "on": "shaped", "off": "makespan (sparse)"},
             "lookahead": {"model": look_model, "mode": look_mode,
                           "plan": "searched in the off run, acted out again in the on run" if guided else None},
-            "masking": {"instances": [i.name for i in mask_insts], "invalid_penalty": -10.0}, "summary": summary}
+            "masking": {"instances": [i.name for i in mask_insts], "invalid_penalty": -10.0},
+            "kept_in": str(root), "reused_variants": reused, "summary": summary}
 
     def draw(path: Path) -> None:
         fig, ax = _figure(15, 4.5, ncols=3)
@@ -485,66 +691,16 @@ def _group_key(g: int, train_spec: list[str], select: list[str], held: list[str]
             "reward": "shaped", "padding": "auto", "ppo": _ppo_budget(steps)}
 
 
-def _group_folder(root: Path, key: dict[str, Any]) -> Path:
-    """The folder of a group's kept work under ``root``: ``g<group>-<digest of its key>``."""
-    import hashlib
-
-    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
-    return root / f"g{key['group']}-{digest}"
-
-
-def _kept_rows(folder: Path, key: dict[str, Any]) -> list[dict[str, Any]] | None:
-    """The specialised rows a finished group kept in ``folder`` (``group.json``, written last and whole), or None
-    where there are none of this ``key``."""
-    try:
-        doc = json.loads((folder / "group.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(doc, dict) or doc.get("key") != key or not isinstance(doc.get("rows"), list):
-        return None
-    return doc["rows"]
-
-
-def _kept_training(model: Path) -> dict[str, Any] | None:
-    """The metrics of the training an earlier run left in the folder ``model`` (finished or interrupted with its
-    weights saved), or None where there is none to go on from."""
-    try:
-        metrics = json.loads((model / "metrics.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    ok = (isinstance(metrics, dict) and isinstance(metrics.get("training"), dict)
-          and (model / "config.json").is_file() and (model / str(metrics["training"].get("weights"))).is_file())
-    return metrics if ok else None
-
-
-def _specialist(folder: Path, key: dict[str, Any], fleet: dict[str, Any], note: Callable[[str], None],
-                progress: bool) -> dict[str, Any]:
-    """Train group ``key``'s specialised agent in ``folder/model`` and return its metrics with ``"measured"``, going
-    on from what an earlier run of the same key left there: a finished training is only measured, an interrupted
-    one continues for the steps it lacks (``fms train --resume``), anything else trains afresh."""
-    from .rl.train import train
-
-    model = folder / "model"
-    steps = int(key["steps"])
-    metrics = _kept_training(model)
-    done = int(metrics.get("ppo_steps", 0)) if metrics else 0
-    if metrics is not None and not metrics["training"].get("interrupted"):
-        note(f"its agent trained before ({done} steps) is reused")
-    elif metrics is not None and done < steps and (model / "model.zip").is_file():
-        note(f"training: continues the agent interrupted after {done} of {steps} steps")
-        metrics = train({"steps": steps - done}, model, resume=True, progress=progress, tensorboard=model / "tb")
-        _stop_if_interrupted(metrics)
-    elif metrics is not None:
-        note(f"its agent trained before ({done} steps; interrupted while evaluating) is reused")
-    else:
-        note(f"training: {steps} steps")
-        metrics = train(_agent_config(key["train"], key["select"], steps, int(key["seed"]), key["reward"],
-                                      key["padding"], fleet, key["decisions"]),
-                        model, progress=progress, tensorboard=model / "tb", force=True)
-        _stop_if_interrupted(metrics)
-    note(f"measuring the specialised agent on {len(key['measure'])} instance(s)")
-    metrics["measured"] = _measure(model, metrics, key["measure"], fleet)
-    return metrics
+def _specialist_rows(folder: Path, key: dict[str, Any], size: str, note: Callable[[str], None],
+                     progress: bool) -> list[dict[str, Any]]:
+    """Group ``key``'s specialised agent trained (or its training continued) in ``folder/model`` and measured: its
+    rows of the generalization table."""
+    trained = _trained_agent(folder, key, key["fleet"], note, progress, agent="specialised agent")
+    met = trained["training"]
+    return [{"group": key["group"], "size": size, "agent": "specialized", "instance": name, "makespan": ms,
+             "valid": True, "wall_time": met["wall_seconds"],  # validated by evaluate_model
+             "train_steps": int(trained.get("ppo_steps", met["timesteps"]))}
+            for name, ms in trained["measured"].items()]
 
 
 def run_generalization(quick: bool = False, results_dir: str | Path = "results", seed: int = 0,
@@ -576,20 +732,8 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
     general = agent.name
     root = Path(results_dir) / GROUPS_DIR
     rows: list[dict[str, Any]] = []
-    finished: list[int] = []
     reused: list[int] = []
-    t_start = time.perf_counter()
-    stage = "starting"
-    g = groups[0] if groups else 0
-    folder = root
-
-    def note(what: str) -> None:
-        nonlocal stage
-        stage = what
-        if echo:
-            say(f"generalization: group {g} ({'x'.join(map(str, SL_GROUPS[g]))}) [{len(finished) + 1}/{len(groups)}]"
-                f": {what} ({time.perf_counter() - t_start:.0f} s in all)")
-
+    stages = _Stages("generalization", "group", len(groups), root, steps, echo)
     if echo:
         say(f"generalization: {len(groups)} group(s), {steps} training steps per specialised agent; each finished "
             f"group is kept in {root}")
@@ -598,9 +742,8 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
             j, m, t = SL_GROUPS[g]
             size = f"{j}x{m}x{t}"
             held = [f"sl{g}9"] if quick else [f"sl{g}{k}" for k in range(5, 10)]
-            t_group = time.perf_counter()
-            folder = root  # (this group's folder is known once its key is)
-            note(f"general model {general} on {len(held)} instance(s)")
+            stages.start(f"group {g}", f"group {g} ({size})")
+            stages.note(f"general model {general} on {len(held)} instance(s)")
             for inst in expand_instances(held, fleet):
                 agent.forget()  # planned from scratch and timed with its plan search, whatever ran before
                 t0 = time.perf_counter()
@@ -611,34 +754,17 @@ def run_generalization(quick: bool = False, results_dir: str | Path = "results",
             train_spec = [f"gen:{j}x{m}x{t}*{2 if quick else 4}@{100 + g}"]
             select = [f"gen:{j}x{m}x{t}*1@{120 + g}"]  # model selection on generated shops, never on sl
             key = _group_key(g, train_spec, select, held, steps, seed, fleet, decisions)
-            folder = _group_folder(root, key)
-            kept = _kept_rows(folder, key)
-            if kept is not None:
-                note(f"specialised agent and its {len(kept)} row(s) reused from {folder}")
+            folder = _kept_folder(root, f"g{g}", key)
+            stages.model = folder / "model"
+            kept, was_kept = _kept_or_made(folder, key, "group.json", functools.partial(
+                _specialist_rows, folder, key, size, stages.note, echo))
+            if was_kept:
+                stages.note(f"specialised agent and its {len(kept)} row(s) reused from {folder}")
                 reused.append(g)
-            else:
-                write_atomically(folder / "key.json", json.dumps(key, indent=2) + "\n")
-                trained = _specialist(folder, key, fleet, note, echo)
-                met = trained["training"]
-                kept = [{"group": g, "size": size, "agent": "specialized", "instance": name, "makespan": ms,
-                         "valid": True, "wall_time": met["wall_seconds"],  # validated by evaluate_model
-                         "train_steps": int(trained.get("ppo_steps", met["timesteps"]))}
-                        for name, ms in trained["measured"].items()]
-                write_atomically(folder / "group.json", json.dumps({"key": key, "rows": kept}, indent=2) + "\n")
             rows.extend(kept)
-            note(f"done in {time.perf_counter() - t_group:.0f} s")
-            finished.append(g)
+            stages.finish(str(g))
     except KeyboardInterrupt:  # (only "fms: interrupted" was said, and every group's work was lost)
-        partly = _kept_training(folder / "model") if folder != root and g not in finished else None
-        left = ""
-        if partly is not None:
-            done = int(partly.get("ppo_steps", 0))
-            left = (f"; group {g}'s agent, trained {done} of {steps} steps, in {folder / 'model'}: its training "
-                    "continues from there" if done < steps else f"; group {g}'s trained agent, not yet measured, in "
-                    f"{folder / 'model'}")
-        say(f"generalization: interrupted in group {g} ({stage}) after {len(finished)} of {len(groups)} group(s); "
-            f"kept: {len(finished)} finished group(s) ({', '.join(map(str, finished)) or 'none'}) in {root}{left}; "
-            "the tables were not written: run the same command again to continue")
+        stages.interrupted()
         raise
     summary = {str(g): {a: _mean([r["makespan"] for r in rows if r["group"] == g and r["agent"] == a])
                         for a in (f"general ({general})", "specialized")} for g in groups}
@@ -1094,9 +1220,17 @@ def add_experiment_parser(subparsers: Any) -> argparse.ArgumentParser:
         p.add_argument("--results-dir", default="results", help="output folder (default results)")
         p.add_argument("--seed", type=int, default=0, help="seed (>= 0) of the runs that train or draw (default 0)")
 
-    p = sub.add_parser("ablation", help="reward shaping, lookahead and action masking on/off")
+    p = sub.add_parser("ablation", help="reward shaping, lookahead and action masking on/off",
+                       description="Reward shaping (two agents trained), the lookahead (a model with and without "
+                                   "it) and action masking (two training curves) on and off. Resumable: each "
+                                   f"finished trained variant is kept in RESULTS_DIR/{ABLATION_DIR}/ (its rows, "
+                                   "and its agent, per options); after an interrupt the same command reuses them, "
+                                   "continues the interrupted agent's training and measures the lookahead again "
+                                   "(other --steps, --seed, --quick or --decisions reuse nothing). Progress on "
+                                   "stderr.")
     common(p)
-    p.add_argument("--steps", type=int, help="training steps per agent (default 20000; quick 128)")
+    p.add_argument("--steps", type=int, help="training steps per agent (default 20000; quick 128); kept variants "
+                                             "of other steps are not reused")
     p.add_argument("--studies", nargs="+", choices=ABLATION_STUDIES, help="run only these (default all)")
     p.add_argument("--decisions", choices=("paper", "full"), default="paper",
                    help="the net the agents decide through (default paper; full: the default model in the "

@@ -500,7 +500,7 @@ def test_ablation_stops_on_an_interrupted_training(tmp_path: Path, monkeypatch: 
     calls = _interrupt_training(monkeypatch, at=1)
     with pytest.raises(KeyboardInterrupt):
         run_ablation(quick=True, results_dir=tmp_path, steps=32, studies=["reward_shaping"], echo=False)
-    assert len(calls) == 1 and not any(tmp_path.iterdir())
+    assert len(calls) == 1 and [p.name for p in tmp_path.iterdir()] == ["experiment_ablation_studies"]  # no tables
 
 
 def test_generalization_interrupted_on_the_command_line_says_what_was_kept(
@@ -528,3 +528,70 @@ def test_fms_experiment_refuses_a_negative_seed(name, tmp_path, capsys):
     code = cli.main(["experiment", name, "--quick", "--seed", "-1", "--results-dir", str(tmp_path)])
     assert code == 2 and "--seed must be an integer >= 0, got -1" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_ablation_keeps_finished_variants_on_an_interrupt_and_reuses_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The ablation trained its agents in a temporary folder and kept its rows in memory: a Ctrl-C in the sparse
+    agent's training lost the shaped agent trained before it. Now it says what was kept, and a rerun of the same
+    command reuses the finished variants, continues the sparse agent's training, measures the lookahead again and
+    trains only what it lacks; other options reuse nothing."""
+    with monkeypatch.context() as m:
+        _interrupt_training(m, at=2)
+        with pytest.raises(KeyboardInterrupt):
+            run_ablation(quick=True, results_dir=tmp_path, steps=32, echo=False)
+    err = capsys.readouterr().err
+    assert "ablation: interrupted in reward shaping sparse (training: 32 steps) after 1 of 5 variant(s)" in err
+    assert "kept: 1 finished variant(s) (reward shaping shaped)" in err and "trained 0 of 32 steps" in err
+    assert "run the same command again to continue" in err
+    assert not list(tmp_path.glob("experiment_ablation.*"))  # the tables were not written
+    root = tmp_path / "experiment_ablation_studies"
+    kept = list(root.glob("reward_shaping-shaped-*/variant.json"))
+    assert len(kept) == 1
+    shaped = json.loads(kept[0].read_text())["rows"]
+    assert [(r["study"], r["variant"], r["instance"]) for r in shaped] == [
+        ("reward_shaping", "shaped", "sl40"), ("reward_shaping", "shaped", "sl41")]
+
+    calls = _interrupt_training(monkeypatch, at=None)
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=32)
+    err = capsys.readouterr().err
+    assert len(calls) == 3 and doc["reused_variants"] == ["reward_shaping/shaped"]  # sparse's rest, the 2 curves
+    assert "ablation: reward shaping shaped [1/5]: its 2 row(s) reused from" in err
+    assert "ablation: reward shaping sparse [2/5]: training: continues the agent interrupted after 0 of 32 steps" in err
+    assert "ablation: lookahead [3/5]: bu off and on, EX12 [1/2]" in err  # measured again: it trains nothing
+    assert [r for r in doc["rows"] if r["variant"] == "shaped"] == shaped
+    assert [(r["study"], r["variant"]) for r in doc["rows"] if r["study"] != "masking"] == [
+        ("reward_shaping", v) for v in ("shaped", "shaped", "sparse", "sparse")] + [
+        ("lookahead", v) for v in ("off", "on", "off", "on")]
+    assert sorted(p.name.rsplit("-", 1)[0] for p in root.iterdir()) == [
+        "masking-masked", "masking-unmasked", "reward_shaping-shaped", "reward_shaping-sparse"]
+    _outputs(tmp_path, "ablation", ABLATION_COLUMNS)
+
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=32, echo=False)
+    assert len(calls) == 3 and doc["reused_variants"] == [  # all finished now: nothing trains
+        "reward_shaping/shaped", "reward_shaping/sparse", "masking/masked", "masking/unmasked"]
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=32, studies=["masking"], seed=1, echo=False)
+    assert len(calls) == 5 and doc["reused_variants"] == []  # another seed: its own curves
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=48, studies=["masking"], echo=False)
+    assert len(calls) == 7 and doc["reused_variants"] == []  # other steps: its own curves
+    doc = run_ablation(quick=True, results_dir=tmp_path, steps=32, studies=["masking"], echo=False,
+                       decisions="full")
+    assert len(calls) == 9 and doc["reused_variants"] == []  # the other net: its own curves
+
+
+def test_ablation_interrupted_on_the_command_line_says_what_was_kept(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """fms ends an interrupted command with exit code 130; the ablation says before that what it kept (it said only
+    "fms: interrupted", and the finished masked curve was lost with the interrupted unmasked one)."""
+    from fms_dispatch.cli import main
+
+    _interrupt_training(monkeypatch, at=2)
+    args = ["experiment", "ablation", "--quick", "--steps", "32", "--studies", "masking", "--results-dir",
+            str(tmp_path)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert ("ablation: interrupted in masking unmasked (training: 32 steps) after 1 of 2 variant(s); kept: 1 "
+            "finished variant(s) (masking masked)") in err and err.rstrip().endswith("fms: interrupted")
+    assert "ablation: masking masked [1/2]: training: 32 steps" in err  # each stage said as it starts
+    kept = [p.parent.name.rsplit("-", 1)[0] for p in (tmp_path / "experiment_ablation_studies").glob("*/variant.json")]
+    assert kept == ["masking-masked"]  # (the interrupted curve keeps no rows: it is trained again from its start)
