@@ -915,9 +915,11 @@ class _ReplanJob:
         self._t0 = _time.monotonic()
         self._clock = _time.monotonic
         self.process: Any = None
-        if REPLAN_IN_PROCESS:
-            import multiprocessing
+        import multiprocessing
 
+        # a daemonic process (a multiprocessing.Pool's worker) may not start one (multiprocessing refuses with an
+        # AssertionError): its re-plans run in a thread, as where no process can be forked
+        if REPLAN_IN_PROCESS and not multiprocessing.current_process().daemon:
             ctx = multiprocessing.get_context("fork")
             receive, send = ctx.Pipe(duplex=False)
             self.process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name="fms-replan",

@@ -970,3 +970,20 @@ def test_states_the_checks_let_through_are_answered_not_fatal() -> None:
     assert err.msg["code"] == "internal" and err.msg["message"] == f"state {state['seq']}: cannot decide: " \
         f"RuntimeError: boom; sending {legal_labels(state)[0]!r}"
     assert cmd.msg["action"] == legal_labels(state)[0]
+
+
+def test_a_re_plan_in_a_daemonic_process_runs_in_a_thread(monkeypatch) -> None:
+    """A daemonic process (a ``multiprocessing.Pool``'s worker) may not start a process: a re-plan there raised
+    multiprocessing's AssertionError ("daemonic processes are not allowed to have children") out of the decision
+    instead of running in a thread, as it does where no process can be forked."""
+    import multiprocessing
+    import os
+
+    from fms_dispatch import agent_logic
+
+    if not agent_logic.REPLAN_IN_PROCESS:
+        pytest.skip("re-plans run in a forked process on Linux only")
+    monkeypatch.setitem(multiprocessing.current_process()._config, "daemon", True)
+    job = agent_logic._ReplanJob(os.getpid, (), "breakdown", "run", 1, 0)
+    assert job.done.wait(10)
+    assert job.process is None and job.error is None and job.result == os.getpid()  # here, in a thread
