@@ -172,9 +172,13 @@ def record(a: argparse.Namespace, rows: list[dict]) -> None:
     import sys
 
     from fms_sim.files import write_atomically
-    from fms_dispatch.rl.models import ASSIGNMENTS_KEY, METRICS_FILE, resolve_model
+    from fms_dispatch.rl.models import ASSIGNMENTS_KEY, METRICS_FILE, _solving_weights_name, resolve_model
 
-    path = resolve_model(a.model).folder / METRICS_FILE
+    ref = resolve_model(a.model)
+    if ref.weights.name != _solving_weights_name(ref.folder):  # the card speaks of the folder's solving weights
+        raise SystemExit(f"--record: {ref.weights} are not the weights {ref.folder} solves with "
+                         f"({_solving_weights_name(ref.folder)}); check the folder itself (--model {ref.folder})")
+    path = ref.folder / METRICS_FILE
     metrics = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
     metrics[ASSIGNMENTS_KEY] = {
         "assignments": sum(r["assignments"] for r in rows),

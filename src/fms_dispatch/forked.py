@@ -61,6 +61,8 @@ class Forked:
     def __init__(self, fn: Callable[..., Any], args: tuple, name: str = "fms-forked") -> None:
         import multiprocessing
 
+        if multiprocessing.current_process().daemon:  # (multiprocessing's own refusal is an AssertionError)
+            raise OSError("a daemonic process (a multiprocessing.Pool's worker) may not start a process")
         ctx = multiprocessing.get_context("fork")
         self._receive, send = ctx.Pipe(duplex=False)
         self._process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name=name, daemon=True)

@@ -177,3 +177,67 @@ def test_where_no_process_can_be_forked_the_search_runs_before_the_run(monkeypat
     sched = solve(inst, "ppo", guide_effort=SEARCH)
     assert validate(inst, sched) == [] and sched.meta["guide_search_beside"] is None
     assert sched.operations == _in_line(monkeypatch, inst).operations and sched.meta["guide_search_time"] > 0
+
+
+@needs_fork
+def test_an_interrupt_while_the_solve_waits_for_the_search_ends_it(two_cpus):
+    # the run ended first and the solve waits for the search; a Ctrl-C there (KeyboardInterrupt) left the search
+    # running in its process to the end of its budget (30 s here), at full CPU, in a process that went on
+    import signal
+
+    search = beside.SearchBeside(FullShop(builtin("EX22")), effort_from(restarts=10**6, budget=30, tabu=0))
+    job = search._job
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, interrupt)
+    signal.setitimer(signal.ITIMER_REAL, 0.3)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            search.searched()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    job._process.join(timeout=5)  # (a process still searching would not end within 5 s)
+    assert not job._process.is_alive() and job._process.exitcode is not None
+
+
+@needs_fork
+def test_an_interrupt_before_the_run_ends_the_search(monkeypatch, two_cpus):
+    # a Ctrl-C after the search began and before the run did (while the first plan was put in force) left the
+    # search running to the end of its budget
+    from fms_dispatch.rl.agent import Agent
+
+    started = []
+
+    class Recorded(beside.Forked):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            started.append(self)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(beside, "Forked", Recorded)
+    monkeypatch.setattr(Agent, "adopt_replan", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        solve(builtin("EX22"), "ppo", guide_effort=effort_from(restarts=10**6, budget=30, tabu=0))
+    assert len(started) == 1
+    started[0]._process.join(timeout=5)
+    assert not started[0]._process.is_alive()
+
+
+@needs_fork
+def test_a_daemonic_process_searches_before_its_run(monkeypatch, two_cpus):
+    # a multiprocessing.Pool's worker is daemonic, and a daemonic process may not start one: solve(sl70, "ppo") in
+    # one failed with "AssertionError: daemonic processes are not allowed to have children"
+    import multiprocessing
+
+    monkeypatch.setitem(multiprocessing.current_process()._config, "daemon", True)
+    assert not beside.beside_possible(SEARCH)
+    inst = builtin("EX22")
+    sched = solve(inst, "ppo", guide_effort=SEARCH)
+    assert validate(inst, sched) == [] and sched.meta["guide_search_beside"] is None
+    with pytest.raises(OSError, match="daemonic"):  # (the agent node's re-plans and the search fall back on it)
+        beside.Forked(len, ((),))

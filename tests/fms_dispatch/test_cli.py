@@ -206,9 +206,13 @@ def test_a_guided_runs_plan_search_is_timed_apart(tmp_path, capsys, monkeypatch)
         code, line, _ = run(["solve", "sl00", "--solver", "ppo", "--guide-budget", "0.3", "--out", str(out), "-q"],
                             capsys)
         meta = json.loads(out.read_text())["meta"]
-        assert code == 0 and meta["guide_search_beside"] == "restarted" and 0.2 <= meta["guide_search_time"] <= 0.8
-        assert (f"{meta['wall_time']:.3f} s, plan search {meta['guide_search_time']:.3f} s beside the run, which "
-                "started over with its plan, valid)") in line
+        # (sl00's run ends before the 0.3 s search, which nearly always finds a better plan: the run starts over;
+        # on a loaded machine it may find none in its budget, and the first plan stands)
+        outcome = meta["guide_search_beside"]
+        assert code == 0 and outcome in ("kept", "restarted") and 0.2 <= meta["guide_search_time"] <= 3
+        said = "which started over with its plan" if outcome == "restarted" else "its first plan kept"
+        assert f"{meta['wall_time']:.3f} s, plan search {meta['guide_search_time']:.3f} s beside the run, {said}, valid)" \
+            in line
     code, line, _ = run(["solve", "EX22", "--solver", "ppo:full", "--out", str(out), "-q"], capsys)
     assert code == 0 and "plan search" not in line and "guide_search_time" not in json.loads(out.read_text())["meta"]
 

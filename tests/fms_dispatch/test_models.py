@@ -202,3 +202,17 @@ def test_a_model_takes_its_plans_assignments_only_where_its_card_records_the_che
     assert not checked_assignments(folder)
     (folder / "metrics.json").unlink()
     assert not checked_assignments(folder) and not resolve_model(str(folder)).plan_assigns
+
+
+def test_only_the_weights_the_card_checked_take_the_plans_assignments():
+    """The card's check (bench/plan_assignments.py --record) was made on the folder's solving weights: another
+    weights file of the same folder (guided's model.zip, its PPO weights, or warm_start.zip) was never checked and
+    decides every choice with its network; the solving weights named as a file still take the assignments."""
+    from fms_dispatch.rl.models import load_agent
+
+    folder = resolve_model("guided").folder
+    assert resolve_model(str(folder / "best_model.zip")).plan_assigns
+    for other in ("model.zip", "warm_start.zip"):
+        assert (folder / other).is_file()
+        assert not resolve_model(str(folder / other)).plan_assigns
+        assert not load_agent(str(folder / other)).plan_assigns

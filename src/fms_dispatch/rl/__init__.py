@@ -52,10 +52,12 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     records the makespan of the plan in force at its end in ``meta["guide_plan_makespan"]`` (the plan searched at the
     start; in a disrupted run the last re-plan adopted, a forecast): a plain run that ends later left out some of the
     plan's empty trips, which ``lookahead="guide"`` makes; ``meta["guide_search_time"]`` is the seconds of the plan
-    search at the start. Where a second core is there for it and the run has no lookahead
-    (:func:`~fms_dispatch.rl.beside.beside_possible`), the search runs on that core while the run goes on with its
-    first plan, and the run starts over only if the search found a plan that ends earlier
-    (:mod:`~fms_dispatch.rl.beside`; the same schedule, sooner where the first plan stands):
+    search at the start. Where a second core is there for it, the run has no lookahead
+    (:func:`~fms_dispatch.rl.beside.beside_possible`) and the budget fits fewer than 16 list schedules of the shop
+    (:func:`~fms_dispatch.rl.beside.worth_beside`: the large shops), the search runs on that core while the run goes
+    on with its first plan, and the run starts over only if the search found a plan that ends earlier
+    (:mod:`~fms_dispatch.rl.beside`; the same schedule where the search gets the CPU time it gets before the run,
+    sooner where the first plan stands):
     ``meta["guide_search_beside"]`` is then ``"kept"`` or ``"restarted"`` (None: the search ran before the run, its
     time part of the run's ``wall_time``). Where a guided model's only choice is an assignment (a vehicle for a
     carry, a request for a tool) and its plan names a legal answer, the run takes it without running the network
@@ -130,7 +132,12 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
                     beside = None
             # the first plan, the run going on with it; or the plan searched from it before the run
             plan = first.plan if beside is not None else search_from(instance, first, agent.guide_effort)
-            agent.adopt_replan(shop, plan, None, None)
+            try:
+                agent.adopt_replan(shop, plan, None, None)
+            except BaseException:  # (an interrupt before the run: the search beside it ends too)
+                if beside is not None:
+                    beside.cancel()
+                raise
             search_s = time.perf_counter() - t0
         elif agent.guide is not None:  # the plan search, timed apart from the run (which reads the same guide)
             t0 = time.perf_counter()

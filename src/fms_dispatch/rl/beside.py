@@ -61,11 +61,17 @@ def _cpus() -> int:
 
 def beside_possible(effort: PlanEffort) -> bool:
     """Whether a plan search with ``effort`` runs beside the run here: this process is not one of a pool's workers
-    (:data:`ALLOWED`), a process can be forked (Linux), this process may use two CPUs or more (on one the search and
-    the run would share it, and a budget cut short would end the search with a worse plan), and ``effort`` searches past the two list schedules (restarts, rule pairs or a tabu
-    search) without CP-SAT's polish (OR-Tools' threads are not used in a forked child)."""
+    (:data:`ALLOWED`) nor daemonic (a ``multiprocessing.Pool``'s worker, which may not start a process), a process
+    can be forked (Linux), this process may use two CPUs or more (on one the search and the run would share it, and a
+    budget cut short would end the search with a worse plan), and ``effort`` searches past the two list schedules
+    (restarts, rule pairs or a tabu search) without CP-SAT's polish (OR-Tools' threads are not used in a forked
+    child)."""
+    import multiprocessing
+
     searches = effort.restarts > 0 or effort.rules or effort.tabu > 0
-    return ALLOWED and FORK_AVAILABLE and _cpus() >= 2 and searches and not effort.exact
+    # a daemonic process (a multiprocessing.Pool's worker) may not start a process, and is one of several solving
+    daemonic = multiprocessing.current_process().daemon
+    return ALLOWED and FORK_AVAILABLE and not daemonic and _cpus() >= 2 and searches and not effort.exact
 
 
 #: the search runs beside the run only where its budget fits fewer list schedules of the shop than this
@@ -125,6 +131,9 @@ class SearchBeside:
             self.failed = str(exc)
             first = dataclasses.replace(self.first, t0=time.monotonic())
             plan, end = _search(self.instance, first, self.effort)
+        except BaseException:  # interrupted while it waited (Ctrl-C): the search ends with the solve, not its budget
+            job.cancel()
+            raise
         self.seconds = end - self.first.t0
         return plan
 

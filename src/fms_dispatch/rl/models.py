@@ -149,8 +149,11 @@ class ModelRef:
             check_guide(self.guide, self.decisions)
         except ValueError as exc:
             raise ValueError(f"model {self.name}: {exc}") from None
-        #: whether the model takes its plan's assignments without running its network (:func:`checked_assignments`)
-        self.plan_assigns = self.guide is not None and checked_assignments(folder)
+        #: whether the model takes its plan's assignments without running its network (:func:`checked_assignments`):
+        #: only with the folder's solving weights, which the card's check was made on (another weights file of the
+        #: folder, such as ``guided``'s ``model.zip``, was never checked)
+        self.plan_assigns = (self.guide is not None and weights.name == _solving_weights_name(folder)
+                             and checked_assignments(folder))
 
     def __repr__(self) -> str:
         return f"ModelRef({self.name!r}, {self.weights})"
@@ -199,6 +202,15 @@ def _recorded_weights(folder: Path) -> str | None:
     training = metrics.get("training") if isinstance(metrics, dict) else None
     weights = training.get("weights") if isinstance(training, dict) else None
     return weights if weights in ("best_model.zip", "model.zip") else None
+
+
+def _solving_weights_name(folder: Path) -> str:
+    """The weights file ``folder`` solves with when named as a folder (:func:`resolve_model`): the one its metrics
+    record, else ``best_model.zip`` where it is there, else ``model.zip``."""
+    recorded = _recorded_weights(folder)
+    if recorded is not None:
+        return recorded
+    return "best_model.zip" if (folder / "best_model.zip").is_file() else "model.zip"
 
 
 #: the key of a model card (``metrics.json``) that records the check of its plan's assignments
