@@ -16,6 +16,7 @@ instance with the validator's first errors, and checks the schedule it returns.
 from __future__ import annotations
 
 from collections import defaultdict, deque
+from dataclasses import replace
 from typing import Callable, Deque
 
 from .disruptions import Scenario
@@ -46,7 +47,9 @@ class PlanPolicy:
     planned action or ``hold`` at a decision), so a plan runs offline and, as labels, through the shop node;
     :meth:`step` is the decision part: the action to fire now, or None when nothing planned can be done."""
 
-    def __init__(self, instance: Instance, schedule: Schedule):
+    def __init__(self, instance: Instance, schedule: Schedule, *, state: FullShop | None = None):
+        """``state``: the shop the plan goes on from (:meth:`resume`), whose tools' places and reservations order
+        the uses that tie at one instant; None: the start of a run."""
         self.instance = instance
         # a plan of another shop would run into actions the net does not have: refuse it here, by name
         jobs = instance.jobs
@@ -73,7 +76,7 @@ class PlanPolicy:
         # each machine's operations by start (then end), those of zero duration at one instant in an order that
         # every resource's order agrees with (fms_sim.ties.plan_orders: the list's order could close a circular wait
         # with a transporter's carries for them, and the replay of a valid schedule got stuck)
-        tools, tied = plan_orders(instance, schedule)
+        tools, tied = plan_orders(instance, schedule) if state is None else plan_orders(*_from_state(state, schedule))
         self.machine: dict[int, Deque[tuple[int, int]]] = defaultdict(deque)
         for _, r in sorted(enumerate(schedule.operations),
                            key=lambda ir: (ir[1].start, ir[1].end, tied.get((ir[1].job, ir[1].op), -1), ir[0])):
@@ -85,8 +88,11 @@ class PlanPolicy:
         """The orders of ``plan`` (a whole schedule, or a residual plan from
         :func:`fms_dispatch.exact.greedy_schedule` with ``origin``) from ``shop``'s state now: operations that
         have started, tool uses already reserved and parts already dispatched are dropped from the orders, so a
-        plan made from an earlier state of the same run (re-planning while the shop went on) goes on from here."""
-        pol = cls(shop.instance, plan)
+        plan made from an earlier state of the same run (re-planning while the shop went on) goes on from here. The
+        uses that tie at one instant are ordered from where the tools stand now, a reserved use first
+        (:func:`fms_sim.ties.plan_orders` with the state), so a machine's and a transporter's orders agree with
+        what its tool can do."""
+        pol = cls(shop.instance, plan, state=shop)
         started, dispatched = shop.started, shop.job_started_ops
         for q in pol.machine.values():
             keep = [(j, k) for j, k in q if k >= started[j]]
@@ -97,7 +103,6 @@ class PlanPolicy:
             q.clear()
             q.extend(keep)
         jobs = shop.instance.jobs
-        pol._reserved_first(shop, plan)
 
         def served(j: int, k: int) -> bool:
             tool = jobs[j][k].tool
@@ -118,37 +123,6 @@ class PlanPolicy:
                 while legs and legs[0][0] == "move":
                     legs.popleft()
         return pol
-
-    def _reserved_first(self, shop: FullShop, plan: Schedule) -> None:
-        """A tool the shop holds for an operation that has not started (a reservation) serves that use first: it
-        goes first in the tool's order, and, if it has no duration itself, on its machine ahead of the uses tied with
-        it (zero durations planned at its start; one that runs a while comes after those, as planned). The orders
-        of uses at one instant come from :func:`fms_sim.ties.plan_orders`, which knows nothing of the state: a
-        residual plan that starts with the reserved use (as every plan from the state does) got another use of the
-        tool first there, the machine waited for a use the tool would not serve, and the run was stuck."""
-        planned = {(r.job, r.op): (r.start, r.end) for r in plan.operations}
-        for t in range(1, len(shop.tool_user)):
-            op = shop.reserved_op(t)
-            if op is None:
-                continue
-            uses = self.tool.get(t)
-            if uses and op in uses:  # (a use reserved is dropped from the orders by resume: it has its tool)
-                uses.remove(op)
-                uses.appendleft(op)
-            queue = self.machine.get(shop.instance.jobs[op[0]][op[1]].machine)
-            if not queue or op not in queue or op not in planned:
-                continue
-            s, e = planned[op]
-            if e > s:  # it runs for a while: the operations tied at its start come first on the machine (as planned;
-                continue  # put behind it, they waited for its end and the residual plan ended later than it said)
-            at = queue.index(op)
-            p = at
-            # past the uses tied with it (the same instant, no duration), not past its own job's earlier operations
-            while p > 0 and planned.get(queue[p - 1]) == (s, s) and queue[p - 1][0] != op[0]:
-                p -= 1
-            if p < at:
-                del queue[at]
-                queue.insert(p, op)
 
     # ------------------------------------------------------------------ answers at a stepper's stops
     def answer(self, stepper: Stepper) -> str:
@@ -281,6 +255,22 @@ class PlanPolicy:
 def _if_legal(shop: FullShop, label: str, legal: Callable[[int], bool]) -> int | None:
     a = shop.action_index(label)
     return a if legal(a) else None
+
+
+def _from_state(shop: FullShop, plan: Schedule
+                ) -> tuple[Instance, Schedule, dict[int, tuple[int, tuple[int, int] | None]]]:
+    """What :func:`fms_sim.ties.plan_orders` orders the rest of ``plan`` from, once ``shop`` has gone as far as it
+    has: the instance, the plan without the operations that have started (and without the carries for them), and
+    where each tool stands now and the use it is reserved for (its carry made, or under way). The tied uses of a
+    residual plan start where its tools stand, not in the magazine as a whole schedule's do; ordered from the
+    magazine, they came out in an order the tool cannot follow and the replay got stuck."""
+    inst = shop.instance
+    started = shop.started
+    rest = [r for r in plan.operations if r.op >= started[r.job]]
+    trips = [t for t in plan.tool_trips if not t.loaded or t.job is None or t.op is None or t.op >= started[t.job]]
+    view = replace(plan, operations=rest, tool_trips=trips)
+    origin = {t: (shop.tool_loc[t], shop.reserved_op(t)) for t in range(1, inst.n_tools + 1)} if inst.has_tools else {}
+    return inst, view, origin
 
 
 def _consume(queue: Deque[tuple], item: tuple) -> None:

@@ -16,6 +16,7 @@ leave their order open. The validator (:mod:`fms_sim.validate`) and replay (:mod
 from __future__ import annotations
 
 from collections import defaultdict
+from dataclasses import replace
 from itertools import groupby
 
 from .instance import Instance
@@ -37,13 +38,22 @@ class _GiveUp(Exception):
     """A search of tied orders (:func:`_tied_order`, :func:`_search`) visited too many states."""
 
 
-def tool_order(us: list[tuple], trips: dict) -> list[tuple]:
+def tool_order(us: list[tuple], trips: dict, origin: tuple[int, tuple[int, int] | None] = (0, None)) -> list[tuple]:
     """The uses of one tool (``(start, end, job, op, machine)``) in the order the tool serves them: by time; uses at
     the same instant (zero durations) in an order the tool can follow (:func:`_tied_order`), else, for the errors to
     name, one on the machine where the tool is before one it must be carried to, carried ones by their trip's start
-    (job numbers do not decide: a trip may serve job 1 before job 0's use)."""
+    (job numbers do not decide: a trip may serve job 1 before job 0's use).
+
+    ``origin``: where the tool stands when the schedule begins (the magazine, 0, for a whole schedule) and the use
+    ``(job, op)`` it is held for then (None: none; a residual plan from a state, :func:`plan_orders`), which comes
+    first."""
     out: list[tuple] = []
-    loc, free = 0, 0  # where the tool is, and until when the uses so far hold it
+    loc, free = origin[0], 0  # where the tool is, and until when the uses so far hold it
+    held = next((u for u in us if (u[2], u[3]) == origin[1]), None)
+    if held is not None:  # the tool serves it before anything else, wherever the schedule's times put it
+        us = [u for u in us if u is not held]
+        out.append(held)
+        loc, free = held[4], held[1]
     for _, group in groupby(sorted(us), key=lambda u: u[:2]):
         tied = list(group)
         found = _tied_order(tied, trips, loc, free) if len(tied) > 1 else None
@@ -172,19 +182,32 @@ def has_ties(schedule: Schedule) -> bool:
             or any(t.start == t.end for t in schedule.tool_trips))
 
 
-def plan_orders(instance: Instance, schedule: Schedule) -> tuple[dict[int, list[tuple[int, int]]],
-                                                                  dict[tuple[int, int], int]]:
+def plan_orders(instance: Instance, schedule: Schedule,
+                origin: dict[int, tuple[int, tuple[int, int] | None]] | None = None
+                ) -> tuple[dict[int, list[tuple[int, int]]], dict[tuple[int, int], int]]:
     """What a replay of ``schedule`` must keep: per tool its uses ``(job, op)`` in the order the tool serves them (as
     :func:`tool_use_orders`), and per operation of zero duration its place in one sequence of all the tied events
     that follows every resource (a topological order of the graph :func:`settle` checks, the same graph: ties by
     time, trips before operations, then list order). A machine serves its operations at one instant in that order;
     by their list order instead, it could close a circular wait with a transporter's carries for them, and the replay
     of a valid schedule got stuck. Where the graph has a cycle (not a valid schedule) the events on it come last, in
-    time and list order."""
+    time and list order.
+
+    ``origin`` (tool -> where it stands and the use ``(job, op)`` it is held for, or None) is the state a residual
+    plan starts from (:meth:`fms_sim.replay.PlanPolicy.resume`); without it each tool starts in the magazine (0),
+    held for nothing, as a whole schedule's do. A held use comes first in its tool's order and its carry, if the
+    schedule records one, counts as made. Ordered from the magazine instead, the tied uses of a tool that stands
+    elsewhere came out in an order the tool cannot follow, which the machines' orders (by the same ranks) and the
+    transporters' routes contradicted, and the replay of the residual plan got stuck."""
     import heapq
 
     ops = {(r.job, r.op): (r.start, r.end) for r in schedule.operations}
-    orders, _, when, succ = _settle(instance, schedule, ops, None)
+    if origin:
+        held = {(t, *op) for t, (_, op) in origin.items() if op is not None}
+        if held:  # (its carry is made: the tool is on its way, or there)
+            schedule = replace(schedule, tool_trips=[t for t in schedule.tool_trips
+                                                      if not t.loaded or (t.tool, t.job, t.op) not in held])
+    orders, _, when, succ = _settle(instance, schedule, ops, None, origin)
     tools = {tool: [(u[2], u[3]) for u in us] for tool, us in orders.items()}
     if not when:
         return tools, {}
@@ -231,16 +254,19 @@ def settle(instance: Instance, schedule: Schedule, ops: dict,
     return orders, message
 
 
-def _settle(instance: Instance, schedule: Schedule, ops: dict, orders: dict[int, list[tuple]] | None
+def _settle(instance: Instance, schedule: Schedule, ops: dict, orders: dict[int, list[tuple]] | None,
+            origin: dict[int, tuple[int, tuple[int, int] | None]] | None = None
             ) -> tuple[dict[int, list[tuple]], str | None, dict[tuple, int], dict[tuple, list[tuple]]]:
     """:func:`settle`, also returning the tied events (event -> its instant) and the graph over them with the tools'
-    orders as settled (empty where nothing is tied)."""
+    orders as settled (empty where nothing is tied). ``origin``: where each tool starts and the use it is held for
+    (:func:`plan_orders`; absent: the magazine, held for nothing)."""
+    origin = origin or {}
     if orders is None:
         moves: dict[int, list] = defaultdict(list)
         for t in schedule.tool_trips:
             if t.loaded and t.tool is not None and t.job is not None and t.op is not None:
                 moves[t.tool].append(t)
-        orders = {tool: tool_order(us, trips_by_op(moves.get(tool, [])))
+        orders = {tool: tool_order(us, trips_by_op(moves.get(tool, [])), origin.get(tool, (0, None)))
                   for tool, us in uses_by_tool(instance, ops).items()} if instance.has_tools else {}
     when: dict[tuple, int] = {("op", j, k): s for (j, k), (s, e) in ops.items() if s == e}
     when.update((("agv", i), t.start) for i, t in enumerate(schedule.agv_trips) if t.start == t.end)
@@ -257,7 +283,8 @@ def _settle(instance: Instance, schedule: Schedule, ops: dict, orders: dict[int,
             return orders, None, when, succ
         instant = when[cycle[0]]
         try:
-            found = None if instant in searched else _search(instant, fixed, orders, when, carrier, schedule)
+            found = None if instant in searched else _search(instant, fixed, orders, when, carrier, schedule,
+                                                                 origin)
         except _GiveUp:
             return orders, (f"at time {instant} the order of the tied events could not be settled within "
                             f"{_SEARCH_STATES:,} states of the search (the tools' orders on their own close a cycle "
@@ -332,12 +359,15 @@ def _with_tools(fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]],
 
 
 def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tuple]], when: dict[tuple, int],
-            carrier: dict[tuple, int], schedule: Schedule) -> dict[int, list[tuple]] | None:
+            carrier: dict[tuple, int], schedule: Schedule,
+            origin: dict[int, tuple[int, tuple[int, int] | None]] | None = None) -> dict[int, list[tuple]] | None:
     """Orders of the tools' uses at instant ``t`` that agree with ``fixed`` (a sequence of all the tied events at
     ``t`` that each tool can follow), per tool the uses at ``t`` in order; None if there is none; raises
     :class:`_GiveUp` past :data:`_SEARCH_STATES`. An event without a tool, a use where its free tool is and the use
     a tool is held for are taken as soon as what precedes them is done (none moves or holds a tool, so taking it
-    never blocks anything); the carries are the choices, searched depth-first, the dead ends remembered."""
+    never blocks anything); the carries are the choices, searched depth-first, the dead ends remembered. A tool
+    starts where ``origin`` says (else the magazine), held for the use it names there (:func:`plan_orders`)."""
+    origin = origin or {}
     items = [e for e, w in when.items() if w == t]
     indeg0 = dict.fromkeys(items, 0)
     for a in items:
@@ -360,7 +390,11 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
             use_of[e] = (tool, u[4], i is not None)
             if i is not None and when.get(("tt", i)) != t:  # its carry left before the instant: it comes first
                 held = e
-        start[tool] = (us[at[0] - 1][4] if at[0] else 0, held, len(at))
+        where = us[at[0] - 1][4] if at[0] else origin.get(tool, (0, None))[0]
+        reserved = origin.get(tool, (0, None))[1]
+        if not at[0] and held is None and reserved == us[0][2:4]:  # the tool's first use, the one it is held for
+            held = ("op", *reserved)
+        start[tool] = (where, held, len(at))
     for (tool, j, k), i in carrier.items():
         if tool in group and when.get(("tt", i)) == t:
             trip = schedule.tool_trips[i]
@@ -381,8 +415,8 @@ def _search(t: int, fixed: dict[tuple, list[tuple]], orders: dict[int, list[tupl
                 if e in use_of:
                     tool, machine, carried = use_of[e]
                     where, held, left = state[tool]
-                    if (held != e) if carried else (held is not None or where != machine):
-                        continue
+                    if held != e and (carried or held is not None or where != machine):
+                        continue  # (a use the tool is held for goes, carried or not; another only where it is)
                     state[tool] = (machine, None, left - 1)
                 done_l.add(e)
                 seq = seq + [e]

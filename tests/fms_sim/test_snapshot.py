@@ -152,6 +152,87 @@ def test_a_residual_plan_runs_when_a_reserved_tool_ties_with_another_use_at_its_
         assert validate(inst, out) == [] and out.makespan <= residual.makespan
 
 
+def _stuck_before(case: str):
+    """A shop run to a state from which every list schedule's residual plan got stuck (fuzzed), its stepper."""
+    from fms_sim.instance import Instance, Operation
+
+    if case == "one job":  # tool 1 has just been carried to machine 2 for (0,0); (0,1) there and (0,2) on machine 1
+        inst = Instance(name="tied-from-m2", jobs=((Operation(2, 1, 0), Operation(2, 1, 0), Operation(1, 1, 0)),),
+                        tool_travel=((0, 1, 1), (0, 0, 1), (0, 0, 0)), n_tool_transporters=1)
+        labels = ("wait", "tool:1", "use:0", "tt:0")
+    else:  # tool 1 stands on machine 2, reserved for (0,0); the uses of three jobs tie at 0 and at 1
+        travel = ((0, 0, 0), (0, 0, 1), (0, 0, 0))
+        inst = Instance(name="tied-three-jobs", jobs=((Operation(2, 1, 0), Operation(1, 1, 0), Operation(2, 1, 0)),
+                        (Operation(2, 1, 0),), (Operation(1, 1, 0),)), agv_travel=travel, tool_travel=travel, n_agvs=2,
+                        n_tool_transporters=1)
+        labels = ("wait", "job:0", "agv:0", "wait", "tool:1", "use:0", "tt:0", "reposition:tt:0:1",
+                  "reposition:tt:0:0", "wait")
+    shop = FullShop(inst)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    for label in labels:
+        st.apply(label)
+    return shop, st
+
+
+@pytest.mark.parametrize("case", ["one job", "three jobs"])
+def test_a_residual_plan_orders_its_tied_uses_from_where_the_tool_stands(case):
+    # found by fuzzing (12-14 of 3196 small shops per planner): ties.plan_orders ordered each tool's uses at one
+    # instant as if the tool stood in the magazine, as at the start of a whole schedule; from the machine where it
+    # stood, that order was one the tool could not follow (here: (0,2), carried away from machine 2, before (0,0)
+    # and (0,1) there; or (1,0) before (0,2), whose carry brings the tool to (1,0)'s machine), the machine and the
+    # transporter served the uses in the plan's order, and the replay waited for a use the tool would not serve
+    from fms_sim.replay import PlanPolicy, execute
+    from fms_sim.snapshot import can_snapshot
+
+    shop, st = _stuck_before(case)
+    snap = snapshot(shop)
+    assert st.kind != "done" and snap.tool_loc[1] == 2 and snap.tool_reserved[1][:2] == (0, 0)  # the test's state
+    for rule in ("est", "ect"):
+        residual = greedy_schedule(shop.instance, rule=rule, origin=snap)
+        assert sum(r.start == r.end for r in residual.operations) >= 3  # uses of no duration, tied
+        out = finish_by(nominal_copy(shop), residual)
+        assert validate(shop.instance, out) == [] and out.makespan <= residual.makespan, rule
+        # resumed again from a later state of its own run (a plan adopted while the shop went on, or after an
+        # answer off the plan): the uses done are left out, the others ordered from where the tool stands then
+        twin = nominal_copy(shop)
+        run = Stepper(twin, idle_stops=True)
+        run.advance()
+        pol = PlanPolicy.resume(twin, residual)
+        while twin.started == shop.started or not (run.kind == "decision" and can_snapshot(twin)):
+            label = pol.answer(run)
+            pol.apply(run, label)
+            run.apply(label)
+        assert run.kind != "done"
+        execute(twin, PlanPolicy.resume(twin, residual))
+        assert twin.schedule().makespan <= residual.makespan, rule
+
+
+def test_a_plan_resumed_again_later_orders_only_the_uses_left_from_where_the_tool_stands():
+    # PlanPolicy.resume orders the tied uses from where the tools stand now, so the uses done must be left out of
+    # that order: here tool 1 stands on machine 1 for (1,1); counted after it, (1,0) (done, on machine 2) put the
+    # tool back on machine 2, (1,2) there came before (0,0) at 4, whose carry brings the tool from machine 1, and
+    # the replay was stuck (3 of 12840 fuzzed re-resumes of an implementation that kept them)
+    from fms_sim.instance import Instance, Operation
+    from fms_sim.replay import PlanPolicy, execute
+    from fms_sim.snapshot import can_snapshot
+
+    inst = Instance(name="resumed-later", jobs=((Operation(2, 1, 0),), (Operation(2, 1, 1), Operation(1, 1, 1),
+                    Operation(2, 1, 0))), tool_travel=((0, 0, 0), (2, 0, 2), (2, 0, 0)), n_tool_transporters=2)
+    shop = FullShop(inst)
+    st = Stepper(shop, idle_stops=True)
+    st.advance()
+    plan = greedy_schedule(inst, rule="est", origin=snapshot(shop))
+    pol = PlanPolicy.resume(shop, plan)
+    while not (shop.now == 1 and st.kind == "decision" and can_snapshot(shop)):
+        label = pol.answer(st)
+        pol.apply(st, label)
+        st.apply(label)
+    assert shop.started == [0, 1] and shop.tool_loc[1] == 1 and shop.reserved_op(1) == (1, 1)  # the test's state
+    execute(shop, PlanPolicy.resume(shop, plan))
+    assert validate(inst, shop.schedule()) == [] and shop.schedule().makespan <= plan.makespan
+
+
 def test_a_reserved_operation_that_runs_a_while_lets_the_operations_tied_at_its_start_go_first():
     # found by fuzzing: tool 1 is reserved for job 0's operation (3 long) and arrives at its machine at 2, where job 1's
     # operation of no duration is planned at 2 too, before it; resume put the reserved one first on the machine (a rule
