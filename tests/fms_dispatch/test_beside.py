@@ -241,3 +241,23 @@ def test_a_daemonic_process_searches_before_its_run(monkeypatch, two_cpus):
     assert validate(inst, sched) == [] and sched.meta["guide_search_beside"] is None
     with pytest.raises(OSError, match="daemonic"):  # (the agent node's re-plans and the search fall back on it)
         beside.Forked(len, ((),))
+
+
+def test_a_cpu_quota_below_two_cpus_keeps_the_search_before_the_run(tmp_path, monkeypatch):
+    # a container given 1.5 CPUs' time may see every CPU in its affinity: the search and the run would share one
+    monkeypatch.setattr(beside.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    monkeypatch.setattr(beside, "CGROUP_ROOT", tmp_path)
+    assert beside._cpus() == 4  # nothing to read: no limit
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert beside._cpus() == 4
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert beside._cpus() == 1
+    (tmp_path / "cpu.max").write_text("300000 100000\n")
+    assert beside._cpus() == 3
+    (tmp_path / "cpu.max").unlink()
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("100000\n")  # cgroup v1
+    (tmp_path / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert beside._cpus() == 1
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")  # v1: no limit
+    assert beside._cpus() == 4

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from pathlib import Path
 from typing import Callable
 
 from fms_sim.full_shop import FullShop
@@ -51,12 +52,39 @@ def in_pool_worker() -> None:
     ALLOWED = False
 
 
-def _cpus() -> int:
-    """The CPUs this process may run on (all of the machine's where the system cannot say)."""
+#: where the control groups that may limit this process's CPU time are mounted (a container's own, as a rule)
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+
+
+def _quota_cpus(root: Path) -> float | None:
+    """The CPUs' worth of time a control group under ``root`` allows (cgroup v2 ``cpu.max``, or v1
+    ``cpu/cpu.cfs_quota_us`` over ``cpu.cfs_period_us``: a container limited to 1.5 CPUs gives 1.5), None where
+    there is no limit or nothing can be read."""
     try:
-        return len(os.sched_getaffinity(0))
+        quota, _, period = (root / "cpu.max").read_text().partition(" ")
+        if quota.strip() == "max":
+            return None
+        return int(quota) / int(period)
+    except (OSError, ValueError, ZeroDivisionError):
+        pass
+    try:
+        quota_us = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period_us = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota_us / period_us if quota_us > 0 and period_us > 0 else None
+    except (OSError, ValueError):
+        return None
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on (all of the machine's where the system cannot say), no more than the whole
+    CPUs its control group's quota allows (a container given one CPU's time may still see every CPU in its
+    affinity: the search and the run would share that one)."""
+    try:
+        n = len(os.sched_getaffinity(0))
     except AttributeError:  # (not on Linux; fork is not used there anyway)
-        return os.cpu_count() or 1
+        n = os.cpu_count() or 1
+    quota = _quota_cpus(CGROUP_ROOT)
+    return n if quota is None else max(1, min(n, int(quota)))
 
 
 def beside_possible(effort: PlanEffort) -> bool:
