@@ -214,8 +214,8 @@ def cmd_solve(a: argparse.Namespace) -> int:
             effort = guide_effort_from_args(a)
         except ValueError:
             effort = None  # a bad value: reported below with the options it concerns
-        flags = [f for f, v in (("--[no-]guide-replan", a.guide_replan), ("plan search options (--guide-*)", effort))
-                 if v is not None]
+        flags = [f for f, v in (("--[no-]guide-replan", a.guide_replan), ("--[no-]guide-beside", a.guide_beside),
+                                ("plan search options (--guide-*)", effort)) if v is not None]
         if flags and not ref.config.get("guide"):  # taken and ignored (replan) or refused after the header (effort)
             raise CliError(f"model {ref.name} reads no plan guide, so it takes no {' and no '.join(flags)}")
     plan_file = a.solver[len("plan:file:"):] if a.solver.lower().startswith("plan:file:") else None
@@ -288,6 +288,10 @@ def cmd_solve(a: argparse.Namespace) -> int:
         if not a.solver.lower().startswith("ppo"):
             raise CliError("--[no-]guide-replan applies to the ppo solver only")
         opts["guide_replan"] = a.guide_replan
+    if a.guide_beside is not None:
+        if not a.solver.lower().startswith("ppo"):
+            raise CliError("--[no-]guide-beside applies to the ppo solver only")
+        opts["guide_beside"] = a.guide_beside
     if not a.quiet:
         print(f"{inst.describe()}; solver {a.solver}", file=sys.stderr)
         opts["progress"] = True
@@ -689,6 +693,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ppo with a guided model: idle vehicles make the guide plan's empty trips (no trial runs; "
                         "fast on any size, not verified)")
     add_guide_args(s)
+    s.add_argument("--guide-beside", action=argparse.BooleanOptionalAction, default=None,
+                   help="ppo with a guided model: on large shops with a second CPU, search the plan on it while the "
+                        "run goes on with the search's first plan (default: yes); --no-guide-beside searches first "
+                        "(the schedule is the same where the search gets the same CPU time; choose it while another "
+                        "job keeps the second CPU busy)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS",
                    help="time limit of cpsat, sos, tabu, plan:SOLVER and rules (which then stops trying "
                         "combinations; defaults: cpsat 60, sos 10, tabu 10, rules none: every combination, a plan: "

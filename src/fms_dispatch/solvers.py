@@ -343,7 +343,7 @@ DISRUPTABLE = ("first", "random", "rule:", "plan:", "ppo")
 #: the options :func:`solve` passes on (every solver takes them all and uses its own, see each solver; those that
 #: change what only some solvers do are refused for the others: :data:`OPTION_SOLVERS`)
 SOLVE_OPTIONS = ("seed", "time_limit", "progress", "scenario", "decisions", "workers", "population", "iterations",
-                 "initial", "config", "lookahead", "guide_effort", "guide_replan", "replan", "drift")
+                 "initial", "config", "lookahead", "guide_effort", "guide_replan", "guide_beside", "replan", "drift")
 
 
 def check_options(options: dict[str, Any]) -> dict[str, Any]:
@@ -379,7 +379,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
             raise TypeError(f"{name} must be a number ({what}) or None, got {v!r}")
         if v is not None and not 0 < v < math.inf:
             raise ValueError(f"{name} must be a positive, finite number ({what}), got {v!r}")
-    for name in ("progress", "guide_replan"):
+    for name in ("progress", "guide_replan", "guide_beside"):
         if name in options and not isinstance(options[name], bool):
             raise TypeError(f"{name} must be True or False, got {options[name]!r}")
     out = dict(options)
@@ -399,6 +399,7 @@ OPTION_SOLVERS: dict[str, tuple[tuple[str, ...], str]] = {
     "lookahead": (("ppo",), "the ppo solvers"),
     "guide_effort": (("ppo",), "the ppo solvers (a guided model)"),
     "guide_replan": (("ppo",), "the ppo solvers (a guided model)"),
+    "guide_beside": (("ppo",), "the ppo solvers (a guided model)"),
     "decisions": (DECISION_SOLVERS, "first, random and the rule: solvers"),
     **{name: (("sos", "plan:sos"), "sos and plan:sos") for name in ("population", "iterations", "config", "initial")},
 }

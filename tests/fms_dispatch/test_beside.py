@@ -3,6 +3,7 @@ where the first plan stands and starting over where the search found a better on
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
@@ -261,3 +262,25 @@ def test_a_cpu_quota_below_two_cpus_keeps_the_search_before_the_run(tmp_path, mo
     assert beside._cpus() == 1
     (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")  # v1: no limit
     assert beside._cpus() == 4
+
+
+def test_no_guide_beside_searches_before_the_run(monkeypatch, two_cpus, tmp_path, capsys):
+    # a second CPU that another job keeps busy would give the search beside the run less time: the user can say so
+    from fms_dispatch import cli
+
+    inst = builtin("EX22")
+    sched = solve(inst, "ppo", guide_effort=SEARCH, guide_beside=False)
+    assert sched.meta["guide_search_beside"] is None
+    assert sched.operations == solve(inst, "ppo", guide_effort=SEARCH).operations
+    out = tmp_path / "s.json"
+    assert cli.main(["solve", "EX22", "--solver", "ppo", "--guide-budget", "30", "--guide-tabu", "0",
+                     "--guide-restarts", "8", "--out", str(out), "-q"]) == 0
+    assert json.loads(out.read_text())["meta"]["guide_search_beside"] == "restarted"
+    assert cli.main(["solve", "EX22", "--solver", "ppo", "--guide-budget", "30", "--guide-tabu", "0",
+                     "--guide-restarts", "8", "--no-guide-beside", "--out", str(out), "-q"]) == 0
+    assert json.loads(out.read_text())["meta"]["guide_search_beside"] is None
+    capsys.readouterr()
+    assert cli.main(["solve", "EX22", "--solver", "list", "--no-guide-beside"]) == 2
+    assert "--[no-]guide-beside applies to the ppo solver only" in capsys.readouterr().err
+    assert cli.main(["solve", "EX22", "--solver", "ppo:full", "--no-guide-beside"]) == 2
+    assert "reads no plan guide, so it takes no --[no-]guide-beside" in capsys.readouterr().err

@@ -59,9 +59,11 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
     (:mod:`~fms_dispatch.rl.beside`; the same schedule where the search gets the CPU time it gets before the run,
     sooner where the first plan stands):
     ``meta["guide_search_beside"]`` is then ``"kept"`` or ``"restarted"`` (None: the search ran before the run, its
-    time part of the run's ``wall_time``). Where a guided model's only choice is an assignment (a vehicle for a
-    carry, a request for a tool) and its plan names a legal answer, the run takes it without running the network
-    (:attr:`~fms_dispatch.rl.agent.Agent.plan_assigns`); ``meta["plan_assignments"]`` counts them.
+    time part of the run's ``wall_time``). ``guide_beside=False`` searches before the run in any case (while another
+    job keeps the second CPU busy, the search beside the run would get less time). Where a guided model's only choice
+    is an assignment (a vehicle for a carry, a request for a tool) and its plan names a legal answer, the run takes
+    it without running the network (:attr:`~fms_dispatch.rl.agent.Agent.plan_assigns`); ``meta["plan_assignments"]``
+    counts them.
     """
     if not isinstance(spec, str):  # None was an AttributeError
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
@@ -74,7 +76,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         raise ValueError(f"bad PPO solver name {spec!r}; use ppo or ppo:MODEL")
 
     def solve(instance: Instance, lookahead: bool | str = False, progress: bool = False, scenario: Any = None,
-              guide_effort: Any = None, guide_replan: bool | None = None, **_: Any) -> Schedule:
+              guide_effort: Any = None, guide_replan: bool | None = None, guide_beside: bool | None = None,
+              **_: Any) -> Schedule:
         from fms_sim.full_shop import make_shop
 
         from ..solvers import lookahead_suffix
@@ -122,7 +125,8 @@ def ppo_solver(spec: str = "ppo") -> Callable[..., Schedule]:
         shop, choose = start()
         search_s = None
         beside = None
-        if agent.guide is not None and not lookahead and beside_possible(agent.guide_effort):
+        if agent.guide is not None and not lookahead and guide_beside is not False \
+                and beside_possible(agent.guide_effort):
             t0 = time.perf_counter()
             first = first_plan(shop)
             if worth_beside(first, agent.guide_effort):
