@@ -47,7 +47,6 @@ Offline solvers named alone (``sos``, ``cpsat``) raise :class:`UnavailableSolver
 
 from __future__ import annotations
 
-import os
 import random
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -60,7 +59,7 @@ from fms_sim.petri import InvalidAction
 from fms_sim.shop_service import Outgoing
 from fms_sim.stepping import WAIT, Stepper, moves_label
 
-from .forked import FORK_AVAILABLE, child_main
+from .forked import FORK_AVAILABLE, Forked
 from .rules import JOB_RULES, VEHICLE_RULES, parse_rule_name
 from .solvers import LOOKAHEAD_SUFFIXES
 
@@ -914,40 +913,27 @@ class _ReplanJob:
         self.done = threading.Event()
         self._t0 = _time.monotonic()
         self._clock = _time.monotonic
-        self.process: Any = None
-        import multiprocessing
-
-        # a daemonic process (a multiprocessing.Pool's worker) may not start one (multiprocessing refuses with an
-        # AssertionError): its re-plans run in a thread, as where no process can be forked
-        if REPLAN_IN_PROCESS and not multiprocessing.current_process().daemon:
-            ctx = multiprocessing.get_context("fork")
-            receive, send = ctx.Pipe(duplex=False)
-            self.process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name="fms-replan",
-                                       daemon=True)
+        self.process: Any = None  # the child process (pid, exitcode), where the re-plan runs in one
+        self._forked: Forked | None = None
+        if REPLAN_IN_PROCESS:
             try:
-                self.process.start()
-            except OSError:  # no fork now (out of memory or processes): the re-plan runs in a thread instead
-                self.process = None
-                receive.close()
-            send.close()  # the child holds the sending end: its exit ends the wait below
-        if self.process is None and thread_copy:  # a thread shares the agent's objects: it works on copies
+                self._forked = Forked(fn, args, name="fms-replan")
+            except OSError:  # no fork now (out of memory or processes), or a daemonic process (a multiprocessing.Pool's
+                pass  # worker, which may not start one): the re-plan runs in a thread instead
+            else:
+                self.process = self._forked.process
+        if self._forked is None and thread_copy:  # a thread shares the agent's objects: it works on copies
             import copy
 
             args = copy.deepcopy(args)
-        if self.process is not None:
+        forked = self._forked
+        if forked is not None:
 
             def work() -> None:
                 try:
-                    kind, value = receive.recv()
-                except (EOFError, OSError):  # the process died (killed, out of memory) or was cancelled
-                    kind, value = "error", None
-                receive.close()
-                self.process.join()  # reaped here only (the child ends right after sending), before done is set
-                if kind == "ok":
-                    self.result = value
-                else:
-                    self.error = value or (f"the re-plan process ended without a result (exit code "
-                                           f"{self.process.exitcode})")
+                    self.result = forked.result()  # (reaped there, before done is set)
+                except RuntimeError as exc:  # its error, or its death (killed, out of memory, cancelled)
+                    self.error = str(exc)
                 self.wall = self._clock() - self._t0
                 self.done.set()
         else:
@@ -966,8 +952,8 @@ class _ReplanJob:
 
     def cancel(self) -> None:
         """Stop a re-plan that is no longer wanted (a process is terminated; a thread runs out by itself)."""
-        if self.process is not None and not self.done.is_set():  # (only the job's own thread reaps the process)
-            self.process.terminate()
+        if self._forked is not None and not self.done.is_set():  # (only the job's own thread reaps the process)
+            self._forked.terminate()
 
 
 def needs_full_net(solver: str) -> bool:

@@ -65,9 +65,10 @@ class Forked:
             raise OSError("a daemonic process (a multiprocessing.Pool's worker) may not start a process")
         ctx = multiprocessing.get_context("fork")
         self._receive, send = ctx.Pipe(duplex=False)
-        self._process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name=name, daemon=True)
+        #: the child (``pid``, ``exitcode``; reaped by :meth:`result` or :meth:`cancel`)
+        self.process = ctx.Process(target=child_main, args=(fn, args, send, os.getpid()), name=name, daemon=True)
         try:
-            self._process.start()
+            self.process.start()
         finally:
             send.close()  # the child holds the sending end: its exit ends a wait on the receiving end
         self._out: tuple[str, Any] | None = None
@@ -78,24 +79,31 @@ class Forked:
 
     def result(self) -> Any:
         """``fn(*args)`` as the child computed it, waiting for it; RuntimeError with the child's error, or where the
-        child died without a result (killed, out of memory)."""
+        child died without a result (killed, out of memory; the message names its exit code)."""
         if self._out is None:
             try:
-                self._out = self._receive.recv()
-            except (EOFError, OSError):
-                self._out = ("error", "the process ended without a result")
+                out: tuple[str, Any] | None = self._receive.recv()
+            except (EOFError, OSError):  # the child died (killed, out of memory) or was terminated
+                out = None
             self._receive.close()
-            self._process.join()
+            self.process.join()  # (the child ends right after sending)
+            self._out = out or ("error", f"the process ended without a result (exit code {self.process.exitcode})")
         kind, value = self._out
         if kind != "ok":
             raise RuntimeError(value if value else "the process failed")
         return value
 
+    def terminate(self) -> None:
+        """Signal the child to end if it still runs, for a caller whose other thread waits in :meth:`result` (which
+        then reaps it and reports its end)."""
+        if self._out is None and self.process.is_alive():
+            self.process.terminate()
+
     def cancel(self) -> None:
-        """End the child if it still runs (its result is dropped) and reap it."""
+        """End the child if it still runs (its result is dropped) and reap it; for a caller that does not wait in
+        :meth:`result` meanwhile."""
         if self._out is None:
-            if self._process.is_alive():
-                self._process.terminate()
-            self._process.join()
+            self.terminate()
+            self.process.join()
             self._receive.close()
             self._out = ("error", "cancelled")

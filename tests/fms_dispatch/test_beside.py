@@ -119,7 +119,7 @@ def test_an_interrupted_run_ends_the_search(two_cpus):
 
     with pytest.raises(KeyboardInterrupt):
         beside.run_beside(search, shop, interrupted, lambda plan: pytest.fail("no second run"))
-    assert not job._process.is_alive() and job._process.exitcode is not None
+    assert not job.process.is_alive() and job.process.exitcode is not None
 
 
 def test_the_search_runs_beside_only_where_it_can_and_searches(monkeypatch):
@@ -200,8 +200,8 @@ def test_an_interrupt_while_the_solve_waits_for_the_search_ends_it(two_cpus):
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
-    job._process.join(timeout=5)  # (a process still searching would not end within 5 s)
-    assert not job._process.is_alive() and job._process.exitcode is not None
+    job.process.join(timeout=5)  # (a process still searching would not end within 5 s)
+    assert not job.process.is_alive() and job.process.exitcode is not None
 
 
 @needs_fork
@@ -225,8 +225,8 @@ def test_an_interrupt_before_the_run_ends_the_search(monkeypatch, two_cpus):
     with pytest.raises(KeyboardInterrupt):
         solve(builtin("EX22"), "ppo", guide_effort=effort_from(restarts=10**6, budget=30, tabu=0))
     assert len(started) == 1
-    started[0]._process.join(timeout=5)
-    assert not started[0]._process.is_alive()
+    started[0].process.join(timeout=5)
+    assert not started[0].process.is_alive()
 
 
 @needs_fork

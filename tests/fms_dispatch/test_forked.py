@@ -32,6 +32,6 @@ def test_cancel_ends_the_child():
     job = Forked(time.sleep, (60,))
     assert not job.ready()
     job.cancel()
-    assert not job._process.is_alive() and job._process.exitcode is not None
+    assert not job.process.is_alive() and job.process.exitcode is not None
     with pytest.raises(RuntimeError, match="cancelled"):
         job.result()
