@@ -20,7 +20,7 @@ from fms_sim.shop import Shop
 
 from .actors import Actor, actor_path, file_sha256, load_actor, save_actor
 from .envs import FastShopEnv
-from .guide import REPLAN_BUDGET, REPLAN_DRIFT, REPLAN_MARGIN, GuideReplan, at_start
+from .guide import ASSIGNMENT_KINDS, REPLAN_BUDGET, REPLAN_DRIFT, REPLAN_MARGIN, GuideReplan, at_start
 
 __all__ = ["Agent", "GuideReplanner", "export_actor", "load_torch_policy"]
 
@@ -292,16 +292,9 @@ class Agent:
         if not legal:
             return None
         kind = shop.action_kind(legal[0])[0]
-        if kind not in ("agv", "tt", "use"):  # (the net offers such a choice alone)
+        if kind not in ASSIGNMENT_KINDS:  # (the net offers such a choice alone)
             return None
-        guide = self.guide_of(shop)
-        if kind == "use":
-            job = guide.planned_use(shop)
-            a = shop.action_index(f"use:{job}") if job is not None else None
-        else:
-            v = guide.planned_vehicle(shop, kind)
-            a = shop.action_index(f"{kind}:{v}") if v is not None else None
-        return a if a in legal else None
+        return self.guide_of(shop).planned_assignment(shop, kind, legal)
 
     def act(self, shop: Shop) -> int:
         """The net action the policy picks now (arg-max of the masked logits, lowest index on ties); for a guided

@@ -534,6 +534,18 @@ class PlanGuide:
         return dict(shop=shop, started=started, started_key=key, start_head=start_head, dispatch_head=dispatch_head,
                     carrier_idle=carrier_idle, t_heads=t_heads, r_heads=r_heads, idle_tts=idle_tts)
 
+    def planned_assignment(self, shop: FullShop, kind: str, legal: list[int]) -> int | None:
+        """The plan's answer to an assignment choice of ``kind`` (``agv``/``tt``: the planned carrier,
+        :meth:`planned_vehicle`; ``use``: the request the tool serves next, :meth:`planned_use`) if it is among
+        ``legal``, else None."""
+        if kind == "use":
+            job = self.planned_use(shop)
+            a = shop.action_index(f"use:{job}") if job is not None else None
+        else:
+            v = self.planned_vehicle(shop, kind)
+            a = shop.action_index(f"{kind}:{v}") if v is not None else None
+        return a if a in legal else None
+
     def planned_use(self, shop: FullShop) -> int | None:
         """:meth:`use_head` of ``shop`` without the rest of its :meth:`view`: the job whose request the chosen tool
         serves next in the plan, from the tools' order heads alone (the same heads, memo and key as the view's)."""
@@ -652,6 +664,10 @@ class PlanGuide:
         return [J, T, A, R]
 
 
+#: the kinds of a choice that only assigns (the net offers such a choice alone): which vehicle carries the part
+#: (``agv``) or tool (``tt``) awaiting one, which pending request the chosen tool serves next (``use``)
+ASSIGNMENT_KINDS = ("agv", "tt", "use")
+
 _NEAREST = FullRulePolicy("FIFO", "nearest", "earliest-start")  # its vehicle choice only
 
 
@@ -686,21 +702,16 @@ class GuideFollower:
             return legal[0]
         g = self._guide(shop)
         kind = shop.action_kind(legal[0])[0]
-        if kind in ("agv", "tt"):
-            v = g.planned_vehicle(shop, kind)
-            a = shop.action_index(f"{kind}:{v}") if v is not None else None
-            if a in legal:
+        if kind in ASSIGNMENT_KINDS:  # the planned carrier or use, else the nearest vehicle or earliest planned request
+            a = g.planned_assignment(shop, kind, legal)
+            if a is not None:
                 return a
-            return _NEAREST._vehicle(shop, kind, legal, g.vehicle_target(shop, kind))
-        view = g.view(shop, tools=kind == "use" or any(shop.action_kind(a)[0] == "tool" for a in legal))
-        if kind == "use":
-            u = g.use_head(view)
-            a = shop.action_index(f"use:{u}") if u is not None else None
-            if a in legal:
-                return a
+            if kind != "use":
+                return _NEAREST._vehicle(shop, kind, legal, g.vehicle_target(shop, kind))
             t = shop.tool_choice
             jobs = [shop.action_kind(x)[1] for x in legal]
             return shop.action_index(f"use:{min(jobs, key=lambda j: (g.start[j, shop.request_of(t, j)], j))}")
+        view = g.view(shop, tools=any(shop.action_kind(a)[0] == "tool" for a in legal))
         by_kind: dict[str, list[int]] = {}
         for a in legal:
             k, num = shop.action_kind(a)
