@@ -180,7 +180,7 @@ def run_beside(search: SearchBeside, shop: Shop, choose: Choose, again: Callable
     run started over.
     ``progress`` gets a line at most every ``every_s`` seconds, and one where the run starts over. The search is
     ended if the run fails or is interrupted."""
-    from .lookahead import run_agent
+    from .lookahead import progress_line, run_agent
 
     t0 = last = time.perf_counter()
     better = None
@@ -196,9 +196,7 @@ def run_beside(search: SearchBeside, shop: Shop, choose: Choose, again: Callable
                     break
             if progress is not None and time.perf_counter() - last >= every_s:
                 last = time.perf_counter()
-                beside = ", the plan search beside it" if pending else ""
-                progress(f"  policy: {sum(shop.job_done_ops)}/{shop.instance.n_operations} operations done, "
-                         f"time {shop.now}, {last - t0:.1f} s{beside}")
+                progress(progress_line(shop, last - t0, ", the plan search beside it" if pending else ""))
         if pending:  # the run ended first
             pending = False
             better = search.searched()

@@ -73,9 +73,15 @@ def run_agent(shop: Shop, choose: Choose, lookahead: bool = False, horizon: int 
         shop.act(choose(shop))
         if progress is not None and time.perf_counter() - last >= every_s:
             last = time.perf_counter()
-            progress(f"  policy: {sum(shop.job_done_ops)}/{shop.instance.n_operations} operations done, "
-                     f"time {shop.now}, {last - t0:.1f} s")
+            progress(progress_line(shop, last - t0))
     return shop.schedule()
+
+
+def progress_line(shop: Shop, seconds: float, more: str = "") -> str:
+    """A plain run's progress report: the operations done, the shop's time and the run's ``seconds`` so far (then
+    ``more``)."""
+    return (f"  policy: {sum(shop.job_done_ops)}/{shop.instance.n_operations} operations done, time {shop.now}, "
+            f"{seconds:.1f} s{more}")
 
 
 def predict_task(shop: Shop, choose: Choose, kind: str, vehicle: int, horizon: int = DEFAULT_HORIZON) -> int | None:
