@@ -245,14 +245,6 @@ def instance_digest(inst: Instance) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 class DigestMemo:
     """The digests of one run, each computed once: per (instance, variant), per model name and per file (a
     benchmark runs many methods on each instance, and each ``ppo`` method on many instances)."""
@@ -277,8 +269,10 @@ class DigestMemo:
         """A file's SHA-256; None where it cannot be read."""
         key = str(path)
         if key not in self.files:
+            from .rl.actors import file_sha256  # (what the actor exports record of their weights; no torch)
+
             try:
-                self.files[key] = _file_sha256(path)
+                self.files[key] = file_sha256(path)
             except OSError:
                 self.files[key] = None
         return self.files[key]
